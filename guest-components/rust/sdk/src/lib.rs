@@ -1,0 +1,217 @@
+//! `subsume-guest`: write a subsume robot component in Rust as a struct and a
+//! few methods.
+//!
+//! ```ignore
+//! use subsume_guest::{Component, Description, Params, Value, ValueKind, emit, input, output};
+//!
+//! struct Doubler;
+//!
+//! impl Component for Doubler {
+//!     fn describe() -> Description {
+//!         Description::new("doubler", "Doubles every scalar it receives")
+//!             .input(input("in", ValueKind::Scalar, "any number"))
+//!             .output(output("out", ValueKind::Scalar, "twice the input"))
+//!     }
+//!     fn init(_params: &Params) -> Result<Self, String> { Ok(Doubler) }
+//!     fn on_input(&mut self, _port: u32, value: Value) -> Result<(), String> {
+//!         if let Value::Scalar(x) = value { emit(0, &Value::Scalar(2.0 * x)); }
+//!         Ok(())
+//!     }
+//! }
+//! subsume_guest::component!(Doubler);
+//! ```
+//!
+//! The SDK owns the wit-bindgen boilerplate: the bindings of the
+//! `subsume:robot/component` world, the one instance of the component's state
+//! and the export glue.
+
+#[doc(hidden)]
+pub mod bindings {
+    wit_bindgen::generate!({
+        world: "component",
+        path: "../../../wit",
+        pub_export_macro: true,
+        export_macro_name: "__export_component",
+        default_bindings_module: "subsume_guest::bindings",
+    });
+}
+
+pub use bindings::subsume::robot::types::{
+    Description as RawDescription, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value,
+    ValueKind,
+};
+
+/// What a component implements. `describe` is static (called before `init`);
+/// `init` builds the component's state from its parameters.
+pub trait Component: Sized + 'static {
+    /// Ports, parameters and default priority. Must not depend on parameters.
+    fn describe() -> Description;
+    /// Builds the component from its parameters (every declared parameter is
+    /// present: the host fills in defaults). `Err` refuses to start.
+    fn init(params: &Params) -> Result<Self, String>;
+    /// A new value arrived on input `port` (index into the declared inputs).
+    fn on_input(&mut self, port: u32, value: Value) -> Result<(), String> {
+        let _ = (port, value);
+        Ok(())
+    }
+    /// Called at the component's configured rate.
+    fn tick(&mut self, now_ns: u64) -> Result<(), String> {
+        let _ = now_ns;
+        Ok(())
+    }
+}
+
+/// Builder for the component's self-description.
+#[derive(Clone, Debug)]
+pub struct Description(RawDescription);
+
+impl Description {
+    /// A description with no ports, no parameters and no default priority.
+    pub fn new(name: &str, summary: &str) -> Self {
+        Description(RawDescription {
+            name: name.to_string(),
+            version: "0.1.0".to_string(),
+            summary: summary.to_string(),
+            inputs: Vec::new(),
+            outputs: Vec::new(),
+            params: Vec::new(),
+            default_priority: None,
+        })
+    }
+    pub fn version(mut self, version: &str) -> Self {
+        self.0.version = version.to_string();
+        self
+    }
+    /// Adds an input port; its index is the number of inputs added before it.
+    pub fn input(mut self, port: PortSpec) -> Self {
+        self.0.inputs.push(port);
+        self
+    }
+    /// Adds an output port; its index is the number of outputs added before it.
+    pub fn output(mut self, port: PortSpec) -> Self {
+        self.0.outputs.push(port);
+        self
+    }
+    pub fn param(mut self, param: ParamSpec) -> Self {
+        self.0.params.push(param);
+        self
+    }
+    /// Subsumption priority of this component's motion commands (higher wins).
+    pub fn priority(mut self, priority: i32) -> Self {
+        self.0.default_priority = Some(priority);
+        self
+    }
+    pub fn into_raw(self) -> RawDescription {
+        self.0
+    }
+}
+
+/// An input port spec.
+pub fn input(name: &str, kind: ValueKind, doc: &str) -> PortSpec {
+    PortSpec { name: name.to_string(), kind, doc: doc.to_string() }
+}
+
+/// An output port spec.
+pub fn output(name: &str, kind: ValueKind, doc: &str) -> PortSpec {
+    input(name, kind, doc)
+}
+
+/// A parameter spec; `default` is written as it would be in the XML file.
+pub fn param(name: &str, kind: ParamKind, default: &str, doc: &str) -> ParamSpec {
+    ParamSpec {
+        name: name.to_string(),
+        kind,
+        default_value: default.to_string(),
+        doc: doc.to_string(),
+    }
+}
+
+/// The parameters handed to `init`, already checked by the host against
+/// their declared kinds.
+#[derive(Clone, Debug, Default)]
+pub struct Params(pub Vec<Param>);
+
+impl Params {
+    /// The text of parameter `name`, if present.
+    pub fn text(&self, name: &str) -> Option<&str> {
+        self.0.iter().find(|p| p.name == name).map(|p| p.value.as_str())
+    }
+    /// Parameter `name` as a number; `Err` names the parameter.
+    pub fn number(&self, name: &str) -> Result<f64, String> {
+        let text = self.text(name).ok_or_else(|| format!("missing parameter '{name}'"))?;
+        text.trim()
+            .parse::<f64>()
+            .map_err(|_| format!("parameter '{name}': '{text}' is not a number"))
+    }
+    /// Parameter `name` as a whole number; `Err` names the parameter.
+    pub fn integer(&self, name: &str) -> Result<i64, String> {
+        let text = self.text(name).ok_or_else(|| format!("missing parameter '{name}'"))?;
+        text.trim()
+            .parse::<i64>()
+            .map_err(|_| format!("parameter '{name}': '{text}' is not a whole number"))
+    }
+    /// Parameter `name` as a flag (`true`/`false`).
+    pub fn flag(&self, name: &str) -> Result<bool, String> {
+        match self.text(name).map(str::trim) {
+            Some("true") => Ok(true),
+            Some("false") => Ok(false),
+            Some(other) => Err(format!("parameter '{name}': '{other}' is not true or false")),
+            None => Err(format!("missing parameter '{name}'")),
+        }
+    }
+}
+
+/// Sends `value` on output `port` (index into the declared outputs).
+pub fn emit(port: u32, value: &Value) {
+    bindings::subsume::robot::host::emit(port, value);
+}
+
+/// Writes `message` to the host log at `level`.
+pub fn log(level: LogLevel, message: &str) {
+    bindings::subsume::robot::host::log(level, message);
+}
+
+/// The host's monotonic clock, in nanoseconds since the host started.
+pub fn now_ns() -> u64 {
+    bindings::subsume::robot::host::now_ns()
+}
+
+/// Exports `$component` (a type implementing [`Component`]) as the
+/// component's implementation of the `subsume:robot/component` world.
+#[macro_export]
+macro_rules! component {
+    ($component:ty) => {
+        #[doc(hidden)]
+        struct __SubsumeExport;
+
+        ::std::thread_local! {
+            static __SUBSUME_STATE: ::core::cell::RefCell<::core::option::Option<$component>> =
+                const { ::core::cell::RefCell::new(::core::option::Option::None) };
+        }
+
+        impl $crate::bindings::Guest for __SubsumeExport {
+            fn describe() -> $crate::RawDescription {
+                <$component as $crate::Component>::describe().into_raw()
+            }
+            fn init(params: ::std::vec::Vec<$crate::Param>) -> ::core::result::Result<(), ::std::string::String> {
+                let state = <$component as $crate::Component>::init(&$crate::Params(params))?;
+                __SUBSUME_STATE.with(|cell| *cell.borrow_mut() = ::core::option::Option::Some(state));
+                ::core::result::Result::Ok(())
+            }
+            fn on_input(port: u32, value: $crate::Value) -> ::core::result::Result<(), ::std::string::String> {
+                __SUBSUME_STATE.with(|cell| match cell.borrow_mut().as_mut() {
+                    ::core::option::Option::Some(state) => $crate::Component::on_input(state, port, value),
+                    ::core::option::Option::None => ::core::result::Result::Err("on-input called before init".into()),
+                })
+            }
+            fn tick(now_ns: u64) -> ::core::result::Result<(), ::std::string::String> {
+                __SUBSUME_STATE.with(|cell| match cell.borrow_mut().as_mut() {
+                    ::core::option::Option::Some(state) => $crate::Component::tick(state, now_ns),
+                    ::core::option::Option::None => ::core::result::Result::Err("tick called before init".into()),
+                })
+            }
+        }
+
+        $crate::bindings::__export_component!(__SubsumeExport with_types_in $crate::bindings);
+    };
+}

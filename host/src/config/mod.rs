@@ -1,0 +1,204 @@
+//! The robot description: XML text -> typed, validated [`RobotConfig`].
+//!
+//! Two stages. [`raw`] reads the file as written (quick-xml, spans kept,
+//! unknown elements and attributes rejected); [`validate`] resolves names,
+//! loads each component's self-description through a [`Resolver`] and checks
+//! the wiring against it. Both stages report every problem they find, as
+//! `file:line:column: message`; a file with any problem yields no config, so
+//! nothing starts. The format is documented in `docs/config.md` and
+//! `config/robot.xsd`.
+
+pub mod diagnostic;
+pub mod raw;
+pub mod validate;
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+pub use diagnostic::{Diagnostic, Diagnostics, SourceMap};
+pub use validate::{Resolver, parse_duration, parse_size};
+
+use crate::contract::{Description, Param};
+
+/// Limits on what a robot file may ask for. Each answers a threat from a
+/// careless or hostile file (uploaded files are validated with the same code).
+pub mod limits {
+    use std::ops::RangeInclusive;
+    use std::time::Duration;
+
+    /// Largest robot file read: a huge file must not exhaust memory.
+    pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
+    /// Most components in one robot: each gets a store, a memory and a slot in
+    /// the instance pool, which is sized for this many.
+    pub const MAX_COMPONENTS: usize = 64;
+    /// Most `<param>`s on one component.
+    pub const MAX_PARAMS_PER_COMPONENT: usize = 128;
+    /// Longest parameter value: values are copied into the guest at `init`.
+    pub const MAX_PARAM_VALUE_LEN: usize = 4096;
+    /// Fastest tick rate: a faster component would starve the control loop.
+    pub const MAX_RATE_HZ: f64 = 1000.0;
+    /// Tick rate when the file gives none.
+    pub const DEFAULT_RATE_HZ: f64 = 10.0;
+    /// Time budget per call. The floor is the epoch ticker's resolution; the
+    /// ceiling bounds how long one guest call can stall the control loop.
+    pub const CALL_BUDGET_RANGE: RangeInclusive<Duration> =
+        Duration::from_millis(1)..=Duration::from_millis(1000);
+    /// Budget per call when the file gives none.
+    pub const DEFAULT_CALL_BUDGET: Duration = Duration::from_millis(10);
+    /// Linear memory per component. The floor fits a Rust guest's 1 MiB
+    /// stack; the ceiling is the instance pool's per-memory slot.
+    pub const MEMORY_RANGE: RangeInclusive<u64> = (2 << 20)..=(1 << 30);
+    /// Memory limit when the file gives none.
+    pub const DEFAULT_MEMORY_BYTES: u64 = 64 << 20;
+    /// Deepest queue a connection may have: every queued value is held in
+    /// host memory.
+    pub const MAX_QUEUE_DEPTH: usize = 1024;
+    /// Queue depth for `policy="queue"` without `depth`.
+    pub const DEFAULT_QUEUE_DEPTH: usize = 16;
+    /// Allowed subsumption priorities.
+    pub const PRIORITY_RANGE: RangeInclusive<i32> = -1000..=1000;
+}
+
+/// The two platforms of the paper: the network platform (remote operators)
+/// and the control platform (the robot's own behaviours).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Platform {
+    Network,
+    Control,
+}
+
+impl Platform {
+    pub fn name(self) -> &'static str {
+        match self {
+            Platform::Network => "network",
+            Platform::Control => "control",
+        }
+    }
+}
+
+/// Where a component's code comes from.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub enum ComponentSource {
+    /// A native component compiled into the host (`builtin:log`).
+    Builtin(String),
+    /// A WASM component file; relative paths are resolved against the
+    /// directory of the robot file.
+    Wasm(PathBuf),
+}
+
+impl std::fmt::Display for ComponentSource {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ComponentSource::Builtin(kind) => write!(f, "builtin:{kind}"),
+            ComponentSource::Wasm(path) => write!(f, "{}", path.display()),
+        }
+    }
+}
+
+/// A validated robot: every component loaded and described, every
+/// connection checked.
+#[derive(Clone, Debug)]
+pub struct RobotConfig {
+    pub name: String,
+    /// The robot file this came from.
+    pub path: PathBuf,
+    pub components: Vec<ComponentConfig>,
+    pub connections: Vec<ConnectionConfig>,
+}
+
+#[derive(Clone, Debug)]
+pub struct ComponentConfig {
+    pub name: String,
+    /// Byte offset of the `<component>` element in the robot file.
+    pub offset: usize,
+    pub platform: Platform,
+    pub source: ComponentSource,
+    /// From the XML file, else the component's own default, else none.
+    pub priority: Option<i32>,
+    /// Ticks per second; 0 means the component only reacts to input.
+    pub rate_hz: f64,
+    /// Time budget of each call into the component.
+    pub budget: Duration,
+    /// Linear memory limit.
+    pub memory_bytes: u64,
+    /// Every declared parameter, XML value or default, in declaration order.
+    pub params: Vec<Param>,
+    pub description: Description,
+}
+
+/// One port of one component: `component` indexes `RobotConfig::components`,
+/// `port` the component's inputs or outputs.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct PortRef {
+    pub component: usize,
+    pub port: u32,
+}
+
+/// How values wait at an input until the component handles them.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Policy {
+    /// Only the newest value is kept.
+    Latest,
+    /// Up to `depth` values in order; when full the oldest is dropped (and
+    /// counted).
+    Queue { depth: usize },
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct ConnectionConfig {
+    /// An output port.
+    pub from: PortRef,
+    /// An input port.
+    pub to: PortRef,
+    pub policy: Policy,
+}
+
+/// Reads, parses and validates the robot file at `path`.
+pub fn load(path: &Path, resolver: &mut dyn Resolver) -> Result<RobotConfig, Diagnostics> {
+    let text = read_config(path)?;
+    parse_and_validate(path, &text, resolver)
+}
+
+/// Reads a robot file, bounded by [`limits::MAX_CONFIG_BYTES`].
+pub fn read_config(path: &Path) -> Result<String, Diagnostics> {
+    let fail = |message: String| {
+        Diagnostics(vec![Diagnostic {
+            path: path.to_path_buf(),
+            line: 1,
+            column: 1,
+            message,
+        }])
+    };
+    let size = std::fs::metadata(path)
+        .map_err(|e| fail(format!("cannot read robot file: {e}")))?
+        .len();
+    if size > limits::MAX_CONFIG_BYTES {
+        return Err(fail(format!(
+            "robot file is {size} bytes; at most {} are allowed",
+            limits::MAX_CONFIG_BYTES
+        )));
+    }
+    let bytes = std::fs::read(path).map_err(|e| fail(format!("cannot read robot file: {e}")))?;
+    String::from_utf8(bytes).map_err(|e| fail(format!("robot file is not utf-8: {e}")))
+}
+
+/// Parses and validates robot-file `text`; `path` names it in diagnostics and
+/// anchors relative component paths.
+pub fn parse_and_validate(
+    path: &Path,
+    text: &str,
+    resolver: &mut dyn Resolver,
+) -> Result<RobotConfig, Diagnostics> {
+    let map = SourceMap::new(path, text);
+    let mut errors = Vec::new();
+    let raw = raw::parse(&map, text, &mut errors);
+    if !raw.complete {
+        return Err(Diagnostics(errors));
+    }
+    let robot = validate::validate(&map, path, raw, resolver, &mut errors);
+    if errors.is_empty() {
+        Ok(robot)
+    } else {
+        Err(Diagnostics(errors))
+    }
+}

@@ -1,0 +1,373 @@
+//! Stage 1: the robot XML file as written. Every element and attribute keeps
+//! its byte offset; unknown elements and attributes, missing required
+//! attributes, stray text and DOCTYPEs are errors. Values stay text: stage 2
+//! (`validate`) gives them meaning.
+
+use quick_xml::Reader;
+use quick_xml::events::{BytesStart, Event};
+
+use super::diagnostic::{Diagnostic, SourceMap};
+
+/// A value from the file and the byte offset where it was written.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Spanned<T> {
+    pub value: T,
+    pub offset: usize,
+}
+
+#[derive(Clone, Debug, Default)]
+pub struct RawRobot {
+    /// False when an element was left out (unknown, or missing a required
+    /// attribute) or the XML is malformed: validating what is left would
+    /// report consequences of those errors as errors of their own.
+    pub complete: bool,
+    pub offset: usize,
+    pub name: Option<Spanned<String>>,
+    pub platforms: Vec<RawPlatform>,
+}
+
+#[derive(Clone, Debug)]
+pub struct RawPlatform {
+    pub offset: usize,
+    pub name: Spanned<String>,
+    pub components: Vec<RawComponent>,
+    pub connections: Vec<RawConnect>,
+}
+
+#[derive(Clone, Debug)]
+pub struct RawComponent {
+    pub offset: usize,
+    pub name: Spanned<String>,
+    pub source: Spanned<String>,
+    pub priority: Option<Spanned<String>>,
+    pub rate: Option<Spanned<String>>,
+    pub budget: Option<Spanned<String>>,
+    pub memory: Option<Spanned<String>>,
+    pub params: Vec<RawParam>,
+}
+
+#[derive(Clone, Debug)]
+pub struct RawParam {
+    pub offset: usize,
+    pub name: Spanned<String>,
+    pub value: Spanned<String>,
+}
+
+#[derive(Clone, Debug)]
+pub struct RawConnect {
+    pub offset: usize,
+    pub from: Spanned<String>,
+    pub to: Spanned<String>,
+    pub policy: Option<Spanned<String>>,
+    pub depth: Option<Spanned<String>>,
+}
+
+/// Where the parser is in the element tree.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Context {
+    Document,
+    Robot,
+    Platform,
+    Component,
+    /// An element with no children allowed (`param`, `connect`).
+    Leaf,
+    /// Inside an element already reported as unknown: its content is skipped.
+    Skipped,
+}
+
+/// The attributes of one element, by name, checked against what it allows.
+struct Attrs {
+    items: Vec<(String, Spanned<String>)>,
+}
+
+impl Attrs {
+    fn take(&mut self, name: &str) -> Option<Spanned<String>> {
+        let i = self.items.iter().position(|(n, _)| n == name)?;
+        Some(self.items.swap_remove(i).1)
+    }
+}
+
+/// Parses `text` into the as-written tree. Diagnostics go to `errors`; the
+/// tree holds what could be read (elements missing a required attribute are
+/// left out, after their error is recorded).
+pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> RawRobot {
+    let mut reader = Reader::from_str(text);
+    reader.config_mut().check_end_names = true;
+    let mut robot = RawRobot {
+        complete: true,
+        ..RawRobot::default()
+    };
+    let mut seen_root = false;
+    let mut stack: Vec<Context> = vec![Context::Document];
+
+    loop {
+        let before = reader.buffer_position() as usize;
+        let event = match reader.read_event() {
+            Ok(event) => event,
+            Err(err) => {
+                let at = reader.error_position() as usize;
+                errors.push(map.at(at, format!("malformed xml: {err}")));
+                robot.complete = false;
+                return robot;
+            }
+        };
+        let context = stack.last().copied().unwrap_or(Context::Document);
+        match event {
+            Event::Start(ref e) | Event::Empty(ref e) => {
+                let has_children = matches!(event, Event::Start(_));
+                let offset = element_offset(map, e, before);
+                let errors_before = errors.len();
+                let child =
+                    open_element(map, e, offset, context, &mut robot, &mut seen_root, errors);
+                if child == Context::Skipped
+                    && context != Context::Skipped
+                    && errors.len() > errors_before
+                {
+                    robot.complete = false;
+                }
+                if has_children {
+                    stack.push(child);
+                }
+            }
+            Event::End(_) => {
+                stack.pop();
+            }
+            Event::Text(ref t) => {
+                let text: &str = t.as_ref();
+                let is_blank = text.chars().all(char::is_whitespace);
+                if !is_blank && context != Context::Skipped {
+                    let at = map
+                        .offset_of(text.trim_start().as_bytes())
+                        .unwrap_or(before);
+                    let shown: String = text.trim().chars().take(20).collect();
+                    errors.push(map.at(
+                        at,
+                        format!("unexpected text '{shown}': values go in attributes"),
+                    ));
+                }
+            }
+            Event::CData(_) | Event::GeneralRef(_) => {
+                if context != Context::Skipped {
+                    errors.push(map.at(before, "unexpected text: values go in attributes"));
+                }
+            }
+            Event::DocType(_) => {
+                errors.push(map.at(
+                    before,
+                    "doctype declarations are not allowed (entities could expand without bound)",
+                ));
+            }
+            Event::Decl(_) | Event::PI(_) | Event::Comment(_) => {}
+            Event::Eof => break,
+        }
+    }
+    if !seen_root {
+        robot.complete = false;
+        errors.push(map.at(0, "missing root element <robot>"));
+    }
+    robot
+}
+
+fn element_offset(map: &SourceMap<'_>, e: &BytesStart<'_>, fallback: usize) -> usize {
+    // The name follows '<' directly; point at the '<'.
+    map.offset_of(e.name().as_ref().as_bytes())
+        .map_or(fallback, |at| at.saturating_sub(1))
+}
+
+/// Handles one opening (or empty) element in `context`; returns the context
+/// for its children.
+fn open_element(
+    map: &SourceMap<'_>,
+    e: &BytesStart<'_>,
+    offset: usize,
+    context: Context,
+    robot: &mut RawRobot,
+    seen_root: &mut bool,
+    errors: &mut Vec<Diagnostic>,
+) -> Context {
+    let name = e.name().as_ref().to_string();
+    let expected: &[&str] = match context {
+        Context::Document => &["robot"],
+        Context::Robot => &["platform"],
+        Context::Platform => &["component", "connect"],
+        Context::Component => &["param"],
+        Context::Leaf => &[],
+        Context::Skipped => return Context::Skipped,
+    };
+    if !expected.contains(&name.as_str()) {
+        let message = match (context, expected) {
+            (Context::Document, _) if *seen_root => {
+                format!("unexpected second root element <{name}>")
+            }
+            (_, []) => format!("unexpected element <{name}>: this element has no children"),
+            _ => format!(
+                "unknown element <{name}> (expected {})",
+                one_of(expected, "<", ">")
+            ),
+        };
+        errors.push(map.at(offset, message));
+        return Context::Skipped;
+    }
+    match name.as_str() {
+        "robot" => {
+            if *seen_root {
+                errors.push(map.at(offset, "unexpected second root element <robot>"));
+                return Context::Skipped;
+            }
+            *seen_root = true;
+            let mut attrs = read_attrs(map, e, offset, "robot", &["name"], errors);
+            robot.offset = offset;
+            robot.name = required(map, &mut attrs, "robot", "name", offset, errors);
+            Context::Robot
+        }
+        "platform" => {
+            let mut attrs = read_attrs(map, e, offset, "platform", &["name"], errors);
+            match required(map, &mut attrs, "platform", "name", offset, errors) {
+                Some(name) => {
+                    robot.platforms.push(RawPlatform {
+                        offset,
+                        name,
+                        components: Vec::new(),
+                        connections: Vec::new(),
+                    });
+                    Context::Platform
+                }
+                None => Context::Skipped,
+            }
+        }
+        "component" => {
+            let allowed = ["name", "source", "priority", "rate", "budget", "memory"];
+            let mut attrs = read_attrs(map, e, offset, "component", &allowed, errors);
+            let name = required(map, &mut attrs, "component", "name", offset, errors);
+            let source = required(map, &mut attrs, "component", "source", offset, errors);
+            let (Some(name), Some(source), Some(platform)) =
+                (name, source, robot.platforms.last_mut())
+            else {
+                return Context::Skipped;
+            };
+            platform.components.push(RawComponent {
+                offset,
+                name,
+                source,
+                priority: attrs.take("priority"),
+                rate: attrs.take("rate"),
+                budget: attrs.take("budget"),
+                memory: attrs.take("memory"),
+                params: Vec::new(),
+            });
+            Context::Component
+        }
+        "param" => {
+            let mut attrs = read_attrs(map, e, offset, "param", &["name", "value"], errors);
+            let name = required(map, &mut attrs, "param", "name", offset, errors);
+            let value = required(map, &mut attrs, "param", "value", offset, errors);
+            let component = robot
+                .platforms
+                .last_mut()
+                .and_then(|p| p.components.last_mut());
+            if let (Some(name), Some(value), Some(component)) = (name, value, component) {
+                component.params.push(RawParam {
+                    offset,
+                    name,
+                    value,
+                });
+            }
+            Context::Leaf
+        }
+        "connect" => {
+            let allowed = ["from", "to", "policy", "depth"];
+            let mut attrs = read_attrs(map, e, offset, "connect", &allowed, errors);
+            let from = required(map, &mut attrs, "connect", "from", offset, errors);
+            let to = required(map, &mut attrs, "connect", "to", offset, errors);
+            if let (Some(from), Some(to), Some(platform)) = (from, to, robot.platforms.last_mut()) {
+                platform.connections.push(RawConnect {
+                    offset,
+                    from,
+                    to,
+                    policy: attrs.take("policy"),
+                    depth: attrs.take("depth"),
+                });
+            }
+            Context::Leaf
+        }
+        _ => Context::Skipped,
+    }
+}
+
+/// Reads the attributes of `e`, reporting malformed, duplicate and unknown ones.
+fn read_attrs(
+    map: &SourceMap<'_>,
+    e: &BytesStart<'_>,
+    offset: usize,
+    element: &str,
+    allowed: &[&str],
+    errors: &mut Vec<Diagnostic>,
+) -> Attrs {
+    let mut items: Vec<(String, Spanned<String>)> = Vec::new();
+    for attr in e.attributes() {
+        let attr = match attr {
+            Ok(attr) => attr,
+            Err(err) => {
+                errors.push(map.at(offset, format!("malformed attribute on <{element}>: {err}")));
+                continue;
+            }
+        };
+        let key = attr.key.as_ref().to_string();
+        let key_offset = map
+            .offset_of(attr.key.as_ref().as_bytes())
+            .unwrap_or(offset);
+        if !allowed.contains(&key.as_str()) {
+            errors.push(map.at(
+                key_offset,
+                format!(
+                    "unknown attribute '{key}' on <{element}> (expected {})",
+                    one_of(allowed, "'", "'")
+                ),
+            ));
+            continue;
+        }
+        let value_offset = map.offset_of(attr.value.as_bytes()).unwrap_or(key_offset);
+        match attr.normalized_value(quick_xml::XmlVersion::Implicit1_0) {
+            Ok(value) => items.push((
+                key,
+                Spanned {
+                    value: value.into_owned(),
+                    offset: value_offset,
+                },
+            )),
+            Err(err) => errors.push(map.at(
+                value_offset,
+                format!("bad value for '{key}' on <{element}>: {err}"),
+            )),
+        }
+    }
+    Attrs { items }
+}
+
+fn required(
+    map: &SourceMap<'_>,
+    attrs: &mut Attrs,
+    element: &str,
+    name: &str,
+    offset: usize,
+    errors: &mut Vec<Diagnostic>,
+) -> Option<Spanned<String>> {
+    let found = attrs.take(name);
+    if found.is_none() {
+        errors.push(map.at(
+            offset,
+            format!("<{element}> is missing required attribute '{name}'"),
+        ));
+    }
+    found
+}
+
+/// `'a', 'b' or 'c'`, with `open`/`close` around each item.
+fn one_of(items: &[&str], open: &str, close: &str) -> String {
+    let quoted: Vec<String> = items.iter().map(|i| format!("{open}{i}{close}")).collect();
+    match quoted.split_last() {
+        None => String::from("nothing"),
+        Some((last, [])) => last.clone(),
+        Some((last, rest)) => format!("{} or {last}", rest.join(", ")),
+    }
+}

@@ -1,0 +1,145 @@
+//! subsume: a host that runs robot software as sandboxed WebAssembly
+//! components, wired from an XML robot description.
+//!
+//! The binary (`main.rs`) parses the command line and calls [`run`]; see
+//! `ARCHITECTURE.md` for the map of the modules below.
+
+pub mod builtin;
+pub mod config;
+pub mod contract;
+pub mod fsutil;
+pub mod loader;
+pub mod report;
+pub mod runtime;
+pub mod sandbox;
+
+use std::path::PathBuf;
+use std::time::Duration;
+
+use thiserror::Error;
+
+use crate::config::{Diagnostics, RobotConfig};
+use crate::loader::Loader;
+use crate::report::Report;
+use crate::runtime::Graph;
+use crate::runtime::control_loop::{self, Clock, Shutdown};
+use crate::sandbox::{Sandbox, SandboxError};
+
+/// What `subsume run` was asked to do.
+#[derive(Clone, Debug)]
+pub struct RunOptions {
+    pub config_path: PathBuf,
+    /// Stop after this long; run until shutdown when `None`.
+    pub duration: Option<Duration>,
+    /// Where compiled components are cached; no cache when `None`.
+    pub cache_dir: Option<PathBuf>,
+}
+
+#[derive(Debug, Error)]
+pub enum RunError {
+    #[error("{0}")]
+    Config(Diagnostics),
+    #[error(transparent)]
+    Sandbox(#[from] SandboxError),
+    #[error("{}", .0.join("\n"))]
+    Start(Vec<String>),
+    #[error("the control loop thread failed: {0}")]
+    ControlLoop(String),
+}
+
+/// Loads the robot at `options.config_path`, starts every component, runs the
+/// control loop until `shutdown` is requested or the duration passes, and
+/// returns the run's report.
+pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError> {
+    let sandbox = Sandbox::new(options.cache_dir.clone())?;
+    let mut loader = Loader::new(&sandbox);
+    let config = config::load(&options.config_path, &mut loader).map_err(RunError::Config)?;
+    tracing::info!(
+        "robot '{}' from {}: {} components, {} connections",
+        config.name,
+        config.path.display(),
+        config.components.len(),
+        config.connections.len()
+    );
+    let clock = Clock::new();
+    let mut graph = build_graph(&config, &mut loader, clock.now_ns()).map_err(RunError::Start)?;
+    let until_ns = options
+        .duration
+        .map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
+    let control = std::thread::Builder::new()
+        .name("subsume-control".into())
+        .spawn(move || {
+            let stopped_by = control_loop::run(&mut graph, &clock, &shutdown, until_ns);
+            (graph, stopped_by, clock.now_ns())
+        })
+        .map_err(|e| RunError::ControlLoop(e.to_string()))?;
+    let (graph, stopped_by, ran_ns) = control
+        .join()
+        .map_err(|_| RunError::ControlLoop("it panicked".into()))?;
+    tracing::info!(
+        "stopped ({}) after {:.2} s, {} messages routed",
+        stopped_by.name(),
+        ran_ns as f64 / 1e9,
+        graph.messages_routed()
+    );
+    Ok(report::build(
+        &config,
+        &graph,
+        stopped_by,
+        ran_ns as f64 / 1e9,
+    ))
+}
+
+/// Instantiates and initialises every component of `config` and wires them.
+/// Component `i` of the graph is component `i` of the config. Every component
+/// that fails to start is reported.
+pub fn build_graph(
+    config: &RobotConfig,
+    loader: &mut Loader<'_>,
+    start_ns: u64,
+) -> Result<Graph, Vec<String>> {
+    let mut graph = Graph::new();
+    let mut errors = Vec::new();
+    for component in &config.components {
+        match loader.instantiate(component) {
+            Ok(instance) => {
+                let d = &component.description;
+                tracing::info!(
+                    component = %component.name,
+                    "started {} {} from {} ({} in, {} out, {} Hz{})",
+                    d.name,
+                    d.version,
+                    component.source,
+                    d.inputs.len(),
+                    d.outputs.len(),
+                    component.rate_hz,
+                    component.priority.map(|p| format!(", priority {p}")).unwrap_or_default()
+                );
+                graph.add(
+                    &component.name,
+                    instance,
+                    d.outputs.len(),
+                    component.rate_hz,
+                    start_ns,
+                );
+            }
+            Err(why) => errors.push(format!(
+                "failed to start component '{}': {why}",
+                component.name
+            )),
+        }
+    }
+    if !errors.is_empty() {
+        return Err(errors);
+    }
+    for c in &config.connections {
+        graph.connect(
+            c.from.component,
+            c.from.port,
+            c.to.component,
+            c.to.port,
+            c.policy,
+        );
+    }
+    Ok(graph)
+}

@@ -1,0 +1,101 @@
+//! Turns component sources into descriptions (for validation) and running
+//! components (for the graph). WASM files are read with a size limit and
+//! compiled once per run; built-ins come from [`crate::builtin`].
+
+use std::collections::{BTreeMap, HashMap};
+use std::io::Read;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use crate::builtin;
+use crate::config::{ComponentConfig, ComponentSource, Resolver};
+use crate::contract::Description;
+use crate::runtime::Component;
+use crate::sandbox::{Sandbox, WasmArtifact};
+
+/// Largest `.wasm` file loaded: big enough for Python and JavaScript
+/// components (~20 MB), small enough that a bogus file cannot exhaust memory.
+pub const MAX_COMPONENT_BYTES: u64 = 32 << 20;
+
+/// Loads components through one sandbox, compiling each file once.
+pub struct Loader<'a> {
+    sandbox: &'a Sandbox,
+    artifacts: HashMap<PathBuf, Result<Arc<WasmArtifact>, String>>,
+}
+
+impl<'a> Loader<'a> {
+    pub fn new(sandbox: &'a Sandbox) -> Loader<'a> {
+        Loader {
+            sandbox,
+            artifacts: HashMap::new(),
+        }
+    }
+
+    /// The compiled artifact of the `.wasm` file at `path`.
+    pub fn load_wasm(&mut self, path: &Path) -> Result<Arc<WasmArtifact>, String> {
+        if let Some(result) = self.artifacts.get(path) {
+            return result.clone();
+        }
+        let result = read_component_file(path).and_then(|bytes| {
+            self.sandbox
+                .load(&bytes)
+                .map_err(|e| format!("cannot load '{}': {e}", path.display()))
+        });
+        self.artifacts.insert(path.to_path_buf(), result.clone());
+        result
+    }
+
+    /// A running, initialised instance of `config`.
+    pub fn instantiate(&mut self, config: &ComponentConfig) -> Result<Box<dyn Component>, String> {
+        match &config.source {
+            ComponentSource::Builtin(kind) => {
+                builtin::instantiate(kind, &config.name, &config.description, &config.params)
+            }
+            ComponentSource::Wasm(path) => {
+                let artifact = self.load_wasm(path)?;
+                let component = self
+                    .sandbox
+                    .instantiate(
+                        &artifact,
+                        &config.name,
+                        config.memory_bytes,
+                        config.budget,
+                        &config.params,
+                    )
+                    .map_err(|e| e.to_string())?;
+                Ok(Box::new(component))
+            }
+        }
+    }
+}
+
+impl Resolver for Loader<'_> {
+    fn describe(
+        &mut self,
+        source: &ComponentSource,
+        params: &BTreeMap<String, String>,
+    ) -> Result<Description, String> {
+        match source {
+            ComponentSource::Builtin(kind) => builtin::describe(kind, params),
+            ComponentSource::Wasm(path) => self.load_wasm(path).map(|a| a.description.clone()),
+        }
+    }
+}
+
+/// Reads a component file, refusing files over [`MAX_COMPONENT_BYTES`].
+pub fn read_component_file(path: &Path) -> Result<Vec<u8>, String> {
+    let file =
+        std::fs::File::open(path).map_err(|e| format!("cannot read '{}': {e}", path.display()))?;
+    let mut bytes = Vec::new();
+    file.take(MAX_COMPONENT_BYTES + 1)
+        .read_to_end(&mut bytes)
+        .map_err(|e| format!("cannot read '{}': {e}", path.display()))?;
+    if bytes.len() as u64 > MAX_COMPONENT_BYTES {
+        return Err(format!(
+            "'{}' is larger than {} MiB",
+            path.display(),
+            MAX_COMPONENT_BYTES >> 20
+        ));
+    }
+    Ok(bytes)
+}

@@ -1,0 +1,265 @@
+//! The `subsume` command line: parses arguments, sets up logging and signals,
+//! and calls into the library. Errors become messages and exit codes here.
+
+use std::path::{Path, PathBuf};
+use std::process::ExitCode;
+use std::time::Duration;
+
+use anyhow::{Context, bail};
+use clap::{Parser, Subcommand};
+use serde_json::json;
+use subsume::contract::Description;
+use subsume::loader::{Loader, read_component_file};
+use subsume::runtime::control_loop::Shutdown;
+use subsume::sandbox::Sandbox;
+use subsume::{RunError, RunOptions, config, fsutil};
+
+#[derive(Parser)]
+#[command(
+    name = "subsume",
+    version,
+    about = "Runs robot software as sandboxed WebAssembly components"
+)]
+struct Cli {
+    /// Directory for compiled components [default: $SUBSUME_CACHE_DIR,
+    /// $XDG_CACHE_HOME/subsume or ~/.cache/subsume]
+    #[arg(long, global = true, value_name = "DIR")]
+    cache_dir: Option<PathBuf>,
+    /// Compile every component afresh and cache nothing.
+    #[arg(long, global = true)]
+    no_cache: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Load a robot file, start its components and run until stopped.
+    Run {
+        /// The robot description.
+        #[arg(default_value = "config/demo.xml")]
+        config: PathBuf,
+        /// Stop after this many seconds.
+        #[arg(long, value_name = "SECONDS")]
+        duration: Option<f64>,
+        /// Write a JSON report here when stopped (see docs/report.md).
+        #[arg(long, value_name = "FILE")]
+        report: Option<PathBuf>,
+    },
+    /// Check a robot file: print every error as path:line:column: message.
+    Check { config: PathBuf },
+    /// Print what a component declares: ports, parameters, default priority.
+    Describe {
+        component: PathBuf,
+        /// Print JSON instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
+                tracing_subscriber::EnvFilter::new("info,wasmtime=warn,cranelift=warn")
+            }),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    let cache_dir = if cli.no_cache {
+        None
+    } else {
+        cli.cache_dir.clone().or_else(default_cache_dir)
+    };
+    let result = match cli.command {
+        Command::Run {
+            config,
+            duration,
+            report,
+        } => run(config, duration, report, cache_dir),
+        Command::Check { config } => check(&config, cache_dir),
+        Command::Describe { component, json } => describe(&component, json, cache_dir),
+    };
+    match result {
+        Ok(code) => code,
+        Err(err) => {
+            eprintln!("error: {err:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn run(
+    config_path: PathBuf,
+    duration: Option<f64>,
+    report_path: Option<PathBuf>,
+    cache_dir: Option<PathBuf>,
+) -> anyhow::Result<ExitCode> {
+    let duration = match duration {
+        None => None,
+        Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
+        Some(s) => bail!("--duration must be a positive number of seconds, got {s}"),
+    };
+    let shutdown = Shutdown::new();
+    let signals = install_signal_handlers(shutdown.clone())?;
+    let options = RunOptions {
+        config_path,
+        duration,
+        cache_dir,
+    };
+    let result = subsume::run(&options, shutdown);
+    signals.close();
+    let report = match result {
+        Ok(report) => report,
+        Err(RunError::Config(diagnostics)) => {
+            println!("{diagnostics}");
+            eprintln!(
+                "error: {} problem(s) in {}; nothing was started",
+                diagnostics.0.len(),
+                options.config_path.display()
+            );
+            return Ok(ExitCode::FAILURE);
+        }
+        Err(err) => return Err(err.into()),
+    };
+    if let Some(path) = report_path {
+        let text = serde_json::to_vec_pretty(&report).context("failed to encode the report")?;
+        fsutil::write_atomically(&path, &text)
+            .with_context(|| format!("failed to write report {}", path.display()))?;
+        tracing::info!("report written to {}", path.display());
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn check(config_path: &Path, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    let sandbox = Sandbox::new(cache_dir)?;
+    let mut loader = Loader::new(&sandbox);
+    match config::load(config_path, &mut loader) {
+        Ok(robot) => {
+            println!(
+                "{}: ok: robot '{}', {} components, {} connections",
+                config_path.display(),
+                robot.name,
+                robot.components.len(),
+                robot.connections.len()
+            );
+            Ok(ExitCode::SUCCESS)
+        }
+        Err(diagnostics) => {
+            println!("{diagnostics}");
+            Ok(ExitCode::FAILURE)
+        }
+    }
+}
+
+fn describe(path: &Path, as_json: bool, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    let sandbox = Sandbox::new(cache_dir)?;
+    let bytes = read_component_file(path).map_err(anyhow::Error::msg)?;
+    let artifact = sandbox
+        .load(&bytes)
+        .with_context(|| format!("failed to load component {}", path.display()))?;
+    let d = &artifact.description;
+    if as_json {
+        println!(
+            "{}",
+            serde_json::to_string_pretty(&description_json(d, &artifact.sha256))?
+        );
+    } else {
+        print!("{}", description_text(d, &artifact.sha256));
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn description_json(d: &Description, sha256: &str) -> serde_json::Value {
+    let ports = |ports: &[subsume::contract::PortSpec]| -> Vec<serde_json::Value> {
+        ports
+            .iter()
+            .enumerate()
+            .map(
+                |(i, p)| json!({ "index": i, "name": p.name, "kind": p.kind.name(), "doc": p.doc }),
+            )
+            .collect()
+    };
+    json!({
+        "name": d.name,
+        "version": d.version,
+        "summary": d.summary,
+        "sha256": sha256,
+        "default_priority": d.default_priority,
+        "inputs": ports(&d.inputs),
+        "outputs": ports(&d.outputs),
+        "params": d.params.iter().map(|p| json!({
+            "name": p.name, "kind": p.kind.name(), "default": p.default_value, "doc": p.doc,
+        })).collect::<Vec<_>>(),
+    })
+}
+
+fn description_text(d: &Description, sha256: &str) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    let _ = writeln!(s, "{} {}: {}", d.name, d.version, d.summary);
+    let _ = writeln!(s, "sha256: {sha256}");
+    let priority = d.default_priority.map_or_else(
+        || "none (emits no motion commands)".to_string(),
+        |p| p.to_string(),
+    );
+    let _ = writeln!(s, "default priority: {priority}");
+    for (title, ports) in [("inputs", &d.inputs), ("outputs", &d.outputs)] {
+        let _ = writeln!(s, "{title}:");
+        if ports.is_empty() {
+            let _ = writeln!(s, "  (none)");
+        }
+        for (i, p) in ports.iter().enumerate() {
+            let _ = writeln!(s, "  {i}: {} ({}) {}", p.name, p.kind.name(), p.doc);
+        }
+    }
+    let _ = writeln!(s, "params:");
+    if d.params.is_empty() {
+        let _ = writeln!(s, "  (none)");
+    }
+    for p in &d.params {
+        let _ = writeln!(
+            s,
+            "  {} ({}, default '{}') {}",
+            p.name,
+            p.kind.name(),
+            p.default_value,
+            p.doc
+        );
+    }
+    s
+}
+
+fn default_cache_dir() -> Option<PathBuf> {
+    let env = |name: &str| {
+        std::env::var_os(name)
+            .filter(|v| !v.is_empty())
+            .map(PathBuf::from)
+    };
+    env("SUBSUME_CACHE_DIR")
+        .or_else(|| env("XDG_CACHE_HOME").map(|d| d.join("subsume")))
+        .or_else(|| env("HOME").map(|d| d.join(".cache").join("subsume")))
+}
+
+/// SIGINT and SIGTERM request a clean shutdown; a second one exits at once.
+fn install_signal_handlers(shutdown: Shutdown) -> anyhow::Result<signal_hook::iterator::Handle> {
+    use signal_hook::consts::{SIGINT, SIGTERM};
+    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM])
+        .context("failed to install signal handlers")?;
+    let handle = signals.handle();
+    std::thread::Builder::new()
+        .name("subsume-signals".into())
+        .spawn(move || {
+            for signal in signals.forever() {
+                if shutdown.is_requested() {
+                    eprintln!("second signal: exiting now");
+                    std::process::exit(130);
+                }
+                tracing::info!("signal {signal} received: stopping");
+                shutdown.request();
+            }
+        })
+        .context("failed to start the signal thread")?;
+    Ok(handle)
+}

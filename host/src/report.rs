@@ -1,0 +1,167 @@
+//! The JSON run report written by `subsume run --report FILE` (documented in
+//! `docs/report.md`). Later parts of the host add their own sections.
+
+use serde::Serialize;
+
+use crate::config::{Policy, RobotConfig};
+use crate::runtime::control_loop::StopReason;
+use crate::runtime::{ComponentState, Graph};
+
+/// Version of the report's layout; bumped when a field changes meaning.
+pub const REPORT_FORMAT: u32 = 1;
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Report {
+    pub format: u32,
+    pub robot: String,
+    pub config: String,
+    /// "duration" or "shutdown".
+    pub stopped_by: String,
+    pub duration_s: f64,
+    /// Control-loop cycles run.
+    pub cycles: u64,
+    pub components: Vec<ComponentReport>,
+    pub connections: Vec<ConnectionReport>,
+    pub messages: MessageTotals,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ComponentReport {
+    pub name: String,
+    pub platform: String,
+    pub source: String,
+    pub rate_hz: f64,
+    pub priority: Option<i32>,
+    /// "running" or "faulted".
+    pub state: String,
+    pub fault: Option<String>,
+    pub faulted_at_s: Option<f64>,
+    pub calls: u64,
+    pub ticks: u64,
+    pub missed_ticks: u64,
+    pub call_time_ms: f64,
+    pub messages_in: u64,
+    pub messages_out: u64,
+    pub messages_dropped: u64,
+    pub errors: u64,
+    pub last_error: Option<String>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ConnectionReport {
+    pub from: String,
+    pub to: String,
+    /// "latest" or "queue".
+    pub policy: String,
+    pub depth: Option<usize>,
+    pub routed: u64,
+    pub delivered: u64,
+    pub dropped: u64,
+    pub overwritten: u64,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct MessageTotals {
+    /// Values put into mailboxes (one per receiving connection).
+    pub routed: u64,
+    /// Values handed to receiving components.
+    pub delivered: u64,
+    /// Values dropped from full queues.
+    pub dropped: u64,
+}
+
+/// The report of `graph`, built from `config` (component and connection
+/// indices in the graph are those of the config).
+pub fn build(
+    config: &RobotConfig,
+    graph: &Graph,
+    stopped_by: StopReason,
+    duration_s: f64,
+) -> Report {
+    let components = config
+        .components
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let stats = graph.stats(i).cloned().unwrap_or_default();
+            let (state, fault, faulted_at_s) = match graph.state(i) {
+                Some(ComponentState::Faulted { reason, at_ns }) => {
+                    ("faulted", Some(reason.clone()), Some(*at_ns as f64 / 1e9))
+                }
+                _ => ("running", None, None),
+            };
+            ComponentReport {
+                name: c.name.clone(),
+                platform: c.platform.name().to_string(),
+                source: c.source.to_string(),
+                rate_hz: c.rate_hz,
+                priority: c.priority,
+                state: state.to_string(),
+                fault,
+                faulted_at_s,
+                calls: stats.calls,
+                ticks: stats.ticks,
+                missed_ticks: stats.missed_ticks,
+                call_time_ms: stats.call_ns as f64 / 1e6,
+                messages_in: stats.messages_in,
+                messages_out: stats.messages_out,
+                messages_dropped: stats.messages_dropped,
+                errors: stats.errors,
+                last_error: stats.last_error,
+            }
+        })
+        .collect();
+    let port_name = |component: usize, port: u32, output: bool| {
+        config
+            .components
+            .get(component)
+            .map_or_else(String::new, |c| {
+                let ports = if output {
+                    &c.description.outputs
+                } else {
+                    &c.description.inputs
+                };
+                let port = ports.get(port as usize).map_or("?", |p| p.name.as_str());
+                format!("{}.{port}", c.name)
+            })
+    };
+    let mut delivered = 0;
+    let connections = config
+        .connections
+        .iter()
+        .enumerate()
+        .map(|(i, c)| {
+            let stats = graph.connection_stats(i).cloned().unwrap_or_default();
+            delivered += stats.delivered;
+            let (policy, depth) = match c.policy {
+                Policy::Latest => ("latest", None),
+                Policy::Queue { depth } => ("queue", Some(depth)),
+            };
+            ConnectionReport {
+                from: port_name(c.from.component, c.from.port, true),
+                to: port_name(c.to.component, c.to.port, false),
+                policy: policy.to_string(),
+                depth,
+                routed: stats.routed,
+                delivered: stats.delivered,
+                dropped: stats.dropped,
+                overwritten: stats.overwritten,
+            }
+        })
+        .collect();
+    Report {
+        format: REPORT_FORMAT,
+        robot: config.name.clone(),
+        config: config.path.display().to_string(),
+        stopped_by: stopped_by.name().to_string(),
+        duration_s,
+        cycles: graph.cycles(),
+        components,
+        connections,
+        messages: MessageTotals {
+            routed: graph.messages_routed(),
+            delivered,
+            dropped: graph.messages_dropped(),
+        },
+    }
+}

@@ -1,0 +1,124 @@
+//! The control loop: reads the clock, steps the graph, sleeps until the next
+//! tick is due or a shutdown is asked for. It runs on its own thread; nothing
+//! else calls into components.
+
+use std::sync::{Arc, Condvar, Mutex};
+use std::time::{Duration, Instant};
+
+use super::Graph;
+
+/// Longest sleep when no component ticks: the loop still notices a shutdown
+/// at once (the condvar wakes it), this only bounds idle wake-ups.
+pub const IDLE_WAIT: Duration = Duration::from_millis(100);
+
+/// The host's monotonic clock: nanoseconds since it was made.
+#[derive(Clone, Copy, Debug)]
+pub struct Clock {
+    start: Instant,
+}
+
+impl Default for Clock {
+    fn default() -> Self {
+        Clock::new()
+    }
+}
+
+impl Clock {
+    pub fn new() -> Clock {
+        Clock {
+            start: Instant::now(),
+        }
+    }
+
+    pub fn now_ns(&self) -> u64 {
+        self.start.elapsed().as_nanos() as u64
+    }
+}
+
+/// Why the loop stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum StopReason {
+    /// The requested duration passed.
+    Duration,
+    /// Someone asked for a shutdown (SIGINT, SIGTERM, the caller).
+    Requested,
+}
+
+impl StopReason {
+    pub fn name(self) -> &'static str {
+        match self {
+            StopReason::Duration => "duration",
+            StopReason::Requested => "shutdown",
+        }
+    }
+}
+
+/// A shutdown request shared between signal handlers and the loop.
+#[derive(Clone, Debug, Default)]
+pub struct Shutdown {
+    inner: Arc<(Mutex<bool>, Condvar)>,
+}
+
+impl Shutdown {
+    pub fn new() -> Shutdown {
+        Shutdown::default()
+    }
+
+    /// Asks the loop to stop; wakes it if it sleeps.
+    pub fn request(&self) {
+        let (flag, wake) = &*self.inner;
+        if let Ok(mut requested) = flag.lock() {
+            *requested = true;
+        }
+        wake.notify_all();
+    }
+
+    pub fn is_requested(&self) -> bool {
+        self.inner.0.lock().map(|r| *r).unwrap_or(true)
+    }
+
+    /// Sleeps up to `timeout`; returns early (true) when a shutdown is asked.
+    pub fn wait(&self, timeout: Duration) -> bool {
+        let (flag, wake) = &*self.inner;
+        let Ok(requested) = flag.lock() else {
+            return true;
+        };
+        match wake.wait_timeout_while(requested, timeout, |requested| !*requested) {
+            Ok((requested, _)) => *requested,
+            Err(_) => true,
+        }
+    }
+}
+
+/// Runs `graph` until `shutdown` is requested or `until_ns` (on `clock`)
+/// passes.
+pub fn run(
+    graph: &mut Graph,
+    clock: &Clock,
+    shutdown: &Shutdown,
+    until_ns: Option<u64>,
+) -> StopReason {
+    loop {
+        if shutdown.is_requested() {
+            return StopReason::Requested;
+        }
+        let now = clock.now_ns();
+        if until_ns.is_some_and(|until| now >= until) {
+            return StopReason::Duration;
+        }
+        graph.step(now);
+        if graph.has_pending() {
+            continue;
+        }
+        let mut wake = graph
+            .next_due_ns()
+            .unwrap_or(now + IDLE_WAIT.as_nanos() as u64);
+        if let Some(until) = until_ns {
+            wake = wake.min(until);
+        }
+        let now = clock.now_ns();
+        if wake > now && shutdown.wait(Duration::from_nanos(wake - now)) {
+            return StopReason::Requested;
+        }
+    }
+}
