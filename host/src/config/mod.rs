@@ -192,13 +192,16 @@ pub fn parse_and_validate(
     let map = SourceMap::new(path, text);
     let mut errors = Vec::new();
     let raw = raw::parse(&map, text, &mut errors);
-    if !raw.complete {
-        return Err(Diagnostics(errors));
-    }
-    let robot = validate::validate(&map, path, raw, resolver, &mut errors);
-    if errors.is_empty() {
-        Ok(robot)
-    } else {
-        Err(Diagnostics(errors))
+    let robot = raw
+        .complete
+        .then(|| validate::validate(&map, path, raw, resolver, &mut errors));
+    match robot {
+        Some(robot) if errors.is_empty() => Ok(robot),
+        _ => {
+            // Stage 1 and stage 2 find problems in different orders; the
+            // reader wants them in file order (stable: same place, found order).
+            errors.sort_by_key(|d| (d.line, d.column));
+            Err(Diagnostics(errors))
+        }
     }
 }

@@ -163,7 +163,9 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
     }
     if !seen_root {
         robot.complete = false;
-        errors.push(map.at(0, "missing root element <robot>"));
+        if errors.is_empty() {
+            errors.push(map.at(0, "missing root element <robot>"));
+        }
     }
     robot
 }
@@ -335,10 +337,20 @@ fn read_attrs(
                     offset: value_offset,
                 },
             )),
-            Err(err) => errors.push(map.at(
-                value_offset,
-                format!("bad value for '{key}' on <{element}>: {err}"),
-            )),
+            Err(err) => {
+                errors.push(map.at(
+                    value_offset,
+                    format!("bad value for '{key}' on <{element}>: {err}"),
+                ));
+                // Keep the raw text so the attribute is not also reported missing.
+                items.push((
+                    key,
+                    Spanned {
+                        value: attr.value.clone().into_owned(),
+                        offset: value_offset,
+                    },
+                ));
+            }
         }
     }
     Attrs { items }

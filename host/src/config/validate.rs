@@ -234,7 +234,7 @@ fn component_config(
             let value = parse_duration(&b.value).filter(|d| limits::CALL_BUDGET_RANGE.contains(d));
             if value.is_none() {
                 errors.push(map.at(b.offset, format!(
-                    "budget '{}' is not a duration from {} ms to {} ms (write it as '10ms', '500us' or '0.2s')",
+                    "budget '{}' is not a duration from {} ms to {} ms (write it as '10ms' or '0.2s')",
                     clip(&b.value), limits::CALL_BUDGET_RANGE.start().as_millis(), limits::CALL_BUDGET_RANGE.end().as_millis()
                 )));
             }
