@@ -157,7 +157,16 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
                     "doctype declarations are not allowed (entities could expand without bound)",
                 ));
             }
-            Event::Decl(_) | Event::PI(_) | Event::Comment(_) => {}
+            Event::Comment(ref c) => {
+                let text: &str = c.as_ref();
+                if let Some(at) = text.find("--") {
+                    let offset = map
+                        .offset_of(text.as_bytes())
+                        .map_or(before, |start| start + at);
+                    errors.push(map.at(offset, "'--' is not allowed inside an xml comment"));
+                }
+            }
+            Event::Decl(_) | Event::PI(_) => {}
             Event::Eof => break,
         }
     }

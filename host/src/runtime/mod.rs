@@ -74,7 +74,8 @@ pub struct ComponentStats {
     pub ticks: u64,
     /// Ticks skipped because the loop fell behind the component's rate.
     pub missed_ticks: u64,
-    /// Wall time spent inside the component's calls.
+    /// Wall time spent in the component's calls, including the host's routing
+    /// of what each call emitted.
     pub call_ns: u64,
     /// Values handed to `on-input`.
     pub messages_in: u64,
@@ -142,6 +143,9 @@ pub struct Graph {
     messages_routed: u64,
     messages_dropped: u64,
     cycles: u64,
+    /// When the last call (and its routing) ended, within this cycle: the
+    /// start of the next call's time, so a call costs one clock read.
+    mark: Option<Instant>,
 }
 
 impl Default for Graph {
@@ -161,6 +165,7 @@ impl Graph {
             messages_routed: 0,
             messages_dropped: 0,
             cycles: 0,
+            mark: None,
         }
     }
 
@@ -231,6 +236,7 @@ impl Graph {
     /// then delivers every routed value (and what its handling emits).
     pub fn step(&mut self, now_ns: u64) {
         self.cycles += 1;
+        self.mark = None;
         for index in 0..self.nodes.len() {
             let node = &mut self.nodes[index];
             let Some(period) = node.period_ns else {
@@ -253,6 +259,7 @@ impl Graph {
     /// delivers it at once. Lets native sources outside the loop feed the
     /// graph (and benchmarks inject values).
     pub fn inject(&mut self, from: usize, port: u32, value: Value, now_ns: u64) {
+        self.mark = None;
         self.scratch.push((port, value));
         let mut outbox = std::mem::take(&mut self.scratch);
         self.route(from, &mut outbox);
@@ -313,16 +320,16 @@ impl Graph {
     }
 
     /// Calls `tick` (no input) or `on-input` on node `index`, then routes
-    /// what it emitted or records its failure.
+    /// what it emitted or records its failure. The component is charged the
+    /// time of its call and of routing what it emitted.
     fn call(&mut self, index: usize, now_ns: u64, input: Option<(u32, Value)>) {
+        let started = self.mark.take().unwrap_or_else(Instant::now);
         let mut outbox = std::mem::take(&mut self.scratch);
         let node = &mut self.nodes[index];
-        let started = Instant::now();
         let result = match &input {
             None => node.component.tick(now_ns, &mut outbox),
             Some((port, value)) => node.component.on_input(*port, value, now_ns, &mut outbox),
         };
-        node.stats.call_ns += started.elapsed().as_nanos() as u64;
         node.stats.calls += 1;
         match result {
             Ok(()) => {}
@@ -349,6 +356,9 @@ impl Graph {
         }
         self.route(index, &mut outbox);
         self.scratch = outbox;
+        let ended = Instant::now();
+        self.nodes[index].stats.call_ns += ended.duration_since(started).as_nanos() as u64;
+        self.mark = Some(ended);
     }
 
     /// Stops node `index` for good: it is never called again and its pending

@@ -207,14 +207,16 @@ impl Sandbox {
         let mut hasher = std::collections::hash_map::DefaultHasher::new();
         engine.precompile_compatibility_hash().hash(&mut hasher);
         let engine_key = format!("{:016x}", hasher.finish());
-        if let Some(dir) = &cache_dir {
-            if let Err(err) = create_private_dir(dir) {
+        let cache_dir = cache_dir.filter(|dir| match create_private_dir(dir) {
+            Ok(()) => true,
+            Err(err) => {
                 tracing::warn!(
                     "cannot use cache directory {}: {err}; compiling without a cache",
                     dir.display()
                 );
+                false
             }
-        }
+        });
         let ticker = EpochTicker::start(engine.clone());
         Ok(Sandbox {
             engine,

@@ -18,11 +18,33 @@ struct RangeFilter {
 impl Component for RangeFilter {
     fn describe() -> Description {
         Description::new("range-filter", "Clamps and smooths a range scan")
-            .input(input("ranges", ValueKind::Vector, "raw ranges in metres, one per ray"))
-            .output(output("filtered", ValueKind::Vector, "clamped, smoothed ranges in metres"))
-            .output(output("nearest", ValueKind::Scalar, "smallest filtered range in metres"))
-            .param(param("alpha", ParamKind::Number, "0.6", "weight of the newest reading, 0 < alpha <= 1"))
-            .param(param("max-range", ParamKind::Number, "4.0", "sensor range in metres; invalid readings become this"))
+            .input(input(
+                "ranges",
+                ValueKind::Vector,
+                "raw ranges in metres, one per ray",
+            ))
+            .output(output(
+                "filtered",
+                ValueKind::Vector,
+                "clamped, smoothed ranges in metres",
+            ))
+            .output(output(
+                "nearest",
+                ValueKind::Scalar,
+                "smallest filtered range in metres",
+            ))
+            .param(param(
+                "alpha",
+                ParamKind::Number,
+                "0.6",
+                "weight of the newest reading, 0 < alpha <= 1",
+            ))
+            .param(param(
+                "max-range",
+                ParamKind::Number,
+                "4.0",
+                "sensor range in metres; invalid readings become this",
+            ))
     }
 
     fn init(params: &Params) -> Result<Self, String> {
@@ -32,9 +54,15 @@ impl Component for RangeFilter {
             return Err(format!("alpha must be in (0, 1], got {alpha}"));
         }
         if !(max_range > 0.0 && max_range.is_finite()) {
-            return Err(format!("max-range must be a positive number, got {max_range}"));
+            return Err(format!(
+                "max-range must be a positive number, got {max_range}"
+            ));
         }
-        Ok(RangeFilter { alpha, max_range, smoothed: Vec::new() })
+        Ok(RangeFilter {
+            alpha,
+            max_range,
+            smoothed: Vec::new(),
+        })
     }
 
     fn on_input(&mut self, _port: u32, value: Value) -> Result<(), String> {
@@ -46,7 +74,11 @@ impl Component for RangeFilter {
             self.smoothed = raw.iter().map(|&r| self.clamp(r)).collect();
         } else {
             for (s, &r) in self.smoothed.iter_mut().zip(&raw) {
-                let r = if r.is_finite() && r >= 0.0 { r.min(self.max_range) } else { self.max_range };
+                let r = if r.is_finite() && r >= 0.0 {
+                    r.min(self.max_range)
+                } else {
+                    self.max_range
+                };
                 *s += self.alpha * (r - *s);
             }
         }
@@ -59,7 +91,11 @@ impl Component for RangeFilter {
 
 impl RangeFilter {
     fn clamp(&self, r: f64) -> f64 {
-        if r.is_finite() && r >= 0.0 { r.min(self.max_range) } else { self.max_range }
+        if r.is_finite() && r >= 0.0 {
+            r.min(self.max_range)
+        } else {
+            self.max_range
+        }
     }
 }
 

@@ -108,7 +108,11 @@ impl Description {
 
 /// An input port spec.
 pub fn input(name: &str, kind: ValueKind, doc: &str) -> PortSpec {
-    PortSpec { name: name.to_string(), kind, doc: doc.to_string() }
+    PortSpec {
+        name: name.to_string(),
+        kind,
+        doc: doc.to_string(),
+    }
 }
 
 /// An output port spec.
@@ -134,18 +138,25 @@ pub struct Params(pub Vec<Param>);
 impl Params {
     /// The text of parameter `name`, if present.
     pub fn text(&self, name: &str) -> Option<&str> {
-        self.0.iter().find(|p| p.name == name).map(|p| p.value.as_str())
+        self.0
+            .iter()
+            .find(|p| p.name == name)
+            .map(|p| p.value.as_str())
     }
     /// Parameter `name` as a number; `Err` names the parameter.
     pub fn number(&self, name: &str) -> Result<f64, String> {
-        let text = self.text(name).ok_or_else(|| format!("missing parameter '{name}'"))?;
+        let text = self
+            .text(name)
+            .ok_or_else(|| format!("missing parameter '{name}'"))?;
         text.trim()
             .parse::<f64>()
             .map_err(|_| format!("parameter '{name}': '{text}' is not a number"))
     }
     /// Parameter `name` as a whole number; `Err` names the parameter.
     pub fn integer(&self, name: &str) -> Result<i64, String> {
-        let text = self.text(name).ok_or_else(|| format!("missing parameter '{name}'"))?;
+        let text = self
+            .text(name)
+            .ok_or_else(|| format!("missing parameter '{name}'"))?;
         text.trim()
             .parse::<i64>()
             .map_err(|_| format!("parameter '{name}': '{text}' is not a whole number"))
@@ -155,7 +166,9 @@ impl Params {
         match self.text(name).map(str::trim) {
             Some("true") => Ok(true),
             Some("false") => Ok(false),
-            Some(other) => Err(format!("parameter '{name}': '{other}' is not true or false")),
+            Some(other) => Err(format!(
+                "parameter '{name}': '{other}' is not true or false"
+            )),
             None => Err(format!("missing parameter '{name}'")),
         }
     }
