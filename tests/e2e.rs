@@ -50,18 +50,8 @@ fn component<'a>(report: &'a Json, name: &str) -> &'a Json {
 /// built guests.
 fn robot_file(dir: &Path, body: &str) -> PathBuf {
     let mut xml = body.to_string();
-    for name in [
-        "test-counter",
-        "test-faulty",
-        "test-relay",
-        "avoider",
-        "planner",
-        "range-filter",
-    ] {
-        xml = xml.replace(
-            &format!("GUEST({name})"),
-            &support::guest(name).display().to_string(),
-        );
+    for name in ["test-counter", "test-faulty", "test-relay", "test-commander", "avoider", "planner", "range-filter"] {
+        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
     }
     let path = dir.join("robot.xml");
     std::fs::write(&path, xml).unwrap();
@@ -69,82 +59,154 @@ fn robot_file(dir: &Path, body: &str) -> PathBuf {
 }
 
 #[test]
-fn the_demo_runs_for_its_duration_and_reports() {
+fn the_demo_robot_reaches_its_goal_without_collisions() {
     let dir = tempfile::tempdir().unwrap();
     let report_path = dir.path().join("report.json");
-    let started = Instant::now();
-    let output = run(&[
-        "run",
-        "config/demo.xml",
-        "--duration",
-        "2",
-        "--report",
-        report_path.to_str().unwrap(),
-    ]);
+    let output = run(&["run", "config/demo.xml", "--duration", "50", "--report", report_path.to_str().unwrap()]);
     let log = text(&output.stderr);
     assert!(output.status.success(), "{log}");
-    assert!(started.elapsed() < Duration::from_secs(20));
 
     let report = read_report(&report_path);
-    assert_eq!(report["format"], 1);
-    assert_eq!(report["robot"], "demo");
-    assert_eq!(report["stopped_by"], "duration");
-    let seconds = report["duration_s"].as_f64().unwrap();
-    assert!((2.0..3.0).contains(&seconds), "ran {seconds} s");
-    let components = report["components"].as_array().unwrap();
-    assert_eq!(components.len(), 7);
-    for c in components {
+    assert_eq!(
+        (report["format"].as_u64(), report["robot"].as_str(), report["stopped_by"].as_str()),
+        (Some(1), Some("demo"), Some("duration"))
+    );
+    for c in report["components"].as_array().unwrap() {
         assert_eq!(c["state"], "running", "{c}");
-        assert!(c["fault"].is_null());
+        assert_eq!(c["errors"], 0, "{c}");
     }
-    // 20 Hz for 2 s: about 40 scans through the filter into the avoider,
-    // which sees an obstacle and commands a turn on each of its ticks.
-    let filter = component(&report, "filter");
+    let sim = &report["sim"];
+    assert_eq!(sim["goal_reached"], true, "{sim}");
+    assert_eq!(sim["collisions"], 0, "{sim}");
+    assert!(sim["goal_reached_at_s"].as_f64().unwrap() < 50.0);
+    assert!(sim["distance_travelled_m"].as_f64().unwrap() > 9.0, "{sim}");
+    // Both behaviours drove: the avoider took over near the box.
+    let arbiter = &report["arbiter"];
+    let held: Vec<f64> = arbiter["held_s"].as_array().unwrap().iter().map(|h| h[1].as_f64().unwrap()).collect();
+    assert!(held.iter().all(|&s| s > 0.5), "{arbiter}");
+    assert!(arbiter["switches"].as_u64().unwrap() >= 3, "{arbiter}");
+    assert!(log.contains("avoid (priority 3) suppresses planner (priority 1)"), "{log}");
+    assert!(log.contains("planner (priority 1) holds control"), "{log}");
+    // The commands crossed the PTY as bytes; the feedback came back clean.
+    let serial = &report["serial"];
+    assert!(serial["frames_written"].as_u64().unwrap() > 100, "{serial}");
+    assert!(serial["bytes_written"].as_u64().unwrap() > 500, "{serial}");
+    assert_eq!(serial["frames_written"], report["sim"]["commands_received"], "{serial}");
+    assert_eq!((serial["malformed_feedback"].as_u64(), serial["reconnects"].as_u64()), (Some(0), Some(0)));
+    assert!(serial["feedback_messages"].as_u64().unwrap() > 1000, "{serial}");
+}
+
+/// A robot whose only motion source drives straight at a wall, with or
+/// without the obstacle avoider above it; returns the report.
+fn drive_at_a_wall(with_avoider: bool) -> Json {
+    let dir = tempfile::tempdir().unwrap();
+    let world = support::repo_root().join("tests/worlds/wall-ahead.world");
+    let avoider = if with_avoider {
+        r#"<component name="avoid" source="GUEST(avoider)" rate="20" timeout="400ms">
+      <param name="creep-speed" value="0.05"/>
+    </component>
+    <connect from="filter.filtered" to="avoid.ranges"/>
+    <connect from="avoid.cmd" to="arbiter.commands"/>"#
+    } else {
+        ""
+    };
+    let body = format!(
+        r#"<robot name="wall">
+  <platform name="control">
+    <component name="sim" source="builtin:sim"><param name="world" value="{}"/></component>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
+    <component name="filter" source="GUEST(range-filter)" rate="0"/>
+    <component name="driver" source="builtin:publish" rate="10" priority="1">
+      <param name="kind" value="command"/>
+      <param name="value" value="VEL 0.4 0"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <connect from="motors.ranges" to="filter.ranges"/>
+    <connect from="driver.out" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="motors.cmd"/>
+    {avoider}
+  </platform>
+</robot>"#,
+        world.display()
+    );
+    let robot = robot_file(dir.path(), &body);
+    let report_path = dir.path().join("report.json");
+    let output = run(&["run", robot.to_str().unwrap(), "--duration", "15", "--report", report_path.to_str().unwrap()]);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    read_report(&report_path)
+}
+
+#[test]
+fn the_avoider_prevents_the_collision_a_blind_source_would_cause() {
+    let blind = drive_at_a_wall(false);
     assert!(
-        (36..=44).contains(&filter["messages_in"].as_u64().unwrap()),
-        "{filter}"
+        blind["sim"]["collisions"].as_u64().unwrap() >= 1,
+        "without the avoider the robot hits the wall: {}",
+        blind["sim"]
     );
-    assert_eq!(
-        filter["messages_out"].as_u64().unwrap(),
-        2 * filter["messages_in"].as_u64().unwrap()
+    let guarded = drive_at_a_wall(true);
+    assert_eq!(guarded["sim"]["collisions"], 0, "{}", guarded["sim"]);
+    let held = &guarded["arbiter"]["held_s"];
+    assert!(held[1][0] == "avoid" && held[1][1].as_f64().unwrap() > 0.5, "{held}");
+    assert!(guarded["sim"]["distance_travelled_m"].as_f64().unwrap() > 3.0, "{}", guarded["sim"]);
+}
+
+#[test]
+fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_timeout() {
+    use serialport::{SerialPort, TTYPort};
+    let (mut master, _slave) = TTYPort::pair().unwrap();
+    master.set_timeout(Duration::from_millis(10)).unwrap();
+    let device = _slave.name().unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let robot = robot_file(
+        dir.path(),
+        &format!(
+            r#"<robot name="silence">
+  <platform name="control">
+    <component name="motors" source="builtin:serial" rate="100">
+      <param name="device" value="{device}"/>
+      <param name="watchdog" value="0.3"/>
+    </component>
+    <component name="teleop" source="GUEST(test-commander)" rate="20" timeout="200ms">
+      <param name="command" value="VEL 0.25 0"/>
+      <param name="ticks" value="20"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="motors.cmd"/>
+  </platform>
+</robot>"#
+        ),
     );
-    let avoid = component(&report, "avoid");
-    assert!(
-        (36..=44).contains(&avoid["ticks"].as_u64().unwrap()),
-        "{avoid}"
-    );
-    // Its first tick (t = 0) comes before the first scan reaches it.
-    assert_eq!(
-        avoid["messages_out"].as_u64().unwrap(),
-        avoid["ticks"].as_u64().unwrap() - 1
-    );
-    assert!(avoid["call_time_ms"].as_f64().unwrap() > 0.0);
-    let motion_log = component(&report, "motion-log");
-    let planner = component(&report, "planner");
-    // Like the avoider, the planner has no pose yet on its first tick.
-    let planner_cmds = planner["ticks"].as_u64().unwrap() - 1;
-    assert_eq!(
-        motion_log["messages_in"].as_u64().unwrap(),
-        avoid["messages_out"].as_u64().unwrap() + planner_cmds
-    );
-    assert!(report["messages"]["routed"].as_u64().unwrap() > 200);
-    assert_eq!(report["messages"]["dropped"], 0);
-    assert_eq!(report["connections"].as_array().unwrap().len(), 6);
-    // The log shows the data moving.
-    assert!(log.contains("received command 'VEL 0.000 1.200'"), "{log}");
-    assert!(log.contains("received scalar 0.400"), "{log}");
+    let mut child =
+        subsume().args(["run", robot.to_str().unwrap(), "--duration", "4"]).stderr(Stdio::null()).spawn().unwrap();
+    // Record every line the motor controller receives, with its arrival time.
+    let mut lines: Vec<(Instant, String)> = Vec::new();
+    let mut pending = String::new();
+    let mut buffer = [0u8; 256];
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while child.try_wait().unwrap().is_none() && Instant::now() < deadline {
+        if let Ok(n) = std::io::Read::read(&mut master, &mut buffer) {
+            pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
+            while let Some(end) = pending.find('\n') {
+                lines.push((Instant::now(), pending[..end].to_string()));
+                pending.drain(..=end);
+            }
+        }
+    }
+    assert!(wait_for_exit(&mut child, Duration::from_secs(10)).success());
+    let last_motion = lines.iter().rposition(|(_, l)| l == "M 250 250").expect("the source's commands reached the pty");
+    let first_stop = lines[last_motion..].iter().find(|(_, l)| l == "S").expect("STOP reached the pty");
+    let gap = first_stop.0.duration_since(lines[last_motion].0);
+    assert!(gap <= Duration::from_millis(300), "STOP came {gap:?} after the last motion command");
+    assert!(lines[last_motion + 1..].iter().all(|(_, l)| l == "S"), "only STOP after the silence: {lines:?}");
 }
 
 /// Starts `subsume run` without a duration and waits until the log shows a
 /// value moving through the graph.
 fn start_and_wait_until_running(report: &Path) -> Child {
     let mut child = subsume()
-        .args([
-            "run",
-            "config/demo.xml",
-            "--report",
-            report.to_str().unwrap(),
-        ])
+        .args(["run", "config/demo.xml", "--report", report.to_str().unwrap()])
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()
@@ -160,8 +222,7 @@ fn start_and_wait_until_running(report: &Path) -> Child {
             }
         }
     });
-    wait.recv_timeout(Duration::from_secs(30))
-        .expect("the demo never logged a command");
+    wait.recv_timeout(Duration::from_secs(30)).expect("the demo never logged a command");
     child
 }
 
@@ -185,11 +246,7 @@ fn sigint_and_sigterm_stop_the_host_cleanly() {
         let dir = tempfile::tempdir().unwrap();
         let report_path = dir.path().join("report.json");
         let mut child = start_and_wait_until_running(&report_path);
-        let sent = Command::new("kill")
-            .arg(format!("-{signal}"))
-            .arg(child.id().to_string())
-            .status()
-            .unwrap();
+        let sent = Command::new("kill").arg(format!("-{signal}")).arg(child.id().to_string()).status().unwrap();
         assert!(sent.success());
         let status = wait_for_exit(&mut child, Duration::from_secs(5));
         assert!(status.success(), "SIG{signal}: {status}");
@@ -204,14 +261,9 @@ fn check_prints_every_error_one_per_line_and_exits_1() {
     let output = run(&["check", "host/tests/config/many-errors.xml"]);
     assert_eq!(output.status.code(), Some(1));
     let stdout = text(&output.stdout);
-    let expected = std::fs::read_to_string(
-        support::repo_root().join("host/tests/config/many-errors.expected"),
-    )
-    .unwrap();
-    let expected: Vec<String> = expected
-        .lines()
-        .map(|l| format!("host/tests/config/{l}"))
-        .collect();
+    let expected =
+        std::fs::read_to_string(support::repo_root().join("host/tests/config/many-errors.expected")).unwrap();
+    let expected: Vec<String> = expected.lines().map(|l| format!("host/tests/config/{l}")).collect();
     assert_eq!(stdout.lines().collect::<Vec<_>>(), expected);
 }
 
@@ -219,29 +271,16 @@ fn check_prints_every_error_one_per_line_and_exits_1() {
 fn check_accepts_a_good_file_with_a_summary() {
     let output = run(&["check", "config/demo.xml"]);
     assert_eq!(output.status.code(), Some(0), "{}", text(&output.stdout));
-    assert_eq!(
-        text(&output.stdout),
-        "config/demo.xml: ok: robot 'demo', 7 components, 6 connections\n"
-    );
+    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 7 components, 7 connections\n");
 }
 
 #[test]
 fn run_refuses_a_bad_file_and_starts_nothing() {
-    let output = run(&[
-        "run",
-        "host/tests/config/bad-connections.xml",
-        "--duration",
-        "1",
-    ]);
+    let output = run(&["run", "host/tests/config/bad-connections.xml", "--duration", "1"]);
     assert_eq!(output.status.code(), Some(1));
     assert_eq!(text(&output.stdout).lines().count(), 10);
     let stderr = text(&output.stderr);
-    assert!(
-        stderr.contains(
-            "10 problem(s) in host/tests/config/bad-connections.xml; nothing was started"
-        ),
-        "{stderr}"
-    );
+    assert!(stderr.contains("10 problem(s) in host/tests/config/bad-connections.xml; nothing was started"), "{stderr}");
     assert!(!stderr.contains("started range-filter"), "{stderr}");
 }
 
@@ -251,17 +290,11 @@ fn describe_prints_ports_params_and_priority() {
     let output = run(&["describe", avoider.to_str().unwrap()]);
     assert!(output.status.success());
     let stdout = text(&output.stdout);
-    assert!(
-        stdout.starts_with("avoider 0.1.0: Turns away from obstacles"),
-        "{stdout}"
-    );
+    assert!(stdout.starts_with("avoider 0.1.0: Turns away from obstacles"), "{stdout}");
     assert!(stdout.contains("default priority: 3\n"), "{stdout}");
     assert!(stdout.contains("inputs:\n  0: ranges (vector)"), "{stdout}");
     assert!(stdout.contains("outputs:\n  0: cmd (command)"), "{stdout}");
-    assert!(
-        stdout.contains("  threshold (number, default '0.5')"),
-        "{stdout}"
-    );
+    assert!(stdout.contains("  threshold (number, default '0.5')"), "{stdout}");
 
     let output = run(&["describe", avoider.to_str().unwrap(), "--json"]);
     assert!(output.status.success());
@@ -284,10 +317,7 @@ fn describe_refuses_what_is_not_a_component() {
     let output = run(&["describe", path.to_str().unwrap()]);
     assert_eq!(output.status.code(), Some(1));
     let stderr = text(&output.stderr);
-    assert!(
-        stderr.contains("not a webassembly component: this is a core webassembly module"),
-        "{stderr}"
-    );
+    assert!(stderr.contains("not a webassembly component: this is a core webassembly module"), "{stderr}");
 }
 
 #[test]
@@ -309,20 +339,10 @@ fn a_faulting_guest_is_reported_and_the_others_keep_running() {
 </robot>"#,
     );
     let report_path = dir.path().join("report.json");
-    let output = run(&[
-        "run",
-        robot.to_str().unwrap(),
-        "--duration",
-        "1",
-        "--report",
-        report_path.to_str().unwrap(),
-    ]);
+    let output = run(&["run", robot.to_str().unwrap(), "--duration", "1", "--report", report_path.to_str().unwrap()]);
     let log = text(&output.stderr);
     assert!(output.status.success(), "{log}");
-    assert!(
-        log.contains("component faulted and is stopped: tick: exceeded its time budget of 5 ms"),
-        "{log}"
-    );
+    assert!(log.contains("component faulted and is stopped: tick: exceeded its time budget of 5 ms"), "{log}");
     let report = read_report(&report_path);
     let bad = component(&report, "bad");
     assert_eq!(bad["state"], "faulted");
@@ -350,9 +370,7 @@ fn a_component_that_refuses_to_start_stops_startup() {
     assert_eq!(output.status.code(), Some(1));
     let stderr = text(&output.stderr);
     assert!(
-        stderr.contains(
-            "failed to start component 'stubborn': init() failed: refusing to start, as asked"
-        ),
+        stderr.contains("failed to start component 'stubborn': init() failed: refusing to start, as asked"),
         "{stderr}"
     );
 }

@@ -27,7 +27,7 @@ const BUDGET: Duration = Duration::from_millis(100);
 struct Sink;
 
 impl Component for Sink {
-    fn on_input(&mut self, _: u32, _: &Value, _: u64, _: &mut Outbox) -> Result<(), CallError> {
+    fn on_input(&mut self, _: u32, _: &Value, _: usize, _: u64, _: &mut Outbox) -> Result<(), CallError> {
         Ok(())
     }
     fn tick(&mut self, _: u64, _: &mut Outbox) -> Result<(), CallError> {
@@ -37,11 +37,7 @@ impl Component for Sink {
 
 fn relay(sandbox: &Sandbox, bytes: &[u8]) -> Box<dyn Component> {
     let artifact = sandbox.load(bytes).unwrap();
-    Box::new(
-        sandbox
-            .instantiate(&artifact, "relay", 16 << 20, BUDGET, &[])
-            .unwrap(),
-    )
+    Box::new(sandbox.instantiate(&artifact, "relay", 16 << 20, BUDGET, &[]).unwrap())
 }
 
 /// source (native, only used to inject) -> `relays` relay guests -> sink.
@@ -77,14 +73,7 @@ fn percentile(sorted: &[u64], p: f64) -> u64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
-fn hop_latency(
-    sandbox: &Sandbox,
-    bytes: &[u8],
-    label: &str,
-    port: u32,
-    value: Value,
-    overhead: u64,
-) {
+fn hop_latency(sandbox: &Sandbox, bytes: &[u8], label: &str, port: u32, value: Value, overhead: u64) {
     let (mut graph, source) = chain(sandbox, bytes, 1, port);
     let samples = 200_000;
     for _ in 0..20_000 {
@@ -115,7 +104,7 @@ fn direct_call(sandbox: &Sandbox, bytes: &[u8], overhead: u64) {
     let mut times = Vec::with_capacity(samples);
     for i in 0..(samples + 20_000) {
         let start = Instant::now();
-        relay.on_input(0, &value, 0, &mut out).unwrap();
+        relay.on_input(0, &value, 0, 0, &mut out).unwrap();
         let elapsed = (start.elapsed().as_nanos() as u64).saturating_sub(overhead);
         out.clear();
         if i >= 20_000 {
@@ -167,9 +156,7 @@ fn load_and_instantiate(bytes: &[u8]) {
     let artifact = sandbox.load(bytes).unwrap();
     let start = Instant::now();
     for _ in 0..rounds {
-        let instance = sandbox
-            .instantiate(&artifact, "relay", 16 << 20, BUDGET, &[])
-            .unwrap();
+        let instance = sandbox.instantiate(&artifact, "relay", 16 << 20, BUDGET, &[]).unwrap();
         drop(instance);
     }
     let instantiate = start.elapsed() / rounds;
@@ -190,14 +177,7 @@ fn main() {
     let overhead = timer_overhead();
     println!("timer overhead subtracted from each sample: {overhead} ns");
     hop_latency(&sandbox, &bytes, "scalar", 0, Value::Scalar(1.5), overhead);
-    hop_latency(
-        &sandbox,
-        &bytes,
-        "vector of 100 f64",
-        1,
-        Value::Vector((0..100).map(f64::from).collect()),
-        overhead,
-    );
+    hop_latency(&sandbox, &bytes, "vector of 100 f64", 1, Value::Vector((0..100).map(f64::from).collect()), overhead);
     direct_call(&sandbox, &bytes, overhead);
     throughput(&sandbox, &bytes);
     load_and_instantiate(&bytes);

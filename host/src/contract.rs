@@ -153,10 +153,7 @@ pub fn is_valid_name(name: &str) -> bool {
 pub fn check_description(d: &Description) -> Result<(), Vec<String>> {
     let mut problems = Vec::new();
     if !is_valid_name(&d.name) {
-        problems.push(format!(
-            "name '{}' is not [a-z][a-z0-9_-]* of at most {MAX_NAME_LEN} characters",
-            clip(&d.name)
-        ));
+        problems.push(format!("name '{}' is not [a-z][a-z0-9_-]* of at most {MAX_NAME_LEN} characters", clip(&d.name)));
     }
     for (what, text) in [("version", &d.version), ("summary", &d.summary)] {
         if text.len() > MAX_DOC_LEN {
@@ -164,57 +161,35 @@ pub fn check_description(d: &Description) -> Result<(), Vec<String>> {
         }
     }
     if d.inputs.len() + d.outputs.len() > MAX_PORTS {
-        problems.push(format!(
-            "declares {} ports; at most {MAX_PORTS} are allowed",
-            d.inputs.len() + d.outputs.len()
-        ));
+        problems.push(format!("declares {} ports; at most {MAX_PORTS} are allowed", d.inputs.len() + d.outputs.len()));
     }
     for (direction, ports) in [("input", &d.inputs), ("output", &d.outputs)] {
         for (i, port) in ports.iter().enumerate() {
             if !is_valid_name(&port.name) {
-                problems.push(format!(
-                    "{direction} port name '{}' is not [a-z][a-z0-9_-]*",
-                    clip(&port.name)
-                ));
+                problems.push(format!("{direction} port name '{}' is not [a-z][a-z0-9_-]*", clip(&port.name)));
             }
             if ports[..i].iter().any(|p| p.name == port.name) {
-                problems.push(format!(
-                    "{direction} port '{}' is declared twice",
-                    clip(&port.name)
-                ));
+                problems.push(format!("{direction} port '{}' is declared twice", clip(&port.name)));
             }
             if port.doc.len() > MAX_DOC_LEN {
-                problems.push(format!(
-                    "doc of {direction} port '{}' is longer than {MAX_DOC_LEN} bytes",
-                    clip(&port.name)
-                ));
+                problems
+                    .push(format!("doc of {direction} port '{}' is longer than {MAX_DOC_LEN} bytes", clip(&port.name)));
             }
             if direction == "output" && port.kind == ValueKind::Any {
-                problems.push(format!(
-                    "output port '{}' has kind 'any'; outputs need a concrete kind",
-                    clip(&port.name)
-                ));
+                problems
+                    .push(format!("output port '{}' has kind 'any'; outputs need a concrete kind", clip(&port.name)));
             }
         }
     }
     if d.params.len() > MAX_PARAMS {
-        problems.push(format!(
-            "declares {} parameters; at most {MAX_PARAMS} are allowed",
-            d.params.len()
-        ));
+        problems.push(format!("declares {} parameters; at most {MAX_PARAMS} are allowed", d.params.len()));
     }
     for (i, param) in d.params.iter().enumerate() {
         if !is_valid_name(&param.name) {
-            problems.push(format!(
-                "parameter name '{}' is not [a-z][a-z0-9_-]*",
-                clip(&param.name)
-            ));
+            problems.push(format!("parameter name '{}' is not [a-z][a-z0-9_-]*", clip(&param.name)));
         }
         if d.params[..i].iter().any(|p| p.name == param.name) {
-            problems.push(format!(
-                "parameter '{}' is declared twice",
-                clip(&param.name)
-            ));
+            problems.push(format!("parameter '{}' is declared twice", clip(&param.name)));
         }
         if param.doc.len() > MAX_DOC_LEN || param.default_value.len() > MAX_DOC_LEN {
             problems.push(format!(
@@ -223,17 +198,10 @@ pub fn check_description(d: &Description) -> Result<(), Vec<String>> {
             ));
         }
         if let Err(why) = param.kind.check(&param.default_value) {
-            problems.push(format!(
-                "default of parameter '{}' {why}",
-                clip(&param.name)
-            ));
+            problems.push(format!("default of parameter '{}' {why}", clip(&param.name)));
         }
     }
-    if problems.is_empty() {
-        Ok(())
-    } else {
-        Err(problems)
-    }
+    if problems.is_empty() { Ok(()) } else { Err(problems) }
 }
 
 /// At most 40 characters of `text`, for messages about guest-provided text.
@@ -250,11 +218,7 @@ mod tests {
     use super::*;
 
     fn port(name: &str, kind: ValueKind) -> PortSpec {
-        PortSpec {
-            name: name.into(),
-            kind,
-            doc: String::new(),
-        }
+        PortSpec { name: name.into(), kind, doc: String::new() }
     }
 
     #[test]
@@ -262,15 +226,7 @@ mod tests {
         for good in ["a", "range-filter", "x_1", "cmd"] {
             assert!(is_valid_name(good), "{good}");
         }
-        for bad in [
-            "",
-            "1a",
-            "A",
-            "a b",
-            "a.b",
-            "é",
-            &"a".repeat(MAX_NAME_LEN + 1),
-        ] {
+        for bad in ["", "1a", "A", "a b", "a.b", "é", &"a".repeat(MAX_NAME_LEN + 1)] {
             assert!(!is_valid_name(bad), "{bad}");
         }
     }
@@ -282,10 +238,7 @@ mod tests {
         assert!(ParamKind::Number.check("inf").is_err());
         assert!(ParamKind::Integer.check("2.5").is_err());
         assert!(ParamKind::Flag.check("yes").is_err());
-        assert_eq!(
-            ParamKind::Integer.check("x"),
-            Err("expects a whole number, got 'x'".into())
-        );
+        assert_eq!(ParamKind::Integer.check("x"), Err("expects a whole number, got 'x'".into()));
     }
 
     #[test]
@@ -315,9 +268,7 @@ mod tests {
         assert!(ValueKind::Any.accepts(&Value::Bytes(vec![1])));
         assert!(ValueKind::Vector.can_feed(ValueKind::Any));
         assert!(!ValueKind::Vector.can_feed(ValueKind::Scalar));
-        for k in [
-            "flag", "scalar", "vector", "text", "command", "bytes", "any",
-        ] {
+        for k in ["flag", "scalar", "vector", "text", "command", "bytes", "any"] {
             assert_eq!(ValueKind::parse(k).map(ValueKind::name), Some(k));
         }
     }

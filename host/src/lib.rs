@@ -4,25 +4,30 @@
 //! The binary (`main.rs`) parses the command line and calls [`run`]; see
 //! `ARCHITECTURE.md` for the map of the modules below.
 
+pub mod arbiter;
 pub mod builtin;
 pub mod config;
 pub mod contract;
 pub mod fsutil;
 pub mod loader;
 pub mod report;
+pub mod robot;
 pub mod runtime;
 pub mod sandbox;
+pub mod sim;
 
+use std::collections::HashMap;
 use std::path::PathBuf;
 use std::time::Duration;
 
 use thiserror::Error;
 
-use crate::config::{Diagnostics, RobotConfig};
+use crate::builtin::BuildContext;
+use crate::config::{ComponentConfig, ComponentSource, Diagnostics, RobotConfig};
 use crate::loader::Loader;
 use crate::report::Report;
-use crate::runtime::Graph;
 use crate::runtime::control_loop::{self, Clock, Shutdown};
+use crate::runtime::{Component, Graph};
 use crate::sandbox::{Sandbox, SandboxError};
 
 /// What `subsume run` was asked to do.
@@ -63,9 +68,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     );
     let clock = Clock::new();
     let mut graph = build_graph(&config, &mut loader, clock.now_ns()).map_err(RunError::Start)?;
-    let until_ns = options
-        .duration
-        .map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
+    let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
     let control = std::thread::Builder::new()
         .name("subsume-control".into())
         .spawn(move || {
@@ -73,73 +76,58 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
             (graph, stopped_by, clock.now_ns())
         })
         .map_err(|e| RunError::ControlLoop(e.to_string()))?;
-    let (graph, stopped_by, ran_ns) = control
-        .join()
-        .map_err(|_| RunError::ControlLoop("it panicked".into()))?;
+    let (graph, stopped_by, ran_ns) = control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))?;
     tracing::info!(
         "stopped ({}) after {:.2} s, {} messages routed",
         stopped_by.name(),
         ran_ns as f64 / 1e9,
         graph.messages_routed()
     );
-    Ok(report::build(
-        &config,
-        &graph,
-        stopped_by,
-        ran_ns as f64 / 1e9,
-    ))
+    Ok(report::build(&config, &graph, stopped_by, ran_ns as f64 / 1e9))
 }
 
 /// Instantiates and initialises every component of `config` and wires them.
-/// Component `i` of the graph is component `i` of the config. Every component
-/// that fails to start is reported.
-pub fn build_graph(
-    config: &RobotConfig,
-    loader: &mut Loader<'_>,
-    start_ns: u64,
-) -> Result<Graph, Vec<String>> {
-    let mut graph = Graph::new();
+/// Component `i` of the graph is component `i` of the config. Simulated
+/// robots are built first, so serial links can open their pseudo-terminals.
+/// Every component that fails to start is reported.
+pub fn build_graph(config: &RobotConfig, loader: &mut Loader<'_>, start_ns: u64) -> Result<Graph, Vec<String>> {
+    let mut sim_ptys = HashMap::new();
+    let mut built: Vec<Option<Box<dyn Component>>> = (0..config.components.len()).map(|_| None).collect();
     let mut errors = Vec::new();
-    for component in &config.components {
-        match loader.instantiate(component) {
-            Ok(instance) => {
-                let d = &component.description;
-                tracing::info!(
-                    component = %component.name,
-                    "started {} {} from {} ({} in, {} out, {} Hz{})",
-                    d.name,
-                    d.version,
-                    component.source,
-                    d.inputs.len(),
-                    d.outputs.len(),
-                    component.rate_hz,
-                    component.priority.map(|p| format!(", priority {p}")).unwrap_or_default()
-                );
-                graph.add(
-                    &component.name,
-                    instance,
-                    d.outputs.len(),
-                    component.rate_hz,
-                    start_ns,
-                );
-            }
-            Err(why) => errors.push(format!(
-                "failed to start component '{}': {why}",
-                component.name
-            )),
+    let is_sim = |c: &ComponentConfig| c.source == ComponentSource::Builtin("sim".into());
+    let order = (0..config.components.len())
+        .filter(|&i| is_sim(&config.components[i]))
+        .chain((0..config.components.len()).filter(|&i| !is_sim(&config.components[i])));
+    for index in order {
+        let component = &config.components[index];
+        let mut ctx = BuildContext { robot: config, index, sim_ptys: &mut sim_ptys };
+        match loader.instantiate(&mut ctx) {
+            Ok(instance) => built[index] = Some(instance),
+            Err(why) => errors.push(format!("failed to start component '{}': {why}", component.name)),
         }
     }
     if !errors.is_empty() {
         return Err(errors);
     }
-    for c in &config.connections {
-        graph.connect(
-            c.from.component,
-            c.from.port,
-            c.to.component,
-            c.to.port,
-            c.policy,
+    let mut graph = Graph::new();
+    for (component, instance) in config.components.iter().zip(built) {
+        let Some(instance) = instance else { continue };
+        let d = &component.description;
+        tracing::info!(
+            component = %component.name,
+            "started {} {} from {} ({} in, {} out, {} Hz{})",
+            d.name,
+            d.version,
+            component.source,
+            d.inputs.len(),
+            d.outputs.len(),
+            component.rate_hz,
+            component.priority.map(|p| format!(", priority {p}")).unwrap_or_default()
         );
+        graph.add(&component.name, instance, d.outputs.len(), component.rate_hz, start_ns);
+    }
+    for c in &config.connections {
+        graph.connect(c.from.component, c.from.port, c.to.component, c.to.port, c.policy);
     }
     Ok(graph)
 }

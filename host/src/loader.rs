@@ -7,8 +7,8 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use crate::builtin;
-use crate::config::{ComponentConfig, ComponentSource, Resolver};
+use crate::builtin::{self, BuildContext};
+use crate::config::{ComponentSource, Resolver};
 use crate::contract::Description;
 use crate::runtime::Component;
 use crate::sandbox::{Sandbox, WasmArtifact};
@@ -25,10 +25,7 @@ pub struct Loader<'a> {
 
 impl<'a> Loader<'a> {
     pub fn new(sandbox: &'a Sandbox) -> Loader<'a> {
-        Loader {
-            sandbox,
-            artifacts: HashMap::new(),
-        }
+        Loader { sandbox, artifacts: HashMap::new() }
     }
 
     /// The compiled artifact of the `.wasm` file at `path`.
@@ -36,32 +33,25 @@ impl<'a> Loader<'a> {
         if let Some(result) = self.artifacts.get(path) {
             return result.clone();
         }
-        let result = read_component_file(path).and_then(|bytes| {
-            self.sandbox
-                .load(&bytes)
-                .map_err(|e| format!("cannot load '{}': {e}", path.display()))
-        });
+        let result = read_component_file(path)
+            .and_then(|bytes| self.sandbox.load(&bytes).map_err(|e| format!("cannot load '{}': {e}", path.display())));
         self.artifacts.insert(path.to_path_buf(), result.clone());
         result
     }
 
-    /// A running, initialised instance of `config`.
-    pub fn instantiate(&mut self, config: &ComponentConfig) -> Result<Box<dyn Component>, String> {
+    /// A running, initialised instance of component `ctx.index` of
+    /// `ctx.robot`.
+    pub fn instantiate(&mut self, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, String> {
+        let Some(config) = ctx.robot.components.get(ctx.index) else {
+            return Err("no such component".into());
+        };
         match &config.source {
-            ComponentSource::Builtin(kind) => {
-                builtin::instantiate(kind, &config.name, &config.description, &config.params)
-            }
+            ComponentSource::Builtin(kind) => builtin::instantiate(kind, ctx),
             ComponentSource::Wasm(path) => {
                 let artifact = self.load_wasm(path)?;
                 let component = self
                     .sandbox
-                    .instantiate(
-                        &artifact,
-                        &config.name,
-                        config.memory_bytes,
-                        config.budget,
-                        &config.params,
-                    )
+                    .instantiate(&artifact, &config.name, config.memory_bytes, config.budget, &config.params)
                     .map_err(|e| e.to_string())?;
                 Ok(Box::new(component))
             }
@@ -74,9 +64,10 @@ impl Resolver for Loader<'_> {
         &mut self,
         source: &ComponentSource,
         params: &BTreeMap<String, String>,
+        base_dir: &Path,
     ) -> Result<Description, String> {
         match source {
-            ComponentSource::Builtin(kind) => builtin::describe(kind, params),
+            ComponentSource::Builtin(kind) => builtin::describe(kind, params, base_dir),
             ComponentSource::Wasm(path) => self.load_wasm(path).map(|a| a.description.clone()),
         }
     }
@@ -84,18 +75,13 @@ impl Resolver for Loader<'_> {
 
 /// Reads a component file, refusing files over [`MAX_COMPONENT_BYTES`].
 pub fn read_component_file(path: &Path) -> Result<Vec<u8>, String> {
-    let file =
-        std::fs::File::open(path).map_err(|e| format!("cannot read '{}': {e}", path.display()))?;
+    let file = std::fs::File::open(path).map_err(|e| format!("cannot read '{}': {e}", path.display()))?;
     let mut bytes = Vec::new();
     file.take(MAX_COMPONENT_BYTES + 1)
         .read_to_end(&mut bytes)
         .map_err(|e| format!("cannot read '{}': {e}", path.display()))?;
     if bytes.len() as u64 > MAX_COMPONENT_BYTES {
-        return Err(format!(
-            "'{}' is larger than {} MiB",
-            path.display(),
-            MAX_COMPONENT_BYTES >> 20
-        ));
+        return Err(format!("'{}' is larger than {} MiB", path.display(), MAX_COMPONENT_BYTES >> 20));
     }
     Ok(bytes)
 }

@@ -15,11 +15,7 @@ use subsume::sandbox::Sandbox;
 use subsume::{RunError, RunOptions, config, fsutil};
 
 #[derive(Parser)]
-#[command(
-    name = "subsume",
-    version,
-    about = "Runs robot software as sandboxed WebAssembly components"
-)]
+#[command(name = "subsume", version, about = "Runs robot software as sandboxed WebAssembly components")]
 struct Cli {
     /// Directory for compiled components [default: $SUBSUME_CACHE_DIR,
     /// $XDG_CACHE_HOME/subsume or ~/.cache/subsume]
@@ -61,23 +57,14 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     tracing_subscriber::fmt()
         .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| {
-                tracing_subscriber::EnvFilter::new("info,wasmtime=warn,cranelift=warn")
-            }),
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,wasmtime=warn,cranelift=warn")),
         )
         .with_writer(std::io::stderr)
         .init();
-    let cache_dir = if cli.no_cache {
-        None
-    } else {
-        cli.cache_dir.clone().or_else(default_cache_dir)
-    };
+    let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run {
-            config,
-            duration,
-            report,
-        } => run(config, duration, report, cache_dir),
+        Command::Run { config, duration, report } => run(config, duration, report, cache_dir),
         Command::Check { config } => check(&config, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
     };
@@ -103,11 +90,7 @@ fn run(
     };
     let shutdown = Shutdown::new();
     let signals = install_signal_handlers(shutdown.clone())?;
-    let options = RunOptions {
-        config_path,
-        duration,
-        cache_dir,
-    };
+    let options = RunOptions { config_path, duration, cache_dir };
     let result = subsume::run(&options, shutdown);
     signals.close();
     let report = match result {
@@ -125,8 +108,7 @@ fn run(
     };
     if let Some(path) = report_path {
         let text = serde_json::to_vec_pretty(&report).context("failed to encode the report")?;
-        fsutil::write_atomically(&path, &text)
-            .with_context(|| format!("failed to write report {}", path.display()))?;
+        fsutil::write_atomically(&path, &text).with_context(|| format!("failed to write report {}", path.display()))?;
         tracing::info!("report written to {}", path.display());
     }
     Ok(ExitCode::SUCCESS)
@@ -156,15 +138,10 @@ fn check(config_path: &Path, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitC
 fn describe(path: &Path, as_json: bool, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
     let sandbox = Sandbox::new(cache_dir)?;
     let bytes = read_component_file(path).map_err(anyhow::Error::msg)?;
-    let artifact = sandbox
-        .load(&bytes)
-        .with_context(|| format!("failed to load component {}", path.display()))?;
+    let artifact = sandbox.load(&bytes).with_context(|| format!("failed to load component {}", path.display()))?;
     let d = &artifact.description;
     if as_json {
-        println!(
-            "{}",
-            serde_json::to_string_pretty(&description_json(d, &artifact.sha256))?
-        );
+        println!("{}", serde_json::to_string_pretty(&description_json(d, &artifact.sha256))?);
     } else {
         print!("{}", description_text(d, &artifact.sha256));
     }
@@ -176,9 +153,7 @@ fn description_json(d: &Description, sha256: &str) -> serde_json::Value {
         ports
             .iter()
             .enumerate()
-            .map(
-                |(i, p)| json!({ "index": i, "name": p.name, "kind": p.kind.name(), "doc": p.doc }),
-            )
+            .map(|(i, p)| json!({ "index": i, "name": p.name, "kind": p.kind.name(), "doc": p.doc }))
             .collect()
     };
     json!({
@@ -200,10 +175,7 @@ fn description_text(d: &Description, sha256: &str) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "{} {}: {}", d.name, d.version, d.summary);
     let _ = writeln!(s, "sha256: {sha256}");
-    let priority = d.default_priority.map_or_else(
-        || "none (emits no motion commands)".to_string(),
-        |p| p.to_string(),
-    );
+    let priority = d.default_priority.map_or_else(|| "none (emits no motion commands)".to_string(), |p| p.to_string());
     let _ = writeln!(s, "default priority: {priority}");
     for (title, ports) in [("inputs", &d.inputs), ("outputs", &d.outputs)] {
         let _ = writeln!(s, "{title}:");
@@ -219,24 +191,13 @@ fn description_text(d: &Description, sha256: &str) -> String {
         let _ = writeln!(s, "  (none)");
     }
     for p in &d.params {
-        let _ = writeln!(
-            s,
-            "  {} ({}, default '{}') {}",
-            p.name,
-            p.kind.name(),
-            p.default_value,
-            p.doc
-        );
+        let _ = writeln!(s, "  {} ({}, default '{}') {}", p.name, p.kind.name(), p.default_value, p.doc);
     }
     s
 }
 
 fn default_cache_dir() -> Option<PathBuf> {
-    let env = |name: &str| {
-        std::env::var_os(name)
-            .filter(|v| !v.is_empty())
-            .map(PathBuf::from)
-    };
+    let env = |name: &str| std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from);
     env("SUBSUME_CACHE_DIR")
         .or_else(|| env("XDG_CACHE_HOME").map(|d| d.join("subsume")))
         .or_else(|| env("HOME").map(|d| d.join(".cache").join("subsume")))
@@ -245,8 +206,8 @@ fn default_cache_dir() -> Option<PathBuf> {
 /// SIGINT and SIGTERM request a clean shutdown; a second one exits at once.
 fn install_signal_handlers(shutdown: Shutdown) -> anyhow::Result<signal_hook::iterator::Handle> {
     use signal_hook::consts::{SIGINT, SIGTERM};
-    let mut signals = signal_hook::iterator::Signals::new([SIGINT, SIGTERM])
-        .context("failed to install signal handlers")?;
+    let mut signals =
+        signal_hook::iterator::Signals::new([SIGINT, SIGTERM]).context("failed to install signal handlers")?;
     let handle = signals.handle();
     std::thread::Builder::new()
         .name("subsume-signals".into())

@@ -23,6 +23,10 @@ pub struct Report {
     pub components: Vec<ComponentReport>,
     pub connections: Vec<ConnectionReport>,
     pub messages: MessageTotals,
+    /// Sections of built-in components, by kind: `arbiter`, `serial`, `sim`
+    /// (`kind:component` when a kind appears twice).
+    #[serde(flatten)]
+    pub sections: serde_json::Map<String, serde_json::Value>,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -72,12 +76,7 @@ pub struct MessageTotals {
 
 /// The report of `graph`, built from `config` (component and connection
 /// indices in the graph are those of the config).
-pub fn build(
-    config: &RobotConfig,
-    graph: &Graph,
-    stopped_by: StopReason,
-    duration_s: f64,
-) -> Report {
+pub fn build(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, duration_s: f64) -> Report {
     let components = config
         .components
         .iter()
@@ -112,18 +111,11 @@ pub fn build(
         })
         .collect();
     let port_name = |component: usize, port: u32, output: bool| {
-        config
-            .components
-            .get(component)
-            .map_or_else(String::new, |c| {
-                let ports = if output {
-                    &c.description.outputs
-                } else {
-                    &c.description.inputs
-                };
-                let port = ports.get(port as usize).map_or("?", |p| p.name.as_str());
-                format!("{}.{port}", c.name)
-            })
+        config.components.get(component).map_or_else(String::new, |c| {
+            let ports = if output { &c.description.outputs } else { &c.description.inputs };
+            let port = ports.get(port as usize).map_or("?", |p| p.name.as_str());
+            format!("{}.{port}", c.name)
+        })
     };
     let mut delivered = 0;
     let connections = config
@@ -149,7 +141,13 @@ pub fn build(
             }
         })
         .collect();
+    let mut sections = serde_json::Map::new();
+    for (name, kind, value) in graph.statuses() {
+        let key = if sections.contains_key(kind) { format!("{kind}:{name}") } else { kind.to_string() };
+        sections.insert(key, value);
+    }
     Report {
+        sections,
         format: REPORT_FORMAT,
         robot: config.name.clone(),
         config: config.path.display().to_string(),
@@ -158,10 +156,6 @@ pub fn build(
         cycles: graph.cycles(),
         components,
         connections,
-        messages: MessageTotals {
-            routed: graph.messages_routed(),
-            delivered,
-            dropped: graph.messages_dropped(),
-        },
+        messages: MessageTotals { routed: graph.messages_routed(), delivered, dropped: graph.messages_dropped() },
     }
 }

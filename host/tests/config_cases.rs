@@ -42,11 +42,7 @@ fn every_case_gives_its_expected_diagnostics() {
         .filter(|p| p.extension().is_some_and(|x| x == "xml"))
         .collect();
     cases.sort();
-    assert!(
-        cases.len() >= 15,
-        "expected at least 15 cases in {}",
-        dir.display()
-    );
+    assert!(cases.len() >= 15, "expected at least 15 cases in {}", dir.display());
     let mut failures = Vec::new();
     for case in &cases {
         let actual = render(&dir, case, &sandbox);
@@ -59,18 +55,11 @@ fn every_case_gives_its_expected_diagnostics() {
         if actual != expected {
             failures.push(format!(
                 "{}:\n--- expected\n{expected}--- actual\n{actual}",
-                case.file_name()
-                    .map(|n| n.to_string_lossy().into_owned())
-                    .unwrap_or_default()
+                case.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
             ));
         }
     }
-    assert!(
-        failures.is_empty(),
-        "{} case(s) differ (BLESS=1 to accept):\n{}",
-        failures.len(),
-        failures.join("\n")
-    );
+    assert!(failures.is_empty(), "{} case(s) differ (BLESS=1 to accept):\n{}", failures.len(), failures.join("\n"));
 }
 
 #[test]

@@ -34,19 +34,12 @@ fn guest(
         .params
         .iter()
         .map(|spec| {
-            let value = params
-                .iter()
-                .find(|(n, _)| *n == spec.name)
-                .map_or(spec.default_value.clone(), |(_, v)| v.to_string());
-            Param {
-                name: spec.name.clone(),
-                value,
-            }
+            let value =
+                params.iter().find(|(n, _)| *n == spec.name).map_or(spec.default_value.clone(), |(_, v)| v.to_string());
+            Param { name: spec.name.clone(), value }
         })
         .collect();
-    let component = sandbox
-        .instantiate(&artifact, name, 16 << 20, budget, &params)
-        .map_err(|e| e.to_string())?;
+    let component = sandbox.instantiate(&artifact, name, 16 << 20, budget, &params).map_err(|e| e.to_string())?;
     Ok(Box::new(component))
 }
 
@@ -73,6 +66,7 @@ impl Component for Recorder {
         &mut self,
         port: u32,
         value: &Value,
+        _from: usize,
         now_ns: u64,
         _out: &mut Outbox,
     ) -> Result<(), CallError> {
@@ -90,20 +84,8 @@ const BUDGET: Duration = Duration::from_millis(20);
 fn values_flow_from_guest_to_guest_within_the_cycle() {
     let sandbox = sandbox();
     let mut graph = Graph::new();
-    let counter = graph.add(
-        "counter",
-        guest(&sandbox, "test-counter", &[], BUDGET).unwrap(),
-        1,
-        10.0,
-        0,
-    );
-    let relay = graph.add(
-        "relay",
-        guest(&sandbox, "test-relay", &[], BUDGET).unwrap(),
-        2,
-        0.0,
-        0,
-    );
+    let counter = graph.add("counter", guest(&sandbox, "test-counter", &[], BUDGET).unwrap(), 1, 10.0, 0);
+    let relay = graph.add("relay", guest(&sandbox, "test-relay", &[], BUDGET).unwrap(), 2, 0.0, 0);
     let recorder = Recorder::default();
     let sink = graph.add("sink", Box::new(recorder.clone()), 0, 0.0, 0);
     graph.connect(counter, 0, relay, 0, Policy::Latest);
@@ -115,23 +97,10 @@ fn values_flow_from_guest_to_guest_within_the_cycle() {
         assert_eq!(recorder.scalars().len() as u64, step + 1);
     }
     assert_eq!(recorder.scalars(), vec![0.0, 1.0, 2.0]);
-    let times: Vec<u64> = recorder
-        .0
-        .lock()
-        .unwrap()
-        .iter()
-        .map(|(_, _, t)| *t)
-        .collect();
+    let times: Vec<u64> = recorder.0.lock().unwrap().iter().map(|(_, _, t)| *t).collect();
     assert_eq!(times, vec![0, 100 * MS, 200 * MS]);
     let relay_stats = graph.stats(relay).unwrap();
-    assert_eq!(
-        (
-            relay_stats.messages_in,
-            relay_stats.messages_out,
-            relay_stats.ticks
-        ),
-        (3, 3, 0)
-    );
+    assert_eq!((relay_stats.messages_in, relay_stats.messages_out, relay_stats.ticks), (3, 3, 0));
     assert_eq!(graph.messages_routed(), 6);
 }
 
@@ -144,13 +113,8 @@ fn each_connection_has_its_own_mailbox() {
     // Five guests feed one input over five latest-value connections.
     for i in 0..5 {
         let start = (i * 10).to_string();
-        let counter = graph.add(
-            "counter",
-            guest(&sandbox, "test-counter", &[("start", &start)], BUDGET).unwrap(),
-            1,
-            10.0,
-            0,
-        );
+        let counter =
+            graph.add("counter", guest(&sandbox, "test-counter", &[("start", &start)], BUDGET).unwrap(), 1, 10.0, 0);
         graph.connect(counter, 0, sink, 0, Policy::Latest);
     }
     graph.step(0);
@@ -165,22 +129,11 @@ fn latest_keeps_the_newest_value_and_queue_keeps_order_dropping_the_oldest() {
     // Four counters tick in one cycle into a relay's queue; the relay then
     // handles the four values in a row, emitting four values on one output
     // before either sink is called.
-    let relay = graph.add(
-        "relay",
-        guest(&sandbox, "test-relay", &[], BUDGET).unwrap(),
-        2,
-        0.0,
-        0,
-    );
+    let relay = graph.add("relay", guest(&sandbox, "test-relay", &[], BUDGET).unwrap(), 2, 0.0, 0);
     for i in 0..4 {
         let start = i.to_string();
-        let counter = graph.add(
-            "counter",
-            guest(&sandbox, "test-counter", &[("start", &start)], BUDGET).unwrap(),
-            1,
-            10.0,
-            0,
-        );
+        let counter =
+            graph.add("counter", guest(&sandbox, "test-counter", &[("start", &start)], BUDGET).unwrap(), 1, 10.0, 0);
         graph.connect(counter, 0, relay, 0, Policy::Queue { depth: 8 });
     }
     let latest = Recorder::default();
@@ -195,23 +148,9 @@ fn latest_keeps_the_newest_value_and_queue_keeps_order_dropping_the_oldest() {
     assert_eq!(latest.scalars(), vec![3.0]);
     assert_eq!(queued.scalars(), vec![2.0, 3.0]);
     let latest_connection = graph.connection_stats(4).unwrap();
-    assert_eq!(
-        (
-            latest_connection.routed,
-            latest_connection.overwritten,
-            latest_connection.delivered
-        ),
-        (4, 3, 1)
-    );
+    assert_eq!((latest_connection.routed, latest_connection.overwritten, latest_connection.delivered), (4, 3, 1));
     let queue_connection = graph.connection_stats(5).unwrap();
-    assert_eq!(
-        (
-            queue_connection.routed,
-            queue_connection.dropped,
-            queue_connection.delivered
-        ),
-        (4, 2, 2)
-    );
+    assert_eq!((queue_connection.routed, queue_connection.dropped, queue_connection.delivered), (4, 2, 2));
     assert_eq!(graph.messages_dropped(), 2);
     assert_eq!(graph.stats(queue_sink).unwrap().messages_dropped, 2);
 }
@@ -223,15 +162,7 @@ fn components_tick_at_their_own_rates() {
     let rates = [10.0, 50.0, 200.0, 0.0];
     let ids: Vec<usize> = rates
         .iter()
-        .map(|&rate| {
-            graph.add(
-                "counter",
-                guest(&sandbox, "test-counter", &[], BUDGET).unwrap(),
-                1,
-                rate,
-                0,
-            )
-        })
+        .map(|&rate| graph.add("counter", guest(&sandbox, "test-counter", &[], BUDGET).unwrap(), 1, rate, 0))
         .collect();
     // One simulated second, stepped every millisecond.
     for ms in 0..1000 {
@@ -239,10 +170,7 @@ fn components_tick_at_their_own_rates() {
     }
     let ticks: Vec<u64> = ids.iter().map(|&i| graph.stats(i).unwrap().ticks).collect();
     assert_eq!(ticks, vec![10, 50, 200, 0]);
-    assert!(
-        ids.iter()
-            .all(|&i| graph.stats(i).unwrap().missed_ticks == 0)
-    );
+    assert!(ids.iter().all(|&i| graph.stats(i).unwrap().missed_ticks == 0));
     assert_eq!(graph.next_due_ns(), Some(1000 * MS));
 }
 
@@ -250,13 +178,7 @@ fn components_tick_at_their_own_rates() {
 fn a_loop_that_falls_behind_skips_and_counts_missed_ticks() {
     let sandbox = sandbox();
     let mut graph = Graph::new();
-    let counter = graph.add(
-        "counter",
-        guest(&sandbox, "test-counter", &[], BUDGET).unwrap(),
-        1,
-        100.0,
-        0,
-    );
+    let counter = graph.add("counter", guest(&sandbox, "test-counter", &[], BUDGET).unwrap(), 1, 100.0, 0);
     graph.step(0);
     graph.step(55 * MS);
     let stats = graph.stats(counter).unwrap();
@@ -268,33 +190,17 @@ fn a_loop_that_falls_behind_skips_and_counts_missed_ticks() {
 /// Runs `faulty` (mode, after) beside a healthy counter for 10 cycles of
 /// 10 ms; returns the faulty component's state, the counter's ticks, what the
 /// faulty one emitted and its reported errors.
-fn run_beside_a_healthy_counter(
-    mode: &str,
-    after: &str,
-    budget: Duration,
-) -> (ComponentState, u64, Vec<f64>, u64) {
+fn run_beside_a_healthy_counter(mode: &str, after: &str, budget: Duration) -> (ComponentState, u64, Vec<f64>, u64) {
     let sandbox = sandbox();
     let mut graph = Graph::new();
     let faulty = graph.add(
         "faulty",
-        guest(
-            &sandbox,
-            "test-faulty",
-            &[("mode", mode), ("after", after)],
-            budget,
-        )
-        .unwrap(),
+        guest(&sandbox, "test-faulty", &[("mode", mode), ("after", after)], budget).unwrap(),
         1,
         100.0,
         0,
     );
-    let counter = graph.add(
-        "counter",
-        guest(&sandbox, "test-counter", &[], BUDGET).unwrap(),
-        1,
-        100.0,
-        0,
-    );
+    let counter = graph.add("counter", guest(&sandbox, "test-counter", &[], BUDGET).unwrap(), 1, 100.0, 0);
     let from_faulty = Recorder::default();
     let from_counter = Recorder::default();
     let a = graph.add("a", Box::new(from_faulty.clone()), 0, 0.0, 0);
@@ -304,18 +210,9 @@ fn run_beside_a_healthy_counter(
     for i in 0..10 {
         graph.step(i * 10 * MS);
     }
-    assert_eq!(
-        from_counter.scalars().len(),
-        10,
-        "the healthy counter's values all arrive"
-    );
+    assert_eq!(from_counter.scalars().len(), 10, "the healthy counter's values all arrive");
     let errors = graph.stats(faulty).unwrap().errors;
-    (
-        graph.state(faulty).unwrap().clone(),
-        graph.stats(counter).unwrap().ticks,
-        from_faulty.scalars(),
-        errors,
-    )
+    (graph.state(faulty).unwrap().clone(), graph.stats(counter).unwrap().ticks, from_faulty.scalars(), errors)
 }
 
 fn fault_reason(state: &ComponentState) -> &str {
@@ -327,17 +224,9 @@ fn fault_reason(state: &ComponentState) -> &str {
 
 #[test]
 fn a_trapping_guest_faults_alone() {
-    let (state, counter_ticks, emitted, _) =
-        run_beside_a_healthy_counter("trap-on-tick", "3", BUDGET);
-    assert!(
-        fault_reason(&state).starts_with("tick: trapped"),
-        "{state:?}"
-    );
-    assert_eq!(
-        emitted,
-        vec![1.0, 2.0, 3.0],
-        "good ticks before the trap are delivered, none after"
-    );
+    let (state, counter_ticks, emitted, _) = run_beside_a_healthy_counter("trap-on-tick", "3", BUDGET);
+    assert!(fault_reason(&state).starts_with("tick: trapped"), "{state:?}");
+    assert_eq!(emitted, vec![1.0, 2.0, 3.0], "good ticks before the trap are delivered, none after");
     assert_eq!(counter_ticks, 10);
 }
 
@@ -345,29 +234,21 @@ fn a_trapping_guest_faults_alone() {
 fn a_guest_that_overruns_its_budget_is_stopped() {
     let (state, counter_ticks, emitted, _) =
         run_beside_a_healthy_counter("loop-on-tick", "2", Duration::from_millis(5));
-    assert_eq!(
-        fault_reason(&state),
-        "tick: exceeded its time budget of 5 ms"
-    );
+    assert_eq!(fault_reason(&state), "tick: exceeded its time budget of 5 ms");
     assert_eq!(emitted, vec![1.0, 2.0]);
     assert_eq!(counter_ticks, 10);
 }
 
 #[test]
 fn emitting_on_a_port_that_does_not_exist_faults() {
-    let (state, counter_ticks, _, _) =
-        run_beside_a_healthy_counter("bad-port-on-tick", "0", BUDGET);
-    assert_eq!(
-        fault_reason(&state),
-        "tick: emitted on output port 99, but the component declares 1 output(s)"
-    );
+    let (state, counter_ticks, _, _) = run_beside_a_healthy_counter("bad-port-on-tick", "0", BUDGET);
+    assert_eq!(fault_reason(&state), "tick: emitted on output port 99, but the component declares 1 output(s)");
     assert_eq!(counter_ticks, 10);
 }
 
 #[test]
 fn an_err_result_is_counted_and_the_guest_keeps_running() {
-    let (state, counter_ticks, emitted, errors) =
-        run_beside_a_healthy_counter("error-on-tick", "4", BUDGET);
+    let (state, counter_ticks, emitted, errors) = run_beside_a_healthy_counter("error-on-tick", "4", BUDGET);
     assert_eq!(state, ComponentState::Running);
     assert_eq!(emitted, vec![1.0, 2.0, 3.0, 4.0]);
     assert_eq!(errors, 6);
@@ -377,14 +258,7 @@ fn an_err_result_is_counted_and_the_guest_keeps_running() {
 #[test]
 fn init_can_refuse_to_start_with_a_message() {
     let sandbox = sandbox();
-    let err = guest(
-        &sandbox,
-        "test-faulty",
-        &[("mode", "error-on-init")],
-        BUDGET,
-    )
-    .err()
-    .unwrap_or_default();
+    let err = guest(&sandbox, "test-faulty", &[("mode", "error-on-init")], BUDGET).err().unwrap_or_default();
     assert_eq!(err, "init() failed: refusing to start, as asked");
 }
 
@@ -392,20 +266,8 @@ fn init_can_refuse_to_start_with_a_message() {
 fn a_faulted_component_receives_nothing_more() {
     let sandbox = sandbox();
     let mut graph = Graph::new();
-    let counter = graph.add(
-        "counter",
-        guest(&sandbox, "test-counter", &[], BUDGET).unwrap(),
-        1,
-        100.0,
-        0,
-    );
-    let relay = graph.add(
-        "relay",
-        guest(&sandbox, "test-relay", &[], BUDGET).unwrap(),
-        2,
-        0.0,
-        0,
-    );
+    let counter = graph.add("counter", guest(&sandbox, "test-counter", &[], BUDGET).unwrap(), 1, 100.0, 0);
+    let relay = graph.add("relay", guest(&sandbox, "test-relay", &[], BUDGET).unwrap(), 2, 0.0, 0);
     graph.connect(counter, 0, relay, 0, Policy::Queue { depth: 4 });
     graph.step(0);
     graph.fault(relay, "stopped by the test".into(), 0);
@@ -423,17 +285,8 @@ fn the_description_comes_from_the_guest() {
     let d = &artifact.description;
     assert_eq!(d.name, "avoider");
     assert_eq!(d.default_priority, Some(3));
-    assert_eq!(
-        d.inputs.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(),
-        vec!["ranges"]
-    );
-    assert_eq!(
-        d.outputs
-            .iter()
-            .map(|p| p.name.as_str())
-            .collect::<Vec<_>>(),
-        vec!["cmd"]
-    );
+    assert_eq!(d.inputs.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(), vec!["ranges"]);
+    assert_eq!(d.outputs.iter().map(|p| p.name.as_str()).collect::<Vec<_>>(), vec!["cmd"]);
     assert_eq!(artifact.sha256.len(), 64);
 }
 
@@ -446,10 +299,7 @@ fn compiled_components_are_cached_and_a_bad_cache_entry_is_recompiled() {
         let sandbox = Sandbox::new(Some(cache.path().to_path_buf())).unwrap();
         sandbox.load(&bytes).unwrap();
     }
-    let entries: Vec<_> = std::fs::read_dir(cache.path())
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .collect();
+    let entries: Vec<_> = std::fs::read_dir(cache.path()).unwrap().map(|e| e.unwrap().path()).collect();
     assert_eq!(entries.len(), 1, "{entries:?}");
     assert!(entries[0].extension().is_some_and(|x| x == "cwasm"));
     // A second engine loads from the cache.
@@ -459,8 +309,5 @@ fn compiled_components_are_cached_and_a_bad_cache_entry_is_recompiled() {
     std::fs::write(&entries[0], b"garbage").unwrap();
     let sandbox = Sandbox::new(Some(cache.path().to_path_buf())).unwrap();
     assert_eq!(sandbox.load(&bytes).unwrap().description.name, "test-relay");
-    assert!(
-        std::fs::read(&entries[0]).unwrap().len() > 1000,
-        "the entry was rewritten"
-    );
+    assert!(std::fs::read(&entries[0]).unwrap().len() > 1000, "the entry was rewritten");
 }

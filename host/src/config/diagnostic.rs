@@ -18,14 +18,7 @@ pub struct Diagnostic {
 
 impl fmt::Display for Diagnostic {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(
-            f,
-            "{}:{}:{}: {}",
-            self.path.display(),
-            self.line,
-            self.column,
-            self.message
-        )
+        write!(f, "{}:{}:{}: {}", self.path.display(), self.line, self.column, self.message)
     }
 }
 
@@ -60,11 +53,7 @@ impl<'a> SourceMap<'a> {
     pub fn new(path: &'a Path, text: &'a str) -> Self {
         let mut line_starts = vec![0];
         line_starts.extend(text.match_indices('\n').map(|(i, _)| i + 1));
-        SourceMap {
-            path,
-            text,
-            line_starts,
-        }
+        SourceMap { path, text, line_starts }
     }
 
     /// The 1-based line and column (in characters) of byte `offset`.
@@ -75,22 +64,14 @@ impl<'a> SourceMap<'a> {
             Err(i) => i.saturating_sub(1),
         };
         let start = self.line_starts.get(line).copied().unwrap_or(0);
-        let column = self
-            .text
-            .get(start..offset)
-            .map_or(offset - start, |s| s.chars().count());
+        let column = self.text.get(start..offset).map_or(offset - start, |s| s.chars().count());
         (line + 1, column + 1)
     }
 
     /// A diagnostic at byte `offset`.
     pub fn at(&self, offset: usize, message: impl Into<String>) -> Diagnostic {
         let (line, column) = self.line_column(offset);
-        Diagnostic {
-            path: self.path.to_path_buf(),
-            line,
-            column,
-            message: message.into(),
-        }
+        Diagnostic { path: self.path.to_path_buf(), line, column, message: message.into() }
     }
 
     /// The byte offset of `slice` inside the source text, if it is a

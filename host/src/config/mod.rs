@@ -41,8 +41,7 @@ pub mod limits {
     pub const DEFAULT_RATE_HZ: f64 = 10.0;
     /// Time budget per call. The floor is the epoch ticker's resolution; the
     /// ceiling bounds how long one guest call can stall the control loop.
-    pub const CALL_BUDGET_RANGE: RangeInclusive<Duration> =
-        Duration::from_millis(1)..=Duration::from_millis(1000);
+    pub const CALL_BUDGET_RANGE: RangeInclusive<Duration> = Duration::from_millis(1)..=Duration::from_millis(1000);
     /// Budget per call when the file gives none.
     pub const DEFAULT_CALL_BUDGET: Duration = Duration::from_millis(10);
     /// Linear memory per component. The floor fits a Rust guest's 1 MiB
@@ -53,6 +52,12 @@ pub mod limits {
     /// Deepest queue a connection may have: every queued value is held in
     /// host memory.
     pub const MAX_QUEUE_DEPTH: usize = 1024;
+    /// How long a motion source stays active after its last command. The
+    /// floor keeps a source from flickering; the ceiling bounds how long a
+    /// silent source can keep the robot moving on its last command.
+    pub const SOURCE_TIMEOUT_RANGE: RangeInclusive<Duration> = Duration::from_millis(10)..=Duration::from_secs(10);
+    /// Source timeout when the file gives none.
+    pub const DEFAULT_SOURCE_TIMEOUT: Duration = Duration::from_millis(500);
     /// Queue depth for `policy="queue"` without `depth`.
     pub const DEFAULT_QUEUE_DEPTH: usize = 16;
     /// Allowed subsumption priorities.
@@ -119,6 +124,8 @@ pub struct ComponentConfig {
     pub rate_hz: f64,
     /// Time budget of each call into the component.
     pub budget: Duration,
+    /// As a motion source: how long it stays active after its last command.
+    pub timeout: Duration,
     /// Linear memory limit.
     pub memory_bytes: u64,
     /// Every declared parameter, XML value or default, in declaration order.
@@ -161,22 +168,11 @@ pub fn load(path: &Path, resolver: &mut dyn Resolver) -> Result<RobotConfig, Dia
 
 /// Reads a robot file, bounded by [`limits::MAX_CONFIG_BYTES`].
 pub fn read_config(path: &Path) -> Result<String, Diagnostics> {
-    let fail = |message: String| {
-        Diagnostics(vec![Diagnostic {
-            path: path.to_path_buf(),
-            line: 1,
-            column: 1,
-            message,
-        }])
-    };
-    let size = std::fs::metadata(path)
-        .map_err(|e| fail(format!("cannot read robot file: {e}")))?
-        .len();
+    let fail =
+        |message: String| Diagnostics(vec![Diagnostic { path: path.to_path_buf(), line: 1, column: 1, message }]);
+    let size = std::fs::metadata(path).map_err(|e| fail(format!("cannot read robot file: {e}")))?.len();
     if size > limits::MAX_CONFIG_BYTES {
-        return Err(fail(format!(
-            "robot file is {size} bytes; at most {} are allowed",
-            limits::MAX_CONFIG_BYTES
-        )));
+        return Err(fail(format!("robot file is {size} bytes; at most {} are allowed", limits::MAX_CONFIG_BYTES)));
     }
     let bytes = std::fs::read(path).map_err(|e| fail(format!("cannot read robot file: {e}")))?;
     String::from_utf8(bytes).map_err(|e| fail(format!("robot file is not utf-8: {e}")))
@@ -184,17 +180,11 @@ pub fn read_config(path: &Path) -> Result<String, Diagnostics> {
 
 /// Parses and validates robot-file `text`; `path` names it in diagnostics and
 /// anchors relative component paths.
-pub fn parse_and_validate(
-    path: &Path,
-    text: &str,
-    resolver: &mut dyn Resolver,
-) -> Result<RobotConfig, Diagnostics> {
+pub fn parse_and_validate(path: &Path, text: &str, resolver: &mut dyn Resolver) -> Result<RobotConfig, Diagnostics> {
     let map = SourceMap::new(path, text);
     let mut errors = Vec::new();
     let raw = raw::parse(&map, text, &mut errors);
-    let robot = raw
-        .complete
-        .then(|| validate::validate(&map, path, raw, resolver, &mut errors));
+    let robot = raw.complete.then(|| validate::validate(&map, path, raw, resolver, &mut errors));
     match robot {
         Some(robot) if errors.is_empty() => Ok(robot),
         _ => {

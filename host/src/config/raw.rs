@@ -42,6 +42,7 @@ pub struct RawComponent {
     pub priority: Option<Spanned<String>>,
     pub rate: Option<Spanned<String>>,
     pub budget: Option<Spanned<String>>,
+    pub timeout: Option<Spanned<String>>,
     pub memory: Option<Spanned<String>>,
     pub params: Vec<RawParam>,
 }
@@ -93,10 +94,7 @@ impl Attrs {
 pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> RawRobot {
     let mut reader = Reader::from_str(text);
     reader.config_mut().check_end_names = true;
-    let mut robot = RawRobot {
-        complete: true,
-        ..RawRobot::default()
-    };
+    let mut robot = RawRobot { complete: true, ..RawRobot::default() };
     let mut seen_root = false;
     let mut stack: Vec<Context> = vec![Context::Document];
 
@@ -117,12 +115,8 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
                 let has_children = matches!(event, Event::Start(_));
                 let offset = element_offset(map, e, before);
                 let errors_before = errors.len();
-                let child =
-                    open_element(map, e, offset, context, &mut robot, &mut seen_root, errors);
-                if child == Context::Skipped
-                    && context != Context::Skipped
-                    && errors.len() > errors_before
-                {
+                let child = open_element(map, e, offset, context, &mut robot, &mut seen_root, errors);
+                if child == Context::Skipped && context != Context::Skipped && errors.len() > errors_before {
                     robot.complete = false;
                 }
                 if has_children {
@@ -136,14 +130,9 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
                 let text: &str = t.as_ref();
                 let is_blank = text.chars().all(char::is_whitespace);
                 if !is_blank && context != Context::Skipped {
-                    let at = map
-                        .offset_of(text.trim_start().as_bytes())
-                        .unwrap_or(before);
+                    let at = map.offset_of(text.trim_start().as_bytes()).unwrap_or(before);
                     let shown: String = text.trim().chars().take(20).collect();
-                    errors.push(map.at(
-                        at,
-                        format!("unexpected text '{shown}': values go in attributes"),
-                    ));
+                    errors.push(map.at(at, format!("unexpected text '{shown}': values go in attributes")));
                 }
             }
             Event::CData(_) | Event::GeneralRef(_) => {
@@ -152,17 +141,13 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
                 }
             }
             Event::DocType(_) => {
-                errors.push(map.at(
-                    before,
-                    "doctype declarations are not allowed (entities could expand without bound)",
-                ));
+                errors
+                    .push(map.at(before, "doctype declarations are not allowed (entities could expand without bound)"));
             }
             Event::Comment(ref c) => {
                 let text: &str = c.as_ref();
                 if let Some(at) = text.find("--") {
-                    let offset = map
-                        .offset_of(text.as_bytes())
-                        .map_or(before, |start| start + at);
+                    let offset = map.offset_of(text.as_bytes()).map_or(before, |start| start + at);
                     errors.push(map.at(offset, "'--' is not allowed inside an xml comment"));
                 }
             }
@@ -181,8 +166,7 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
 
 fn element_offset(map: &SourceMap<'_>, e: &BytesStart<'_>, fallback: usize) -> usize {
     // The name follows '<' directly; point at the '<'.
-    map.offset_of(e.name().as_ref().as_bytes())
-        .map_or(fallback, |at| at.saturating_sub(1))
+    map.offset_of(e.name().as_ref().as_bytes()).map_or(fallback, |at| at.saturating_sub(1))
 }
 
 /// Handles one opening (or empty) element in `context`; returns the context
@@ -211,10 +195,7 @@ fn open_element(
                 format!("unexpected second root element <{name}>")
             }
             (_, []) => format!("unexpected element <{name}>: this element has no children"),
-            _ => format!(
-                "unknown element <{name}> (expected {})",
-                one_of(expected, "<", ">")
-            ),
+            _ => format!("unknown element <{name}> (expected {})", one_of(expected, "<", ">")),
         };
         errors.push(map.at(offset, message));
         return Context::Skipped;
@@ -235,25 +216,18 @@ fn open_element(
             let mut attrs = read_attrs(map, e, offset, "platform", &["name"], errors);
             match required(map, &mut attrs, "platform", "name", offset, errors) {
                 Some(name) => {
-                    robot.platforms.push(RawPlatform {
-                        offset,
-                        name,
-                        components: Vec::new(),
-                        connections: Vec::new(),
-                    });
+                    robot.platforms.push(RawPlatform { offset, name, components: Vec::new(), connections: Vec::new() });
                     Context::Platform
                 }
                 None => Context::Skipped,
             }
         }
         "component" => {
-            let allowed = ["name", "source", "priority", "rate", "budget", "memory"];
+            let allowed = ["name", "source", "priority", "rate", "budget", "timeout", "memory"];
             let mut attrs = read_attrs(map, e, offset, "component", &allowed, errors);
             let name = required(map, &mut attrs, "component", "name", offset, errors);
             let source = required(map, &mut attrs, "component", "source", offset, errors);
-            let (Some(name), Some(source), Some(platform)) =
-                (name, source, robot.platforms.last_mut())
-            else {
+            let (Some(name), Some(source), Some(platform)) = (name, source, robot.platforms.last_mut()) else {
                 return Context::Skipped;
             };
             platform.components.push(RawComponent {
@@ -263,6 +237,7 @@ fn open_element(
                 priority: attrs.take("priority"),
                 rate: attrs.take("rate"),
                 budget: attrs.take("budget"),
+                timeout: attrs.take("timeout"),
                 memory: attrs.take("memory"),
                 params: Vec::new(),
             });
@@ -272,16 +247,9 @@ fn open_element(
             let mut attrs = read_attrs(map, e, offset, "param", &["name", "value"], errors);
             let name = required(map, &mut attrs, "param", "name", offset, errors);
             let value = required(map, &mut attrs, "param", "value", offset, errors);
-            let component = robot
-                .platforms
-                .last_mut()
-                .and_then(|p| p.components.last_mut());
+            let component = robot.platforms.last_mut().and_then(|p| p.components.last_mut());
             if let (Some(name), Some(value), Some(component)) = (name, value, component) {
-                component.params.push(RawParam {
-                    offset,
-                    name,
-                    value,
-                });
+                component.params.push(RawParam { offset, name, value });
             }
             Context::Leaf
         }
@@ -324,41 +292,21 @@ fn read_attrs(
             }
         };
         let key = attr.key.as_ref().to_string();
-        let key_offset = map
-            .offset_of(attr.key.as_ref().as_bytes())
-            .unwrap_or(offset);
+        let key_offset = map.offset_of(attr.key.as_ref().as_bytes()).unwrap_or(offset);
         if !allowed.contains(&key.as_str()) {
             errors.push(map.at(
                 key_offset,
-                format!(
-                    "unknown attribute '{key}' on <{element}> (expected {})",
-                    one_of(allowed, "'", "'")
-                ),
+                format!("unknown attribute '{key}' on <{element}> (expected {})", one_of(allowed, "'", "'")),
             ));
             continue;
         }
         let value_offset = map.offset_of(attr.value.as_bytes()).unwrap_or(key_offset);
         match attr.normalized_value(quick_xml::XmlVersion::Implicit1_0) {
-            Ok(value) => items.push((
-                key,
-                Spanned {
-                    value: value.into_owned(),
-                    offset: value_offset,
-                },
-            )),
+            Ok(value) => items.push((key, Spanned { value: value.into_owned(), offset: value_offset })),
             Err(err) => {
-                errors.push(map.at(
-                    value_offset,
-                    format!("bad value for '{key}' on <{element}>: {err}"),
-                ));
+                errors.push(map.at(value_offset, format!("bad value for '{key}' on <{element}>: {err}")));
                 // Keep the raw text so the attribute is not also reported missing.
-                items.push((
-                    key,
-                    Spanned {
-                        value: attr.value.clone().into_owned(),
-                        offset: value_offset,
-                    },
-                ));
+                items.push((key, Spanned { value: attr.value.clone().into_owned(), offset: value_offset }));
             }
         }
     }
@@ -375,10 +323,7 @@ fn required(
 ) -> Option<Spanned<String>> {
     let found = attrs.take(name);
     if found.is_none() {
-        errors.push(map.at(
-            offset,
-            format!("<{element}> is missing required attribute '{name}'"),
-        ));
+        errors.push(map.at(offset, format!("<{element}> is missing required attribute '{name}'")));
     }
     found
 }

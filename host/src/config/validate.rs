@@ -10,10 +10,7 @@ use std::time::Duration;
 
 use super::diagnostic::{Diagnostic, SourceMap};
 use super::raw::{RawComponent, RawConnect, RawRobot, Spanned};
-use super::{
-    ComponentConfig, ComponentSource, ConnectionConfig, Platform, Policy, PortRef, RobotConfig,
-    limits,
-};
+use super::{ComponentConfig, ComponentSource, ConnectionConfig, Platform, Policy, PortRef, RobotConfig, limits};
 use crate::contract::{Description, Param, clip, is_valid_name};
 
 /// Finds what a component's source declares. The runtime's loader compiles
@@ -21,10 +18,12 @@ use crate::contract::{Description, Param, clip, is_valid_name};
 pub trait Resolver {
     /// The description of the component at `source`. Built-ins may shape
     /// their ports from their XML `params`. `Err` says why it cannot load.
+    /// `base_dir` is the robot file's folder (for relative paths in params).
     fn describe(
         &mut self,
         source: &ComponentSource,
         params: &BTreeMap<String, String>,
+        base_dir: &Path,
     ) -> Result<Description, String>;
 }
 
@@ -39,21 +38,14 @@ pub(super) fn validate(
     let name = match raw.name {
         Some(name) if is_valid_name(&name.value) => name.value,
         Some(name) => {
-            errors.push(map.at(
-                name.offset,
-                format!("robot name '{}' is not [a-z][a-z0-9_-]*", clip(&name.value)),
-            ));
+            errors.push(map.at(name.offset, format!("robot name '{}' is not [a-z][a-z0-9_-]*", clip(&name.value))));
             name.value
         }
         None => String::new(),
     };
 
-    let mut robot = RobotConfig {
-        name,
-        path: config_path.to_path_buf(),
-        components: Vec::new(),
-        connections: Vec::new(),
-    };
+    let mut robot =
+        RobotConfig { name, path: config_path.to_path_buf(), components: Vec::new(), connections: Vec::new() };
     // Every component by name, including those that failed to load (so a
     // connection to them is not reported a second time as unknown).
     let mut known: HashMap<String, (usize, Option<usize>)> = HashMap::new();
@@ -68,33 +60,23 @@ pub(super) fn validate(
             other => {
                 errors.push(map.at(
                     platform.name.offset,
-                    format!(
-                        "unknown platform '{}' (expected 'network' or 'control')",
-                        clip(other)
-                    ),
+                    format!("unknown platform '{}' (expected 'network' or 'control')", clip(other)),
                 ));
                 continue;
             }
         };
         if let Some(first) = seen_platforms.insert(kind, platform.offset) {
             let (line, column) = map.line_column(first);
-            errors.push(map.at(
-                platform.offset,
-                format!(
-                    "platform '{}' is already defined at {line}:{column}",
-                    kind.name()
-                ),
-            ));
+            errors.push(
+                map.at(platform.offset, format!("platform '{}' is already defined at {line}:{column}", kind.name())),
+            );
         }
         for component in platform.components {
             component_count += 1;
             if component_count == limits::MAX_COMPONENTS + 1 {
                 errors.push(map.at(
                     component.offset,
-                    format!(
-                        "too many components: at most {} are allowed",
-                        limits::MAX_COMPONENTS
-                    ),
+                    format!("too many components: at most {} are allowed", limits::MAX_COMPONENTS),
                 ));
             }
             let name = component.name.clone();
@@ -110,20 +92,15 @@ pub(super) fn validate(
             }
             if let Some((first, _)) = known.get(&name.value) {
                 let (line, column) = map.line_column(*first);
-                errors.push(map.at(
-                    name.offset,
-                    format!(
-                        "component '{}' is already defined at {line}:{column}",
-                        name.value
-                    ),
-                ));
+                errors.push(
+                    map.at(name.offset, format!("component '{}' is already defined at {line}:{column}", name.value)),
+                );
                 continue;
             }
-            let index =
-                component_config(map, &base_dir, kind, component, resolver, errors).map(|c| {
-                    robot.components.push(c);
-                    robot.components.len() - 1
-                });
+            let index = component_config(map, &base_dir, kind, component, resolver, errors).map(|c| {
+                robot.components.push(c);
+                robot.components.len() - 1
+            });
             known.insert(name.value, (name.offset, index));
         }
         connects.extend(platform.connections);
@@ -131,21 +108,13 @@ pub(super) fn validate(
 
     let mut seen_connections: HashMap<(PortRef, PortRef), usize> = HashMap::new();
     for connect in connects {
-        let from = endpoint(
-            map,
-            &connect.from,
-            "from",
-            &known,
-            &robot.components,
-            errors,
-        );
+        let from = endpoint(map, &connect.from, "from", &known, &robot.components, errors);
         let to = endpoint(map, &connect.to, "to", &known, &robot.components, errors);
         let policy = policy(map, &connect, errors);
         let (Some(from), Some(to), Some(policy)) = (from, to, policy) else {
             continue;
         };
-        let out_kind =
-            robot.components[from.component].description.outputs[from.port as usize].kind;
+        let out_kind = robot.components[from.component].description.outputs[from.port as usize].kind;
         let in_kind = robot.components[to.component].description.inputs[to.port as usize].kind;
         if !out_kind.can_feed(in_kind) {
             errors.push(map.at(
@@ -168,9 +137,19 @@ pub(super) fn validate(
             ));
             continue;
         }
-        robot
-            .connections
-            .push(ConnectionConfig { from, to, policy });
+        let source = &robot.components[from.component];
+        let feeds_arbiter = robot.components[to.component].source == ComponentSource::Builtin("arbiter".into());
+        if feeds_arbiter && source.priority.is_none() {
+            errors.push(map.at(
+                connect.from.offset,
+                format!(
+                    "'{}' feeds the arbiter, but component '{}' has no priority (set priority=\"N\" on it)",
+                    connect.from.value, source.name
+                ),
+            ));
+            continue;
+        }
+        robot.connections.push(ConnectionConfig { from, to, policy });
     }
     robot
 }
@@ -187,12 +166,7 @@ fn component_config(
     let errors_before = errors.len();
     let source = source(map, base_dir, &raw.source, errors);
     let priority = raw.priority.as_ref().and_then(|p| {
-        let value = p
-            .value
-            .trim()
-            .parse::<i32>()
-            .ok()
-            .filter(|v| limits::PRIORITY_RANGE.contains(v));
+        let value = p.value.trim().parse::<i32>().ok().filter(|v| limits::PRIORITY_RANGE.contains(v));
         if value.is_none() {
             errors.push(map.at(
                 p.offset,
@@ -209,20 +183,11 @@ fn component_config(
     let rate_hz = match &raw.rate {
         None => Some(limits::DEFAULT_RATE_HZ),
         Some(r) => {
-            let value = r
-                .value
-                .trim()
-                .parse::<f64>()
-                .ok()
-                .filter(|v| (0.0..=limits::MAX_RATE_HZ).contains(v));
+            let value = r.value.trim().parse::<f64>().ok().filter(|v| (0.0..=limits::MAX_RATE_HZ).contains(v));
             if value.is_none() {
                 errors.push(map.at(
                     r.offset,
-                    format!(
-                        "rate '{}' is not a number of hertz from 0 to {}",
-                        clip(&r.value),
-                        limits::MAX_RATE_HZ
-                    ),
+                    format!("rate '{}' is not a number of hertz from 0 to {}", clip(&r.value), limits::MAX_RATE_HZ),
                 ));
             }
             value
@@ -233,10 +198,33 @@ fn component_config(
         Some(b) => {
             let value = parse_duration(&b.value).filter(|d| limits::CALL_BUDGET_RANGE.contains(d));
             if value.is_none() {
-                errors.push(map.at(b.offset, format!(
-                    "budget '{}' is not a duration from {} ms to {} ms (write it as '10ms' or '0.2s')",
-                    clip(&b.value), limits::CALL_BUDGET_RANGE.start().as_millis(), limits::CALL_BUDGET_RANGE.end().as_millis()
-                )));
+                errors.push(map.at(
+                    b.offset,
+                    format!(
+                        "budget '{}' is not a duration from {} ms to {} ms (write it as '10ms' or '0.2s')",
+                        clip(&b.value),
+                        limits::CALL_BUDGET_RANGE.start().as_millis(),
+                        limits::CALL_BUDGET_RANGE.end().as_millis()
+                    ),
+                ));
+            }
+            value
+        }
+    };
+    let timeout = match &raw.timeout {
+        None => Some(limits::DEFAULT_SOURCE_TIMEOUT),
+        Some(t) => {
+            let value = parse_duration(&t.value).filter(|d| limits::SOURCE_TIMEOUT_RANGE.contains(d));
+            if value.is_none() {
+                errors.push(map.at(
+                    t.offset,
+                    format!(
+                        "timeout '{}' is not a duration from {} ms to {} ms (write it as '500ms' or '1s')",
+                        clip(&t.value),
+                        limits::SOURCE_TIMEOUT_RANGE.start().as_millis(),
+                        limits::SOURCE_TIMEOUT_RANGE.end().as_millis()
+                    ),
+                ));
             }
             value
         }
@@ -246,10 +234,15 @@ fn component_config(
         Some(m) => {
             let value = parse_size(&m.value).filter(|s| limits::MEMORY_RANGE.contains(s));
             if value.is_none() {
-                errors.push(map.at(m.offset, format!(
-                    "memory '{}' is not a size from {} MiB to {} MiB (write it as '64MiB' or '1GiB')",
-                    clip(&m.value), limits::MEMORY_RANGE.start() >> 20, limits::MEMORY_RANGE.end() >> 20
-                )));
+                errors.push(map.at(
+                    m.offset,
+                    format!(
+                        "memory '{}' is not a size from {} MiB to {} MiB (write it as '64MiB' or '1GiB')",
+                        clip(&m.value),
+                        limits::MEMORY_RANGE.start() >> 20,
+                        limits::MEMORY_RANGE.end() >> 20
+                    ),
+                ));
             }
             value
         }
@@ -262,10 +255,7 @@ fn component_config(
         if i == limits::MAX_PARAMS_PER_COMPONENT {
             errors.push(map.at(
                 p.offset,
-                format!(
-                    "too many parameters on component '{name}': at most {}",
-                    limits::MAX_PARAMS_PER_COMPONENT
-                ),
+                format!("too many parameters on component '{name}': at most {}", limits::MAX_PARAMS_PER_COMPONENT),
             ));
         }
         if p.value.value.len() > limits::MAX_PARAM_VALUE_LEN {
@@ -283,10 +273,7 @@ fn component_config(
             let (line, column) = map.line_column(first.offset);
             errors.push(map.at(
                 p.name.offset,
-                format!(
-                    "parameter '{}' of component '{name}' is already set at {line}:{column}",
-                    clip(&p.name.value)
-                ),
+                format!("parameter '{}' of component '{name}' is already set at {line}:{column}", clip(&p.name.value)),
             ));
             continue;
         }
@@ -295,7 +282,7 @@ fn component_config(
     }
 
     let source = source?;
-    let description = match resolver.describe(&source, &xml_params) {
+    let description = match resolver.describe(&source, &xml_params, base_dir) {
         Ok(d) => d,
         Err(why) => {
             errors.push(map.at(raw.source.offset, format!("component '{name}': {why}")));
@@ -306,14 +293,9 @@ fn component_config(
     // Parameters against what the component declares; defaults fill the rest.
     let mut params = Vec::with_capacity(description.params.len());
     for (pname, pvalue) in &param_spans {
-        match description
-            .params
-            .iter()
-            .find(|spec| spec.name == pname.value)
-        {
+        match description.params.iter().find(|spec| spec.name == pname.value) {
             None => {
-                let declared: Vec<&str> =
-                    description.params.iter().map(|s| s.name.as_str()).collect();
+                let declared: Vec<&str> = description.params.iter().map(|s| s.name.as_str()).collect();
                 let declared = if declared.is_empty() {
                     String::from("it declares none")
                 } else {
@@ -321,31 +303,20 @@ fn component_config(
                 };
                 errors.push(map.at(
                     pname.offset,
-                    format!(
-                        "component '{name}' has no parameter '{}' ({declared})",
-                        clip(&pname.value)
-                    ),
+                    format!("component '{name}' has no parameter '{}' ({declared})", clip(&pname.value)),
                 ));
             }
             Some(spec) => {
                 if let Err(why) = spec.kind.check(&pvalue.value) {
-                    errors.push(map.at(
-                        pvalue.offset,
-                        format!("parameter '{}' of component '{name}' {why}", spec.name),
-                    ));
+                    errors
+                        .push(map.at(pvalue.offset, format!("parameter '{}' of component '{name}' {why}", spec.name)));
                 }
             }
         }
     }
     for spec in &description.params {
-        let value = xml_params
-            .get(&spec.name)
-            .cloned()
-            .unwrap_or_else(|| spec.default_value.clone());
-        params.push(Param {
-            name: spec.name.clone(),
-            value,
-        });
+        let value = xml_params.get(&spec.name).cloned().unwrap_or_else(|| spec.default_value.clone());
+        params.push(Param { name: spec.name.clone(), value });
     }
 
     if errors.len() > errors_before {
@@ -359,6 +330,7 @@ fn component_config(
         priority: priority.or(description.default_priority),
         rate_hz: rate_hz?,
         budget: budget?,
+        timeout: timeout?,
         memory_bytes: memory_bytes?,
         params,
         description,
@@ -378,19 +350,12 @@ fn source(
     if text.is_empty() || !text.ends_with(".wasm") {
         errors.push(map.at(
             source.offset,
-            format!(
-                "source '{}' is neither 'builtin:KIND' nor a path to a .wasm file",
-                clip(text)
-            ),
+            format!("source '{}' is neither 'builtin:KIND' nor a path to a .wasm file", clip(text)),
         ));
         return None;
     }
     let path = PathBuf::from(text);
-    Some(ComponentSource::Wasm(if path.is_absolute() {
-        path
-    } else {
-        base_dir.join(path)
-    }))
+    Some(ComponentSource::Wasm(if path.is_absolute() { path } else { base_dir.join(path) }))
 }
 
 fn endpoint(
@@ -402,20 +367,11 @@ fn endpoint(
     errors: &mut Vec<Diagnostic>,
 ) -> Option<PortRef> {
     let Some((component, port)) = text.value.split_once('.') else {
-        errors.push(map.at(
-            text.offset,
-            format!(
-                "'{attribute}' must be COMPONENT.PORT, got '{}'",
-                clip(&text.value)
-            ),
-        ));
+        errors.push(map.at(text.offset, format!("'{attribute}' must be COMPONENT.PORT, got '{}'", clip(&text.value))));
         return None;
     };
     let Some((_, index)) = known.get(component) else {
-        errors.push(map.at(
-            text.offset,
-            format!("unknown component '{}' in '{attribute}'", clip(component)),
-        ));
+        errors.push(map.at(text.offset, format!("unknown component '{}' in '{attribute}'", clip(component))));
         return None;
     };
     // A component that failed to load was reported already.
@@ -427,55 +383,32 @@ fn endpoint(
         (&description.inputs, &description.outputs, "input", "output")
     };
     if let Some(i) = wanted.iter().position(|p| p.name == port) {
-        return Some(PortRef {
-            component: index,
-            port: i as u32,
-        });
+        return Some(PortRef { component: index, port: i as u32 });
     }
     let names: Vec<&str> = wanted.iter().map(|p| p.name.as_str()).collect();
-    let names = if names.is_empty() {
-        String::from("it has none")
-    } else {
-        format!("it has: {}", names.join(", "))
-    };
+    let names = if names.is_empty() { String::from("it has none") } else { format!("it has: {}", names.join(", ")) };
     let message = if other.iter().any(|p| p.name == port) {
         format!(
             "'{}' is an {other_direction} port; '{attribute}' needs an {direction} port of '{component}' ({names})",
             clip(&text.value)
         )
     } else {
-        format!(
-            "unknown {direction} port '{}' on component '{component}' ({names})",
-            clip(port)
-        )
+        format!("unknown {direction} port '{}' on component '{component}' ({names})", clip(port))
     };
     errors.push(map.at(text.offset, message));
     None
 }
 
-fn policy(
-    map: &SourceMap<'_>,
-    connect: &RawConnect,
-    errors: &mut Vec<Diagnostic>,
-) -> Option<Policy> {
+fn policy(map: &SourceMap<'_>, connect: &RawConnect, errors: &mut Vec<Diagnostic>) -> Option<Policy> {
     let policy = connect.policy.as_ref().map_or("latest", |p| p.value.trim());
     let depth = match &connect.depth {
         None => None,
         Some(d) => {
-            let value = d
-                .value
-                .trim()
-                .parse::<usize>()
-                .ok()
-                .filter(|v| (1..=limits::MAX_QUEUE_DEPTH).contains(v));
+            let value = d.value.trim().parse::<usize>().ok().filter(|v| (1..=limits::MAX_QUEUE_DEPTH).contains(v));
             if value.is_none() {
                 errors.push(map.at(
                     d.offset,
-                    format!(
-                        "depth '{}' is not a whole number from 1 to {}",
-                        clip(&d.value),
-                        limits::MAX_QUEUE_DEPTH
-                    ),
+                    format!("depth '{}' is not a whole number from 1 to {}", clip(&d.value), limits::MAX_QUEUE_DEPTH),
                 ));
                 return None;
             }
@@ -490,18 +423,10 @@ fn policy(
             }
             Some(Policy::Latest)
         }
-        "queue" => Some(Policy::Queue {
-            depth: depth.unwrap_or(limits::DEFAULT_QUEUE_DEPTH),
-        }),
+        "queue" => Some(Policy::Queue { depth: depth.unwrap_or(limits::DEFAULT_QUEUE_DEPTH) }),
         other => {
             let offset = connect.policy.as_ref().map_or(connect.offset, |p| p.offset);
-            errors.push(map.at(
-                offset,
-                format!(
-                    "unknown policy '{}' (expected 'latest' or 'queue')",
-                    clip(other)
-                ),
-            ));
+            errors.push(map.at(offset, format!("unknown policy '{}' (expected 'latest' or 'queue')", clip(other))));
             None
         }
     }

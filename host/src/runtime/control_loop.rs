@@ -25,9 +25,7 @@ impl Default for Clock {
 
 impl Clock {
     pub fn new() -> Clock {
-        Clock {
-            start: Instant::now(),
-        }
+        Clock { start: Instant::now() }
     }
 
     pub fn now_ns(&self) -> u64 {
@@ -92,12 +90,7 @@ impl Shutdown {
 
 /// Runs `graph` until `shutdown` is requested or `until_ns` (on `clock`)
 /// passes.
-pub fn run(
-    graph: &mut Graph,
-    clock: &Clock,
-    shutdown: &Shutdown,
-    until_ns: Option<u64>,
-) -> StopReason {
+pub fn run(graph: &mut Graph, clock: &Clock, shutdown: &Shutdown, until_ns: Option<u64>) -> StopReason {
     loop {
         if shutdown.is_requested() {
             return StopReason::Requested;
@@ -110,9 +103,7 @@ pub fn run(
         if graph.has_pending() {
             continue;
         }
-        let mut wake = graph
-            .next_due_ns()
-            .unwrap_or(now + IDLE_WAIT.as_nanos() as u64);
+        let mut wake = graph.next_due_ns().unwrap_or(now + IDLE_WAIT.as_nanos() as u64);
         if let Some(until) = until_ns {
             wake = wake.min(until);
         }

@@ -47,16 +47,27 @@ pub enum CallError {
 /// What the scheduler calls: the paper's `Module`. WASM components and
 /// native built-ins implement it alike.
 pub trait Component: Send {
-    /// A new value arrived on input `port`. Emitted values go to `out`.
+    /// A new value arrived on input `port`, sent by component `from` (its
+    /// index in the graph). Emitted values go to `out`.
     fn on_input(
         &mut self,
         port: u32,
         value: &Value,
+        from: usize,
         now_ns: u64,
         out: &mut Outbox,
     ) -> Result<(), CallError>;
     /// The component's periodic call. Emitted values go to `out`.
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError>;
+    /// Component `component` has just faulted. Native components that track
+    /// others (the arbiter) react here; emitted values are routed.
+    fn peer_faulted(&mut self, component: usize, now_ns: u64, out: &mut Outbox) {
+        let _ = (component, now_ns, out);
+    }
+    /// A section for the run report and the live status, as (name, value).
+    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+        None
+    }
 }
 
 /// Whether a component still runs.
@@ -103,13 +114,11 @@ pub struct ConnectionStats {
 
 enum Mailbox {
     Latest(Option<Value>),
-    Queue {
-        values: VecDeque<Value>,
-        depth: usize,
-    },
+    Queue { values: VecDeque<Value>, depth: usize },
 }
 
 struct Connection {
+    from: usize,
     to: usize,
     to_port: u32,
     mailbox: Mailbox,
@@ -146,6 +155,16 @@ pub struct Graph {
     /// When the last call (and its routing) ended, within this cycle: the
     /// start of the next call's time, so a call costs one clock read.
     mark: Option<Instant>,
+}
+
+impl Drop for Graph {
+    /// Components stop in reverse order: a serial link closes before the
+    /// simulated robot it talks to.
+    fn drop(&mut self) {
+        while let Some(node) = self.nodes.pop() {
+            drop(node);
+        }
+    }
 }
 
 impl Default for Graph {
@@ -197,39 +216,20 @@ impl Graph {
 
     /// Connects output `from_port` of `from` to input `to_port` of `to`.
     /// Indices come from a validated config; out-of-range ones are ignored.
-    pub fn connect(
-        &mut self,
-        from: usize,
-        from_port: u32,
-        to: usize,
-        to_port: u32,
-        policy: Policy,
-    ) {
+    pub fn connect(&mut self, from: usize, from_port: u32, to: usize, to_port: u32, policy: Policy) {
         if to >= self.nodes.len() {
             return;
         }
-        let Some(route) = self
-            .routes
-            .get_mut(from)
-            .and_then(|r| r.get_mut(from_port as usize))
-        else {
+        let Some(route) = self.routes.get_mut(from).and_then(|r| r.get_mut(from_port as usize)) else {
             return;
         };
         let mailbox = match policy {
             Policy::Latest => Mailbox::Latest(None),
-            Policy::Queue { depth } => Mailbox::Queue {
-                values: VecDeque::with_capacity(depth),
-                depth: depth.max(1),
-            },
+            Policy::Queue { depth } => Mailbox::Queue { values: VecDeque::with_capacity(depth), depth: depth.max(1) },
         };
         route.push(self.connections.len());
         self.nodes[to].incoming.push(self.connections.len());
-        self.connections.push(Connection {
-            to,
-            to_port,
-            mailbox,
-            stats: ConnectionStats::default(),
-        });
+        self.connections.push(Connection { from, to, to_port, mailbox, stats: ConnectionStats::default() });
     }
 
     /// One cycle at time `now_ns`: ticks every running component that is due,
@@ -311,9 +311,10 @@ impl Graph {
                     }
                     budget -= 1;
                     let port = self.connections[connection].to_port;
+                    let from = self.connections[connection].from;
                     self.connections[connection].stats.delivered += 1;
                     self.nodes[index].stats.messages_in += 1;
-                    self.call(index, now_ns, Some((port, value)));
+                    self.call(index, now_ns, Some((port, value, from)));
                 }
             }
         }
@@ -322,22 +323,20 @@ impl Graph {
     /// Calls `tick` (no input) or `on-input` on node `index`, then routes
     /// what it emitted or records its failure. The component is charged the
     /// time of its call and of routing what it emitted.
-    fn call(&mut self, index: usize, now_ns: u64, input: Option<(u32, Value)>) {
+    fn call(&mut self, index: usize, now_ns: u64, input: Option<(u32, Value, usize)>) {
         let started = self.mark.take().unwrap_or_else(Instant::now);
         let mut outbox = std::mem::take(&mut self.scratch);
         let node = &mut self.nodes[index];
         let result = match &input {
             None => node.component.tick(now_ns, &mut outbox),
-            Some((port, value)) => node.component.on_input(*port, value, now_ns, &mut outbox),
+            Some((port, value, from)) => node.component.on_input(*port, value, *from, now_ns, &mut outbox),
         };
         node.stats.calls += 1;
         match result {
             Ok(()) => {}
             Err(CallError::Reported(message)) => {
                 node.stats.errors += 1;
-                let quiet = node
-                    .last_error_log_ns
-                    .is_some_and(|t| now_ns.saturating_sub(t) < ERROR_LOG_INTERVAL_NS);
+                let quiet = node.last_error_log_ns.is_some_and(|t| now_ns.saturating_sub(t) < ERROR_LOG_INTERVAL_NS);
                 if !quiet {
                     node.last_error_log_ns = Some(now_ns);
                     let call = if input.is_some() { "on-input" } else { "tick" };
@@ -362,26 +361,26 @@ impl Graph {
     }
 
     /// Stops node `index` for good: it is never called again and its pending
-    /// input is discarded.
+    /// input is discarded. The other components are told at once (the
+    /// arbiter stops counting it as a source) and what they emit is routed.
     pub fn fault(&mut self, index: usize, reason: String, now_ns: u64) {
-        let Some(node) = self.nodes.get_mut(index) else {
-            return;
-        };
+        let Some(node) = self.nodes.get_mut(index) else { return };
         if node.state != ComponentState::Running {
             return;
         }
-        tracing::error!(
-            component = &*node.name,
-            "component faulted and is stopped: {reason}; the others keep running"
-        );
-        node.state = ComponentState::Faulted {
-            reason,
-            at_ns: now_ns,
-        };
+        tracing::error!(component = &*node.name, "component faulted and is stopped: {reason}; the others keep running");
+        node.state = ComponentState::Faulted { reason, at_ns: now_ns };
         for &connection in &node.incoming {
             match &mut self.connections[connection].mailbox {
                 Mailbox::Latest(value) => *value = None,
                 Mailbox::Queue { values, .. } => values.clear(),
+            }
+        }
+        let mut outbox = Vec::new();
+        for other in 0..self.nodes.len() {
+            if other != index && self.nodes[other].state == ComponentState::Running {
+                self.nodes[other].component.peer_faulted(index, now_ns, &mut outbox);
+                self.route(other, &mut outbox);
             }
         }
     }
@@ -468,6 +467,12 @@ impl Graph {
 
     pub fn stats(&self, index: usize) -> Option<&ComponentStats> {
         self.nodes.get(index).map(|n| &n.stats)
+    }
+
+    /// (component name, section kind, section) of the components that have
+    /// a report section, in graph order.
+    pub fn statuses(&self) -> Vec<(&str, &'static str, serde_json::Value)> {
+        self.nodes.iter().filter_map(|n| n.component.status().map(|(kind, value)| (&*n.name, kind, value))).collect()
     }
 
     /// Counters of connection `index` (in the order connections were made).

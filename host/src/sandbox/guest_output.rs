@@ -24,11 +24,7 @@ pub struct GuestOutput {
 
 impl GuestOutput {
     pub fn new(component: Arc<str>, stream: &'static str) -> Self {
-        GuestOutput {
-            component,
-            stream,
-            pending: Arc::new(Mutex::new(Vec::new())),
-        }
+        GuestOutput { component, stream, pending: Arc::new(Mutex::new(Vec::new())) }
     }
 
     fn write_bytes(&self, bytes: &[u8]) {
@@ -103,11 +99,7 @@ impl Pollable for GuestOutput {
 }
 
 impl tokio::io::AsyncWrite for GuestOutput {
-    fn poll_write(
-        self: Pin<&mut Self>,
-        _cx: &mut Context<'_>,
-        buf: &[u8],
-    ) -> Poll<io::Result<usize>> {
+    fn poll_write(self: Pin<&mut Self>, _cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
         self.write_bytes(buf);
         Poll::Ready(Ok(buf.len()))
     }

@@ -26,8 +26,7 @@ use sha2::{Digest, Sha256};
 use thiserror::Error;
 use wasmtime::component::{HasSelf, Linker, ResourceTable};
 use wasmtime::{
-    Config, Engine, InstanceAllocationStrategy, PoolingAllocationConfig, Store, StoreLimits,
-    StoreLimitsBuilder, Trap,
+    Config, Engine, InstanceAllocationStrategy, PoolingAllocationConfig, Store, StoreLimits, StoreLimitsBuilder, Trap,
 };
 use wasmtime_wasi::{WasiCtx, WasiCtxBuilder, WasiCtxView, WasiView};
 
@@ -100,10 +99,7 @@ pub struct GuestState {
 
 impl WasiView for GuestState {
     fn ctx(&mut self) -> WasiCtxView<'_> {
-        WasiCtxView {
-            ctx: &mut self.wasi,
-            table: &mut self.table,
-        }
+        WasiCtxView { ctx: &mut self.wasi, table: &mut self.table }
     }
 }
 
@@ -155,10 +151,7 @@ pub struct WasmArtifact {
 
 impl std::fmt::Debug for WasmArtifact {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WasmArtifact")
-            .field("sha256", &self.sha256)
-            .field("name", &self.description.name)
-            .finish()
+        f.debug_struct("WasmArtifact").field("sha256", &self.sha256).field("name", &self.description.name).finish()
     }
 }
 
@@ -174,10 +167,7 @@ pub struct Sandbox {
 
 impl std::fmt::Debug for Sandbox {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Sandbox")
-            .field("cache_dir", &self.cache_dir)
-            .field("pooling", &self.pooling)
-            .finish()
+        f.debug_struct("Sandbox").field("cache_dir", &self.cache_dir).field("pooling", &self.pooling).finish()
     }
 }
 
@@ -188,44 +178,27 @@ impl Sandbox {
         let (engine, pooling) = match Engine::new(&engine_config(true)) {
             Ok(engine) => (engine, true),
             Err(err) => {
-                tracing::warn!(
-                    "pooling allocator unavailable ({err}); instances are allocated on demand"
-                );
-                let engine = Engine::new(&engine_config(false))
-                    .map_err(|e| SandboxError::Engine(e.to_string()))?;
+                tracing::warn!("pooling allocator unavailable ({err}); instances are allocated on demand");
+                let engine = Engine::new(&engine_config(false)).map_err(|e| SandboxError::Engine(e.to_string()))?;
                 (engine, false)
             }
         };
         let mut linker = Linker::new(&engine);
-        wasmtime_wasi::p2::add_to_linker_sync(&mut linker)
+        wasmtime_wasi::p2::add_to_linker_sync(&mut linker).map_err(|e| SandboxError::Engine(e.to_string()))?;
+        bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
             .map_err(|e| SandboxError::Engine(e.to_string()))?;
-        bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(
-            &mut linker,
-            |state| state,
-        )
-        .map_err(|e| SandboxError::Engine(e.to_string()))?;
         let mut hasher = std::collections::hash_map::DefaultHasher::new();
         engine.precompile_compatibility_hash().hash(&mut hasher);
         let engine_key = format!("{:016x}", hasher.finish());
         let cache_dir = cache_dir.filter(|dir| match create_private_dir(dir) {
             Ok(()) => true,
             Err(err) => {
-                tracing::warn!(
-                    "cannot use cache directory {}: {err}; compiling without a cache",
-                    dir.display()
-                );
+                tracing::warn!("cannot use cache directory {}: {err}; compiling without a cache", dir.display());
                 false
             }
         });
         let ticker = EpochTicker::start(engine.clone());
-        Ok(Sandbox {
-            engine,
-            linker,
-            cache_dir,
-            engine_key,
-            pooling,
-            _ticker: ticker,
-        })
+        Ok(Sandbox { engine, linker, cache_dir, engine_key, pooling, _ticker: ticker })
     }
 
     /// Whether instances come from the pooling allocator.
@@ -240,34 +213,19 @@ impl Sandbox {
         check_component_header(bytes)?;
         let sha256 = hex::encode(Sha256::digest(bytes));
         let component = self.compile_cached(&sha256, bytes)?;
-        let instance_pre = self
-            .linker
-            .instantiate_pre(&component)
-            .map_err(|e| SandboxError::World(error_text(&e)))?;
-        let pre = bindings::ComponentPre::new(instance_pre)
-            .map_err(|e| SandboxError::World(error_text(&e)))?;
+        let instance_pre = self.linker.instantiate_pre(&component).map_err(|e| SandboxError::World(error_text(&e)))?;
+        let pre = bindings::ComponentPre::new(instance_pre).map_err(|e| SandboxError::World(error_text(&e)))?;
         let description = self.describe(&pre)?;
         check_description(&description).map_err(SandboxError::BadDescription)?;
-        Ok(Arc::new(WasmArtifact {
-            sha256,
-            description,
-            pre,
-        }))
+        Ok(Arc::new(WasmArtifact { sha256, description, pre }))
     }
 
-    fn describe(
-        &self,
-        pre: &bindings::ComponentPre<GuestState>,
-    ) -> Result<Description, SandboxError> {
+    fn describe(&self, pre: &bindings::ComponentPre<GuestState>) -> Result<Description, SandboxError> {
         let mut store = self.new_store("describe".into(), DESCRIBE_MEMORY_BYTES, Arc::from([]));
         store.set_epoch_deadline(budget_ticks(DESCRIBE_BUDGET));
         let call = "instantiation for describe()";
-        let instance = pre
-            .instantiate(&mut store)
-            .map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
-        instance
-            .call_describe(&mut store)
-            .map_err(|e| call_error("describe()", DESCRIBE_BUDGET, &e))
+        let instance = pre.instantiate(&mut store).map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
+        instance.call_describe(&mut store).map_err(|e| call_error("describe()", DESCRIBE_BUDGET, &e))
     }
 
     /// A running instance of `artifact` named `name`, initialised with
@@ -280,44 +238,24 @@ impl Sandbox {
         budget: Duration,
         params: &[Param],
     ) -> Result<WasmComponent, SandboxError> {
-        let outputs: Arc<[ValueKind]> = artifact
-            .description
-            .outputs
-            .iter()
-            .map(|p| p.kind)
-            .collect();
+        let outputs: Arc<[ValueKind]> = artifact.description.outputs.iter().map(|p| p.kind).collect();
         let mut store = self.new_store(name.into(), memory_bytes, outputs);
         store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
-        let instance = artifact
-            .pre
-            .instantiate(&mut store)
-            .map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
+        let instance =
+            artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
         match instance.call_init(&mut store, params) {
             Ok(Ok(())) => {}
             Ok(Err(message)) => {
-                return Err(SandboxError::Call {
-                    call: "init()",
-                    reason: truncate(message, MAX_GUEST_MESSAGE_BYTES),
-                });
+                return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
             }
             Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
         }
         // Values emitted during init are dropped: nothing is wired yet.
         store.data_mut().outbox.clear();
-        Ok(WasmComponent {
-            store,
-            instance,
-            budget,
-            budget_ticks: budget_ticks(budget),
-        })
+        Ok(WasmComponent { store, instance, budget, budget_ticks: budget_ticks(budget) })
     }
 
-    fn new_store(
-        &self,
-        component: Arc<str>,
-        memory_bytes: u64,
-        outputs: Arc<[ValueKind]>,
-    ) -> Store<GuestState> {
+    fn new_store(&self, component: Arc<str>, memory_bytes: u64, outputs: Arc<[ValueKind]>) -> Store<GuestState> {
         let wasi = WasiCtxBuilder::new()
             .stdout(GuestOutput::new(component.clone(), "stdout"))
             .stderr(GuestOutput::new(component.clone(), "stderr"))
@@ -332,29 +270,15 @@ impl Sandbox {
             .memories(MAX_MEMORIES_PER_STORE)
             .trap_on_grow_failure(true)
             .build();
-        let state = GuestState {
-            wasi,
-            table: ResourceTable::new(),
-            limits,
-            component,
-            outputs,
-            outbox: Vec::new(),
-            now_ns: 0,
-        };
+        let state =
+            GuestState { wasi, table: ResourceTable::new(), limits, component, outputs, outbox: Vec::new(), now_ns: 0 };
         let mut store = Store::new(&self.engine, state);
         store.limiter(|state| &mut state.limits);
         store
     }
 
-    fn compile_cached(
-        &self,
-        sha256: &str,
-        bytes: &[u8],
-    ) -> Result<wasmtime::component::Component, SandboxError> {
-        let cached = self
-            .cache_dir
-            .as_ref()
-            .map(|dir| dir.join(format!("{sha256}-{}.cwasm", self.engine_key)));
+    fn compile_cached(&self, sha256: &str, bytes: &[u8]) -> Result<wasmtime::component::Component, SandboxError> {
+        let cached = self.cache_dir.as_ref().map(|dir| dir.join(format!("{sha256}-{}.cwasm", self.engine_key)));
         if let Some(path) = cached.as_ref().filter(|p| p.is_file()) {
             // SAFETY: the file is in this host's private cache directory and
             // was written by `compile_cached` below from `Component::serialize`
@@ -402,9 +326,7 @@ impl WasmComponent {
         match result {
             Ok(result) => {
                 out.append(&mut self.store.data_mut().outbox);
-                result.map_err(|message| {
-                    CallError::Reported(truncate(message, MAX_GUEST_MESSAGE_BYTES))
-                })
+                result.map_err(|message| CallError::Reported(truncate(message, MAX_GUEST_MESSAGE_BYTES)))
             }
             Err(err) => {
                 // The call did not complete: what it emitted is not routed.
@@ -424,6 +346,7 @@ impl Component for WasmComponent {
         &mut self,
         port: u32,
         value: &Value,
+        _from: usize,
         now_ns: u64,
         out: &mut Outbox,
     ) -> Result<(), CallError> {
@@ -497,10 +420,7 @@ fn budget_ticks(budget: Duration) -> u64 {
 /// Turns a failed guest call into a reason a human can act on.
 fn call_error(call: &'static str, budget: Duration, err: &wasmtime::Error) -> SandboxError {
     let reason = match err.downcast_ref::<Trap>() {
-        Some(Trap::Interrupt) => format!(
-            "exceeded its time budget of {} ms",
-            budget.as_millis().max(1)
-        ),
+        Some(Trap::Interrupt) => format!("exceeded its time budget of {} ms", budget.as_millis().max(1)),
         Some(Trap::StackOverflow) => "overflowed its stack (recursion too deep?)".to_string(),
         Some(trap) => format!("trapped: {trap}"),
         None => err.root_cause().to_string(),
@@ -532,9 +452,7 @@ fn truncate(mut text: String, max: usize) -> String {
 /// Replaces control characters so guest text cannot forge log lines.
 fn clip_control(text: String) -> String {
     if text.chars().any(char::is_control) {
-        text.chars()
-            .map(|c| if c.is_control() { ' ' } else { c })
-            .collect()
+        text.chars().map(|c| if c.is_control() { ' ' } else { c }).collect()
     } else {
         text
     }
@@ -542,10 +460,7 @@ fn clip_control(text: String) -> String {
 
 fn create_private_dir(dir: &Path) -> std::io::Result<()> {
     use std::os::unix::fs::DirBuilderExt;
-    std::fs::DirBuilder::new()
-        .recursive(true)
-        .mode(0o700)
-        .create(dir)
+    std::fs::DirBuilder::new().recursive(true).mode(0o700).create(dir)
 }
 
 /// Advances the engine's epoch every [`EPOCH_TICK`] until dropped.
@@ -596,10 +511,7 @@ mod tests {
             (b"\0asm", "too short"),
         ];
         for (bytes, expected) in cases {
-            let err = check_component_header(bytes)
-                .err()
-                .map(|e| e.to_string())
-                .unwrap_or_default();
+            let err = check_component_header(bytes).err().map(|e| e.to_string()).unwrap_or_default();
             assert!(err.contains(expected), "{err}");
         }
     }

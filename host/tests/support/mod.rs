@@ -9,9 +9,7 @@ use std::sync::OnceLock;
 
 /// The repository root.
 pub fn repo_root() -> PathBuf {
-    Path::new(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .map_or_else(|| PathBuf::from(".."), Path::to_path_buf)
+    Path::new(env!("CARGO_MANIFEST_DIR")).parent().map_or_else(|| PathBuf::from(".."), Path::to_path_buf)
 }
 
 /// The folder holding the built guest components (`NAME.wasm`), building
@@ -28,10 +26,7 @@ pub fn guest_dir() -> PathBuf {
             .output()
             .map_err(|e| format!("cannot run cargo to build the guests: {e}"))?;
         if !output.status.success() {
-            return Err(format!(
-                "building the guests failed:\n{}",
-                String::from_utf8_lossy(&output.stderr)
-            ));
+            return Err(format!("building the guests failed:\n{}", String::from_utf8_lossy(&output.stderr)));
         }
         Ok(dir.join("target/wasm32-wasip2/release"))
     });

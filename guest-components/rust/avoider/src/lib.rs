@@ -6,9 +6,7 @@
 //! turning toward the freer side. Otherwise it stays silent: silence tells the
 //! arbiter this behaviour is not active, so a lower layer drives.
 
-use subsume_guest::{
-    Component, Description, ParamKind, Params, Value, ValueKind, emit, input, output, param,
-};
+use subsume_guest::{Component, Description, ParamKind, Params, Value, ValueKind, emit, input, output, param};
 
 struct Avoider {
     threshold: f64,
@@ -21,51 +19,20 @@ struct Avoider {
 
 impl Component for Avoider {
     fn describe() -> Description {
-        Description::new(
-            "avoider",
-            "Turns away from obstacles nearer than a threshold",
-        )
-        .input(input(
-            "ranges",
-            ValueKind::Vector,
-            "ranges in metres, rays from -fov/2 (right) to +fov/2 (left)",
-        ))
-        .output(output(
-            "cmd",
-            ValueKind::Command,
-            "VEL commands while an obstacle is near; silent otherwise",
-        ))
-        .param(param(
-            "threshold",
-            ParamKind::Number,
-            "0.5",
-            "an obstacle nearer than this (metres) triggers avoidance",
-        ))
-        .param(param(
-            "fov",
-            ParamKind::Number,
-            "3.14159",
-            "angle covered by the scan, radians",
-        ))
-        .param(param(
-            "cone",
-            ParamKind::Number,
-            "1.6",
-            "width of the front cone that is watched, radians",
-        ))
-        .param(param(
-            "turn-rate",
-            ParamKind::Number,
-            "1.2",
-            "turn rate while avoiding, rad/s",
-        ))
-        .param(param(
-            "creep-speed",
-            ParamKind::Number,
-            "0.0",
-            "forward speed while avoiding, m/s",
-        ))
-        .priority(3)
+        Description::new("avoider", "Turns away from obstacles nearer than a threshold")
+            .input(input("ranges", ValueKind::Vector, "ranges in metres, rays from -fov/2 (right) to +fov/2 (left)"))
+            .output(output("cmd", ValueKind::Command, "VEL commands while an obstacle is near; silent otherwise"))
+            .param(param(
+                "threshold",
+                ParamKind::Number,
+                "0.5",
+                "an obstacle nearer than this (metres) triggers avoidance",
+            ))
+            .param(param("fov", ParamKind::Number, "3.14159", "angle covered by the scan, radians"))
+            .param(param("cone", ParamKind::Number, "1.6", "width of the front cone that is watched, radians"))
+            .param(param("turn-rate", ParamKind::Number, "1.2", "turn rate while avoiding, rad/s"))
+            .param(param("creep-speed", ParamKind::Number, "0.0", "forward speed while avoiding, m/s"))
+            .priority(3)
     }
 
     fn init(params: &Params) -> Result<Self, String> {
@@ -98,11 +65,7 @@ impl Component for Avoider {
         if n == 0 {
             return Ok(());
         }
-        let step = if n > 1 {
-            self.fov / (n - 1) as f64
-        } else {
-            0.0
-        };
+        let step = if n > 1 { self.fov / (n - 1) as f64 } else { 0.0 };
         let (mut near, mut left, mut right) = (false, 0.0, 0.0);
         for (i, &r) in self.ranges.iter().enumerate() {
             let angle = -self.fov / 2.0 + step * i as f64;
@@ -116,11 +79,7 @@ impl Component for Avoider {
             }
         }
         if near {
-            let turn = if left >= right {
-                self.turn_rate
-            } else {
-                -self.turn_rate
-            };
+            let turn = if left >= right { self.turn_rate } else { -self.turn_rate };
             let cmd = format!("VEL {:.3} {:.3}", self.creep_speed, turn);
             emit(0, &Value::Command(cmd));
         }

@@ -6,8 +6,7 @@
 //! on the `goal` input.
 
 use subsume_guest::{
-    Component, Description, LogLevel, ParamKind, Params, Value, ValueKind, emit, input, log,
-    output, param,
+    Component, Description, LogLevel, ParamKind, Params, Value, ValueKind, emit, input, log, output, param,
 };
 
 struct Planner {
@@ -23,48 +22,21 @@ struct Planner {
 impl Component for Planner {
     fn describe() -> Description {
         Description::new("planner", "Drives toward a goal position")
-            .input(input(
-                "pose",
-                ValueKind::Vector,
-                "robot pose [x m, y m, heading rad]",
-            ))
+            .input(input("pose", ValueKind::Vector, "robot pose [x m, y m, heading rad]"))
             .input(input("goal", ValueKind::Vector, "new goal [x m, y m]"))
-            .output(output(
-                "cmd",
-                ValueKind::Command,
-                "VEL toward the goal, STOP at it",
-            ))
-            .output(output(
-                "distance",
-                ValueKind::Scalar,
-                "distance left to the goal, metres",
-            ))
+            .output(output("cmd", ValueKind::Command, "VEL toward the goal, STOP at it"))
+            .output(output("distance", ValueKind::Scalar, "distance left to the goal, metres"))
             .param(param("goal-x", ParamKind::Number, "0.0", "goal x, metres"))
             .param(param("goal-y", ParamKind::Number, "0.0", "goal y, metres"))
-            .param(param(
-                "max-speed",
-                ParamKind::Number,
-                "0.3",
-                "top forward speed, m/s",
-            ))
-            .param(param(
-                "max-turn",
-                ParamKind::Number,
-                "1.0",
-                "top turn rate, rad/s",
-            ))
+            .param(param("max-speed", ParamKind::Number, "0.3", "top forward speed, m/s"))
+            .param(param("max-turn", ParamKind::Number, "1.0", "top turn rate, rad/s"))
             .param(param(
                 "tolerance",
                 ParamKind::Number,
                 "0.15",
                 "distance at which the goal counts as reached, metres",
             ))
-            .param(param(
-                "heading-gain",
-                ParamKind::Number,
-                "2.0",
-                "turn rate per radian of heading error",
-            ))
+            .param(param("heading-gain", ParamKind::Number, "2.0", "turn rate per radian of heading error"))
             .priority(1)
     }
 
@@ -79,9 +51,7 @@ impl Component for Planner {
             reached: false,
         };
         if planner.max_speed < 0.0 || planner.max_turn < 0.0 || planner.tolerance <= 0.0 {
-            return Err(
-                "max-speed and max-turn must not be negative, tolerance must be positive".into(),
-            );
+            return Err("max-speed and max-turn must not be negative, tolerance must be positive".into());
         }
         Ok(planner)
     }
@@ -92,10 +62,7 @@ impl Component for Planner {
             (1, Value::Vector(v)) if v.len() >= 2 => {
                 self.goal = (v[0], v[1]);
                 self.reached = false;
-                log(
-                    LogLevel::Info,
-                    &format!("new goal ({:.2}, {:.2})", v[0], v[1]),
-                );
+                log(LogLevel::Info, &format!("new goal ({:.2}, {:.2})", v[0], v[1]));
             }
             (0, _) => return Err("pose: expected a vector [x, y, heading]".into()),
             _ => return Err("goal: expected a vector [x, y]".into()),

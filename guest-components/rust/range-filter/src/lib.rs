@@ -5,9 +5,7 @@
 //! average (`alpha` = weight of the newest reading). Emits the filtered scan and
 //! the nearest reading every time a scan arrives (input is passive).
 
-use subsume_guest::{
-    Component, Description, ParamKind, Params, Value, ValueKind, emit, input, output, param,
-};
+use subsume_guest::{Component, Description, ParamKind, Params, Value, ValueKind, emit, input, output, param};
 
 struct RangeFilter {
     alpha: f64,
@@ -18,33 +16,11 @@ struct RangeFilter {
 impl Component for RangeFilter {
     fn describe() -> Description {
         Description::new("range-filter", "Clamps and smooths a range scan")
-            .input(input(
-                "ranges",
-                ValueKind::Vector,
-                "raw ranges in metres, one per ray",
-            ))
-            .output(output(
-                "filtered",
-                ValueKind::Vector,
-                "clamped, smoothed ranges in metres",
-            ))
-            .output(output(
-                "nearest",
-                ValueKind::Scalar,
-                "smallest filtered range in metres",
-            ))
-            .param(param(
-                "alpha",
-                ParamKind::Number,
-                "0.6",
-                "weight of the newest reading, 0 < alpha <= 1",
-            ))
-            .param(param(
-                "max-range",
-                ParamKind::Number,
-                "4.0",
-                "sensor range in metres; invalid readings become this",
-            ))
+            .input(input("ranges", ValueKind::Vector, "raw ranges in metres, one per ray"))
+            .output(output("filtered", ValueKind::Vector, "clamped, smoothed ranges in metres"))
+            .output(output("nearest", ValueKind::Scalar, "smallest filtered range in metres"))
+            .param(param("alpha", ParamKind::Number, "0.6", "weight of the newest reading, 0 < alpha <= 1"))
+            .param(param("max-range", ParamKind::Number, "4.0", "sensor range in metres; invalid readings become this"))
     }
 
     fn init(params: &Params) -> Result<Self, String> {
@@ -54,15 +30,9 @@ impl Component for RangeFilter {
             return Err(format!("alpha must be in (0, 1], got {alpha}"));
         }
         if !(max_range > 0.0 && max_range.is_finite()) {
-            return Err(format!(
-                "max-range must be a positive number, got {max_range}"
-            ));
+            return Err(format!("max-range must be a positive number, got {max_range}"));
         }
-        Ok(RangeFilter {
-            alpha,
-            max_range,
-            smoothed: Vec::new(),
-        })
+        Ok(RangeFilter { alpha, max_range, smoothed: Vec::new() })
     }
 
     fn on_input(&mut self, _port: u32, value: Value) -> Result<(), String> {
@@ -74,11 +44,7 @@ impl Component for RangeFilter {
             self.smoothed = raw.iter().map(|&r| self.clamp(r)).collect();
         } else {
             for (s, &r) in self.smoothed.iter_mut().zip(&raw) {
-                let r = if r.is_finite() && r >= 0.0 {
-                    r.min(self.max_range)
-                } else {
-                    self.max_range
-                };
+                let r = if r.is_finite() && r >= 0.0 { r.min(self.max_range) } else { self.max_range };
                 *s += self.alpha * (r - *s);
             }
         }
@@ -91,11 +57,7 @@ impl Component for RangeFilter {
 
 impl RangeFilter {
     fn clamp(&self, r: f64) -> f64 {
-        if r.is_finite() && r >= 0.0 {
-            r.min(self.max_range)
-        } else {
-            self.max_range
-        }
+        if r.is_finite() && r >= 0.0 { r.min(self.max_range) } else { self.max_range }
     }
 }
 

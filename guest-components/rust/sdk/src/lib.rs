@@ -37,8 +37,7 @@ pub mod bindings {
 }
 
 pub use bindings::subsume::robot::types::{
-    Description as RawDescription, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value,
-    ValueKind,
+    Description as RawDescription, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value, ValueKind,
 };
 
 /// What a component implements. `describe` is static (called before `init`);
@@ -108,11 +107,7 @@ impl Description {
 
 /// An input port spec.
 pub fn input(name: &str, kind: ValueKind, doc: &str) -> PortSpec {
-    PortSpec {
-        name: name.to_string(),
-        kind,
-        doc: doc.to_string(),
-    }
+    PortSpec { name: name.to_string(), kind, doc: doc.to_string() }
 }
 
 /// An output port spec.
@@ -122,12 +117,7 @@ pub fn output(name: &str, kind: ValueKind, doc: &str) -> PortSpec {
 
 /// A parameter spec; `default` is written as it would be in the XML file.
 pub fn param(name: &str, kind: ParamKind, default: &str, doc: &str) -> ParamSpec {
-    ParamSpec {
-        name: name.to_string(),
-        kind,
-        default_value: default.to_string(),
-        doc: doc.to_string(),
-    }
+    ParamSpec { name: name.to_string(), kind, default_value: default.to_string(), doc: doc.to_string() }
 }
 
 /// The parameters handed to `init`, already checked by the host against
@@ -138,37 +128,24 @@ pub struct Params(pub Vec<Param>);
 impl Params {
     /// The text of parameter `name`, if present.
     pub fn text(&self, name: &str) -> Option<&str> {
-        self.0
-            .iter()
-            .find(|p| p.name == name)
-            .map(|p| p.value.as_str())
+        self.0.iter().find(|p| p.name == name).map(|p| p.value.as_str())
     }
     /// Parameter `name` as a number; `Err` names the parameter.
     pub fn number(&self, name: &str) -> Result<f64, String> {
-        let text = self
-            .text(name)
-            .ok_or_else(|| format!("missing parameter '{name}'"))?;
-        text.trim()
-            .parse::<f64>()
-            .map_err(|_| format!("parameter '{name}': '{text}' is not a number"))
+        let text = self.text(name).ok_or_else(|| format!("missing parameter '{name}'"))?;
+        text.trim().parse::<f64>().map_err(|_| format!("parameter '{name}': '{text}' is not a number"))
     }
     /// Parameter `name` as a whole number; `Err` names the parameter.
     pub fn integer(&self, name: &str) -> Result<i64, String> {
-        let text = self
-            .text(name)
-            .ok_or_else(|| format!("missing parameter '{name}'"))?;
-        text.trim()
-            .parse::<i64>()
-            .map_err(|_| format!("parameter '{name}': '{text}' is not a whole number"))
+        let text = self.text(name).ok_or_else(|| format!("missing parameter '{name}'"))?;
+        text.trim().parse::<i64>().map_err(|_| format!("parameter '{name}': '{text}' is not a whole number"))
     }
     /// Parameter `name` as a flag (`true`/`false`).
     pub fn flag(&self, name: &str) -> Result<bool, String> {
         match self.text(name).map(str::trim) {
             Some("true") => Ok(true),
             Some("false") => Ok(false),
-            Some(other) => Err(format!(
-                "parameter '{name}': '{other}' is not true or false"
-            )),
+            Some(other) => Err(format!("parameter '{name}': '{other}' is not true or false")),
             None => Err(format!("missing parameter '{name}'")),
         }
     }

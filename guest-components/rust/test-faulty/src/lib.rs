@@ -8,9 +8,7 @@
 //! - `error-on-init`: refuses to start;
 //! - `none`: behaves.
 
-use subsume_guest::{
-    Component, Description, ParamKind, Params, Value, ValueKind, emit, output, param,
-};
+use subsume_guest::{Component, Description, ParamKind, Params, Value, ValueKind, emit, output, param};
 
 struct Faulty {
     mode: String,
@@ -20,33 +18,17 @@ struct Faulty {
 
 impl Component for Faulty {
     fn describe() -> Description {
-        Description::new(
-            "test-faulty",
-            "Misbehaves on purpose, for fault-isolation tests",
-        )
-        .output(output(
-            "out",
-            ValueKind::Scalar,
-            "number of good ticks so far",
-        ))
-        .param(param("mode", ParamKind::Text, "none", "how to misbehave"))
-        .param(param(
-            "after",
-            ParamKind::Integer,
-            "0",
-            "good ticks before misbehaving",
-        ))
+        Description::new("test-faulty", "Misbehaves on purpose, for fault-isolation tests")
+            .output(output("out", ValueKind::Scalar, "number of good ticks so far"))
+            .param(param("mode", ParamKind::Text, "none", "how to misbehave"))
+            .param(param("after", ParamKind::Integer, "0", "good ticks before misbehaving"))
     }
     fn init(params: &Params) -> Result<Self, String> {
         let mode = params.text("mode").unwrap_or("none").to_string();
         if mode == "error-on-init" {
             return Err("refusing to start, as asked".into());
         }
-        Ok(Faulty {
-            mode,
-            after: params.integer("after")?,
-            ticks: 0,
-        })
+        Ok(Faulty { mode, after: params.integer("after")?, ticks: 0 })
     }
     fn tick(&mut self, _now_ns: u64) -> Result<(), String> {
         if self.ticks < self.after || self.mode == "none" {

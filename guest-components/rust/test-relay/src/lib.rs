@@ -7,30 +7,11 @@ struct Relay;
 
 impl Component for Relay {
     fn describe() -> Description {
-        Description::new(
-            "test-relay",
-            "Forwards each input to the output of the same index",
-        )
-        .input(input(
-            "scalar-in",
-            ValueKind::Scalar,
-            "forwarded to scalar-out",
-        ))
-        .input(input(
-            "vector-in",
-            ValueKind::Vector,
-            "forwarded to vector-out",
-        ))
-        .output(output(
-            "scalar-out",
-            ValueKind::Scalar,
-            "what scalar-in received",
-        ))
-        .output(output(
-            "vector-out",
-            ValueKind::Vector,
-            "what vector-in received",
-        ))
+        Description::new("test-relay", "Forwards each input to the output of the same index")
+            .input(input("scalar-in", ValueKind::Scalar, "forwarded to scalar-out"))
+            .input(input("vector-in", ValueKind::Vector, "forwarded to vector-out"))
+            .output(output("scalar-out", ValueKind::Scalar, "what scalar-in received"))
+            .output(output("vector-out", ValueKind::Vector, "what vector-in received"))
     }
     fn init(_params: &Params) -> Result<Self, String> {
         Ok(Relay)

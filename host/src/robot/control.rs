@@ -1,0 +1,213 @@
+//! Standard control strings: the one language of motion commands, spoken by
+//! behaviours, operators, the arbiter and the translators
+//! (`docs/control-strings.md`).
+//!
+//! ```text
+//! command = "STOP"
+//!         | "VEL"  SP number SP number     ; linear m/s, angular rad/s (counter-clockwise +)
+//!         | "GOTO" SP number SP number     ; goal x, y in metres (world frame)
+//! number  = a finite decimal: [+-] digits [. digits] [e [+-] digits]
+//! SP      = one or more spaces or tabs; leading and trailing blanks are allowed
+//! ```
+//!
+//! Keywords are case-insensitive; [`ControlCommand`]'s `Display` writes the
+//! canonical form (upper case, single spaces, shortest exact numbers), which
+//! parses back to the same command.
+
+use std::fmt;
+
+/// Longest control string accepted: a command is a keyword and two numbers;
+/// anything longer is garbage or an attack on the parser.
+pub const MAX_CONTROL_STRING_LEN: usize = 128;
+
+/// A parsed control string.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ControlCommand {
+    /// Stop the motors now.
+    Stop,
+    /// Drive at `linear` m/s forward and `angular` rad/s counter-clockwise.
+    Vel { linear: f64, angular: f64 },
+    /// Go to the point (`x`, `y`) in metres, world frame (for planners).
+    Goto { x: f64, y: f64 },
+}
+
+impl ControlCommand {
+    /// Whether this command lets the robot move.
+    pub fn is_stop(&self) -> bool {
+        matches!(self, ControlCommand::Stop)
+            || matches!(self, ControlCommand::Vel { linear, angular } if *linear == 0.0 && *angular == 0.0)
+    }
+}
+
+impl fmt::Display for ControlCommand {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ControlCommand::Stop => f.write_str("STOP"),
+            // `{:?}` is the shortest text that parses back to the same f64, and
+            // switches to exponents for huge and tiny values.
+            ControlCommand::Vel { linear, angular } => write!(f, "VEL {linear:?} {angular:?}"),
+            ControlCommand::Goto { x, y } => write!(f, "GOTO {x:?} {y:?}"),
+        }
+    }
+}
+
+/// Why a control string did not parse, and where (1-based character column).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("column {column}: {message}")]
+pub struct ControlParseError {
+    pub column: usize,
+    pub message: String,
+}
+
+impl std::str::FromStr for ControlCommand {
+    type Err = ControlParseError;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        parse(text)
+    }
+}
+
+/// Builds a command from its (up to two) numbers.
+type Build = fn(f64, f64) -> ControlCommand;
+
+/// Parses one control string.
+pub fn parse(text: &str) -> Result<ControlCommand, ControlParseError> {
+    if text.len() > MAX_CONTROL_STRING_LEN {
+        return Err(error(
+            MAX_CONTROL_STRING_LEN + 1,
+            format!("control string longer than {MAX_CONTROL_STRING_LEN} bytes"),
+        ));
+    }
+    let words = words(text);
+    let Some(&(keyword_column, keyword)) = words.first() else {
+        return Err(error(1, "empty control string: expected STOP, VEL or GOTO".to_string()));
+    };
+    let (arguments, command): (&[&str], Build) = match keyword.to_ascii_uppercase().as_str() {
+        "STOP" => (&[], |_, _| ControlCommand::Stop),
+        "VEL" => (&["linear speed (m/s)", "angular speed (rad/s)"], |linear, angular| ControlCommand::Vel {
+            linear,
+            angular,
+        }),
+        "GOTO" => (&["goal x (m)", "goal y (m)"], |x, y| ControlCommand::Goto { x, y }),
+        _ => {
+            return Err(error(
+                keyword_column,
+                format!("unknown command '{}': expected STOP, VEL or GOTO", shown(keyword)),
+            ));
+        }
+    };
+    let mut values = [0.0; 2];
+    for (i, what) in arguments.iter().enumerate() {
+        let Some(&(column, word)) = words.get(i + 1) else {
+            let end = text.trim_end().chars().count() + 1;
+            return Err(error(end, format!("missing the {what}")));
+        };
+        values[i] = parse_number(word)
+            .ok_or_else(|| error(column, format!("expected the {what} as a finite number, found '{}'", shown(word))))?;
+    }
+    if let Some(&(column, word)) = words.get(arguments.len() + 1) {
+        return Err(error(column, format!("unexpected '{}' after the command", shown(word))));
+    }
+    Ok(command(values[0], values[1]))
+}
+
+/// Words with their 1-based character columns.
+fn words(text: &str) -> Vec<(usize, &str)> {
+    let mut words = Vec::new();
+    let mut start: Option<(usize, usize)> = None;
+    for (column, (byte, c)) in text.char_indices().enumerate() {
+        let blank = c == ' ' || c == '\t';
+        match (blank, start) {
+            (false, None) => start = Some((column + 1, byte)),
+            (true, Some((col, from))) => {
+                words.push((col, &text[from..byte]));
+                start = None;
+            }
+            _ => {}
+        }
+    }
+    if let Some((col, from)) = start {
+        words.push((col, &text[from..]));
+    }
+    words
+}
+
+fn parse_number(word: &str) -> Option<f64> {
+    let valid = word.chars().all(|c| c.is_ascii_digit() || matches!(c, '+' | '-' | '.' | 'e' | 'E'));
+    word.parse::<f64>().ok().filter(|x| valid && x.is_finite())
+}
+
+fn shown(word: &str) -> String {
+    let mut s: String = word.chars().take(20).map(|c| if c.is_control() { '?' } else { c }).collect();
+    if word.chars().count() > 20 {
+        s.push_str("...");
+    }
+    s
+}
+
+fn error(column: usize, message: String) -> ControlParseError {
+    ControlParseError { column, message }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn good_strings_parse() {
+        let cases = [
+            ("STOP", ControlCommand::Stop),
+            ("  stop\t", ControlCommand::Stop),
+            ("VEL 0.2 -0.5", ControlCommand::Vel { linear: 0.2, angular: -0.5 }),
+            ("vel  1e-1\t+3", ControlCommand::Vel { linear: 0.1, angular: 3.0 }),
+            ("GOTO 4 2.5", ControlCommand::Goto { x: 4.0, y: 2.5 }),
+        ];
+        for (text, expected) in cases {
+            assert_eq!(parse(text), Ok(expected), "{text}");
+        }
+    }
+
+    #[test]
+    fn bad_strings_name_the_column() {
+        let cases = [
+            ("", "column 1: empty control string: expected STOP, VEL or GOTO"),
+            ("JUMP 1", "column 1: unknown command 'JUMP': expected STOP, VEL or GOTO"),
+            ("VEL 0.2", "column 8: missing the angular speed (rad/s)"),
+            ("VEL x 0", "column 5: expected the linear speed (m/s) as a finite number, found 'x'"),
+            ("VEL 0 inf", "column 7: expected the angular speed (rad/s) as a finite number, found 'inf'"),
+            ("VEL 0 NaN", "column 7: expected the angular speed (rad/s) as a finite number, found 'NaN'"),
+            ("STOP now", "column 6: unexpected 'now' after the command"),
+            ("GOTO 1 2 3", "column 10: unexpected '3' after the command"),
+            ("  VEL 1e999 0", "column 7: expected the linear speed (m/s) as a finite number, found '1e999'"),
+        ];
+        for (text, expected) in cases {
+            assert_eq!(parse(text).map_err(|e| e.to_string()), Err(expected.to_string()), "{text:?}");
+        }
+        let long = format!("VEL 1 {}", "0".repeat(200));
+        assert!(parse(&long).is_err_and(|e| e.message.contains("longer than")));
+    }
+
+    /// Formats generated commands and parses them back.
+    #[test]
+    fn format_then_parse_round_trips() {
+        let mut state: u64 = 0x9e37_79b9_7f4a_7c15;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state
+        };
+        for _ in 0..20_000 {
+            let a = f64::from_bits(next());
+            let b = (next() as i64 as f64) / 1e6;
+            let (a, b) = (if a.is_finite() { a } else { 0.5 }, b);
+            let command = match next() % 3 {
+                0 => ControlCommand::Stop,
+                1 => ControlCommand::Vel { linear: a, angular: b },
+                _ => ControlCommand::Goto { x: b, y: a },
+            };
+            let text = command.to_string();
+            assert_eq!(parse(&text), Ok(command), "{text}");
+        }
+    }
+}

@@ -1,0 +1,412 @@
+//! The serial link to the motor controller (`builtin:serial`).
+//!
+//! On the control loop (graph time, so tests control it): commands arrive on
+//! `cmd`; a rate limit lets at most one frame out per `min-interval`,
+//! coalescing to the latest command (a burst cannot hammer the motors); a
+//! watchdog sends STOP when the command is not refreshed within `watchdog`;
+//! the current command is re-sent every `refresh` so the controller's own
+//! watchdog stays fed; feedback bytes are decoded by the translator and
+//! emitted on `pose`, `ranges`, `bumper` and `battery`.
+//!
+//! On the link's I/O thread: the device (`serialport`) is opened, written and
+//! read; when it disappears the link treats the motors as stopped, discards
+//! queued frames (never replays stale commands), and reopens it with backoff.
+//!
+//! Invariants: guest code never reaches the device: only this component
+//! writes to it, and only translator output; the control loop never blocks
+//! on the device (bounded channels, `try_send`).
+
+use std::io::{ErrorKind, Read, Write};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex, mpsc};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use serde::Serialize;
+
+use super::control::{self, ControlCommand};
+use super::protocol::Feedback;
+use super::translator::Translator;
+use crate::contract::Value;
+use crate::runtime::{CallError, Component, Outbox};
+
+/// Frames waiting for the I/O thread; more means the device is stuck, and
+/// further frames are dropped (and counted) rather than queued.
+pub const TX_QUEUE_FRAMES: usize = 16;
+/// Chunks of received bytes waiting for the control loop.
+pub const RX_QUEUE_CHUNKS: usize = 256;
+/// Read timeout on the device: how quickly the I/O threads notice a stop.
+pub const READ_TIMEOUT: Duration = Duration::from_millis(50);
+/// First and longest wait between attempts to reopen a lost device.
+pub const RECONNECT_BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(2));
+
+/// Settings of one link.
+#[derive(Clone, Debug, PartialEq)]
+pub struct LinkSettings {
+    pub device: PathBuf,
+    pub baud: u32,
+    /// Least time between two frames.
+    pub min_interval_ns: u64,
+    /// STOP when no command arrived for this long.
+    pub watchdog_ns: u64,
+    /// Re-send the current command after this long without a frame.
+    pub refresh_ns: u64,
+}
+
+/// Counters shared with the I/O thread.
+#[derive(Debug, Default)]
+struct IoCounters {
+    connected: AtomicBool,
+    frames_written: AtomicU64,
+    bytes_written: AtomicU64,
+    bytes_read: AtomicU64,
+    reconnects: AtomicU64,
+    frames_discarded: AtomicU64,
+    rx_dropped: AtomicU64,
+    stop: AtomicBool,
+}
+
+/// The report section of a link.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct SerialStatus {
+    pub device: String,
+    pub connected: bool,
+    pub commands_in: u64,
+    pub frames_sent: u64,
+    pub frames_written: u64,
+    pub bytes_written: u64,
+    /// Commands replaced by a newer one before the rate limit let them out.
+    pub frames_dropped_rate_limit: u64,
+    /// Frames dropped because the device was gone or stuck.
+    pub frames_dropped_link: u64,
+    pub watchdog_stops: u64,
+    pub reconnects: u64,
+    pub bytes_read: u64,
+    pub feedback_messages: u64,
+    pub malformed_feedback: u64,
+    /// Commands the translator refused (e.g. GOTO to the motors).
+    pub rejected_commands: u64,
+}
+
+/// The `builtin:serial` component.
+pub struct SerialLink {
+    name: String,
+    settings: LinkSettings,
+    translator: Box<dyn Translator>,
+    tx: SyncSender<Vec<u8>>,
+    rx: Receiver<Vec<u8>>,
+    io: Arc<IoCounters>,
+    thread: Option<JoinHandle<()>>,
+    /// The newest command and when it arrived.
+    latest_at: Option<u64>,
+    /// The command waiting for the rate limit.
+    pending: Option<ControlCommand>,
+    /// The last command handed to the I/O thread, and when.
+    last_sent: Option<(ControlCommand, u64)>,
+    watchdog_tripped: bool,
+    feedback: Vec<Feedback>,
+    frame: Vec<u8>,
+    stats: SerialStatus,
+}
+
+/// Output ports of `builtin:serial`, in order.
+pub const OUTPUTS: [&str; 4] = ["pose", "ranges", "bumper", "battery"];
+
+impl SerialLink {
+    /// Starts the link's I/O thread (which opens the device, retrying with
+    /// backoff until it appears).
+    pub fn start(name: &str, settings: LinkSettings, translator: Box<dyn Translator>) -> Result<SerialLink, String> {
+        let (tx, tx_rx) = mpsc::sync_channel(TX_QUEUE_FRAMES);
+        let (rx_tx, rx) = mpsc::sync_channel(RX_QUEUE_CHUNKS);
+        let io = Arc::new(IoCounters::default());
+        let thread_io = io.clone();
+        let thread_settings = settings.clone();
+        let label = name.to_string();
+        let thread = std::thread::Builder::new()
+            .name(format!("serial-{name}"))
+            .spawn(move || io_thread(&label, &thread_settings, &tx_rx, &rx_tx, &thread_io))
+            .map_err(|e| format!("cannot start the serial thread: {e}"))?;
+        let stats = SerialStatus { device: settings.device.display().to_string(), ..SerialStatus::default() };
+        Ok(SerialLink {
+            name: name.to_string(),
+            settings,
+            translator,
+            tx,
+            rx,
+            io,
+            thread: Some(thread),
+            latest_at: None,
+            pending: None,
+            last_sent: None,
+            watchdog_tripped: false,
+            feedback: Vec::new(),
+            frame: Vec::new(),
+            stats,
+        })
+    }
+
+    /// Queues `command` for the rate limit.
+    fn queue(&mut self, command: ControlCommand) {
+        if self.pending.replace(command).is_some() {
+            self.stats.frames_dropped_rate_limit += 1;
+        }
+    }
+
+    /// Sends the pending command if the rate limit allows.
+    fn flush(&mut self, now_ns: u64) -> Result<(), CallError> {
+        let Some(command) = self.pending else { return Ok(()) };
+        if self.last_sent.is_some_and(|(_, at)| now_ns.saturating_sub(at) < self.settings.min_interval_ns) {
+            return Ok(());
+        }
+        self.pending = None;
+        self.frame.clear();
+        if let Err(why) = self.translator.encode(&command, &mut self.frame) {
+            self.stats.rejected_commands += 1;
+            return Err(CallError::Reported(format!("the translator refused '{command}': {why}")));
+        }
+        self.last_sent = Some((command, now_ns));
+        self.stats.frames_sent += 1;
+        match self.tx.try_send(self.frame.clone()) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => self.stats.frames_dropped_link += 1,
+        }
+        Ok(())
+    }
+
+    fn emit_feedback(&mut self, out: &mut Outbox) {
+        while let Ok(bytes) = self.rx.try_recv() {
+            self.translator.decode(&bytes, &mut self.feedback);
+        }
+        for feedback in self.feedback.drain(..) {
+            self.stats.feedback_messages += 1;
+            let item = match feedback {
+                Feedback::Odometry { x, y, heading } => (0, Value::Vector(vec![x, y, heading])),
+                Feedback::Ranges(ranges) => (1, Value::Vector(ranges)),
+                Feedback::Bumper(hit) => (2, Value::Flag(hit)),
+                Feedback::Battery(volts) => (3, Value::Scalar(volts)),
+            };
+            out.push(item);
+        }
+    }
+
+    /// Current counters.
+    pub fn status(&self) -> SerialStatus {
+        SerialStatus {
+            connected: self.io.connected.load(Ordering::Relaxed),
+            frames_written: self.io.frames_written.load(Ordering::Relaxed),
+            bytes_written: self.io.bytes_written.load(Ordering::Relaxed),
+            reconnects: self.io.reconnects.load(Ordering::Relaxed),
+            bytes_read: self.io.bytes_read.load(Ordering::Relaxed),
+            frames_dropped_link: self.stats.frames_dropped_link + self.io.frames_discarded.load(Ordering::Relaxed),
+            malformed_feedback: self.translator.malformed(),
+            ..self.stats.clone()
+        }
+    }
+}
+
+impl Component for SerialLink {
+    fn on_input(
+        &mut self,
+        _port: u32,
+        value: &Value,
+        _from: usize,
+        now_ns: u64,
+        _out: &mut Outbox,
+    ) -> Result<(), CallError> {
+        let Value::Command(text) = value else {
+            return Err(CallError::Reported("cmd: expected a control string".into()));
+        };
+        let command =
+            control::parse(text).map_err(|e| CallError::Reported(format!("ignored an invalid control string: {e}")))?;
+        self.stats.commands_in += 1;
+        self.latest_at = Some(now_ns);
+        if self.watchdog_tripped {
+            self.watchdog_tripped = false;
+            tracing::info!(component = %self.name, "commands are flowing again");
+        }
+        self.queue(command);
+        self.flush(now_ns)
+    }
+
+    fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        self.emit_feedback(out);
+        let stale = self.latest_at.is_none_or(|at| now_ns.saturating_sub(at) > self.settings.watchdog_ns);
+        if stale && !self.watchdog_tripped && self.last_sent.is_some() {
+            self.watchdog_tripped = true;
+            self.stats.watchdog_stops += 1;
+            tracing::warn!(component = %self.name, "watchdog: no command for {} ms: sending STOP", self.settings.watchdog_ns / 1_000_000);
+            self.queue(ControlCommand::Stop);
+        }
+        let resend = self.last_sent.filter(|(_, at)| now_ns.saturating_sub(*at) >= self.settings.refresh_ns);
+        if self.pending.is_none()
+            && let Some((command, _)) = resend
+        {
+            self.pending = Some(if self.watchdog_tripped { ControlCommand::Stop } else { command });
+        }
+        self.flush(now_ns)
+    }
+
+    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+        serde_json::to_value(SerialLink::status(self)).ok().map(|v| ("serial", v))
+    }
+}
+
+impl Drop for SerialLink {
+    fn drop(&mut self) {
+        self.io.stop.store(true, Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// Opens, writes, reads and reopens the device until told to stop.
+fn io_thread(
+    name: &str,
+    settings: &LinkSettings,
+    frames: &Receiver<Vec<u8>>,
+    received: &SyncSender<Vec<u8>>,
+    io: &IoCounters,
+) {
+    let mut backoff = RECONNECT_BACKOFF.0;
+    let mut ever_connected = false;
+    let mut warned = false;
+    while !io.stop.load(Ordering::Relaxed) {
+        let opened =
+            serialport::new(settings.device.to_string_lossy(), settings.baud).timeout(READ_TIMEOUT).open_native();
+        let mut port = match opened {
+            Ok(port) => port,
+            Err(err) => {
+                if !warned {
+                    tracing::warn!(component = name, "cannot open {}: {err}; retrying", settings.device.display());
+                    warned = true;
+                }
+                sleep_unless_stopped(backoff, io);
+                backoff = (backoff * 2).min(RECONNECT_BACKOFF.1);
+                continue;
+            }
+        };
+        // Frames queued while the device was gone are stale: never replay them.
+        let stale = frames.try_iter().count() as u64;
+        io.frames_discarded.fetch_add(stale, Ordering::Relaxed);
+        if ever_connected {
+            io.reconnects.fetch_add(1, Ordering::Relaxed);
+            tracing::info!(component = name, "reconnected to {}", settings.device.display());
+        } else {
+            tracing::info!(component = name, "connected to {} at {} baud", settings.device.display(), settings.baud);
+        }
+        ever_connected = true;
+        warned = false;
+        backoff = RECONNECT_BACKOFF.0;
+        io.connected.store(true, Ordering::Relaxed);
+        let failure = run_connection(&mut port, frames, received, io);
+        io.connected.store(false, Ordering::Relaxed);
+        if let Some(why) = failure {
+            tracing::warn!(
+                component = name,
+                "lost {}: {why}; motors treated as stopped; reconnecting",
+                settings.device.display()
+            );
+            sleep_unless_stopped(backoff, io);
+        }
+    }
+}
+
+/// Serves one open device until it fails (returns why) or a stop is asked:
+/// a reader thread feeds received bytes to the control loop while this
+/// thread writes frames.
+fn run_connection(
+    port: &mut serialport::TTYPort,
+    frames: &Receiver<Vec<u8>>,
+    received: &SyncSender<Vec<u8>>,
+    io: &IoCounters,
+) -> Option<String> {
+    let mut reader = match port.try_clone_native() {
+        Ok(reader) => reader,
+        Err(err) => return Some(format!("cannot clone the port for reading: {err}")),
+    };
+    let failed = Mutex::new(None::<String>);
+    std::thread::scope(|scope| {
+        scope.spawn(|| read_loop(&mut reader, received, io, &failed));
+        if let Some(why) = write_loop(port, frames, io, &failed) {
+            set_failed(&failed, why);
+        }
+    });
+    failed.into_inner().ok().flatten()
+}
+
+fn set_failed(failed: &Mutex<Option<String>>, why: String) {
+    if let Ok(mut slot) = failed.lock() {
+        slot.get_or_insert(why);
+    }
+}
+
+fn is_failed(failed: &Mutex<Option<String>>) -> bool {
+    failed.lock().map(|f| f.is_some()).unwrap_or(true)
+}
+
+fn write_loop(
+    port: &mut serialport::TTYPort,
+    frames: &Receiver<Vec<u8>>,
+    io: &IoCounters,
+    failed: &Mutex<Option<String>>,
+) -> Option<String> {
+    loop {
+        if io.stop.load(Ordering::Relaxed) || is_failed(failed) {
+            return None;
+        }
+        match frames.recv_timeout(READ_TIMEOUT) {
+            Ok(frame) => {
+                if let Err(err) = port.write_all(&frame).and_then(|()| port.flush()) {
+                    return Some(format!("write failed: {err}"));
+                }
+                io.frames_written.fetch_add(1, Ordering::Relaxed);
+                io.bytes_written.fetch_add(frame.len() as u64, Ordering::Relaxed);
+            }
+            Err(RecvTimeoutError::Timeout) => {}
+            Err(RecvTimeoutError::Disconnected) => return None,
+        }
+    }
+}
+
+fn read_loop(
+    port: &mut serialport::TTYPort,
+    received: &SyncSender<Vec<u8>>,
+    io: &IoCounters,
+    failed: &Mutex<Option<String>>,
+) {
+    let mut buffer = [0u8; 1024];
+    while !io.stop.load(Ordering::Relaxed) && !is_failed(failed) {
+        match port.read(&mut buffer) {
+            Ok(0) => {
+                set_failed(failed, "the device closed".into());
+                return;
+            }
+            Ok(n) => {
+                io.bytes_read.fetch_add(n as u64, Ordering::Relaxed);
+                if received.try_send(buffer[..n].to_vec()).is_err() {
+                    io.rx_dropped.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+            Err(e)
+                if e.kind() == ErrorKind::TimedOut
+                    || e.kind() == ErrorKind::WouldBlock
+                    || e.kind() == ErrorKind::Interrupted => {}
+            Err(e) => {
+                set_failed(failed, format!("read failed: {e}"));
+                return;
+            }
+        }
+    }
+}
+
+fn sleep_unless_stopped(total: Duration, io: &IoCounters) {
+    let step = Duration::from_millis(10);
+    let mut slept = Duration::ZERO;
+    while slept < total && !io.stop.load(Ordering::Relaxed) {
+        std::thread::sleep(step);
+        slept += step;
+    }
+}

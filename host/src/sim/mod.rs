@@ -1,0 +1,216 @@
+//! The simulated robot (`builtin:sim`): a differential-drive robot in a 2D
+//! world, behind a real pseudo-terminal. Its thread plays the motor
+//! controller: it reads command bytes from the PTY's master end, speaks the
+//! same protocol as real firmware (`robot::protocol`), moves the robot and
+//! writes odometry, range and bumper feedback back. The host's serial link
+//! opens the PTY's other end like any serial device, so the bytes cross a
+//! real tty exactly as they would cross a cable.
+//!
+//! Invariants: nothing but bytes on the PTY connects the host to the
+//! simulated controller; the simulation's clock is its own (real time), not
+//! the control loop's.
+
+pub mod physics;
+pub mod world;
+
+use std::io::{ErrorKind, Read, Write};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use serialport::{SerialPort, TTYPort};
+
+use self::physics::{Body, SimStatus, Simulation};
+use self::world::World;
+use crate::contract::Value;
+use crate::robot::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
+use crate::runtime::{CallError, Component, Outbox};
+
+/// The simulated controller stops the wheels when no command came for this
+/// long (real controllers have such a watchdog too).
+pub const CONTROLLER_TIMEOUT: Duration = Duration::from_secs(1);
+/// How often the simulated controller reads, steps and may send feedback.
+pub const SIM_PERIOD: Duration = Duration::from_millis(5);
+/// Simulated battery voltage reported in feedback.
+pub const BATTERY_VOLTS: f64 = 12.6;
+
+/// Settings of one simulated robot.
+#[derive(Clone, Debug)]
+pub struct SimSettings {
+    pub world: World,
+    pub body: Body,
+    pub profile: Profile,
+    /// Feedback messages (odometry, ranges, bumper) per second.
+    pub feedback_hz: f64,
+}
+
+/// What the simulated controller shares with the host.
+#[derive(Debug)]
+struct Shared {
+    status: Mutex<SimStatus>,
+    stop: AtomicBool,
+    commands: std::sync::atomic::AtomicU64,
+    malformed: std::sync::atomic::AtomicU64,
+}
+
+/// A running simulated robot: its thread and the path of the PTY end the
+/// host opens.
+pub struct SimulatedRobot {
+    pty_path: PathBuf,
+    shared: Arc<Shared>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl SimulatedRobot {
+    /// Creates the PTY pair and starts the controller thread.
+    pub fn start(name: &str, settings: SimSettings) -> Result<SimulatedRobot, String> {
+        let simulation = Simulation::new(settings.world.clone(), settings.body)?;
+        let (mut master, slave) = TTYPort::pair().map_err(|e| format!("cannot create a pseudo-terminal: {e}"))?;
+        let pty_path = slave.name().map(PathBuf::from).ok_or("the pseudo-terminal has no name")?;
+        master.set_timeout(SIM_PERIOD).map_err(|e| format!("cannot configure the pseudo-terminal: {e}"))?;
+        let shared = Arc::new(Shared {
+            status: Mutex::new(simulation.status()),
+            stop: AtomicBool::new(false),
+            commands: Default::default(),
+            malformed: Default::default(),
+        });
+        let thread_shared = shared.clone();
+        let label = name.to_string();
+        let thread = std::thread::Builder::new()
+            .name(format!("sim-{name}"))
+            .spawn(move || {
+                // The slave end stays open here so the master never sees a
+                // hang-up while the host's link reconnects.
+                let _slave = slave;
+                controller(&label, master, simulation, settings, &thread_shared);
+            })
+            .map_err(|e| format!("cannot start the simulation thread: {e}"))?;
+        tracing::info!(component = name, "simulated robot on {}", pty_path.display());
+        Ok(SimulatedRobot { pty_path, shared, thread: Some(thread) })
+    }
+
+    /// The device path the host's serial link opens.
+    pub fn pty_path(&self) -> &PathBuf {
+        &self.pty_path
+    }
+
+    pub fn status(&self) -> Option<SimStatus> {
+        self.shared.status.lock().ok().map(|s| s.clone())
+    }
+}
+
+impl Drop for SimulatedRobot {
+    fn drop(&mut self) {
+        self.shared.stop.store(true, Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// The simulated motor controller's loop.
+fn controller(name: &str, mut port: TTYPort, mut sim: Simulation, settings: SimSettings, shared: &Shared) {
+    let mut decoder = Decoder::new(settings.profile);
+    let mut messages = Vec::new();
+    let mut buffer = [0u8; 1024];
+    let mut out = Vec::new();
+    let feedback_period = Duration::from_secs_f64(1.0 / settings.feedback_hz.max(0.1));
+    let mut last_step = Instant::now();
+    let mut last_command = Instant::now();
+    let mut last_feedback = Instant::now();
+    while !shared.stop.load(Ordering::Relaxed) {
+        match port.read(&mut buffer) {
+            Ok(n) if n > 0 => decoder.feed(&buffer[..n], &mut messages),
+            Ok(_) => {}
+            Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::WouldBlock => {}
+            Err(e) => {
+                tracing::debug!(component = name, "pseudo-terminal read failed: {e}");
+                std::thread::sleep(SIM_PERIOD);
+            }
+        }
+        for message in messages.drain(..) {
+            match message {
+                Message::Command(MotorCommand::Wheels { left, right }) => {
+                    sim.set_wheels(left, right);
+                    last_command = Instant::now();
+                    shared.commands.fetch_add(1, Ordering::Relaxed);
+                }
+                Message::Command(MotorCommand::Stop) => {
+                    sim.set_wheels(0.0, 0.0);
+                    last_command = Instant::now();
+                    shared.commands.fetch_add(1, Ordering::Relaxed);
+                }
+                Message::Feedback(_) => {
+                    shared.malformed.fetch_add(1, Ordering::Relaxed);
+                }
+            }
+        }
+        if last_command.elapsed() > CONTROLLER_TIMEOUT {
+            sim.set_wheels(0.0, 0.0);
+        }
+        let now = Instant::now();
+        sim.step(now.duration_since(last_step).as_secs_f64().min(0.1));
+        last_step = now;
+        if last_feedback.elapsed() >= feedback_period {
+            last_feedback = Instant::now();
+            let (x, y, heading) = sim.pose();
+            out.clear();
+            let profile = settings.profile;
+            profile.encode_feedback(&Feedback::Odometry { x, y, heading }, &mut out);
+            profile.encode_feedback(&Feedback::Ranges(sim.ranges()), &mut out);
+            profile.encode_feedback(&Feedback::Bumper(sim.bumper()), &mut out);
+            profile.encode_feedback(&Feedback::Battery(BATTERY_VOLTS), &mut out);
+            // Nobody may be listening (the host reconnecting): that is fine.
+            let _ = port.write_all(&out);
+            if let Ok(mut status) = shared.status.lock() {
+                *status = sim.status();
+            }
+        }
+    }
+    if let Ok(mut status) = shared.status.lock() {
+        *status = sim.status();
+    }
+}
+
+/// The `builtin:sim` component: owns a simulated robot; no ports. Its report
+/// section is the simulation's status; `commands_received` and
+/// `malformed_bytes` count what the controller got over the PTY.
+pub struct SimComponent {
+    robot: SimulatedRobot,
+}
+
+impl SimComponent {
+    pub fn new(robot: SimulatedRobot) -> SimComponent {
+        SimComponent { robot }
+    }
+}
+
+impl Component for SimComponent {
+    fn on_input(
+        &mut self,
+        _port: u32,
+        _value: &Value,
+        _from: usize,
+        _now_ns: u64,
+        _out: &mut Outbox,
+    ) -> Result<(), CallError> {
+        Ok(())
+    }
+
+    fn tick(&mut self, _now_ns: u64, _out: &mut Outbox) -> Result<(), CallError> {
+        Ok(())
+    }
+
+    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+        let status = self.robot.status()?;
+        let mut value = serde_json::to_value(status).ok()?;
+        if let Some(object) = value.as_object_mut() {
+            object.insert("commands_received".into(), self.robot.shared.commands.load(Ordering::Relaxed).into());
+            object.insert("malformed_messages".into(), self.robot.shared.malformed.load(Ordering::Relaxed).into());
+            object.insert("pty".into(), self.robot.pty_path.display().to_string().into());
+        }
+        Some(("sim", value))
+    }
+}
