@@ -18,11 +18,11 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
 use crate::arbiter::{ArbiterComponent, MAX_SOURCES, Source};
-use crate::config::RobotConfig;
+use crate::config::{ComponentConfig, RobotConfig};
 use crate::contract::{Description, ParamKind, ParamSpec, PortSpec, Value, ValueKind, clip};
 use crate::robot::protocol::{MAX_RANGES, Profile};
 use crate::robot::serial::{LinkSettings, SerialLink};
-use crate::robot::translator::{DriveGeometry, ProfileTranslator};
+use crate::robot::translator::{DriveGeometry, ProfileTranslator, Translator};
 use crate::runtime::{CallError, Component, Outbox};
 use crate::sim::physics::Body;
 use crate::sim::{SimComponent, SimSettings, SimulatedRobot, world};
@@ -106,7 +106,7 @@ pub fn describe(kind: &str, params: &BTreeMap<String, String>, base_dir: &Path) 
                         .into(),
                 );
             }
-            translator_profile(params)?;
+            translator_choice(params, base_dir)?;
             Ok(describe(
                 "Serial link to the motor controller: rate limit, watchdog, translator, feedback",
                 vec![port("cmd", ValueKind::Command, "the command for the motors (from the arbiter)")],
@@ -124,7 +124,12 @@ pub fn describe(kind: &str, params: &BTreeMap<String, String>, base_dir: &Path) 
                         "serial device path, or sim:NAME for the PTY of a builtin:sim",
                     ),
                     param("baud", ParamKind::Integer, "115200", "baud rate"),
-                    param("translator", ParamKind::Text, "ascii", "wire protocol: ascii or binary (docs/protocols.md)"),
+                    param(
+                        "translator",
+                        ParamKind::Text,
+                        "ascii",
+                        "ascii, binary (docs/protocols.md), or a .wasm translator component",
+                    ),
                     param("min-interval", ParamKind::Number, "0.02", "least seconds between two frames (rate limit)"),
                     param("watchdog", ParamKind::Number, "0.3", "STOP when no command came for this many seconds"),
                     param("refresh", ParamKind::Number, "0.1", "re-send the current command after this many seconds"),
@@ -155,6 +160,33 @@ fn sim_params() -> Vec<ParamSpec> {
     ]
 }
 
+/// The translator a serial link uses.
+#[derive(Clone, Debug, PartialEq)]
+pub enum TranslatorChoice {
+    Profile(Profile),
+    /// A WASM component of the `translator` world.
+    Wasm(PathBuf),
+}
+
+/// Builds WASM translators for serial links (the loader, with its sandbox).
+pub trait TranslatorLoader {
+    /// A running translator from the `.wasm` file at `path`, for the serial
+    /// link `link` (its parameters go to the translator's `init`).
+    fn wasm_translator(&mut self, path: &Path, link: &ComponentConfig) -> Result<Box<dyn Translator>, String>;
+}
+
+/// The translator named by a serial link's `translator` parameter: `ascii`,
+/// `binary`, or a `.wasm` path relative to `base_dir`.
+pub fn translator_choice(params: &BTreeMap<String, String>, base_dir: &Path) -> Result<TranslatorChoice, String> {
+    let name = params.get("translator").map_or("ascii", |t| t.trim());
+    if name.ends_with(".wasm") {
+        return Ok(TranslatorChoice::Wasm(base_dir.join(name)));
+    }
+    Profile::parse(name)
+        .map(TranslatorChoice::Profile)
+        .ok_or_else(|| format!("unknown translator '{}' (expected ascii, binary or a .wasm translator)", clip(name)))
+}
+
 /// What instantiating a built-in may need beyond its own parameters.
 #[derive(Debug)]
 pub struct BuildContext<'a> {
@@ -166,7 +198,11 @@ pub struct BuildContext<'a> {
 }
 
 /// A running built-in of `kind` for component `ctx.index`.
-pub fn instantiate(kind: &str, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, String> {
+pub fn instantiate(
+    kind: &str,
+    ctx: &mut BuildContext<'_>,
+    translators: &mut dyn TranslatorLoader,
+) -> Result<Box<dyn Component>, String> {
     let Some(config) = ctx.robot.components.get(ctx.index) else {
         return Err("no such component".into());
     };
@@ -247,8 +283,11 @@ pub fn instantiate(kind: &str, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Com
                 watchdog_ns: seconds("watchdog")?,
                 refresh_ns: seconds("refresh")?,
             };
-            let translator = ProfileTranslator::new(translator_profile(&params)?, geometry(&params)?);
-            Ok(Box::new(SerialLink::start(name, settings, Box::new(translator))?))
+            let translator: Box<dyn Translator> = match translator_choice(&params, &base_dir)? {
+                TranslatorChoice::Profile(profile) => Box::new(ProfileTranslator::new(profile, geometry(&params)?)),
+                TranslatorChoice::Wasm(path) => translators.wasm_translator(&path, config)?,
+            };
+            Ok(Box::new(SerialLink::start(name, settings, translator)?))
         }
         "sim" => {
             let settings = sim_settings(&params, &base_dir)?;
@@ -267,11 +306,6 @@ fn number(params: &BTreeMap<String, String>, key: &str) -> Result<f64, String> {
         .ok()
         .filter(|x| x.is_finite())
         .ok_or_else(|| format!("{key} must be a number, got '{}'", clip(text)))
-}
-
-fn translator_profile(params: &BTreeMap<String, String>) -> Result<Profile, String> {
-    let name = params.get("translator").map_or("ascii", |t| t.trim());
-    Profile::parse(name).ok_or_else(|| format!("unknown translator '{}' (expected ascii or binary)", clip(name)))
 }
 
 fn geometry(params: &BTreeMap<String, String>) -> Result<DriveGeometry, String> {
@@ -455,8 +489,14 @@ mod tests {
     use super::*;
     use crate::config::{self, ComponentSource, Resolver};
 
-    /// Describes built-ins only.
+    /// Describes built-ins only; has no WASM translators.
     struct Builtins;
+
+    impl TranslatorLoader for Builtins {
+        fn wasm_translator(&mut self, path: &Path, _link: &ComponentConfig) -> Result<Box<dyn Translator>, String> {
+            Err(format!("no translator {} in this test", path.display()))
+        }
+    }
 
     impl Resolver for Builtins {
         fn describe(
@@ -501,7 +541,8 @@ mod tests {
         </platform></robot>"#;
         let robot = config::parse_and_validate(Path::new("t.xml"), xml, &mut Builtins).map_err(|e| e.to_string())?;
         let mut ptys = HashMap::new();
-        let mut c = instantiate("publish", &mut BuildContext { robot: &robot, index: 0, sim_ptys: &mut ptys })?;
+        let mut c =
+            instantiate("publish", &mut BuildContext { robot: &robot, index: 0, sim_ptys: &mut ptys }, &mut Builtins)?;
         let mut out = Vec::new();
         c.tick(0, &mut out).map_err(|e| format!("{e:?}"))?;
         c.tick(1, &mut out).map_err(|e| format!("{e:?}"))?;

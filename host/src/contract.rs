@@ -17,6 +17,20 @@ pub mod bindings {
     });
 }
 
+/// Generated from the `translator` world; its `types` and `host` are the
+/// component world's, so one linker serves both worlds.
+pub mod translator_bindings {
+    wasmtime::component::bindgen!({
+        world: "translator",
+        path: "../wit",
+        imports: { default: trappable },
+        with: {
+            "subsume:robot/types": super::bindings::subsume::robot::types,
+            "subsume:robot/host": super::bindings::subsume::robot::host,
+        },
+    });
+}
+
 pub use bindings::subsume::robot::types::{
     Description, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value, ValueKind,
 };

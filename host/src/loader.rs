@@ -7,11 +7,12 @@ use std::io::Read;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use crate::builtin::{self, BuildContext};
-use crate::config::{ComponentSource, Resolver};
+use crate::builtin::{self, BuildContext, TranslatorChoice, TranslatorLoader};
+use crate::config::{ComponentConfig, ComponentSource, Resolver};
 use crate::contract::Description;
+use crate::robot::translator::Translator;
 use crate::runtime::Component;
-use crate::sandbox::{Sandbox, WasmArtifact};
+use crate::sandbox::{Sandbox, TranslatorArtifact, WasmArtifact};
 
 /// Largest `.wasm` file loaded: big enough for Python and JavaScript
 /// components (~20 MB), small enough that a bogus file cannot exhaust memory.
@@ -21,11 +22,12 @@ pub const MAX_COMPONENT_BYTES: u64 = 32 << 20;
 pub struct Loader<'a> {
     sandbox: &'a Sandbox,
     artifacts: HashMap<PathBuf, Result<Arc<WasmArtifact>, String>>,
+    translators: HashMap<PathBuf, Result<Arc<TranslatorArtifact>, String>>,
 }
 
 impl<'a> Loader<'a> {
     pub fn new(sandbox: &'a Sandbox) -> Loader<'a> {
-        Loader { sandbox, artifacts: HashMap::new() }
+        Loader { sandbox, artifacts: HashMap::new(), translators: HashMap::new() }
     }
 
     /// The compiled artifact of the `.wasm` file at `path`.
@@ -39,6 +41,20 @@ impl<'a> Loader<'a> {
         result
     }
 
+    /// The compiled translator of the `.wasm` file at `path`.
+    pub fn load_translator(&mut self, path: &Path) -> Result<Arc<TranslatorArtifact>, String> {
+        if let Some(result) = self.translators.get(path) {
+            return result.clone();
+        }
+        let result = read_component_file(path).and_then(|bytes| {
+            self.sandbox
+                .load_translator(&bytes)
+                .map_err(|e| format!("cannot load translator '{}': {e}", path.display()))
+        });
+        self.translators.insert(path.to_path_buf(), result.clone());
+        result
+    }
+
     /// A running, initialised instance of component `ctx.index` of
     /// `ctx.robot`.
     pub fn instantiate(&mut self, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, String> {
@@ -46,7 +62,7 @@ impl<'a> Loader<'a> {
             return Err("no such component".into());
         };
         match &config.source {
-            ComponentSource::Builtin(kind) => builtin::instantiate(kind, ctx),
+            ComponentSource::Builtin(kind) => builtin::instantiate(kind, ctx, self),
             ComponentSource::Wasm(path) => {
                 let artifact = self.load_wasm(path)?;
                 let component = self
@@ -67,9 +83,28 @@ impl Resolver for Loader<'_> {
         base_dir: &Path,
     ) -> Result<Description, String> {
         match source {
-            ComponentSource::Builtin(kind) => builtin::describe(kind, params, base_dir),
+            ComponentSource::Builtin(kind) => {
+                let description = builtin::describe(kind, params, base_dir)?;
+                if kind == "serial"
+                    && let TranslatorChoice::Wasm(path) = builtin::translator_choice(params, base_dir)?
+                {
+                    self.load_translator(&path)?;
+                }
+                Ok(description)
+            }
             ComponentSource::Wasm(path) => self.load_wasm(path).map(|a| a.description.clone()),
         }
+    }
+}
+
+impl TranslatorLoader for Loader<'_> {
+    fn wasm_translator(&mut self, path: &Path, link: &ComponentConfig) -> Result<Box<dyn Translator>, String> {
+        let artifact = self.load_translator(path)?;
+        let translator = self
+            .sandbox
+            .instantiate_translator(&artifact, &link.name, link.memory_bytes, link.budget, &link.params)
+            .map_err(|e| format!("translator '{}': {e}", path.display()))?;
+        Ok(Box::new(translator))
     }
 }
 

@@ -28,7 +28,7 @@ use serde::Serialize;
 
 use super::control::{self, ControlCommand};
 use super::protocol::Feedback;
-use super::translator::Translator;
+use super::translator::{TranslateError, Translator};
 use crate::contract::Value;
 use crate::runtime::{CallError, Component, Outbox};
 
@@ -162,9 +162,13 @@ impl SerialLink {
         }
         self.pending = None;
         self.frame.clear();
-        if let Err(why) = self.translator.encode(&command, &mut self.frame) {
-            self.stats.rejected_commands += 1;
-            return Err(CallError::Reported(format!("the translator refused '{command}': {why}")));
+        match self.translator.encode(&command, &mut self.frame) {
+            Ok(()) => {}
+            Err(TranslateError::Refused(why)) => {
+                self.stats.rejected_commands += 1;
+                return Err(CallError::Reported(format!("the translator refused '{command}': {why}")));
+            }
+            Err(fault @ TranslateError::Fault(_)) => return Err(CallError::Fault(fault.to_string())),
         }
         self.last_sent = Some((command, now_ns));
         self.stats.frames_sent += 1;
@@ -175,9 +179,11 @@ impl SerialLink {
         Ok(())
     }
 
-    fn emit_feedback(&mut self, out: &mut Outbox) {
+    fn emit_feedback(&mut self, out: &mut Outbox) -> Result<(), CallError> {
         while let Ok(bytes) = self.rx.try_recv() {
-            self.translator.decode(&bytes, &mut self.feedback);
+            self.translator
+                .decode(&bytes, &mut self.feedback)
+                .map_err(|why| CallError::Fault(format!("the translator faulted: {why}")))?;
         }
         for feedback in self.feedback.drain(..) {
             self.stats.feedback_messages += 1;
@@ -189,6 +195,7 @@ impl SerialLink {
             };
             out.push(item);
         }
+        Ok(())
     }
 
     /// Current counters.
@@ -231,7 +238,7 @@ impl Component for SerialLink {
     }
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
-        self.emit_feedback(out);
+        self.emit_feedback(out)?;
         let stale = self.latest_at.is_none_or(|at| now_ns.saturating_sub(at) > self.settings.watchdog_ns);
         if stale && !self.watchdog_tripped && self.last_sent.is_some() {
             self.watchdog_tripped = true;

@@ -7,14 +7,26 @@
 use super::control::ControlCommand;
 use super::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
 
+/// Why a translator produced no bytes.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum TranslateError {
+    /// The hardware cannot carry this command (e.g. GOTO): nothing is sent.
+    #[error("{0}")]
+    Refused(String),
+    /// The translator itself broke (a WASM translator trapped or overran its
+    /// budget): the link stops.
+    #[error("the translator faulted: {0}")]
+    Fault(String),
+}
+
 /// Turns commands into bytes for one motor controller and its bytes back
 /// into feedback.
 pub trait Translator: Send {
-    /// Appends the bytes for `command` to `out`. `Err` says why the
-    /// hardware cannot carry it (the command is not sent).
-    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), String>;
-    /// Decodes whatever `bytes` complete into `out`.
-    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>);
+    /// Appends the bytes for `command` to `out`.
+    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError>;
+    /// Decodes whatever `bytes` complete into `out`. `Err` only when the
+    /// translator itself broke.
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), String>;
     /// Bytes or messages from the controller skipped as malformed.
     fn malformed(&self) -> u64;
 }
@@ -66,7 +78,7 @@ impl ProfileTranslator {
 }
 
 impl Translator for ProfileTranslator {
-    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), String> {
+    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError> {
         let motor = match *command {
             ControlCommand::Stop => MotorCommand::Stop,
             ControlCommand::Vel { linear, angular } => {
@@ -74,14 +86,16 @@ impl Translator for ProfileTranslator {
                 MotorCommand::Wheels { left, right }
             }
             ControlCommand::Goto { .. } => {
-                return Err("GOTO is a goal for a planner; the motors take VEL and STOP".into());
+                return Err(TranslateError::Refused(
+                    "GOTO is a goal for a planner; the motors take VEL and STOP".into(),
+                ));
             }
         };
         self.profile.encode_command(&motor, out);
         Ok(())
     }
 
-    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) {
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), String> {
         self.decoder.feed(bytes, &mut self.messages);
         for message in self.messages.drain(..) {
             match message {
@@ -90,6 +104,7 @@ impl Translator for ProfileTranslator {
                 Message::Command(_) => self.unexpected += 1,
             }
         }
+        Ok(())
     }
 
     fn malformed(&self) -> u64 {
@@ -107,7 +122,7 @@ mod tests {
         let mut translator = ProfileTranslator::new(profile, GEOMETRY);
         let command: ControlCommand = command.parse().map_err(|e| format!("{e}"))?;
         let mut out = Vec::new();
-        translator.encode(&command, &mut out)?;
+        translator.encode(&command, &mut out).map_err(|e| e.to_string())?;
         Ok(out)
     }
 
@@ -134,7 +149,7 @@ mod tests {
     fn feedback_is_decoded_and_commands_from_the_controller_are_garbage() {
         let mut translator = ProfileTranslator::new(Profile::Ascii, GEOMETRY);
         let mut out = Vec::new();
-        translator.decode(b"O 1000 2000 500\nS\nB 1\n", &mut out);
+        assert_eq!(translator.decode(b"O 1000 2000 500\nS\nB 1\n", &mut out), Ok(()));
         assert_eq!(out, vec![Feedback::Odometry { x: 1.0, y: 2.0, heading: 0.5 }, Feedback::Bumper(true)]);
         assert_eq!(translator.malformed(), 1);
     }

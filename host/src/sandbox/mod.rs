@@ -33,9 +33,14 @@ use wasmtime_wasi::{WasiCtx, WasiCtxBuilder, WasiCtxView, WasiView};
 pub use guest_output::{GuestOutput, MAX_GUEST_LINE_BYTES};
 
 use crate::config::limits::MAX_COMPONENTS;
+use crate::contract::bindings::subsume::robot::types::Feedback as WitFeedback;
 use crate::contract::bindings::{self, subsume::robot as wit};
+use crate::contract::translator_bindings;
 use crate::contract::{Description, LogLevel, Param, Value, ValueKind, check_description, kind_of};
 use crate::fsutil::write_atomically;
+use crate::robot::control::ControlCommand;
+use crate::robot::protocol::Feedback;
+use crate::robot::translator::{TranslateError, Translator};
 use crate::runtime::{CallError, Component, Outbox};
 
 /// How often the ticker thread advances the engine's epoch. A call is stopped
@@ -79,6 +84,8 @@ pub enum SandboxError {
     World(String),
     #[error("{call} failed: {reason}")]
     Call { call: &'static str, reason: String },
+    #[error("does not fit the subsume:robot/translator world: {0}")]
+    TranslatorWorld(String),
     #[error("describe() returned an invalid description: {}", .0.join("; "))]
     BadDescription(Vec<String>),
 }
@@ -155,6 +162,18 @@ impl std::fmt::Debug for WasmArtifact {
     }
 }
 
+/// A compiled, linked translator component.
+pub struct TranslatorArtifact {
+    pub sha256: String,
+    pre: translator_bindings::TranslatorPre<GuestState>,
+}
+
+impl std::fmt::Debug for TranslatorArtifact {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TranslatorArtifact").field("sha256", &self.sha256).finish()
+    }
+}
+
 /// The per-process engine, linker, epoch ticker and compile cache.
 pub struct Sandbox {
     engine: Engine,
@@ -218,6 +237,41 @@ impl Sandbox {
         let description = self.describe(&pre)?;
         check_description(&description).map_err(SandboxError::BadDescription)?;
         Ok(Arc::new(WasmArtifact { sha256, description, pre }))
+    }
+
+    /// Checks that `bytes` are a component of the `translator` world and
+    /// compiles them (or loads this host's cached compilation).
+    pub fn load_translator(&self, bytes: &[u8]) -> Result<Arc<TranslatorArtifact>, SandboxError> {
+        check_component_header(bytes)?;
+        let sha256 = hex::encode(Sha256::digest(bytes));
+        let component = self.compile_cached(&sha256, bytes)?;
+        let instance_pre = self.linker.instantiate_pre(&component).map_err(|e| SandboxError::World(error_text(&e)))?;
+        let pre = translator_bindings::TranslatorPre::new(instance_pre)
+            .map_err(|e| SandboxError::TranslatorWorld(error_text(&e)))?;
+        Ok(Arc::new(TranslatorArtifact { sha256, pre }))
+    }
+
+    /// A running translator named `name`, initialised with `params`.
+    pub fn instantiate_translator(
+        &self,
+        artifact: &TranslatorArtifact,
+        name: &str,
+        memory_bytes: u64,
+        budget: Duration,
+        params: &[Param],
+    ) -> Result<WasmTranslator, SandboxError> {
+        let mut store = self.new_store(format!("{name}/translator").into(), memory_bytes, Arc::from([]));
+        store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
+        let instance =
+            artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
+        match instance.call_init(&mut store, params) {
+            Ok(Ok(())) => {}
+            Ok(Err(message)) => {
+                return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
+            }
+            Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
+        }
+        Ok(WasmTranslator { store, instance, budget, budget_ticks: budget_ticks(budget), malformed: 0, broken: None })
     }
 
     fn describe(&self, pre: &bindings::ComponentPre<GuestState>) -> Result<Description, SandboxError> {
@@ -361,6 +415,87 @@ impl Component for WasmComponent {
         self.store.set_epoch_deadline(self.budget_ticks);
         let result = self.instance.call_tick(&mut self.store, now_ns);
         self.finish("tick", result, out)
+    }
+}
+
+/// Most bytes one `encode` may return: a motor frame is a few dozen bytes.
+pub const MAX_TRANSLATED_FRAME_BYTES: usize = 1024;
+/// Most feedback messages one `decode` may return.
+pub const MAX_FEEDBACK_PER_DECODE: usize = 1024;
+
+/// A running WASM translator (the `translator` world).
+pub struct WasmTranslator {
+    store: Store<GuestState>,
+    instance: translator_bindings::Translator,
+    budget: Duration,
+    budget_ticks: u64,
+    malformed: u64,
+    /// Why it broke, once it has: it is never called again.
+    broken: Option<String>,
+}
+
+impl WasmTranslator {
+    fn check(&self) -> Result<(), String> {
+        self.broken.clone().map_or(Ok(()), Err)
+    }
+
+    fn break_with(&mut self, call: &'static str, err: &wasmtime::Error) -> String {
+        let reason = match call_error(call, self.budget, err) {
+            SandboxError::Call { reason, .. } => format!("{call}: {reason}"),
+            other => other.to_string(),
+        };
+        self.broken = Some(reason.clone());
+        reason
+    }
+}
+
+impl Translator for WasmTranslator {
+    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        self.check().map_err(TranslateError::Fault)?;
+        self.store.set_epoch_deadline(self.budget_ticks);
+        match self.instance.call_encode(&mut self.store, &command.to_string()) {
+            Ok(Ok(bytes)) if bytes.len() <= MAX_TRANSLATED_FRAME_BYTES => {
+                out.extend_from_slice(&bytes);
+                Ok(())
+            }
+            Ok(Ok(bytes)) => {
+                let reason =
+                    format!("encode: returned {} bytes; at most {MAX_TRANSLATED_FRAME_BYTES} are allowed", bytes.len());
+                self.broken = Some(reason.clone());
+                Err(TranslateError::Fault(reason))
+            }
+            Ok(Err(message)) => Err(TranslateError::Refused(truncate(message, MAX_GUEST_MESSAGE_BYTES))),
+            Err(err) => Err(TranslateError::Fault(self.break_with("encode", &err))),
+        }
+    }
+
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), String> {
+        self.check()?;
+        self.store.set_epoch_deadline(self.budget_ticks);
+        let decoded = match self.instance.call_decode(&mut self.store, bytes) {
+            Ok(decoded) => decoded,
+            Err(err) => return Err(self.break_with("decode", &err)),
+        };
+        if decoded.feedback.len() > MAX_FEEDBACK_PER_DECODE {
+            let reason = format!(
+                "decode: returned {} messages; at most {MAX_FEEDBACK_PER_DECODE} are allowed",
+                decoded.feedback.len()
+            );
+            self.broken = Some(reason.clone());
+            return Err(reason);
+        }
+        self.malformed += u64::from(decoded.malformed);
+        out.extend(decoded.feedback.into_iter().map(|f| match f {
+            WitFeedback::Odometry(p) => Feedback::Odometry { x: p.x, y: p.y, heading: p.heading },
+            WitFeedback::Ranges(r) => Feedback::Ranges(r),
+            WitFeedback::Bumper(b) => Feedback::Bumper(b),
+            WitFeedback::Battery(v) => Feedback::Battery(v),
+        }));
+        Ok(())
+    }
+
+    fn malformed(&self) -> u64 {
+        self.malformed
     }
 }
 

@@ -36,6 +36,19 @@ pub mod bindings {
     });
 }
 
+#[doc(hidden)]
+pub mod translator_bindings {
+    wit_bindgen::generate!({
+        world: "translator",
+        path: "../../../wit",
+        pub_export_macro: true,
+        export_macro_name: "__export_translator",
+        default_bindings_module: "subsume_guest::translator_bindings",
+    });
+}
+
+pub use translator_bindings::subsume::robot::types::{Decoded, Feedback, Pose};
+
 pub use bindings::subsume::robot::types::{
     Description as RawDescription, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value, ValueKind,
 };
@@ -203,5 +216,59 @@ macro_rules! component {
         }
 
         $crate::bindings::__export_component!(__SubsumeExport with_types_in $crate::bindings);
+    };
+}
+
+/// What a hardware translator implements (the `translator` world): the only
+/// code that knows a motor controller's bytes.
+pub trait Translator: Sized + 'static {
+    /// Builds the translator from the serial link's parameters.
+    fn init(params: &Params) -> Result<Self, String>;
+    /// The bytes for one control string; `Err` when the hardware cannot
+    /// carry it.
+    fn encode(&mut self, command: &str) -> Result<Vec<u8>, String>;
+    /// Feeds bytes from the controller; returns the feedback they complete.
+    fn decode(&mut self, bytes: &[u8]) -> Decoded;
+}
+
+/// Exports `$translator` (a type implementing [`Translator`]) as the
+/// component's implementation of the `subsume:robot/translator` world.
+#[macro_export]
+macro_rules! translator {
+    ($translator:ty) => {
+        #[doc(hidden)]
+        struct __SubsumeTranslatorExport;
+
+        ::std::thread_local! {
+            static __SUBSUME_TRANSLATOR: ::core::cell::RefCell<::core::option::Option<$translator>> =
+                const { ::core::cell::RefCell::new(::core::option::Option::None) };
+        }
+
+        impl $crate::translator_bindings::Guest for __SubsumeTranslatorExport {
+            fn init(
+                params: ::std::vec::Vec<$crate::translator_bindings::subsume::robot::types::Param>,
+            ) -> ::core::result::Result<(), ::std::string::String> {
+                let params = $crate::Params(
+                    params.into_iter().map(|p| $crate::Param { name: p.name, value: p.value }).collect(),
+                );
+                let state = <$translator as $crate::Translator>::init(&params)?;
+                __SUBSUME_TRANSLATOR.with(|cell| *cell.borrow_mut() = ::core::option::Option::Some(state));
+                ::core::result::Result::Ok(())
+            }
+            fn encode(command: ::std::string::String) -> ::core::result::Result<::std::vec::Vec<u8>, ::std::string::String> {
+                __SUBSUME_TRANSLATOR.with(|cell| match cell.borrow_mut().as_mut() {
+                    ::core::option::Option::Some(state) => $crate::Translator::encode(state, &command),
+                    ::core::option::Option::None => ::core::result::Result::Err("encode called before init".into()),
+                })
+            }
+            fn decode(bytes: ::std::vec::Vec<u8>) -> $crate::Decoded {
+                __SUBSUME_TRANSLATOR.with(|cell| match cell.borrow_mut().as_mut() {
+                    ::core::option::Option::Some(state) => $crate::Translator::decode(state, &bytes),
+                    ::core::option::Option::None => $crate::Decoded { feedback: ::std::vec::Vec::new(), malformed: 0 },
+                })
+            }
+        }
+
+        $crate::translator_bindings::__export_translator!(__SubsumeTranslatorExport with_types_in $crate::translator_bindings);
     };
 }
