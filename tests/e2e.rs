@@ -29,6 +29,10 @@ fn run(args: &[&str]) -> Output {
     subsume().args(args).output().unwrap()
 }
 
+/// The demo listens for operators on fixed ports; tests that run it at the
+/// same time move those to free ones.
+const FREE_PORTS: [&str; 4] = ["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"];
+
 fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
@@ -62,7 +66,9 @@ fn robot_file(dir: &Path, body: &str) -> PathBuf {
 fn the_demo_robot_reaches_its_goal_without_collisions() {
     let dir = tempfile::tempdir().unwrap();
     let report_path = dir.path().join("report.json");
-    let output = run(&["run", "config/demo.xml", "--duration", "50", "--report", report_path.to_str().unwrap()]);
+    let mut args = vec!["run", "config/demo.xml", "--duration", "50", "--report", report_path.to_str().unwrap()];
+    args.extend(FREE_PORTS);
+    let output = run(&args);
     let log = text(&output.stderr);
     assert!(output.status.success(), "{log}");
 
@@ -82,8 +88,12 @@ fn the_demo_robot_reaches_its_goal_without_collisions() {
     assert!(sim["distance_travelled_m"].as_f64().unwrap() > 9.0, "{sim}");
     // Both behaviours drove: the avoider took over near the box.
     let arbiter = &report["arbiter"];
-    let held: Vec<f64> = arbiter["held_s"].as_array().unwrap().iter().map(|h| h[1].as_f64().unwrap()).collect();
-    assert!(held.iter().all(|&s| s > 0.5), "{arbiter}");
+    let held = |source: &str| {
+        let entry = arbiter["held_s"].as_array().unwrap().iter().find(|h| h[0] == source);
+        entry.and_then(|h| h[1].as_f64()).unwrap_or_default()
+    };
+    assert!(held("avoid") > 0.5 && held("planner") > 0.5, "{arbiter}");
+    assert_eq!(held("teleop"), 0.0, "no operator connected: {arbiter}");
     assert!(arbiter["switches"].as_u64().unwrap() >= 3, "{arbiter}");
     assert!(log.contains("avoid (priority 3) suppresses planner (priority 1)"), "{log}");
     assert!(log.contains("planner (priority 1) holds control"), "{log}");
@@ -207,6 +217,7 @@ fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_ti
 fn start_and_wait_until_running(report: &Path) -> Child {
     let mut child = subsume()
         .args(["run", "config/demo.xml", "--report", report.to_str().unwrap()])
+        .args(FREE_PORTS)
         .stderr(Stdio::piped())
         .stdout(Stdio::null())
         .spawn()
@@ -271,7 +282,17 @@ fn check_prints_every_error_one_per_line_and_exits_1() {
 fn check_accepts_a_good_file_with_a_summary() {
     let output = run(&["check", "config/demo.xml"]);
     assert_eq!(output.status.code(), Some(0), "{}", text(&output.stdout));
-    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 7 components, 7 connections\n");
+    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 8 components, 9 connections\n");
+    // Parameters can be set from the command line; a bad one is reported.
+    let output = run(&["check", "config/demo.xml", "--param", "avoid.threshold=near"]);
+    assert_eq!(output.status.code(), Some(1));
+    let stdout = text(&output.stdout);
+    assert!(
+        stdout.contains("parameter 'threshold' of component 'avoid' expects a finite number, got 'near'"),
+        "{stdout}"
+    );
+    let output = run(&["check", "config/demo.xml", "--param", "ghost.x=1"]);
+    assert_eq!(text(&output.stdout), "--param:1:1: no component 'ghost' in config/demo.xml to set 'x' on\n");
 }
 
 #[test]

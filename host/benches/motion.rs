@@ -11,7 +11,7 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
-use subsume::arbiter::{ArbiterComponent, Source};
+use subsume::arbiter::{ArbiterComponent, PriorityCell, Source};
 use subsume::contract::Value;
 use subsume::robot::protocol::Profile;
 use subsume::robot::serial::{LinkSettings, SerialLink};
@@ -37,7 +37,8 @@ fn main() {
     while !link.status().connected {
         std::thread::sleep(Duration::from_millis(1));
     }
-    let source = Source { component: 7, name: "planner".into(), priority: 1, timeout_ns: u64::MAX / 2 };
+    let source =
+        Source { component: 7, name: "planner".into(), priority: PriorityCell::new(1), timeout_ns: u64::MAX / 2 };
     let mut arbiter = ArbiterComponent::new("arbiter", vec![source]);
 
     let samples = 3000;

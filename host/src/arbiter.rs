@@ -12,14 +12,42 @@
 //! every connection into its `commands` input is a source, with the sending
 //! component's priority and timeout.
 
+use std::sync::Arc;
+use std::sync::atomic::{AtomicI32, Ordering};
+
 use serde::Serialize;
 
 use crate::contract::Value;
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::{CallError, Component, Outbox};
 
-/// Fewest and most sources one arbiter may have.
+/// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
+
+/// A source's current priority, shared with whoever may change it (the
+/// network platform moves its own with the operator's mode).
+#[derive(Clone, Debug, Default)]
+pub struct PriorityCell(Arc<AtomicI32>);
+
+impl PriorityCell {
+    pub fn new(priority: i32) -> PriorityCell {
+        PriorityCell(Arc::new(AtomicI32::new(priority)))
+    }
+
+    pub fn get(&self) -> i32 {
+        self.0.load(Ordering::Relaxed)
+    }
+
+    pub fn set(&self, priority: i32) {
+        self.0.store(priority, Ordering::Relaxed);
+    }
+}
+
+impl PartialEq for PriorityCell {
+    fn eq(&self, other: &Self) -> bool {
+        self.get() == other.get()
+    }
+}
 
 /// One source of motion commands.
 #[derive(Clone, Debug, PartialEq)]
@@ -27,7 +55,7 @@ pub struct Source {
     /// The sending component's index in the graph.
     pub component: usize,
     pub name: String,
-    pub priority: i32,
+    pub priority: PriorityCell,
     /// How long after its last command the source stays active.
     pub timeout_ns: u64,
 }
@@ -120,10 +148,10 @@ impl Arbiter {
             self.sources[holder].held_ns += now_ns.saturating_sub(at);
         }
         self.decided_at = Some(now_ns);
-        let top = self.sources.iter().filter(|s| Self::is_active(s, now_ns)).map(|s| s.source.priority).max();
+        let top = self.sources.iter().filter(|s| Self::is_active(s, now_ns)).map(|s| s.source.priority.get()).max();
         let winner = top.and_then(|top| {
             let tied =
-                |i: &usize| Self::is_active(&self.sources[*i], now_ns) && self.sources[*i].source.priority == top;
+                |i: &usize| Self::is_active(&self.sources[*i], now_ns) && self.sources[*i].source.priority.get() == top;
             self.holder.filter(tied).or_else(|| (0..self.sources.len()).find(tied))
         });
         if winner != self.holder {
@@ -196,7 +224,7 @@ impl ArbiterComponent {
 
     fn log_change(&self, holder: Option<usize>, now_ns: u64) {
         let label = |i: usize| {
-            self.arbiter.source(i).map(|s| format!("{} (priority {})", s.name, s.priority)).unwrap_or_default()
+            self.arbiter.source(i).map(|s| format!("{} (priority {})", s.name, s.priority.get())).unwrap_or_default()
         };
         let suppressed: Vec<String> = self.arbiter.suppressed(now_ns).into_iter().map(label).collect();
         match holder {
@@ -256,7 +284,7 @@ mod tests {
     const MS: u64 = 1_000_000;
 
     fn source(component: usize, name: &str, priority: i32) -> Source {
-        Source { component, name: name.into(), priority, timeout_ns: 500 * MS }
+        Source { component, name: name.into(), priority: PriorityCell::new(priority), timeout_ns: 500 * MS }
     }
 
     fn vel(v: f64) -> ControlCommand {

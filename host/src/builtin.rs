@@ -12,23 +12,26 @@
 //! - `builtin:serial`: the serial link to the motor controller
 //!   (`crate::robot::serial`).
 //! - `builtin:sim`: a simulated robot behind a pseudo-terminal (`crate::sim`).
+//! - `builtin:teleop`: the network platform: remote operators (`crate::net`).
 
 use std::collections::{BTreeMap, HashMap};
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 
-use crate::arbiter::{ArbiterComponent, MAX_SOURCES, Source};
+use crate::arbiter::{ArbiterComponent, MAX_SOURCES, PriorityCell, Source};
 use crate::config::{ComponentConfig, RobotConfig};
 use crate::contract::{Description, ParamKind, ParamSpec, PortSpec, Value, ValueKind, clip};
+use crate::net::{self, TeleopComponent};
 use crate::robot::protocol::{MAX_RANGES, Profile};
 use crate::robot::serial::{LinkSettings, SerialLink};
 use crate::robot::translator::{DriveGeometry, ProfileTranslator, Translator};
+use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::{CallError, Component, Outbox};
 use crate::sim::physics::Body;
 use crate::sim::{SimComponent, SimSettings, SimulatedRobot, world};
 
 /// The built-in kinds, for messages.
-pub const KINDS: &[&str] = &["arbiter", "log", "publish", "serial", "sim"];
+pub const KINDS: &[&str] = &["arbiter", "log", "publish", "serial", "sim", "teleop"];
 
 /// Longest vector shown in a log line; the rest is summarised.
 pub const LOG_MAX_ELEMENTS: usize = 8;
@@ -138,12 +141,47 @@ pub fn describe(kind: &str, params: &BTreeMap<String, String>, base_dir: &Path) 
                 ],
             ))
         }
+        "teleop" => {
+            net::settings(params, base_dir).map_err(|e| format!("builtin:teleop: {e}"))?;
+            let mut d = describe(
+                "Remote operators over TCP and WebSocket: latency probe, control modes, constant-delay buffer",
+                vec![],
+                vec![
+                    port("cmd", ValueKind::Command, "operator commands, released by the delay buffer"),
+                    port("goal", ValueKind::Vector, "operator goals (GOTO x y) as [x, y], for a planner"),
+                ],
+                teleop_params(),
+            );
+            d.default_priority = Some(1);
+            Ok(d)
+        }
         "sim" => {
             sim_settings(params, base_dir)?;
             Ok(describe("A simulated differential-drive robot behind a pseudo-terminal", vec![], vec![], sim_params()))
         }
         other => Err(format!("unknown built-in '{}' (known: {})", clip(other), KINDS.join(", "))),
     }
+}
+
+fn teleop_params() -> Vec<ParamSpec> {
+    vec![
+        param("listen", ParamKind::Text, "127.0.0.1:7070", "TCP address of the line protocol (docs/teleop.md)"),
+        param(
+            "websocket",
+            ParamKind::Text,
+            "",
+            "address of the WebSocket endpoint /teleop (JSON messages); empty: none",
+        ),
+        param("operators", ParamKind::Text, "", "file of NAME TOKEN lines, relative to the robot file"),
+        param("probe-period", ParamKind::Number, "300", "seconds between round-trip measurements (and one on connect)"),
+        param("direct-below", ParamKind::Number, "0.1", "round-trip time (s) under which direct mode is allowed"),
+        param("shared-below", ParamKind::Number, "0.3", "round-trip time (s) under which shared mode is allowed"),
+        param("max-operators", ParamKind::Integer, "4", "connections served at once (1 to 64)"),
+        param("delay", ParamKind::Text, "adaptive", "playout delay: adaptive (follows jitter) or fixed seconds"),
+        param("min-delay", ParamKind::Number, "0.01", "smallest adaptive playout delay, seconds"),
+        param("max-delay", ParamKind::Number, "0.2", "largest adaptive playout delay, seconds"),
+        param("horizon", ParamKind::Number, "0.5", "commands older than this (seconds) are dropped as stale"),
+    ]
 }
 
 fn sim_params() -> Vec<ParamSpec> {
@@ -195,6 +233,12 @@ pub struct BuildContext<'a> {
     pub index: usize,
     /// PTY paths of the simulated robots built so far, by component name.
     pub sim_ptys: &'a mut HashMap<String, PathBuf>,
+    /// Every component's current priority (the arbiter reads them; the
+    /// network platform moves its own).
+    pub priorities: &'a [PriorityCell],
+    /// The control loop's clock and a waker for it.
+    pub clock: Clock,
+    pub waker: Waker,
 }
 
 /// A running built-in of `kind` for component `ctx.index`.
@@ -235,7 +279,10 @@ pub fn instantiate(
                 if sources.iter().any(|s| s.component == connection.from.component) {
                     continue;
                 }
-                let priority = from.priority.ok_or_else(|| format!("source '{}' has no priority", from.name))?;
+                if from.priority.is_none() {
+                    return Err(format!("source '{}' has no priority", from.name));
+                }
+                let priority = ctx.priorities.get(connection.from.component).cloned().unwrap_or_default();
                 sources.push(Source {
                     component: connection.from.component,
                     name: from.name.clone(),
@@ -246,7 +293,8 @@ pub fn instantiate(
             if sources.len() > MAX_SOURCES {
                 return Err(format!("{} sources; at most {MAX_SOURCES} are allowed", sources.len()));
             }
-            let listed: Vec<String> = sources.iter().map(|s| format!("{} (priority {})", s.name, s.priority)).collect();
+            let listed: Vec<String> =
+                sources.iter().map(|s| format!("{} (priority {})", s.name, s.priority.get())).collect();
             tracing::info!(
                 component = name,
                 "motion sources: {}",
@@ -288,6 +336,13 @@ pub fn instantiate(
                 TranslatorChoice::Wasm(path) => translators.wasm_translator(&path, config)?,
             };
             Ok(Box::new(SerialLink::start(name, settings, translator)?))
+        }
+        "teleop" => {
+            let settings = net::settings(&params, &base_dir)?;
+            let priority = ctx.priorities.get(ctx.index).cloned().unwrap_or_default();
+            let component =
+                TeleopComponent::start(name, &ctx.robot.name, settings, ctx.clock, ctx.waker.clone(), priority)?;
+            Ok(Box::new(component))
         }
         "sim" => {
             let settings = sim_settings(&params, &base_dir)?;
@@ -541,8 +596,18 @@ mod tests {
         </platform></robot>"#;
         let robot = config::parse_and_validate(Path::new("t.xml"), xml, &mut Builtins).map_err(|e| e.to_string())?;
         let mut ptys = HashMap::new();
-        let mut c =
-            instantiate("publish", &mut BuildContext { robot: &robot, index: 0, sim_ptys: &mut ptys }, &mut Builtins)?;
+        let mut c = instantiate(
+            "publish",
+            &mut BuildContext {
+                robot: &robot,
+                index: 0,
+                sim_ptys: &mut ptys,
+                priorities: &[PriorityCell::new(0)],
+                clock: Clock::new(),
+                waker: Waker::default(),
+            },
+            &mut Builtins,
+        )?;
         let mut out = Vec::new();
         c.tick(0, &mut out).map_err(|e| format!("{e:?}"))?;
         c.tick(1, &mut out).map_err(|e| format!("{e:?}"))?;

@@ -10,11 +10,14 @@ pub mod config;
 pub mod contract;
 pub mod fsutil;
 pub mod loader;
+pub mod mode;
+pub mod net;
 pub mod report;
 pub mod robot;
 pub mod runtime;
 pub mod sandbox;
 pub mod sim;
+pub mod teleop_client;
 
 use std::collections::HashMap;
 use std::path::PathBuf;
@@ -22,11 +25,12 @@ use std::time::Duration;
 
 use thiserror::Error;
 
+use crate::arbiter::PriorityCell;
 use crate::builtin::BuildContext;
 use crate::config::{ComponentConfig, ComponentSource, Diagnostics, RobotConfig};
 use crate::loader::Loader;
 use crate::report::Report;
-use crate::runtime::control_loop::{self, Clock, Shutdown};
+use crate::runtime::control_loop::{self, Clock, Shutdown, Waker};
 use crate::runtime::{Component, Graph};
 use crate::sandbox::{Sandbox, SandboxError};
 
@@ -38,6 +42,8 @@ pub struct RunOptions {
     pub duration: Option<Duration>,
     /// Where compiled components are cached; no cache when `None`.
     pub cache_dir: Option<PathBuf>,
+    /// Parameters set on the command line.
+    pub overrides: Vec<config::ParamOverride>,
 }
 
 #[derive(Debug, Error)]
@@ -58,7 +64,7 @@ pub enum RunError {
 pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError> {
     let sandbox = Sandbox::new(options.cache_dir.clone())?;
     let mut loader = Loader::new(&sandbox);
-    let config = config::load(&options.config_path, &mut loader).map_err(RunError::Config)?;
+    let config = config::load_with(&options.config_path, &mut loader, &options.overrides).map_err(RunError::Config)?;
     tracing::info!(
         "robot '{}' from {}: {} components, {} connections",
         config.name,
@@ -67,7 +73,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         config.connections.len()
     );
     let clock = Clock::new();
-    let mut graph = build_graph(&config, &mut loader, clock.now_ns()).map_err(RunError::Start)?;
+    let mut graph = build_graph(&config, &mut loader, clock, &shutdown.waker()).map_err(RunError::Start)?;
     let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
     let control = std::thread::Builder::new()
         .name("subsume-control".into())
@@ -90,8 +96,16 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
 /// Component `i` of the graph is component `i` of the config. Simulated
 /// robots are built first, so serial links can open their pseudo-terminals.
 /// Every component that fails to start is reported.
-pub fn build_graph(config: &RobotConfig, loader: &mut Loader<'_>, start_ns: u64) -> Result<Graph, Vec<String>> {
+pub fn build_graph(
+    config: &RobotConfig,
+    loader: &mut Loader<'_>,
+    clock: Clock,
+    waker: &Waker,
+) -> Result<Graph, Vec<String>> {
+    let start_ns = clock.now_ns();
     let mut sim_ptys = HashMap::new();
+    let priorities: Vec<PriorityCell> =
+        config.components.iter().map(|c| PriorityCell::new(c.priority.unwrap_or(0))).collect();
     let mut built: Vec<Option<Box<dyn Component>>> = (0..config.components.len()).map(|_| None).collect();
     let mut errors = Vec::new();
     let is_sim = |c: &ComponentConfig| c.source == ComponentSource::Builtin("sim".into());
@@ -100,7 +114,14 @@ pub fn build_graph(config: &RobotConfig, loader: &mut Loader<'_>, start_ns: u64)
         .chain((0..config.components.len()).filter(|&i| !is_sim(&config.components[i])));
     for index in order {
         let component = &config.components[index];
-        let mut ctx = BuildContext { robot: config, index, sim_ptys: &mut sim_ptys };
+        let mut ctx = BuildContext {
+            robot: config,
+            index,
+            sim_ptys: &mut sim_ptys,
+            priorities: &priorities,
+            clock,
+            waker: waker.clone(),
+        };
         match loader.instantiate(&mut ctx) {
             Ok(instance) => built[index] = Some(instance),
             Err(why) => errors.push(format!("failed to start component '{}': {why}", component.name)),

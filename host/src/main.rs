@@ -8,6 +8,7 @@ use std::time::Duration;
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
 use serde_json::json;
+use subsume::config::ParamOverride;
 use subsume::contract::Description;
 use subsume::loader::{Loader, read_component_file};
 use subsume::runtime::control_loop::Shutdown;
@@ -41,9 +42,29 @@ enum Command {
         /// Write a JSON report here when stopped (see docs/report.md).
         #[arg(long, value_name = "FILE")]
         report: Option<PathBuf>,
+        /// Set a component parameter, overriding the robot file (repeatable).
+        #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
+        params: Vec<ParamOverride>,
     },
     /// Check a robot file: print every error as path:line:column: message.
-    Check { config: PathBuf },
+    Check {
+        config: PathBuf,
+        /// Set a component parameter, overriding the robot file (repeatable).
+        #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
+        params: Vec<ParamOverride>,
+    },
+    /// Drive a robot from the keyboard over its teleoperation port
+    /// (arrows: speed and turn, space: stop, m: cycle mode, q: quit).
+    Teleop {
+        /// The robot's teleoperation address (builtin:teleop's `listen`).
+        address: String,
+        /// Operator name, as in the robot's operators file.
+        #[arg(long, env = "SUBSUME_OPERATOR")]
+        name: String,
+        /// Operator token (or set SUBSUME_TOKEN).
+        #[arg(long, env = "SUBSUME_TOKEN", hide_env_values = true)]
+        token: String,
+    },
     /// Print what a component declares: ports, parameters, default priority.
     Describe {
         component: PathBuf,
@@ -64,9 +85,13 @@ fn main() -> ExitCode {
         .init();
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report } => run(config, duration, report, cache_dir),
-        Command::Check { config } => check(&config, cache_dir),
+        Command::Run { config, duration, report, params } => run(config, duration, report, params, cache_dir),
+        Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
+        Command::Teleop { address, name, token } => {
+            let options = subsume::teleop_client::ClientOptions { address, name, token };
+            subsume::teleop_client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::msg)
+        }
     };
     match result {
         Ok(code) => code,
@@ -81,6 +106,7 @@ fn run(
     config_path: PathBuf,
     duration: Option<f64>,
     report_path: Option<PathBuf>,
+    overrides: Vec<ParamOverride>,
     cache_dir: Option<PathBuf>,
 ) -> anyhow::Result<ExitCode> {
     let duration = match duration {
@@ -90,7 +116,7 @@ fn run(
     };
     let shutdown = Shutdown::new();
     let signals = install_signal_handlers(shutdown.clone())?;
-    let options = RunOptions { config_path, duration, cache_dir };
+    let options = RunOptions { config_path, duration, cache_dir, overrides };
     let result = subsume::run(&options, shutdown);
     signals.close();
     let report = match result {
@@ -114,10 +140,10 @@ fn run(
     Ok(ExitCode::SUCCESS)
 }
 
-fn check(config_path: &Path, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+fn check(config_path: &Path, overrides: &[ParamOverride], cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
     let sandbox = Sandbox::new(cache_dir)?;
     let mut loader = Loader::new(&sandbox);
-    match config::load(config_path, &mut loader) {
+    match config::load_with(config_path, &mut loader, overrides) {
         Ok(robot) => {
             println!(
                 "{}: ok: robot '{}', {} components, {} connections",

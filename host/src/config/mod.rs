@@ -162,8 +162,40 @@ pub struct ConnectionConfig {
 
 /// Reads, parses and validates the robot file at `path`.
 pub fn load(path: &Path, resolver: &mut dyn Resolver) -> Result<RobotConfig, Diagnostics> {
+    load_with(path, resolver, &[])
+}
+
+/// A parameter set from outside the robot file (`--param comp.name=value`),
+/// replacing or adding a `<param>` before validation.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ParamOverride {
+    pub component: String,
+    pub param: String,
+    pub value: String,
+}
+
+impl std::str::FromStr for ParamOverride {
+    type Err = String;
+
+    fn from_str(text: &str) -> Result<Self, Self::Err> {
+        let shape = || format!("'{text}' is not COMPONENT.PARAM=VALUE");
+        let (target, value) = text.split_once('=').ok_or_else(shape)?;
+        let (component, param) = target.split_once('.').ok_or_else(shape)?;
+        if component.is_empty() || param.is_empty() {
+            return Err(shape());
+        }
+        Ok(ParamOverride { component: component.into(), param: param.into(), value: value.into() })
+    }
+}
+
+/// Like [`load`], with parameters overridden from the command line.
+pub fn load_with(
+    path: &Path,
+    resolver: &mut dyn Resolver,
+    overrides: &[ParamOverride],
+) -> Result<RobotConfig, Diagnostics> {
     let text = read_config(path)?;
-    parse_and_validate(path, &text, resolver)
+    parse_and_validate_with(path, &text, resolver, overrides)
 }
 
 /// Reads a robot file, bounded by [`limits::MAX_CONFIG_BYTES`].
@@ -181,9 +213,42 @@ pub fn read_config(path: &Path) -> Result<String, Diagnostics> {
 /// Parses and validates robot-file `text`; `path` names it in diagnostics and
 /// anchors relative component paths.
 pub fn parse_and_validate(path: &Path, text: &str, resolver: &mut dyn Resolver) -> Result<RobotConfig, Diagnostics> {
+    parse_and_validate_with(path, text, resolver, &[])
+}
+
+/// Like [`parse_and_validate`], with parameters overridden. An override of
+/// a component the file does not have is an error.
+pub fn parse_and_validate_with(
+    path: &Path,
+    text: &str,
+    resolver: &mut dyn Resolver,
+    overrides: &[ParamOverride],
+) -> Result<RobotConfig, Diagnostics> {
     let map = SourceMap::new(path, text);
     let mut errors = Vec::new();
-    let raw = raw::parse(&map, text, &mut errors);
+    let mut raw = raw::parse(&map, text, &mut errors);
+    for o in overrides {
+        let component =
+            raw.platforms.iter_mut().flat_map(|p| p.components.iter_mut()).find(|c| c.name.value == o.component);
+        let Some(component) = component else {
+            errors.push(Diagnostic {
+                path: PathBuf::from("--param"),
+                line: 1,
+                column: 1,
+                message: format!("no component '{}' in {} to set '{}' on", o.component, path.display(), o.param),
+            });
+            continue;
+        };
+        let value = raw::Spanned { value: o.value.clone(), offset: component.offset };
+        match component.params.iter_mut().find(|p| p.name.value == o.param) {
+            Some(param) => param.value = value,
+            None => component.params.push(raw::RawParam {
+                offset: component.offset,
+                name: raw::Spanned { value: o.param.clone(), offset: component.offset },
+                value,
+            }),
+        }
+    }
     let robot = raw.complete.then(|| validate::validate(&map, path, raw, resolver, &mut errors));
     match robot {
         Some(robot) if errors.is_empty() => Ok(robot),

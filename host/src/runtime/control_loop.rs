@@ -51,10 +51,33 @@ impl StopReason {
     }
 }
 
-/// A shutdown request shared between signal handlers and the loop.
+#[derive(Debug, Default)]
+struct Signals {
+    shutdown: bool,
+    wake: bool,
+}
+
+/// A shutdown request shared between signal handlers and the loop; it also
+/// hands out [`Waker`]s.
 #[derive(Clone, Debug, Default)]
 pub struct Shutdown {
-    inner: Arc<(Mutex<bool>, Condvar)>,
+    inner: Arc<(Mutex<Signals>, Condvar)>,
+}
+
+/// Wakes the control loop early (input arrived from outside the graph).
+#[derive(Clone, Debug, Default)]
+pub struct Waker {
+    inner: Arc<(Mutex<Signals>, Condvar)>,
+}
+
+impl Waker {
+    pub fn wake(&self) {
+        let (signals, wake) = &*self.inner;
+        if let Ok(mut signals) = signals.lock() {
+            signals.wake = true;
+        }
+        wake.notify_all();
+    }
 }
 
 impl Shutdown {
@@ -64,25 +87,32 @@ impl Shutdown {
 
     /// Asks the loop to stop; wakes it if it sleeps.
     pub fn request(&self) {
-        let (flag, wake) = &*self.inner;
-        if let Ok(mut requested) = flag.lock() {
-            *requested = true;
+        let (signals, wake) = &*self.inner;
+        if let Ok(mut signals) = signals.lock() {
+            signals.shutdown = true;
         }
         wake.notify_all();
     }
 
     pub fn is_requested(&self) -> bool {
-        self.inner.0.lock().map(|r| *r).unwrap_or(true)
+        self.inner.0.lock().map(|s| s.shutdown).unwrap_or(true)
     }
 
-    /// Sleeps up to `timeout`; returns early (true) when a shutdown is asked.
+    /// A waker for this loop.
+    pub fn waker(&self) -> Waker {
+        Waker { inner: self.inner.clone() }
+    }
+
+    /// Sleeps up to `timeout`, or until woken; returns true when a shutdown
+    /// is asked.
     pub fn wait(&self, timeout: Duration) -> bool {
-        let (flag, wake) = &*self.inner;
-        let Ok(requested) = flag.lock() else {
-            return true;
-        };
-        match wake.wait_timeout_while(requested, timeout, |requested| !*requested) {
-            Ok((requested, _)) => *requested,
+        let (signals, wake) = &*self.inner;
+        let Ok(guard) = signals.lock() else { return true };
+        match wake.wait_timeout_while(guard, timeout, |s| !s.shutdown && !s.wake) {
+            Ok((mut signals, _)) => {
+                signals.wake = false;
+                signals.shutdown
+            }
             Err(_) => true,
         }
     }

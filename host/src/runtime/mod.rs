@@ -59,6 +59,16 @@ pub trait Component: Send {
     ) -> Result<(), CallError>;
     /// The component's periodic call. Emitted values go to `out`.
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError>;
+    /// Called on every cycle (before delivery), for components fed from
+    /// outside the graph (the network platform). Emitted values are routed.
+    fn poll(&mut self, now_ns: u64, out: &mut Outbox) {
+        let _ = (now_ns, out);
+    }
+    /// When the component next needs a cycle besides its ticks (a command
+    /// due for release), on the graph's clock.
+    fn next_wake(&self) -> Option<u64> {
+        None
+    }
     /// Component `component` has just faulted. Native components that track
     /// others (the arbiter) react here; emitted values are routed.
     fn peer_faulted(&mut self, component: usize, now_ns: u64, out: &mut Outbox) {
@@ -252,6 +262,14 @@ impl Graph {
             node.stats.ticks += 1;
             self.call(index, now_ns, None);
         }
+        for index in 0..self.nodes.len() {
+            if self.nodes[index].state == ComponentState::Running {
+                let mut outbox = std::mem::take(&mut self.scratch);
+                self.nodes[index].component.poll(now_ns, &mut outbox);
+                self.route(index, &mut outbox);
+                self.scratch = outbox;
+            }
+        }
         self.deliver(now_ns);
     }
 
@@ -267,13 +285,13 @@ impl Graph {
         self.deliver(now_ns);
     }
 
-    /// When the next tick is due, if any running component ticks.
+    /// When the next cycle is due: the earliest tick of a running component,
+    /// or an earlier wake a component asked for.
     pub fn next_due_ns(&self) -> Option<u64> {
-        self.nodes
-            .iter()
-            .filter(|n| n.state == ComponentState::Running && n.period_ns.is_some())
-            .map(|n| n.next_tick_ns)
-            .min()
+        let running = self.nodes.iter().filter(|n| n.state == ComponentState::Running);
+        let ticks = running.clone().filter(|n| n.period_ns.is_some()).map(|n| n.next_tick_ns);
+        let wakes = running.filter_map(|n| n.component.next_wake());
+        ticks.chain(wakes).min()
     }
 
     /// Whether values wait for delivery (left over by the per-cycle cap).

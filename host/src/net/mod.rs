@@ -1,0 +1,594 @@
+//! The network platform (`builtin:teleop`): remote operators connect over TCP
+//! (a line protocol, docs/teleop.md) or WebSocket (the same messages as
+//! JSON), authenticate, are measured (round-trip time and jitter, on connect
+//! and every `probe-period`), get the control modes their link allows, and
+//! send commands that pass through a constant-delay buffer into the graph as
+//! one motion source whose priority is 1 + the mode's offset.
+//!
+//! Threads: sessions run on a small tokio runtime of their own; the control
+//! loop side (`TeleopComponent`) owns the delay buffers and emits commands.
+//! They talk only through bounded channels; a full channel drops (and tells
+//! the operator), it never blocks the control loop.
+//!
+//! Invariants: a remote peer cannot exhaust the host (connection, line,
+//! queue and authentication limits are named constants or settings); only an
+//! authenticated operator holding a granted mode can move the robot, and only
+//! one operator holds control at a time; commands never reach the arbiter
+//! out of order, twice, or stale.
+
+pub mod delay;
+pub mod protocol;
+pub mod session;
+
+use std::collections::{BTreeMap, HashMap};
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use serde::Serialize;
+
+use self::delay::{DelayBuffer, DelaySettings, DelayStats};
+use self::protocol::{ModeChange, ServerMessage};
+use self::session::Measurement;
+use crate::arbiter::PriorityCell;
+use crate::contract::{Value, is_valid_name};
+use crate::mode::{Mode, ModePolicy};
+use crate::robot::control::ControlCommand;
+use crate::runtime::control_loop::{Clock, Waker};
+use crate::runtime::{CallError, Component, Outbox};
+
+/// Events from sessions waiting for the control loop; more are dropped and
+/// the operator is told.
+pub const EVENT_QUEUE: usize = 1024;
+/// Shortest operator token accepted in the operators file: short tokens are
+/// guessed.
+pub const MIN_TOKEN_LEN: usize = 12;
+/// Most operators in the operators file.
+pub const MAX_OPERATORS_IN_FILE: usize = 1000;
+
+/// Settings of the network platform.
+#[derive(Clone, Debug)]
+pub struct TeleopSettings {
+    pub listen: SocketAddr,
+    /// Where the WebSocket endpoint (`/teleop`) listens, if anywhere.
+    pub websocket: Option<SocketAddr>,
+    /// Operators and their tokens.
+    pub operators: Vec<(String, String)>,
+    pub probe_period: Duration,
+    pub policy: ModePolicy,
+    /// Connections served at once; more are refused.
+    pub max_connections: usize,
+    pub delay: DelaySettings,
+}
+
+impl TeleopSettings {
+    /// Whether `token` is `name`'s (constant time in the token's length).
+    pub fn check_token(&self, name: &str, token: &str) -> bool {
+        let mut found = false;
+        for (operator, expected) in &self.operators {
+            let same_length = expected.len() == token.len();
+            let difference = expected.bytes().zip(token.bytes()).fold(0u8, |acc, (a, b)| acc | (a ^ b));
+            found |= operator == name && same_length && difference == 0;
+        }
+        found
+    }
+}
+
+/// Reads an operators file: one `NAME TOKEN` per line, `#` comments.
+pub fn load_operators(path: &Path) -> Result<Vec<(String, String)>, String> {
+    let text =
+        std::fs::read_to_string(path).map_err(|e| format!("cannot read operators file {}: {e}", path.display()))?;
+    let mut operators = Vec::new();
+    for (i, line) in text.lines().enumerate() {
+        let content = line.split('#').next().unwrap_or("").trim();
+        if content.is_empty() {
+            continue;
+        }
+        let at = format!("{}:{}", path.display(), i + 1);
+        let (name, token) = match content.split_ascii_whitespace().collect::<Vec<_>>().as_slice() {
+            [name, token] => (name.to_string(), token.to_string()),
+            _ => return Err(format!("{at}: expected NAME TOKEN")),
+        };
+        if !is_valid_name(&name) {
+            return Err(format!("{at}: operator name '{name}' is not [a-z][a-z0-9_-]*"));
+        }
+        if token.len() < MIN_TOKEN_LEN {
+            return Err(format!("{at}: the token of '{name}' is shorter than {MIN_TOKEN_LEN} characters"));
+        }
+        if operators.iter().any(|(n, _)| *n == name) {
+            return Err(format!("{at}: operator '{name}' is listed twice"));
+        }
+        operators.push((name, token));
+        if operators.len() > MAX_OPERATORS_IN_FILE {
+            return Err(format!("{at}: more than {MAX_OPERATORS_IN_FILE} operators"));
+        }
+    }
+    Ok(operators)
+}
+
+/// What sessions tell the control loop.
+#[derive(Debug)]
+pub enum NetEvent {
+    Connected { session: u64, notices: tokio::sync::mpsc::Sender<ServerMessage> },
+    Command { session: u64, seq: u64, time_ms: u64, command: ControlCommand, arrival_ns: u64 },
+    Mode { session: u64, mode: Option<Mode> },
+    Disconnected { session: u64 },
+}
+
+/// One session as the report shows it.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct SessionReport {
+    pub session: u64,
+    pub operator: Option<String>,
+    pub address: String,
+    pub connected_at_s: f64,
+    pub disconnected_at_s: Option<f64>,
+    pub rtt_ms: Option<f64>,
+    pub jitter_ms: Option<f64>,
+    pub measurements: u64,
+    pub mode: Option<Mode>,
+    pub mode_changes: Vec<ModeChange>,
+    pub malformed_lines: u64,
+    pub commands: DelayStats,
+    pub playout_delay_ms: Option<f64>,
+}
+
+/// State shared by the sessions (network runtime) and the component.
+pub struct ServerContext {
+    pub robot: String,
+    pub settings: TeleopSettings,
+    pub clock: Clock,
+    events: SyncSender<NetEvent>,
+    waker: Waker,
+    controller: Mutex<Option<(u64, String)>>,
+    reports: Mutex<Vec<SessionReport>>,
+    connections: std::sync::atomic::AtomicUsize,
+}
+
+impl ServerContext {
+    /// Sends `event` to the control loop and wakes it.
+    pub fn send(&self, event: NetEvent) -> Result<(), TrySendError<NetEvent>> {
+        self.events.try_send(event)?;
+        self.waker.wake();
+        Ok(())
+    }
+
+    fn report<F: FnOnce(&mut SessionReport)>(&self, session: u64, update: F) {
+        if let Ok(mut reports) = self.reports.lock()
+            && let Some(report) = reports.iter_mut().find(|r| r.session == session)
+        {
+            update(report);
+        }
+    }
+
+    fn open_session(&self, session: u64, address: &str, notices: tokio::sync::mpsc::Sender<ServerMessage>) {
+        if let Ok(mut reports) = self.reports.lock() {
+            reports.push(SessionReport {
+                session,
+                address: address.to_string(),
+                connected_at_s: self.clock.now_ns() as f64 / 1e9,
+                ..SessionReport::default()
+            });
+        }
+        let _ = self.send(NetEvent::Connected { session, notices });
+    }
+
+    fn authenticated(&self, session: u64, name: &str) {
+        self.report(session, |r| r.operator = Some(name.to_string()));
+    }
+
+    fn measured(&self, session: u64, m: Measurement) {
+        self.report(session, |r| {
+            r.rtt_ms = Some(m.rtt.as_secs_f64() * 1e3);
+            r.jitter_ms = Some(m.jitter.as_secs_f64() * 1e3);
+            r.measurements += 1;
+        });
+    }
+
+    fn mode_changed(&self, session: u64, change: ModeChange) {
+        self.report(session, |r| {
+            r.mode = change.to;
+            r.mode_changes.push(change);
+        });
+    }
+
+    fn count_malformed(&self, session: u64) {
+        self.report(session, |r| r.malformed_lines += 1);
+    }
+
+    /// Gives control to `session` unless another session holds it.
+    fn take_control(&self, session: u64, name: &str) -> Result<(), String> {
+        let Ok(mut controller) = self.controller.lock() else { return Err("nobody (the host is failing)".into()) };
+        match &*controller {
+            Some((holder, holder_name)) if *holder != session => Err(holder_name.clone()),
+            _ => {
+                *controller = Some((session, name.to_string()));
+                Ok(())
+            }
+        }
+    }
+
+    fn close_session(&self, session: u64, operator: &Option<String>) {
+        if let Ok(mut controller) = self.controller.lock()
+            && controller.as_ref().is_some_and(|(holder, _)| *holder == session)
+        {
+            *controller = None;
+        }
+        self.report(session, |r| r.disconnected_at_s = Some(self.clock.now_ns() as f64 / 1e9));
+        self.connections.fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+        if let Some(name) = operator {
+            tracing::info!(operator = %name, session, "operator disconnected");
+        }
+        let _ = self.send(NetEvent::Disconnected { session });
+    }
+}
+
+/// The control-loop side of one session.
+struct SessionControl {
+    buffer: DelayBuffer<ControlCommand>,
+    notices: tokio::sync::mpsc::Sender<ServerMessage>,
+}
+
+/// The `builtin:teleop` component: outputs `cmd` (released commands) and
+/// `goal` (GOTO targets, for a planner).
+pub struct TeleopComponent {
+    name: String,
+    ctx: Arc<ServerContext>,
+    events: Receiver<NetEvent>,
+    sessions: HashMap<u64, SessionControl>,
+    finished: HashMap<u64, DelayStats>,
+    priority: PriorityCell,
+    base_priority: i32,
+    runtime: Option<tokio::runtime::Runtime>,
+    listen: SocketAddr,
+}
+
+impl TeleopComponent {
+    /// Binds the listeners and starts the network runtime.
+    pub fn start(
+        name: &str,
+        robot: &str,
+        settings: TeleopSettings,
+        clock: Clock,
+        waker: Waker,
+        priority: PriorityCell,
+    ) -> Result<TeleopComponent, String> {
+        let tcp = std::net::TcpListener::bind(settings.listen)
+            .map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
+        let listen = tcp.local_addr().map_err(|e| e.to_string())?;
+        tcp.set_nonblocking(true).map_err(|e| e.to_string())?;
+        let websocket = match settings.websocket {
+            Some(address) => {
+                let ws =
+                    std::net::TcpListener::bind(address).map_err(|e| format!("cannot listen on {address}: {e}"))?;
+                ws.set_nonblocking(true).map_err(|e| e.to_string())?;
+                Some(ws)
+            }
+            None => None,
+        };
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(1)
+            .thread_name(format!("net-{name}"))
+            .enable_all()
+            .build()
+            .map_err(|e| format!("cannot start the network runtime: {e}"))?;
+        let (events_tx, events) = std::sync::mpsc::sync_channel(EVENT_QUEUE);
+        let ctx = Arc::new(ServerContext {
+            robot: robot.to_string(),
+            settings,
+            clock,
+            events: events_tx,
+            waker,
+            controller: Mutex::new(None),
+            reports: Mutex::new(Vec::new()),
+            connections: Default::default(),
+        });
+        let tcp_ctx = ctx.clone();
+        runtime.spawn(async move {
+            match tokio::net::TcpListener::from_std(tcp) {
+                Ok(listener) => accept_tcp(listener, tcp_ctx).await,
+                Err(e) => tracing::error!("cannot serve teleoperation: {e}"),
+            }
+        });
+        if let Some(ws) = websocket {
+            let ws_address = ws.local_addr().map_err(|e| e.to_string())?;
+            let ws_ctx = ctx.clone();
+            runtime.spawn(async move {
+                match tokio::net::TcpListener::from_std(ws) {
+                    Ok(listener) => {
+                        let app = websocket_router(ws_ctx);
+                        if let Err(e) =
+                            axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>()).await
+                        {
+                            tracing::error!("the teleoperation websocket stopped: {e}");
+                        }
+                    }
+                    Err(e) => tracing::error!("cannot serve the teleoperation websocket: {e}"),
+                }
+            });
+            tracing::info!(component = name, "teleoperation websocket on ws://{ws_address}/teleop");
+        }
+        tracing::info!(component = name, "teleoperation on tcp {listen}");
+        let base_priority = priority.get();
+        Ok(TeleopComponent {
+            name: name.to_string(),
+            ctx,
+            events,
+            sessions: HashMap::new(),
+            finished: HashMap::new(),
+            priority,
+            base_priority,
+            runtime: Some(runtime),
+            listen,
+        })
+    }
+
+    /// The TCP address operators connect to.
+    pub fn listen_address(&self) -> SocketAddr {
+        self.listen
+    }
+}
+
+/// Accepts TCP operators, refusing those over the connection limit.
+async fn accept_tcp(listener: tokio::net::TcpListener, ctx: Arc<ServerContext>) {
+    let mut next_id = 1u64;
+    loop {
+        let (stream, address) = match listener.accept().await {
+            Ok(accepted) => accepted,
+            Err(e) => {
+                tracing::warn!("accepting a teleoperation connection failed: {e}");
+                tokio::time::sleep(Duration::from_millis(50)).await;
+                continue;
+            }
+        };
+        let _ = stream.set_nodelay(true);
+        if !admit(&ctx) {
+            tokio::spawn(refuse(stream, ctx.settings.max_connections));
+            continue;
+        }
+        let id = next_id;
+        next_id += 1;
+        tokio::spawn(session::serve_tcp(stream, id, address.to_string(), ctx.clone()));
+    }
+}
+
+/// Counts a connection in if there is room.
+fn admit(ctx: &ServerContext) -> bool {
+    use std::sync::atomic::Ordering;
+    let admitted = ctx.connections.fetch_add(1, Ordering::Relaxed) < ctx.settings.max_connections;
+    if !admitted {
+        ctx.connections.fetch_sub(1, Ordering::Relaxed);
+    }
+    admitted
+}
+
+async fn refuse(mut stream: tokio::net::TcpStream, max: usize) {
+    use tokio::io::AsyncWriteExt;
+    let line = format!("ERR busy: at most {max} operators are served at once\n");
+    let _ = stream.write_all(line.as_bytes()).await;
+}
+
+/// The `/teleop` WebSocket route (the portal mounts the same route).
+pub fn websocket_router(ctx: Arc<ServerContext>) -> axum::Router {
+    use axum::extract::{ConnectInfo, State, WebSocketUpgrade};
+    use axum::response::IntoResponse;
+    async fn upgrade(
+        ws: WebSocketUpgrade,
+        State(ctx): State<Arc<ServerContext>>,
+        ConnectInfo(address): ConnectInfo<SocketAddr>,
+    ) -> axum::response::Response {
+        if !admit(&ctx) {
+            let max = ctx.settings.max_connections;
+            return (
+                axum::http::StatusCode::SERVICE_UNAVAILABLE,
+                format!("busy: at most {max} operators are served at once"),
+            )
+                .into_response();
+        }
+        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1 << 32);
+        let id = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        ws.max_message_size(protocol::MAX_LINE_BYTES * 2)
+            .on_upgrade(move |socket| session::serve_websocket(socket, id, address.to_string(), ctx))
+    }
+    axum::Router::new().route("/teleop", axum::routing::get(upgrade)).with_state(ctx)
+}
+
+impl Component for TeleopComponent {
+    fn on_input(
+        &mut self,
+        _port: u32,
+        _value: &Value,
+        _from: usize,
+        _now_ns: u64,
+        _out: &mut Outbox,
+    ) -> Result<(), CallError> {
+        Ok(())
+    }
+
+    fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        self.poll(now_ns, out);
+        Ok(())
+    }
+
+    fn poll(&mut self, now_ns: u64, out: &mut Outbox) {
+        while let Ok(event) = self.events.try_recv() {
+            match event {
+                NetEvent::Connected { session, notices } => {
+                    self.sessions
+                        .insert(session, SessionControl { buffer: DelayBuffer::new(self.ctx.settings.delay), notices });
+                }
+                NetEvent::Command { session, seq, time_ms, command, arrival_ns } => {
+                    let Some(control) = self.sessions.get_mut(&session) else { continue };
+                    if let ControlCommand::Goto { x, y } = command {
+                        out.push((1, Value::Vector(vec![x, y])));
+                        continue;
+                    }
+                    if let Err(rejected) = control.buffer.push(seq, time_ms, command, arrival_ns) {
+                        let _ =
+                            control.notices.try_send(ServerMessage::Dropped { seq, reason: rejected.reason().into() });
+                    }
+                }
+                NetEvent::Mode { session, mode } => match mode {
+                    Some(mode) => {
+                        let priority = self.base_priority + mode.priority_offset();
+                        self.priority.set(priority);
+                        tracing::info!(component = %self.name, session, "operator in {mode} mode: network priority {priority}");
+                    }
+                    None => {
+                        if let Some(control) = self.sessions.get_mut(&session) {
+                            control.buffer.clear();
+                        }
+                    }
+                },
+                NetEvent::Disconnected { session } => {
+                    if let Some(mut control) = self.sessions.remove(&session) {
+                        control.buffer.clear();
+                        self.finished.insert(session, control.buffer.stats().clone());
+                    }
+                }
+            }
+        }
+        for control in self.sessions.values_mut() {
+            if let Some(command) = control.buffer.pop_ready(now_ns) {
+                out.push((0, Value::Command(command.to_string())));
+            }
+        }
+    }
+
+    fn next_wake(&self) -> Option<u64> {
+        self.sessions.values().filter_map(|c| c.buffer.next_release()).min()
+    }
+
+    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+        let mut sessions = self.ctx.reports.lock().ok()?.clone();
+        let mut totals = DelayStats::default();
+        for report in &mut sessions {
+            let (stats, delay) = match self.sessions.get(&report.session) {
+                Some(control) => (control.buffer.stats().clone(), Some(control.buffer.playout_delay())),
+                None => (self.finished.get(&report.session).cloned().unwrap_or_default(), None),
+            };
+            totals.received += stats.received;
+            totals.released += stats.released;
+            totals.dropped_stale += stats.dropped_stale;
+            totals.dropped_duplicate += stats.dropped_duplicate;
+            totals.dropped_full += stats.dropped_full;
+            totals.superseded += stats.superseded;
+            report.commands = stats;
+            report.playout_delay_ms = delay.map(|d| d.as_secs_f64() * 1e3);
+        }
+        let value = serde_json::json!({
+            "listen": self.listen.to_string(),
+            "sessions": sessions,
+            "commands": totals,
+            "priority": self.priority.get(),
+        });
+        Some(("network", value))
+    }
+}
+
+impl Drop for TeleopComponent {
+    fn drop(&mut self) {
+        if let Some(runtime) = self.runtime.take() {
+            runtime.shutdown_timeout(Duration::from_secs(1));
+        }
+    }
+}
+
+/// The settings of a `builtin:teleop` from its parameters.
+pub fn settings(params: &BTreeMap<String, String>, base_dir: &Path) -> Result<TeleopSettings, String> {
+    let text = |key: &str| params.get(key).map(|v| v.trim().to_string()).unwrap_or_default();
+    let seconds = |key: &str, default: f64| -> Result<Duration, String> {
+        let raw = text(key);
+        let value = if raw.is_empty() {
+            default
+        } else {
+            raw.parse::<f64>().map_err(|_| format!("{key} must be a number of seconds, got '{raw}'"))?
+        };
+        if !(value >= 0.0 && value.is_finite()) {
+            return Err(format!("{key} must be a number of seconds >= 0, got {value}"));
+        }
+        Ok(Duration::from_secs_f64(value))
+    };
+    let address = |key: &str, default: &str| -> Result<SocketAddr, String> {
+        let raw = text(key);
+        let raw = if raw.is_empty() { default.to_string() } else { raw };
+        raw.parse::<SocketAddr>().map_err(|_| format!("{key} must be an address like 127.0.0.1:7070, got '{raw}'"))
+    };
+    let operators_file = text("operators");
+    if operators_file.is_empty() {
+        return Err("builtin:teleop: parameter 'operators' is required (a file of NAME TOKEN lines)".into());
+    }
+    let operators = load_operators(&base_dir.join(operators_file))?;
+    let websocket = if text("websocket").is_empty() { None } else { Some(address("websocket", "")?) };
+    let delay_text = text("delay");
+    let fixed = match delay_text.as_str() {
+        "" | "adaptive" => None,
+        _ => Some(seconds("delay", 0.0)?),
+    };
+    let policy =
+        ModePolicy { direct_below: seconds("direct-below", 0.1)?, shared_below: seconds("shared-below", 0.3)? };
+    if policy.direct_below > policy.shared_below {
+        return Err("direct-below must not exceed shared-below".into());
+    }
+    let max_connections = text("max-operators").parse::<usize>().ok().filter(|n| (1..=64).contains(n)).unwrap_or(4);
+    let probe_period = seconds("probe-period", 300.0)?;
+    if probe_period < Duration::from_millis(100) {
+        return Err("probe-period must be at least 0.1 s".into());
+    }
+    Ok(TeleopSettings {
+        listen: address("listen", "127.0.0.1:7070")?,
+        websocket,
+        operators,
+        probe_period,
+        policy,
+        max_connections,
+        delay: DelaySettings {
+            fixed,
+            min_delay: seconds("min-delay", 0.01)?,
+            max_delay: seconds("max-delay", 0.2)?,
+            horizon: seconds("horizon", 0.5)?,
+        },
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn operators_files_are_checked_line_by_line() {
+        let dir = std::env::temp_dir().join(format!("subsume-operators-{}", std::process::id()));
+        let _ = std::fs::create_dir_all(&dir);
+        let write = |text: &str| {
+            let path = dir.join("operators");
+            let _ = std::fs::write(&path, text);
+            load_operators(&path)
+        };
+        assert_eq!(write("# ops\nalice 0123456789abcdef\n").map(|o| o.len()), Ok(1));
+        assert!(
+            write("alice short\n")
+                .is_err_and(|e| e.ends_with("operators:1: the token of 'alice' is shorter than 12 characters"))
+        );
+        assert!(write("Alice 0123456789abcdef\n").is_err_and(|e| e.contains("not [a-z]")));
+        assert!(
+            write("a 0123456789abcdef\na 0123456789abcdef\n")
+                .is_err_and(|e| e.contains(":2: operator 'a' is listed twice"))
+        );
+        assert!(write("lonely\n").is_err_and(|e| e.contains("expected NAME TOKEN")));
+        let settings = TeleopSettings {
+            listen: "127.0.0.1:0".parse().unwrap_or_else(|_| SocketAddr::from(([127, 0, 0, 1], 0))),
+            websocket: None,
+            operators: vec![("alice".into(), "0123456789abcdef".into())],
+            probe_period: Duration::from_secs(1),
+            policy: ModePolicy::default(),
+            max_connections: 1,
+            delay: DelaySettings::default(),
+        };
+        assert!(settings.check_token("alice", "0123456789abcdef"));
+        assert!(!settings.check_token("alice", "0123456789abcdeF"));
+        assert!(!settings.check_token("bob", "0123456789abcdef"));
+        assert!(!settings.check_token("alice", "0123456789abcde"));
+    }
+}

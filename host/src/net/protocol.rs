@@ -1,0 +1,231 @@
+//! The teleoperation protocol's messages (docs/teleop.md), as text lines
+//! (TCP) and as JSON objects (WebSocket). Parsing is strict and every error
+//! is a sentence for the operator; nothing here does I/O.
+
+use serde::Serialize;
+use serde_json::json;
+
+use crate::mode::Mode;
+use crate::robot::control::{self, ControlCommand};
+
+/// Longest line (or WebSocket message) a client may send: a command is a
+/// few dozen bytes; a longer line is refused and skipped, never buffered.
+pub const MAX_LINE_BYTES: usize = 512;
+
+/// What an operator sends.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ClientMessage {
+    Auth {
+        name: String,
+        token: String,
+    },
+    Mode(Mode),
+    /// A motion command with the operator's sequence number and send time
+    /// (milliseconds on the operator's clock).
+    Cmd {
+        seq: u64,
+        time_ms: u64,
+        command: ControlCommand,
+    },
+    Pong {
+        nonce: u64,
+    },
+    Quit,
+}
+
+/// What the host sends.
+#[derive(Clone, Debug, PartialEq)]
+pub enum ServerMessage {
+    Hello { robot: String },
+    Ok(String),
+    Error(String),
+    Ping { nonce: u64 },
+    Rtt { rtt_ms: f64, jitter_ms: f64, allowed: Vec<Mode> },
+    Mode { mode: Mode, reason: String },
+    Dropped { seq: u64, reason: String },
+}
+
+/// Parses one protocol line.
+pub fn parse_line(line: &str) -> Result<ClientMessage, String> {
+    let line = line.trim();
+    let (keyword, rest) = line.split_once([' ', '\t']).map_or((line, ""), |(k, r)| (k, r.trim()));
+    let words: Vec<&str> = rest.split_ascii_whitespace().collect();
+    match keyword.to_ascii_uppercase().as_str() {
+        "AUTH" => match words.as_slice() {
+            [name, token] => Ok(ClientMessage::Auth { name: name.to_string(), token: token.to_string() }),
+            _ => Err("AUTH takes a name and a token: AUTH <name> <token>".into()),
+        },
+        "MODE" => match words.as_slice() {
+            [mode] => Mode::parse(mode)
+                .map(ClientMessage::Mode)
+                .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", shown(mode))),
+            _ => Err("MODE takes one mode: MODE direct|shared|supervisory".into()),
+        },
+        "CMD" => {
+            let mut parts = rest.splitn(3, [' ', '\t']);
+            let (Some(seq), Some(time), Some(command)) = (parts.next(), parts.next(), parts.next()) else {
+                return Err("CMD takes a sequence number, a time and a control string: CMD <seq> <ms> <command>".into());
+            };
+            let seq =
+                seq.parse::<u64>().map_err(|_| format!("sequence number '{}' is not a whole number", shown(seq)))?;
+            let time_ms = time
+                .parse::<u64>()
+                .map_err(|_| format!("time '{}' is not a whole number of milliseconds", shown(time)))?;
+            let command = control::parse(command).map_err(|e| format!("bad control string: {e}"))?;
+            Ok(ClientMessage::Cmd { seq, time_ms, command })
+        }
+        "PONG" => match words.as_slice() {
+            [nonce] => nonce
+                .parse::<u64>()
+                .map(|nonce| ClientMessage::Pong { nonce })
+                .map_err(|_| format!("nonce '{}' is not a whole number", shown(nonce))),
+            _ => Err("PONG takes the nonce of the PING it answers: PONG <nonce>".into()),
+        },
+        "QUIT" if words.is_empty() => Ok(ClientMessage::Quit),
+        "" => Err("empty line".into()),
+        other => Err(format!("unknown message '{}': expected AUTH, MODE, CMD, PONG or QUIT", shown(other))),
+    }
+}
+
+/// Parses one JSON message: `{"type": "auth", "name": .., "token": ..}`,
+/// `{"type": "mode", "mode": ..}`, `{"type": "cmd", "seq": .., "time_ms": ..,
+/// "command": ..}`, `{"type": "pong", "nonce": ..}`, `{"type": "quit"}`.
+pub fn parse_json(text: &str) -> Result<ClientMessage, String> {
+    let value: serde_json::Value = serde_json::from_str(text).map_err(|e| format!("not a JSON object: {e}"))?;
+    let field = |name: &str| value.get(name).ok_or_else(|| format!("missing field '{name}'"));
+    let text_field = |name: &str| {
+        field(name)?.as_str().map(str::to_string).ok_or_else(|| format!("field '{name}' must be a string"))
+    };
+    let number_field =
+        |name: &str| field(name)?.as_u64().ok_or_else(|| format!("field '{name}' must be a whole number"));
+    match value.get("type").and_then(|t| t.as_str()) {
+        Some("auth") => Ok(ClientMessage::Auth { name: text_field("name")?, token: text_field("token")? }),
+        Some("mode") => {
+            let mode = text_field("mode")?;
+            Mode::parse(&mode)
+                .map(ClientMessage::Mode)
+                .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", shown(&mode)))
+        }
+        Some("cmd") => {
+            let command = control::parse(&text_field("command")?).map_err(|e| format!("bad control string: {e}"))?;
+            Ok(ClientMessage::Cmd { seq: number_field("seq")?, time_ms: number_field("time_ms")?, command })
+        }
+        Some("pong") => Ok(ClientMessage::Pong { nonce: number_field("nonce")? }),
+        Some("quit") => Ok(ClientMessage::Quit),
+        Some(other) => Err(format!("unknown message type '{}': expected auth, mode, cmd, pong or quit", shown(other))),
+        None => Err("missing field 'type'".into()),
+    }
+}
+
+impl ServerMessage {
+    /// The message as a protocol line (without the newline).
+    pub fn to_line(&self) -> String {
+        match self {
+            ServerMessage::Hello { robot } => format!("HELLO subsume {} robot={robot}", env!("CARGO_PKG_VERSION")),
+            ServerMessage::Ok(text) => format!("OK {text}"),
+            ServerMessage::Error(text) => format!("ERR {text}"),
+            ServerMessage::Ping { nonce } => format!("PING {nonce}"),
+            ServerMessage::Rtt { rtt_ms, jitter_ms, allowed } => {
+                let allowed: Vec<&str> = allowed.iter().map(|m| m.name()).collect();
+                format!("RTT {rtt_ms:.1} JITTER {jitter_ms:.1} ALLOWED {}", allowed.join(","))
+            }
+            ServerMessage::Mode { mode, reason } => format!("MODE {mode} {reason}"),
+            ServerMessage::Dropped { seq, reason } => format!("DROP {seq} {reason}"),
+        }
+    }
+
+    /// The message as a JSON object.
+    pub fn to_json(&self) -> String {
+        let value = match self {
+            ServerMessage::Hello { robot } => {
+                json!({"type": "hello", "robot": robot, "version": env!("CARGO_PKG_VERSION")})
+            }
+            ServerMessage::Ok(text) => json!({"type": "ok", "message": text}),
+            ServerMessage::Error(text) => json!({"type": "error", "message": text}),
+            ServerMessage::Ping { nonce } => json!({"type": "ping", "nonce": nonce}),
+            ServerMessage::Rtt { rtt_ms, jitter_ms, allowed } => {
+                json!({"type": "rtt", "rtt_ms": rtt_ms, "jitter_ms": jitter_ms, "allowed": allowed})
+            }
+            ServerMessage::Mode { mode, reason } => json!({"type": "mode", "mode": mode, "reason": reason}),
+            ServerMessage::Dropped { seq, reason } => json!({"type": "drop", "seq": seq, "reason": reason}),
+        };
+        value.to_string()
+    }
+}
+
+/// Operator-supplied text, clipped and without control characters, for
+/// error messages.
+fn shown(text: &str) -> String {
+    let mut s: String = text.chars().take(24).map(|c| if c.is_control() { '?' } else { c }).collect();
+    if text.chars().count() > 24 {
+        s.push_str("...");
+    }
+    s
+}
+
+/// A session's summary for the report.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct ModeChange {
+    pub at_s: f64,
+    pub from: Option<Mode>,
+    pub to: Option<Mode>,
+    pub reason: String,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lines_parse_into_messages() {
+        let cases = [
+            ("AUTH alice s3cret", ClientMessage::Auth { name: "alice".into(), token: "s3cret".into() }),
+            ("mode shared", ClientMessage::Mode(Mode::Shared)),
+            (
+                "CMD 7 1234 VEL 0.2 -0.1",
+                ClientMessage::Cmd {
+                    seq: 7,
+                    time_ms: 1234,
+                    command: ControlCommand::Vel { linear: 0.2, angular: -0.1 },
+                },
+            ),
+            ("PONG 42", ClientMessage::Pong { nonce: 42 }),
+            ("QUIT", ClientMessage::Quit),
+        ];
+        for (line, expected) in cases {
+            assert_eq!(parse_line(line), Ok(expected), "{line}");
+        }
+    }
+
+    #[test]
+    fn bad_lines_say_why() {
+        let cases = [
+            ("", "empty line"),
+            ("HELLO", "unknown message 'HELLO': expected AUTH, MODE, CMD, PONG or QUIT"),
+            ("AUTH alice", "AUTH takes a name and a token: AUTH <name> <token>"),
+            ("MODE manual", "unknown mode 'manual': expected direct, shared or supervisory"),
+            ("CMD 1 2", "CMD takes a sequence number, a time and a control string: CMD <seq> <ms> <command>"),
+            ("CMD x 2 STOP", "sequence number 'x' is not a whole number"),
+            ("CMD 1 -2 STOP", "time '-2' is not a whole number of milliseconds"),
+            ("CMD 1 2 FLY", "bad control string: column 1: unknown command 'FLY': expected STOP, VEL or GOTO"),
+            ("PONG", "PONG takes the nonce of the PING it answers: PONG <nonce>"),
+        ];
+        for (line, expected) in cases {
+            assert_eq!(parse_line(line), Err(expected.to_string()), "{line:?}");
+        }
+    }
+
+    #[test]
+    fn json_messages_mirror_the_lines() {
+        assert_eq!(
+            parse_json(r#"{"type":"cmd","seq":3,"time_ms":10,"command":"STOP"}"#),
+            Ok(ClientMessage::Cmd { seq: 3, time_ms: 10, command: ControlCommand::Stop })
+        );
+        assert_eq!(parse_json(r#"{"type":"mode","mode":"direct"}"#), Ok(ClientMessage::Mode(Mode::Direct)));
+        assert_eq!(parse_json(r#"{"type":"pong"}"#), Err("missing field 'nonce'".into()));
+        assert!(parse_json("[1").is_err_and(|e| e.starts_with("not a JSON object")));
+        let rtt = ServerMessage::Rtt { rtt_ms: 42.0, jitter_ms: 1.5, allowed: vec![Mode::Direct, Mode::Shared] };
+        assert_eq!(rtt.to_line(), "RTT 42.0 JITTER 1.5 ALLOWED direct,shared");
+        assert_eq!(rtt.to_json(), r#"{"allowed":["direct","shared"],"jitter_ms":1.5,"rtt_ms":42.0,"type":"rtt"}"#);
+    }
+}

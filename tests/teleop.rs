@@ -1,0 +1,431 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! Teleoperation end to end: the built binary with a `builtin:teleop`,
+//! operators over real loopback TCP and WebSocket connections.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+
+const TOKEN: &str = "alice-token-0123456789";
+const BOB_TOKEN: &str = "bob-token-0123456789";
+
+/// A running host and the address of its teleoperation port.
+struct Host {
+    child: Child,
+    address: String,
+    websocket: Option<String>,
+    _dir: tempfile::TempDir,
+    report: std::path::PathBuf,
+}
+
+impl Drop for Host {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// Starts `subsume run` on a robot file whose body is `components` (inside
+/// the control platform), with `teleop_params` on the teleop component.
+fn start(teleop_params: &str, components: &str, duration_s: u32) -> Host {
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("operators"), format!("# test operators\nalice {TOKEN}\nbob {BOB_TOKEN}\n"))
+        .unwrap();
+    let mut xml = format!(
+        r#"<robot name="net">
+  <platform name="network">
+    <component name="teleop" source="builtin:teleop" rate="100" timeout="300ms">
+      <param name="listen" value="127.0.0.1:0"/>
+      <param name="operators" value="operators"/>
+      {teleop_params}
+    </component>
+  </platform>
+  <platform name="control">
+    {components}
+  </platform>
+</robot>"#
+    );
+    for name in ["test-commander", "avoider", "planner", "range-filter"] {
+        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
+    }
+    let robot = dir.path().join("robot.xml");
+    std::fs::write(&robot, xml).unwrap();
+    let report = dir.path().join("report.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
+        .args(["--duration", &duration_s.to_string(), "--report", report.to_str().unwrap()])
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (found, addresses) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            for marker in ["teleoperation on tcp ", "teleoperation websocket on ws://"] {
+                if let Some(at) = line.find(marker) {
+                    let rest = &line[at + marker.len()..];
+                    let address = rest.split(|c: char| c.is_whitespace() || c == '/').next().unwrap_or("").to_string();
+                    let _ = found.send((marker.contains("websocket"), address));
+                }
+            }
+            if line.contains("ERROR") || line.contains("error:") {
+                eprintln!("host: {line}");
+            }
+        }
+    });
+    let mut address = None;
+    let mut websocket = None;
+    let expect_ws = teleop_params.contains("websocket");
+    while address.is_none() || (expect_ws && websocket.is_none()) {
+        let (is_ws, found) = addresses.recv_timeout(Duration::from_secs(30)).expect("the host never listened");
+        if is_ws { websocket = Some(found) } else { address = Some(found) }
+    }
+    Host { child, address: address.unwrap_or_default(), websocket, _dir: dir, report }
+}
+
+/// An operator on a TCP connection, answering pings after `pong_delay`.
+struct Operator {
+    reader: BufReader<TcpStream>,
+    writer: TcpStream,
+    pong_delay: Duration,
+    started: Instant,
+    seq: u64,
+}
+
+impl Operator {
+    fn connect(host: &Host) -> Operator {
+        let stream = TcpStream::connect(&host.address).unwrap();
+        stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
+        let mut operator = Operator {
+            reader: BufReader::new(stream.try_clone().unwrap()),
+            writer: stream,
+            pong_delay: Duration::ZERO,
+            started: Instant::now(),
+            seq: 0,
+        };
+        let hello = operator.line();
+        assert!(hello.starts_with("HELLO subsume ") && hello.ends_with(" robot=net"), "{hello}");
+        operator
+    }
+
+    fn send(&mut self, line: &str) {
+        self.writer.write_all(format!("{line}\n").as_bytes()).unwrap();
+    }
+
+    /// The next line, whatever it is.
+    fn line(&mut self) -> String {
+        let mut line = String::new();
+        let n = self.reader.read_line(&mut line).unwrap_or(0);
+        assert!(n > 0, "the host closed the connection");
+        line.trim_end().to_string()
+    }
+
+    /// The next line that is not a PING (PINGs are answered on the way).
+    fn reply(&mut self) -> String {
+        loop {
+            let line = self.line();
+            match line.strip_prefix("PING ") {
+                Some(nonce) => {
+                    std::thread::sleep(self.pong_delay);
+                    let nonce = nonce.to_string();
+                    self.send(&format!("PONG {nonce}"));
+                }
+                None => return line,
+            }
+        }
+    }
+
+    /// Logs in and waits for the first measurement; returns the RTT line.
+    fn login(&mut self, name: &str, token: &str) -> String {
+        self.send(&format!("AUTH {name} {token}"));
+        assert_eq!(self.reply(), format!("OK authenticated as {name}; measuring the round-trip time"));
+        let rtt = self.reply();
+        assert!(rtt.starts_with("RTT "), "{rtt}");
+        rtt
+    }
+
+    fn command(&mut self, command: &str) {
+        self.seq += 1;
+        let ms = self.started.elapsed().as_millis();
+        let line = format!("CMD {} {ms} {command}", self.seq);
+        self.send(&line);
+    }
+}
+
+fn allowed(rtt_line: &str) -> &str {
+    rtt_line.split(" ALLOWED ").nth(1).unwrap_or("")
+}
+
+const SINK: &str = r#"<component name="arbiter" source="builtin:arbiter" rate="50"/>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="sink.in"/>"#;
+
+#[test]
+fn every_line_gets_an_answer_and_the_connection_stays_usable() {
+    let host = start("", SINK, 30);
+    let mut alice = Operator::connect(&host);
+    #[rustfmt::skip]
+    let before_login = [
+        ("CMD 1 0 STOP", "ERR authenticate first: AUTH <name> <token>"),
+        ("MODE direct", "ERR authenticate first: AUTH <name> <token>"),
+        ("FLY", "ERR unknown message 'FLY': expected AUTH, MODE, CMD, PONG or QUIT"),
+        ("AUTH alice", "ERR AUTH takes a name and a token: AUTH <name> <token>"),
+        ("AUTH alice not-the-token-at-all", "ERR authentication failed"),
+    ];
+    for (line, answer) in before_login {
+        alice.send(line);
+        assert_eq!(alice.reply(), answer, "{line}");
+    }
+    let rtt = alice.login("alice", TOKEN);
+    assert_eq!(allowed(&rtt), "direct,shared,supervisory", "{rtt}");
+    let long = format!("CMD 1 0 {}", "x".repeat(600));
+    #[rustfmt::skip]
+    let after_login = [
+        ("CMD 1 0 VEL 0.1 0", "ERR ask for a control mode first: MODE direct|shared|supervisory".to_string()),
+        ("MODE warp", "ERR unknown mode 'warp': expected direct, shared or supervisory".to_string()),
+        ("AUTH alice x", "ERR already authenticated as alice".to_string()),
+        ("PONG 999", "ERR no PING with nonce 999 is outstanding".to_string()),
+        (long.as_str(), "ERR line longer than 512 bytes: ignored".to_string()),
+    ];
+    for (line, answer) in after_login {
+        alice.send(line);
+        assert_eq!(alice.reply(), answer, "{}", &line[..line.len().min(40)]);
+    }
+    alice.send("MODE direct");
+    let granted = alice.reply();
+    assert!(granted.starts_with("MODE direct granted: rtt "), "{granted}");
+    for (line, answer) in [
+        ("CMD 1 0 FLY 2", "ERR bad control string: column 1: unknown command 'FLY': expected STOP, VEL or GOTO"),
+        ("CMD x 0 STOP", "ERR sequence number 'x' is not a whole number"),
+    ] {
+        alice.send(line);
+        assert_eq!(alice.reply(), answer, "{line}");
+    }
+    alice.send("CMD 5 100 VEL 0.1 0");
+    alice.send("CMD 5 100 VEL 0.1 0");
+    alice.send("CMD 4 90 VEL 0.1 0");
+    assert_eq!(alice.reply(), "DROP 5 duplicate or out of order");
+    assert_eq!(alice.reply(), "DROP 4 duplicate or out of order");
+
+    // A second operator can log in and watch, but not take control.
+    let mut bob = Operator::connect(&host);
+    bob.login("bob", BOB_TOKEN);
+    bob.send("MODE shared");
+    assert_eq!(bob.reply(), "ERR control is held by alice");
+    alice.send("QUIT");
+    assert_eq!(alice.reply(), "OK bye");
+    let mut rest = String::new();
+    assert_eq!(alice.reader.read_to_string(&mut rest).unwrap_or(0), 0, "the connection closes after QUIT");
+    // Once alice has left, bob may take control.
+    let deadline = Instant::now() + Duration::from_secs(5);
+    loop {
+        bob.send("MODE shared");
+        let answer = bob.reply();
+        if answer.starts_with("MODE shared granted") {
+            break;
+        }
+        assert!(Instant::now() < deadline, "{answer}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn three_failed_logins_close_the_connection() {
+    let host = start("", SINK, 30);
+    let mut mallory = Operator::connect(&host);
+    for _ in 0..2 {
+        mallory.send("AUTH alice guess-guess-guess");
+        assert_eq!(mallory.reply(), "ERR authentication failed");
+    }
+    mallory.send("AUTH alice guess-guess-guess");
+    assert_eq!(mallory.reply(), "ERR authentication failed");
+    assert_eq!(mallory.reply(), "ERR too many failed attempts: closing");
+    let mut rest = String::new();
+    assert_eq!(mallory.reader.read_to_string(&mut rest).unwrap_or(0), 0);
+}
+
+#[test]
+fn the_link_quality_decides_the_modes_and_a_worse_link_downgrades_the_operator() {
+    let host = start(r#"<param name="probe-period" value="0.5"/>"#, SINK, 60);
+    let mut alice = Operator::connect(&host);
+    alice.pong_delay = Duration::from_millis(50);
+    let rtt = alice.login("alice", TOKEN);
+    assert_eq!(allowed(&rtt), "direct,shared,supervisory", "{rtt}");
+    alice.send("MODE direct");
+    assert!(alice.reply().starts_with("MODE direct granted"));
+
+    // The link gets worse: about 150 ms.
+    alice.pong_delay = Duration::from_millis(150);
+    let rtt = alice.reply();
+    let rtt = if allowed(&rtt) == "direct,shared,supervisory" { alice.reply() } else { rtt };
+    assert_eq!(allowed(&rtt), "shared,supervisory", "{rtt}");
+    let notice = alice.reply();
+    assert!(notice.starts_with("MODE shared downgraded from direct: rtt 15"), "{notice}");
+    assert!(notice.ends_with("allows shared, supervisory"), "{notice}");
+    alice.send("MODE direct");
+    let refused = alice.reply();
+    assert!(refused.starts_with("ERR mode direct is not allowed: measured rtt 15"), "{refused}");
+    assert!(refused.ends_with("allows shared, supervisory"), "{refused}");
+
+    // And worse: about 400 ms.
+    alice.pong_delay = Duration::from_millis(400);
+    let rtt = alice.reply();
+    let rtt = if allowed(&rtt) == "shared,supervisory" { alice.reply() } else { rtt };
+    assert_eq!(allowed(&rtt), "supervisory", "{rtt}");
+    let notice = alice.reply();
+    assert!(notice.starts_with("MODE supervisory downgraded from shared: rtt 40"), "{notice}");
+    alice.send("QUIT");
+    assert_eq!(alice.reply(), "OK bye");
+}
+
+fn read_report(path: &Path) -> Json {
+    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+}
+
+fn wait_for_exit(child: &mut Child, limit: Duration) {
+    let deadline = Instant::now() + limit;
+    while child.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "the host did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn an_operator_drives_the_simulated_robot_over_tcp() {
+    let world = support::repo_root().join("config/worlds/demo.world");
+    let components = format!(
+        r#"<component name="sim" source="builtin:sim"><param name="world" value="{}"/></component>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
+    <component name="arbiter" source="builtin:arbiter" rate="50"/>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="motors.cmd"/>"#,
+        world.display()
+    );
+    let mut host = start("", &components, 6);
+    let mut alice = Operator::connect(&host);
+    alice.login("alice", TOKEN);
+    alice.send("MODE direct");
+    assert!(alice.reply().starts_with("MODE direct granted"));
+    // Drive forward for 2 s, one command every 50 ms.
+    for _ in 0..40 {
+        alice.command("VEL 0.3 0");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    alice.send("QUIT");
+    wait_for_exit(&mut host.child, Duration::from_secs(20));
+    let report = read_report(&host.report);
+    let travelled = report["sim"]["distance_travelled_m"].as_f64().unwrap();
+    assert!((0.4..0.9).contains(&travelled), "{}", report["sim"]);
+    let session = &report["network"]["sessions"][0];
+    assert_eq!(session["operator"], "alice");
+    assert_eq!(session["mode_changes"][0]["to"], "direct");
+    assert!(session["rtt_ms"].as_f64().unwrap() < 50.0);
+    assert!(session["disconnected_at_s"].is_number());
+    let commands = &report["network"]["commands"];
+    assert_eq!(commands["received"], 40, "{commands}");
+    assert!(commands["released"].as_u64().unwrap() >= 35, "{commands}");
+    assert_eq!((commands["dropped_stale"].as_u64(), commands["dropped_duplicate"].as_u64()), (Some(0), Some(0)));
+    assert!(report["arbiter"]["held_s"][0][1].as_f64().unwrap() > 1.5, "{}", report["arbiter"]);
+}
+
+#[test]
+fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
+    use serialport::{SerialPort, TTYPort};
+    let (mut master, slave) = TTYPort::pair().unwrap();
+    master.set_timeout(Duration::from_millis(10)).unwrap();
+    let device = slave.name().unwrap();
+    let components = format!(
+        r#"<component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
+    <component name="arbiter" source="builtin:arbiter" rate="50"/>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="motors.cmd"/>"#
+    );
+    let host = start("", &components, 30);
+    let mut alice = Operator::connect(&host);
+    alice.login("alice", TOKEN);
+    alice.send("MODE direct");
+    assert!(alice.reply().starts_with("MODE direct granted"));
+    let mut lines: Vec<(Instant, String)> = Vec::new();
+    let mut pending = String::new();
+    let mut buffer = [0u8; 256];
+    let mut read = |lines: &mut Vec<(Instant, String)>| {
+        if let Ok(n) = master.read(&mut buffer) {
+            pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
+            while let Some(end) = pending.find('\n') {
+                lines.push((Instant::now(), pending[..end].to_string()));
+                pending.drain(..=end);
+            }
+        }
+    };
+    for _ in 0..20 {
+        alice.command("VEL 0.2 0");
+        let until = Instant::now() + Duration::from_millis(50);
+        while Instant::now() < until {
+            read(&mut lines);
+        }
+    }
+    // The operator vanishes.
+    drop(alice);
+    let gone = Instant::now();
+    while Instant::now() < gone + Duration::from_millis(800) {
+        read(&mut lines);
+    }
+    assert!(lines.iter().any(|(_, l)| l == "M 200 200"), "the operator drove: {lines:?}");
+    let stop = lines.iter().find(|(at, l)| *at > gone && l == "S").expect("STOP reached the motors");
+    // The network source's timeout is 300 ms; the arbiter ticks at 50 Hz.
+    assert!(stop.0.duration_since(gone) < Duration::from_millis(400), "STOP after {:?}", stop.0.duration_since(gone));
+}
+
+#[test]
+fn the_same_protocol_works_over_websocket_as_json() {
+    let host = start(r#"<param name="websocket" value="127.0.0.1:0"/>"#, SINK, 30);
+    let url = format!("ws://{}/teleop", host.websocket.clone().unwrap_or_default());
+    let (mut socket, _) = tungstenite::connect(url.as_str()).unwrap();
+    let next = |socket: &mut tungstenite::WebSocket<tungstenite::stream::MaybeTlsStream<TcpStream>>| -> Json {
+        loop {
+            let message = socket.read().unwrap();
+            if let tungstenite::Message::Text(text) = message {
+                let json: Json = serde_json::from_str(text.as_str()).unwrap();
+                if json["type"] == "ping" {
+                    let pong = serde_json::json!({"type": "pong", "nonce": json["nonce"]}).to_string();
+                    socket.send(tungstenite::Message::Text(pong.into())).unwrap();
+                    continue;
+                }
+                return json;
+            }
+        }
+    };
+    let send = |socket: &mut tungstenite::WebSocket<tungstenite::stream::MaybeTlsStream<TcpStream>>, json: Json| {
+        socket.send(tungstenite::Message::Text(json.to_string().into())).unwrap();
+    };
+    assert_eq!(next(&mut socket)["type"], "hello");
+    send(&mut socket, serde_json::json!({"type": "cmd", "seq": 1, "time_ms": 0, "command": "STOP"}));
+    assert_eq!(
+        next(&mut socket),
+        serde_json::json!({"type": "error", "message": "authenticate first: AUTH <name> <token>"})
+    );
+    send(&mut socket, serde_json::json!({"type": "auth", "name": "alice", "token": TOKEN}));
+    assert_eq!(next(&mut socket)["type"], "ok");
+    let rtt = next(&mut socket);
+    assert_eq!(rtt["type"], "rtt");
+    assert_eq!(rtt["allowed"], serde_json::json!(["direct", "shared", "supervisory"]));
+    send(&mut socket, serde_json::json!({"type": "mode", "mode": "shared"}));
+    let mode = next(&mut socket);
+    assert_eq!((mode["type"].as_str(), mode["mode"].as_str()), (Some("mode"), Some("shared")), "{mode}");
+    socket.send(tungstenite::Message::Text("{not json".into())).unwrap();
+    assert!(next(&mut socket)["message"].as_str().unwrap().starts_with("not a JSON object"));
+}
