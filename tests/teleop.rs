@@ -429,3 +429,67 @@ fn the_same_protocol_works_over_websocket_as_json() {
     socket.send(tungstenite::Message::Text("{not json".into())).unwrap();
     assert!(next(&mut socket)["message"].as_str().unwrap().starts_with("not a JSON object"));
 }
+
+#[test]
+fn the_keyboard_client_drives_from_a_real_terminal() {
+    let mut host = start("", SINK, 8);
+    // `script` gives the client a real pseudo-terminal; what we write to its
+    // stdin arrives as key presses.
+    let client = format!("{} teleop {} --name alice --token {TOKEN}", env!("CARGO_BIN_EXE_subsume"), host.address);
+    let mut terminal = Command::new("script")
+        .args(["-qfec", &client, "/dev/null"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("script (from bsdutils) runs the client in a pseudo-terminal");
+    let mut keys = terminal.stdin.take().unwrap();
+    let mut screen_out = terminal.stdout.take().unwrap();
+    let (screen_tx, screen) = mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        let mut buffer = [0u8; 4096];
+        while let Ok(n) = screen_out.read(&mut buffer) {
+            if n == 0 || screen_tx.send(String::from_utf8_lossy(&buffer[..n]).into_owned()).is_err() {
+                break;
+            }
+        }
+    });
+    let mut seen = String::new();
+    let mut wait_for = |text: &str| {
+        let deadline = Instant::now() + Duration::from_secs(20);
+        while !seen.contains(text) {
+            assert!(Instant::now() < deadline, "the client never showed {text:?}: {seen:?}");
+            if let Ok(chunk) = screen.recv_timeout(Duration::from_millis(100)) {
+                seen.push_str(&chunk);
+            }
+        }
+    };
+    // The client logs in, is measured and asks for the best mode.
+    wait_for("mode direct");
+    wait_for("rtt ");
+    for _ in 0..4 {
+        keys.write_all(b"\x1b[A").unwrap(); // arrow up: faster
+    }
+    keys.flush().unwrap();
+    wait_for("vel +0.20");
+    std::thread::sleep(Duration::from_millis(1500));
+    keys.write_all(b" ").unwrap(); // space: stop
+    keys.flush().unwrap();
+    wait_for("vel +0.00");
+    keys.write_all(b"q").unwrap();
+    keys.flush().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while terminal.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "the client did not quit");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    wait_for_exit(&mut host.child, Duration::from_secs(20));
+    let report = read_report(&host.report);
+    let session = &report["network"]["sessions"][0];
+    assert_eq!(session["operator"], "alice", "{session}");
+    assert_eq!(session["mode_changes"][0]["to"], "direct", "{session}");
+    assert!(session["commands"]["released"].as_u64().unwrap() >= 10, "{session}");
+    // It drove: the network source held control for most of that time.
+    let held = report["arbiter"]["held_s"][0][1].as_f64().unwrap();
+    assert!(held > 1.0, "{}", report["arbiter"]);
+}
