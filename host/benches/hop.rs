@@ -19,9 +19,13 @@ use std::time::{Duration, Instant};
 use subsume::config::Policy;
 use subsume::contract::Value;
 use subsume::runtime::{CallError, Component, Graph, Outbox};
-use subsume::sandbox::Sandbox;
+use subsume::sandbox::{GuestLimits, Sandbox};
 
 const BUDGET: Duration = Duration::from_millis(100);
+
+fn limits() -> GuestLimits {
+    GuestLimits { memory_bytes: 16 << 20, budget: BUDGET, ..GuestLimits::default() }
+}
 
 /// Does nothing: the native end of a chain.
 struct Sink;
@@ -37,7 +41,7 @@ impl Component for Sink {
 
 fn relay(sandbox: &Sandbox, bytes: &[u8]) -> Box<dyn Component> {
     let artifact = sandbox.load(bytes).unwrap();
-    Box::new(sandbox.instantiate(&artifact, "relay", 16 << 20, BUDGET, &[]).unwrap())
+    Box::new(sandbox.instantiate(&artifact, "relay", &limits(), &[]).unwrap())
 }
 
 /// source (native, only used to inject) -> `relays` relay guests -> sink.
@@ -156,7 +160,7 @@ fn load_and_instantiate(bytes: &[u8]) {
     let artifact = sandbox.load(bytes).unwrap();
     let start = Instant::now();
     for _ in 0..rounds {
-        let instance = sandbox.instantiate(&artifact, "relay", 16 << 20, BUDGET, &[]).unwrap();
+        let instance = sandbox.instantiate(&artifact, "relay", &limits(), &[]).unwrap();
         drop(instance);
     }
     let instantiate = start.elapsed() / rounds;

@@ -12,7 +12,7 @@ use crate::config::{ComponentConfig, ComponentSource, Resolver};
 use crate::contract::Description;
 use crate::robot::translator::Translator;
 use crate::runtime::Component;
-use crate::sandbox::{Sandbox, TranslatorArtifact, WasmArtifact};
+use crate::sandbox::{GuestLimits, Sandbox, TranslatorArtifact, WasmArtifact};
 
 /// Largest `.wasm` file loaded: big enough for Python and JavaScript
 /// components (~20 MB), small enough that a bogus file cannot exhaust memory.
@@ -67,7 +67,7 @@ impl<'a> Loader<'a> {
                 let artifact = self.load_wasm(path)?;
                 let component = self
                     .sandbox
-                    .instantiate(&artifact, &config.name, config.memory_bytes, config.budget, &config.params)
+                    .instantiate(&artifact, &config.name, &GuestLimits::of(config), &config.params)
                     .map_err(|e| e.to_string())?;
                 Ok(Box::new(component))
             }
@@ -102,7 +102,7 @@ impl TranslatorLoader for Loader<'_> {
         let artifact = self.load_translator(path)?;
         let translator = self
             .sandbox
-            .instantiate_translator(&artifact, &link.name, link.memory_bytes, link.budget, &link.params)
+            .instantiate_translator(&artifact, &link.name, &GuestLimits::of(link), &link.params)
             .map_err(|e| format!("translator '{}': {e}", path.display()))?;
         Ok(Box::new(translator))
     }

@@ -11,7 +11,7 @@ use std::time::Duration;
 use subsume::config::Policy;
 use subsume::contract::{Param, Value};
 use subsume::runtime::{CallError, Component, ComponentState, Graph, Outbox};
-use subsume::sandbox::Sandbox;
+use subsume::sandbox::{GuestLimits, Sandbox};
 
 const MS: u64 = 1_000_000;
 
@@ -39,7 +39,14 @@ fn guest(
             Param { name: spec.name.clone(), value }
         })
         .collect();
-    let component = sandbox.instantiate(&artifact, name, 16 << 20, budget, &params).map_err(|e| e.to_string())?;
+    let component = sandbox
+        .instantiate(
+            &artifact,
+            name,
+            &GuestLimits { memory_bytes: 16 << 20, budget, ..GuestLimits::default() },
+            &params,
+        )
+        .map_err(|e| e.to_string())?;
     Ok(Box::new(component))
 }
 
@@ -242,7 +249,7 @@ fn a_guest_that_overruns_its_budget_is_stopped() {
 #[test]
 fn emitting_on_a_port_that_does_not_exist_faults() {
     let (state, counter_ticks, _, _) = run_beside_a_healthy_counter("bad-port-on-tick", "0", BUDGET);
-    assert_eq!(fault_reason(&state), "tick: emitted on output port 99, but the component declares 1 output(s)");
+    assert_eq!(fault_reason(&state), "tick: emitted on output port 99, but the component declares 4 output(s)");
     assert_eq!(counter_ticks, 10);
 }
 

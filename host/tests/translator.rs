@@ -16,7 +16,7 @@ use subsume::robot::protocol::{Feedback, Profile};
 use subsume::robot::serial::{LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator, TranslateError, Translator};
 use subsume::runtime::Component;
-use subsume::sandbox::{Sandbox, WasmTranslator};
+use subsume::sandbox::{GuestLimits, Sandbox, WasmTranslator};
 
 const GEOMETRY: DriveGeometry = DriveGeometry { wheel_base: 0.3, max_wheel_speed: 0.5 };
 
@@ -32,7 +32,8 @@ fn wasm_translator(sandbox: &Sandbox) -> WasmTranslator {
         Param { name: "wheel-base".into(), value: "0.3".into() },
         Param { name: "max-wheel-speed".into(), value: "0.5".into() },
     ];
-    sandbox.instantiate_translator(&artifact, "motors", 16 << 20, Duration::from_millis(20), &params).unwrap()
+    let limits = GuestLimits { memory_bytes: 16 << 20, budget: Duration::from_millis(20), ..GuestLimits::default() };
+    sandbox.instantiate_translator(&artifact, "motors", &limits, &params).unwrap()
 }
 
 fn encode(translator: &mut dyn Translator, command: &str) -> Result<Vec<u8>, TranslateError> {

@@ -49,6 +49,18 @@ pub mod limits {
     pub const MEMORY_RANGE: RangeInclusive<u64> = (2 << 20)..=(1 << 30);
     /// Memory limit when the file gives none.
     pub const DEFAULT_MEMORY_BYTES: u64 = 64 << 20;
+    /// Values one call may emit (`max-emits`): an emit flood must not fill
+    /// host memory or make the loop deliver for ever.
+    pub const EMITS_PER_CALL_RANGE: RangeInclusive<u32> = 1..=100_000;
+    pub const DEFAULT_EMITS_PER_CALL: u32 = 256;
+    /// Largest value one emit may carry, in bytes (`max-message`): one giant
+    /// value must not exhaust host memory (it is also the store's hostcall fuel).
+    pub const MESSAGE_BYTES_RANGE: RangeInclusive<u64> = (1 << 10)..=(16 << 20);
+    pub const DEFAULT_MESSAGE_BYTES: u64 = 1 << 20;
+    /// Log lines per second, `log` and stdout/stderr together (`max-logs`):
+    /// a guest must not flood the host's log.
+    pub const LOG_LINES_RANGE: RangeInclusive<u32> = 1..=10_000;
+    pub const DEFAULT_LOG_LINES_PER_S: u32 = 100;
     /// Deepest queue a connection may have: every queued value is held in
     /// host memory.
     pub const MAX_QUEUE_DEPTH: usize = 1024;
@@ -128,6 +140,10 @@ pub struct ComponentConfig {
     pub timeout: Duration,
     /// Linear memory limit.
     pub memory_bytes: u64,
+    /// Caps on what the component may push at the host.
+    pub max_emits: u32,
+    pub max_message_bytes: u64,
+    pub max_logs_per_s: u32,
     /// Every declared parameter, XML value or default, in declaration order.
     pub params: Vec<Param>,
     pub description: Description,

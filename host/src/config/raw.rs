@@ -44,6 +44,9 @@ pub struct RawComponent {
     pub budget: Option<Spanned<String>>,
     pub timeout: Option<Spanned<String>>,
     pub memory: Option<Spanned<String>>,
+    pub max_emits: Option<Spanned<String>>,
+    pub max_message: Option<Spanned<String>>,
+    pub max_logs: Option<Spanned<String>>,
     pub params: Vec<RawParam>,
 }
 
@@ -223,7 +226,18 @@ fn open_element(
             }
         }
         "component" => {
-            let allowed = ["name", "source", "priority", "rate", "budget", "timeout", "memory"];
+            let allowed = [
+                "name",
+                "source",
+                "priority",
+                "rate",
+                "budget",
+                "timeout",
+                "memory",
+                "max-emits",
+                "max-message",
+                "max-logs",
+            ];
             let mut attrs = read_attrs(map, e, offset, "component", &allowed, errors);
             let name = required(map, &mut attrs, "component", "name", offset, errors);
             let source = required(map, &mut attrs, "component", "source", offset, errors);
@@ -239,6 +253,9 @@ fn open_element(
                 budget: attrs.take("budget"),
                 timeout: attrs.take("timeout"),
                 memory: attrs.take("memory"),
+                max_emits: attrs.take("max-emits"),
+                max_message: attrs.take("max-message"),
+                max_logs: attrs.take("max-logs"),
                 params: Vec::new(),
             });
             Context::Component

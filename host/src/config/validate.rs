@@ -248,6 +248,50 @@ fn component_config(
         }
     };
 
+    let whole = |attr: &Option<Spanned<String>>,
+                 name: &str,
+                 range: std::ops::RangeInclusive<u32>,
+                 default: u32,
+                 errors: &mut Vec<Diagnostic>| match attr {
+        None => Some(default),
+        Some(a) => {
+            let value = a.value.trim().parse::<u32>().ok().filter(|v| range.contains(v));
+            if value.is_none() {
+                errors.push(map.at(
+                    a.offset,
+                    format!(
+                        "{name} '{}' is not a whole number from {} to {}",
+                        clip(&a.value),
+                        range.start(),
+                        range.end()
+                    ),
+                ));
+            }
+            value
+        }
+    };
+    let max_emits =
+        whole(&raw.max_emits, "max-emits", limits::EMITS_PER_CALL_RANGE, limits::DEFAULT_EMITS_PER_CALL, errors);
+    let max_logs = whole(&raw.max_logs, "max-logs", limits::LOG_LINES_RANGE, limits::DEFAULT_LOG_LINES_PER_S, errors);
+    let max_message_bytes = match &raw.max_message {
+        None => Some(limits::DEFAULT_MESSAGE_BYTES),
+        Some(m) => {
+            let value = parse_size(&m.value).filter(|s| limits::MESSAGE_BYTES_RANGE.contains(s));
+            if value.is_none() {
+                errors.push(map.at(
+                    m.offset,
+                    format!(
+                        "max-message '{}' is not a size from {} KiB to {} MiB (write it as '64KiB' or '1MiB')",
+                        clip(&m.value),
+                        limits::MESSAGE_BYTES_RANGE.start() >> 10,
+                        limits::MESSAGE_BYTES_RANGE.end() >> 20
+                    ),
+                ));
+            }
+            value
+        }
+    };
+
     // Parameters as written: no duplicates, bounded.
     let mut xml_params: BTreeMap<String, String> = BTreeMap::new();
     let mut param_spans: Vec<(&Spanned<String>, &Spanned<String>)> = Vec::new();
@@ -332,6 +376,9 @@ fn component_config(
         budget: budget?,
         timeout: timeout?,
         memory_bytes: memory_bytes?,
+        max_emits: max_emits?,
+        max_message_bytes: max_message_bytes?,
+        max_logs_per_s: max_logs?,
         params,
         description,
     })

@@ -10,6 +10,8 @@ use bytes::Bytes;
 use wasmtime_wasi::cli::{IsTerminal, StdoutStream};
 use wasmtime_wasi::p2::{OutputStream, Pollable, StreamError};
 
+use super::LogBudget;
+
 /// Longest line kept from a guest's output; the rest of a longer line is cut,
 /// so a guest printing without newlines cannot grow host memory.
 pub const MAX_GUEST_LINE_BYTES: usize = 4096;
@@ -20,25 +22,29 @@ pub struct GuestOutput {
     component: Arc<str>,
     stream: &'static str,
     pending: Arc<Mutex<Vec<u8>>>,
+    logs: LogBudget,
 }
 
 impl GuestOutput {
-    pub fn new(component: Arc<str>, stream: &'static str) -> Self {
-        GuestOutput { component, stream, pending: Arc::new(Mutex::new(Vec::new())) }
+    pub fn new(component: Arc<str>, stream: &'static str, logs: LogBudget) -> Self {
+        GuestOutput { component, stream, pending: Arc::new(Mutex::new(Vec::new())), logs }
     }
 
-    fn write_bytes(&self, bytes: &[u8]) {
+    /// Logs every complete line; `Err` when the guest is over its log rate.
+    fn write_bytes(&self, bytes: &[u8]) -> Result<(), String> {
         let Ok(mut pending) = self.pending.lock() else {
-            return;
+            return Ok(());
         };
         for &byte in bytes {
             if byte == b'\n' {
+                self.logs.take()?;
                 self.emit_line(&pending);
                 pending.clear();
             } else if pending.len() < MAX_GUEST_LINE_BYTES {
                 pending.push(byte);
             }
         }
+        Ok(())
     }
 
     fn emit_line(&self, line: &[u8]) {
@@ -82,8 +88,7 @@ impl StdoutStream for GuestOutput {
 #[wasmtime_wasi::async_trait]
 impl OutputStream for GuestOutput {
     fn write(&mut self, bytes: Bytes) -> Result<(), StreamError> {
-        self.write_bytes(&bytes);
-        Ok(())
+        self.write_bytes(&bytes).map_err(|why| StreamError::Trap(wasmtime::format_err!("{why}")))
     }
     fn flush(&mut self) -> Result<(), StreamError> {
         Ok(())
@@ -100,8 +105,7 @@ impl Pollable for GuestOutput {
 
 impl tokio::io::AsyncWrite for GuestOutput {
     fn poll_write(self: Pin<&mut Self>, _cx: &mut Context<'_>, buf: &[u8]) -> Poll<io::Result<usize>> {
-        self.write_bytes(buf);
-        Poll::Ready(Ok(buf.len()))
+        Poll::Ready(self.write_bytes(buf).map(|()| buf.len()).map_err(io::Error::other))
     }
     fn poll_flush(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         Poll::Ready(Ok(()))

@@ -69,6 +69,14 @@ pub const POOL_MAX_MEMORY_BYTES: u64 = 1 << 30;
 /// Core instances (and memories) the whole pool holds: enough for
 /// [`MAX_COMPONENTS`] components plus throwaway `describe` instances.
 pub const POOL_TOTAL_CORE_INSTANCES: u32 = 1000;
+/// Entries a guest may hold in its WASI resource table (open streams,
+/// pollables): a guest must not grow host-side tables without bound.
+pub const MAX_RESOURCE_ENTRIES: usize = 1000;
+/// Component-model handles alive at once in one store (`resource.new`).
+pub const MAX_COMPONENT_HANDLES: usize = 1000;
+/// Hostcall fuel beyond the component's `max-message`: room for the other
+/// arguments of a host call.
+pub const HOSTCALL_FUEL_SLACK: u64 = 64 << 10;
 /// Longest message from a guest's `log` or `err` result kept in the log.
 pub const MAX_GUEST_MESSAGE_BYTES: usize = 1024;
 
@@ -102,6 +110,12 @@ pub struct GuestState {
     outbox: Outbox,
     /// The host clock at the start of the current call.
     now_ns: u64,
+    /// Values emitted in the current call, against `max_emits`.
+    emits: u32,
+    max_emits: u32,
+    max_message_bytes: u64,
+    /// Log lines per second, shared with stdout and stderr.
+    logs: LogBudget,
 }
 
 impl WasiView for GuestState {
@@ -114,6 +128,17 @@ impl wit::types::Host for GuestState {}
 
 impl wit::host::Host for GuestState {
     fn emit(&mut self, port: u32, value: Value) -> wasmtime::Result<()> {
+        self.emits += 1;
+        if self.emits > self.max_emits {
+            return Err(wasmtime::format_err!("emitted more than {} values in one call (max-emits)", self.max_emits));
+        }
+        let size = value_bytes(&value);
+        if size > self.max_message_bytes {
+            return Err(wasmtime::format_err!(
+                "emitted a value of {size} bytes; at most {} are allowed (max-message)",
+                self.max_message_bytes
+            ));
+        }
         let Some(kind) = self.outputs.get(port as usize) else {
             return Err(wasmtime::format_err!(
                 "emitted on output port {port}, but the component declares {} output(s)",
@@ -131,6 +156,7 @@ impl wit::host::Host for GuestState {
     }
 
     fn log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
+        self.logs.take().map_err(wasmtime::Error::msg)?;
         let message = truncate(message, MAX_GUEST_MESSAGE_BYTES);
         let component = &*self.component;
         match level {
@@ -145,6 +171,80 @@ impl wit::host::Host for GuestState {
 
     fn now_ns(&mut self) -> wasmtime::Result<u64> {
         Ok(self.now_ns)
+    }
+}
+
+/// What one guest may use and push at the host; from its robot-file
+/// settings (`memory`, `budget`, `max-emits`, `max-message`, `max-logs`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GuestLimits {
+    pub memory_bytes: u64,
+    pub budget: Duration,
+    pub max_emits: u32,
+    pub max_message_bytes: u64,
+    pub max_logs_per_s: u32,
+}
+
+impl Default for GuestLimits {
+    fn default() -> Self {
+        use crate::config::limits;
+        GuestLimits {
+            memory_bytes: limits::DEFAULT_MEMORY_BYTES,
+            budget: limits::DEFAULT_CALL_BUDGET,
+            max_emits: limits::DEFAULT_EMITS_PER_CALL,
+            max_message_bytes: limits::DEFAULT_MESSAGE_BYTES,
+            max_logs_per_s: limits::DEFAULT_LOG_LINES_PER_S,
+        }
+    }
+}
+
+impl GuestLimits {
+    /// The limits a component's configuration sets.
+    pub fn of(config: &crate::config::ComponentConfig) -> GuestLimits {
+        GuestLimits {
+            memory_bytes: config.memory_bytes,
+            budget: config.budget,
+            max_emits: config.max_emits,
+            max_message_bytes: config.max_message_bytes,
+            max_logs_per_s: config.max_logs_per_s,
+        }
+    }
+}
+
+/// A guest's log lines this second, shared by `log`, stdout and stderr.
+#[derive(Clone, Debug)]
+pub struct LogBudget {
+    max_per_s: u32,
+    window: Arc<std::sync::Mutex<(std::time::Instant, u32)>>,
+}
+
+impl LogBudget {
+    pub fn new(max_per_s: u32) -> LogBudget {
+        LogBudget { max_per_s, window: Arc::new(std::sync::Mutex::new((std::time::Instant::now(), 0))) }
+    }
+
+    /// Counts one line; `Err` when the guest is over its rate.
+    pub fn take(&self) -> Result<(), String> {
+        let Ok(mut window) = self.window.lock() else { return Ok(()) };
+        if window.0.elapsed() >= Duration::from_secs(1) {
+            *window = (std::time::Instant::now(), 0);
+        }
+        window.1 += 1;
+        if window.1 > self.max_per_s {
+            return Err(format!("wrote more than {} log lines in one second (max-logs)", self.max_per_s));
+        }
+        Ok(())
+    }
+}
+
+/// The size a value takes on the host, for `max-message`.
+fn value_bytes(value: &Value) -> u64 {
+    match value {
+        Value::Flag(_) => 1,
+        Value::Scalar(_) => 8,
+        Value::Vector(v) => 8 * v.len() as u64,
+        Value::Text(t) | Value::Command(t) => t.len() as u64,
+        Value::Bytes(b) => b.len() as u64,
     }
 }
 
@@ -256,11 +356,11 @@ impl Sandbox {
         &self,
         artifact: &TranslatorArtifact,
         name: &str,
-        memory_bytes: u64,
-        budget: Duration,
+        limits: &GuestLimits,
         params: &[Param],
     ) -> Result<WasmTranslator, SandboxError> {
-        let mut store = self.new_store(format!("{name}/translator").into(), memory_bytes, Arc::from([]));
+        let budget = limits.budget;
+        let mut store = self.new_store(format!("{name}/translator").into(), limits, Arc::from([]));
         store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
         let instance =
             artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
@@ -275,7 +375,9 @@ impl Sandbox {
     }
 
     fn describe(&self, pre: &bindings::ComponentPre<GuestState>) -> Result<Description, SandboxError> {
-        let mut store = self.new_store("describe".into(), DESCRIBE_MEMORY_BYTES, Arc::from([]));
+        let limits =
+            GuestLimits { memory_bytes: DESCRIBE_MEMORY_BYTES, budget: DESCRIBE_BUDGET, ..GuestLimits::default() };
+        let mut store = self.new_store("describe".into(), &limits, Arc::from([]));
         store.set_epoch_deadline(budget_ticks(DESCRIBE_BUDGET));
         let call = "instantiation for describe()";
         let instance = pre.instantiate(&mut store).map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
@@ -288,12 +390,12 @@ impl Sandbox {
         &self,
         artifact: &WasmArtifact,
         name: &str,
-        memory_bytes: u64,
-        budget: Duration,
+        limits: &GuestLimits,
         params: &[Param],
     ) -> Result<WasmComponent, SandboxError> {
+        let budget = limits.budget;
         let outputs: Arc<[ValueKind]> = artifact.description.outputs.iter().map(|p| p.kind).collect();
-        let mut store = self.new_store(name.into(), memory_bytes, outputs);
+        let mut store = self.new_store(name.into(), limits, outputs);
         store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
         let instance =
             artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
@@ -309,25 +411,41 @@ impl Sandbox {
         Ok(WasmComponent { store, instance, budget, budget_ticks: budget_ticks(budget) })
     }
 
-    fn new_store(&self, component: Arc<str>, memory_bytes: u64, outputs: Arc<[ValueKind]>) -> Store<GuestState> {
+    fn new_store(&self, component: Arc<str>, guest: &GuestLimits, outputs: Arc<[ValueKind]>) -> Store<GuestState> {
+        let logs = LogBudget::new(guest.max_logs_per_s);
         let wasi = WasiCtxBuilder::new()
-            .stdout(GuestOutput::new(component.clone(), "stdout"))
-            .stderr(GuestOutput::new(component.clone(), "stderr"))
+            .stdout(GuestOutput::new(component.clone(), "stdout", logs.clone()))
+            .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()))
             .allow_tcp(false)
             .allow_udp(false)
             .allow_ip_name_lookup(false)
             .build();
         let limits = StoreLimitsBuilder::new()
-            .memory_size(usize::try_from(memory_bytes).unwrap_or(usize::MAX))
+            .memory_size(usize::try_from(guest.memory_bytes).unwrap_or(usize::MAX))
             .instances(MAX_INSTANCES_PER_STORE)
             .tables(MAX_TABLES_PER_STORE)
             .memories(MAX_MEMORIES_PER_STORE)
             .trap_on_grow_failure(true)
             .build();
-        let state =
-            GuestState { wasi, table: ResourceTable::new(), limits, component, outputs, outbox: Vec::new(), now_ns: 0 };
+        let mut table = ResourceTable::new();
+        table.set_max_capacity(MAX_RESOURCE_ENTRIES);
+        let state = GuestState {
+            wasi,
+            table,
+            limits,
+            component,
+            outputs,
+            outbox: Vec::new(),
+            now_ns: 0,
+            emits: 0,
+            max_emits: guest.max_emits,
+            max_message_bytes: guest.max_message_bytes,
+            logs,
+        };
         let mut store = Store::new(&self.engine, state);
         store.limiter(|state| &mut state.limits);
+        store.set_hostcall_fuel(usize::try_from(guest.max_message_bytes + HOSTCALL_FUEL_SLACK).unwrap_or(usize::MAX));
+        store.set_max_component_handles(MAX_COMPONENT_HANDLES);
         store
     }
 
@@ -404,14 +522,18 @@ impl Component for WasmComponent {
         now_ns: u64,
         out: &mut Outbox,
     ) -> Result<(), CallError> {
-        self.store.data_mut().now_ns = now_ns;
+        let state = self.store.data_mut();
+        state.now_ns = now_ns;
+        state.emits = 0;
         self.store.set_epoch_deadline(self.budget_ticks);
         let result = self.instance.call_on_input(&mut self.store, port, value);
         self.finish("on-input", result, out)
     }
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
-        self.store.data_mut().now_ns = now_ns;
+        let state = self.store.data_mut();
+        state.now_ns = now_ns;
+        state.emits = 0;
         self.store.set_epoch_deadline(self.budget_ticks);
         let result = self.instance.call_tick(&mut self.store, now_ns);
         self.finish("tick", result, out)
@@ -558,7 +680,19 @@ fn call_error(call: &'static str, budget: Duration, err: &wasmtime::Error) -> Sa
         Some(Trap::Interrupt) => format!("exceeded its time budget of {} ms", budget.as_millis().max(1)),
         Some(Trap::StackOverflow) => "overflowed its stack (recursion too deep?)".to_string(),
         Some(trap) => format!("trapped: {trap}"),
-        None => err.root_cause().to_string(),
+        None => {
+            let cause = err.root_cause().to_string();
+            // StoreLimits (trap_on_grow_failure) says this when a memory or
+            // table would outgrow the component's limit.
+            match cause.strip_prefix("forcing trap when growing memory to ") {
+                Some(size) => format!("exceeded its memory limit (growing memory to {size})"),
+                // The hostcall fuel is the component's max-message.
+                None if cause.contains("fuel allocated for hostcalls has been exhausted") => {
+                    "passed more data to the host in one call than its max-message allows".to_string()
+                }
+                None => cause,
+            }
+        }
     };
     SandboxError::Call { call, reason }
 }
