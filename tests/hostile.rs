@@ -208,3 +208,27 @@ fn a_component_that_holds_control_and_then_loops_leaves_the_robot_stopped() {
     let gap = stop.0.duration_since(lines[last_motion].0);
     assert!(gap < Duration::from_millis(300), "STOP {gap:?} after the last motion command");
 }
+
+#[test]
+fn a_restart_policy_brings_a_faulted_component_back_until_its_restarts_run_out() {
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let body = r#"<robot name="restarts">
+  <platform name="control">
+    <component name="flaky" source="GUEST(test-faulty)" rate="50" restart="on-failure" max-restarts="1">
+      <param name="mode" value="trap-on-tick"/>
+      <param name="after" value="3"/>
+    </component>
+  </platform>
+</robot>"#;
+    let (output, report) = run_robot(dir.path(), body, &["run", "--duration", "2.5"]);
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    let flaky = component(report.as_ref().unwrap(), "flaky");
+    // Fault at ~60 ms, restart after 1 s, fault again ~60 ms later; no more.
+    assert_eq!(flaky["restarts"], 1, "{flaky}");
+    assert_eq!(flaky["state"], "faulted", "{flaky}");
+    assert_eq!(flaky["messages_out"], 6, "three good ticks in each life: {flaky}");
+    assert!(log.contains("restarted (restart 1 of 1)"), "{log}");
+    assert!(log.contains("no restarts left (1 used): it stays stopped"), "{log}");
+}

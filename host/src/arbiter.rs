@@ -130,6 +130,13 @@ impl Arbiter {
         self.rejected += 1;
     }
 
+    /// Counts the source of `component` again (it was restarted).
+    pub fn restore(&mut self, component: usize) {
+        for state in self.sources.iter_mut().filter(|s| s.source.component == component) {
+            state.faulted = false;
+        }
+    }
+
     /// Stops counting the source of `component`, at once.
     pub fn fault(&mut self, component: usize) {
         for state in self.sources.iter_mut().filter(|s| s.source.component == component) {
@@ -272,6 +279,10 @@ impl Component for ArbiterComponent {
         self.decide_and_emit(now_ns, false, out);
     }
 
+    fn peer_restarted(&mut self, component: usize, _now_ns: u64) {
+        self.arbiter.restore(component);
+    }
+
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
         serde_json::to_value(self.arbiter.status(self.now_ns)).ok().map(|v| ("arbiter", v))
     }
@@ -339,6 +350,19 @@ mod tests {
         let held: Vec<f64> = status.held_s.iter().map(|(_, s)| (s * 1000.0).round()).collect();
         // avoid 30..531 and 600..610; planner 10..30, 531..600 and 610..901.
         assert_eq!(held, vec![511.0, 380.0, 0.0]);
+    }
+
+    #[test]
+    fn a_restarted_source_counts_again() {
+        let mut arbiter = Arbiter::new(vec![source(1, "a", 3), source(2, "b", 1)]);
+        arbiter.offer(1, vel(0.1), 0);
+        arbiter.offer(2, vel(0.2), 0);
+        arbiter.fault(1);
+        assert_eq!(arbiter.decide(0).holder, Some(1));
+        assert!(!arbiter.offer(1, vel(0.1), MS), "a faulted source is ignored");
+        arbiter.restore(1);
+        assert!(arbiter.offer(1, vel(0.1), 2 * MS));
+        assert_eq!(arbiter.decide(2 * MS).holder, Some(0));
     }
 
     #[test]

@@ -145,7 +145,10 @@ pub fn build_graph(
             component.rate_hz,
             component.priority.map(|p| format!(", priority {p}")).unwrap_or_default()
         );
-        graph.add(&component.name, instance, d.outputs.len(), component.rate_hz, start_ns);
+        let index = graph.add(&component.name, instance, d.outputs.len(), component.rate_hz, start_ns);
+        if let (Some(policy), Some(restarter)) = (component.restart, loader.restarter(component)) {
+            graph.set_restart(index, policy, restarter);
+        }
     }
     for c in &config.connections {
         graph.connect(c.from.component, c.from.port, c.to.component, c.to.port, c.policy);

@@ -75,6 +75,16 @@ impl<'a> Loader<'a> {
     }
 }
 
+impl Loader<'_> {
+    /// A restarter for `config` when it is a WASM component with a restart
+    /// policy.
+    pub fn restarter(&mut self, config: &ComponentConfig) -> Option<crate::runtime::Restarter> {
+        let (ComponentSource::Wasm(path), Some(_)) = (&config.source, config.restart) else { return None };
+        let artifact = self.load_wasm(path).ok()?;
+        Some(self.sandbox.restarter(artifact, &config.name, GuestLimits::of(config), config.params.clone()))
+    }
+}
+
 impl Resolver for Loader<'_> {
     fn describe(
         &mut self,

@@ -49,6 +49,8 @@ pub struct ComponentReport {
     pub messages_dropped: u64,
     pub errors: u64,
     pub last_error: Option<String>,
+    /// Restarts after faults (`restart="on-failure"`).
+    pub restarts: u64,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -107,6 +109,7 @@ pub fn build(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, durati
                 messages_dropped: stats.messages_dropped,
                 errors: stats.errors,
                 last_error: stats.last_error,
+                restarts: stats.restarts,
             }
         })
         .collect();

@@ -318,3 +318,51 @@ fn compiled_components_are_cached_and_a_bad_cache_entry_is_recompiled() {
     assert_eq!(sandbox.load(&bytes).unwrap().description.name, "test-relay");
     assert!(std::fs::read(&entries[0]).unwrap().len() > 1000, "the entry was rewritten");
 }
+
+#[test]
+fn a_faulted_component_restarts_with_backoff_until_its_restarts_run_out() {
+    use subsume::runtime::RestartPolicy;
+    let sandbox = sandbox();
+    let bytes = std::fs::read(support::guest("test-faulty")).unwrap();
+    let artifact = sandbox.load(&bytes).unwrap();
+    let params = vec![
+        Param { name: "mode".into(), value: "trap-on-tick".into() },
+        Param { name: "after".into(), value: "2".into() },
+    ];
+    let limits = GuestLimits { memory_bytes: 16 << 20, budget: BUDGET, ..GuestLimits::default() };
+    let first = sandbox.instantiate(&artifact, "faulty", &limits, &params).unwrap();
+    let mut graph = Graph::new();
+    let faulty = graph.add("faulty", Box::new(first), 4, 100.0, 0);
+    let recorder = Recorder::default();
+    let sink = graph.add("sink", Box::new(recorder.clone()), 0, 0.0, 0);
+    graph.connect(faulty, 0, sink, 0, Policy::Queue { depth: 100 });
+    let policy = RestartPolicy { max_restarts: 2, backoff_ns: 1_000 * MS };
+    graph.set_restart(faulty, policy, sandbox.restarter(artifact, "faulty", limits, params));
+
+    let faulted = |graph: &Graph| matches!(graph.state(faulty), Some(ComponentState::Faulted { .. }));
+    // Life 1: good ticks at 0 and 10 ms, the trap at 20 ms.
+    for ms in [0, 10, 20] {
+        graph.step(ms * MS);
+    }
+    assert!(faulted(&graph));
+    // The first restart waits 1 s.
+    graph.step(1_019 * MS);
+    assert!(faulted(&graph));
+    assert_eq!(graph.next_due_ns(), Some(1_020 * MS));
+    // Life 2 starts at 1020 ms and traps at 1040 ms; the next wait is 2 s.
+    for ms in [1_020, 1_030, 1_040] {
+        graph.step(ms * MS);
+    }
+    assert!(faulted(&graph));
+    assert_eq!(graph.stats(faulty).unwrap().restarts, 1);
+    // Life 3 (the last restart allowed).
+    for ms in [3_040, 3_050, 3_060] {
+        graph.step(ms * MS);
+    }
+    assert!(faulted(&graph));
+    graph.step(60_000 * MS);
+    assert!(faulted(&graph), "no restarts left");
+    assert_eq!(graph.stats(faulty).unwrap().restarts, 2);
+    // Each life emitted its two good ticks, counting from 1 again.
+    assert_eq!(recorder.scalars(), vec![1.0, 2.0, 1.0, 2.0, 1.0, 2.0]);
+}

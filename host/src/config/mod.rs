@@ -61,6 +61,13 @@ pub mod limits {
     /// a guest must not flood the host's log.
     pub const LOG_LINES_RANGE: RangeInclusive<u32> = 1..=10_000;
     pub const DEFAULT_LOG_LINES_PER_S: u32 = 100;
+    /// Restarts after faults over a run (`max-restarts`, with
+    /// `restart="on-failure"`): a component that keeps failing must not keep
+    /// the host busy restarting it.
+    pub const MAX_RESTARTS_RANGE: RangeInclusive<u32> = 0..=100;
+    pub const DEFAULT_MAX_RESTARTS: u32 = 3;
+    /// Wait before the first restart; doubled after each.
+    pub const RESTART_BACKOFF: Duration = Duration::from_secs(1);
     /// Deepest queue a connection may have: every queued value is held in
     /// host memory.
     pub const MAX_QUEUE_DEPTH: usize = 1024;
@@ -144,6 +151,8 @@ pub struct ComponentConfig {
     pub max_emits: u32,
     pub max_message_bytes: u64,
     pub max_logs_per_s: u32,
+    /// Whether and how often a faulted WASM component is restarted.
+    pub restart: Option<crate::runtime::RestartPolicy>,
     /// Every declared parameter, XML value or default, in declaration order.
     pub params: Vec<Param>,
     pub description: Description,

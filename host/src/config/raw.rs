@@ -47,6 +47,8 @@ pub struct RawComponent {
     pub max_emits: Option<Spanned<String>>,
     pub max_message: Option<Spanned<String>>,
     pub max_logs: Option<Spanned<String>>,
+    pub restart: Option<Spanned<String>>,
+    pub max_restarts: Option<Spanned<String>>,
     pub params: Vec<RawParam>,
 }
 
@@ -237,6 +239,8 @@ fn open_element(
                 "max-emits",
                 "max-message",
                 "max-logs",
+                "restart",
+                "max-restarts",
             ];
             let mut attrs = read_attrs(map, e, offset, "component", &allowed, errors);
             let name = required(map, &mut attrs, "component", "name", offset, errors);
@@ -256,6 +260,8 @@ fn open_element(
                 max_emits: attrs.take("max-emits"),
                 max_message: attrs.take("max-message"),
                 max_logs: attrs.take("max-logs"),
+                restart: attrs.take("restart"),
+                max_restarts: attrs.take("max-restarts"),
                 params: Vec::new(),
             });
             Context::Component

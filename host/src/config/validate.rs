@@ -292,6 +292,26 @@ fn component_config(
         }
     };
 
+    let max_restarts =
+        whole(&raw.max_restarts, "max-restarts", limits::MAX_RESTARTS_RANGE, limits::DEFAULT_MAX_RESTARTS, errors);
+    let restart = match raw.restart.as_ref().map(|r| (r.value.trim(), r.offset)) {
+        None | Some(("never", _)) => {
+            if let Some(m) = &raw.max_restarts {
+                errors.push(map.at(m.offset, "'max-restarts' only applies to restart=\"on-failure\""));
+            }
+            Some(None)
+        }
+        Some(("on-failure", _)) => max_restarts.map(|max_restarts| {
+            Some(crate::runtime::RestartPolicy { max_restarts, backoff_ns: limits::RESTART_BACKOFF.as_nanos() as u64 })
+        }),
+        Some((other, offset)) => {
+            errors.push(
+                map.at(offset, format!("unknown restart policy '{}' (expected 'never' or 'on-failure')", clip(other))),
+            );
+            None
+        }
+    };
+
     // Parameters as written: no duplicates, bounded.
     let mut xml_params: BTreeMap<String, String> = BTreeMap::new();
     let mut param_spans: Vec<(&Spanned<String>, &Spanned<String>)> = Vec::new();
@@ -326,6 +346,9 @@ fn component_config(
     }
 
     let source = source?;
+    if let (ComponentSource::Builtin(_), Some(r)) = (&source, &raw.restart) {
+        errors.push(map.at(r.offset, "'restart' only applies to WASM components (built-ins do not fault)"));
+    }
     let description = match resolver.describe(&source, &xml_params, base_dir) {
         Ok(d) => d,
         Err(why) => {
@@ -379,6 +402,7 @@ fn component_config(
         max_emits: max_emits?,
         max_message_bytes: max_message_bytes?,
         max_logs_per_s: max_logs?,
+        restart: restart?,
         params,
         description,
     })

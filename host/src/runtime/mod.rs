@@ -74,11 +74,32 @@ pub trait Component: Send {
     fn peer_faulted(&mut self, component: usize, now_ns: u64, out: &mut Outbox) {
         let _ = (component, now_ns, out);
     }
+    /// Component `component` has been restarted after a fault.
+    fn peer_restarted(&mut self, component: usize, now_ns: u64) {
+        let _ = (component, now_ns);
+    }
     /// A section for the run report and the live status, as (name, value).
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
         None
     }
 }
+
+/// Builds a fresh instance of a component (from its cached, pre-linked form).
+pub type Restarter = Box<dyn FnMut() -> Result<Box<dyn Component>, String> + Send>;
+
+/// When a faulted component is brought back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct RestartPolicy {
+    /// Restarts allowed over the run.
+    pub max_restarts: u32,
+    /// Wait before the first restart; doubled after each, up to
+    /// [`MAX_RESTART_BACKOFF_NS`].
+    pub backoff_ns: u64,
+}
+
+/// Longest wait between restarts: a component that keeps failing must not
+/// cost the loop much, but must not wait for ever either.
+pub const MAX_RESTART_BACKOFF_NS: u64 = 30_000_000_000;
 
 /// Whether a component still runs.
 #[derive(Clone, Debug, PartialEq)]
@@ -107,6 +128,8 @@ pub struct ComponentStats {
     /// `err` results.
     pub errors: u64,
     pub last_error: Option<String>,
+    /// Times the component was restarted after a fault.
+    pub restarts: u64,
 }
 
 /// Counters of one connection.
@@ -148,6 +171,9 @@ struct Node {
     queued: bool,
     stats: ComponentStats,
     last_error_log_ns: Option<u64>,
+    restart: Option<(RestartPolicy, Restarter)>,
+    /// When the next restart is due, if one is.
+    restart_at_ns: Option<u64>,
 }
 
 /// Components, their connections and the scheduler.
@@ -219,9 +245,19 @@ impl Graph {
             queued: false,
             stats: ComponentStats::default(),
             last_error_log_ns: None,
+            restart: None,
+            restart_at_ns: None,
         });
         self.routes.push(vec![Vec::new(); outputs]);
         self.nodes.len() - 1
+    }
+
+    /// Lets component `index` be restarted by `restarter` after a fault,
+    /// under `policy`.
+    pub fn set_restart(&mut self, index: usize, policy: RestartPolicy, restarter: Restarter) {
+        if let Some(node) = self.nodes.get_mut(index) {
+            node.restart = Some((policy, restarter));
+        }
     }
 
     /// Connects output `from_port` of `from` to input `to_port` of `to`.
@@ -247,6 +283,7 @@ impl Graph {
     pub fn step(&mut self, now_ns: u64) {
         self.cycles += 1;
         self.mark = None;
+        self.restart_due(now_ns);
         for index in 0..self.nodes.len() {
             let node = &mut self.nodes[index];
             let Some(period) = node.period_ns else {
@@ -286,12 +323,13 @@ impl Graph {
     }
 
     /// When the next cycle is due: the earliest tick of a running component,
-    /// or an earlier wake a component asked for.
+    /// an earlier wake a component asked for, or a restart.
     pub fn next_due_ns(&self) -> Option<u64> {
         let running = self.nodes.iter().filter(|n| n.state == ComponentState::Running);
         let ticks = running.clone().filter(|n| n.period_ns.is_some()).map(|n| n.next_tick_ns);
         let wakes = running.filter_map(|n| n.component.next_wake());
-        ticks.chain(wakes).min()
+        let restarts = self.nodes.iter().filter_map(|n| n.restart_at_ns);
+        ticks.chain(wakes).chain(restarts).min()
     }
 
     /// Whether values wait for delivery (left over by the per-cycle cap).
@@ -378,9 +416,59 @@ impl Graph {
         self.mark = Some(ended);
     }
 
-    /// Stops node `index` for good: it is never called again and its pending
-    /// input is discarded. The other components are told at once (the
-    /// arbiter stops counting it as a source) and what they emit is routed.
+    /// Restarts the faulted components whose restart is due.
+    fn restart_due(&mut self, now_ns: u64) {
+        for index in 0..self.nodes.len() {
+            let node = &mut self.nodes[index];
+            if !node.restart_at_ns.is_some_and(|at| at <= now_ns) {
+                continue;
+            }
+            node.restart_at_ns = None;
+            let Some((policy, restarter)) = node.restart.as_mut() else { continue };
+            node.stats.restarts += 1;
+            let attempt = node.stats.restarts;
+            match restarter() {
+                Ok(component) => {
+                    tracing::info!(component = &*node.name, "restarted (restart {attempt} of {})", policy.max_restarts);
+                    node.component = component;
+                    node.state = ComponentState::Running;
+                    node.next_tick_ns = now_ns;
+                    for other in 0..self.nodes.len() {
+                        if other != index && self.nodes[other].state == ComponentState::Running {
+                            self.nodes[other].component.peer_restarted(index, now_ns);
+                        }
+                    }
+                }
+                Err(why) => {
+                    tracing::error!(component = &*node.name, "restart {attempt} failed: {why}");
+                    Self::schedule_restart(node, now_ns);
+                }
+            }
+        }
+    }
+
+    /// Schedules the next restart of `node` if its policy allows one.
+    fn schedule_restart(node: &mut Node, now_ns: u64) {
+        let Some((policy, _)) = &node.restart else { return };
+        if node.stats.restarts >= u64::from(policy.max_restarts) {
+            if policy.max_restarts > 0 {
+                tracing::error!(
+                    component = &*node.name,
+                    "no restarts left ({} used): it stays stopped",
+                    policy.max_restarts
+                );
+            }
+            return;
+        }
+        let backoff = policy.backoff_ns.saturating_mul(1 << node.stats.restarts.min(20)).min(MAX_RESTART_BACKOFF_NS);
+        node.restart_at_ns = Some(now_ns.saturating_add(backoff));
+        tracing::info!(component = &*node.name, "restarting in {:.1} s", backoff as f64 / 1e9);
+    }
+
+    /// Stops node `index`: it is not called again (until a restart, if its
+    /// policy allows one) and its pending input is discarded. The other
+    /// components are told at once (the arbiter stops counting it as a
+    /// source) and what they emit is routed.
     pub fn fault(&mut self, index: usize, reason: String, now_ns: u64) {
         let Some(node) = self.nodes.get_mut(index) else { return };
         if node.state != ComponentState::Running {
@@ -388,6 +476,7 @@ impl Graph {
         }
         tracing::error!(component = &*node.name, "component faulted and is stopped: {reason}; the others keep running");
         node.state = ComponentState::Faulted { reason, at_ns: now_ns };
+        Self::schedule_restart(node, now_ns);
         for &connection in &node.incoming {
             match &mut self.connections[connection].mailbox {
                 Mailbox::Latest(value) => *value = None,

@@ -385,7 +385,7 @@ impl Sandbox {
     }
 
     /// A running instance of `artifact` named `name`, initialised with
-    /// `params`, with its own memory limit and per-call budget.
+    /// `params`, with its own limits.
     pub fn instantiate(
         &self,
         artifact: &WasmArtifact,
@@ -393,60 +393,29 @@ impl Sandbox {
         limits: &GuestLimits,
         params: &[Param],
     ) -> Result<WasmComponent, SandboxError> {
-        let budget = limits.budget;
-        let outputs: Arc<[ValueKind]> = artifact.description.outputs.iter().map(|p| p.kind).collect();
-        let mut store = self.new_store(name.into(), limits, outputs);
-        store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
-        let instance =
-            artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
-        match instance.call_init(&mut store, params) {
-            Ok(Ok(())) => {}
-            Ok(Err(message)) => {
-                return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
-            }
-            Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
-        }
-        // Values emitted during init are dropped: nothing is wired yet.
-        store.data_mut().outbox.clear();
-        Ok(WasmComponent { store, instance, budget, budget_ticks: budget_ticks(budget) })
+        instantiate_component(&self.engine, artifact, name, limits, params)
+    }
+
+    /// Builds fresh instances of `artifact` (its cached, pre-linked form)
+    /// for restarts, after this loader is gone.
+    pub fn restarter(
+        &self,
+        artifact: Arc<WasmArtifact>,
+        name: &str,
+        limits: GuestLimits,
+        params: Vec<Param>,
+    ) -> crate::runtime::Restarter {
+        let engine = self.engine.clone();
+        let name = name.to_string();
+        Box::new(move || {
+            instantiate_component(&engine, &artifact, &name, &limits, &params)
+                .map(|c| Box::new(c) as Box<dyn Component>)
+                .map_err(|e| e.to_string())
+        })
     }
 
     fn new_store(&self, component: Arc<str>, guest: &GuestLimits, outputs: Arc<[ValueKind]>) -> Store<GuestState> {
-        let logs = LogBudget::new(guest.max_logs_per_s);
-        let wasi = WasiCtxBuilder::new()
-            .stdout(GuestOutput::new(component.clone(), "stdout", logs.clone()))
-            .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()))
-            .allow_tcp(false)
-            .allow_udp(false)
-            .allow_ip_name_lookup(false)
-            .build();
-        let limits = StoreLimitsBuilder::new()
-            .memory_size(usize::try_from(guest.memory_bytes).unwrap_or(usize::MAX))
-            .instances(MAX_INSTANCES_PER_STORE)
-            .tables(MAX_TABLES_PER_STORE)
-            .memories(MAX_MEMORIES_PER_STORE)
-            .trap_on_grow_failure(true)
-            .build();
-        let mut table = ResourceTable::new();
-        table.set_max_capacity(MAX_RESOURCE_ENTRIES);
-        let state = GuestState {
-            wasi,
-            table,
-            limits,
-            component,
-            outputs,
-            outbox: Vec::new(),
-            now_ns: 0,
-            emits: 0,
-            max_emits: guest.max_emits,
-            max_message_bytes: guest.max_message_bytes,
-            logs,
-        };
-        let mut store = Store::new(&self.engine, state);
-        store.limiter(|state| &mut state.limits);
-        store.set_hostcall_fuel(usize::try_from(guest.max_message_bytes + HOSTCALL_FUEL_SLACK).unwrap_or(usize::MAX));
-        store.set_max_component_handles(MAX_COMPONENT_HANDLES);
-        store
+        new_store(&self.engine, component, guest, outputs)
     }
 
     fn compile_cached(&self, sha256: &str, bytes: &[u8]) -> Result<wasmtime::component::Component, SandboxError> {
@@ -478,6 +447,74 @@ impl Sandbox {
         }
         Ok(component)
     }
+}
+
+/// A running, initialised instance of `artifact` in a new store of `engine`.
+fn instantiate_component(
+    engine: &Engine,
+    artifact: &WasmArtifact,
+    name: &str,
+    limits: &GuestLimits,
+    params: &[Param],
+) -> Result<WasmComponent, SandboxError> {
+    let budget = limits.budget;
+    let outputs: Arc<[ValueKind]> = artifact.description.outputs.iter().map(|p| p.kind).collect();
+    let mut store = new_store(engine, name.into(), limits, outputs);
+    store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
+    let instance = artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
+    match instance.call_init(&mut store, params) {
+        Ok(Ok(())) => {}
+        Ok(Err(message)) => {
+            return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
+        }
+        Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
+    }
+    // Values emitted during init are dropped: nothing is wired yet.
+    store.data_mut().outbox.clear();
+    Ok(WasmComponent { store, instance, budget, budget_ticks: budget_ticks(budget) })
+}
+
+fn new_store(
+    engine: &Engine,
+    component: Arc<str>,
+    guest: &GuestLimits,
+    outputs: Arc<[ValueKind]>,
+) -> Store<GuestState> {
+    let logs = LogBudget::new(guest.max_logs_per_s);
+    let wasi = WasiCtxBuilder::new()
+        .stdout(GuestOutput::new(component.clone(), "stdout", logs.clone()))
+        .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()))
+        .allow_tcp(false)
+        .allow_udp(false)
+        .allow_ip_name_lookup(false)
+        .build();
+    let limits = StoreLimitsBuilder::new()
+        .memory_size(usize::try_from(guest.memory_bytes).unwrap_or(usize::MAX))
+        .instances(MAX_INSTANCES_PER_STORE)
+        .tables(MAX_TABLES_PER_STORE)
+        .memories(MAX_MEMORIES_PER_STORE)
+        .trap_on_grow_failure(true)
+        .build();
+    let mut table = ResourceTable::new();
+    table.set_max_capacity(MAX_RESOURCE_ENTRIES);
+    let state = GuestState {
+        wasi,
+        table,
+        limits,
+        component,
+        outputs,
+        outbox: Vec::new(),
+        now_ns: 0,
+        emits: 0,
+        max_emits: guest.max_emits,
+        max_message_bytes: guest.max_message_bytes,
+        logs,
+    };
+    let mut store = Store::new(engine, state);
+    store.limiter(|state| &mut state.limits);
+    store.set_hostcall_fuel(usize::try_from(guest.max_message_bytes + HOSTCALL_FUEL_SLACK).unwrap_or(usize::MAX));
+    store.set_max_component_handles(MAX_COMPONENT_HANDLES);
+    store
 }
 
 /// A running WASM component: its store and instance.
