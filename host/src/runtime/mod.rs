@@ -420,7 +420,7 @@ impl Graph {
     fn restart_due(&mut self, now_ns: u64) {
         for index in 0..self.nodes.len() {
             let node = &mut self.nodes[index];
-            if !node.restart_at_ns.is_some_and(|at| at <= now_ns) {
+            if node.restart_at_ns.is_none_or(|at| at > now_ns) {
                 continue;
             }
             node.restart_at_ns = None;
