@@ -183,6 +183,10 @@ fn main() {
     hop_latency(&sandbox, &bytes, "scalar", 0, Value::Scalar(1.5), overhead);
     hop_latency(&sandbox, &bytes, "vector of 100 f64", 1, Value::Vector((0..100).map(f64::from).collect()), overhead);
     direct_call(&sandbox, &bytes, overhead);
+    // The same hop on an engine without epoch interruption: what the epoch
+    // checks (the per-call budget) cost.
+    let unchecked = Sandbox::without_budgets_for_benchmarks(None).unwrap();
+    hop_latency(&unchecked, &bytes, "scalar, no epochs", 0, Value::Scalar(1.5), overhead);
     throughput(&sandbox, &bytes);
     load_and_instantiate(&bytes);
 }

@@ -294,11 +294,24 @@ impl Sandbox {
     /// Starts the engine and its epoch ticker. Compiled components are cached
     /// in `cache_dir` when given.
     pub fn new(cache_dir: Option<PathBuf>) -> Result<Sandbox, SandboxError> {
-        let (engine, pooling) = match Engine::new(&engine_config(true)) {
+        Sandbox::with_epochs(cache_dir, true)
+    }
+
+    /// A sandbox whose engine has no epoch interruption: calls cannot be
+    /// stopped, so budgets are not enforced. Only for measuring what the
+    /// epoch checks cost (`benches/hop.rs`); never for running components.
+    #[doc(hidden)]
+    pub fn without_budgets_for_benchmarks(cache_dir: Option<PathBuf>) -> Result<Sandbox, SandboxError> {
+        Sandbox::with_epochs(cache_dir, false)
+    }
+
+    fn with_epochs(cache_dir: Option<PathBuf>, epochs: bool) -> Result<Sandbox, SandboxError> {
+        let (engine, pooling) = match Engine::new(&engine_config(true, epochs)) {
             Ok(engine) => (engine, true),
             Err(err) => {
                 tracing::warn!("pooling allocator unavailable ({err}); instances are allocated on demand");
-                let engine = Engine::new(&engine_config(false)).map_err(|e| SandboxError::Engine(e.to_string()))?;
+                let engine =
+                    Engine::new(&engine_config(false, epochs)).map_err(|e| SandboxError::Engine(e.to_string()))?;
                 (engine, false)
             }
         };
@@ -680,13 +693,13 @@ pub fn check_component_header(bytes: &[u8]) -> Result<(), SandboxError> {
     }
 }
 
-fn engine_config(pooling: bool) -> Config {
+fn engine_config(pooling: bool, epochs: bool) -> Config {
     let mut config = Config::new();
     // Measured: with concurrency support on, an empty call costs ~500 ns
     // instead of ~150 ns; the host calls guests synchronously.
     config.concurrency_support(false);
     config.wasm_component_model(true);
-    config.epoch_interruption(true);
+    config.epoch_interruption(epochs);
     config.max_wasm_stack(MAX_WASM_STACK_BYTES);
     config.parallel_compilation(true);
     if pooling {
