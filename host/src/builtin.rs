@@ -445,10 +445,6 @@ impl Component for LogSink {
         tracing::info!(component = %self.name, "received {}{more}", format_value(value));
         Ok(())
     }
-
-    fn tick(&mut self, _now_ns: u64, _out: &mut Outbox) -> Result<(), CallError> {
-        Ok(())
-    }
 }
 
 struct Publisher {
@@ -456,17 +452,6 @@ struct Publisher {
 }
 
 impl Component for Publisher {
-    fn on_input(
-        &mut self,
-        _port: u32,
-        _value: &Value,
-        _from: usize,
-        _now_ns: u64,
-        _out: &mut Outbox,
-    ) -> Result<(), CallError> {
-        Ok(())
-    }
-
     fn tick(&mut self, _now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
         out.push((0, self.value.clone()));
         Ok(())

@@ -396,17 +396,6 @@ pub fn websocket_router(ctx: Arc<ServerContext>) -> axum::Router {
 }
 
 impl Component for TeleopComponent {
-    fn on_input(
-        &mut self,
-        _port: u32,
-        _value: &Value,
-        _from: usize,
-        _now_ns: u64,
-        _out: &mut Outbox,
-    ) -> Result<(), CallError> {
-        Ok(())
-    }
-
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
         self.poll(now_ns, out);
         Ok(())

@@ -221,10 +221,7 @@ pub async fn serve_tcp(stream: tokio::net::TcpStream, id: u64, address: String, 
             Some(notice) = notice_rx.recv() => Reply::Send(vec![notice]),
             () = tokio::time::sleep_until(deadline) => session.on_timer(&ctx),
         };
-        let (messages, close) = match outgoing {
-            Reply::Send(m) => (m, false),
-            Reply::Close(m) => (m, true),
-        };
+        let (messages, close) = outgoing.split();
         let mut failed = false;
         for message in &messages {
             failed |= transport.send(&session, message).await.is_err();
@@ -266,10 +263,7 @@ pub async fn serve_websocket(
             Some(notice) = notice_rx.recv() => Reply::Send(vec![notice]),
             () = tokio::time::sleep_until(deadline) => session.on_timer(&ctx),
         };
-        let (messages, close) = match outgoing {
-            Reply::Send(m) => (m, false),
-            Reply::Close(m) => (m, true),
-        };
+        let (messages, close) = outgoing.split();
         let mut failed = false;
         for message in &messages {
             failed |= socket.send(Message::Text(message.to_json().into())).await.is_err();
@@ -299,6 +293,16 @@ impl<W: AsyncWrite + Unpin> LineTransport<W> {
 enum Reply {
     Send(Vec<ServerMessage>),
     Close(Vec<ServerMessage>),
+}
+
+impl Reply {
+    /// The messages to send, and whether to close afterwards.
+    fn split(self) -> (Vec<ServerMessage>, bool) {
+        match self {
+            Reply::Send(messages) => (messages, false),
+            Reply::Close(messages) => (messages, true),
+        }
+    }
 }
 
 impl Session {

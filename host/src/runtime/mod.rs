@@ -48,7 +48,8 @@ pub enum CallError {
 /// native built-ins implement it alike.
 pub trait Component: Send {
     /// A new value arrived on input `port`, sent by component `from` (its
-    /// index in the graph). Emitted values go to `out`.
+    /// index in the graph). Emitted values go to `out`. Components without
+    /// inputs are never called here; the default ignores the value.
     fn on_input(
         &mut self,
         port: u32,
@@ -56,9 +57,16 @@ pub trait Component: Send {
         from: usize,
         now_ns: u64,
         out: &mut Outbox,
-    ) -> Result<(), CallError>;
-    /// The component's periodic call. Emitted values go to `out`.
-    fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError>;
+    ) -> Result<(), CallError> {
+        let _ = (port, value, from, now_ns, out);
+        Ok(())
+    }
+    /// The component's periodic call. Emitted values go to `out`. The
+    /// default does nothing (components that only react to input).
+    fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        let _ = (now_ns, out);
+        Ok(())
+    }
     /// Called on every cycle (before delivery), for components fed from
     /// outside the graph (the network platform). Emitted values are routed.
     fn poll(&mut self, now_ns: u64, out: &mut Outbox) {

@@ -24,9 +24,8 @@ use serialport::{SerialPort, TTYPort};
 
 use self::physics::{Body, SimStatus, Simulation};
 use self::world::World;
-use crate::contract::Value;
 use crate::robot::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::Component;
 
 /// The simulated controller stops the wheels when no command came for this
 /// long (real controllers have such a watchdog too).
@@ -188,21 +187,6 @@ impl SimComponent {
 }
 
 impl Component for SimComponent {
-    fn on_input(
-        &mut self,
-        _port: u32,
-        _value: &Value,
-        _from: usize,
-        _now_ns: u64,
-        _out: &mut Outbox,
-    ) -> Result<(), CallError> {
-        Ok(())
-    }
-
-    fn tick(&mut self, _now_ns: u64, _out: &mut Outbox) -> Result<(), CallError> {
-        Ok(())
-    }
-
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
         let status = self.robot.status()?;
         let mut value = serde_json::to_value(status).ok()?;
