@@ -12,6 +12,7 @@ pub mod fsutil;
 pub mod loader;
 pub mod mode;
 pub mod net;
+pub mod preamble;
 pub mod report;
 pub mod robot;
 pub mod runtime;

@@ -672,25 +672,9 @@ impl Translator for WasmTranslator {
 }
 
 /// Checks the preamble of `bytes`: a component, not a core module, a
-/// precompiled artifact or anything else.
+/// precompiled artifact or anything else (`crate::preamble`).
 pub fn check_component_header(bytes: &[u8]) -> Result<(), SandboxError> {
-    let fail = |why: &str| Err(SandboxError::NotAComponent(why.to_string()));
-    if bytes.starts_with(b"\x7fELF") {
-        return fail(
-            "this is a precompiled native artifact (ELF); upload the .wasm component itself: precompiled code is never loaded from outside",
-        );
-    }
-    if !bytes.starts_with(b"\0asm") {
-        return fail("the file does not start with the webassembly magic bytes '\\0asm'");
-    }
-    match bytes.get(4..8) {
-        Some([0x01, 0x00, 0x00, 0x00]) => fail(
-            "this is a core webassembly module, not a component (build for wasm32-wasip2, or wrap it with `wasm-tools component new`)",
-        ),
-        Some([_, _, 0x01, 0x00]) => Ok(()),
-        Some(_) => fail("unknown webassembly version or layer in the preamble"),
-        None => fail("the file is too short to be a webassembly component"),
-    }
+    crate::preamble::check_component_preamble(bytes).map_err(|why| SandboxError::NotAComponent(why.to_string()))
 }
 
 fn engine_config(pooling: bool, epochs: bool) -> Config {
