@@ -163,10 +163,7 @@ fn the_avoider_prevents_the_collision_a_blind_source_would_cause() {
 
 #[test]
 fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_timeout() {
-    use serialport::{SerialPort, TTYPort};
-    let (mut master, _slave) = TTYPort::pair().unwrap();
-    master.set_timeout(Duration::from_millis(10)).unwrap();
-    let device = _slave.name().unwrap();
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
     let dir = tempfile::tempdir().unwrap();
     let robot = robot_file(
         dir.path(),
@@ -191,20 +188,10 @@ fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_ti
     let mut child =
         subsume().args(["run", robot.to_str().unwrap(), "--duration", "4"]).stderr(Stdio::null()).spawn().unwrap();
     // Record every line the motor controller receives, with its arrival time.
-    let mut lines: Vec<(Instant, String)> = Vec::new();
-    let mut pending = String::new();
-    let mut buffer = [0u8; 256];
     let deadline = Instant::now() + Duration::from_secs(30);
-    while child.try_wait().unwrap().is_none() && Instant::now() < deadline {
-        if let Ok(n) = std::io::Read::read(&mut master, &mut buffer) {
-            pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
-            while let Some(end) = pending.find('\n') {
-                lines.push((Instant::now(), pending[..end].to_string()));
-                pending.drain(..=end);
-            }
-        }
-    }
+    motors.read_while(|| child.try_wait().unwrap().is_none() && Instant::now() < deadline);
     assert!(wait_for_exit(&mut child, Duration::from_secs(10)).success());
+    let lines = motors.lines;
     let last_motion = lines.iter().rposition(|(_, l)| l == "M 250 250").expect("the source's commands reached the pty");
     let first_stop = lines[last_motion..].iter().find(|(_, l)| l == "S").expect("STOP reached the pty");
     let gap = first_stop.0.duration_since(lines[last_motion].0);

@@ -159,17 +159,14 @@ fn endless_loops_in_describe_and_init_fail_loading_in_bounded_time() {
 
 #[test]
 fn a_component_that_holds_control_and_then_loops_leaves_the_robot_stopped() {
-    use serialport::{SerialPort, TTYPort};
-    use std::io::Read;
     support::guest_dir();
-    let (mut master, slave) = TTYPort::pair().unwrap();
-    master.set_timeout(Duration::from_millis(10)).unwrap();
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
     let dir = tempfile::tempdir().unwrap();
     let body = format!(
         r#"<robot name="grab">
   <platform name="control">
     <component name="motors" source="builtin:serial" rate="100">
-      <param name="device" value="{}"/>
+      <param name="device" value="{device}"/>
       <param name="watchdog" value="0.3"/>
     </component>
     <component name="grabber" source="GUEST(test-faulty)" rate="20" budget="5ms" timeout="2s">
@@ -180,23 +177,12 @@ fn a_component_that_holds_control_and_then_loops_leaves_the_robot_stopped() {
     <connect from="grabber.cmd" to="arbiter.commands"/>
     <connect from="arbiter.cmd" to="motors.cmd"/>
   </platform>
-</robot>"#,
-        slave.name().unwrap()
+</robot>"#
     );
     let dir_path = dir.path().to_path_buf();
     let host = std::thread::spawn(move || run_robot(&dir_path, &body, &["run", "--duration", "3"]));
-    let mut lines: Vec<(Instant, String)> = Vec::new();
-    let mut pending = String::new();
-    let mut buffer = [0u8; 256];
-    while !host.is_finished() {
-        if let Ok(n) = master.read(&mut buffer) {
-            pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
-            while let Some(end) = pending.find('\n') {
-                lines.push((Instant::now(), pending[..end].to_string()));
-                pending.drain(..=end);
-            }
-        }
-    }
+    motors.read_while(|| !host.is_finished());
+    let lines = motors.lines;
     let (output, report) = host.join().unwrap();
     assert!(output.status.success());
     let grabber = component(report.as_ref().unwrap(), "grabber");

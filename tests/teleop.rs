@@ -344,10 +344,7 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
 
 #[test]
 fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
-    use serialport::{SerialPort, TTYPort};
-    let (mut master, slave) = TTYPort::pair().unwrap();
-    master.set_timeout(Duration::from_millis(10)).unwrap();
-    let device = slave.name().unwrap();
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
     let components = format!(
         r#"<component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
@@ -359,31 +356,16 @@ fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
     alice.login("alice", TOKEN);
     alice.send("MODE direct");
     assert!(alice.reply().starts_with("MODE direct granted"));
-    let mut lines: Vec<(Instant, String)> = Vec::new();
-    let mut pending = String::new();
-    let mut buffer = [0u8; 256];
-    let mut read = |lines: &mut Vec<(Instant, String)>| {
-        if let Ok(n) = master.read(&mut buffer) {
-            pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
-            while let Some(end) = pending.find('\n') {
-                lines.push((Instant::now(), pending[..end].to_string()));
-                pending.drain(..=end);
-            }
-        }
-    };
     for _ in 0..20 {
         alice.command("VEL 0.2 0");
         let until = Instant::now() + Duration::from_millis(50);
-        while Instant::now() < until {
-            read(&mut lines);
-        }
+        motors.read_while(|| Instant::now() < until);
     }
     // The operator vanishes.
     drop(alice);
     let gone = Instant::now();
-    while Instant::now() < gone + Duration::from_millis(800) {
-        read(&mut lines);
-    }
+    motors.read_while(|| Instant::now() < gone + Duration::from_millis(800));
+    let lines = motors.lines;
     assert!(lines.iter().any(|(_, l)| l == "M 200 200"), "the operator drove: {lines:?}");
     let stop = lines.iter().find(|(at, l)| *at > gone && l == "S").expect("STOP reached the motors");
     // The network source's timeout is 300 ms; the arbiter ticks at 50 Hz.

@@ -45,3 +45,42 @@ pub fn guest(name: &str) -> PathBuf {
 pub fn cache_dir() -> PathBuf {
     repo_root().join("target/test-component-cache")
 }
+
+/// The far end of a pseudo-terminal playing a motor controller: records
+/// every line the host writes, with the time it arrived.
+pub struct MotorRecorder {
+    master: serialport::TTYPort,
+    pending: String,
+    /// Each complete line and when it was read.
+    pub lines: Vec<(std::time::Instant, String)>,
+}
+
+impl MotorRecorder {
+    /// A new pseudo-terminal; the host opens the returned device path.
+    pub fn new() -> (MotorRecorder, serialport::TTYPort, String) {
+        use serialport::SerialPort;
+        let (mut master, slave) = serialport::TTYPort::pair().unwrap_or_else(|e| panic!("no pseudo-terminal: {e}"));
+        let _ = master.set_timeout(std::time::Duration::from_millis(10));
+        let device = slave.name().unwrap_or_default();
+        (MotorRecorder { master, pending: String::new(), lines: Vec::new() }, slave, device)
+    }
+
+    /// Reads what has arrived (waiting at most the port's 10 ms timeout).
+    pub fn read(&mut self) {
+        let mut buffer = [0u8; 256];
+        if let Ok(n) = std::io::Read::read(&mut self.master, &mut buffer) {
+            self.pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
+            while let Some(end) = self.pending.find('\n') {
+                self.lines.push((std::time::Instant::now(), self.pending[..end].to_string()));
+                self.pending.drain(..=end);
+            }
+        }
+    }
+
+    /// Reads while `going` says so.
+    pub fn read_while(&mut self, mut going: impl FnMut() -> bool) {
+        while going() {
+            self.read();
+        }
+    }
+}
