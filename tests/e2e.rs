@@ -18,6 +18,8 @@ fn subsume() -> Command {
     let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
     command
         .current_dir(support::repo_root())
+        // These tests run the robot file alone; tests/portal.rs runs the portal.
+        .env("SUBSUME_HTTP", "off")
         .arg("--cache-dir")
         .arg(support::cache_dir())
         .env("RUST_LOG", "info")

@@ -23,6 +23,7 @@ fn run_robot(dir: &Path, body: &str, args: &[&str]) -> (Output, Option<Json>) {
     let report = dir.join("report.json");
     let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
         .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
         .args(["--cache-dir", support::cache_dir().to_str().unwrap()])
         .args(args)
         .arg(&robot)

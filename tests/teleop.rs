@@ -62,6 +62,7 @@ fn start(teleop_params: &str, components: &str, duration_s: u32) -> Host {
     let report = dir.path().join("report.json");
     let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
         .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
         .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
         .args(["--duration", &duration_s.to_string(), "--report", report.to_str().unwrap()])
         .env("RUST_LOG", "info")

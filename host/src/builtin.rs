@@ -239,6 +239,17 @@ pub struct BuildContext<'a> {
     /// The control loop's clock and a waker for it.
     pub clock: Clock,
     pub waker: Waker,
+    pub services: Services,
+}
+
+/// What the host shares with the built-ins it starts, beyond one robot.
+#[derive(Clone, Debug, Default)]
+pub struct Services {
+    /// The portal's users: `builtin:teleop` lets operators drive with their
+    /// password or a pad ticket.
+    pub directory: Option<std::sync::Arc<crate::users::Directory>>,
+    /// Where `builtin:teleop` registers itself for the portal's WebSocket.
+    pub teleop_servers: net::TeleopServers,
 }
 
 /// A running built-in of `kind` for component `ctx.index`.
@@ -338,10 +349,12 @@ pub fn instantiate(
             Ok(Box::new(SerialLink::start(name, settings, translator)?))
         }
         "teleop" => {
-            let settings = net::settings(&params, &base_dir)?;
+            let mut settings = net::settings(&params, &base_dir)?;
+            settings.directory = ctx.services.directory.clone();
             let priority = ctx.priorities.get(ctx.index).cloned().unwrap_or_default();
             let component =
                 TeleopComponent::start(name, &ctx.robot.name, settings, ctx.clock, ctx.waker.clone(), priority)?;
+            ctx.services.teleop_servers.register(component.context());
             Ok(Box::new(component))
         }
         "sim" => {
@@ -590,6 +603,7 @@ mod tests {
                 priorities: &[PriorityCell::new(0)],
                 clock: Clock::new(),
                 waker: Waker::default(),
+                services: Services::default(),
             },
             &mut Builtins,
         )?;

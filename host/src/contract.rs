@@ -227,6 +227,29 @@ pub fn clip(text: &str) -> String {
     clipped
 }
 
+/// A description as JSON (`subsume describe --json`, the portal).
+pub fn description_json(d: &Description, sha256: &str) -> serde_json::Value {
+    let ports = |ports: &[PortSpec]| -> Vec<serde_json::Value> {
+        ports
+            .iter()
+            .enumerate()
+            .map(|(i, p)| serde_json::json!({ "index": i, "name": p.name, "kind": p.kind.name(), "doc": p.doc }))
+            .collect()
+    };
+    serde_json::json!({
+        "name": d.name,
+        "version": d.version,
+        "summary": d.summary,
+        "sha256": sha256,
+        "default_priority": d.default_priority,
+        "inputs": ports(&d.inputs),
+        "outputs": ports(&d.outputs),
+        "params": d.params.iter().map(|p| serde_json::json!({
+            "name": p.name, "kind": p.kind.name(), "default": p.default_value, "doc": p.doc,
+        })).collect::<Vec<_>>(),
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -7,7 +7,6 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use serde_json::json;
 use subsume::config::ParamOverride;
 use subsume::contract::Description;
 use subsume::loader::{Loader, read_component_file};
@@ -25,6 +24,10 @@ struct Cli {
     /// Compile every component afresh and cache nothing.
     #[arg(long, global = true)]
     no_cache: bool,
+    /// The portal's store: users, uploads, sets, audit log [default:
+    /// $SUBSUME_STORE, $XDG_DATA_HOME/subsume or ~/.local/share/subsume]
+    #[arg(long, global = true, value_name = "DIR", env = "SUBSUME_STORE")]
+    store: Option<PathBuf>,
     #[command(subcommand)]
     command: Command,
 }
@@ -45,6 +48,15 @@ enum Command {
         /// Set a component parameter, overriding the robot file (repeatable).
         #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
         params: Vec<ParamOverride>,
+        /// Where the web portal listens, or `off` to run the file alone
+        /// without portal or store.
+        #[arg(long, value_name = "ADDRESS|off", env = "SUBSUME_HTTP", default_value = "127.0.0.1:8080")]
+        http: String,
+    },
+    /// Manage the portal's users (stored in the store's users.json).
+    User {
+        #[command(subcommand)]
+        action: UserAction,
     },
     /// Check a robot file: print every error as path:line:column: message.
     Check {
@@ -72,22 +84,80 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Create a component project that builds with one command (see its README).
+    New {
+        /// The component's name: [a-z][a-z0-9_-]*.
+        name: String,
+        /// The language of the project.
+        #[arg(long, value_name = "rust|c|python|js")]
+        lang: subsume::scaffold::Language,
+        /// The project's folder, which must not exist [default: ./NAME].
+        #[arg(long, value_name = "DIR")]
+        dir: Option<PathBuf>,
+    },
+}
+
+#[derive(Subcommand)]
+enum UserAction {
+    /// Add a user; prints a generated password unless --password-stdin.
+    Add {
+        name: String,
+        /// viewer, operator (may drive), developer (may upload and activate
+        /// on its platforms) or admin.
+        #[arg(long)]
+        role: String,
+        /// network or control (repeatable; developers need at least one).
+        #[arg(long = "platform")]
+        platforms: Vec<String>,
+        /// Read the password from the first line of standard input.
+        #[arg(long)]
+        password_stdin: bool,
+        /// Replace the user if it exists.
+        #[arg(long)]
+        replace: bool,
+    },
+    /// Set a new password (generated, or from standard input).
+    Passwd {
+        name: String,
+        #[arg(long)]
+        password_stdin: bool,
+    },
+    /// Remove a user.
+    Remove { name: String },
+    /// List users and their roles.
+    List,
 }
 
 fn main() -> ExitCode {
+    use tracing_subscriber::Layer as _;
+    use tracing_subscriber::layer::SubscriberExt as _;
+    use tracing_subscriber::util::SubscriberInitExt as _;
     let cli = Cli::parse();
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,wasmtime=warn,cranelift=warn")),
+    let logs = subsume::portal::logs::LogRing::new();
+    tracing_subscriber::registry()
+        .with(
+            tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_filter(
+                tracing_subscriber::EnvFilter::try_from_default_env()
+                    .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,wasmtime=warn,cranelift=warn")),
+            ),
         )
-        .with_writer(std::io::stderr)
+        .with(logs.layer())
         .init();
+    let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report, params } => run(config, duration, report, params, cache_dir),
+        Command::Run { config, duration, report, params, http } => {
+            portal_options(&http, store_dir, logs).and_then(|portal| run(config, duration, report, params, cache_dir, portal))
+        }
+        Command::User { action } => user(action, store_dir),
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
+        Command::New { name, lang, dir } => subsume::scaffold::create(&name, lang, dir.as_deref())
+            .map(|project| {
+                print!("{}", project.next_steps());
+                ExitCode::SUCCESS
+            })
+            .map_err(anyhow::Error::from),
         Command::Teleop { address, name, token } => {
             let options = subsume::teleop_client::ClientOptions { address, name, token };
             subsume::teleop_client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::msg)
@@ -108,6 +178,7 @@ fn run(
     report_path: Option<PathBuf>,
     overrides: Vec<ParamOverride>,
     cache_dir: Option<PathBuf>,
+    portal: Option<subsume::PortalOptions>,
 ) -> anyhow::Result<ExitCode> {
     let duration = match duration {
         None => None,
@@ -116,7 +187,7 @@ fn run(
     };
     let shutdown = Shutdown::new();
     let signals = install_signal_handlers(shutdown.clone())?;
-    let options = RunOptions { config_path, duration, cache_dir, overrides };
+    let options = RunOptions { config_path, duration, cache_dir, overrides, portal };
     let result = subsume::run(&options, shutdown);
     signals.close();
     let report = match result {
@@ -167,33 +238,11 @@ fn describe(path: &Path, as_json: bool, cache_dir: Option<PathBuf>) -> anyhow::R
     let artifact = sandbox.load(&bytes).with_context(|| format!("failed to load component {}", path.display()))?;
     let d = &artifact.description;
     if as_json {
-        println!("{}", serde_json::to_string_pretty(&description_json(d, &artifact.sha256))?);
+        println!("{}", serde_json::to_string_pretty(&subsume::contract::description_json(d, &artifact.sha256))?);
     } else {
         print!("{}", description_text(d, &artifact.sha256));
     }
     Ok(ExitCode::SUCCESS)
-}
-
-fn description_json(d: &Description, sha256: &str) -> serde_json::Value {
-    let ports = |ports: &[subsume::contract::PortSpec]| -> Vec<serde_json::Value> {
-        ports
-            .iter()
-            .enumerate()
-            .map(|(i, p)| json!({ "index": i, "name": p.name, "kind": p.kind.name(), "doc": p.doc }))
-            .collect()
-    };
-    json!({
-        "name": d.name,
-        "version": d.version,
-        "summary": d.summary,
-        "sha256": sha256,
-        "default_priority": d.default_priority,
-        "inputs": ports(&d.inputs),
-        "outputs": ports(&d.outputs),
-        "params": d.params.iter().map(|p| json!({
-            "name": p.name, "kind": p.kind.name(), "default": p.default_value, "doc": p.doc,
-        })).collect::<Vec<_>>(),
-    })
 }
 
 fn description_text(d: &Description, sha256: &str) -> String {
@@ -220,6 +269,73 @@ fn description_text(d: &Description, sha256: &str) -> String {
         let _ = writeln!(s, "  {} ({}, default '{}') {}", p.name, p.kind.name(), p.default_value, p.doc);
     }
     s
+}
+
+fn portal_options(
+    http: &str,
+    store_dir: Option<PathBuf>,
+    logs: std::sync::Arc<subsume::portal::logs::LogRing>,
+) -> anyhow::Result<Option<subsume::PortalOptions>> {
+    if http == "off" {
+        return Ok(None);
+    }
+    let listen = http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
+    let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
+    Ok(Some(subsume::PortalOptions { listen, store_dir, logs }))
+}
+
+fn user(action: UserAction, store_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    use subsume::users::{Role, Users, generate_password, parse_platform};
+    let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
+    let users = Users::new(store_dir.join("users.json"));
+    let password = |from_stdin: bool| -> anyhow::Result<(String, bool)> {
+        if from_stdin {
+            let mut line = String::new();
+            std::io::stdin().read_line(&mut line).context("cannot read the password from standard input")?;
+            Ok((line.trim_end_matches(['\r', '\n']).to_string(), false))
+        } else {
+            Ok((generate_password().map_err(anyhow::Error::msg)?, true))
+        }
+    };
+    match action {
+        UserAction::Add { name, role, platforms, password_stdin, replace } => {
+            let role: Role = role.parse().map_err(anyhow::Error::msg)?;
+            let platforms =
+                platforms.iter().map(|p| parse_platform(p)).collect::<Result<Vec<_>, _>>().map_err(anyhow::Error::msg)?;
+            let (password, generated) = password(password_stdin)?;
+            users.add(&name, role, &platforms, &password, replace)?;
+            eprintln!("added {} '{name}' to {}", role.name(), users.path().display());
+            if generated {
+                println!("{password}");
+                eprintln!("(that is the password; it is shown once and stored only as an argon2id hash)");
+            }
+        }
+        UserAction::Passwd { name, password_stdin } => {
+            let (password, generated) = password(password_stdin)?;
+            users.set_password(&name, &password)?;
+            if generated {
+                println!("{password}");
+            }
+            eprintln!("new password set for '{name}'");
+        }
+        UserAction::Remove { name } => {
+            users.remove(&name)?;
+            eprintln!("removed '{name}'");
+        }
+        UserAction::List => {
+            for u in users.all()? {
+                println!("{} {} {}", u.name, u.role.name(), u.platforms.join(","));
+            }
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+fn default_store_dir() -> Option<PathBuf> {
+    let env = |name: &str| std::env::var_os(name).filter(|v| !v.is_empty()).map(PathBuf::from);
+    env("XDG_DATA_HOME")
+        .map(|d| d.join("subsume"))
+        .or_else(|| env("HOME").map(|d| d.join(".local").join("share").join("subsume")))
 }
 
 fn default_cache_dir() -> Option<PathBuf> {

@@ -183,6 +183,8 @@ pub struct ConnectionConfig {
     /// An input port.
     pub to: PortRef,
     pub policy: Policy,
+    /// The platform whose `<platform>` element declares the connection.
+    pub platform: Platform,
 }
 
 /// Reads, parses and validates the robot file at `path`.
@@ -249,6 +251,28 @@ pub fn parse_and_validate_with(
     resolver: &mut dyn Resolver,
     overrides: &[ParamOverride],
 ) -> Result<RobotConfig, Diagnostics> {
+    parse_and_validate_overriding(path, text, resolver, overrides, false)
+}
+
+/// Like [`parse_and_validate_with`], but an override of a component the file
+/// does not have is skipped: a run's `--param`s apply to every set the
+/// portal activates, and not every set has every component.
+pub fn parse_and_validate_for_run(
+    path: &Path,
+    text: &str,
+    resolver: &mut dyn Resolver,
+    overrides: &[ParamOverride],
+) -> Result<RobotConfig, Diagnostics> {
+    parse_and_validate_overriding(path, text, resolver, overrides, true)
+}
+
+fn parse_and_validate_overriding(
+    path: &Path,
+    text: &str,
+    resolver: &mut dyn Resolver,
+    overrides: &[ParamOverride],
+    skip_unknown: bool,
+) -> Result<RobotConfig, Diagnostics> {
     let map = SourceMap::new(path, text);
     let mut errors = Vec::new();
     let mut raw = raw::parse(&map, text, &mut errors);
@@ -256,6 +280,9 @@ pub fn parse_and_validate_with(
         let component =
             raw.platforms.iter_mut().flat_map(|p| p.components.iter_mut()).find(|c| c.name.value == o.component);
         let Some(component) = component else {
+            if skip_unknown {
+                continue;
+            }
             errors.push(Diagnostic {
                 path: PathBuf::from("--param"),
                 line: 1,

@@ -50,7 +50,7 @@ pub(super) fn validate(
     // connection to them is not reported a second time as unknown).
     let mut known: HashMap<String, (usize, Option<usize>)> = HashMap::new();
     let mut seen_platforms: HashMap<Platform, usize> = HashMap::new();
-    let mut connects: Vec<RawConnect> = Vec::new();
+    let mut connects: Vec<(Platform, RawConnect)> = Vec::new();
     let mut component_count = 0usize;
 
     for platform in raw.platforms {
@@ -103,11 +103,11 @@ pub(super) fn validate(
             });
             known.insert(name.value, (name.offset, index));
         }
-        connects.extend(platform.connections);
+        connects.extend(platform.connections.into_iter().map(|c| (kind, c)));
     }
 
     let mut seen_connections: HashMap<(PortRef, PortRef), usize> = HashMap::new();
-    for connect in connects {
+    for (platform, connect) in connects {
         let from = endpoint(map, &connect.from, "from", &known, &robot.components, errors);
         let to = endpoint(map, &connect.to, "to", &known, &robot.components, errors);
         let policy = policy(map, &connect, errors);
@@ -149,7 +149,7 @@ pub(super) fn validate(
             ));
             continue;
         }
-        robot.connections.push(ConnectionConfig { from, to, policy });
+        robot.connections.push(ConnectionConfig { from, to, policy, platform });
     }
     robot
 }

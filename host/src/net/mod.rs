@@ -54,8 +54,11 @@ pub struct TeleopSettings {
     pub listen: SocketAddr,
     /// Where the WebSocket endpoint (`/teleop`) listens, if anywhere.
     pub websocket: Option<SocketAddr>,
-    /// Operators and their tokens.
+    /// Operators and their tokens (the `operators` file).
     pub operators: Vec<(String, String)>,
+    /// The portal's users (operators and admins drive with their password
+    /// or a pad ticket), when the host runs the portal.
+    pub directory: Option<Arc<crate::users::Directory>>,
     pub probe_period: Duration,
     pub policy: ModePolicy,
     /// Connections served at once; more are refused.
@@ -64,8 +67,14 @@ pub struct TeleopSettings {
 }
 
 impl TeleopSettings {
-    /// Whether `token` is `name`'s (constant time in the token's length).
+    /// Whether `token` is `name`'s: in the operators file (constant time in
+    /// the token's length), or a portal user's password or pad ticket. A
+    /// password check costs an argon2id hash (~tens of ms) on the network
+    /// runtime; logins are rare and rate-limited by the session.
     pub fn check_token(&self, name: &str, token: &str) -> bool {
+        if self.directory.as_ref().is_some_and(|d| d.check_operator(name, token)) {
+            return true;
+        }
         let mut found = false;
         for (operator, expected) in &self.operators {
             let same_length = expected.len() == token.len();
@@ -255,6 +264,11 @@ impl TeleopComponent {
         waker: Waker,
         priority: PriorityCell,
     ) -> Result<TeleopComponent, String> {
+        if settings.operators.is_empty() && settings.directory.is_none() {
+            return Err("nobody may log in: give the 'operators' parameter (a file of NAME TOKEN lines) \
+                        or run the host with its portal (users with the operator role)"
+                .into());
+        }
         let tcp = std::net::TcpListener::bind(settings.listen)
             .map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
         let listen = tcp.local_addr().map_err(|e| e.to_string())?;
@@ -329,6 +343,11 @@ impl TeleopComponent {
     pub fn listen_address(&self) -> SocketAddr {
         self.listen
     }
+
+    /// The state its sessions share (the portal serves its WebSocket too).
+    pub fn context(&self) -> &Arc<ServerContext> {
+        &self.ctx
+    }
 }
 
 /// Accepts TCP operators, refusing those over the connection limit.
@@ -370,29 +389,61 @@ async fn refuse(mut stream: tokio::net::TcpStream, max: usize) {
     let _ = stream.write_all(line.as_bytes()).await;
 }
 
-/// The `/teleop` WebSocket route (the portal mounts the same route).
+/// The `/teleop` WebSocket route of the `websocket` parameter's listener.
 pub fn websocket_router(ctx: Arc<ServerContext>) -> axum::Router {
     use axum::extract::{ConnectInfo, State, WebSocketUpgrade};
-    use axum::response::IntoResponse;
     async fn upgrade(
         ws: WebSocketUpgrade,
         State(ctx): State<Arc<ServerContext>>,
         ConnectInfo(address): ConnectInfo<SocketAddr>,
     ) -> axum::response::Response {
-        if !admit(&ctx) {
-            let max = ctx.settings.max_connections;
-            return (
-                axum::http::StatusCode::SERVICE_UNAVAILABLE,
-                format!("busy: at most {max} operators are served at once"),
-            )
-                .into_response();
-        }
-        static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1 << 32);
-        let id = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-        ws.max_message_size(protocol::MAX_LINE_BYTES * 2)
-            .on_upgrade(move |socket| session::serve_websocket(socket, id, address.to_string(), ctx))
+        upgrade_websocket(ws, ctx, address)
     }
     axum::Router::new().route("/teleop", axum::routing::get(upgrade)).with_state(ctx)
+}
+
+/// Serves one teleoperation WebSocket on `ctx` (here and in the portal).
+pub fn upgrade_websocket(
+    ws: axum::extract::WebSocketUpgrade,
+    ctx: Arc<ServerContext>,
+    address: SocketAddr,
+) -> axum::response::Response {
+    use axum::response::IntoResponse;
+    if !admit(&ctx) {
+        let max = ctx.settings.max_connections;
+        return (axum::http::StatusCode::SERVICE_UNAVAILABLE, format!("busy: at most {max} operators are served at once"))
+            .into_response();
+    }
+    static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1 << 32);
+    let id = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    ws.max_message_size(protocol::MAX_LINE_BYTES * 2)
+        .on_upgrade(move |socket| session::serve_websocket(socket, id, address.to_string(), ctx))
+}
+
+/// The network platforms running now, so the portal can serve their
+/// WebSocket at its own `/api/v1/teleop`. Holds weak references: a platform
+/// that stopped (replaced by an activation) drops out.
+#[derive(Clone, Default)]
+pub struct TeleopServers(Arc<Mutex<Vec<std::sync::Weak<ServerContext>>>>);
+
+impl std::fmt::Debug for TeleopServers {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("TeleopServers")
+    }
+}
+
+impl TeleopServers {
+    pub fn register(&self, ctx: &Arc<ServerContext>) {
+        if let Ok(mut servers) = self.0.lock() {
+            servers.retain(|s| s.strong_count() > 0);
+            servers.push(Arc::downgrade(ctx));
+        }
+    }
+
+    /// The newest running network platform.
+    pub fn current(&self) -> Option<Arc<ServerContext>> {
+        self.0.lock().ok()?.iter().rev().find_map(|s| s.upgrade())
+    }
 }
 
 impl Component for TeleopComponent {
@@ -506,10 +557,8 @@ pub fn settings(params: &BTreeMap<String, String>, base_dir: &Path) -> Result<Te
         raw.parse::<SocketAddr>().map_err(|_| format!("{key} must be an address like 127.0.0.1:7070, got '{raw}'"))
     };
     let operators_file = text("operators");
-    if operators_file.is_empty() {
-        return Err("builtin:teleop: parameter 'operators' is required (a file of NAME TOKEN lines)".into());
-    }
-    let operators = load_operators(&base_dir.join(operators_file))?;
+    let operators =
+        if operators_file.is_empty() { Vec::new() } else { load_operators(&base_dir.join(operators_file))? };
     let websocket = if text("websocket").is_empty() { None } else { Some(address("websocket", "")?) };
     let delay_text = text("delay");
     let fixed = match delay_text.as_str() {
@@ -530,6 +579,7 @@ pub fn settings(params: &BTreeMap<String, String>, base_dir: &Path) -> Result<Te
         listen: address("listen", "127.0.0.1:7070")?,
         websocket,
         operators,
+        directory: None,
         probe_period,
         policy,
         max_connections,
@@ -570,6 +620,7 @@ mod tests {
             listen: "127.0.0.1:0".parse().unwrap_or_else(|_| SocketAddr::from(([127, 0, 0, 1], 0))),
             websocket: None,
             operators: vec![("alice".into(), "0123456789abcdef".into())],
+            directory: None,
             probe_period: Duration::from_secs(1),
             policy: ModePolicy::default(),
             max_connections: 1,

@@ -118,9 +118,33 @@ impl Shutdown {
     }
 }
 
+/// Work done between two cycles, on the control thread: swapping in a newly
+/// activated graph, publishing the live status. It must be quick.
+pub trait CycleHook {
+    fn between_cycles(&mut self, graph: &mut Graph, now_ns: u64);
+}
+
+/// No work between cycles.
+pub struct NoHook;
+
+impl CycleHook for NoHook {
+    fn between_cycles(&mut self, _graph: &mut Graph, _now_ns: u64) {}
+}
+
 /// Runs `graph` until `shutdown` is requested or `until_ns` (on `clock`)
 /// passes.
 pub fn run(graph: &mut Graph, clock: &Clock, shutdown: &Shutdown, until_ns: Option<u64>) -> StopReason {
+    run_with(graph, clock, shutdown, until_ns, &mut NoHook)
+}
+
+/// Like [`run`], calling `hook` before every cycle.
+pub fn run_with(
+    graph: &mut Graph,
+    clock: &Clock,
+    shutdown: &Shutdown,
+    until_ns: Option<u64>,
+    hook: &mut dyn CycleHook,
+) -> StopReason {
     loop {
         if shutdown.is_requested() {
             return StopReason::Requested;
@@ -129,6 +153,7 @@ pub fn run(graph: &mut Graph, clock: &Clock, shutdown: &Shutdown, until_ns: Opti
         if until_ns.is_some_and(|until| now >= until) {
             return StopReason::Duration;
         }
+        hook.between_cycles(graph, now);
         graph.step(now);
         if graph.has_pending() {
             continue;

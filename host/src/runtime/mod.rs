@@ -609,4 +609,24 @@ impl Graph {
     pub fn cycles(&self) -> u64 {
         self.cycles
     }
+
+    /// Moves component `index` out, leaving a component that does nothing
+    /// in its place (activation carries built-ins that own a device or a
+    /// socket into the next graph).
+    pub fn take_component(&mut self, index: usize) -> Option<Box<dyn Component>> {
+        let node = self.nodes.get_mut(index)?;
+        Some(std::mem::replace(&mut node.component, Box::new(Vacant)))
+    }
+
+    /// Puts `component` in place of component `index`'s.
+    pub fn replace_component(&mut self, index: usize, component: Box<dyn Component>) {
+        if let Some(node) = self.nodes.get_mut(index) {
+            node.component = component;
+        }
+    }
 }
+
+/// What stands where a component was moved out: does nothing.
+pub struct Vacant;
+
+impl Component for Vacant {}

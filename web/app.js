@@ -1,0 +1,389 @@
+// The subsume portal: plain JavaScript, no build step. Talks to /api/v1
+// (see /api/v1/openapi.json) with the session cookie set at login.
+'use strict';
+
+const $ = (id) => document.getElementById(id);
+const el = (tag, attrs = {}, ...children) => {
+  const node = document.createElement(tag);
+  for (const [k, v] of Object.entries(attrs)) node.setAttribute(k, v);
+  for (const c of children) node.append(c);
+  return node;
+};
+
+async function api(method, path, body, headers = {}) {
+  const response = await fetch('/api/v1' + path, { method, body, headers, credentials: 'same-origin' });
+  const data = response.status === 204 ? {} : await response.json().catch(() => ({}));
+  if (!response.ok) {
+    const error = new Error(data.error || response.statusText);
+    error.status = response.status;
+    error.body = data;
+    throw error;
+  }
+  return data;
+}
+
+let me = null;
+let world = null;
+let events = null;
+
+// ---- login ---------------------------------------------------------------
+$('login-form').addEventListener('submit', async (e) => {
+  e.preventDefault();
+  $('login-error').textContent = '';
+  try {
+    const body = JSON.stringify({ name: $('login-name').value, password: $('login-password').value });
+    const result = await api('POST', '/login', body, { 'content-type': 'application/json' });
+    start(result.user);
+  } catch (err) {
+    $('login-error').textContent = err.message;
+  }
+});
+
+async function boot() {
+  try {
+    start(await api('GET', '/session'));
+  } catch (err) {
+    $('login-view').hidden = false;
+  }
+}
+
+function start(user) {
+  me = user;
+  $('login-view').hidden = true;
+  $('app').hidden = false;
+  $('tabs').hidden = false;
+  $('whoami').textContent = `${user.name} (${user.role}${user.platforms.length ? ': ' + user.platforms.join(', ') : ''})`;
+  const logout = el('button', { id: 'logout' }, 'Log out');
+  logout.addEventListener('click', async () => { await api('POST', '/logout').catch(() => {}); location.reload(); });
+  $('whoami').append(' ', logout);
+  startLive();
+  refreshComponents();
+  refreshSets();
+}
+
+// ---- tabs ----------------------------------------------------------------
+for (const button of document.querySelectorAll('#tabs button')) {
+  button.addEventListener('click', () => {
+    for (const b of document.querySelectorAll('#tabs button')) b.classList.toggle('active', b === button);
+    for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
+    if (button.dataset.tab === 'components') refreshComponents();
+    if (button.dataset.tab === 'sets') refreshSets();
+  });
+}
+
+// ---- live view -----------------------------------------------------------
+async function startLive() {
+  try { world = await api('GET', '/world'); } catch (err) { world = null; $('map-note').textContent = err.message; }
+  if (events) events.close();
+  events = new EventSource('/api/v1/events');
+  events.addEventListener('status', (e) => renderStatus(JSON.parse(e.data)));
+  events.addEventListener('log', (e) => {
+    const line = JSON.parse(e.data);
+    const log = $('log');
+    log.append(el('li', {}, `${new Date(line.time * 1000).toLocaleTimeString()} ${line.level} ${line.component ? line.component + ': ' : ''}${line.message}`));
+    while (log.children.length > 200) log.firstChild.remove();
+    log.scrollTop = log.scrollHeight;
+  });
+}
+
+const rates = new Map();
+function renderStatus(s) {
+  if (!s || !s.components) return;
+  if (String(s.set) !== $('active-set').dataset.set) {
+    $('active-set').dataset.set = String(s.set);
+    api('GET', '/world').then((w) => { world = w; }).catch(() => { world = null; });
+  }
+  $('active-set').textContent = `set ${s.set} (${s.robot})`;
+  const arbiter = s.arbiter || {};
+  $('holder').textContent = arbiter.holder || 'nobody (STOP)';
+  $('suppressed').textContent = (arbiter.suppressed || []).join(', ') || '-';
+  const sessions = (s.network && s.network.sessions || []).filter((x) => x.disconnected_at_s == null && x.operator);
+  $('mode').textContent = sessions.map((x) => `${x.operator}: ${x.mode || 'none'}`).join(', ') || 'no operator';
+  $('rtt').textContent = sessions.map((x) => x.rtt_ms == null ? 'measuring' : `${x.rtt_ms.toFixed(1)} ms`).join(', ') || '-';
+  const sim = s.sim;
+  if (sim) {
+    $('pose').textContent = `x ${sim.x.toFixed(2)} y ${sim.y.toFixed(2)} heading ${sim.heading.toFixed(2)}`;
+    $('collisions').textContent = String(sim.collisions);
+  }
+  const body = $('health').querySelector('tbody');
+  body.replaceChildren();
+  for (const c of s.components) {
+    const before = rates.get(c.name);
+    const now = { t: s.duration_s, i: c.messages_in, o: c.messages_out };
+    rates.set(c.name, now);
+    const rate = (k) => before && now.t > before.t ? ((now[k] - before[k]) / (now.t - before.t)).toFixed(1) : '-';
+    const state = el('td', { class: c.state }, c.state + (c.fault ? ': ' + c.fault : ''));
+    body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts))));
+  }
+  drawMap(sim);
+}
+
+function drawMap(sim) {
+  const canvas = $('map');
+  const ctx = canvas.getContext('2d');
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  if (!world) return;
+  const [lo, hi] = world.world.bounds;
+  const scale = Math.min((canvas.width - 20) / (hi.x - lo.x), (canvas.height - 20) / (hi.y - lo.y));
+  const X = (x) => 10 + (x - lo.x) * scale;
+  const Y = (y) => canvas.height - 10 - (y - lo.y) * scale;
+  ctx.strokeStyle = '#333'; ctx.lineWidth = 2;
+  for (const o of world.world.obstacles) {
+    ctx.beginPath();
+    if (o.segment) { ctx.moveTo(X(o.segment[0].x), Y(o.segment[0].y)); ctx.lineTo(X(o.segment[1].x), Y(o.segment[1].y)); }
+    if (o.circle) { ctx.arc(X(o.circle[0].x), Y(o.circle[0].y), o.circle[1] * scale, 0, 2 * Math.PI); }
+    ctx.stroke();
+  }
+  const [goal, tolerance] = world.world.goal;
+  ctx.fillStyle = '#11772b';
+  ctx.beginPath(); ctx.arc(X(goal.x), Y(goal.y), Math.max(4, tolerance * scale), 0, 2 * Math.PI); ctx.fill();
+  if (!sim) return;
+  const rays = sim.ranges || [];
+  const fov = world.fov || Math.PI;
+  ctx.strokeStyle = 'rgba(255, 120, 0, 0.6)'; ctx.lineWidth = 1;
+  rays.forEach((range, i) => {
+    const angle = sim.heading + (rays.length > 1 ? -fov / 2 + (fov * i) / (rays.length - 1) : 0);
+    ctx.beginPath();
+    ctx.moveTo(X(sim.x), Y(sim.y));
+    ctx.lineTo(X(sim.x + range * Math.cos(angle)), Y(sim.y + range * Math.sin(angle)));
+    ctx.stroke();
+  });
+  const radius = (world.radius || 0.2) * scale;
+  ctx.fillStyle = '#0b5cad';
+  ctx.beginPath(); ctx.arc(X(sim.x), Y(sim.y), radius, 0, 2 * Math.PI); ctx.fill();
+  ctx.strokeStyle = '#fff'; ctx.lineWidth = 2; ctx.beginPath();
+  ctx.moveTo(X(sim.x), Y(sim.y));
+  ctx.lineTo(X(sim.x + 0.3 * Math.cos(sim.heading)), Y(sim.y + 0.3 * Math.sin(sim.heading)));
+  ctx.stroke();
+}
+
+// ---- components ----------------------------------------------------------
+let chosen = null;
+function choose(file) {
+  chosen = file;
+  if (!$('component-name').value) $('component-name').value = file.name.replace(/\.wasm$/, '').replace(/_/g, '-').toLowerCase();
+  $('component-upload').disabled = false;
+  $('upload-result').textContent = `${file.name}: ${(file.size / 1024).toFixed(0)} KiB`;
+}
+$('component-file').addEventListener('change', (e) => { if (e.target.files[0]) choose(e.target.files[0]); });
+const zone = $('drop-zone');
+zone.addEventListener('dragover', (e) => { e.preventDefault(); zone.classList.add('over'); });
+zone.addEventListener('dragleave', () => zone.classList.remove('over'));
+zone.addEventListener('drop', (e) => { e.preventDefault(); zone.classList.remove('over'); if (e.dataTransfer.files[0]) choose(e.dataTransfer.files[0]); });
+
+$('component-upload').addEventListener('click', () => {
+  if (!chosen) return;
+  const name = $('component-name').value.trim();
+  const platform = $('component-platform').value;
+  const xhr = new XMLHttpRequest();
+  const progress = $('upload-progress');
+  progress.hidden = false; progress.value = 0;
+  xhr.upload.onprogress = (e) => { if (e.lengthComputable) progress.value = e.loaded / e.total; };
+  xhr.onload = () => {
+    progress.hidden = true;
+    const data = JSON.parse(xhr.responseText || '{}');
+    const result = $('upload-result');
+    if (xhr.status === 201) {
+      result.className = 'ok';
+      result.textContent = `stored '${data.name}' (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)`;
+      refreshComponents();
+    } else {
+      result.className = 'error';
+      result.textContent = `refused (${xhr.status}): ${data.error || xhr.statusText}`;
+    }
+  };
+  xhr.onerror = () => { progress.hidden = true; $('upload-result').textContent = 'upload failed: no answer from the robot'; };
+  xhr.open('PUT', `/api/v1/platforms/${platform}/components/${encodeURIComponent(name)}`);
+  xhr.setRequestHeader('content-type', 'application/wasm');
+  xhr.send(chosen);
+});
+
+function portList(title, ports) {
+  return el('p', {}, `${title}: `, ports.length ? ports.map((p) => `${p.name} (${p.kind})`).join(', ') : 'none');
+}
+
+async function refreshComponents() {
+  const list = $('component-list');
+  try {
+    const { components } = await api('GET', '/components');
+    list.replaceChildren(...components.map((c) => {
+      const d = c.description || {};
+      const box = el('div', { class: 'component', 'data-component': c.name },
+        el('h3', {}, `${c.name} `, el('small', {}, `${c.world}, ${(c.size / 1024).toFixed(0)} KiB, by ${c.uploaded_by}`)));
+      if (d.inputs) {
+        box.append(el('p', {}, `${d.name} ${d.version}: ${d.summary}`));
+        box.append(portList('inputs', d.inputs), portList('outputs', d.outputs));
+        box.append(el('p', {}, 'parameters: ' + (d.params.map((p) => `${p.name}=${p.default}`).join(', ') || 'none')));
+      }
+      return box;
+    }));
+    if (!components.length) list.textContent = 'none yet';
+  } catch (err) {
+    list.textContent = err.message;
+  }
+}
+
+// ---- robot files and sets ------------------------------------------------
+$('config-upload').addEventListener('click', async () => {
+  const file = $('config-file').files[0];
+  $('config-errors').replaceChildren();
+  $('config-result').textContent = '';
+  if (!file) { $('config-result').textContent = 'choose a robot file first'; return; }
+  try {
+    const platform = $('config-platform').value;
+    const { set } = await api('PUT', `/platforms/${platform}/configs/${encodeURIComponent(file.name)}`, await file.text(), { 'content-type': 'application/xml' });
+    $('config-result').className = 'ok';
+    $('config-result').textContent = `valid: staged as set ${set.id} (changes: ${set.changes.join(', ') || 'nothing'})`;
+    await refreshSets();
+    showGraph(set.id);
+  } catch (err) {
+    $('config-result').className = 'error';
+    $('config-result').textContent = err.message;
+    for (const d of (err.body && err.body.diagnostics) || []) $('config-errors').append(el('li', {}, d.text));
+  }
+});
+
+async function refreshSets() {
+  const body = $('set-list').querySelector('tbody');
+  try {
+    const { sets } = await api('GET', '/sets');
+    body.replaceChildren(...sets.map((s) => {
+      const show = el('button', { class: 'show', 'data-set': s.id }, 'wiring');
+      show.addEventListener('click', () => showGraph(s.id));
+      const cells = [el('td', {}, String(s.id)), el('td', {}, s.config_name), el('td', {}, s.created_by), el('td', {}, s.changes.join(', ')), el('td', { class: 'status' }, s.status)];
+      const actions = el('td', {}, show);
+      if (s.status !== 'active') {
+        const activate = el('button', { class: 'activate', 'data-set': s.id }, 'activate');
+        activate.addEventListener('click', () => activateSet(s.id));
+        actions.append(' ', activate);
+      }
+      return el('tr', { 'data-set': s.id }, ...cells, actions);
+    }));
+    const active = sets.find((s) => s.status === 'active');
+    if (active && $('graph-set').textContent === '-') showGraph(active.id);
+  } catch (err) {
+    $('set-result').textContent = err.message;
+  }
+}
+
+async function activateSet(id) {
+  $('set-result').className = '';
+  $('set-result').textContent = `activating set ${id}...`;
+  try {
+    await api('POST', `/sets/${id}/activate`);
+    $('set-result').className = 'ok';
+    $('set-result').textContent = `set ${id} is active`;
+  } catch (err) {
+    $('set-result').className = 'error';
+    $('set-result').textContent = `set ${id} was not activated: ${err.message}`;
+  }
+  refreshSets();
+}
+
+$('rollback').addEventListener('click', async () => {
+  try {
+    const { active } = await api('POST', '/rollback');
+    $('set-result').className = 'ok';
+    $('set-result').textContent = `rolled back: set ${active.id} is active`;
+  } catch (err) {
+    $('set-result').className = 'error';
+    $('set-result').textContent = `no rollback: ${err.message}`;
+  }
+  refreshSets();
+});
+
+async function showGraph(id) {
+  const svg = $('graph');
+  svg.replaceChildren();
+  $('graph-set').textContent = String(id);
+  const { graph } = await api('GET', `/sets/${id}`);
+  if (!graph.components) { $('set-result').textContent = graph.error; return; }
+  // Layers: a component sits one layer right of its deepest input source.
+  const names = graph.components.map((c) => c.name);
+  const layer = new Map(names.map((n) => [n, 0]));
+  const edges = graph.connections.map((c) => [c.from.split('.')[0], c.to.split('.')[0], c]);
+  for (let pass = 0; pass < names.length; pass++) {
+    for (const [a, b] of edges) if (a !== b && layer.get(b) < layer.get(a) + 1 && layer.get(a) + 1 < names.length) layer.set(b, layer.get(a) + 1);
+  }
+  const rows = new Map();
+  const pos = new Map();
+  for (const c of graph.components) {
+    const l = layer.get(c.name);
+    const r = rows.get(l) || 0;
+    rows.set(l, r + 1);
+    pos.set(c.name, { x: 10 + l * 170, y: 20 + r * 70 });
+  }
+  const ns = 'http://www.w3.org/2000/svg';
+  const add = (tag, attrs, text) => {
+    const n = document.createElementNS(ns, tag);
+    for (const [k, v] of Object.entries(attrs)) n.setAttribute(k, v);
+    if (text) n.textContent = text;
+    svg.append(n);
+    return n;
+  };
+  for (const [a, b, c] of edges) {
+    const p = pos.get(a), q = pos.get(b);
+    add('line', { x1: p.x + 140, y1: p.y + 20, x2: q.x, y2: q.y + 20, stroke: c.platform === 'network' ? '#b36b00' : '#567', 'stroke-width': 1.5 });
+  }
+  for (const c of graph.components) {
+    const p = pos.get(c.name);
+    add('rect', { x: p.x, y: p.y, width: 140, height: 40, rx: 6, fill: c.platform === 'network' ? '#fff4e0' : '#e8f0fb', stroke: '#345', 'data-component': c.name });
+    add('text', { x: p.x + 6, y: p.y + 16 }, c.name + (c.priority != null ? ` (p${c.priority})` : ''));
+    add('text', { x: p.x + 6, y: p.y + 32, fill: '#567' }, c.source);
+  }
+}
+
+// ---- drive ---------------------------------------------------------------
+let socket = null;
+let seq = 0;
+const started = performance.now();
+function driveLog(text) {
+  const log = $('drive-log');
+  log.append(el('li', {}, text));
+  while (log.children.length > 50) log.firstChild.remove();
+}
+function send(message) { if (socket && socket.readyState === WebSocket.OPEN) socket.send(JSON.stringify(message)); }
+
+$('drive-connect').addEventListener('click', async () => {
+  if (socket) { send({ type: 'quit' }); socket.close(); socket = null; $('drive-connect').textContent = 'Connect'; return; }
+  let ticket;
+  try { ticket = await api('POST', '/teleop/ticket'); } catch (err) { $('drive-status').textContent = err.message; return; }
+  const url = (location.protocol === 'https:' ? 'wss://' : 'ws://') + location.host + ticket.websocket;
+  socket = new WebSocket(url);
+  $('drive-connect').textContent = 'Disconnect';
+  socket.onopen = () => send({ type: 'auth', name: ticket.name, token: ticket.ticket });
+  socket.onclose = () => { $('drive-status').textContent = 'not connected'; socket = null; $('drive-connect').textContent = 'Connect'; };
+  socket.onmessage = (e) => {
+    const m = JSON.parse(e.data);
+    if (m.type === 'ping') { send({ type: 'pong', nonce: m.nonce }); return; }
+    if (m.type === 'rtt') {
+      $('drive-status').textContent = `rtt ${m.rtt_ms.toFixed(1)} ms; allowed: ${m.allowed.join(', ')}`;
+      if (m.allowed.includes($('drive-mode').value)) send({ type: 'mode', mode: $('drive-mode').value });
+    }
+    if (m.type === 'mode') $('drive-status').dataset.mode = m.mode;
+    driveLog(JSON.stringify(m));
+  };
+});
+$('drive-mode').addEventListener('change', () => send({ type: 'mode', mode: $('drive-mode').value }));
+
+function command(text) {
+  seq += 1;
+  send({ type: 'cmd', seq, time_ms: Math.round(performance.now() - started), command: text });
+}
+let held = null;
+for (const button of document.querySelectorAll('#pad button')) {
+  const text = button.dataset.stop ? 'STOP' : `VEL ${button.dataset.v} ${button.dataset.w}`;
+  const press = () => { command(text); clearInterval(held); if (!button.dataset.stop) held = setInterval(() => command(text), 100); };
+  const release = () => { clearInterval(held); held = null; };
+  button.addEventListener('pointerdown', press);
+  button.addEventListener('pointerup', release);
+  button.addEventListener('pointerleave', release);
+}
+document.addEventListener('keydown', (e) => {
+  if ($('tab-drive').hidden || !socket) return;
+  const keys = { ArrowUp: 'pad-forward', ArrowDown: 'pad-back', ArrowLeft: 'pad-left', ArrowRight: 'pad-right', ' ': 'pad-stop' };
+  const id = keys[e.key];
+  if (id) { e.preventDefault(); const b = $(id); command(b.dataset.stop ? 'STOP' : `VEL ${b.dataset.v} ${b.dataset.w}`); }
+});
+
+boot();
