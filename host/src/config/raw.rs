@@ -157,7 +157,15 @@ pub fn parse(map: &SourceMap<'_>, text: &str, errors: &mut Vec<Diagnostic>) -> R
                 }
             }
             Event::Decl(_) | Event::PI(_) => {}
-            Event::Eof => break,
+            Event::Eof => {
+                if stack.len() > 1 {
+                    errors.push(
+                        map.at(text.len(), "malformed xml: the file ends inside an element that was never closed"),
+                    );
+                    robot.complete = false;
+                }
+                break;
+            }
         }
     }
     if !seen_root {

@@ -1,0 +1,371 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! The portal's router without a server (`oneshot`): every endpoint x every
+//! role, the malformed-upload corpus, login rate limiting with controlled
+//! time, and the OpenAPI document against the routes.
+
+mod support;
+
+use std::path::Path;
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use serde_json::Value;
+use subsume::builtin::Services;
+use subsume::config::Platform;
+use subsume::deploy::{BootOptions, Runner};
+use subsume::portal::{self, MAX_UPLOAD_BYTES, PortalState};
+use subsume::runtime::control_loop::{Clock, Shutdown};
+use subsume::sandbox::Sandbox;
+use subsume::store::Store;
+use subsume::users::{Directory, Role, Users};
+use tower::ServiceExt as _;
+
+const ROBOT: &str = r#"<robot name="bench">
+  <platform name="control">
+    <component name="source" source="builtin:publish" rate="10"><param name="value" value="1"/></component>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="source.out" to="sink.in"/>
+  </platform>
+</robot>
+"#;
+
+/// (name, role, platforms): one user per case of the matrix.
+const USERS: &[(&str, Role, &[Platform])] = &[
+    ("viewer", Role::Viewer, &[]),
+    ("operator", Role::Operator, &[]),
+    ("control-dev", Role::Developer, &[Platform::Control]),
+    ("network-dev", Role::Developer, &[Platform::Network]),
+    ("admin", Role::Admin, &[]),
+];
+
+struct Portal {
+    app: axum::Router,
+    store: Arc<Store>,
+    _dir: tempfile::TempDir,
+    tokens: std::collections::HashMap<&'static str, String>,
+}
+
+fn password(name: &str) -> String {
+    format!("{name}-password-123")
+}
+
+async fn portal() -> Portal {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("robot.xml"), ROBOT).unwrap();
+    let store = Arc::new(Store::open(&dir.path().join("store")).unwrap());
+    let users = Users::new(store.users_path());
+    for (name, role, platforms) in USERS {
+        users.add(name, *role, platforms, &password(name), false).unwrap();
+    }
+    let directory = Arc::new(Directory::new(users));
+    let shutdown = Shutdown::new();
+    let boot = Runner::boot(BootOptions {
+        store: store.clone(),
+        sandbox: Arc::new(Sandbox::new(Some(support::cache_dir())).unwrap()),
+        services: Services { directory: Some(directory.clone()), teleop_servers: Default::default() },
+        config_path: &dir.path().join("robot.xml"),
+        overrides: vec![],
+        clock: Clock::new(),
+        waker: shutdown.waker(),
+    })
+    .map_err(|e| e.to_string())
+    .unwrap();
+    let state = PortalState::new(boot.runner, directory, portal::logs::LogRing::new());
+    let app = portal::app(state);
+    let mut tokens = std::collections::HashMap::new();
+    for (name, _, _) in USERS {
+        let body = serde_json::json!({ "name": name, "password": password(name) }).to_string();
+        let (status, json) = send(&app, "POST", "/api/v1/login", None, Body::from(body)).await;
+        assert_eq!(status, StatusCode::OK, "{json}");
+        tokens.insert(*name, json["token"].as_str().unwrap().to_string());
+    }
+    Portal { app, store, _dir: dir, tokens }
+}
+
+async fn send(app: &axum::Router, method: &str, uri: &str, token: Option<&str>, body: Body) -> (StatusCode, Value) {
+    let mut request = Request::builder().method(method).uri(uri);
+    if let Some(token) = token {
+        request = request.header("authorization", format!("Bearer {token}"));
+    }
+    let response = app.clone().oneshot(request.body(body).unwrap()).await.unwrap();
+    let status = response.status();
+    let bytes = axum::body::to_bytes(response.into_body(), usize::MAX).await.unwrap();
+    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+}
+
+impl Portal {
+    async fn call(&self, user: &str, method: &str, uri: &str, body: impl Into<Body>) -> (StatusCode, Value) {
+        send(&self.app, method, uri, self.tokens.get(user).map(String::as_str), body.into()).await
+    }
+
+    /// What must not change when a request is refused.
+    fn snapshot(&self) -> String {
+        format!(
+            "{:?} {:?} {}",
+            self.store.state().unwrap(),
+            self.store.components().unwrap().keys().collect::<Vec<_>>(),
+            self.store.sets().unwrap().len()
+        )
+    }
+}
+
+/// Which users may call an endpoint.
+#[derive(Clone, Copy, Debug)]
+enum Allowed {
+    AnyUser,
+    Control,
+    Network,
+    Developer,
+    Drive,
+}
+
+impl Allowed {
+    fn admits(self, user: &str) -> bool {
+        match self {
+            Allowed::AnyUser => true,
+            Allowed::Control => matches!(user, "control-dev" | "admin"),
+            Allowed::Network => matches!(user, "network-dev" | "admin"),
+            Allowed::Developer => matches!(user, "control-dev" | "network-dev" | "admin"),
+            Allowed::Drive => matches!(user, "operator" | "admin"),
+        }
+    }
+}
+
+/// Every authenticated endpoint with a request that does no lasting harm.
+fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
+    vec![
+        ("GET", "/api/v1/session", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/components", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/components/none", b"", Allowed::AnyUser),
+        ("PUT", "/api/v1/platforms/control/components/x", b"not wasm", Allowed::Control),
+        ("PUT", "/api/v1/platforms/network/components/x", b"not wasm", Allowed::Network),
+        ("PUT", "/api/v1/platforms/control/configs/r.xml", b"<robot", Allowed::Control),
+        ("PUT", "/api/v1/platforms/network/configs/r.xml", b"<robot", Allowed::Network),
+        ("GET", "/api/v1/sets", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/sets/1", b"", Allowed::AnyUser),
+        ("POST", "/api/v1/sets/999/activate", b"", Allowed::Developer),
+        ("POST", "/api/v1/rollback", b"", Allowed::Developer),
+        ("GET", "/api/v1/status", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/world", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/logs", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/audit", b"", Allowed::Developer),
+        ("POST", "/api/v1/teleop/ticket", b"", Allowed::Drive),
+        ("POST", "/api/v1/logout", b"", Allowed::AnyUser),
+    ]
+}
+
+#[tokio::test]
+async fn every_endpoint_answers_every_role_as_its_permissions_say() {
+    let portal = portal().await;
+    for (method, uri, body, allowed) in endpoints() {
+        let (status, json) = send(&portal.app, method, uri, None, Body::from(body)).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{method} {uri} without login: {json}");
+        let (status, _) = send(&portal.app, method, uri, Some("not-a-token"), Body::from(body)).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED, "{method} {uri} with a bad token");
+        for (user, _, _) in USERS {
+            if uri.ends_with("/logout") {
+                continue;
+            }
+            let (status, json) = portal.call(user, method, uri, body).await;
+            if allowed.admits(user) {
+                assert!(
+                    status != StatusCode::UNAUTHORIZED && status != StatusCode::FORBIDDEN,
+                    "{method} {uri} as {user}: {status} {json}"
+                );
+            } else {
+                assert_eq!(status, StatusCode::FORBIDDEN, "{method} {uri} as {user}: {json}");
+                assert!(json["error"].as_str().is_some_and(|e| e.contains(user)), "{json}");
+            }
+        }
+    }
+    // Logging out ends the session.
+    let (status, _) = portal.call("viewer", "POST", "/api/v1/logout", "").await;
+    assert_eq!(status, StatusCode::NO_CONTENT);
+    let (status, _) = portal.call("viewer", "GET", "/api/v1/session", "").await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+}
+
+#[tokio::test]
+async fn the_session_cookie_works_like_the_bearer_token() {
+    let portal = portal().await;
+    let request = Request::get("/api/v1/session")
+        .header("cookie", format!("other=1; subsume_session={}", portal.tokens["viewer"]))
+        .body(Body::empty())
+        .unwrap();
+    let response = portal.app.clone().oneshot(request).await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+}
+
+#[tokio::test(start_paused = true)]
+async fn failed_logins_are_rate_limited_per_user_and_recover() {
+    let portal = portal().await;
+    let login = |name: &str, password: &str| serde_json::json!({ "name": name, "password": password }).to_string();
+    for _ in 0..portal::MAX_LOGIN_FAILURES {
+        let (status, _) = send(&portal.app, "POST", "/api/v1/login", None, login("admin", "wrong").into()).await;
+        assert_eq!(status, StatusCode::UNAUTHORIZED);
+    }
+    // Even the right password is refused now, with the time to wait.
+    let (status, json) =
+        send(&portal.app, "POST", "/api/v1/login", None, login("admin", &password("admin")).into()).await;
+    assert_eq!(status, StatusCode::TOO_MANY_REQUESTS, "{json}");
+    assert!(json["error"].as_str().unwrap().starts_with("too many failed logins; try again in"), "{json}");
+    // Other users are not locked out by it.
+    let (status, _) =
+        send(&portal.app, "POST", "/api/v1/login", None, login("viewer", &password("viewer")).into()).await;
+    assert_eq!(status, StatusCode::OK);
+    tokio::time::advance(portal::LOGIN_FAILURE_WINDOW).await;
+    let (status, _) = send(&portal.app, "POST", "/api/v1/login", None, login("admin", &password("admin")).into()).await;
+    assert_eq!(status, StatusCode::OK);
+    let (status, json) = send(&portal.app, "POST", "/api/v1/login", None, "{\"name\": 1}".into()).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{json}");
+}
+
+/// (case, uri, body, expected status, words the error must contain)
+fn malformed_uploads() -> Vec<(&'static str, String, Vec<u8>, StatusCode, &'static str)> {
+    let component = |name: &str| format!("/api/v1/platforms/control/components/{name}");
+    let config = |file: &str| format!("/api/v1/platforms/control/configs/{file}");
+    let avoider = std::fs::read(support::guest("avoider")).unwrap();
+    let robot = |body: &str| {
+        format!("<robot name=\"bench\">\n  <platform name=\"control\">\n{body}\n  </platform>\n</robot>\n").into_bytes()
+    };
+    let publish =
+        r#"<component name="source" source="builtin:publish" rate="10"><param name="value" value="1"/></component>"#;
+    use StatusCode as S;
+    vec![
+        ("empty component", component("a"), vec![], S::BAD_REQUEST, "the upload is empty"),
+        ("truncated component", component("a"), avoider[..avoider.len() / 2].to_vec(), S::UNPROCESSABLE_ENTITY, "fits neither world"),
+        ("core module", component("a"), b"\0asm\x01\0\0\0".to_vec(), S::UNSUPPORTED_MEDIA_TYPE, "core webassembly module"),
+        ("precompiled artifact", component("a"), b"\x7fELF\x02\x01\x01\0rest".to_vec(), S::UNSUPPORTED_MEDIA_TYPE, "precompiled native artifact"),
+        ("garbage", component("a"), b"hello, robot".to_vec(), S::UNSUPPORTED_MEDIA_TYPE, "magic bytes"),
+        ("component of no known world", component("a"), b"\0asm\x0d\0\x01\0".to_vec(), S::UNPROCESSABLE_ENTITY, "fits neither world"),
+        ("oversize component", component("a"), vec![0u8; MAX_UPLOAD_BYTES + 1], S::PAYLOAD_TOO_LARGE, ""),
+        ("name with a path", component("..%2Fevil"), avoider.clone(), S::BAD_REQUEST, "is not [a-z]"),
+        ("name in capitals", component("Evil"), avoider.clone(), S::BAD_REQUEST, "is not [a-z]"),
+        ("unknown platform", "/api/v1/platforms/kitchen/components/a".into(), avoider, S::NOT_FOUND, "unknown platform 'kitchen'"),
+        ("bad xml", config("r.xml"), b"<robot name=\"bench\"><platform name=\"control\">".to_vec(), S::UNPROCESSABLE_ENTITY, "r.xml:1:"),
+        (
+            "entity tricks",
+            config("r.xml"),
+            b"<!DOCTYPE robot [<!ENTITY x \"builtin:log\">]><robot name=\"bench\"><platform name=\"control\"><component name=\"a\" source=\"&x;\"/></platform></robot>".to_vec(),
+            S::UNPROCESSABLE_ENTITY,
+            "r.xml:1:",
+        ),
+        ("unknown component", config("r.xml"), robot(r#"<component name="a" source="nowhere.wasm"/>"#), S::UNPROCESSABLE_ENTITY, "unknown component 'nowhere.wasm'"),
+        ("component outside the store", config("r.xml"), robot(r#"<component name="a" source="../../../etc/passwd.wasm"/>"#), S::UNPROCESSABLE_ENTITY, "unknown component"),
+        ("world file outside the folder", config("r.xml"), robot(&format!("{publish}<component name=\"sim\" source=\"builtin:sim\"><param name=\"world\" value=\"../../etc/passwd\"/></component>")), S::UNPROCESSABLE_ENTITY, "must be a path inside the robot's folder"),
+        ("file name with a path", config("..%2Fr.xml"), robot(publish), S::BAD_REQUEST, "is not a plain name"),
+        ("file name hidden", config(".r.xml"), robot(publish), S::BAD_REQUEST, "is not a plain name"),
+        ("not utf-8", config("r.xml"), b"<robot name=\"\xff\"/>".to_vec(), S::BAD_REQUEST, "is not utf-8"),
+        ("oversize robot file", config("r.xml"), vec![b' '; portal::MAX_CONFIG_UPLOAD_BYTES + 1], S::PAYLOAD_TOO_LARGE, ""),
+        (
+            "a control developer changing the network platform",
+            config("r.xml"),
+            format!(
+                "<robot name=\"bench\"><platform name=\"control\">{publish}<component name=\"sink\" source=\"builtin:log\" rate=\"0\"/><connect from=\"source.out\" to=\"sink.in\"/></platform><platform name=\"network\"><component name=\"n\" source=\"builtin:log\"/></platform></robot>"
+            )
+            .into_bytes(),
+            S::FORBIDDEN,
+            "changes platform network, which control-dev may not change",
+        ),
+    ]
+}
+
+#[tokio::test]
+async fn malformed_uploads_are_refused_with_a_reason_and_change_nothing() {
+    let portal = portal().await;
+    let before = portal.snapshot();
+    let cases = malformed_uploads();
+    assert!(cases.len() >= 15);
+    for (case, uri, body, expected, words) in cases {
+        let (status, json) = portal.call("control-dev", "PUT", &uri, body).await;
+        assert_eq!(status, expected, "{case}: {json}");
+        if status != StatusCode::PAYLOAD_TOO_LARGE {
+            let text = format!("{} {}", json["error"], json["diagnostics"]);
+            assert!(text.contains(words), "{case}: '{words}' not in {text}");
+        }
+        assert_eq!(portal.snapshot(), before, "{case} changed the store");
+    }
+    // Every refusal is in the audit log, with who and why.
+    let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
+    let refused = audit["entries"].as_array().unwrap().iter().filter(|e| e["result"] == "refused").count();
+    assert!(refused >= 12, "{audit}");
+}
+
+#[tokio::test]
+async fn an_uploaded_component_shows_its_ports_and_a_robot_file_using_it_is_staged() {
+    let portal = portal().await;
+    let bytes = std::fs::read(support::guest("range_filter")).unwrap();
+    let (status, json) = portal.call("control-dev", "PUT", "/api/v1/platforms/control/components/smooth", bytes).await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+    assert_eq!(json["world"], "component");
+    let (_, json) = portal.call("viewer", "GET", "/api/v1/components/smooth", "").await;
+    assert_eq!(json["description"]["inputs"][0]["name"], "ranges", "{json}");
+    let robot = ROBOT.replace(
+        r#"<connect from="source.out" to="sink.in"/>"#,
+        r#"<component name="smooth" source="smooth.wasm" rate="0"/><connect from="source.out" to="sink.in"/>"#,
+    );
+    let (status, json) = portal.call("control-dev", "PUT", "/api/v1/platforms/control/configs/new.xml", robot).await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+    assert_eq!(json["set"]["changes"], serde_json::json!(["control"]));
+    assert_eq!(json["set"]["id"], 2);
+    let (_, json) = portal.call("viewer", "GET", "/api/v1/sets/2", "").await;
+    let names: Vec<&str> =
+        json["graph"]["components"].as_array().unwrap().iter().map(|c| c["name"].as_str().unwrap()).collect();
+    assert_eq!(names, ["source", "sink", "smooth"], "{json}");
+    assert_eq!(json["status"], "staged");
+    let (_, json) = portal.call("viewer", "GET", "/api/v1/sets", "").await;
+    assert_eq!(json["active"], 1, "staging does not activate");
+}
+
+#[tokio::test]
+async fn the_openapi_document_lists_exactly_the_routes() {
+    let portal = portal().await;
+    let (status, doc) = send(&portal.app, "GET", "/api/v1/openapi.json", None, Body::empty()).await;
+    assert_eq!(status, StatusCode::OK);
+    let mut documented = Vec::new();
+    for (path, methods) in doc["paths"].as_object().unwrap() {
+        for method in methods.as_object().unwrap().keys() {
+            documented.push((method.to_uppercase(), path.clone()));
+        }
+    }
+    // Every documented route exists (the fallback says "no such API route").
+    for (method, path) in &documented {
+        let uri = path
+            .replace("{platform}", "control")
+            .replace("{name}", "x")
+            .replace("{file}", "x.xml")
+            .replace("{id}", "1");
+        if path.ends_with("/events") {
+            // An endless stream: only its start is checked.
+            let request = Request::get(&uri).header("authorization", format!("Bearer {}", portal.tokens["admin"]));
+            let response = portal.app.clone().oneshot(request.body(Body::empty()).unwrap()).await.unwrap();
+            assert_eq!(response.status(), StatusCode::OK);
+            assert_eq!(response.headers()["content-type"], "text/event-stream");
+            continue;
+        }
+        let (status, json) = portal.call("admin", method, &uri, "").await;
+        assert!(
+            status != StatusCode::METHOD_NOT_ALLOWED
+                && !json["error"].as_str().unwrap_or("").starts_with("no such API route"),
+            "{method} {path} is documented but not routed: {status} {json}"
+        );
+    }
+    // Every routed endpoint of the matrix is documented.
+    for (method, uri, _, _) in endpoints() {
+        let found = documented.iter().any(|(m, p)| {
+            m == method && {
+                let pattern: Vec<&str> = p.split('/').collect();
+                let parts: Vec<&str> = uri.split('/').collect();
+                pattern.len() == parts.len()
+                    && pattern.iter().zip(&parts).all(|(a, b)| a == b || (a.starts_with('{') && a.ends_with('}')))
+            }
+        });
+        assert!(found, "{method} {uri} is routed but not in openapi.json");
+    }
+    for path in ["/", "/app.js", "/style.css"] {
+        let response = portal.app.clone().oneshot(Request::get(path).body(Body::empty()).unwrap()).await.unwrap();
+        assert_eq!(response.status(), StatusCode::OK, "{path}");
+    }
+    assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/portal/openapi.json").is_file());
+}

@@ -1,0 +1,96 @@
+// Drives the portal in Debian's headless Chromium: log in, upload a guest,
+// see its ports, stage and activate a robot file using it, see it in the
+// live view, drive with the pad. Screenshots go to $ARTIFACTS.
+// Usage: node portal.mjs URL USER PASSWORD COMPONENT.wasm ROBOT.xml BAD.xml
+import { chromium } from 'playwright-core';
+import path from 'node:path';
+import fs from 'node:fs';
+
+const [url, user, password, wasm, robot, bad] = process.argv.slice(2);
+const artifacts = process.env.ARTIFACTS || 'browser-artifacts';
+fs.mkdirSync(artifacts, { recursive: true });
+const step = (text) => console.log(`step: ${text}`);
+
+const browser = await chromium.launch({
+  executablePath: '/usr/bin/chromium',
+  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
+});
+const page = await browser.newPage({ viewport: { width: 1280, height: 900 } });
+page.setDefaultTimeout(20000);
+const shot = (name) => page.screenshot({ path: path.join(artifacts, name + '.png'), fullPage: true });
+try {
+  step('log in');
+  await page.goto(url);
+  await page.fill('#login-password', 'wrong-password');
+  await page.fill('#login-name', user);
+  await page.click('#login-button');
+  await page.waitForSelector('#login-error:has-text("wrong user name or password")');
+  await page.fill('#login-password', password);
+  await page.click('#login-button');
+  await page.waitForSelector('#tabs:not([hidden])');
+  await page.waitForSelector(`#whoami:has-text("${user}")`);
+
+  step('upload a component and see its ports');
+  await page.click('#tabs button[data-tab="components"]');
+  await page.setInputFiles('#component-file', wasm);
+  await page.fill('#component-name', 'browser-avoider');
+  await page.click('#component-upload');
+  await page.waitForSelector('#upload-result:has-text("stored \'browser-avoider\'")');
+  const card = page.locator('.component[data-component="browser-avoider"]');
+  await card.waitFor();
+  const text = await card.innerText();
+  for (const words of ['inputs: ranges (vector)', 'outputs: cmd (command)', 'threshold=']) {
+    if (!text.includes(words)) throw new Error(`component card lacks '${words}': ${text}`);
+  }
+  await shot('1-component');
+
+  step('a bad robot file shows file:line:column');
+  await page.click('#tabs button[data-tab="sets"]');
+  await page.setInputFiles('#config-file', bad);
+  await page.click('#config-upload');
+  await page.waitForSelector(`#config-errors li:has-text("${path.basename(bad)}:")`);
+  await shot('2-diagnostics');
+
+  step('stage and activate a robot file that uses it');
+  await page.setInputFiles('#config-file', robot);
+  await page.click('#config-upload');
+  await page.waitForSelector('#config-result:has-text("staged as set")');
+  const staged = (await page.innerText('#config-result')).match(/set (\d+)/)[1];
+  await page.waitForSelector(`#graph rect[data-component="avoid"]`);
+  await shot('3-wiring');
+  await page.click(`button.activate[data-set="${staged}"]`);
+  await page.waitForSelector(`#set-result:has-text("set ${staged} is active")`);
+  await page.waitForSelector(`#set-list tr[data-set="${staged}"] td.status:has-text("active")`);
+
+  step('see it in the live view');
+  await page.click('#tabs button[data-tab="live"]');
+  await page.waitForSelector(`#active-set:has-text("set ${staged}")`);
+  await page.waitForSelector('#health tr[data-component="avoid"] td.running');
+  await page.waitForFunction(() => document.querySelector('#pose').textContent.startsWith('x '));
+  await page.waitForSelector('#log li');
+  await shot('4-live');
+
+  step('drive with the pad');
+  await page.click('#tabs button[data-tab="drive"]');
+  await page.click('#drive-connect');
+  await page.waitForSelector('#drive-status:has-text("rtt")');
+  await page.waitForSelector('#drive-status[data-mode="direct"]');
+  const pad = page.locator('#pad-left');
+  await pad.hover();
+  await page.mouse.down();
+  await page.waitForTimeout(1500);
+  await page.mouse.up();
+  const released = await page.evaluate(async () => {
+    const status = await (await fetch('/api/v1/status')).json();
+    return status.network.commands.released;
+  });
+  if (!(released > 0)) throw new Error(`the pad's commands were not released: ${released}`);
+  await shot('5-drive');
+  console.log(`ok: ${released} pad commands released`);
+} catch (err) {
+  await shot('failure').catch(() => {});
+  console.error(err);
+  process.exitCode = 1;
+} finally {
+  await browser.close();
+}
