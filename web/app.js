@@ -109,9 +109,10 @@ function renderStatus(s) {
   body.replaceChildren();
   for (const c of s.components) {
     const before = rates.get(c.name);
-    const now = { t: s.duration_s, i: c.messages_in, o: c.messages_out };
+    const now = { t: s.duration_s, i: c.messages_in, o: c.messages_out, set: s.set };
     rates.set(c.name, now);
-    const rate = (k) => before && now.t > before.t ? ((now[k] - before[k]) / (now.t - before.t)).toFixed(1) : '-';
+    // Counters restart with each activated set: no rate across a swap.
+    const rate = (k) => before && now.t > before.t && now[k] >= before[k] && s.set === before.set ? ((now[k] - before[k]) / (now.t - before.t)).toFixed(1) : '-';
     const state = el('td', { class: c.state }, c.state + (c.fault ? ': ' + c.fault : ''));
     body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts))));
   }
