@@ -51,8 +51,13 @@ fn main() {
     );
     std::fs::write(dir.path().join("robot.xml"), robot).unwrap();
     let shutdown = Shutdown::new();
-    let options =
-        RunOptions { config_path: dir.path().join("robot.xml"), duration: None, cache_dir: None, overrides: vec![], portal: None };
+    let options = RunOptions {
+        config_path: dir.path().join("robot.xml"),
+        duration: None,
+        cache_dir: None,
+        overrides: vec![],
+        portal: None,
+    };
     let host_shutdown = shutdown.clone();
     let host = std::thread::spawn(move || subsume::run(&options, host_shutdown).map(|_| ()).map_err(|e| e.to_string()));
 

@@ -27,8 +27,7 @@ use thiserror::Error;
 use crate::arbiter::PriorityCell;
 use crate::builtin::Services;
 use crate::config::{
-    ComponentConfig, ComponentSource, Diagnostic, Diagnostics, ParamOverride, Platform, Resolver, RobotConfig,
-    limits,
+    ComponentConfig, ComponentSource, Diagnostic, Diagnostics, ParamOverride, Platform, Resolver, RobotConfig, limits,
 };
 use crate::contract::Description;
 use crate::loader::{Loader, read_component_file};
@@ -197,7 +196,12 @@ impl Runner {
         let set = match state.active {
             Some(id) if state.boot_config_sha256.as_deref() == Some(sha.as_str()) => {
                 let set = store.set(id)?;
-                tracing::info!("restoring set {id} ({}, by {}) from {}", set.config_name, set.created_by, store.root().display());
+                tracing::info!(
+                    "restoring set {id} ({}, by {}) from {}",
+                    set.config_name,
+                    set.created_by,
+                    store.root().display()
+                );
                 set
             }
             _ => import(&store, &sandbox, config_path, &text, &overrides)?,
@@ -209,13 +213,8 @@ impl Runner {
         let config = Arc::new(config);
         let (live_tx, live) = tokio::sync::watch::channel(Arc::new(serde_json::Value::Null));
         let slot = SwapSlot::default();
-        let hook = ControlHook {
-            slot: slot.clone(),
-            config: config.clone(),
-            set_id: set.id,
-            live: live_tx,
-            next_live_ns: 0,
-        };
+        let hook =
+            ControlHook { slot: slot.clone(), config: config.clone(), set_id: set.id, live: live_tx, next_live_ns: 0 };
         let deployment = Deployment { set, config, priorities: built.priorities, sim_ptys: built.sim_ptys };
         let runner =
             Runner { store, sandbox, services, clock, waker, overrides, slot, active: Mutex::new(deployment), live };
@@ -255,14 +254,31 @@ impl Runner {
 
     /// Validates an uploaded robot file for `platform` against the stored
     /// components (and the active set's) and stages it as a new set.
-    pub fn stage(&self, user: &User, platform: Platform, file_name: &str, bytes: &[u8]) -> Result<SetRecord, DeployError> {
+    pub fn stage(
+        &self,
+        user: &User,
+        platform: Platform,
+        file_name: &str,
+        bytes: &[u8],
+    ) -> Result<SetRecord, DeployError> {
         let target = format!("{} for platform {}", crate::contract::clip(file_name), platform.name());
         let result = self.stage_inner(user, platform, file_name, bytes);
-        self.audit(&user.name, "upload-config", &target, &result.as_ref().map(|s| format!("staged as set {}", s.id)).map_err(clone_error));
+        self.audit(
+            &user.name,
+            "upload-config",
+            &target,
+            &result.as_ref().map(|s| format!("staged as set {}", s.id)).map_err(clone_error),
+        );
         result
     }
 
-    fn stage_inner(&self, user: &User, platform: Platform, file_name: &str, bytes: &[u8]) -> Result<SetRecord, DeployError> {
+    fn stage_inner(
+        &self,
+        user: &User,
+        platform: Platform,
+        file_name: &str,
+        bytes: &[u8],
+    ) -> Result<SetRecord, DeployError> {
         if !user.may_change(platform) {
             return Err(DeployError::Forbidden(format!("{} may not change platform {}", user.name, platform.name())));
         }
@@ -316,7 +332,12 @@ impl Runner {
     /// Activates set `id`: see the module's invariants.
     pub fn activate(&self, user: &User, id: u64) -> Result<SetRecord, DeployError> {
         let result = self.switch(user, id, false);
-        self.audit(&user.name, "activate", &format!("set {id}"), &result.as_ref().map(|_| "active".to_string()).map_err(clone_error));
+        self.audit(
+            &user.name,
+            "activate",
+            &format!("set {id}"),
+            &result.as_ref().map(|_| "active".to_string()).map_err(clone_error),
+        );
         result
     }
 
@@ -328,7 +349,12 @@ impl Runner {
             None => Err(DeployError::Conflict("there is no previous set to roll back to".into())),
         };
         let target = previous.map_or_else(|| "none".to_string(), |id| format!("set {id}"));
-        self.audit(&user.name, "rollback", &target, &result.as_ref().map(|_| "active".to_string()).map_err(clone_error));
+        self.audit(
+            &user.name,
+            "rollback",
+            &target,
+            &result.as_ref().map(|_| "active".to_string()).map_err(clone_error),
+        );
         result
     }
 
@@ -372,7 +398,12 @@ impl Runner {
         if let Err(e) = state {
             tracing::error!("set {id} runs, but the store could not record it: {e}");
         }
-        tracing::info!("set {id} ({}) is active; {} by {}", set.config_name, if rollback { "rolled back" } else { "activated" }, user.name);
+        tracing::info!(
+            "set {id} ({}) is active; {} by {}",
+            set.config_name,
+            if rollback { "rolled back" } else { "activated" },
+            user.name
+        );
         *active = Deployment { set: set.clone(), config, priorities: built.priorities, sim_ptys: built.sim_ptys };
         Ok(set)
     }
@@ -381,7 +412,8 @@ impl Runner {
     /// which is dropped here.
     fn hand_over(&self, request: SwapRequest, old_graph: &Receiver<Graph>) -> Result<(), DeployError> {
         {
-            let mut slot = self.slot.request.lock().map_err(|_| DeployError::Host("the swap slot is unusable".into()))?;
+            let mut slot =
+                self.slot.request.lock().map_err(|_| DeployError::Host("the swap slot is unusable".into()))?;
             *slot = Some(request);
         }
         self.slot.waiting.store(true, Ordering::Release);
@@ -441,8 +473,8 @@ fn import(
     overrides: &[ParamOverride],
 ) -> Result<SetRecord, DeployError> {
     let mut loader = Loader::new(sandbox);
-    let config = crate::config::parse_and_validate_for_run(path, text, &mut loader, overrides)
-        .map_err(DeployError::Invalid)?;
+    let config =
+        crate::config::parse_and_validate_for_run(path, text, &mut loader, overrides).map_err(DeployError::Invalid)?;
     let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
     let base_dir = std::fs::canonicalize(folder)
         .map_err(|e| DeployError::Host(format!("cannot resolve {}: {e}", folder.display())))?;
@@ -489,7 +521,8 @@ pub fn validate_set(
     overrides: &[ParamOverride],
 ) -> Result<RobotConfig, DeployError> {
     let bytes = store.blob(&set.config_sha256)?;
-    let text = String::from_utf8(bytes).map_err(|e| DeployError::Host(format!("stored robot file is not utf-8: {e}")))?;
+    let text =
+        String::from_utf8(bytes).map_err(|e| DeployError::Host(format!("stored robot file is not utf-8: {e}")))?;
     let lookup = |source: &str| set.sources.get(source).cloned();
     validate_text(store, set, &text, &lookup, loader, overrides).map(|(config, _)| config)
 }
@@ -511,7 +544,10 @@ fn validate_text(
     let mut config = result.map_err(|Diagnostics(list)| {
         DeployError::Invalid(Diagnostics(
             list.into_iter()
-                .map(|d| Diagnostic { path: if d.path == path { PathBuf::from(&set.config_name) } else { d.path }, ..d })
+                .map(|d| Diagnostic {
+                    path: if d.path == path { PathBuf::from(&set.config_name) } else { d.path },
+                    ..d
+                })
                 .collect(),
         ))
     })?;
@@ -601,7 +637,8 @@ fn instance_key(c: &ComponentConfig) -> String {
 
 /// (old index, new index) of the built-ins `new` takes over from `old`.
 pub fn carry_plan(old: &RobotConfig, new: &RobotConfig) -> Vec<(usize, usize)> {
-    let carried_kind = |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if CARRIED_KINDS.contains(&k.as_str()));
+    let carried_kind =
+        |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if CARRIED_KINDS.contains(&k.as_str()));
     let mut pairs: Vec<(usize, usize)> = new
         .components
         .iter()
@@ -632,7 +669,14 @@ pub fn platform_changes(old: &RobotConfig, new: &RobotConfig) -> Vec<Platform> {
             robot.components.iter().filter(|c| c.platform == platform).map(instance_key).collect();
         let name = |i: usize| robot.components.get(i).map_or("?", |c| c.name.as_str());
         lines.extend(robot.connections.iter().filter(|c| c.platform == platform).map(|c| {
-            format!("{}.{} -> {}.{} {:?}", name(c.from.component), c.from.port, name(c.to.component), c.to.port, c.policy)
+            format!(
+                "{}.{} -> {}.{} {:?}",
+                name(c.from.component),
+                c.from.port,
+                name(c.to.component),
+                c.to.port,
+                c.policy
+            )
         }));
         lines.sort();
         lines

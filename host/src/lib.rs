@@ -176,11 +176,15 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
             (graph, hook, stopped_by, clock.now_ns())
         })
         .map_err(|e| RunError::ControlLoop(e.to_string()))?;
-    let (graph, hook, stopped_by, ran_ns) =
-        control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))?;
+    let (graph, hook, stopped_by, ran_ns) = control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))?;
     runtime.shutdown_timeout(Duration::from_secs(1));
     let config = hook.config().clone();
-    tracing::info!("stopped ({}) after {:.2} s, {} messages routed", stopped_by.name(), ran_ns as f64 / 1e9, graph.messages_routed());
+    tracing::info!(
+        "stopped ({}) after {:.2} s, {} messages routed",
+        stopped_by.name(),
+        ran_ns as f64 / 1e9,
+        graph.messages_routed()
+    );
     Ok(report::build(&config, &graph, stopped_by, ran_ns as f64 / 1e9))
 }
 

@@ -146,9 +146,8 @@ fn main() -> ExitCode {
     let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report, params, http } => {
-            portal_options(&http, store_dir, logs).and_then(|portal| run(config, duration, report, params, cache_dir, portal))
-        }
+        Command::Run { config, duration, report, params, http } => portal_options(&http, store_dir, logs)
+            .and_then(|portal| run(config, duration, report, params, cache_dir, portal)),
         Command::User { action } => user(action, store_dir),
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
@@ -279,7 +278,8 @@ fn portal_options(
     if http == "off" {
         return Ok(None);
     }
-    let listen = http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
+    let listen =
+        http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
     let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
     Ok(Some(subsume::PortalOptions { listen, store_dir, logs }))
 }
@@ -300,8 +300,11 @@ fn user(action: UserAction, store_dir: Option<PathBuf>) -> anyhow::Result<ExitCo
     match action {
         UserAction::Add { name, role, platforms, password_stdin, replace } => {
             let role: Role = role.parse().map_err(anyhow::Error::msg)?;
-            let platforms =
-                platforms.iter().map(|p| parse_platform(p)).collect::<Result<Vec<_>, _>>().map_err(anyhow::Error::msg)?;
+            let platforms = platforms
+                .iter()
+                .map(|p| parse_platform(p))
+                .collect::<Result<Vec<_>, _>>()
+                .map_err(anyhow::Error::msg)?;
             let (password, generated) = password(password_stdin)?;
             users.add(&name, role, &platforms, &password, replace)?;
             eprintln!("added {} '{name}' to {}", role.name(), users.path().display());

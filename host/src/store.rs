@@ -323,7 +323,8 @@ impl Store {
     /// Appends `entry` to the audit log and fsyncs it.
     pub fn audit(&self, entry: &AuditEntry) -> Result<(), StoreError> {
         let path = self.root.join("audit.log");
-        let mut line = serde_json::to_vec(entry).map_err(|e| StoreError::Io { path: path.clone(), reason: e.to_string() })?;
+        let mut line =
+            serde_json::to_vec(entry).map_err(|e| StoreError::Io { path: path.clone(), reason: e.to_string() })?;
         line.push(b'\n');
         let mut file = std::fs::OpenOptions::new().create(true).append(true).open(&path).map_err(io(&path))?;
         file.write_all(&line).map_err(io(&path))?;

@@ -448,8 +448,11 @@ mod tests {
         std::fs::write(&path, "{\"users\": [{\"name\": \"x\"").unwrap();
         let err = Users::new(path.clone()).all().unwrap_err().to_string();
         assert!(err.starts_with(&format!("users file {}:", path.display())), "{err}");
-        std::fs::write(&path, r#"{"users":[{"name":"a","role":"admin","hash":"h"},{"name":"a","role":"admin","hash":"h"}]}"#)
-            .unwrap();
+        std::fs::write(
+            &path,
+            r#"{"users":[{"name":"a","role":"admin","hash":"h"},{"name":"a","role":"admin","hash":"h"}]}"#,
+        )
+        .unwrap();
         let err = Users::new(path).all().unwrap_err().to_string();
         assert!(err.ends_with("user 'a' is listed twice"), "{err}");
     }

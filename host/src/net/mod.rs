@@ -411,7 +411,10 @@ pub fn upgrade_websocket(
     use axum::response::IntoResponse;
     if !admit(&ctx) {
         let max = ctx.settings.max_connections;
-        return (axum::http::StatusCode::SERVICE_UNAVAILABLE, format!("busy: at most {max} operators are served at once"))
+        return (
+            axum::http::StatusCode::SERVICE_UNAVAILABLE,
+            format!("busy: at most {max} operators are served at once"),
+        )
             .into_response();
     }
     static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1 << 32);

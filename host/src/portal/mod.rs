@@ -222,7 +222,8 @@ impl IntoResponse for ApiError {
                 })
             })
             .collect();
-        let mut response = (self.status, Json(json!({ "error": self.message, "diagnostics": diagnostics }))).into_response();
+        let mut response =
+            (self.status, Json(json!({ "error": self.message, "diagnostics": diagnostics }))).into_response();
         if let Some(seconds) = self.retry_after
             && let Ok(value) = HeaderValue::from_str(&seconds.to_string())
         {
@@ -361,10 +362,8 @@ async fn login(
         keys.push(format!("address:{}", address.ip()));
     }
     if let Some(seconds) = state.limiter.blocked(&keys) {
-        let mut error = ApiError::new(
-            StatusCode::TOO_MANY_REQUESTS,
-            format!("too many failed logins; try again in {seconds} s"),
-        );
+        let mut error =
+            ApiError::new(StatusCode::TOO_MANY_REQUESTS, format!("too many failed logins; try again in {seconds} s"));
         error.retry_after = Some(seconds);
         return Err(error);
     }
@@ -442,7 +441,15 @@ async fn upload_component(
     }
     let target = format!("component '{}' for platform {}", clip(&name), platform.name());
     let result = check_and_store_component(&state, &user, platform, &name, body).await;
-    state.audit(&user.name, "upload-component", &target, &result.as_ref().map(|r| format!("sha256 {}", r.sha256)).map_err(|e| ApiError::new(e.status, e.message.clone())));
+    state.audit(
+        &user.name,
+        "upload-component",
+        &target,
+        &result
+            .as_ref()
+            .map(|r| format!("sha256 {}", r.sha256))
+            .map_err(|e| ApiError::new(e.status, e.message.clone())),
+    );
     result.map(|record| (StatusCode::CREATED, Json(record)))
 }
 
@@ -462,8 +469,9 @@ async fn check_and_store_component(
     if body.is_empty() {
         return Err(ApiError::new(StatusCode::BAD_REQUEST, "the upload is empty: send the .wasm file as the body"));
     }
-    crate::preamble::check_component_preamble(&body)
-        .map_err(|why| ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, format!("not a webassembly component: {why}")))?;
+    crate::preamble::check_component_preamble(&body).map_err(|why| {
+        ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, format!("not a webassembly component: {why}"))
+    })?;
     let _permit = state.compiles.acquire().await.map_err(|e| ApiError::internal(e.to_string()))?;
     let runner = state.runner.clone();
     let (name, uploaded_by) = (name.to_string(), user.name.clone());
@@ -749,7 +757,9 @@ async fn teleop_socket(
     ws: WebSocketUpgrade,
 ) -> Response {
     match state.runner.services.teleop_servers.current() {
-        Some(ctx) => crate::net::upgrade_websocket(ws, ctx, address.unwrap_or_else(|| SocketAddr::from(([0, 0, 0, 0], 0)))),
+        Some(ctx) => {
+            crate::net::upgrade_websocket(ws, ctx, address.unwrap_or_else(|| SocketAddr::from(([0, 0, 0, 0], 0))))
+        }
         None => ApiError::new(StatusCode::NOT_FOUND, "the active set has no network platform (builtin:teleop)")
             .into_response(),
     }
