@@ -172,7 +172,12 @@ fn teleop_params() -> Vec<ParamSpec> {
             "",
             "address of the WebSocket endpoint /teleop (JSON messages); empty: none",
         ),
-        param("operators", ParamKind::Text, "", "file of NAME TOKEN lines, relative to the robot file"),
+        param(
+            "operators",
+            ParamKind::Text,
+            "",
+            "file of NAME TOKEN lines, relative to the robot file; optional with the portal (its operators log in)",
+        ),
         param("probe-period", ParamKind::Number, "300", "seconds between round-trip measurements (and one on connect)"),
         param("direct-below", ParamKind::Number, "0.1", "round-trip time (s) under which direct mode is allowed"),
         param("shared-below", ParamKind::Number, "0.3", "round-trip time (s) under which shared mode is allowed"),
