@@ -1,0 +1,357 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! Components in four languages, driven through the built `subsume` binary.
+//!
+//! The obstacle avoider exists in Rust, C, Python and JavaScript
+//! (`guest-components/*/avoider`): each describes itself the same, sends the
+//! same commands for the same scans, refuses the same bad parameters and
+//! keeps a simulated robot off a wall. And `subsume new` makes a project in
+//! each language that builds with the command its README documents, loads,
+//! and drives its simulated robot without a collision.
+//!
+//! The toolchains come from `scripts/setup`; `guest-components/build-all`
+//! builds the avoiders (incrementally) on first use.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::sync::OnceLock;
+
+use serde_json::Value as Json;
+
+const LANGUAGES: [&str; 4] = ["rust", "c", "python", "js"];
+
+fn subsume() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command
+        .current_dir(support::repo_root())
+        .arg("--cache-dir")
+        .arg(support::cache_dir())
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        // Runs side by side: no web portal (it would take the same port).
+        .env("SUBSUME_HTTP", "off");
+    command
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+/// Runs `command`, panicking with its output unless it succeeds.
+fn succeed(command: &mut Command, what: &str) -> Output {
+    let output = command.output().unwrap_or_else(|e| panic!("cannot run {what}: {e}"));
+    assert!(
+        output.status.success(),
+        "{what} failed ({}):\n{}\n{}",
+        output.status,
+        text(&output.stdout),
+        text(&output.stderr)
+    );
+    output
+}
+
+/// The avoider built in `lang`.
+fn avoider(lang: &str) -> PathBuf {
+    if lang == "rust" {
+        return support::guest("avoider");
+    }
+    static BUILT: OnceLock<()> = OnceLock::new();
+    BUILT.get_or_init(|| {
+        let script = support::repo_root().join("guest-components/build-all");
+        let what = "guest-components/build-all c python js (scripts/setup installs the toolchains)";
+        succeed(Command::new(script).args(["c", "python", "js"]).env_remove("CARGO_TARGET_DIR"), what);
+    });
+    support::repo_root().join(format!("guest-components/{lang}/avoider/avoider.wasm"))
+}
+
+fn describe(wasm: &Path) -> Json {
+    let output = succeed(subsume().args(["describe", "--json"]).arg(wasm), "subsume describe");
+    let mut json: Json = serde_json::from_slice(&output.stdout).unwrap();
+    json.as_object_mut().unwrap().remove("sha256");
+    json
+}
+
+/// Runs a robot file written into a temporary folder, with the world file
+/// `wall-ahead.world` beside it; returns the report and the log.
+fn run_robot(xml: &str, seconds: &str) -> (Json, String) {
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::copy(support::repo_root().join("tests/worlds/wall-ahead.world"), dir.path().join("wall-ahead.world"))
+        .unwrap();
+    let robot = dir.path().join("robot.xml");
+    std::fs::write(&robot, xml).unwrap();
+    let report = dir.path().join("report.json");
+    let output =
+        succeed(subsume().arg("run").arg(&robot).args(["--duration", seconds, "--report"]).arg(&report), "subsume run");
+    (serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap(), text(&output.stderr))
+}
+
+/// The report section of built-in `component` of `kind` (the first
+/// component of a kind has the plain `kind`, later ones `kind:component`).
+fn section<'a>(report: &'a Json, kind: &str, component: &str) -> &'a Json {
+    report.get(format!("{kind}:{component}")).unwrap_or(&report[kind])
+}
+
+fn assert_all_running(report: &Json) {
+    for c in report["components"].as_array().unwrap() {
+        assert!(c["state"] == "running" && c["errors"] == 0, "{c}");
+    }
+}
+
+#[test]
+fn every_language_describes_the_same_avoider() {
+    let rust = describe(&avoider("rust"));
+    assert_eq!((rust["name"].as_str(), rust["default_priority"].as_i64()), (Some("avoider"), Some(3)));
+    for lang in &LANGUAGES[1..] {
+        assert_eq!(describe(&avoider(lang)), rust, "{lang}");
+    }
+}
+
+/// Scripted situations: (name, scan, parameters, the command every language
+/// must send, or `None` for silence). Rays run from right to left over the
+/// default 180-degree field of view; the front cone is the middle 1.6 rad.
+const SITUATIONS: [(&str, &str, &[(&str, &str)], Option<&str>); 7] = [
+    ("right", "2 2 0.3 0.4 1 3 3", &[], Some("VEL 0.000 1.200")),
+    ("left", "3 3 1 0.4 0.3 2 2", &[], Some("VEL 0.000 -1.200")),
+    // Close, but only beside the robot: outside the cone.
+    ("clear", "0.2 3 3 3 3 3 0.2", &[], None),
+    // Equal room on both sides turns left; halfway values round to even.
+    ("tie", "1 1 0.3 1 1", &[("creep-speed", "0.0625"), ("turn-rate", "0.3125")], Some("VEL 0.062 0.312")),
+    // A zero turn to the right keeps its sign, as Rust, C and Python print it.
+    ("zero", "3 3 0.3 2 2", &[("turn-rate", "0")], Some("VEL 0.000 -0.000")),
+    // One ray: it sits at -fov/2, inside a cone wider than the field.
+    ("one-ray", "0.1", &[("cone", "7")], Some("VEL 0.000 -1.200")),
+    // Printed in full: no exponent.
+    ("huge", "0.1 0.1 0.1", &[("creep-speed", "1e21")], Some("VEL 1000000000000000000000.000 1.200")),
+];
+
+#[test]
+fn every_language_sends_the_same_commands_for_the_same_scans() {
+    let mut xml = String::from("<robot name=\"scripted\">\n  <platform name=\"control\">\n");
+    for (situation, scan, params, _) in SITUATIONS {
+        xml += &format!(
+            "    <component name=\"scan-{situation}\" source=\"builtin:publish\" rate=\"20\">\
+             <param name=\"kind\" value=\"vector\"/><param name=\"value\" value=\"{scan}\"/></component>\n"
+        );
+        for lang in LANGUAGES {
+            let name = format!("{lang}-{situation}");
+            let params: String =
+                params.iter().map(|(key, value)| format!("<param name=\"{key}\" value=\"{value}\"/>")).collect();
+            xml += &format!(
+                "    <component name=\"{name}\" source=\"{}\" rate=\"10\">{params}</component>\n\
+                 \x20   <component name=\"log-{name}\" source=\"builtin:log\" rate=\"0\">\
+                 <param name=\"interval\" value=\"0\"/></component>\n\
+                 \x20   <connect from=\"scan-{situation}.out\" to=\"{name}.ranges\"/>\n\
+                 \x20   <connect from=\"{name}.cmd\" to=\"log-{name}.in\"/>\n",
+                avoider(lang).display()
+            );
+        }
+    }
+    xml += "  </platform>\n</robot>\n";
+    let (report, log) = run_robot(&xml, "1.5");
+    assert_all_running(&report);
+
+    // The commands each log component received.
+    let mut received: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for line in log.lines() {
+        let (Some(start), Some(field)) = (line.find("received command '"), line.find("component=log-")) else {
+            continue;
+        };
+        let command = &line[start + "received command '".len()..];
+        let command = &command[..command.find('\'').unwrap()];
+        let sink = line[field + "component=log-".len()..].trim_matches('"').to_string();
+        received.entry(sink).or_default().insert(command.to_string());
+    }
+    for (situation, _, _, expected) in SITUATIONS {
+        for lang in LANGUAGES {
+            let name = format!("{lang}-{situation}");
+            let got: Vec<&String> = received.get(&name).map(|set| set.iter().collect()).unwrap_or_default();
+            assert_eq!(got.iter().map(|s| s.as_str()).collect::<Vec<_>>(), Vec::from_iter(expected), "{name}");
+            let ticks = report["components"].as_array().unwrap().iter().find(|c| c["name"] == name.as_str());
+            let sent = ticks.and_then(|c| c["messages_out"].as_u64()).unwrap_or_default();
+            assert!(expected.is_none() || sent >= 10, "{name} sent {sent} commands in 1.5 s at 10 Hz");
+        }
+    }
+}
+
+#[test]
+fn every_language_refuses_the_same_bad_parameters() {
+    for lang in LANGUAGES {
+        let xml = format!(
+            "<robot name=\"refusal\"><platform name=\"control\">\
+             <component name=\"avoid\" source=\"{}\"><param name=\"cone\" value=\"-1\"/></component>\
+             </platform></robot>",
+            avoider(lang).display()
+        );
+        let dir = tempfile::tempdir().unwrap();
+        let robot = dir.path().join("robot.xml");
+        std::fs::write(&robot, xml).unwrap();
+        let output = subsume().arg("run").arg(&robot).args(["--duration", "1"]).output().unwrap();
+        assert_eq!(output.status.code(), Some(1), "{lang}");
+        let stderr = text(&output.stderr);
+        assert!(
+            stderr
+                .contains("failed to start component 'avoid': init() failed: threshold, fov and cone must be positive"),
+            "{lang}: {stderr}"
+        );
+    }
+}
+
+/// One robot per language in one run, each in the same world: a blind
+/// source drives straight at a wall 4 m ahead, the avoider above it.
+#[test]
+fn every_language_keeps_the_robot_off_the_wall() {
+    let mut xml = String::from("<robot name=\"walls\">\n  <platform name=\"control\">\n");
+    for lang in LANGUAGES {
+        xml += &format!(
+            r#"    <component name="sim-{lang}" source="builtin:sim"><param name="world" value="wall-ahead.world"/></component>
+    <component name="motors-{lang}" source="builtin:serial" rate="100"><param name="device" value="sim:sim-{lang}"/></component>
+    <component name="driver-{lang}" source="builtin:publish" rate="10" priority="1">
+      <param name="kind" value="command"/><param name="value" value="VEL 0.4 0"/>
+    </component>
+    <component name="avoid-{lang}" source="{avoider}" rate="20" timeout="400ms">
+      <param name="creep-speed" value="0.05"/>
+    </component>
+    <component name="arbiter-{lang}" source="builtin:arbiter" rate="20"/>
+    <connect from="motors-{lang}.ranges" to="avoid-{lang}.ranges"/>
+    <connect from="driver-{lang}.out" to="arbiter-{lang}.commands"/>
+    <connect from="avoid-{lang}.cmd" to="arbiter-{lang}.commands"/>
+    <connect from="arbiter-{lang}.cmd" to="motors-{lang}.cmd"/>
+"#,
+            avoider = avoider(lang).display()
+        );
+    }
+    xml += "  </platform>\n</robot>\n";
+    let (report, _) = run_robot(&xml, "14");
+    assert_all_running(&report);
+    // The same outcome: no collision, the avoider in control for about the
+    // same time, about the same distance driven (the wall is square across
+    // the path, so which way each robot turns is up to timing).
+    let outcome = |lang: &str| {
+        let sim = section(&report, "sim", &format!("sim-{lang}"));
+        let held = &section(&report, "arbiter", &format!("arbiter-{lang}"))["held_s"];
+        let avoid = held.as_array().unwrap().iter().find(|h| h[0] == format!("avoid-{lang}").as_str());
+        let held = avoid.and_then(|h| h[1].as_f64()).unwrap_or_default();
+        (sim["collisions"].as_u64().unwrap(), held, sim["distance_travelled_m"].as_f64().unwrap())
+    };
+    let (_, rust_held, rust_distance) = outcome("rust");
+    assert!(rust_distance > 3.0 && rust_held > 0.5, "rust: {:?}", outcome("rust"));
+    for lang in LANGUAGES {
+        let (collisions, held, distance) = outcome(lang);
+        assert_eq!(collisions, 0, "{lang}: {:?}", outcome(lang));
+        assert!((held - rust_held).abs() < 0.5, "{lang} held control {held} s, rust {rust_held} s");
+        assert!((distance - rust_distance).abs() < 0.5, "{lang} drove {distance} m, rust {rust_distance} m");
+    }
+}
+
+/// The text between `start` and the next `end` after it.
+fn between<'a>(text: &'a str, start: &str, end: &str) -> &'a str {
+    let from = text.find(start).unwrap_or_else(|| panic!("no '{start}' in:\n{text}")) + start.len();
+    let len = text[from..].find(end).unwrap_or_else(|| panic!("no '{end}' after '{start}' in:\n{text}"));
+    &text[from..from + len]
+}
+
+#[test]
+fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_drive() {
+    let root = tempfile::tempdir().unwrap();
+    let mut built = Vec::new();
+    for lang in LANGUAGES {
+        let name = format!("probe-{lang}");
+        let dir = root.path().join(&name);
+        let new = || subsume().args(["new", &name, "--lang", lang, "--dir"]).arg(&dir).output().unwrap();
+        let output = new();
+        assert!(output.status.success(), "{lang}: {}", text(&output.stderr));
+        assert!(text(&output.stdout).starts_with(&format!("created {}", dir.display())), "{}", text(&output.stdout));
+        let again = new();
+        assert_eq!(again.status.code(), Some(1));
+        assert!(text(&again.stderr).contains("already exists; subsume new never writes into an existing directory"));
+
+        // Build with exactly the command the README documents. A Python or
+        // JavaScript project's first build installs componentize-py or
+        // componentize-js into it; the avoiders' builds run those same rules
+        // (one Makefile each), so here the project reuses their installs.
+        let readme = std::fs::read_to_string(dir.join("README.md")).unwrap();
+        let command = between(between(&readme, "## Build", "## "), "```sh\n", "\n```");
+        let wasm = dir.join(between(&readme, "This writes `", "`"));
+        avoider(lang);
+        let avoiders = support::repo_root().join("guest-components");
+        succeed(
+            Command::new("sh")
+                .args(["-c", command])
+                .current_dir(&dir)
+                .env_remove("CARGO_TARGET_DIR")
+                .env("VENV", avoiders.join("python/avoider/.venv"))
+                .env("COMPONENTIZE_JS", avoiders.join("js/avoider/node_modules/.bin/componentize-js")),
+            &format!("{lang} project's build command '{command}'"),
+        );
+
+        let description = describe(&wasm);
+        assert_eq!(description["name"], name.as_str());
+        assert_eq!(
+            (description["inputs"][0]["name"].as_str(), description["inputs"][0]["kind"].as_str()),
+            (Some("ranges"), Some("vector"))
+        );
+        assert_eq!(
+            (description["outputs"][0]["name"].as_str(), description["outputs"][0]["kind"].as_str()),
+            (Some("cmd"), Some("command"))
+        );
+        built.push((lang, name, dir, wasm));
+    }
+
+    // Every project drives its own trial robot, and takes the avoider's
+    // place in the demo unchanged; all runs at once.
+    let demo = std::fs::read_to_string(support::repo_root().join("config/demo.xml")).unwrap();
+    let rust_avoider = "../guest-components/rust/target/wasm32-wasip2/release/avoider.wasm";
+    assert!(demo.contains(rust_avoider), "the demo's avoider moved");
+    let mut runs = Vec::new();
+    for (lang, name, dir, wasm) in &built {
+        let report = dir.join("report.json");
+        let trial = subsume()
+            .arg("run")
+            .arg(dir.join("robot.xml"))
+            .args(["--duration", "12", "--report"])
+            .arg(&report)
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        runs.push((format!("{lang} trial"), name.clone(), trial, report, None));
+        // The demo file's paths are relative to its folder: the copy lives there.
+        let copy = tempfile::Builder::new()
+            .prefix(".languages-test-")
+            .suffix(".xml")
+            .tempfile_in(support::repo_root().join("config"))
+            .unwrap();
+        std::fs::write(copy.path(), demo.replace(rust_avoider, &wasm.display().to_string())).unwrap();
+        let report = dir.join("demo-report.json");
+        let run = subsume()
+            .arg("run")
+            .arg(copy.path())
+            .args(["--duration", "4", "--report"])
+            .arg(&report)
+            .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        runs.push((format!("{lang} in the demo"), "avoid".to_string(), run, report, Some(copy)));
+    }
+    for (what, component, run, report, demo_copy) in runs {
+        let output = run.wait_with_output().unwrap();
+        drop(demo_copy);
+        assert!(output.status.success(), "{what}: {}", text(&output.stderr));
+        let report: Json = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        assert_all_running(&report);
+        let held = report["arbiter"]["held_s"].as_array().unwrap();
+        let held = held.iter().find(|h| h[0] == component.as_str()).and_then(|h| h[1].as_f64()).unwrap_or_default();
+        if what.ends_with("trial") {
+            assert_eq!(report["sim"]["collisions"], 0, "{what}: {}", report["sim"]);
+            assert!(held > 0.5, "{what}: {}", report["arbiter"]);
+        } else {
+            let calls =
+                report["components"].as_array().unwrap().iter().find(|c| c["name"] == "avoid").unwrap()["calls"]
+                    .as_u64();
+            assert!(calls.unwrap_or_default() > 50, "{what}: {}", report["components"]);
+        }
+    }
+}
