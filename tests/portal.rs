@@ -169,7 +169,11 @@ fn the_portal_works_in_a_real_browser() {
         .unwrap();
     let stdout = String::from_utf8_lossy(&output.stdout);
     let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(output.status.success(), "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})", artifacts.display());
+    assert!(
+        output.status.success(),
+        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
+        artifacts.display()
+    );
     assert!(stdout.contains("ok: "), "{stdout}");
     for shot in ["1-component", "2-diagnostics", "3-wiring", "4-live", "5-drive"] {
         assert!(artifacts.join(format!("{shot}.png")).is_file(), "{shot}.png");
