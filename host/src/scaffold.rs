@@ -100,7 +100,7 @@ impl Language {
                  `.venv/` with componentize-py 0.25.1 from PyPI."
             }
             Language::Js => {
-                "Needs node 18 or newer with npm. The first build installs componentize-js 0.23.0 from npm \
+                "Needs node 20 or newer with npm. The first build installs componentize-js 0.23.0 from npm \
                  into `node_modules/`."
             }
         }
