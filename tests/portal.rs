@@ -175,7 +175,7 @@ fn the_portal_works_in_a_real_browser() {
         artifacts.display()
     );
     assert!(stdout.contains("ok: "), "{stdout}");
-    for shot in ["1-component", "2-diagnostics", "3-wiring", "4-live", "5-drive"] {
+    for shot in ["1-component", "2-diagnostics", "3-wiring", "4-live", "5-drive", "6-rolled-back"] {
         assert!(artifacts.join(format!("{shot}.png")).is_file(), "{shot}.png");
     }
 }

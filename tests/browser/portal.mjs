@@ -1,6 +1,6 @@
 // Drives the portal in Debian's headless Chromium: log in, upload a guest,
 // see its ports, stage and activate a robot file using it, see it in the
-// live view, drive with the pad. Screenshots go to $ARTIFACTS.
+// live view, drive with the pad, roll back. Screenshots go to $ARTIFACTS.
 // Usage: node portal.mjs URL USER PASSWORD COMPONENT.wasm ROBOT.xml BAD.xml
 import { chromium } from 'playwright-core';
 import path from 'node:path';
@@ -86,7 +86,18 @@ try {
   });
   if (!(released > 0)) throw new Error(`the pad's commands were not released: ${released}`);
   await shot('5-drive');
-  console.log(`ok: ${released} pad commands released`);
+
+  step('roll back to the set that ran before');
+  await page.click('#drive-connect');
+  await page.click('#tabs button[data-tab="sets"]');
+  await page.click('#rollback');
+  await page.waitForSelector('#set-result:has-text("rolled back: set")');
+  const back = (await page.innerText('#set-result')).match(/set (\d+)/)[1];
+  if (back === staged) throw new Error(`rollback kept set ${staged}`);
+  await page.click('#tabs button[data-tab="live"]');
+  await page.waitForSelector(`#active-set:has-text("set ${back}")`);
+  await shot('6-rolled-back');
+  console.log(`ok: ${released} pad commands released; rolled back from set ${staged} to set ${back}`);
 } catch (err) {
   await shot('failure').catch(() => {});
   console.error(err);
