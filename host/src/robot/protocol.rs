@@ -20,6 +20,11 @@
 pub const MAX_LINE_BYTES: usize = 512;
 /// Most range readings in one feedback message.
 pub const MAX_RANGES: usize = 64;
+/// Largest magnitude of a number on an ascii line, in thousandths (a million
+/// metres, volts or radians): nothing a controller sends is larger, and up to
+/// it a value survives the trip through f64 exactly, so re-encoding a decoded
+/// message gives the same bytes.
+pub const MAX_ASCII_MAGNITUDE: i64 = 1_000_000_000;
 /// Start byte of a binary frame.
 pub const FRAME_START: u8 = 0xA5;
 
@@ -274,7 +279,8 @@ fn parse_ascii_line(line: &[u8]) -> Option<Option<Message>> {
     let text = std::str::from_utf8(line).ok()?.trim_end_matches('\r');
     let mut words = text.split_ascii_whitespace();
     let Some(kind) = words.next() else { return Some(None) };
-    let numbers: Option<Vec<i64>> = words.map(|w| w.parse::<i64>().ok()).collect();
+    let numbers: Option<Vec<i64>> =
+        words.map(|w| w.parse::<i64>().ok().filter(|v| v.abs() <= MAX_ASCII_MAGNITUDE)).collect();
     let n = numbers?;
     let milli = |v: i64| v as f64 / 1000.0;
     let message = match (kind, n.as_slice()) {
@@ -409,5 +415,19 @@ mod tests {
         decoder.feed(&bytes, &mut out);
         assert_eq!(out, vec![Message::Command(MotorCommand::Stop), Message::Command(MotorCommand::Stop)]);
         assert!(decoder.malformed() >= 3, "{}", decoder.malformed());
+    }
+
+    #[test]
+    fn numbers_too_large_to_be_readings_are_garbage() {
+        // Found by the feedback fuzz target: beyond f64's exact range the
+        // re-encoded line differed from the one decoded.
+        let mut decoder = Decoder::new(Profile::Ascii);
+        let mut out = Vec::new();
+        decoder.feed(b"P 4444444444444442
+P 1000000000
+M -1000000001 0
+", &mut out);
+        assert_eq!(out, vec![Message::Feedback(Feedback::Battery(1_000_000.0))]);
+        assert_eq!(decoder.malformed(), 2);
     }
 }
