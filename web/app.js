@@ -299,21 +299,39 @@ async function showGraph(id) {
   $('graph-set').textContent = String(id);
   const { graph } = await api('GET', `/sets/${id}`);
   if (!graph.components) { $('set-result').textContent = graph.error; return; }
-  // Layers: a component sits one layer right of its deepest input source.
+  // Layers: visit from the components nothing feeds (breadth first, then
+  // file order); an edge is forward when it goes to a later-visited
+  // component, and a component sits one layer right of its deepest forward
+  // source. Back edges (feedback loops, e.g. arbiter -> motors) curve below.
   const names = graph.components.map((c) => c.name);
-  const layer = new Map(names.map((n) => [n, 0]));
   const edges = graph.connections.map((c) => [c.from.split('.')[0], c.to.split('.')[0], c]);
-  for (let pass = 0; pass < names.length; pass++) {
-    for (const [a, b] of edges) if (a !== b && layer.get(b) < layer.get(a) + 1 && layer.get(a) + 1 < names.length) layer.set(b, layer.get(a) + 1);
+  const fed = new Set(edges.map(([, b]) => b));
+  const order = new Map();
+  const queue = names.filter((n) => !fed.has(n));
+  for (const n of names) if (!queue.includes(n)) queue.push(n);
+  while (queue.length) {
+    const n = queue.shift();
+    if (order.has(n)) continue;
+    order.set(n, order.size);
+    for (const [a, b] of edges) if (a === n && !order.has(b)) queue.unshift(b);
+  }
+  const forward = ([a, b]) => order.get(a) < order.get(b);
+  const layer = new Map(names.map((n) => [n, 0]));
+  for (const n of [...names].sort((x, y) => order.get(x) - order.get(y))) {
+    for (const e of edges) if (e[1] === n && forward(e)) layer.set(n, Math.max(layer.get(n), layer.get(e[0]) + 1));
   }
   const rows = new Map();
   const pos = new Map();
-  for (const c of graph.components) {
-    const l = layer.get(c.name);
+  for (const n of [...names].sort((x, y) => order.get(x) - order.get(y))) {
+    const l = layer.get(n);
     const r = rows.get(l) || 0;
     rows.set(l, r + 1);
-    pos.set(c.name, { x: 10 + l * 170, y: 20 + r * 70 });
+    pos.set(n, { x: 10 + l * 170, y: 20 + r * 70 });
   }
+  const width = 20 + (Math.max(...layer.values()) + 1) * 170;
+  const height = 80 + Math.max(...rows.values()) * 70;
+  svg.setAttribute('viewBox', `0 0 ${width} ${height}`);
+  svg.setAttribute('height', String(Math.min(600, height)));
   const ns = 'http://www.w3.org/2000/svg';
   const add = (tag, attrs, text) => {
     const n = document.createElementNS(ns, tag);
@@ -322,9 +340,16 @@ async function showGraph(id) {
     svg.append(n);
     return n;
   };
-  for (const [a, b, c] of edges) {
+  for (const e of edges) {
+    const [a, b, c] = e;
     const p = pos.get(a), q = pos.get(b);
-    add('line', { x1: p.x + 140, y1: p.y + 20, x2: q.x, y2: q.y + 20, stroke: c.platform === 'network' ? '#b36b00' : '#567', 'stroke-width': 1.5 });
+    const stroke = c.platform === 'network' ? '#b36b00' : '#567';
+    if (forward(e)) {
+      add('line', { x1: p.x + 140, y1: p.y + 20, x2: q.x, y2: q.y + 20, stroke, 'stroke-width': 1.5 });
+    } else {
+      const low = height - 15;
+      add('path', { d: `M ${p.x + 70} ${p.y + 40} C ${p.x + 70} ${low}, ${q.x + 70} ${low}, ${q.x + 70} ${q.y + 40}`, fill: 'none', stroke, 'stroke-width': 1.5, 'stroke-dasharray': '4 3' });
+    }
   }
   for (const c of graph.components) {
     const p = pos.get(c.name);

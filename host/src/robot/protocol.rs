@@ -423,10 +423,7 @@ mod tests {
         // re-encoded line differed from the one decoded.
         let mut decoder = Decoder::new(Profile::Ascii);
         let mut out = Vec::new();
-        decoder.feed(b"P 4444444444444442
-P 1000000000
-M -1000000001 0
-", &mut out);
+        decoder.feed(b"P 4444444444444442\nP 1000000000\nM -1000000001 0\n", &mut out);
         assert_eq!(out, vec![Message::Feedback(Feedback::Battery(1_000_000.0))]);
         assert_eq!(decoder.malformed(), 2);
     }
