@@ -93,23 +93,41 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         config.connections.len()
     );
     let clock = Clock::new();
-    let mut graph = build_graph(&config, &mut loader, clock, &shutdown.waker()).map_err(RunError::Start)?;
-    let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
+    let graph = build_graph(&config, &mut loader, clock, &shutdown.waker()).map_err(RunError::Start)?;
+    let (graph, _, stopped_by, ran_ns) =
+        run_control_thread(graph, clock, shutdown, options.duration, control_loop::NoHook)?;
+    Ok(final_report(&config, &graph, stopped_by, ran_ns))
+}
+
+/// Runs the control loop on its own thread, with `hook` between cycles,
+/// until a shutdown or `duration`; returns the graph, the hook, why it
+/// stopped and how long it ran (ns).
+fn run_control_thread<H: control_loop::CycleHook + Send + 'static>(
+    mut graph: Graph,
+    clock: Clock,
+    shutdown: Shutdown,
+    duration: Option<Duration>,
+    mut hook: H,
+) -> Result<(Graph, H, control_loop::StopReason, u64), RunError> {
+    let until_ns = duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
     let control = std::thread::Builder::new()
         .name("subsume-control".into())
         .spawn(move || {
-            let stopped_by = control_loop::run(&mut graph, &clock, &shutdown, until_ns);
-            (graph, stopped_by, clock.now_ns())
+            let stopped_by = control_loop::run_with(&mut graph, &clock, &shutdown, until_ns, &mut hook);
+            (graph, hook, stopped_by, clock.now_ns())
         })
         .map_err(|e| RunError::ControlLoop(e.to_string()))?;
-    let (graph, stopped_by, ran_ns) = control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))?;
+    control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))
+}
+
+fn final_report(config: &RobotConfig, graph: &Graph, stopped_by: control_loop::StopReason, ran_ns: u64) -> Report {
     tracing::info!(
         "stopped ({}) after {:.2} s, {} messages routed",
         stopped_by.name(),
         ran_ns as f64 / 1e9,
         graph.messages_routed()
     );
-    Ok(report::build(&config, &graph, stopped_by, ran_ns as f64 / 1e9))
+    report::build(config, graph, stopped_by, ran_ns as f64 / 1e9)
 }
 
 /// [`run`] with the portal: starts from the store (see `deploy::Runner::boot`),
@@ -144,7 +162,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         deploy::DeployError::Start(errors) => RunError::Start(errors),
         other => RunError::Start(vec![other.to_string()]),
     })?;
-    let deploy::Boot { runner, mut graph, mut hook } = boot;
+    let deploy::Boot { runner, graph, hook } = boot;
     let listener = std::net::TcpListener::bind(portal.listen)
         .map_err(|e| RunError::Start(vec![format!("the portal cannot listen on {}: {e}", portal.listen)]))?;
     let address = listener.local_addr().map_err(|e| RunError::Start(vec![e.to_string()]))?;
@@ -168,24 +186,9 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         }
     });
     tracing::info!("portal on http://{address}/ (store {})", portal.store_dir.display());
-    let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
-    let control = std::thread::Builder::new()
-        .name("subsume-control".into())
-        .spawn(move || {
-            let stopped_by = control_loop::run_with(&mut graph, &clock, &shutdown, until_ns, &mut hook);
-            (graph, hook, stopped_by, clock.now_ns())
-        })
-        .map_err(|e| RunError::ControlLoop(e.to_string()))?;
-    let (graph, hook, stopped_by, ran_ns) = control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))?;
+    let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options.duration, hook)?;
     runtime.shutdown_timeout(Duration::from_secs(1));
-    let config = hook.config().clone();
-    tracing::info!(
-        "stopped ({}) after {:.2} s, {} messages routed",
-        stopped_by.name(),
-        ran_ns as f64 / 1e9,
-        graph.messages_routed()
-    );
-    Ok(report::build(&config, &graph, stopped_by, ran_ns as f64 / 1e9))
+    Ok(final_report(hook.config(), &graph, stopped_by, ran_ns))
 }
 
 /// Instantiates and initialises every component of `config` and wires them.
