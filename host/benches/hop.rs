@@ -18,25 +18,13 @@ use std::time::{Duration, Instant};
 
 use subsume::config::Policy;
 use subsume::contract::Value;
-use subsume::runtime::{CallError, Component, Graph, Outbox};
+use subsume::runtime::{Component, Graph, Vacant};
 use subsume::sandbox::{GuestLimits, Sandbox};
 
 const BUDGET: Duration = Duration::from_millis(100);
 
 fn limits() -> GuestLimits {
     GuestLimits { memory_bytes: 16 << 20, budget: BUDGET, ..GuestLimits::default() }
-}
-
-/// Does nothing: the native end of a chain.
-struct Sink;
-
-impl Component for Sink {
-    fn on_input(&mut self, _: u32, _: &Value, _: usize, _: u64, _: &mut Outbox) -> Result<(), CallError> {
-        Ok(())
-    }
-    fn tick(&mut self, _: u64, _: &mut Outbox) -> Result<(), CallError> {
-        Ok(())
-    }
 }
 
 fn relay(sandbox: &Sandbox, bytes: &[u8]) -> Box<dyn Component> {
@@ -48,14 +36,14 @@ fn relay(sandbox: &Sandbox, bytes: &[u8]) -> Box<dyn Component> {
 /// `port` 0 carries scalars, 1 vectors.
 fn chain(sandbox: &Sandbox, bytes: &[u8], relays: usize, port: u32) -> (Graph, usize) {
     let mut graph = Graph::new();
-    let source = graph.add("source", Box::new(Sink), 2, 0.0, 0);
+    let source = graph.add("source", Box::new(Vacant), 2, 0.0, 0);
     let mut previous = source;
     for _ in 0..relays {
         let next = graph.add("relay", relay(sandbox, bytes), 2, 0.0, 0);
         graph.connect(previous, port, next, port, Policy::Latest);
         previous = next;
     }
-    let sink = graph.add("sink", Box::new(Sink), 0, 0.0, 0);
+    let sink = graph.add("sink", Box::new(Vacant), 0, 0.0, 0);
     graph.connect(previous, port, sink, port, Policy::Latest);
     (graph, source)
 }

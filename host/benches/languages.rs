@@ -25,23 +25,11 @@ use std::time::{Duration, Instant};
 
 use subsume::config::Policy;
 use subsume::contract::{Param, Value};
-use subsume::runtime::{CallError, Component, Graph, Outbox};
+use subsume::runtime::{Graph, Vacant};
 use subsume::sandbox::{GuestLimits, Sandbox};
 
 fn limits() -> GuestLimits {
     GuestLimits { budget: Duration::from_millis(100), ..GuestLimits::default() }
-}
-
-/// Does nothing: injects into the graph, and receives at its end.
-struct Sink;
-
-impl Component for Sink {
-    fn on_input(&mut self, _: u32, _: &Value, _: usize, _: u64, _: &mut Outbox) -> Result<(), CallError> {
-        Ok(())
-    }
-    fn tick(&mut self, _: u64, _: &mut Outbox) -> Result<(), CallError> {
-        Ok(())
-    }
 }
 
 /// The four avoiders, built (incrementally) first.
@@ -91,10 +79,10 @@ fn measure(label: &str, bytes: &[u8]) {
 
     // source -> component (ticked on every step) -> sink.
     let mut graph = Graph::new();
-    let source = graph.add("source", Box::new(Sink), 1, 0.0, 0);
+    let source = graph.add("source", Box::new(Vacant), 1, 0.0, 0);
     let component = Box::new(sandbox.instantiate(&artifact, label, &limits(), &params).unwrap());
     let tested = graph.add(label, component, 1, 1000.0, 0);
-    let sink = graph.add("sink", Box::new(Sink), 0, 0.0, 0);
+    let sink = graph.add("sink", Box::new(Vacant), 0, 0.0, 0);
     graph.connect(source, 0, tested, 0, Policy::Latest);
     graph.connect(tested, 0, sink, 0, Policy::Latest);
     let scan = Value::Vector(vec![2.0, 2.0, 2.0, 0.3, 0.2, 0.3, 3.0, 3.0, 3.0]);

@@ -626,7 +626,8 @@ impl Graph {
     }
 }
 
-/// What stands where a component was moved out: does nothing.
+/// A component that does nothing: it stands where one was moved out (an
+/// activation carries it on), or ends a chain (benchmarks).
 pub struct Vacant;
 
 impl Component for Vacant {}
