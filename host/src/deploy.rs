@@ -35,7 +35,7 @@ use crate::report;
 use crate::runtime::Graph;
 use crate::runtime::control_loop::{Clock, CycleHook, StopReason, Waker};
 use crate::sandbox::Sandbox;
-use crate::store::{AuditEntry, SetRecord, Store, StoreError, sha256_hex, unix_now};
+use crate::store::{Outcome, SetRecord, Store, StoreError, sha256_hex, unix_now};
 use crate::users::User;
 
 /// Built-in kinds that own something outside the host; unchanged ones are
@@ -232,24 +232,32 @@ impl Runner {
         Ok((active.set.clone(), active.config.clone()))
     }
 
-    fn audit(&self, user: &str, action: &str, target: &str, result: &Result<String, DeployError>) {
-        let (outcome, detail) = match result {
-            Ok(detail) => ("ok", detail.clone()),
-            Err(DeployError::Forbidden(why)) => ("refused", why.clone()),
-            Err(DeployError::Invalid(d)) => ("refused", d.to_string()),
-            Err(e) => ("failed", e.to_string()),
+    /// Records `result` of `action` in the audit log and returns it.
+    fn audited(
+        &self,
+        user: &User,
+        action: &str,
+        target: &str,
+        result: Result<SetRecord, DeployError>,
+        done: &str,
+    ) -> Result<SetRecord, DeployError> {
+        let (ok, error) = match &result {
+            Ok(set) => (format!("{done} set {}", set.id), String::new()),
+            Err(e) => (String::new(), e.to_string()),
         };
-        let entry = AuditEntry {
-            time: unix_now(),
-            user: user.into(),
-            action: action.into(),
-            target: target.into(),
-            result: outcome.into(),
-            detail: crate::contract::clip(&detail).to_string(),
+        let outcome = match &result {
+            Ok(_) => Outcome::Ok(&ok),
+            Err(
+                DeployError::Invalid(_)
+                | DeployError::Forbidden(_)
+                | DeployError::Conflict(_)
+                | DeployError::BadRequest(_)
+                | DeployError::Store(StoreError::NoSet(_)),
+            ) => Outcome::Refused(&error),
+            Err(_) => Outcome::Failed(&error),
         };
-        if let Err(e) = self.store.audit(&entry) {
-            tracing::error!("cannot write the audit log: {e}");
-        }
+        self.store.record(&user.name, action, target, outcome);
+        result
     }
 
     /// Validates an uploaded robot file for `platform` against the stored
@@ -261,15 +269,8 @@ impl Runner {
         file_name: &str,
         bytes: &[u8],
     ) -> Result<SetRecord, DeployError> {
-        let target = format!("{} for platform {}", crate::contract::clip(file_name), platform.name());
-        let result = self.stage_inner(user, platform, file_name, bytes);
-        self.audit(
-            &user.name,
-            "upload-config",
-            &target,
-            &result.as_ref().map(|s| format!("staged as set {}", s.id)).map_err(clone_error),
-        );
-        result
+        let target = format!("{file_name} for platform {}", platform.name());
+        self.audited(user, "upload-config", &target, self.stage_inner(user, platform, file_name, bytes), "staged as")
     }
 
     fn stage_inner(
@@ -308,6 +309,7 @@ impl Runner {
             base_dir: active_set.base_dir.clone(),
             sources: BTreeMap::new(),
             changes: Vec::new(),
+            graph: serde_json::Value::Null,
         };
         let mut loader = Loader::new(&self.sandbox);
         let (config, sources) = validate_text(&self.store, &record, text, &lookup, &mut loader, &self.overrides)?;
@@ -324,6 +326,7 @@ impl Runner {
             config_sha256,
             sources,
             changes: changes.iter().map(|p| p.name().to_string()).collect(),
+            graph: graph_json(&config),
             ..record
         };
         Ok(self.store.add_set(record)?)
@@ -331,36 +334,24 @@ impl Runner {
 
     /// Activates set `id`: see the module's invariants.
     pub fn activate(&self, user: &User, id: u64) -> Result<SetRecord, DeployError> {
-        let result = self.switch(user, id, false);
-        self.audit(
-            &user.name,
-            "activate",
-            &format!("set {id}"),
-            &result.as_ref().map(|_| "active".to_string()).map_err(clone_error),
-        );
-        result
+        self.audited(user, "activate", &format!("set {id}"), self.switch(user, id, false), "activated")
     }
 
     /// Activates the set that was active before the current one.
     pub fn rollback(&self, user: &User) -> Result<SetRecord, DeployError> {
         let previous = self.store.state()?.history.last().copied();
+        let target = previous.map_or_else(|| "none".to_string(), |id| format!("set {id}"));
         let result = match previous {
+            _ if !user.is_developer() => Err(may_not_activate(user)),
             Some(id) => self.switch(user, id, true),
             None => Err(DeployError::Conflict("there is no previous set to roll back to".into())),
         };
-        let target = previous.map_or_else(|| "none".to_string(), |id| format!("set {id}"));
-        self.audit(
-            &user.name,
-            "rollback",
-            &target,
-            &result.as_ref().map(|_| "active".to_string()).map_err(clone_error),
-        );
-        result
+        self.audited(user, "rollback", &target, result, "rolled back to")
     }
 
     fn switch(&self, user: &User, id: u64, rollback: bool) -> Result<SetRecord, DeployError> {
         if !user.is_developer() {
-            return Err(DeployError::Forbidden(format!("{} may not activate sets", user.name)));
+            return Err(may_not_activate(user));
         }
         let mut active = self.active.lock().map_err(|_| DeployError::Host("the active set is unusable".into()))?;
         if active.set.id == id {
@@ -439,12 +430,8 @@ impl Runner {
     }
 }
 
-fn clone_error(e: &DeployError) -> DeployError {
-    match e {
-        DeployError::Invalid(d) => DeployError::Invalid(d.clone()),
-        DeployError::Forbidden(m) => DeployError::Forbidden(m.clone()),
-        other => DeployError::Host(other.to_string()),
-    }
+fn may_not_activate(user: &User) -> DeployError {
+    DeployError::Forbidden(format!("{} may not activate sets", user.name))
 }
 
 /// Refuses robot-file names that are not a plain file name.
@@ -498,17 +485,12 @@ fn import(
         base_dir,
         sources,
         changes: vec![Platform::Control.name().into(), Platform::Network.name().into()],
+        graph: graph_json(&config),
     })?;
     store.mark_active(record.id)?;
     store.set_boot_config(&sha)?;
-    store.audit(&AuditEntry {
-        time: unix_now(),
-        user: "boot".into(),
-        action: "boot".into(),
-        target: format!("set {}", record.id),
-        result: "ok".into(),
-        detail: format!("imported {} and activated it", path.display()),
-    })?;
+    let detail = format!("imported {} and activated it", path.display());
+    store.record("boot", "boot", &format!("set {}", record.id), Outcome::Ok(&detail));
     tracing::info!("imported {} as set {} and activated it", path.display(), record.id);
     Ok(record)
 }
@@ -685,4 +667,44 @@ pub fn platform_changes(old: &RobotConfig, new: &RobotConfig) -> Vec<Platform> {
         .into_iter()
         .filter(|p| fingerprint(old, *p) != fingerprint(new, *p))
         .collect()
+}
+
+/// Components (with their ports) and connections, for the wiring view.
+pub fn graph_json(config: &RobotConfig) -> serde_json::Value {
+    let components: Vec<serde_json::Value> = config
+        .components
+        .iter()
+        .map(|c| {
+            let names = |ports: &[crate::contract::PortSpec]| ports.iter().map(|p| p.name.clone()).collect::<Vec<_>>();
+            serde_json::json!({
+                "name": c.name,
+                "platform": c.platform.name(),
+                "source": match &c.source {
+                    ComponentSource::Builtin(kind) => format!("builtin:{kind}"),
+                    ComponentSource::Wasm(_) => format!("wasm:{}", c.description.name),
+                },
+                "priority": c.priority,
+                "rate_hz": c.rate_hz,
+                "inputs": names(&c.description.inputs),
+                "outputs": names(&c.description.outputs),
+            })
+        })
+        .collect();
+    let port = |index: usize, port: u32, output: bool| -> String {
+        let Some(c) = config.components.get(index) else { return "?".into() };
+        let ports = if output { &c.description.outputs } else { &c.description.inputs };
+        format!("{}.{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
+    };
+    let connections: Vec<serde_json::Value> = config
+        .connections
+        .iter()
+        .map(|c| {
+            serde_json::json!({
+                "from": port(c.from.component, c.from.port, true),
+                "to": port(c.to.component, c.to.port, false),
+                "platform": c.platform.name(),
+            })
+        })
+        .collect();
+    serde_json::json!({ "robot": config.name, "components": components, "connections": connections })
 }

@@ -93,6 +93,10 @@ pub struct SetRecord {
     /// was active when this one was made.
     #[serde(default)]
     pub changes: Vec<String>,
+    /// Components (with their ports) and connections, for the wiring view:
+    /// worked out once, when the set is validated.
+    #[serde(default)]
+    pub graph: serde_json::Value,
 }
 
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
@@ -117,6 +121,16 @@ pub struct AuditEntry {
     /// "ok", "refused" or "failed".
     pub result: String,
     pub detail: String,
+}
+
+/// How an audited request ended, with the detail to record.
+#[derive(Clone, Copy, Debug)]
+pub enum Outcome<'a> {
+    Ok(&'a str),
+    /// The request was refused (permission, bad input): nothing changed.
+    Refused(&'a str),
+    /// The host failed to carry it out.
+    Failed(&'a str),
 }
 
 /// Seconds since the Unix epoch.
@@ -331,6 +345,27 @@ impl Store {
         file.sync_data().map_err(io(&path))
     }
 
+    /// Records one request in the audit log: now, by `user`. A log that
+    /// cannot be written is reported in the host log; the request stands.
+    pub fn record(&self, user: &str, action: &str, target: &str, outcome: Outcome<'_>) {
+        let (result, detail) = match outcome {
+            Outcome::Ok(detail) => ("ok", detail),
+            Outcome::Refused(detail) => ("refused", detail),
+            Outcome::Failed(detail) => ("failed", detail),
+        };
+        let entry = AuditEntry {
+            time: unix_now(),
+            user: user.into(),
+            action: action.into(),
+            target: crate::contract::clip(target).to_string(),
+            result: result.into(),
+            detail: crate::contract::clip(detail).to_string(),
+        };
+        if let Err(e) = self.audit(&entry) {
+            tracing::error!("cannot write the audit log: {e}");
+        }
+    }
+
     /// The newest `limit` audit entries (at most [`MAX_AUDIT_READ`]), oldest
     /// first. Lines that do not parse (a torn last write) are skipped.
     pub fn audit_entries(&self, limit: usize) -> Result<Vec<AuditEntry>, StoreError> {
@@ -379,6 +414,7 @@ mod tests {
                 base_dir: PathBuf::from("/tmp"),
                 sources: BTreeMap::new(),
                 changes: vec![],
+                graph: serde_json::Value::Null,
             })
             .unwrap()
     }

@@ -36,7 +36,7 @@ use crate::config::{ComponentSource, Diagnostics, Platform, limits};
 use crate::contract::{clip, description_json, is_valid_name};
 use crate::deploy::{DeployError, Runner};
 use crate::loader::MAX_COMPONENT_BYTES;
-use crate::store::{AuditEntry, ComponentRecord, StoreError, unix_now};
+use crate::store::{ComponentRecord, Outcome, StoreError, unix_now};
 use crate::users::{Directory, User, parse_platform, random_hex};
 
 /// Largest component upload: Python and JavaScript components are ~20 MB.
@@ -157,25 +157,6 @@ impl PortalState {
             limiter: LoginLimiter::default(),
             compiles: tokio::sync::Semaphore::new(MAX_CONCURRENT_COMPILES),
         })
-    }
-
-    fn audit(&self, user: &str, action: &str, target: &str, result: &Result<String, ApiError>) {
-        let (outcome, detail) = match result {
-            Ok(detail) => ("ok", detail.clone()),
-            Err(e) if e.status.is_client_error() => ("refused", e.message.clone()),
-            Err(e) => ("failed", e.message.clone()),
-        };
-        let entry = AuditEntry {
-            time: unix_now(),
-            user: user.into(),
-            action: action.into(),
-            target: clip(target).to_string(),
-            result: outcome.into(),
-            detail: clip(&detail).to_string(),
-        };
-        if let Err(e) = self.runner.store.audit(&entry) {
-            tracing::error!("cannot write the audit log: {e}");
-        }
     }
 }
 
@@ -441,15 +422,16 @@ async fn upload_component(
     }
     let target = format!("component '{}' for platform {}", clip(&name), platform.name());
     let result = check_and_store_component(&state, &user, platform, &name, body).await;
-    state.audit(
-        &user.name,
-        "upload-component",
-        &target,
-        &result
-            .as_ref()
-            .map(|r| format!("sha256 {}", r.sha256))
-            .map_err(|e| ApiError::new(e.status, e.message.clone())),
-    );
+    let stored;
+    let outcome = match &result {
+        Ok(record) => {
+            stored = format!("sha256 {}", record.sha256);
+            Outcome::Ok(&stored)
+        }
+        Err(e) if e.status.is_client_error() => Outcome::Refused(&e.message),
+        Err(e) => Outcome::Failed(&e.message),
+    };
+    state.runner.store.record(&user.name, "upload-component", &target, outcome);
     result.map(|record| (StatusCode::CREATED, Json(record)))
 }
 
@@ -476,12 +458,10 @@ async fn check_and_store_component(
     let runner = state.runner.clone();
     let (name, uploaded_by) = (name.to_string(), user.name.clone());
     blocking(move || {
-        let (world, description, sha256) = match runner.sandbox.load(&body) {
-            Ok(artifact) => {
-                ("component", description_json(&artifact.description, &artifact.sha256), artifact.sha256.clone())
-            }
+        let (world, description) = match runner.sandbox.load(&body) {
+            Ok(artifact) => ("component", description_json(&artifact.description, &artifact.sha256)),
             Err(as_component) => match runner.sandbox.load_translator(&body) {
-                Ok(artifact) => ("translator", json!({ "name": name, "world": "translator" }), artifact.sha256.clone()),
+                Ok(_) => ("translator", json!({ "name": name, "world": "translator" })),
                 Err(as_translator) => {
                     return Err(ApiError::new(
                         StatusCode::UNPROCESSABLE_ENTITY,
@@ -504,7 +484,6 @@ async fn check_and_store_component(
             uploaded_at: unix_now(),
             description,
         };
-        debug_assert_eq!(record.sha256, sha256);
         runner.store.put_component(record.clone()).map_err(|e| ApiError::internal(e.to_string()))?;
         tracing::info!("component '{}' uploaded by {} ({} bytes)", record.name, record.uploaded_by, record.size);
         Ok(record)
@@ -518,10 +497,8 @@ async fn upload_config(
     Path((platform, file)): Path<(String, String)>,
     body: Bytes,
 ) -> Result<(StatusCode, Json<Json_>), ApiError> {
+    // The runner checks the permission (and audits a refusal).
     let platform = platform_of(&platform)?;
-    if !user.may_change(platform) {
-        return Err(ApiError::forbidden(format!("{} may not upload to platform {}", user.name, platform.name())));
-    }
     let runner = state.runner.clone();
     let set = blocking(move || runner.stage(&user, platform, &file, &body).map_err(ApiError::from)).await?;
     Ok((StatusCode::CREATED, Json(json!({ "set": set }))))
@@ -552,6 +529,10 @@ async fn list_sets(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> 
             .map(|s| {
                 let status = set_status(s.id, &st);
                 let mut value = serde_json::to_value(s).unwrap_or_default();
+                if let Some(fields) = value.as_object_mut() {
+                    // The wiring is for one set's page (GET /sets/{id}).
+                    fields.remove("graph");
+                }
                 value["status"] = status.into();
                 value
             })
@@ -571,60 +552,15 @@ async fn get_set(
         let store = &runner.store;
         let set = store.set(id).map_err(|e| ApiError::from(DeployError::Store(e)))?;
         let text = store.blob(&set.config_sha256).map_err(|e| ApiError::internal(e.to_string()))?;
-        let mut loader = crate::loader::Loader::new(&runner.sandbox);
-        let graph = match crate::deploy::validate_set(store, &set, &mut loader, &[]) {
-            Ok(config) => graph_json(&config),
-            Err(e) => json!({ "error": e.to_string() }),
-        };
         let status = set_status(id, &store.state().map_err(|e| ApiError::internal(e.to_string()))?);
         Ok(Json(json!({
+            "graph": set.graph,
             "set": set,
             "status": status,
             "config": String::from_utf8_lossy(&text),
-            "graph": graph,
         })))
     })
     .await
-}
-
-/// Components (with their ports) and connections, for the wiring view.
-pub fn graph_json(config: &crate::config::RobotConfig) -> Json_ {
-    let components: Vec<Json_> = config
-        .components
-        .iter()
-        .map(|c| {
-            let names = |ports: &[crate::contract::PortSpec]| ports.iter().map(|p| p.name.clone()).collect::<Vec<_>>();
-            json!({
-                "name": c.name,
-                "platform": c.platform.name(),
-                "source": match &c.source {
-                    ComponentSource::Builtin(kind) => format!("builtin:{kind}"),
-                    ComponentSource::Wasm(_) => format!("wasm:{}", c.description.name),
-                },
-                "priority": c.priority,
-                "rate_hz": c.rate_hz,
-                "inputs": names(&c.description.inputs),
-                "outputs": names(&c.description.outputs),
-            })
-        })
-        .collect();
-    let port = |index: usize, port: u32, output: bool| -> String {
-        let Some(c) = config.components.get(index) else { return "?".into() };
-        let ports = if output { &c.description.outputs } else { &c.description.inputs };
-        format!("{}.{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
-    };
-    let connections: Vec<Json_> = config
-        .connections
-        .iter()
-        .map(|c| {
-            json!({
-                "from": port(c.from.component, c.from.port, true),
-                "to": port(c.to.component, c.to.port, false),
-                "platform": c.platform.name(),
-            })
-        })
-        .collect();
-    json!({ "robot": config.name, "components": components, "connections": connections })
 }
 
 async fn activate(
@@ -632,18 +568,12 @@ async fn activate(
     Authed(user): Authed,
     Path(id): Path<u64>,
 ) -> Result<Json<Json_>, ApiError> {
-    if !user.is_developer() {
-        return Err(ApiError::forbidden(format!("{} may not activate sets", user.name)));
-    }
     let runner = state.runner.clone();
     let set = blocking(move || runner.activate(&user, id).map_err(ApiError::from)).await?;
     Ok(Json(json!({ "active": set })))
 }
 
 async fn rollback(State(state): State<Arc<PortalState>>, Authed(user): Authed) -> Result<Json<Json_>, ApiError> {
-    if !user.is_developer() {
-        return Err(ApiError::forbidden(format!("{} may not roll back", user.name)));
-    }
     let runner = state.runner.clone();
     let set = blocking(move || runner.rollback(&user).map_err(ApiError::from)).await?;
     Ok(Json(json!({ "active": set })))
