@@ -139,7 +139,8 @@ fn a_kill_during_uploads_and_activations_leaves_a_consistent_store_that_restarts
     }
     // The audit log recorded what happened, in order, with who did it.
     let entries = subsume::store::Store::open(&store).unwrap().audit_entries(1000).unwrap();
-    assert_eq!(entries[0].action, "boot");
+    assert_eq!((entries[0].action.as_str(), entries[0].user.as_str()), ("user-add", "cli"));
+    assert_eq!(entries[1].action, "boot");
     assert!(entries.iter().any(|e| e.action == "upload-component" && e.user == "admin" && e.result == "ok"));
 }
 

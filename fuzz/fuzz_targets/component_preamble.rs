@@ -4,7 +4,7 @@
 // The parser modules are shared with the host; not every item is used here.
 #![allow(dead_code)]
 
-#[path = "../../host/src/preamble.rs"]
+#[path = "../../host/src/sandbox/preamble.rs"]
 mod preamble;
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {

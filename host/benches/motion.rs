@@ -11,12 +11,13 @@ use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
-use subsume::arbiter::{ArbiterComponent, PriorityCell, Source};
+use subsume::arbiter::{ArbiterComponent, Source};
 use subsume::contract::Value;
 use subsume::robot::protocol::Profile;
 use subsume::robot::serial::{LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator};
 use subsume::runtime::Component;
+use subsume::runtime::PriorityCell;
 
 fn percentile(sorted: &[u64], p: f64) -> u64 {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]

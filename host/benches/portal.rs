@@ -15,12 +15,13 @@ use std::time::{Duration, Instant};
 use axum::body::Body;
 use axum::http::Request;
 use subsume::builtin::Services;
-use subsume::deploy::{BootOptions, Runner};
+use subsume::deploy::{BootOptions, Deployer};
 use subsume::portal::{self, PortalState};
 use subsume::runtime::control_loop::{self, Clock, Shutdown};
 use subsume::sandbox::Sandbox;
 use subsume::store::Store;
-use subsume::users::{Directory, Role, Users};
+use subsume::store::users::{Directory, Role};
+use subsume::teleop::TeleopServers;
 use tower::ServiceExt as _;
 
 const ROUNDS: usize = 10;
@@ -101,29 +102,31 @@ fn ticks_of(status: &serde_json::Value, component: &str) -> (f64, f64) {
 fn main() -> Result<(), String> {
     let dir = tempfile::tempdir().map_err(|e| e.to_string())?;
     let store = Arc::new(Store::open(&dir.path().join("store")).map_err(|e| e.to_string())?);
-    let users = Users::new(store.users_path());
-    users.add("bench", Role::Admin, &[], "bench-password-1", false).map_err(|e| e.to_string())?;
-    let directory = Arc::new(Directory::new(users));
+    store
+        .lock()
+        .and_then(|w| Ok(w.users_mut().add("bench", Role::Admin, &[], "bench-password-1", false)?))
+        .map_err(|e| e.to_string())?;
+    let directory = Arc::new(Directory::new(store.users().clone()));
     let shutdown = Shutdown::new();
     let clock = Clock::new();
     let overrides =
         ["teleop.listen=127.0.0.1:0", "teleop.websocket="].iter().map(|o| o.parse()).collect::<Result<Vec<_>, _>>()?;
-    let boot = Runner::boot(BootOptions {
+    let boot = Deployer::boot(BootOptions {
         store,
         sandbox: Arc::new(Sandbox::new(Some(dir.path().join("cache"))).map_err(|e| e.to_string())?),
-        services: Services { directory: Some(directory.clone()), teleop_servers: Default::default() },
+        services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())),
         config_path: &repo().join("config/demo.xml"),
         overrides,
         clock,
         waker: shutdown.waker(),
     })
     .map_err(|e| e.to_string())?;
-    let subsume::deploy::Boot { runner, mut graph, mut hook } = boot;
+    let subsume::deploy::Boot { deployer, mut graph, mut hook } = boot;
     let loop_shutdown = shutdown.clone();
     let control =
         std::thread::spawn(move || control_loop::run_with(&mut graph, &clock, &loop_shutdown, None, &mut hook));
-    let mut live = runner.live();
-    let app = portal::app(PortalState::new(runner, directory, portal::logs::LogRing::new()));
+    let mut live = deployer.live().subscribe();
+    let app = portal::app(PortalState::new(deployer, directory, portal::logs::LogRing::new()));
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()
@@ -164,12 +167,12 @@ fn main() -> Result<(), String> {
             Ok(large) => {
                 let _ = live.borrow_and_update();
                 let _ = live.changed().await;
-                let before = live.borrow_and_update().clone();
+                let before = serde_json::to_value(&*live.borrow_and_update().clone()).unwrap_or_default();
                 let start = Instant::now();
                 upload(&app, &token, unique(&large, 0), "large").await?;
                 let compiled = start.elapsed();
                 let _ = live.changed().await;
-                let after = live.borrow_and_update().clone();
+                let after = serde_json::to_value(&*live.borrow_and_update().clone()).unwrap_or_default();
                 stage_and_activate(&app, &token, "large").await?;
                 let took = start.elapsed();
                 let (t0, m0) = ticks_of(&before, "motors");

@@ -12,7 +12,7 @@ use std::net::{TcpListener, TcpStream};
 use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
-use subsume::RunOptions;
+use subsume::run::RunOptions;
 use subsume::runtime::control_loop::Shutdown;
 
 fn percentile(sorted: &[u64], p: f64) -> u64 {
@@ -59,7 +59,8 @@ fn main() {
         portal: None,
     };
     let host_shutdown = shutdown.clone();
-    let host = std::thread::spawn(move || subsume::run(&options, host_shutdown).map(|_| ()).map_err(|e| e.to_string()));
+    let host =
+        std::thread::spawn(move || subsume::run::run(&options, host_shutdown).map(|_| ()).map_err(|e| e.to_string()));
 
     let stream = (0..200)
         .find_map(|_| {

@@ -10,44 +10,17 @@
 //! [`Arbiter`] is the decision logic, driven with explicit time; the
 //! `builtin:arbiter` component ([`ArbiterComponent`]) wires it into the graph:
 //! every connection into its `commands` input is a source, with the sending
-//! component's priority and timeout.
-
-use std::sync::Arc;
-use std::sync::atomic::{AtomicI32, Ordering};
+//! component's priority and timeout. [`ArbiterBuiltin`] declares it.
 
 use serde::Serialize;
 
-use crate::contract::Value;
+use crate::builtin::{self, BuildContext, Builtin, BuiltinError, ParamDecl, Params, Ports};
+use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::{CallError, Component, Outbox, PriorityCell};
 
 /// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
-
-/// A source's current priority, shared with whoever may change it (the
-/// network platform moves its own with the operator's mode).
-#[derive(Clone, Debug, Default)]
-pub struct PriorityCell(Arc<AtomicI32>);
-
-impl PriorityCell {
-    pub fn new(priority: i32) -> PriorityCell {
-        PriorityCell(Arc::new(AtomicI32::new(priority)))
-    }
-
-    pub fn get(&self) -> i32 {
-        self.0.load(Ordering::Relaxed)
-    }
-
-    pub fn set(&self, priority: i32) {
-        self.0.store(priority, Ordering::Relaxed);
-    }
-}
-
-impl PartialEq for PriorityCell {
-    fn eq(&self, other: &Self) -> bool {
-        self.get() == other.get()
-    }
-}
 
 /// One source of motion commands.
 #[derive(Clone, Debug, PartialEq)]
@@ -285,6 +258,67 @@ impl Component for ArbiterComponent {
 
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
         serde_json::to_value(self.arbiter.status(self.now_ns)).ok().map(|v| ("arbiter", v))
+    }
+}
+
+/// The `arbiter` kind: no parameters; its sources are the connections
+/// into `commands`.
+pub struct ArbiterBuiltin;
+
+impl Builtin for ArbiterBuiltin {
+    fn kind(&self) -> &'static str {
+        "arbiter"
+    }
+
+    fn summary(&self) -> &'static str {
+        "Subsumption: the highest-priority active source drives; none active: STOP"
+    }
+
+    fn params(&self) -> &'static [ParamDecl] {
+        &[]
+    }
+
+    fn ports(&self, _params: &Params) -> Ports {
+        Ports {
+            inputs: vec![builtin::port(
+                "commands",
+                ValueKind::Command,
+                "control strings; every connection is a source with its sender's priority",
+            )],
+            outputs: vec![builtin::port("cmd", ValueKind::Command, "the winning command, or STOP")],
+        }
+    }
+
+    fn build(&self, _params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
+        let mut sources: Vec<Source> = Vec::new();
+        for connection in ctx.robot.connections.iter().filter(|c| c.to.component == ctx.index) {
+            let Some(from) = ctx.robot.components.get(connection.from.component) else { continue };
+            if sources.iter().any(|s| s.component == connection.from.component) {
+                continue;
+            }
+            if from.priority.is_none() {
+                return Err(BuiltinError::Refused(format!("source '{}' has no priority", from.name)));
+            }
+            let priority = ctx.priorities.get(connection.from.component).cloned().unwrap_or_default();
+            sources.push(Source {
+                component: connection.from.component,
+                name: from.name.clone(),
+                priority,
+                timeout_ns: from.timeout.as_nanos() as u64,
+            });
+        }
+        if sources.len() > MAX_SOURCES {
+            return Err(BuiltinError::Refused(format!("{} sources; at most {MAX_SOURCES} are allowed", sources.len())));
+        }
+        let name = &ctx.component()?.name;
+        let listed: Vec<String> =
+            sources.iter().map(|s| format!("{} (priority {})", s.name, s.priority.get())).collect();
+        tracing::info!(
+            component = %name,
+            "motion sources: {}",
+            if listed.is_empty() { "none".into() } else { listed.join(", ") }
+        );
+        Ok(Box::new(ArbiterComponent::new(name, sources)))
     }
 }
 

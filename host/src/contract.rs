@@ -114,7 +114,7 @@ impl ParamKind {
     }
 
     /// Checks `text` against this kind; the error says what was expected.
-    pub fn check(self, text: &str) -> Result<(), String> {
+    pub fn check(self, text: &str) -> Result<(), ParamKindMismatch> {
         let trimmed = text.trim();
         let ok = match self {
             ParamKind::Text => true,
@@ -131,9 +131,17 @@ impl ParamKind {
                 ParamKind::Integer => "a whole number",
                 ParamKind::Flag => "true or false",
             };
-            Err(format!("expects {expected}, got '{text}'"))
+            Err(ParamKindMismatch { expected, got: clip(text) })
         }
     }
+}
+
+/// A parameter value that is not of its declared kind.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("expects {expected}, got '{got}'")]
+pub struct ParamKindMismatch {
+    pub expected: &'static str,
+    pub got: String,
 }
 
 impl fmt::Display for ParamKind {
@@ -227,27 +235,72 @@ pub fn clip(text: &str) -> String {
     clipped
 }
 
-/// A description as JSON (`subsume describe --json`, the portal).
-pub fn description_json(d: &Description, sha256: &str) -> serde_json::Value {
-    let ports = |ports: &[PortSpec]| -> Vec<serde_json::Value> {
-        ports
-            .iter()
-            .enumerate()
-            .map(|(i, p)| serde_json::json!({ "index": i, "name": p.name, "kind": p.kind.name(), "doc": p.doc }))
-            .collect()
-    };
-    serde_json::json!({
-        "name": d.name,
-        "version": d.version,
-        "summary": d.summary,
-        "sha256": sha256,
-        "default_priority": d.default_priority,
-        "inputs": ports(&d.inputs),
-        "outputs": ports(&d.outputs),
-        "params": d.params.iter().map(|p| serde_json::json!({
-            "name": p.name, "kind": p.kind.name(), "default": p.default_value, "doc": p.doc,
-        })).collect::<Vec<_>>(),
-    })
+/// A description as `subsume describe --json`, the portal and the store
+/// show it: the component's declaration and the sha256 of its bytes.
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct DescriptionDoc {
+    pub name: String,
+    pub version: String,
+    pub summary: String,
+    pub sha256: String,
+    pub default_priority: Option<i32>,
+    pub inputs: Vec<PortDoc>,
+    pub outputs: Vec<PortDoc>,
+    pub params: Vec<ParamDoc>,
+}
+
+/// One port of a [`DescriptionDoc`].
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct PortDoc {
+    pub index: usize,
+    pub name: String,
+    pub kind: String,
+    pub doc: String,
+}
+
+/// One parameter of a [`DescriptionDoc`].
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ParamDoc {
+    pub name: String,
+    pub kind: String,
+    pub default: String,
+    pub doc: String,
+}
+
+impl DescriptionDoc {
+    pub fn new(d: &Description, sha256: &str) -> DescriptionDoc {
+        let ports = |ports: &[PortSpec]| -> Vec<PortDoc> {
+            ports
+                .iter()
+                .enumerate()
+                .map(|(index, p)| PortDoc {
+                    index,
+                    name: p.name.clone(),
+                    kind: p.kind.name().into(),
+                    doc: p.doc.clone(),
+                })
+                .collect()
+        };
+        DescriptionDoc {
+            name: d.name.clone(),
+            version: d.version.clone(),
+            summary: d.summary.clone(),
+            sha256: sha256.into(),
+            default_priority: d.default_priority,
+            inputs: ports(&d.inputs),
+            outputs: ports(&d.outputs),
+            params: d
+                .params
+                .iter()
+                .map(|p| ParamDoc {
+                    name: p.name.clone(),
+                    kind: p.kind.name().into(),
+                    default: p.default_value.clone(),
+                    doc: p.doc.clone(),
+                })
+                .collect(),
+        }
+    }
 }
 
 #[cfg(test)]
@@ -275,7 +328,10 @@ mod tests {
         assert!(ParamKind::Number.check("inf").is_err());
         assert!(ParamKind::Integer.check("2.5").is_err());
         assert!(ParamKind::Flag.check("yes").is_err());
-        assert_eq!(ParamKind::Integer.check("x"), Err("expects a whole number, got 'x'".into()));
+        assert_eq!(
+            ParamKind::Integer.check("x").map_err(|e| e.to_string()),
+            Err("expects a whole number, got 'x'".into())
+        );
     }
 
     #[test]

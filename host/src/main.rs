@@ -7,12 +7,13 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use clap::{Parser, Subcommand};
-use subsume::config::ParamOverride;
-use subsume::contract::Description;
-use subsume::loader::{Loader, read_component_file};
+use subsume::assemble::{Loader, registry};
+use subsume::config::{self, ParamOverride};
+use subsume::contract::{Description, DescriptionDoc};
+use subsume::fsutil;
+use subsume::run::{PortalOptions, RunError, RunOptions};
 use subsume::runtime::control_loop::Shutdown;
-use subsume::sandbox::Sandbox;
-use subsume::{RunError, RunOptions, config, fsutil};
+use subsume::sandbox::{Sandbox, read_component_file};
 
 #[derive(Parser)]
 #[command(name = "subsume", version, about = "Runs robot software as sandboxed WebAssembly components")]
@@ -77,7 +78,9 @@ enum Command {
         #[arg(long, env = "SUBSUME_TOKEN", hide_env_values = true)]
         token: String,
     },
-    /// Print what a component declares: ports, parameters, default priority.
+    /// Print what a component declares: ports, parameters, default
+    /// priority. COMPONENT is a .wasm file or builtin:KIND (with its
+    /// parameters' bounds).
     Describe {
         component: PathBuf,
         /// Print JSON instead of text.
@@ -160,8 +163,8 @@ fn main() -> ExitCode {
             })
             .map_err(anyhow::Error::from),
         Command::Teleop { address, name, token } => {
-            let options = subsume::teleop_client::ClientOptions { address, name, token };
-            subsume::teleop_client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::msg)
+            let options = subsume::teleop::client::ClientOptions { address, name, token };
+            subsume::teleop::client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::from)
         }
     };
     match result {
@@ -179,7 +182,7 @@ fn run(
     report_path: Option<PathBuf>,
     overrides: Vec<ParamOverride>,
     cache_dir: Option<PathBuf>,
-    portal: Option<subsume::PortalOptions>,
+    portal: Option<PortalOptions>,
 ) -> anyhow::Result<ExitCode> {
     let duration = match duration {
         None => None,
@@ -189,7 +192,7 @@ fn run(
     let shutdown = Shutdown::new();
     let signals = install_signal_handlers(shutdown.clone())?;
     let options = RunOptions { config_path, duration, cache_dir, overrides, portal };
-    let result = subsume::run(&options, shutdown);
+    let result = subsume::run::run(&options, shutdown);
     signals.close();
     let report = match result {
         Ok(report) => report,
@@ -234,15 +237,60 @@ fn check(config_path: &Path, overrides: &[ParamOverride], cache_dir: Option<Path
 }
 
 fn describe(path: &Path, as_json: bool, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    if let Some(kind) = path.to_str().and_then(|p| p.strip_prefix("builtin:")) {
+        return describe_builtin(kind, as_json);
+    }
     let sandbox = Sandbox::new(cache_dir)?;
-    let bytes = read_component_file(path).map_err(anyhow::Error::msg)?;
+    let bytes = read_component_file(path)?;
     let artifact = sandbox.load(&bytes).with_context(|| format!("failed to load component {}", path.display()))?;
     let d = &artifact.description;
     if as_json {
-        println!("{}", serde_json::to_string_pretty(&subsume::contract::description_json(d, &artifact.sha256))?);
+        println!("{}", serde_json::to_string_pretty(&DescriptionDoc::new(d, &artifact.sha256))?);
     } else {
         print!("{}", description_text(d, &artifact.sha256));
     }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// `subsume describe builtin:KIND`: the declaration, with every
+/// parameter's bounds and unit.
+fn describe_builtin(kind: &str, as_json: bool) -> anyhow::Result<ExitCode> {
+    use std::fmt::Write as _;
+    let Some(builtin) = registry::find(kind) else {
+        bail!("unknown built-in '{kind}' (known: {})", registry::kinds().join(", "));
+    };
+    let defaults = subsume::builtin::check_values(builtin.params(), &Default::default()).unwrap_or_default();
+    let d = subsume::builtin::describe(builtin, &defaults);
+    if as_json {
+        let params: Vec<serde_json::Value> = builtin
+            .params()
+            .iter()
+            .map(|p| {
+                serde_json::json!({
+                    "name": p.name, "kind": p.kind().name(), "default": p.default, "unit": p.unit,
+                    "expected": p.expected(), "doc": p.doc,
+                })
+            })
+            .collect();
+        let mut doc = serde_json::to_value(DescriptionDoc::new(&d, ""))?;
+        doc["params"] = params.into();
+        doc["carried"] = builtin.carried().into();
+        println!("{}", serde_json::to_string_pretty(&doc)?);
+        return Ok(ExitCode::SUCCESS);
+    }
+    let mut s = description_text(&d, "");
+    if let Some(at) = s.find("params:\n") {
+        s.truncate(at);
+    }
+    let _ = writeln!(s, "params:");
+    if builtin.params().is_empty() {
+        let _ = writeln!(s, "  (none)");
+    }
+    for p in builtin.params() {
+        let default = if p.default.is_empty() { "required".to_string() } else { format!("default '{}'", p.default) };
+        let _ = writeln!(s, "  {} ({default}): {}; {}", p.name, p.expected(), p.doc);
+    }
+    print!("{s}");
     Ok(ExitCode::SUCCESS)
 }
 
@@ -250,7 +298,9 @@ fn description_text(d: &Description, sha256: &str) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let _ = writeln!(s, "{} {}: {}", d.name, d.version, d.summary);
-    let _ = writeln!(s, "sha256: {sha256}");
+    if !sha256.is_empty() {
+        let _ = writeln!(s, "sha256: {sha256}");
+    }
     let priority = d.default_priority.map_or_else(|| "none (emits no motion commands)".to_string(), |p| p.to_string());
     let _ = writeln!(s, "default priority: {priority}");
     for (title, ports) in [("inputs", &d.inputs), ("outputs", &d.outputs)] {
@@ -276,40 +326,49 @@ fn portal_options(
     http: &str,
     store_dir: Option<PathBuf>,
     logs: std::sync::Arc<subsume::portal::logs::LogRing>,
-) -> anyhow::Result<Option<subsume::PortalOptions>> {
+) -> anyhow::Result<Option<PortalOptions>> {
     if http == "off" {
         return Ok(None);
     }
     let listen =
         http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
     let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
-    Ok(Some(subsume::PortalOptions { listen, store_dir, logs }))
+    Ok(Some(PortalOptions { listen, store_dir, logs }))
 }
 
 fn user(action: UserAction, store_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
-    use subsume::users::{Role, Users, generate_password, parse_platform};
+    use subsume::config::Platform;
+    use subsume::store::users::{Role, generate_password};
+    use subsume::store::{Outcome, Store};
     let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
-    let users = Users::new(store_dir.join("users.json"));
+    let store = Store::open(&store_dir)?;
     let password = |from_stdin: bool| -> anyhow::Result<(String, bool)> {
         if from_stdin {
             let mut line = String::new();
             std::io::stdin().read_line(&mut line).context("cannot read the password from standard input")?;
             Ok((line.trim_end_matches(['\r', '\n']).to_string(), false))
         } else {
-            Ok((generate_password().map_err(anyhow::Error::msg)?, true))
+            Ok((generate_password()?, true))
+        }
+    };
+    // Changes take the store's lock (a running portal waits for it) and
+    // leave a line in the audit log.
+    let audit = |action: &str, name: &str, result: &Result<(), subsume::store::users::UsersError>| {
+        if let Ok(writer) = store.lock() {
+            let detail = result.as_ref().err().map(ToString::to_string).unwrap_or_default();
+            let outcome = if result.is_ok() { Outcome::Ok(&detail) } else { Outcome::Refused(&detail) };
+            writer.record("cli", action, &format!("user '{name}'"), outcome);
         }
     };
     match action {
         UserAction::Add { name, role, platforms, password_stdin, replace } => {
             let role: Role = role.parse().map_err(anyhow::Error::msg)?;
-            let platforms = platforms
-                .iter()
-                .map(|p| parse_platform(p))
-                .collect::<Result<Vec<_>, _>>()
-                .map_err(anyhow::Error::msg)?;
+            let platforms = platforms.iter().map(|p| Platform::parse(p)).collect::<Result<Vec<_>, _>>()?;
             let (password, generated) = password(password_stdin)?;
-            users.add(&name, role, &platforms, &password, replace)?;
-            eprintln!("added {} '{name}' to {}", role.name(), users.path().display());
+            let result = store.lock()?.users_mut().add(&name, role, &platforms, &password, replace);
+            audit("user-add", &name, &result);
+            result?;
+            eprintln!("added {} '{name}' to {}", role.name(), store.users().path().display());
             if generated {
                 println!("{password}");
                 eprintln!("(that is the password; it is shown once and stored only as an argon2id hash)");
@@ -317,18 +376,22 @@ fn user(action: UserAction, store_dir: Option<PathBuf>) -> anyhow::Result<ExitCo
         }
         UserAction::Passwd { name, password_stdin } => {
             let (password, generated) = password(password_stdin)?;
-            users.set_password(&name, &password)?;
+            let result = store.lock()?.users_mut().set_password(&name, &password);
+            audit("user-passwd", &name, &result);
+            result?;
             if generated {
                 println!("{password}");
             }
             eprintln!("new password set for '{name}'");
         }
         UserAction::Remove { name } => {
-            users.remove(&name)?;
+            let result = store.lock()?.users_mut().remove(&name);
+            audit("user-remove", &name, &result);
+            result?;
             eprintln!("removed '{name}'");
         }
         UserAction::List => {
-            for u in users.all()? {
+            for u in store.users().all()? {
                 println!("{} {} {}", u.name, u.role.name(), u.platforms.join(","));
             }
         }

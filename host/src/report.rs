@@ -1,5 +1,7 @@
 //! The JSON run report written by `subsume run --report FILE` (documented in
-//! `docs/report.md`). Later parts of the host add their own sections.
+//! `docs/report.md`), and the live status the portal shows while a set runs
+//! (the same layout, `stopped_by: "running"`, with the active set's id).
+//! Built-ins add their own sections (`Component::status`).
 
 use serde::Serialize;
 
@@ -15,7 +17,7 @@ pub struct Report {
     pub format: u32,
     pub robot: String,
     pub config: String,
-    /// "duration" or "shutdown".
+    /// "duration", "shutdown", or "running" in the live status.
     pub stopped_by: String,
     pub duration_s: f64,
     /// Control-loop cycles run.
@@ -76,9 +78,31 @@ pub struct MessageTotals {
     pub dropped: u64,
 }
 
+/// Version of the live status's layout.
+pub const LIVE_STATUS_FORMAT: u32 = 1;
+
+/// What the portal shows while a set runs: the report so far and the set.
+#[derive(Clone, Debug, Serialize)]
+pub struct LiveStatus {
+    pub live_format: u32,
+    /// The active set's id.
+    pub set: u64,
+    #[serde(flatten)]
+    pub report: Report,
+}
+
+/// The live status of `graph` (running `config`, set `set`) at `now_s`.
+pub fn live(config: &RobotConfig, graph: &Graph, set: u64, now_s: f64) -> LiveStatus {
+    LiveStatus { live_format: LIVE_STATUS_FORMAT, set, report: report(config, graph, "running", now_s) }
+}
+
 /// The report of `graph`, built from `config` (component and connection
 /// indices in the graph are those of the config).
 pub fn build(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, duration_s: f64) -> Report {
+    report(config, graph, stopped_by.name(), duration_s)
+}
+
+fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64) -> Report {
     let components = config
         .components
         .iter()
@@ -154,7 +178,7 @@ pub fn build(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, durati
         format: REPORT_FORMAT,
         robot: config.name.clone(),
         config: config.path.display().to_string(),
-        stopped_by: stopped_by.name().to_string(),
+        stopped_by: stopped_by.to_string(),
         duration_s,
         cycles: graph.cycles(),
         components,

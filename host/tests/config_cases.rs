@@ -11,8 +11,8 @@ mod support;
 
 use std::path::Path;
 
+use subsume::assemble::Loader;
 use subsume::config;
-use subsume::loader::Loader;
 use subsume::sandbox::Sandbox;
 
 fn render(dir: &Path, file: &Path, sandbox: &Sandbox) -> String {

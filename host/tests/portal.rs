@@ -13,12 +13,14 @@ use axum::http::{Request, StatusCode};
 use serde_json::Value;
 use subsume::builtin::Services;
 use subsume::config::Platform;
-use subsume::deploy::{BootOptions, Runner};
-use subsume::portal::{self, MAX_UPLOAD_BYTES, PortalState};
+use subsume::deploy::MAX_UPLOAD_BYTES;
+use subsume::deploy::{BootOptions, Deployer};
+use subsume::portal::{self, PortalState};
 use subsume::runtime::control_loop::{Clock, Shutdown};
 use subsume::sandbox::Sandbox;
 use subsume::store::Store;
-use subsume::users::{Directory, Role, Users};
+use subsume::store::users::{Directory, Role};
+use subsume::teleop::TeleopServers;
 use tower::ServiceExt as _;
 
 const ROBOT: &str = r#"<robot name="bench">
@@ -54,16 +56,18 @@ async fn portal() -> Portal {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("robot.xml"), ROBOT).unwrap();
     let store = Arc::new(Store::open(&dir.path().join("store")).unwrap());
-    let users = Users::new(store.users_path());
-    for (name, role, platforms) in USERS {
-        users.add(name, *role, platforms, &password(name), false).unwrap();
+    {
+        let writer = store.lock().unwrap();
+        for (name, role, platforms) in USERS {
+            writer.users_mut().add(name, *role, platforms, &password(name), false).unwrap();
+        }
     }
-    let directory = Arc::new(Directory::new(users));
+    let directory = Arc::new(Directory::new(store.users().clone()));
     let shutdown = Shutdown::new();
-    let boot = Runner::boot(BootOptions {
+    let boot = Deployer::boot(BootOptions {
         store: store.clone(),
         sandbox: Arc::new(Sandbox::new(Some(support::cache_dir())).unwrap()),
-        services: Services { directory: Some(directory.clone()), teleop_servers: Default::default() },
+        services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())),
         config_path: &dir.path().join("robot.xml"),
         overrides: vec![],
         clock: Clock::new(),
@@ -71,7 +75,7 @@ async fn portal() -> Portal {
     })
     .map_err(|e| e.to_string())
     .unwrap();
-    let state = PortalState::new(boot.runner, directory, portal::logs::LogRing::new());
+    let state = PortalState::new(boot.deployer, directory, portal::logs::LogRing::new());
     let app = portal::app(state);
     let mut tokens = std::collections::HashMap::new();
     for (name, _, _) in USERS {
@@ -201,7 +205,7 @@ async fn the_session_cookie_works_like_the_bearer_token() {
 async fn failed_logins_are_rate_limited_per_user_and_recover() {
     let portal = portal().await;
     let login = |name: &str, password: &str| serde_json::json!({ "name": name, "password": password }).to_string();
-    for _ in 0..portal::MAX_LOGIN_FAILURES {
+    for _ in 0..portal::auth::MAX_LOGIN_FAILURES {
         let (status, _) = send(&portal.app, "POST", "/api/v1/login", None, login("admin", "wrong").into()).await;
         assert_eq!(status, StatusCode::UNAUTHORIZED);
     }
@@ -214,7 +218,7 @@ async fn failed_logins_are_rate_limited_per_user_and_recover() {
     let (status, _) =
         send(&portal.app, "POST", "/api/v1/login", None, login("viewer", &password("viewer")).into()).await;
     assert_eq!(status, StatusCode::OK);
-    tokio::time::advance(portal::LOGIN_FAILURE_WINDOW).await;
+    tokio::time::advance(portal::auth::LOGIN_FAILURE_WINDOW).await;
     let (status, _) = send(&portal.app, "POST", "/api/v1/login", None, login("admin", &password("admin")).into()).await;
     assert_eq!(status, StatusCode::OK);
     let (status, json) = send(&portal.app, "POST", "/api/v1/login", None, "{\"name\": 1}".into()).await;
@@ -257,7 +261,7 @@ fn malformed_uploads() -> Vec<(&'static str, String, Vec<u8>, StatusCode, &'stat
         ("file name with a path", config("..%2Fr.xml"), robot(publish), S::BAD_REQUEST, "is not a plain name"),
         ("file name hidden", config(".r.xml"), robot(publish), S::BAD_REQUEST, "is not a plain name"),
         ("not utf-8", config("r.xml"), b"<robot name=\"\xff\"/>".to_vec(), S::BAD_REQUEST, "is not utf-8"),
-        ("oversize robot file", config("r.xml"), vec![b' '; portal::MAX_CONFIG_UPLOAD_BYTES + 1], S::PAYLOAD_TOO_LARGE, ""),
+        ("oversize robot file", config("r.xml"), vec![b' '; subsume::deploy::MAX_CONFIG_UPLOAD_BYTES as usize + 1], S::PAYLOAD_TOO_LARGE, ""),
         (
             "a control developer changing the network platform",
             config("r.xml"),

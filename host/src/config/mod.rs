@@ -9,6 +9,7 @@
 //! `config/robot.xsd`.
 
 pub mod diagnostic;
+pub mod limits;
 pub mod raw;
 pub mod validate;
 
@@ -16,72 +17,10 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub use diagnostic::{Diagnostic, Diagnostics, SourceMap};
-pub use validate::{Resolver, parse_duration, parse_size};
+pub use validate::{ParamProblem, ResolveError, Resolver, parse_duration, parse_size};
 
 use crate::contract::{Description, Param};
-
-/// Limits on what a robot file may ask for. Each answers a threat from a
-/// careless or hostile file (uploaded files are validated with the same code).
-pub mod limits {
-    use std::ops::RangeInclusive;
-    use std::time::Duration;
-
-    /// Largest robot file read: a huge file must not exhaust memory.
-    pub const MAX_CONFIG_BYTES: u64 = 1 << 20;
-    /// Most components in one robot: each gets a store, a memory and a slot in
-    /// the instance pool, which is sized for this many.
-    pub const MAX_COMPONENTS: usize = 64;
-    /// Most `<param>`s on one component.
-    pub const MAX_PARAMS_PER_COMPONENT: usize = 128;
-    /// Longest parameter value: values are copied into the guest at `init`.
-    pub const MAX_PARAM_VALUE_LEN: usize = 4096;
-    /// Fastest tick rate: a faster component would starve the control loop.
-    pub const MAX_RATE_HZ: f64 = 1000.0;
-    /// Tick rate when the file gives none.
-    pub const DEFAULT_RATE_HZ: f64 = 10.0;
-    /// Time budget per call. The floor is the epoch ticker's resolution; the
-    /// ceiling bounds how long one guest call can stall the control loop.
-    pub const CALL_BUDGET_RANGE: RangeInclusive<Duration> = Duration::from_millis(1)..=Duration::from_millis(1000);
-    /// Budget per call when the file gives none.
-    pub const DEFAULT_CALL_BUDGET: Duration = Duration::from_millis(10);
-    /// Linear memory per component. The floor fits a Rust guest's 1 MiB
-    /// stack; the ceiling is the instance pool's per-memory slot.
-    pub const MEMORY_RANGE: RangeInclusive<u64> = (2 << 20)..=(1 << 30);
-    /// Memory limit when the file gives none.
-    pub const DEFAULT_MEMORY_BYTES: u64 = 64 << 20;
-    /// Values one call may emit (`max-emits`): an emit flood must not fill
-    /// host memory or make the loop deliver for ever.
-    pub const EMITS_PER_CALL_RANGE: RangeInclusive<u32> = 1..=100_000;
-    pub const DEFAULT_EMITS_PER_CALL: u32 = 256;
-    /// Largest value one emit may carry, in bytes (`max-message`): one giant
-    /// value must not exhaust host memory (it is also the store's hostcall fuel).
-    pub const MESSAGE_BYTES_RANGE: RangeInclusive<u64> = (1 << 10)..=(16 << 20);
-    pub const DEFAULT_MESSAGE_BYTES: u64 = 1 << 20;
-    /// Log lines per second, `log` and stdout/stderr together (`max-logs`):
-    /// a guest must not flood the host's log.
-    pub const LOG_LINES_RANGE: RangeInclusive<u32> = 1..=10_000;
-    pub const DEFAULT_LOG_LINES_PER_S: u32 = 100;
-    /// Restarts after faults over a run (`max-restarts`, with
-    /// `restart="on-failure"`): a component that keeps failing must not keep
-    /// the host busy restarting it.
-    pub const MAX_RESTARTS_RANGE: RangeInclusive<u32> = 0..=100;
-    pub const DEFAULT_MAX_RESTARTS: u32 = 3;
-    /// Wait before the first restart; doubled after each.
-    pub const RESTART_BACKOFF: Duration = Duration::from_secs(1);
-    /// Deepest queue a connection may have: every queued value is held in
-    /// host memory.
-    pub const MAX_QUEUE_DEPTH: usize = 1024;
-    /// How long a motion source stays active after its last command. The
-    /// floor keeps a source from flickering; the ceiling bounds how long a
-    /// silent source can keep the robot moving on its last command.
-    pub const SOURCE_TIMEOUT_RANGE: RangeInclusive<Duration> = Duration::from_millis(10)..=Duration::from_secs(10);
-    /// Source timeout when the file gives none.
-    pub const DEFAULT_SOURCE_TIMEOUT: Duration = Duration::from_millis(500);
-    /// Queue depth for `policy="queue"` without `depth`.
-    pub const DEFAULT_QUEUE_DEPTH: usize = 16;
-    /// Allowed subsumption priorities.
-    pub const PRIORITY_RANGE: RangeInclusive<i32> = -1000..=1000;
-}
+pub use crate::runtime::wiring::{Policy, RestartPolicy};
 
 /// The two platforms of the paper: the network platform (remote operators)
 /// and the control platform (the robot's own behaviours).
@@ -91,7 +30,21 @@ pub enum Platform {
     Control,
 }
 
+/// A platform name that is neither `network` nor `control`.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("unknown platform '{0}' (expected network or control)")]
+pub struct UnknownPlatform(pub String);
+
 impl Platform {
+    /// Parses a platform name as the command line and the API write it.
+    pub fn parse(text: &str) -> Result<Platform, UnknownPlatform> {
+        match text {
+            "network" => Ok(Platform::Network),
+            "control" => Ok(Platform::Control),
+            other => Err(UnknownPlatform(crate::contract::clip(other))),
+        }
+    }
+
     pub fn name(self) -> &'static str {
         match self {
             Platform::Network => "network",
@@ -152,7 +105,7 @@ pub struct ComponentConfig {
     pub max_message_bytes: u64,
     pub max_logs_per_s: u32,
     /// Whether and how often a faulted WASM component is restarted.
-    pub restart: Option<crate::runtime::RestartPolicy>,
+    pub restart: Option<RestartPolicy>,
     /// Every declared parameter, XML value or default, in declaration order.
     pub params: Vec<Param>,
     pub description: Description,
@@ -164,16 +117,6 @@ pub struct ComponentConfig {
 pub struct PortRef {
     pub component: usize,
     pub port: u32,
-}
-
-/// How values wait at an input until the component handles them.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Policy {
-    /// Only the newest value is kept.
-    Latest,
-    /// Up to `depth` values in order; when full the oldest is dropped (and
-    /// counted).
-    Queue { depth: usize },
 }
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -13,18 +13,52 @@ use super::raw::{RawComponent, RawConnect, RawRobot, Spanned};
 use super::{ComponentConfig, ComponentSource, ConnectionConfig, Platform, Policy, PortRef, RobotConfig, limits};
 use crate::contract::{Description, Param, clip, is_valid_name};
 
-/// Finds what a component's source declares. The runtime's loader compiles
-/// WASM files (and keeps them for running); tests may describe from tables.
+/// Finds what a component's source declares. The assembler's loader
+/// compiles WASM files (and keeps them for running) and checks built-ins'
+/// parameters against their declarations; tests may describe from tables.
 pub trait Resolver {
-    /// The description of the component at `source`. Built-ins may shape
-    /// their ports from their XML `params`. `Err` says why it cannot load.
-    /// `base_dir` is the robot file's folder (for relative paths in params).
+    /// The description of the component at `source`. Built-ins check their
+    /// XML `params` and may shape their ports from them. `base_dir` is the
+    /// robot file's folder (for relative paths in params).
     fn describe(
         &mut self,
         source: &ComponentSource,
         params: &BTreeMap<String, String>,
         base_dir: &Path,
-    ) -> Result<Description, String>;
+    ) -> Result<Description, ResolveError>;
+}
+
+/// Why a component's source gave no description.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum ResolveError {
+    /// The source cannot be read, loaded or described (reported at the
+    /// `source` attribute).
+    #[error("{0}")]
+    Source(String),
+    /// Parameters with bad values (each reported at its `<param>`).
+    #[error("{}", .0.iter().map(ToString::to_string).collect::<Vec<_>>().join("; "))]
+    Params(Vec<ParamProblem>),
+}
+
+/// A bad parameter value, found before anything starts.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct ParamProblem {
+    /// The parameter it is about.
+    pub name: String,
+    /// Lowercase; completes "parameter 'NAME' of component 'C' ...".
+    pub message: String,
+}
+
+impl ParamProblem {
+    pub fn new(name: &str, message: impl Into<String>) -> ParamProblem {
+        ParamProblem { name: name.to_string(), message: message.into() }
+    }
+}
+
+impl std::fmt::Display for ParamProblem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "parameter '{}' {}", self.name, self.message)
+    }
 }
 
 pub(super) fn validate(
@@ -302,7 +336,7 @@ fn component_config(
             Some(None)
         }
         Some(("on-failure", _)) => max_restarts.map(|max_restarts| {
-            Some(crate::runtime::RestartPolicy { max_restarts, backoff_ns: limits::RESTART_BACKOFF.as_nanos() as u64 })
+            Some(super::RestartPolicy { max_restarts, backoff_ns: limits::RESTART_BACKOFF.as_nanos() as u64 })
         }),
         Some((other, offset)) => {
             errors.push(
@@ -351,8 +385,21 @@ fn component_config(
     }
     let description = match resolver.describe(&source, &xml_params, base_dir) {
         Ok(d) => d,
-        Err(why) => {
+        Err(ResolveError::Source(why)) => {
             errors.push(map.at(raw.source.offset, format!("component '{name}': {why}")));
+            return None;
+        }
+        Err(ResolveError::Params(problems)) => {
+            for problem in problems {
+                // At the value when the file sets it; else at the component.
+                let offset = param_spans
+                    .iter()
+                    .find(|(n, _)| n.value == problem.name)
+                    .map_or(raw.offset, |(_, value)| value.offset);
+                errors.push(
+                    map.at(offset, format!("parameter '{}' of component '{name}' {}", problem.name, problem.message)),
+                );
+            }
             return None;
         }
     };

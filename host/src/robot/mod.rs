@@ -3,6 +3,7 @@
 //! that knows the hardware) and the serial link with its rate limit and
 //! watchdog.
 
+pub mod builtin;
 pub mod control;
 pub mod protocol;
 pub mod serial;

@@ -117,7 +117,7 @@ pub const OUTPUTS: [&str; 4] = ["pose", "ranges", "bumper", "battery"];
 impl SerialLink {
     /// Starts the link's I/O thread (which opens the device, retrying with
     /// backoff until it appears).
-    pub fn start(name: &str, settings: LinkSettings, translator: Box<dyn Translator>) -> Result<SerialLink, String> {
+    pub fn start(name: &str, settings: LinkSettings, translator: Box<dyn Translator>) -> std::io::Result<SerialLink> {
         let (tx, tx_rx) = mpsc::sync_channel(TX_QUEUE_FRAMES);
         let (rx_tx, rx) = mpsc::sync_channel(RX_QUEUE_CHUNKS);
         let io = Arc::new(IoCounters::default());
@@ -126,8 +126,7 @@ impl SerialLink {
         let label = name.to_string();
         let thread = std::thread::Builder::new()
             .name(format!("serial-{name}"))
-            .spawn(move || io_thread(&label, &thread_settings, &tx_rx, &rx_tx, &thread_io))
-            .map_err(|e| format!("cannot start the serial thread: {e}"))?;
+            .spawn(move || io_thread(&label, &thread_settings, &tx_rx, &rx_tx, &thread_io))?;
         let stats = SerialStatus { device: settings.device.display().to_string(), ..SerialStatus::default() };
         Ok(SerialLink {
             name: name.to_string(),
@@ -181,9 +180,7 @@ impl SerialLink {
 
     fn emit_feedback(&mut self, out: &mut Outbox) -> Result<(), CallError> {
         while let Ok(bytes) = self.rx.try_recv() {
-            self.translator
-                .decode(&bytes, &mut self.feedback)
-                .map_err(|why| CallError::Fault(format!("the translator faulted: {why}")))?;
+            self.translator.decode(&bytes, &mut self.feedback).map_err(|why| CallError::Fault(why.to_string()))?;
         }
         for feedback in self.feedback.drain(..) {
             self.stats.feedback_messages += 1;

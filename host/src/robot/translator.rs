@@ -6,6 +6,8 @@
 
 use super::control::ControlCommand;
 use super::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
+use crate::contract::bindings::subsume::robot::types::Feedback as WitFeedback;
+use crate::sandbox::{TranslatorCallError, WasmTranslator};
 
 /// Why a translator produced no bytes.
 #[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
@@ -24,9 +26,9 @@ pub enum TranslateError {
 pub trait Translator: Send {
     /// Appends the bytes for `command` to `out`.
     fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError>;
-    /// Decodes whatever `bytes` complete into `out`. `Err` only when the
-    /// translator itself broke.
-    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), String>;
+    /// Decodes whatever `bytes` complete into `out`. `Err` (a fault) only
+    /// when the translator itself broke.
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), TranslateError>;
     /// Bytes or messages from the controller skipped as malformed.
     fn malformed(&self) -> u64;
 }
@@ -95,7 +97,7 @@ impl Translator for ProfileTranslator {
         Ok(())
     }
 
-    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), String> {
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), TranslateError> {
         self.decoder.feed(bytes, &mut self.messages);
         for message in self.messages.drain(..) {
             match message {
@@ -109,6 +111,31 @@ impl Translator for ProfileTranslator {
 
     fn malformed(&self) -> u64 {
         self.decoder.malformed() + self.unexpected
+    }
+}
+
+/// A WASM component of the `translator` world, as the link's translator.
+impl Translator for WasmTranslator {
+    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        WasmTranslator::encode(self, &command.to_string(), out).map_err(|e| match e {
+            TranslatorCallError::Refused(why) => TranslateError::Refused(why),
+            TranslatorCallError::Broken(why) => TranslateError::Fault(why),
+        })
+    }
+
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), TranslateError> {
+        let feedback = WasmTranslator::decode(self, bytes).map_err(|e| TranslateError::Fault(e.to_string()))?;
+        out.extend(feedback.into_iter().map(|f| match f {
+            WitFeedback::Odometry(p) => Feedback::Odometry { x: p.x, y: p.y, heading: p.heading },
+            WitFeedback::Ranges(r) => Feedback::Ranges(r),
+            WitFeedback::Bumper(b) => Feedback::Bumper(b),
+            WitFeedback::Battery(v) => Feedback::Battery(v),
+        }));
+        Ok(())
+    }
+
+    fn malformed(&self) -> u64 {
+        WasmTranslator::malformed(self)
     }
 }
 

@@ -10,6 +10,7 @@
 //! simulated controller; the simulation's clock is its own (real time), not
 //! the control loop's.
 
+pub mod builtin;
 pub mod physics;
 pub mod world;
 
@@ -27,9 +28,16 @@ use self::world::World;
 use crate::robot::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
 use crate::runtime::Component;
 
-/// The simulated controller stops the wheels when no command came for this
-/// long (real controllers have such a watchdog too).
-pub const CONTROLLER_TIMEOUT: Duration = Duration::from_secs(1);
+/// Why a simulated robot did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("the start ({x}, {y}) is within {radius} m of an obstacle")]
+    StartBlocked { x: f64, y: f64, radius: f64 },
+    #[error("cannot create a pseudo-terminal: {0}")]
+    Pty(String),
+    #[error("cannot start the simulation thread: {0}")]
+    Thread(#[from] std::io::Error),
+}
 /// How often the simulated controller reads, steps and may send feedback.
 pub const SIM_PERIOD: Duration = Duration::from_millis(5);
 /// Simulated battery voltage reported in feedback.
@@ -43,6 +51,9 @@ pub struct SimSettings {
     pub profile: Profile,
     /// Feedback messages (odometry, ranges, bumper) per second.
     pub feedback_hz: f64,
+    /// The simulated controller stops the wheels when no command came for
+    /// this long (real controllers have such a watchdog too).
+    pub controller_watchdog: Duration,
 }
 
 /// What the simulated controller shares with the host.
@@ -64,11 +75,11 @@ pub struct SimulatedRobot {
 
 impl SimulatedRobot {
     /// Creates the PTY pair and starts the controller thread.
-    pub fn start(name: &str, settings: SimSettings) -> Result<SimulatedRobot, String> {
+    pub fn start(name: &str, settings: SimSettings) -> Result<SimulatedRobot, SimError> {
         let simulation = Simulation::new(settings.world.clone(), settings.body)?;
-        let (mut master, slave) = TTYPort::pair().map_err(|e| format!("cannot create a pseudo-terminal: {e}"))?;
-        let pty_path = slave.name().map(PathBuf::from).ok_or("the pseudo-terminal has no name")?;
-        master.set_timeout(SIM_PERIOD).map_err(|e| format!("cannot configure the pseudo-terminal: {e}"))?;
+        let (mut master, slave) = TTYPort::pair().map_err(|e| SimError::Pty(e.to_string()))?;
+        let pty_path = slave.name().map(PathBuf::from).ok_or_else(|| SimError::Pty("it has no name".into()))?;
+        master.set_timeout(SIM_PERIOD).map_err(|e| SimError::Pty(e.to_string()))?;
         let shared = Arc::new(Shared {
             status: Mutex::new(simulation.status()),
             stop: AtomicBool::new(false),
@@ -77,15 +88,12 @@ impl SimulatedRobot {
         });
         let thread_shared = shared.clone();
         let label = name.to_string();
-        let thread = std::thread::Builder::new()
-            .name(format!("sim-{name}"))
-            .spawn(move || {
-                // The slave end stays open here so the master never sees a
-                // hang-up while the host's link reconnects.
-                let _slave = slave;
-                controller(&label, master, simulation, settings, &thread_shared);
-            })
-            .map_err(|e| format!("cannot start the simulation thread: {e}"))?;
+        let thread = std::thread::Builder::new().name(format!("sim-{name}")).spawn(move || {
+            // The slave end stays open here so the master never sees a
+            // hang-up while the host's link reconnects.
+            let _slave = slave;
+            controller(&label, master, simulation, settings, &thread_shared);
+        })?;
         tracing::info!(component = name, "simulated robot on {}", pty_path.display());
         Ok(SimulatedRobot { pty_path, shared, thread: Some(thread) })
     }
@@ -146,7 +154,7 @@ fn controller(name: &str, mut port: TTYPort, mut sim: Simulation, settings: SimS
                 }
             }
         }
-        if last_command.elapsed() > CONTROLLER_TIMEOUT {
+        if last_command.elapsed() > settings.controller_watchdog {
             sim.set_wheels(0.0, 0.0);
         }
         let now = Instant::now();

@@ -4,6 +4,7 @@
 
 use serde::Serialize;
 
+use super::SimError;
 use super::world::{Obstacle, Point, World};
 use crate::robot::translator::DriveGeometry;
 
@@ -63,7 +64,7 @@ pub struct Simulation {
 impl Simulation {
     /// The robot at the world's start pose. Fails if it starts inside
     /// something.
-    pub fn new(world: World, body: Body) -> Result<Simulation, String> {
+    pub fn new(world: World, body: Body) -> Result<Simulation, SimError> {
         let (start, heading) = world.start;
         let sim = Simulation {
             x: start.x,
@@ -80,7 +81,7 @@ impl Simulation {
             goal_reached_at: None,
         };
         if sim.collides(start.x, start.y) {
-            return Err(format!("the start ({}, {}) is within {} m of an obstacle", start.x, start.y, body.radius));
+            return Err(SimError::StartBlocked { x: start.x, y: start.y, radius: body.radius });
         }
         Ok(sim)
     }
@@ -241,7 +242,7 @@ mod tests {
 
     fn sim(text: &str) -> Simulation {
         let world = world::parse(Path::new("t.world"), text).map_err(|e| e.to_string());
-        match world.and_then(|w| Simulation::new(w, BODY)) {
+        match world.and_then(|w| Simulation::new(w, BODY).map_err(|e| e.to_string())) {
             Ok(sim) => sim,
             Err(e) => panic!("{e}"),
         }
@@ -301,6 +302,8 @@ mod tests {
     #[test]
     fn starting_inside_an_obstacle_is_refused() {
         let world = world::parse(Path::new("t.world"), "bounds 0 0 10 10\nstart 1 1 0\ngoal 9 9 0.2\ncircle 1 1 0.5\n");
-        assert!(world.map_err(|e| e.to_string()).and_then(|w| Simulation::new(w, BODY)).is_err());
+        assert!(
+            world.map_err(|e| e.to_string()).and_then(|w| Simulation::new(w, BODY).map_err(|e| e.to_string())).is_err()
+        );
     }
 }

@@ -14,7 +14,7 @@ use tokio::time::Instant;
 
 use super::protocol::{self, ClientMessage, MAX_LINE_BYTES, ModeChange, ServerMessage};
 use super::{NetEvent, ServerContext};
-use crate::mode::{self, Mode};
+use crate::teleop::mode::{self, Mode};
 
 /// Pings in one measurement round; the round's RTT is their median.
 pub const PINGS_PER_ROUND: usize = 5;
@@ -91,7 +91,7 @@ impl Probe {
     }
 
     /// A pong arrived. `Err` when no such ping is outstanding.
-    pub fn on_pong(
+    pub(super) fn on_pong(
         &mut self,
         nonce: u64,
         now: Instant,

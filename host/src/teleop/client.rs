@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use crossterm::event::{self, Event, KeyCode, KeyEvent, KeyEventKind, KeyModifiers};
 use crossterm::terminal;
 
-use crate::mode::Mode;
+use crate::teleop::mode::Mode;
 
 /// Commands per second while a mode is granted.
 pub const SEND_RATE_HZ: u64 = 10;
@@ -43,8 +43,17 @@ struct View {
     last: String,
 }
 
+/// Why the keyboard client stopped with an error.
+#[derive(Debug, thiserror::Error)]
+#[error("{0}")]
+pub struct ClientError(String);
+
 /// Runs the client until the operator quits or the host closes.
-pub fn run(options: &ClientOptions) -> Result<(), String> {
+pub fn run(options: &ClientOptions) -> Result<(), ClientError> {
+    session(options).map_err(ClientError)
+}
+
+fn session(options: &ClientOptions) -> Result<(), String> {
     let stream =
         TcpStream::connect(&options.address).map_err(|e| format!("cannot connect to {}: {e}", options.address))?;
     let _ = stream.set_nodelay(true);

@@ -72,15 +72,6 @@ impl std::str::FromStr for Role {
     }
 }
 
-/// Parses a platform name as used on the command line and in the API.
-pub fn parse_platform(text: &str) -> Result<Platform, String> {
-    match text {
-        "network" => Ok(Platform::Network),
-        "control" => Ok(Platform::Control),
-        other => Err(format!("unknown platform '{other}' (expected network or control)")),
-    }
-}
-
 /// One user as the users file keeps it.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct User {
@@ -192,6 +183,35 @@ impl Users {
         }
     }
 
+    fn write(&self, users: Vec<User>) -> Result<(), UsersError> {
+        let file = UsersFile { users };
+        let text = serde_json::to_vec_pretty(&file)
+            .map_err(|e| UsersError::Write { path: self.path.clone(), reason: e.to_string() })?;
+        if let Some(parent) = self.path.parent() {
+            std::fs::create_dir_all(parent)
+                .map_err(|e| UsersError::Write { path: self.path.clone(), reason: e.to_string() })?;
+        }
+        write_atomically(&self.path, &text)
+            .map_err(|e| UsersError::Write { path: self.path.clone(), reason: e.to_string() })?;
+        if let Ok(mut cached) = self.cached.lock() {
+            *cached = None;
+        }
+        Ok(())
+    }
+}
+
+/// The users, open for changes: only a store writer makes one, so every
+/// change is serialised with the rest of the store's.
+#[derive(Debug)]
+pub struct UsersWriter<'a> {
+    users: &'a Users,
+}
+
+impl<'a> UsersWriter<'a> {
+    pub(super) fn new(users: &'a Users) -> UsersWriter<'a> {
+        UsersWriter { users }
+    }
+
     /// Adds a user, or replaces one with `replace`.
     pub fn add(
         &self,
@@ -210,7 +230,7 @@ impl Users {
                 "developer '{name}' needs at least one --platform (network or control)"
             )));
         }
-        let mut users = read_users(&self.path)?;
+        let mut users = read_users(&self.users.path)?;
         let exists = users.iter().any(|u| u.name == name);
         if exists && !replace {
             return Err(UsersError::Refused(format!("user '{name}' exists already")));
@@ -225,45 +245,29 @@ impl Users {
         users.retain(|u| u.name != name);
         users.push(user);
         users.sort_by(|a, b| a.name.cmp(&b.name));
-        self.write(users)
+        self.users.write(users)
     }
 
     /// Sets a new password for an existing user.
     pub fn set_password(&self, name: &str, password: &str) -> Result<(), UsersError> {
         check_password_strength(password)?;
-        let mut users = read_users(&self.path)?;
+        let mut users = read_users(&self.users.path)?;
         let user = users
             .iter_mut()
             .find(|u| u.name == name)
             .ok_or_else(|| UsersError::Refused(format!("no user '{name}'")))?;
         user.hash = hash_password(password)?;
-        self.write(users)
+        self.users.write(users)
     }
 
     pub fn remove(&self, name: &str) -> Result<(), UsersError> {
-        let mut users = read_users(&self.path)?;
+        let mut users = read_users(&self.users.path)?;
         let before = users.len();
         users.retain(|u| u.name != name);
         if users.len() == before {
             return Err(UsersError::Refused(format!("no user '{name}'")));
         }
-        self.write(users)
-    }
-
-    fn write(&self, users: Vec<User>) -> Result<(), UsersError> {
-        let file = UsersFile { users };
-        let text = serde_json::to_vec_pretty(&file)
-            .map_err(|e| UsersError::Write { path: self.path.clone(), reason: e.to_string() })?;
-        if let Some(parent) = self.path.parent() {
-            std::fs::create_dir_all(parent)
-                .map_err(|e| UsersError::Write { path: self.path.clone(), reason: e.to_string() })?;
-        }
-        write_atomically(&self.path, &text)
-            .map_err(|e| UsersError::Write { path: self.path.clone(), reason: e.to_string() })?;
-        if let Ok(mut cached) = self.cached.lock() {
-            *cached = None;
-        }
-        Ok(())
+        self.users.write(users)
     }
 }
 
@@ -284,7 +288,7 @@ fn read_users(path: &Path) -> Result<Vec<User>, UsersError> {
         if !is_valid_name(&user.name) {
             return Err(invalid(format!("user {}: name '{}' is not [a-z][a-z0-9_-]*", i + 1, user.name)));
         }
-        if let Some(bad) = user.platforms.iter().find(|p| parse_platform(p).is_err()) {
+        if let Some(bad) = user.platforms.iter().find(|p| Platform::parse(p).is_err()) {
             return Err(invalid(format!("user '{}': unknown platform '{bad}'", user.name)));
         }
         if file.users[..i].iter().any(|u| u.name == user.name) {
@@ -325,19 +329,19 @@ pub fn hash_password(password: &str) -> Result<String, UsersError> {
 }
 
 /// `bytes` random bytes as lowercase hex (tokens, tickets).
-pub fn random_hex(bytes: usize) -> Result<String, String> {
+pub fn random_hex(bytes: usize) -> Result<String, NoRandomness> {
     let mut buffer = vec![0u8; bytes];
-    getrandom::fill(&mut buffer).map_err(|e| format!("no randomness: {e}"))?;
+    getrandom::fill(&mut buffer).map_err(|e| NoRandomness(e.to_string()))?;
     Ok(hex::encode(buffer))
 }
 
 /// A new random alphanumeric password.
-pub fn generate_password() -> Result<String, String> {
+pub fn generate_password() -> Result<String, NoRandomness> {
     const ALPHABET: &[u8] = b"abcdefghijkmnpqrstuvwxyzABCDEFGHJKLMNPQRSTUVWXYZ23456789";
     let mut password = String::with_capacity(GENERATED_PASSWORD_LEN);
     while password.len() < GENERATED_PASSWORD_LEN {
         let mut byte = [0u8; 1];
-        getrandom::fill(&mut byte).map_err(|e| format!("no randomness: {e}"))?;
+        getrandom::fill(&mut byte).map_err(|e| NoRandomness(e.to_string()))?;
         // Rejection sampling keeps every character equally likely.
         let limit = 256 - 256 % ALPHABET.len();
         if (byte[0] as usize) < limit {
@@ -345,6 +349,22 @@ pub fn generate_password() -> Result<String, String> {
         }
     }
     Ok(password)
+}
+
+/// The system's random source failed.
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+#[error("no randomness: {0}")]
+pub struct NoRandomness(pub String);
+
+/// Why no ticket was issued.
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+pub enum TicketError {
+    #[error(transparent)]
+    NoRandomness(#[from] NoRandomness),
+    #[error("more than {MAX_TICKETS} tickets are waiting; try again in a minute")]
+    TooMany,
+    #[error("the ticket table is unusable")]
+    Unusable,
 }
 
 /// How long a pad ticket stays valid: the browser redeems it at once.
@@ -363,13 +383,13 @@ pub struct Tickets {
 
 impl Tickets {
     /// A new ticket for `user`.
-    pub fn issue(&self, user: &str) -> Result<String, String> {
+    pub fn issue(&self, user: &str) -> Result<String, TicketError> {
         let ticket = random_hex(24)?;
-        let mut issued = self.issued.lock().map_err(|_| "the ticket table is unusable".to_string())?;
+        let mut issued = self.issued.lock().map_err(|_| TicketError::Unusable)?;
         let now = std::time::Instant::now();
         issued.retain(|_, (_, expires)| *expires > now);
         if issued.len() >= MAX_TICKETS {
-            return Err(format!("more than {MAX_TICKETS} tickets are waiting; try again in a minute"));
+            return Err(TicketError::TooMany);
         }
         issued.insert(ticket.clone(), (user.to_string(), now + TICKET_TTL));
         Ok(ticket)
@@ -389,12 +409,12 @@ impl Tickets {
 /// The users file and the tickets, as the network platform checks them.
 #[derive(Debug)]
 pub struct Directory {
-    pub users: Users,
+    pub users: std::sync::Arc<Users>,
     pub tickets: Tickets,
 }
 
 impl Directory {
-    pub fn new(users: Users) -> Directory {
+    pub fn new(users: std::sync::Arc<Users>) -> Directory {
         Directory { users, tickets: Tickets::default() }
     }
 
@@ -416,7 +436,9 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         let users = Users::new(dir.path().join("users.json"));
         assert_eq!(users.all().unwrap(), vec![]);
-        users.add("alice", Role::Developer, &[Platform::Control], "correct horse battery", false).unwrap();
+        UsersWriter::new(&users)
+            .add("alice", Role::Developer, &[Platform::Control], "correct horse battery", false)
+            .unwrap();
         let text = std::fs::read_to_string(users.path()).unwrap();
         assert!(text.contains("$argon2id$"), "{text}");
         assert!(!text.contains("correct horse"), "{text}");
@@ -426,19 +448,19 @@ mod tests {
         assert!(!alice.may_drive());
         assert!(users.authenticate("alice", "wrong horse battery").is_none());
         assert!(users.authenticate("bob", "correct horse battery").is_none());
-        let err = users.add("alice", Role::Viewer, &[], "another password", false).unwrap_err();
+        let err = UsersWriter::new(&users).add("alice", Role::Viewer, &[], "another password", false).unwrap_err();
         assert_eq!(err.to_string(), "user 'alice' exists already");
-        let err = users.add("bob", Role::Developer, &[], "another password", false).unwrap_err();
+        let err = UsersWriter::new(&users).add("bob", Role::Developer, &[], "another password", false).unwrap_err();
         assert!(err.to_string().contains("needs at least one --platform"), "{err}");
-        let err = users.add("bob", Role::Viewer, &[], "short", false).unwrap_err();
+        let err = UsersWriter::new(&users).add("bob", Role::Viewer, &[], "short", false).unwrap_err();
         assert!(err.to_string().contains("at least 10 characters"), "{err}");
-        let err = users.add("Bob", Role::Viewer, &[], "long enough pw", false).unwrap_err();
+        let err = UsersWriter::new(&users).add("Bob", Role::Viewer, &[], "long enough pw", false).unwrap_err();
         assert!(err.to_string().contains("user name 'Bob'"), "{err}");
-        users.set_password("alice", "a brand new password").unwrap();
+        UsersWriter::new(&users).set_password("alice", "a brand new password").unwrap();
         assert!(users.authenticate("alice", "a brand new password").is_some());
-        users.remove("alice").unwrap();
+        UsersWriter::new(&users).remove("alice").unwrap();
         assert!(users.get("alice").is_none());
-        assert_eq!(users.remove("alice").unwrap_err().to_string(), "no user 'alice'");
+        assert_eq!(UsersWriter::new(&users).remove("alice").unwrap_err().to_string(), "no user 'alice'");
     }
 
     #[test]
@@ -461,9 +483,9 @@ mod tests {
     fn tickets_are_single_use_and_bound_to_their_user() {
         let dir = tempfile::tempdir().unwrap();
         let users = Users::new(dir.path().join("users.json"));
-        users.add("op", Role::Operator, &[], "operator password", false).unwrap();
-        users.add("view", Role::Viewer, &[], "viewer password", false).unwrap();
-        let directory = Directory::new(users);
+        UsersWriter::new(&users).add("op", Role::Operator, &[], "operator password", false).unwrap();
+        UsersWriter::new(&users).add("view", Role::Viewer, &[], "viewer password", false).unwrap();
+        let directory = Directory::new(std::sync::Arc::new(users));
         let ticket = directory.tickets.issue("op").unwrap();
         assert!(!directory.check_operator("view", &ticket), "a ticket is its user's only");
         let ticket = directory.tickets.issue("op").unwrap();

@@ -16,11 +16,14 @@
 //! one operator holds control at a time; commands never reach the arbiter
 //! out of order, twice, or stale.
 
+pub mod builtin;
+pub mod client;
 pub mod delay;
+pub mod mode;
 pub mod protocol;
 pub mod session;
 
-use std::collections::{BTreeMap, HashMap};
+use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
@@ -30,14 +33,15 @@ use std::time::Duration;
 use serde::Serialize;
 
 use self::delay::{DelayBuffer, DelaySettings, DelayStats};
+use self::mode::{Mode, ModePolicy};
 use self::protocol::{ModeChange, ServerMessage};
 use self::session::Measurement;
-use crate::arbiter::PriorityCell;
+use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
-use crate::mode::{Mode, ModePolicy};
 use crate::robot::control::ControlCommand;
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::{CallError, Component, Outbox, PriorityCell};
+use crate::store::users::Directory;
 
 /// Events from sessions waiting for the control loop; more are dropped and
 /// the operator is told.
@@ -58,7 +62,7 @@ pub struct TeleopSettings {
     pub operators: Vec<(String, String)>,
     /// The portal's users (operators and admins drive with their password
     /// or a pad ticket), when the host runs the portal.
-    pub directory: Option<Arc<crate::users::Directory>>,
+    pub directory: Option<Arc<Directory>>,
     pub probe_period: Duration,
     pub policy: ModePolicy,
     /// Connections served at once; more are refused.
@@ -86,7 +90,7 @@ impl TeleopSettings {
 }
 
 /// Reads an operators file: one `NAME TOKEN` per line, `#` comments.
-pub fn load_operators(path: &Path) -> Result<Vec<(String, String)>, String> {
+fn load_operators(path: &Path) -> Result<Vec<(String, String)>, String> {
     let text =
         std::fs::read_to_string(path).map_err(|e| format!("cannot read operators file {}: {e}", path.display()))?;
     let mut operators = Vec::new();
@@ -263,31 +267,29 @@ impl TeleopComponent {
         clock: Clock,
         waker: Waker,
         priority: PriorityCell,
-    ) -> Result<TeleopComponent, String> {
+    ) -> Result<TeleopComponent, BuiltinError> {
         if settings.operators.is_empty() && settings.directory.is_none() {
-            return Err("nobody may log in: give the 'operators' parameter (a file of NAME TOKEN lines) \
-                        or run the host with its portal (users with the operator role)"
-                .into());
+            return Err(BuiltinError::Refused(
+                "nobody may log in: give the 'operators' parameter (a file of NAME TOKEN lines) \
+                 or run the host with its portal (users with the operator role)"
+                    .into(),
+            ));
         }
-        let tcp = std::net::TcpListener::bind(settings.listen)
-            .map_err(|e| format!("cannot listen on {}: {e}", settings.listen))?;
-        let listen = tcp.local_addr().map_err(|e| e.to_string())?;
-        tcp.set_nonblocking(true).map_err(|e| e.to_string())?;
-        let websocket = match settings.websocket {
-            Some(address) => {
-                let ws =
-                    std::net::TcpListener::bind(address).map_err(|e| format!("cannot listen on {address}: {e}"))?;
-                ws.set_nonblocking(true).map_err(|e| e.to_string())?;
-                Some(ws)
-            }
-            None => None,
+        let bind = |address: SocketAddr| -> Result<std::net::TcpListener, BuiltinError> {
+            let listener = std::net::TcpListener::bind(address)
+                .map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))?;
+            listener.set_nonblocking(true).map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))?;
+            Ok(listener)
         };
+        let tcp = bind(settings.listen)?;
+        let listen = tcp.local_addr().map_err(|e| BuiltinError::io("cannot read the teleoperation address", e))?;
+        let websocket = settings.websocket.map(bind).transpose()?;
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .thread_name(format!("net-{name}"))
             .enable_all()
             .build()
-            .map_err(|e| format!("cannot start the network runtime: {e}"))?;
+            .map_err(|e| BuiltinError::io("cannot start the network runtime", e))?;
         let (events_tx, events) = std::sync::mpsc::sync_channel(EVENT_QUEUE);
         let ctx = Arc::new(ServerContext {
             robot: robot.to_string(),
@@ -307,7 +309,7 @@ impl TeleopComponent {
             }
         });
         if let Some(ws) = websocket {
-            let ws_address = ws.local_addr().map_err(|e| e.to_string())?;
+            let ws_address = ws.local_addr().map_err(|e| BuiltinError::io("cannot read the websocket address", e))?;
             let ws_ctx = ctx.clone();
             runtime.spawn(async move {
                 match tokio::net::TcpListener::from_std(ws) {
@@ -537,62 +539,6 @@ impl Drop for TeleopComponent {
             runtime.shutdown_timeout(Duration::from_secs(1));
         }
     }
-}
-
-/// The settings of a `builtin:teleop` from its parameters.
-pub fn settings(params: &BTreeMap<String, String>, base_dir: &Path) -> Result<TeleopSettings, String> {
-    let text = |key: &str| params.get(key).map(|v| v.trim().to_string()).unwrap_or_default();
-    let seconds = |key: &str, default: f64| -> Result<Duration, String> {
-        let raw = text(key);
-        let value = if raw.is_empty() {
-            default
-        } else {
-            raw.parse::<f64>().map_err(|_| format!("{key} must be a number of seconds, got '{raw}'"))?
-        };
-        if !(value >= 0.0 && value.is_finite()) {
-            return Err(format!("{key} must be a number of seconds >= 0, got {value}"));
-        }
-        Ok(Duration::from_secs_f64(value))
-    };
-    let address = |key: &str, default: &str| -> Result<SocketAddr, String> {
-        let raw = text(key);
-        let raw = if raw.is_empty() { default.to_string() } else { raw };
-        raw.parse::<SocketAddr>().map_err(|_| format!("{key} must be an address like 127.0.0.1:7070, got '{raw}'"))
-    };
-    let operators_file = text("operators");
-    let operators =
-        if operators_file.is_empty() { Vec::new() } else { load_operators(&base_dir.join(operators_file))? };
-    let websocket = if text("websocket").is_empty() { None } else { Some(address("websocket", "")?) };
-    let delay_text = text("delay");
-    let fixed = match delay_text.as_str() {
-        "" | "adaptive" => None,
-        _ => Some(seconds("delay", 0.0)?),
-    };
-    let policy =
-        ModePolicy { direct_below: seconds("direct-below", 0.1)?, shared_below: seconds("shared-below", 0.3)? };
-    if policy.direct_below > policy.shared_below {
-        return Err("direct-below must not exceed shared-below".into());
-    }
-    let max_connections = text("max-operators").parse::<usize>().ok().filter(|n| (1..=64).contains(n)).unwrap_or(4);
-    let probe_period = seconds("probe-period", 300.0)?;
-    if probe_period < Duration::from_millis(100) {
-        return Err("probe-period must be at least 0.1 s".into());
-    }
-    Ok(TeleopSettings {
-        listen: address("listen", "127.0.0.1:7070")?,
-        websocket,
-        operators,
-        directory: None,
-        probe_period,
-        policy,
-        max_connections,
-        delay: DelaySettings {
-            fixed,
-            min_delay: seconds("min-delay", 0.01)?,
-            max_delay: seconds("max-delay", 0.2)?,
-            horizon: seconds("horizon", 0.5)?,
-        },
-    })
 }
 
 #[cfg(test)]

@@ -5,8 +5,8 @@
 use serde::Serialize;
 use serde_json::json;
 
-use crate::mode::Mode;
 use crate::robot::control::{self, ControlCommand};
+use crate::teleop::mode::Mode;
 
 /// Longest line (or WebSocket message) a client may send: a command is a
 /// few dozen bytes; a longer line is refused and skipped, never buffered.
@@ -46,7 +46,7 @@ pub enum ServerMessage {
 }
 
 /// Parses one protocol line.
-pub fn parse_line(line: &str) -> Result<ClientMessage, String> {
+pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
     let line = line.trim();
     let (keyword, rest) = line.split_once([' ', '\t']).map_or((line, ""), |(k, r)| (k, r.trim()));
     let words: Vec<&str> = rest.split_ascii_whitespace().collect();
@@ -90,7 +90,7 @@ pub fn parse_line(line: &str) -> Result<ClientMessage, String> {
 /// Parses one JSON message: `{"type": "auth", "name": .., "token": ..}`,
 /// `{"type": "mode", "mode": ..}`, `{"type": "cmd", "seq": .., "time_ms": ..,
 /// "command": ..}`, `{"type": "pong", "nonce": ..}`, `{"type": "quit"}`.
-pub fn parse_json(text: &str) -> Result<ClientMessage, String> {
+pub(super) fn parse_json(text: &str) -> Result<ClientMessage, String> {
     let value: serde_json::Value = serde_json::from_str(text).map_err(|e| format!("not a JSON object: {e}"))?;
     let field = |name: &str| value.get(name).ok_or_else(|| format!("missing field '{name}'"));
     let text_field = |name: &str| {

@@ -1,0 +1,166 @@
+//! Assembly: a validated [`RobotConfig`] and a [`Loader`] -> a wired
+//! [`Graph`], and what an activation carries over from the running graph.
+//!
+//! Invariants: component `i` of the graph is component `i` of the config;
+//! simulated robots are built first, so serial links can open their
+//! pseudo-terminals; every component that fails to start is reported and
+//! no graph is returned; carried components hold [`Vacant`] until the swap
+//! moves the running instances in.
+
+pub mod loader;
+pub mod registry;
+
+use std::collections::HashMap;
+use std::path::PathBuf;
+
+pub use self::loader::{Loader, StartError, Surroundings};
+use crate::builtin::Services;
+use crate::config::{ComponentConfig, ComponentSource, RobotConfig};
+use crate::runtime::control_loop::{Clock, Waker};
+use crate::runtime::{Component, Graph, PriorityCell, Vacant};
+
+/// Components a new graph takes over from the running one instead of
+/// building them: their graph slots hold [`Vacant`] until the swap moves
+/// the running instances in.
+#[derive(Clone, Debug, Default)]
+pub struct Carry {
+    /// New index -> the running component's priority cell.
+    pub priorities: HashMap<usize, PriorityCell>,
+    /// PTYs of carried simulated robots, by component name.
+    pub sim_ptys: HashMap<String, PathBuf>,
+}
+
+/// A graph with what a later activation needs to carry its parts over.
+pub struct Built {
+    pub graph: Graph,
+    pub priorities: Vec<PriorityCell>,
+    pub sim_ptys: HashMap<String, PathBuf>,
+}
+
+/// Instantiates and initialises every component of `config` and wires them.
+pub fn build_graph(
+    config: &RobotConfig,
+    loader: &mut Loader<'_>,
+    clock: Clock,
+    waker: &Waker,
+) -> Result<Graph, Vec<StartError>> {
+    build(config, loader, clock, waker, &Services::default(), &Carry::default()).map(|built| built.graph)
+}
+
+/// [`build_graph`] with the host's shared services, building every
+/// component but the carried ones.
+pub fn build(
+    config: &RobotConfig,
+    loader: &mut Loader<'_>,
+    clock: Clock,
+    waker: &Waker,
+    services: &Services,
+    carry: &Carry,
+) -> Result<Built, Vec<StartError>> {
+    let start_ns = clock.now_ns();
+    let mut ptys = carry.sim_ptys.clone();
+    let priorities: Vec<PriorityCell> = config
+        .components
+        .iter()
+        .enumerate()
+        .map(|(i, c)| carry.priorities.get(&i).cloned().unwrap_or_else(|| PriorityCell::new(c.priority.unwrap_or(0))))
+        .collect();
+    let mut built: Vec<Option<Box<dyn Component>>> = (0..config.components.len()).map(|_| None).collect();
+    let mut errors = Vec::new();
+    let is_sim = |c: &ComponentConfig| c.source == ComponentSource::Builtin("sim".into());
+    let order = (0..config.components.len())
+        .filter(|&i| is_sim(&config.components[i]))
+        .chain((0..config.components.len()).filter(|&i| !is_sim(&config.components[i])));
+    for index in order {
+        if carry.priorities.contains_key(&index) {
+            built[index] = Some(Box::new(Vacant));
+            continue;
+        }
+        let around = Surroundings {
+            robot: config,
+            ptys: &mut ptys,
+            priorities: &priorities,
+            clock,
+            waker: waker.clone(),
+            services,
+        };
+        match loader.instantiate(index, around) {
+            Ok(instance) => built[index] = Some(instance),
+            Err(e) => errors.push(e),
+        }
+    }
+    if !errors.is_empty() {
+        return Err(errors);
+    }
+    let mut graph = Graph::new();
+    for (index, (component, instance)) in config.components.iter().zip(built).enumerate() {
+        let Some(instance) = instance else { continue };
+        let d = &component.description;
+        let how = if carry.priorities.contains_key(&index) { "kept running" } else { "started" };
+        tracing::info!(
+            component = %component.name,
+            "{how} {} {} from {} ({} in, {} out, {} Hz{})",
+            d.name,
+            d.version,
+            component.source,
+            d.inputs.len(),
+            d.outputs.len(),
+            component.rate_hz,
+            component.priority.map(|p| format!(", priority {p}")).unwrap_or_default()
+        );
+        let index = graph.add(&component.name, instance, d.outputs.len(), component.rate_hz, start_ns);
+        if let (Some(policy), Some(restarter)) = (component.restart, loader.restarter(component)) {
+            graph.set_restart(index, policy, restarter);
+        }
+    }
+    for c in &config.connections {
+        graph.connect(c.from.component, c.from.port, c.to.component, c.to.port, c.policy);
+    }
+    Ok(Built { graph, priorities, sim_ptys: ptys })
+}
+
+/// What identifies a running instance: everything but its place in the file.
+pub fn instance_key(c: &ComponentConfig) -> String {
+    format!(
+        "{}|{}|{}|{:?}|{:?}|{:?}|{}|{}|{}|{}|{:?}|{:?}",
+        c.name,
+        c.source,
+        c.rate_hz,
+        c.priority,
+        c.budget,
+        c.timeout,
+        c.memory_bytes,
+        c.max_emits,
+        c.max_message_bytes,
+        c.max_logs_per_s,
+        c.restart,
+        c.params.iter().map(|p| (&p.name, &p.value)).collect::<Vec<_>>()
+    )
+}
+
+/// (old index, new index) of the built-ins `new` takes over from `old`:
+/// the unchanged ones that own something outside the host.
+pub fn carry_plan(old: &RobotConfig, new: &RobotConfig) -> Vec<(usize, usize)> {
+    let carried_kind = |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if registry::find(k).is_some_and(|b| b.carried()));
+    let mut pairs: Vec<(usize, usize)> = new
+        .components
+        .iter()
+        .enumerate()
+        .filter(|(_, c)| carried_kind(c))
+        .filter_map(|(n, c)| {
+            let o = old.components.iter().position(|o| instance_key(o) == instance_key(c))?;
+            Some((o, n))
+        })
+        .collect();
+    // A serial link on a simulated robot's PTY is carried only with it.
+    let carried_names: Vec<String> = pairs.iter().map(|&(_, n)| new.components[n].name.clone()).collect();
+    pairs.retain(|&(_, n)| {
+        let c = &new.components[n];
+        let device = c.params.iter().find(|p| p.name == "device").map(|p| p.value.trim().to_string());
+        match device.as_deref().and_then(|d| d.strip_prefix("sim:")) {
+            Some(sim) => carried_names.iter().any(|name| name == sim),
+            None => true,
+        }
+    });
+    pairs
+}

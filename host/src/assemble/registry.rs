@@ -1,0 +1,51 @@
+//! The one list of built-ins: `builtin:KIND` -> its [`Builtin`]. Adding a
+//! built-in is its own module plus one line here.
+
+use crate::arbiter::ArbiterBuiltin;
+use crate::builtin::Builtin;
+use crate::builtin::log::Log;
+use crate::builtin::publish::Publish;
+use crate::robot::builtin::SerialBuiltin;
+use crate::sim::builtin::SimBuiltin;
+use crate::teleop::builtin::TeleopBuiltin;
+
+/// Every built-in, in alphabetical order of kind.
+pub const BUILTINS: &[&dyn Builtin] = &[&ArbiterBuiltin, &Log, &Publish, &SerialBuiltin, &SimBuiltin, &TeleopBuiltin];
+
+/// The built-in of `kind`.
+pub fn find(kind: &str) -> Option<&'static dyn Builtin> {
+    BUILTINS.iter().copied().find(|b| b.kind() == kind)
+}
+
+/// Every kind, for messages.
+pub fn kinds() -> Vec<&'static str> {
+    BUILTINS.iter().map(|b| b.kind()).collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn kinds_are_unique_sorted_and_their_defaults_pass_their_own_checks() {
+        let kinds = kinds();
+        let mut sorted = kinds.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(kinds, sorted);
+        for builtin in BUILTINS {
+            for decl in builtin.params() {
+                // A default that fails its check marks a required parameter:
+                // only an empty default of a required type may.
+                if decl.check(decl.default).is_err() {
+                    let required = matches!(
+                        decl.ty,
+                        crate::builtin::ParamType::Required | crate::builtin::ParamType::File { optional: false }
+                    );
+                    assert!(required && decl.default.is_empty(), "builtin:{} {}", builtin.kind(), decl.name);
+                }
+                assert!(crate::contract::is_valid_name(decl.name), "{}", decl.name);
+            }
+        }
+    }
+}

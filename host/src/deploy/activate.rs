@@ -1,0 +1,131 @@
+//! Activation and rollback: the set is validated and its graph built beside
+//! the running one (carrying unchanged devices and sockets over); then,
+//! under the store's lock, the control thread swaps it in at a cycle
+//! boundary and the store records it.
+
+use std::sync::Arc;
+
+use super::swap::SwapRequest;
+use super::{DeployError, Deployer, Deployment, Permission, authorise, stage};
+use crate::assemble::{self, Built, Carry, Loader};
+use crate::config::RobotConfig;
+use crate::store::users::User;
+use crate::store::{SetRecord, StoreError};
+
+/// A set whose graph is built and waits for the swap.
+pub(super) struct Ready {
+    set: SetRecord,
+    config: Arc<RobotConfig>,
+    built: Built,
+    carry: Vec<(usize, usize)>,
+}
+
+impl Deployer {
+    /// Activates set `id`: see the module's invariants.
+    pub fn activate(&self, user: &User, id: u64) -> Result<SetRecord, DeployError> {
+        self.switch(user, Some(id), false)
+    }
+
+    /// Activates the set that was active before the current one.
+    pub fn rollback(&self, user: &User) -> Result<SetRecord, DeployError> {
+        self.switch(user, None, true)
+    }
+
+    /// Activates `id`, or the previous set when rolling back.
+    fn switch(&self, user: &User, id: Option<u64>, rollback: bool) -> Result<SetRecord, DeployError> {
+        let mut active = self.active.lock().map_err(|_| DeployError::Host("the active set is unusable".into()))?;
+        let id = match id {
+            Some(id) => Ok(id),
+            None => self.store.state().map_err(DeployError::from).and_then(|state| {
+                state
+                    .history
+                    .last()
+                    .copied()
+                    .ok_or_else(|| DeployError::Conflict("there is no previous set to roll back to".into()))
+            }),
+        };
+        let (action, target) = match (&id, rollback) {
+            (Ok(id), false) => ("activate", format!("set {id}")),
+            (Ok(id), true) => ("rollback", format!("set {id}")),
+            (Err(_), _) => ("rollback", "none".to_string()),
+        };
+        let prepared =
+            authorise(user, Permission::Activate).and(id).and_then(|id| self.prepare_switch(user, id, &active));
+        self.commit(
+            &user.name,
+            action,
+            &target,
+            prepared,
+            |writer, ready: Ready| {
+                let id = ready.set.id;
+                // Under the lock: the set is still stored and, for a
+                // rollback, still the previous one; only then does it run.
+                writer.set(id)?;
+                if rollback && writer.state()?.history.last() != Some(&id) {
+                    return Err(DeployError::Conflict(format!("set {id} is no longer the previous active set")));
+                }
+                let (done, old_graph) = std::sync::mpsc::sync_channel(1);
+                let request = SwapRequest {
+                    graph: ready.built.graph,
+                    carry: ready.carry,
+                    config: ready.config.clone(),
+                    set_id: id,
+                    done,
+                };
+                self.slot.hand_over(request, &old_graph, &self.waker)?;
+                let recorded = if rollback { writer.mark_rolled_back(id) } else { writer.mark_active(id) };
+                if let Err(e) = recorded {
+                    tracing::error!("set {id} runs, but the store could not record it: {e}");
+                }
+                tracing::info!(
+                    "set {id} ({}) is active; {} by {}",
+                    ready.set.config_name,
+                    if rollback { "rolled back" } else { "activated" },
+                    user.name
+                );
+                *active = Deployment {
+                    set: ready.set.clone(),
+                    config: ready.config,
+                    priorities: ready.built.priorities,
+                    sim_ptys: ready.built.sim_ptys,
+                };
+                Ok(ready.set)
+            },
+            |set| format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id),
+        )
+    }
+
+    fn prepare_switch(&self, user: &User, id: u64, active: &Deployment) -> Result<Ready, DeployError> {
+        if active.set.id == id {
+            return Err(DeployError::Conflict(format!("set {id} is active already")));
+        }
+        let set = self.store.set(id).map_err(|e| match e {
+            StoreError::NoSet(id) => DeployError::Store(StoreError::NoSet(id)),
+            other => other.into(),
+        })?;
+        let mut loader = Loader::new(&self.sandbox);
+        let config = stage::validate_set(&self.store, &set, &mut loader, &self.overrides)?;
+        let changes = stage::platform_changes(&active.config, &config);
+        if let Some(denied) = changes.iter().find(|p| !user.may_change(**p)) {
+            return Err(DeployError::Forbidden(format!(
+                "set {id} changes platform {}, which {} may not change",
+                denied.name(),
+                user.name
+            )));
+        }
+        let pairs = assemble::carry_plan(&active.config, &config);
+        let mut carry = Carry::default();
+        for &(old, new) in &pairs {
+            if let Some(cell) = active.priorities.get(old) {
+                carry.priorities.insert(new, cell.clone());
+            }
+            let name = &active.config.components[old].name;
+            if let Some(pty) = active.sim_ptys.get(name) {
+                carry.sim_ptys.insert(name.clone(), pty.clone());
+            }
+        }
+        let built = assemble::build(&config, &mut loader, self.clock, &self.waker, &self.services, &carry)
+            .map_err(DeployError::Start)?;
+        Ok(Ready { set, config: Arc::new(config), built, carry: pairs })
+    }
+}

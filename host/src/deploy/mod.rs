@@ -1,0 +1,351 @@
+//! The use cases of a run with a store: boot, upload a component, stage a
+//! robot file, activate a set, roll back. Each one is a method of
+//! [`Deployer`] in its own file and has the same shape:
+//!
+//! 1. authorise ([`authorise`], the one permission check);
+//! 2. prepare without the store's lock: check, compile, validate, build the
+//!    new graph beside the running one;
+//! 3. [`Deployer::commit`]: take the store's lock (the one place a use case
+//!    takes it), apply the change, and write the one audit line of the
+//!    request, refused or not, under the same lock.
+//!
+//! Invariants:
+//! - a set is validated exactly like `subsume check`, with its WASM sources
+//!   pinned to stored blobs by sha256; nothing outside the store is run;
+//! - file parameters of built-ins in an uploaded set stay inside the
+//!   robot's folder;
+//! - the control thread only ever swaps a fully built, initialised graph;
+//!   the old graph is dropped on the activating thread, not the loop;
+//! - built-ins that own a device, a pseudo-terminal or a socket and are
+//!   unchanged keep running across the swap;
+//! - `state.json` names the new set only after the swap happened, and the
+//!   swap happens under the store's lock, after the set was found still
+//!   stored: the active set's record always describes what runs;
+//! - on any error the running set is untouched.
+
+mod activate;
+mod stage;
+mod swap;
+mod upload;
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex};
+
+use thiserror::Error;
+
+pub use self::stage::MAX_FILE_NAME_LEN;
+pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
+pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
+use crate::assemble::{self, Carry, Loader, StartError};
+use crate::builtin::Services;
+pub use crate::config::limits::MAX_CONFIG_BYTES as MAX_CONFIG_UPLOAD_BYTES;
+use crate::config::{ComponentSource, ParamOverride, RobotConfig};
+pub use crate::config::{Diagnostic, Diagnostics, Platform};
+use crate::runtime::Graph;
+use crate::runtime::control_loop::{Clock, Waker};
+use crate::runtime::wiring::PriorityCell;
+use crate::sandbox::{Sandbox, read_component_file};
+use crate::store::users::User;
+use crate::store::{Outcome, STORE_FORMAT, SetRecord, Store, StoreError, StoreWriter, sha256_hex, unix_now};
+
+/// Why a use case did not happen. The running set is untouched in every case.
+#[derive(Debug, Error)]
+pub enum DeployError {
+    /// The robot file has errors (path:line:column: message each).
+    #[error("{0}")]
+    Invalid(Diagnostics),
+    /// The set validated but some component failed to start.
+    #[error("{}", .0.iter().map(ToString::to_string).collect::<Vec<_>>().join("\n"))]
+    Start(Vec<StartError>),
+    /// The user lacks a permission.
+    #[error("{0}")]
+    Forbidden(String),
+    /// The request makes no sense now (the set is active already, ...).
+    #[error("{0}")]
+    Conflict(String),
+    /// The request itself is malformed (a bad name, an empty upload, ...).
+    #[error("{0}")]
+    BadRequest(String),
+    /// The upload is not a WebAssembly component.
+    #[error("not a webassembly component: {0}")]
+    NotAComponent(String),
+    /// The upload is a component but fits neither world.
+    #[error("{0}")]
+    WrongWorld(String),
+    /// What the request names does not exist.
+    #[error("{0}")]
+    NotFound(String),
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// The host failed (a thread, the control loop, a file it needs).
+    #[error("{0}")]
+    Host(String),
+}
+
+impl DeployError {
+    /// Whether the host failed (rather than refused the request).
+    pub fn is_failure(&self) -> bool {
+        match self {
+            DeployError::Store(StoreError::NoSet(_)) => false,
+            DeployError::Store(_) | DeployError::Host(_) | DeployError::Start(_) => true,
+            _ => false,
+        }
+    }
+}
+
+/// What a user may ask for.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Permission {
+    /// Upload a component or a robot file for a platform.
+    Change(Platform),
+    /// Activate a set or roll back.
+    Activate,
+    /// Drive the robot (the portal's pad, teleoperation).
+    Drive,
+    /// Read the audit log.
+    ReadAudit,
+}
+
+/// The one permission check of every use case.
+pub fn authorise(user: &User, permission: Permission) -> Result<(), DeployError> {
+    let allowed = match permission {
+        Permission::Change(platform) => user.may_change(platform),
+        Permission::Activate | Permission::ReadAudit => user.is_developer(),
+        Permission::Drive => user.may_drive(),
+    };
+    if allowed {
+        return Ok(());
+    }
+    Err(DeployError::Forbidden(match permission {
+        Permission::Change(platform) => format!("{} may not change platform {}", user.name, platform.name()),
+        Permission::Activate => format!("{} may not activate sets", user.name),
+        Permission::Drive => format!("{} may not drive (role {})", user.name, user.role.name()),
+        Permission::ReadAudit => format!("{} may not read the audit log", user.name),
+    }))
+}
+
+/// What is running: the set, its validated robot and what the next
+/// activation needs to carry parts over.
+pub struct Deployment {
+    pub set: SetRecord,
+    pub config: Arc<RobotConfig>,
+    priorities: Vec<PriorityCell>,
+    sim_ptys: HashMap<String, PathBuf>,
+}
+
+/// The deployment side of a run with a store: owns what is active and
+/// carries out the use cases.
+pub struct Deployer {
+    pub store: Arc<Store>,
+    pub sandbox: Arc<Sandbox>,
+    pub services: Services,
+    clock: Clock,
+    waker: Waker,
+    overrides: Vec<ParamOverride>,
+    slot: swap::SwapSlot,
+    /// Held through a whole activation or rollback (before the store's
+    /// lock, never after it), so two cannot interleave.
+    active: Mutex<Deployment>,
+    live: LiveStatusCell,
+    /// One compile at a time (see [`MAX_CONCURRENT_COMPILES`]).
+    compiles: Mutex<()>,
+}
+
+/// Where a run starts: the deployer, the first graph, and the hook to run
+/// it with.
+pub struct Boot {
+    pub deployer: Arc<Deployer>,
+    pub graph: Graph,
+    pub hook: ControlHook,
+}
+
+/// Options of [`Deployer::boot`].
+pub struct BootOptions<'a> {
+    pub store: Arc<Store>,
+    pub sandbox: Arc<Sandbox>,
+    pub services: Services,
+    /// The robot file given on the command line.
+    pub config_path: &'a Path,
+    pub overrides: Vec<ParamOverride>,
+    pub clock: Clock,
+    pub waker: Waker,
+}
+
+impl Deployer {
+    /// Starts from the store: the last activated set, unless the robot file
+    /// given on the command line changed since it was last imported (or
+    /// nothing was ever activated), in which case that file and the
+    /// components it names are imported as a new set and activated.
+    pub fn boot(options: BootOptions<'_>) -> Result<Boot, DeployError> {
+        let BootOptions { store, sandbox, services, config_path, overrides, clock, waker } = options;
+        let text = crate::config::read_config(config_path).map_err(DeployError::Invalid)?;
+        let sha = sha256_hex(text.as_bytes());
+        let state = store.state()?;
+        let set = match state.active {
+            Some(id) if state.boot_config_sha256.as_deref() == Some(sha.as_str()) => {
+                let set = store.set(id)?;
+                tracing::info!(
+                    "restoring set {id} ({}, by {}) from {}",
+                    set.config_name,
+                    set.created_by,
+                    store.root().display()
+                );
+                set
+            }
+            _ => import(&store, &sandbox, config_path, &text, &overrides)?,
+        };
+        let mut loader = Loader::new(&sandbox);
+        let config = stage::validate_set(&store, &set, &mut loader, &overrides)?;
+        let built = assemble::build(&config, &mut loader, clock, &waker, &services, &Carry::default())
+            .map_err(DeployError::Start)?;
+        let config = Arc::new(config);
+        let live = LiveStatusCell::default();
+        let slot = swap::SwapSlot::default();
+        let hook = ControlHook::new(slot.clone(), config.clone(), set.id, live.clone());
+        let deployment = Deployment { set, config, priorities: built.priorities, sim_ptys: built.sim_ptys };
+        let deployer = Deployer {
+            store,
+            sandbox,
+            services,
+            clock,
+            waker,
+            overrides,
+            slot,
+            active: Mutex::new(deployment),
+            live,
+            compiles: Mutex::new(()),
+        };
+        Ok(Boot { deployer: Arc::new(deployer), graph: built.graph, hook })
+    }
+
+    /// The live status, as the control loop last published it.
+    pub fn live(&self) -> &LiveStatusCell {
+        &self.live
+    }
+
+    /// The active set and robot.
+    pub fn active(&self) -> Result<(SetRecord, Arc<RobotConfig>), DeployError> {
+        let active = self.active.lock().map_err(|_| DeployError::Host("the active set is unusable".into()))?;
+        Ok((active.set.clone(), active.config.clone()))
+    }
+
+    /// The second half of every use case: takes the store's lock, applies
+    /// `prepared` with `apply` when it is `Ok`, and records the request in
+    /// the audit log under the same lock, whatever happened.
+    fn commit<P, T>(
+        &self,
+        user: &str,
+        action: &str,
+        target: &str,
+        prepared: Result<P, DeployError>,
+        apply: impl FnOnce(&StoreWriter<'_>, P) -> Result<T, DeployError>,
+        done: impl FnOnce(&T) -> String,
+    ) -> Result<T, DeployError> {
+        let writer = match self.store.lock() {
+            Ok(writer) => writer,
+            Err(e) => {
+                tracing::error!("cannot lock the store to record {action} by {user}: {e}");
+                return Err(e.into());
+            }
+        };
+        let result = prepared.and_then(|p| apply(&writer, p));
+        match &result {
+            Ok(value) => writer.record(user, action, target, Outcome::Ok(&done(value))),
+            Err(e) => {
+                let detail = e.to_string();
+                let outcome = if e.is_failure() { Outcome::Failed(&detail) } else { Outcome::Refused(&detail) };
+                writer.record(user, action, target, outcome);
+            }
+        }
+        result
+    }
+}
+
+/// Imports the robot file at `path` and the components it names into the
+/// store as a new active set (boot's own use case: the robot's owner, on
+/// the command line).
+fn import(
+    store: &Store,
+    sandbox: &Sandbox,
+    path: &Path,
+    text: &str,
+    overrides: &[ParamOverride],
+) -> Result<SetRecord, DeployError> {
+    let mut loader = Loader::new(sandbox);
+    let config =
+        crate::config::parse_and_validate_for_run(path, text, &mut loader, overrides).map_err(DeployError::Invalid)?;
+    let folder = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let base_dir = std::fs::canonicalize(folder)
+        .map_err(|e| DeployError::Host(format!("cannot resolve {}: {e}", folder.display())))?;
+    let mut files = Vec::new();
+    for component in &config.components {
+        if let ComponentSource::Wasm(file) = &component.source {
+            let bytes = read_component_file(file).map_err(|e| DeployError::Host(e.to_string()))?;
+            let key = file.strip_prefix(folder).unwrap_or(file).to_string_lossy().into_owned();
+            files.push((key, bytes));
+        }
+    }
+    let config_name = path.file_name().map_or_else(|| "robot.xml".into(), |n| n.to_string_lossy().into_owned());
+    let writer = store.lock()?;
+    let mut sources = BTreeMap::new();
+    for (key, bytes) in files {
+        sources.insert(key, writer.put_blob(&bytes)?);
+    }
+    let sha = writer.put_blob(text.as_bytes())?;
+    let record = writer.add_set(SetRecord {
+        format: STORE_FORMAT,
+        id: 0,
+        created_by: "boot".into(),
+        created_at: unix_now(),
+        platform: None,
+        config_name,
+        config_sha256: sha.clone(),
+        base_dir,
+        sources,
+        changes: vec![Platform::Control.name().into(), Platform::Network.name().into()],
+        graph: stage::wiring_graph(&config),
+    })?;
+    writer.mark_active(record.id)?;
+    writer.set_boot_config(&sha)?;
+    let detail = format!("imported {} and activated it", path.display());
+    writer.record("boot", "boot", &format!("set {}", record.id), Outcome::Ok(&detail));
+    tracing::info!("imported {} as set {} and activated it", path.display(), record.id);
+    Ok(record)
+}
+
+/// The simulated robot of the active set, for the portal's map.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SimView {
+    pub component: String,
+    pub world: crate::sim::world::World,
+    pub rays: Option<f64>,
+    pub fov: Option<f64>,
+    pub max_range: Option<f64>,
+    pub radius: Option<f64>,
+}
+
+impl Deployer {
+    /// The world and body of the active set's simulated robot.
+    pub fn sim_view(&self) -> Result<SimView, DeployError> {
+        let (set, config) = self.active()?;
+        let sim = config
+            .components
+            .iter()
+            .find(|c| c.source == ComponentSource::Builtin("sim".into()))
+            .ok_or_else(|| DeployError::NotFound("the active set has no simulated robot".into()))?;
+        let param = |key: &str| sim.params.iter().find(|p| p.name == key).map(|p| p.value.trim().to_string());
+        let path = set.base_dir.join(param("world").unwrap_or_default());
+        let world =
+            crate::sim::world::load(&path).map_err(|e| DeployError::Host(format!("cannot read the world: {e}")))?;
+        let number = |key: &str| param(key).and_then(|v| v.parse::<f64>().ok());
+        Ok(SimView {
+            component: sim.name.clone(),
+            world,
+            rays: number("rays"),
+            fov: number("fov"),
+            max_range: number("max-range"),
+            radius: number("radius"),
+        })
+    }
+}

@@ -1,0 +1,277 @@
+//! Staging: an uploaded robot file, validated exactly like `subsume check`
+//! with its WASM sources resolved to stored components, becomes a new set.
+//! Also what validating a stored set, comparing two robots platform by
+//! platform, and the wiring view need.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use super::{DeployError, Deployer, Permission, authorise};
+use crate::assemble::Loader;
+use crate::config::{
+    ComponentConfig, ComponentSource, Diagnostic, Diagnostics, ParamOverride, Platform, ResolveError, Resolver,
+    RobotConfig, limits,
+};
+use crate::contract::{Description, clip};
+use crate::store::users::User;
+use crate::store::{STORE_FORMAT, SetRecord, Store, WiringComponent, WiringConnection, WiringGraph, unix_now};
+
+/// Longest robot-file name kept (it names diagnostics).
+pub const MAX_FILE_NAME_LEN: usize = 64;
+
+/// A robot file that validated, waiting to be stored.
+pub(super) struct Staged {
+    record: SetRecord,
+    bytes: Vec<u8>,
+}
+
+impl Deployer {
+    /// Validates an uploaded robot file for `platform` against the stored
+    /// components (and the active set's) and stages it as a new set.
+    pub fn stage(
+        &self,
+        user: &User,
+        platform: Platform,
+        file_name: &str,
+        bytes: &[u8],
+    ) -> Result<SetRecord, DeployError> {
+        let target = format!("{} for platform {}", clip(file_name), platform.name());
+        let prepared = authorise(user, Permission::Change(platform))
+            .and_then(|()| self.prepare_stage(user, platform, file_name, bytes));
+        self.commit(
+            &user.name,
+            "upload-config",
+            &target,
+            prepared,
+            |writer, staged: Staged| {
+                let config_sha256 = writer.put_blob(&staged.bytes)?;
+                Ok(writer.add_set(SetRecord { config_sha256, ..staged.record })?)
+            },
+            |set| format!("staged as set {}", set.id),
+        )
+    }
+
+    fn prepare_stage(
+        &self,
+        user: &User,
+        platform: Platform,
+        file_name: &str,
+        bytes: &[u8],
+    ) -> Result<Staged, DeployError> {
+        check_file_name(file_name)?;
+        if bytes.len() as u64 > limits::MAX_CONFIG_BYTES {
+            return Err(DeployError::BadRequest(format!(
+                "{file_name} is {} bytes; at most {} are allowed",
+                bytes.len(),
+                limits::MAX_CONFIG_BYTES
+            )));
+        }
+        let text = std::str::from_utf8(bytes)
+            .map_err(|e| DeployError::BadRequest(format!("{file_name} is not utf-8: {e}")))?;
+        let (active_set, active_config) = self.active()?;
+        let components = self.store.components()?;
+        let lookup = |source: &str| -> Option<String> {
+            let name = source.strip_suffix(".wasm").unwrap_or(source);
+            components.get(name).map(|c| c.sha256.clone()).or_else(|| active_set.sources.get(source).cloned())
+        };
+        let record = SetRecord {
+            format: STORE_FORMAT,
+            id: 0,
+            created_by: user.name.clone(),
+            created_at: unix_now(),
+            platform: Some(platform.name().into()),
+            config_name: file_name.into(),
+            config_sha256: String::new(),
+            base_dir: active_set.base_dir.clone(),
+            sources: BTreeMap::new(),
+            changes: Vec::new(),
+            graph: WiringGraph::default(),
+        };
+        let mut loader = Loader::confined(&self.sandbox);
+        let (config, sources) = validate_text(&self.store, &record, text, &lookup, &mut loader, &self.overrides)?;
+        let changes = platform_changes(&active_config, &config);
+        if let Some(denied) = changes.iter().find(|p| !user.may_change(**p)) {
+            return Err(DeployError::Forbidden(format!(
+                "{file_name} changes platform {}, which {} may not change",
+                denied.name(),
+                user.name
+            )));
+        }
+        let record = SetRecord {
+            sources,
+            changes: changes.iter().map(|p| p.name().to_string()).collect(),
+            graph: wiring_graph(&config),
+            ..record
+        };
+        Ok(Staged { record, bytes: bytes.to_vec() })
+    }
+}
+
+/// Refuses robot-file names that are not a plain file name.
+fn check_file_name(name: &str) -> Result<(), DeployError> {
+    let plain = !name.is_empty()
+        && name.len() <= MAX_FILE_NAME_LEN
+        && !name.starts_with('.')
+        && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"._-".contains(&b));
+    if plain {
+        Ok(())
+    } else {
+        Err(DeployError::BadRequest(format!(
+            "file name '{}' is not a plain name of at most {MAX_FILE_NAME_LEN} letters, digits, '.', '_' or '-'",
+            clip(name)
+        )))
+    }
+}
+
+/// Validates stored set `set`; its WASM sources become blob paths.
+pub(super) fn validate_set(
+    store: &Store,
+    set: &SetRecord,
+    loader: &mut Loader<'_>,
+    overrides: &[ParamOverride],
+) -> Result<RobotConfig, DeployError> {
+    let bytes = store.blob(&set.config_sha256)?;
+    let text =
+        String::from_utf8(bytes).map_err(|e| DeployError::Host(format!("stored robot file is not utf-8: {e}")))?;
+    let lookup = |source: &str| set.sources.get(source).cloned();
+    validate_text(store, set, &text, &lookup, loader, overrides).map(|(config, _)| config)
+}
+
+/// Validates robot-file `text` for `set`'s folder, resolving WASM sources
+/// through `lookup`; returns the robot and the sources it used.
+fn validate_text(
+    store: &Store,
+    set: &SetRecord,
+    text: &str,
+    lookup: &dyn Fn(&str) -> Option<String>,
+    loader: &mut Loader<'_>,
+    overrides: &[ParamOverride],
+) -> Result<(RobotConfig, BTreeMap<String, String>), DeployError> {
+    let path = set.base_dir.join(&set.config_name);
+    let mut resolver = SetResolver { store, loader, base_dir: &set.base_dir, lookup, used: BTreeMap::new() };
+    let result = crate::config::parse_and_validate_for_run(&path, text, &mut resolver, overrides);
+    let used = resolver.used;
+    let mut config = result.map_err(|Diagnostics(list)| {
+        DeployError::Invalid(Diagnostics(
+            list.into_iter()
+                .map(|d| Diagnostic {
+                    path: if d.path == path { PathBuf::from(&set.config_name) } else { d.path },
+                    ..d
+                })
+                .collect(),
+        ))
+    })?;
+    for component in &mut config.components {
+        if let ComponentSource::Wasm(file) = &component.source
+            && let Some(sha) = used.get(&relative_source(&set.base_dir, file))
+        {
+            component.source = ComponentSource::Wasm(store.blob_path(sha));
+        }
+    }
+    Ok((config, used))
+}
+
+fn relative_source(base_dir: &Path, file: &Path) -> String {
+    file.strip_prefix(base_dir).unwrap_or(file).to_string_lossy().into_owned()
+}
+
+/// Resolves a set's WASM sources to stored blobs; built-ins go to the
+/// loader (confined to the robot's folder when staging uploads).
+struct SetResolver<'r, 'l> {
+    store: &'r Store,
+    loader: &'r mut Loader<'l>,
+    base_dir: &'r Path,
+    lookup: &'r dyn Fn(&str) -> Option<String>,
+    used: BTreeMap<String, String>,
+}
+
+impl Resolver for SetResolver<'_, '_> {
+    fn describe(
+        &mut self,
+        source: &ComponentSource,
+        params: &BTreeMap<String, String>,
+        base_dir: &Path,
+    ) -> Result<Description, ResolveError> {
+        match source {
+            ComponentSource::Builtin(_) => self.loader.describe(source, params, base_dir),
+            ComponentSource::Wasm(file) => {
+                let key = relative_source(self.base_dir, file);
+                let sha = (self.lookup)(&key).ok_or_else(|| {
+                    ResolveError::Source(format!(
+                        "unknown component '{}': upload it first (GET /api/v1/components lists the stored ones)",
+                        clip(&key)
+                    ))
+                })?;
+                let description = self
+                    .loader
+                    .load_wasm(&self.store.blob_path(&sha))
+                    .map_err(|e| ResolveError::Source(e.to_string()))?
+                    .description
+                    .clone();
+                self.used.insert(key, sha);
+                Ok(description)
+            }
+        }
+    }
+}
+
+/// The platforms whose components or connections differ between two robots.
+pub fn platform_changes(old: &RobotConfig, new: &RobotConfig) -> Vec<Platform> {
+    let fingerprint = |robot: &RobotConfig, platform: Platform| -> Vec<String> {
+        let mut lines: Vec<String> =
+            robot.components.iter().filter(|c| c.platform == platform).map(crate::assemble::instance_key).collect();
+        let name = |i: usize| robot.components.get(i).map_or("?", |c| c.name.as_str());
+        lines.extend(robot.connections.iter().filter(|c| c.platform == platform).map(|c| {
+            format!(
+                "{}.{} -> {}.{} {:?}",
+                name(c.from.component),
+                c.from.port,
+                name(c.to.component),
+                c.to.port,
+                c.policy
+            )
+        }));
+        lines.sort();
+        lines
+    };
+    [Platform::Control, Platform::Network]
+        .into_iter()
+        .filter(|p| fingerprint(old, *p) != fingerprint(new, *p))
+        .collect()
+}
+
+/// Components (with their ports) and connections, for the wiring view.
+pub fn wiring_graph(config: &RobotConfig) -> WiringGraph {
+    let names = |ports: &[crate::contract::PortSpec]| ports.iter().map(|p| p.name.clone()).collect::<Vec<_>>();
+    let components = config
+        .components
+        .iter()
+        .map(|c: &ComponentConfig| WiringComponent {
+            name: c.name.clone(),
+            platform: c.platform.name().into(),
+            source: match &c.source {
+                ComponentSource::Builtin(kind) => format!("builtin:{kind}"),
+                ComponentSource::Wasm(_) => format!("wasm:{}", c.description.name),
+            },
+            priority: c.priority,
+            rate_hz: c.rate_hz,
+            inputs: names(&c.description.inputs),
+            outputs: names(&c.description.outputs),
+        })
+        .collect();
+    let port = |index: usize, port: u32, output: bool| -> String {
+        let Some(c) = config.components.get(index) else { return "?".into() };
+        let ports = if output { &c.description.outputs } else { &c.description.inputs };
+        format!("{}.{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
+    };
+    let connections = config
+        .connections
+        .iter()
+        .map(|c| WiringConnection {
+            from: port(c.from.component, c.from.port, true),
+            to: port(c.to.component, c.to.port, false),
+            platform: c.platform.name().into(),
+        })
+        .collect();
+    WiringGraph { robot: config.name.clone(), components, connections }
+}

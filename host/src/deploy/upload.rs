@@ -1,0 +1,98 @@
+//! Uploading a component: checked (preamble, then compiled and linked
+//! against the WIT worlds, then described) before anything is stored, off
+//! the control loop and one compile at a time.
+
+use super::{DeployError, Deployer, Permission, Platform, authorise};
+use crate::contract::{DescriptionDoc, clip, is_valid_name};
+use crate::sandbox::{MAX_COMPONENT_BYTES, preamble};
+use crate::store::users::User;
+use crate::store::{ComponentRecord, World, unix_now};
+
+/// Largest component upload: Python and JavaScript components are ~20 MB.
+pub const MAX_UPLOAD_BYTES: usize = MAX_COMPONENT_BYTES as usize;
+/// Components compiled at once: compiling is CPU-bound and the machine has
+/// few cores to share with the control loop.
+pub const MAX_CONCURRENT_COMPILES: usize = 1;
+
+impl Deployer {
+    /// Checks, compiles and stores `bytes` as component `name` for
+    /// `platform`.
+    pub fn upload_component(
+        &self,
+        user: &User,
+        platform: Platform,
+        name: &str,
+        bytes: &[u8],
+    ) -> Result<ComponentRecord, DeployError> {
+        let target = format!("component '{}' for platform {}", clip(name), platform.name());
+        let prepared = authorise(user, Permission::Change(platform))
+            .and_then(|()| self.prepare_upload(user, platform, name, bytes));
+        self.commit(
+            &user.name,
+            "upload-component",
+            &target,
+            prepared,
+            |writer, record: ComponentRecord| {
+                let stored = writer.put_blob(bytes)?;
+                let record = ComponentRecord { sha256: stored, ..record };
+                writer.put_component(record.clone())?;
+                tracing::info!(
+                    "component '{}' uploaded by {} ({} bytes)",
+                    record.name,
+                    record.uploaded_by,
+                    record.size
+                );
+                Ok(record)
+            },
+            |record| format!("sha256 {}", record.sha256),
+        )
+    }
+
+    fn prepare_upload(
+        &self,
+        user: &User,
+        platform: Platform,
+        name: &str,
+        bytes: &[u8],
+    ) -> Result<ComponentRecord, DeployError> {
+        if !is_valid_name(name) {
+            return Err(DeployError::BadRequest(format!(
+                "component name '{}' is not [a-z][a-z0-9_-]* of at most 64 characters",
+                clip(name)
+            )));
+        }
+        if bytes.is_empty() {
+            return Err(DeployError::BadRequest("the upload is empty: send the .wasm file as the body".into()));
+        }
+        if bytes.len() > MAX_UPLOAD_BYTES {
+            return Err(DeployError::BadRequest(format!(
+                "the upload is {} bytes; at most {MAX_UPLOAD_BYTES} are allowed",
+                bytes.len()
+            )));
+        }
+        preamble::check_component_preamble(bytes).map_err(|why| DeployError::NotAComponent(why.to_string()))?;
+        let _compiling = self.compiles.lock().map_err(|_| DeployError::Host("the compile lock is unusable".into()))?;
+        let (world, description) = match self.sandbox.load(bytes) {
+            Ok(artifact) => (World::Component, Some(DescriptionDoc::new(&artifact.description, &artifact.sha256))),
+            Err(as_component) => match self.sandbox.load_translator(bytes) {
+                Ok(_) => (World::Translator, None),
+                Err(as_translator) => {
+                    return Err(DeployError::WrongWorld(format!(
+                        "'{name}' fits neither world subsume:robot/component ({as_component}) \
+                         nor subsume:robot/translator ({as_translator})"
+                    )));
+                }
+            },
+        };
+        Ok(ComponentRecord {
+            name: name.to_string(),
+            sha256: String::new(),
+            size: bytes.len() as u64,
+            world,
+            platform: platform.name().into(),
+            uploaded_by: user.name.clone(),
+            uploaded_at: unix_now(),
+            description,
+        })
+    }
+}

@@ -1,0 +1,261 @@
+//! The API's handlers. Each one translates HTTP into a use case of
+//! `deploy` (which authorises, audits and locks) or a read-only query of
+//! the store, on a blocking thread, and the result back into HTTP.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::{Path, State, WebSocketUpgrade};
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde_json::{Value as Json_, json};
+
+use super::PortalState;
+use super::auth::{Authed, ClientAddress};
+use super::error::ApiError;
+use crate::contract::clip;
+use crate::deploy::{Permission, Platform, authorise};
+use crate::store::{ComponentRecord, MAX_AUDIT_READ, StoreState};
+use crate::teleop::TeleopServers;
+
+fn platform_of(text: &str) -> Result<Platform, ApiError> {
+    Platform::parse(text).map_err(|e| ApiError::new(StatusCode::NOT_FOUND, e.to_string()))
+}
+
+async fn blocking<T: Send + 'static>(
+    work: impl FnOnce() -> Result<T, ApiError> + Send + 'static,
+) -> Result<T, ApiError> {
+    tokio::task::spawn_blocking(work).await.map_err(|e| ApiError::internal(format!("the worker failed: {e}")))?
+}
+
+pub(super) async fn list_components(
+    State(state): State<Arc<PortalState>>,
+    Authed(_): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let store = state.deployer.store.clone();
+    let components = blocking(move || Ok(store.components()?)).await?;
+    Ok(Json(json!({ "components": components.into_values().collect::<Vec<_>>() })))
+}
+
+pub(super) async fn get_component(
+    State(state): State<Arc<PortalState>>,
+    Authed(_): Authed,
+    Path(name): Path<String>,
+) -> Result<Json<ComponentRecord>, ApiError> {
+    let store = state.deployer.store.clone();
+    let components = blocking(move || Ok(store.components()?)).await?;
+    components
+        .get(&name)
+        .cloned()
+        .map(Json)
+        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no component '{}' in the store", clip(&name))))
+}
+
+pub(super) async fn upload_component(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path((platform, name)): Path<(String, String)>,
+    body: Bytes,
+) -> Result<(StatusCode, Json<ComponentRecord>), ApiError> {
+    let platform = platform_of(&platform)?;
+    let deployer = state.deployer.clone();
+    let record = blocking(move || Ok(deployer.upload_component(&user, platform, &name, &body)?)).await?;
+    Ok((StatusCode::CREATED, Json(record)))
+}
+
+pub(super) async fn upload_config(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path((platform, file)): Path<(String, String)>,
+    body: Bytes,
+) -> Result<(StatusCode, Json<Json_>), ApiError> {
+    let platform = platform_of(&platform)?;
+    let deployer = state.deployer.clone();
+    let set = blocking(move || Ok(deployer.stage(&user, platform, &file, &body)?)).await?;
+    Ok((StatusCode::CREATED, Json(json!({ "set": set }))))
+}
+
+fn set_status(id: u64, state: &StoreState) -> &'static str {
+    if state.active == Some(id) {
+        "active"
+    } else if state.history.last() == Some(&id) {
+        "previous"
+    } else if state.history.contains(&id) {
+        "was active"
+    } else {
+        "staged"
+    }
+}
+
+pub(super) async fn list_sets(
+    State(state): State<Arc<PortalState>>,
+    Authed(_): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let store = state.deployer.store.clone();
+    blocking(move || {
+        let st = store.state()?;
+        let sets: Vec<Json_> = store
+            .sets()?
+            .into_iter()
+            .rev()
+            .map(|s| {
+                let status = set_status(s.id, &st);
+                let mut value = serde_json::to_value(s).unwrap_or_default();
+                if let Some(fields) = value.as_object_mut() {
+                    // The wiring is for one set's page (GET /sets/{id}).
+                    fields.remove("graph");
+                    fields.insert("status".into(), status.into());
+                }
+                value
+            })
+            .collect();
+        Ok(Json(json!({ "active": st.active, "previous": st.history.last(), "sets": sets })))
+    })
+    .await
+}
+
+pub(super) async fn get_set(
+    State(state): State<Arc<PortalState>>,
+    Authed(_): Authed,
+    Path(id): Path<u64>,
+) -> Result<Json<Json_>, ApiError> {
+    let store = state.deployer.store.clone();
+    blocking(move || {
+        let set = store.set(id)?;
+        let text = store.blob(&set.config_sha256)?;
+        let status = set_status(id, &store.state()?);
+        Ok(Json(json!({
+            "graph": set.graph,
+            "set": set,
+            "status": status,
+            "config": String::from_utf8_lossy(&text),
+        })))
+    })
+    .await
+}
+
+pub(super) async fn activate(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(id): Path<u64>,
+) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let set = blocking(move || Ok(deployer.activate(&user, id)?)).await?;
+    Ok(Json(json!({ "active": set })))
+}
+
+pub(super) async fn rollback(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let set = blocking(move || Ok(deployer.rollback(&user)?)).await?;
+    Ok(Json(json!({ "active": set })))
+}
+
+pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+    let mut live = state.deployer.live().subscribe();
+    // Being subscribed makes the control loop publish; wait briefly for a
+    // fresh status when none was published yet.
+    let current = live.borrow_and_update().clone();
+    let current = if current.is_none() {
+        let _ = tokio::time::timeout(Duration::from_secs(1), live.changed()).await;
+        live.borrow().clone()
+    } else {
+        current
+    };
+    Json(serde_json::to_value(&*current).unwrap_or_default())
+}
+
+/// Server-sent events: `status` (the live status, 5 per second) and `log`
+/// (each new log line; the recent ones first).
+pub(super) async fn events(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Response {
+    use axum::response::sse::{Event, KeepAlive, Sse};
+    use futures_util::StreamExt as _;
+    let live = state.deployer.live().subscribe();
+    let logs = state.logs.subscribe();
+    let backlog: Vec<Result<Event, std::convert::Infallible>> = state
+        .logs
+        .recent()
+        .into_iter()
+        .filter_map(|line| Event::default().event("log").json_data(line).ok())
+        .map(Ok)
+        .collect();
+    let statuses = futures_util::stream::unfold(live, |mut live| async move {
+        live.changed().await.ok()?;
+        let value = live.borrow_and_update().clone();
+        let event = Event::default().event("status").json_data(&*value).unwrap_or_default();
+        Some((Ok(event), live))
+    });
+    let lines = futures_util::stream::unfold(logs, |mut logs| async move {
+        loop {
+            match logs.recv().await {
+                Ok(line) => {
+                    let event = Event::default().event("log").json_data(line).unwrap_or_default();
+                    return Some((Ok(event), logs));
+                }
+                Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
+                Err(tokio::sync::broadcast::error::RecvError::Closed) => return None,
+            }
+        }
+    });
+    let stream = futures_util::stream::iter(backlog).chain(futures_util::stream::select(statuses, lines));
+    Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
+}
+
+pub(super) async fn world(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let view = blocking(move || Ok(deployer.sim_view()?)).await?;
+    Ok(Json(serde_json::to_value(view).unwrap_or_default()))
+}
+
+pub(super) async fn recent_logs(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+    Json(json!({ "lines": state.logs.recent() }))
+}
+
+pub(super) async fn audit_log(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    authorise(&user, Permission::ReadAudit)?;
+    let store = state.deployer.store.clone();
+    let entries = blocking(move || Ok(store.audit_entries(MAX_AUDIT_READ)?)).await?;
+    Ok(Json(json!({ "entries": entries })))
+}
+
+fn teleop_servers(state: &PortalState) -> Result<Arc<crate::teleop::ServerContext>, ApiError> {
+    state
+        .deployer
+        .services
+        .get::<TeleopServers>()
+        .and_then(|servers| servers.current())
+        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, "the active set has no network platform (builtin:teleop)"))
+}
+
+pub(super) async fn teleop_ticket(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    authorise(&user, Permission::Drive)?;
+    teleop_servers(&state)?;
+    let ticket = state.directory.tickets.issue(&user.name).map_err(|e| ApiError::internal(e.to_string()))?;
+    Ok(Json(json!({ "name": user.name, "ticket": ticket, "websocket": "/api/v1/teleop" })))
+}
+
+/// The network platform's WebSocket protocol; the session authenticates
+/// inside it (`auth` with a ticket or a password), as on its own listener.
+pub(super) async fn teleop_socket(
+    State(state): State<Arc<PortalState>>,
+    ClientAddress(address): ClientAddress,
+    ws: WebSocketUpgrade,
+) -> Response {
+    match teleop_servers(&state) {
+        Ok(ctx) => {
+            crate::teleop::upgrade_websocket(ws, ctx, address.unwrap_or_else(|| SocketAddr::from(([0, 0, 0, 0], 0))))
+        }
+        Err(e) => e.into_response(),
+    }
+}

@@ -1,0 +1,85 @@
+//! The on-disk cache of compiled components. Invariant: only files this
+//! host wrote to its own private folder, named by the sha256 of their source
+//! and the engine's compatibility hash, are ever deserialized; bytes from
+//! outside are only compiled.
+
+use std::hash::{Hash, Hasher};
+use std::path::{Path, PathBuf};
+
+use wasmtime::Engine;
+
+use super::SandboxError;
+use super::guest::error_text;
+use crate::fsutil::write_atomically;
+
+fn create_private_dir(dir: &Path) -> std::io::Result<()> {
+    use std::os::unix::fs::DirBuilderExt;
+    std::fs::DirBuilder::new().recursive(true).mode(0o700).create(dir)
+}
+
+/// Where compiled components are kept, and the engine they were compiled by.
+#[derive(Debug)]
+pub(super) struct CompileCache {
+    dir: Option<PathBuf>,
+    engine_key: String,
+}
+
+impl CompileCache {
+    /// A cache in `dir` (created private when missing; no cache when it
+    /// cannot be) for artifacts of `engine`.
+    pub(super) fn new(engine: &Engine, dir: Option<PathBuf>) -> CompileCache {
+        let mut hasher = std::collections::hash_map::DefaultHasher::new();
+        engine.precompile_compatibility_hash().hash(&mut hasher);
+        let engine_key = format!("{:016x}", hasher.finish());
+        let dir = dir.filter(|dir| match create_private_dir(dir) {
+            Ok(()) => true,
+            Err(err) => {
+                tracing::warn!("cannot use cache directory {}: {err}; compiling without a cache", dir.display());
+                false
+            }
+        });
+        CompileCache { dir, engine_key }
+    }
+
+    pub(super) fn dir(&self) -> Option<&Path> {
+        self.dir.as_deref()
+    }
+
+    /// The compiled form of `bytes` (whose sha256 is `sha256`): from the
+    /// cache when this host compiled it before, else compiled now (and
+    /// cached).
+    pub(super) fn compile(
+        &self,
+        engine: &Engine,
+        sha256: &str,
+        bytes: &[u8],
+    ) -> Result<wasmtime::component::Component, SandboxError> {
+        let cached = self.dir.as_ref().map(|dir| dir.join(format!("{sha256}-{}.cwasm", self.engine_key)));
+        if let Some(path) = cached.as_ref().filter(|p| p.is_file()) {
+            // SAFETY: the file is in this host's private cache directory and
+            // was written by `compile_cached` below from `Component::serialize`
+            // of a component whose source hashes to `sha256`, by an engine
+            // with the same compatibility hash. User bytes never land here
+            // without being compiled first.
+            match unsafe { wasmtime::component::Component::deserialize_file(engine, path) } {
+                Ok(component) => return Ok(component),
+                Err(err) => {
+                    tracing::warn!("ignoring unusable cache entry {}: {err}", path.display())
+                }
+            }
+        }
+        let component =
+            wasmtime::component::Component::new(engine, bytes).map_err(|e| SandboxError::Compile(error_text(&e)))?;
+        if let Some(path) = cached {
+            match component.serialize() {
+                Ok(serialized) => {
+                    if let Err(err) = write_atomically(&path, &serialized) {
+                        tracing::warn!("cannot write cache entry {}: {err}", path.display());
+                    }
+                }
+                Err(err) => tracing::warn!("cannot serialize compiled component: {err}"),
+            }
+        }
+        Ok(component)
+    }
+}

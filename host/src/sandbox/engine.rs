@@ -1,0 +1,305 @@
+//! The one wasmtime engine of the process, its linker (WASI p2 without
+//! preopens, sockets, environment or arguments; `subsume:robot/host`), the
+//! epoch ticker, and loading components: compile (or take from the cache),
+//! link against a world, describe.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::thread::JoinHandle;
+use std::time::Duration;
+
+use sha2::{Digest, Sha256};
+use wasmtime::component::{HasSelf, Linker};
+use wasmtime::{Config, Engine, InstanceAllocationStrategy, PoolingAllocationConfig, Store};
+
+use super::SandboxError;
+use super::cache::CompileCache;
+use super::component::{WasmComponent, instantiate_component};
+use super::guest::{
+    GuestLimits, GuestState, MAX_GUEST_MESSAGE_BYTES, budget_ticks, call_error, error_text, new_store, truncate,
+};
+use super::translator::WasmTranslator;
+use crate::config::limits::MAX_COMPONENTS;
+use crate::contract::bindings;
+use crate::contract::translator_bindings;
+use crate::contract::{Description, Param, ValueKind, check_description};
+use crate::runtime::Component;
+
+/// ticker thread's wake-up latency).
+pub const EPOCH_TICK: Duration = Duration::from_millis(1);
+/// Budget of `describe`: a component that loops there must not hang loading.
+pub const DESCRIBE_BUDGET: Duration = Duration::from_millis(500);
+/// starting must not hang startup or activation.
+pub const INIT_BUDGET: Duration = Duration::from_secs(1);
+/// Memory given to the throwaway instance that answers `describe`.
+pub const DESCRIBE_MEMORY_BYTES: u64 = 64 << 20;
+/// the host.
+pub const MAX_WASM_STACK_BYTES: usize = 512 << 10;
+/// create about 38): bounds what one component takes from the pool.
+pub const MAX_INSTANCES_PER_STORE: usize = 64;
+/// Tables and memories one component may create.
+pub const MAX_TABLES_PER_STORE: usize = 64;
+pub const MAX_MEMORIES_PER_STORE: usize = 64;
+/// limits from the robot file are at most this.
+pub const POOL_MAX_MEMORY_BYTES: u64 = 1 << 30;
+/// [`MAX_COMPONENTS`] components plus throwaway `describe` instances.
+pub const POOL_TOTAL_CORE_INSTANCES: u32 = 1000;
+
+/// A compiled, linked component and what it says about itself.
+pub struct WasmArtifact {
+    /// Hex sha256 of the `.wasm` bytes.
+    pub sha256: String,
+    pub description: Description,
+    pub(super) pre: bindings::ComponentPre<GuestState>,
+}
+
+impl std::fmt::Debug for WasmArtifact {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("WasmArtifact").field("sha256", &self.sha256).field("name", &self.description.name).finish()
+    }
+}
+
+/// A compiled, linked translator component.
+pub struct TranslatorArtifact {
+    pub sha256: String,
+    pub(super) pre: translator_bindings::TranslatorPre<GuestState>,
+}
+
+impl std::fmt::Debug for TranslatorArtifact {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("TranslatorArtifact").field("sha256", &self.sha256).finish()
+    }
+}
+
+/// The per-process engine, linker, epoch ticker and compile cache.
+pub struct Sandbox {
+    engine: Engine,
+    linker: Linker<GuestState>,
+    cache: CompileCache,
+    pooling: bool,
+    _ticker: EpochTicker,
+}
+
+impl std::fmt::Debug for Sandbox {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Sandbox").field("cache_dir", &self.cache.dir()).field("pooling", &self.pooling).finish()
+    }
+}
+
+impl Sandbox {
+    /// Starts the engine and its epoch ticker. Compiled components are cached
+    /// in `cache_dir` when given.
+    pub fn new(cache_dir: Option<PathBuf>) -> Result<Sandbox, SandboxError> {
+        Sandbox::with_epochs(cache_dir, true)
+    }
+
+    /// A sandbox whose engine has no epoch interruption: calls cannot be
+    /// stopped, so budgets are not enforced. Only for measuring what the
+    /// epoch checks cost (`benches/hop.rs`); never for running components.
+    #[doc(hidden)]
+    pub fn without_budgets_for_benchmarks(cache_dir: Option<PathBuf>) -> Result<Sandbox, SandboxError> {
+        Sandbox::with_epochs(cache_dir, false)
+    }
+
+    fn with_epochs(cache_dir: Option<PathBuf>, epochs: bool) -> Result<Sandbox, SandboxError> {
+        let (engine, pooling) = match Engine::new(&engine_config(true, epochs)) {
+            Ok(engine) => (engine, true),
+            Err(err) => {
+                tracing::warn!("pooling allocator unavailable ({err}); instances are allocated on demand");
+                let engine =
+                    Engine::new(&engine_config(false, epochs)).map_err(|e| SandboxError::Engine(e.to_string()))?;
+                (engine, false)
+            }
+        };
+        let mut linker = Linker::new(&engine);
+        wasmtime_wasi::p2::add_to_linker_sync(&mut linker).map_err(|e| SandboxError::Engine(e.to_string()))?;
+        bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
+            .map_err(|e| SandboxError::Engine(e.to_string()))?;
+        let cache = CompileCache::new(&engine, cache_dir);
+        let ticker = EpochTicker::start(engine.clone());
+        Ok(Sandbox { engine, linker, cache, pooling, _ticker: ticker })
+    }
+
+    /// Whether instances come from the pooling allocator.
+    pub fn is_pooling(&self) -> bool {
+        self.pooling
+    }
+
+    /// Checks that `bytes` are a component of the `component` world, compiles
+    /// them (or loads this host's cached compilation) and asks the component
+    /// to describe itself.
+    pub fn load(&self, bytes: &[u8]) -> Result<Arc<WasmArtifact>, SandboxError> {
+        check_component_header(bytes)?;
+        let sha256 = hex::encode(Sha256::digest(bytes));
+        let component = self.cache.compile(&self.engine, &sha256, bytes)?;
+        let instance_pre = self.linker.instantiate_pre(&component).map_err(|e| SandboxError::World(error_text(&e)))?;
+        let pre = bindings::ComponentPre::new(instance_pre).map_err(|e| SandboxError::World(error_text(&e)))?;
+        let description = self.describe(&pre)?;
+        check_description(&description).map_err(SandboxError::BadDescription)?;
+        Ok(Arc::new(WasmArtifact { sha256, description, pre }))
+    }
+
+    /// Checks that `bytes` are a component of the `translator` world and
+    /// compiles them (or loads this host's cached compilation).
+    pub fn load_translator(&self, bytes: &[u8]) -> Result<Arc<TranslatorArtifact>, SandboxError> {
+        check_component_header(bytes)?;
+        let sha256 = hex::encode(Sha256::digest(bytes));
+        let component = self.cache.compile(&self.engine, &sha256, bytes)?;
+        let instance_pre = self.linker.instantiate_pre(&component).map_err(|e| SandboxError::World(error_text(&e)))?;
+        let pre = translator_bindings::TranslatorPre::new(instance_pre)
+            .map_err(|e| SandboxError::TranslatorWorld(error_text(&e)))?;
+        Ok(Arc::new(TranslatorArtifact { sha256, pre }))
+    }
+
+    /// A running translator named `name`, initialised with `params`.
+    pub fn instantiate_translator(
+        &self,
+        artifact: &TranslatorArtifact,
+        name: &str,
+        limits: &GuestLimits,
+        params: &[Param],
+    ) -> Result<WasmTranslator, SandboxError> {
+        let budget = limits.budget;
+        let mut store = self.new_store(format!("{name}/translator").into(), limits, Arc::from([]));
+        store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
+        let instance =
+            artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
+        match instance.call_init(&mut store, params) {
+            Ok(Ok(())) => {}
+            Ok(Err(message)) => {
+                return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
+            }
+            Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
+        }
+        Ok(WasmTranslator { store, instance, budget, budget_ticks: budget_ticks(budget), malformed: 0, broken: None })
+    }
+
+    fn describe(&self, pre: &bindings::ComponentPre<GuestState>) -> Result<Description, SandboxError> {
+        let limits =
+            GuestLimits { memory_bytes: DESCRIBE_MEMORY_BYTES, budget: DESCRIBE_BUDGET, ..GuestLimits::default() };
+        let mut store = self.new_store("describe".into(), &limits, Arc::from([]));
+        store.set_epoch_deadline(budget_ticks(DESCRIBE_BUDGET));
+        let call = "instantiation for describe()";
+        let instance = pre.instantiate(&mut store).map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
+        instance.call_describe(&mut store).map_err(|e| call_error("describe()", DESCRIBE_BUDGET, &e))
+    }
+
+    /// A running instance of `artifact` named `name`, initialised with
+    /// `params`, with its own limits.
+    pub fn instantiate(
+        &self,
+        artifact: &WasmArtifact,
+        name: &str,
+        limits: &GuestLimits,
+        params: &[Param],
+    ) -> Result<WasmComponent, SandboxError> {
+        instantiate_component(&self.engine, artifact, name, limits, params)
+    }
+
+    /// Builds fresh instances of `artifact` (its cached, pre-linked form)
+    /// for restarts, after this loader is gone.
+    pub fn restarter(
+        &self,
+        artifact: Arc<WasmArtifact>,
+        name: &str,
+        limits: GuestLimits,
+        params: Vec<Param>,
+    ) -> crate::runtime::Restarter {
+        let engine = self.engine.clone();
+        let name = name.to_string();
+        Box::new(move || {
+            instantiate_component(&engine, &artifact, &name, &limits, &params)
+                .map(|c| Box::new(c) as Box<dyn Component>)
+                .map_err(|e| crate::runtime::component::RestartError(e.to_string()))
+        })
+    }
+
+    fn new_store(&self, component: Arc<str>, guest: &GuestLimits, outputs: Arc<[ValueKind]>) -> Store<GuestState> {
+        new_store(&self.engine, component, guest, outputs)
+    }
+}
+
+/// Checks the preamble of `bytes`: a component, not a core module, a
+/// precompiled artifact or anything else (`preamble`).
+pub fn check_component_header(bytes: &[u8]) -> Result<(), SandboxError> {
+    super::preamble::check_component_preamble(bytes).map_err(|why| SandboxError::NotAComponent(why.to_string()))
+}
+
+fn engine_config(pooling: bool, epochs: bool) -> Config {
+    let mut config = Config::new();
+    // Measured: with concurrency support on, an empty call costs ~500 ns
+    // instead of ~150 ns; the host calls guests synchronously.
+    config.concurrency_support(false);
+    config.wasm_component_model(true);
+    config.epoch_interruption(epochs);
+    config.max_wasm_stack(MAX_WASM_STACK_BYTES);
+    config.parallel_compilation(true);
+    if pooling {
+        let mut pool = PoolingAllocationConfig::new();
+        pool.total_component_instances(2 * MAX_COMPONENTS as u32 + 16)
+            .total_core_instances(POOL_TOTAL_CORE_INSTANCES)
+            .total_memories(POOL_TOTAL_CORE_INSTANCES)
+            .total_tables(POOL_TOTAL_CORE_INSTANCES)
+            .max_core_instances_per_component(MAX_INSTANCES_PER_STORE as u32)
+            .max_memories_per_component(MAX_MEMORIES_PER_STORE as u32)
+            .max_tables_per_component(MAX_TABLES_PER_STORE as u32)
+            .max_memory_size(POOL_MAX_MEMORY_BYTES as usize);
+        config.allocation_strategy(InstanceAllocationStrategy::Pooling(pool));
+    }
+    config
+}
+
+/// Advances the engine's epoch every [`EPOCH_TICK`] until dropped.
+struct EpochTicker {
+    stop: Arc<AtomicBool>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl EpochTicker {
+    fn start(engine: Engine) -> EpochTicker {
+        let stop = Arc::new(AtomicBool::new(false));
+        let flag = stop.clone();
+        let thread = std::thread::Builder::new()
+            .name("subsume-epoch".into())
+            .spawn(move || {
+                while !flag.load(Ordering::Relaxed) {
+                    std::thread::sleep(EPOCH_TICK);
+                    engine.increment_epoch();
+                }
+            })
+            .map_err(|err| tracing::error!("cannot start the epoch ticker thread: {err}"))
+            .ok();
+        EpochTicker { stop, thread }
+    }
+}
+
+impl Drop for EpochTicker {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_preamble_tells_components_from_other_files() {
+        let component = b"\0asm\x0d\x00\x01\x00";
+        assert!(check_component_header(component).is_ok());
+        let cases: [(&[u8], &str); 4] = [
+            (b"\0asm\x01\x00\x00\x00", "core webassembly module"),
+            (b"\x7fELF\x02\x01\x01\x00", "precompiled"),
+            (b"hello world", "magic bytes"),
+            (b"\0asm", "too short"),
+        ];
+        for (bytes, expected) in cases {
+            let err = check_component_header(bytes).err().map(|e| e.to_string()).unwrap_or_default();
+            assert!(err.contains(expected), "{err}");
+        }
+    }
+}

@@ -1,0 +1,307 @@
+//! What one guest's store holds and may do: its WASI context (stdout and
+//! stderr to the log, nothing else), the `subsume:robot/host` functions with
+//! their checks (`emit` kinds and caps, `log` rate), its limits, and turning
+//! a failed call into a reason a human can act on.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use wasmtime::component::ResourceTable;
+use wasmtime::{Engine, Store, StoreLimits, StoreLimitsBuilder, Trap};
+use wasmtime_wasi::{WasiCtx, WasiCtxBuilder, WasiCtxView, WasiView};
+
+use super::SandboxError;
+use super::engine::{EPOCH_TICK, MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE, MAX_TABLES_PER_STORE};
+use super::guest_output::GuestOutput;
+use crate::contract::bindings::subsume::robot as wit;
+use crate::contract::{LogLevel, Value, ValueKind, kind_of};
+use crate::runtime::Outbox;
+
+/// How often the ticker thread advances the engine's epoch. A call is stopped
+/// between its budget and its budget plus one tick after it starts (plus the
+/// Budget of instantiation plus `init`: a component that loops while
+/// Native stack a guest may use; deep recursion traps instead of crashing
+/// Core instances one component may create (componentize-py components
+/// Largest linear memory the instance pool reserves a slot for; per-component
+/// Core instances (and memories) the whole pool holds: enough for
+/// Entries a guest may hold in its WASI resource table (open streams,
+/// pollables): a guest must not grow host-side tables without bound.
+pub const MAX_RESOURCE_ENTRIES: usize = 1000;
+/// Component-model handles alive at once in one store (`resource.new`).
+pub const MAX_COMPONENT_HANDLES: usize = 1000;
+/// Hostcall fuel beyond the component's `max-message`: room for the other
+/// arguments of a host call.
+pub const HOSTCALL_FUEL_SLACK: u64 = 64 << 10;
+/// Longest message from a guest's `log` or `err` result kept in the log.
+pub const MAX_GUEST_MESSAGE_BYTES: usize = 1024;
+
+/// State of one component's store.
+pub struct GuestState {
+    pub(super) wasi: WasiCtx,
+    pub(super) table: ResourceTable,
+    pub(super) limits: StoreLimits,
+    pub(super) component: Arc<str>,
+    /// Kinds of the declared outputs, by index: checked on every `emit`.
+    pub(super) outputs: Arc<[ValueKind]>,
+    /// Values emitted during the current call.
+    pub(super) outbox: Outbox,
+    /// The host clock at the start of the current call.
+    pub(super) now_ns: u64,
+    /// Values emitted in the current call, against `max_emits`.
+    pub(super) emits: u32,
+    pub(super) max_emits: u32,
+    pub(super) max_message_bytes: u64,
+    /// Log lines per second, shared with stdout and stderr.
+    pub(super) logs: LogBudget,
+}
+
+impl WasiView for GuestState {
+    fn ctx(&mut self) -> WasiCtxView<'_> {
+        WasiCtxView { ctx: &mut self.wasi, table: &mut self.table }
+    }
+}
+
+impl wit::types::Host for GuestState {}
+
+impl wit::host::Host for GuestState {
+    fn emit(&mut self, port: u32, value: Value) -> wasmtime::Result<()> {
+        self.emits += 1;
+        if self.emits > self.max_emits {
+            return Err(wasmtime::format_err!("emitted more than {} values in one call (max-emits)", self.max_emits));
+        }
+        let size = value_bytes(&value);
+        if size > self.max_message_bytes {
+            return Err(wasmtime::format_err!(
+                "emitted a value of {size} bytes; at most {} are allowed (max-message)",
+                self.max_message_bytes
+            ));
+        }
+        let Some(kind) = self.outputs.get(port as usize) else {
+            return Err(wasmtime::format_err!(
+                "emitted on output port {port}, but the component declares {} output(s)",
+                self.outputs.len()
+            ));
+        };
+        if !kind.accepts(&value) {
+            return Err(wasmtime::format_err!(
+                "emitted a {} value on output port {port}, which carries {kind}",
+                kind_of(&value)
+            ));
+        }
+        self.outbox.push((port, value));
+        Ok(())
+    }
+
+    fn log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
+        self.logs.take().map_err(wasmtime::Error::msg)?;
+        let message = truncate(message, MAX_GUEST_MESSAGE_BYTES);
+        let component = &*self.component;
+        match level {
+            LogLevel::Trace => tracing::trace!(component, "{message}"),
+            LogLevel::Debug => tracing::debug!(component, "{message}"),
+            LogLevel::Info => tracing::info!(component, "{message}"),
+            LogLevel::Warn => tracing::warn!(component, "{message}"),
+            LogLevel::Error => tracing::error!(component, "{message}"),
+        }
+        Ok(())
+    }
+
+    fn now_ns(&mut self) -> wasmtime::Result<u64> {
+        Ok(self.now_ns)
+    }
+}
+
+/// What one guest may use and push at the host; from its robot-file
+/// settings (`memory`, `budget`, `max-emits`, `max-message`, `max-logs`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GuestLimits {
+    pub memory_bytes: u64,
+    pub budget: Duration,
+    pub max_emits: u32,
+    pub max_message_bytes: u64,
+    pub max_logs_per_s: u32,
+}
+
+impl Default for GuestLimits {
+    fn default() -> Self {
+        use crate::config::limits;
+        GuestLimits {
+            memory_bytes: limits::DEFAULT_MEMORY_BYTES,
+            budget: limits::DEFAULT_CALL_BUDGET,
+            max_emits: limits::DEFAULT_EMITS_PER_CALL,
+            max_message_bytes: limits::DEFAULT_MESSAGE_BYTES,
+            max_logs_per_s: limits::DEFAULT_LOG_LINES_PER_S,
+        }
+    }
+}
+
+impl GuestLimits {
+    /// The limits a component's configuration sets.
+    pub fn of(config: &crate::config::ComponentConfig) -> GuestLimits {
+        GuestLimits {
+            memory_bytes: config.memory_bytes,
+            budget: config.budget,
+            max_emits: config.max_emits,
+            max_message_bytes: config.max_message_bytes,
+            max_logs_per_s: config.max_logs_per_s,
+        }
+    }
+}
+
+/// A guest's log lines this second, shared by `log`, stdout and stderr.
+#[derive(Clone, Debug)]
+pub struct LogBudget {
+    max_per_s: u32,
+    window: Arc<std::sync::Mutex<(std::time::Instant, u32)>>,
+}
+
+impl LogBudget {
+    pub fn new(max_per_s: u32) -> LogBudget {
+        LogBudget { max_per_s, window: Arc::new(std::sync::Mutex::new((std::time::Instant::now(), 0))) }
+    }
+
+    /// Counts one line; `Err` when the guest is over its rate.
+    pub(super) fn take(&self) -> Result<(), String> {
+        let Ok(mut window) = self.window.lock() else { return Ok(()) };
+        if window.0.elapsed() >= Duration::from_secs(1) {
+            *window = (std::time::Instant::now(), 0);
+        }
+        window.1 += 1;
+        if window.1 > self.max_per_s {
+            return Err(format!("wrote more than {} log lines in one second (max-logs)", self.max_per_s));
+        }
+        Ok(())
+    }
+}
+
+/// The size a value takes on the host, for `max-message`.
+fn value_bytes(value: &Value) -> u64 {
+    match value {
+        Value::Flag(_) => 1,
+        Value::Scalar(_) => 8,
+        Value::Vector(v) => 8 * v.len() as u64,
+        Value::Text(t) | Value::Command(t) => t.len() as u64,
+        Value::Bytes(b) => b.len() as u64,
+    }
+}
+
+pub(super) fn new_store(
+    engine: &Engine,
+    component: Arc<str>,
+    guest: &GuestLimits,
+    outputs: Arc<[ValueKind]>,
+) -> Store<GuestState> {
+    let logs = LogBudget::new(guest.max_logs_per_s);
+    let wasi = WasiCtxBuilder::new()
+        .stdout(GuestOutput::new(component.clone(), "stdout", logs.clone()))
+        .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()))
+        .allow_tcp(false)
+        .allow_udp(false)
+        .allow_ip_name_lookup(false)
+        .build();
+    let limits = StoreLimitsBuilder::new()
+        .memory_size(usize::try_from(guest.memory_bytes).unwrap_or(usize::MAX))
+        .instances(MAX_INSTANCES_PER_STORE)
+        .tables(MAX_TABLES_PER_STORE)
+        .memories(MAX_MEMORIES_PER_STORE)
+        .trap_on_grow_failure(true)
+        .build();
+    let mut table = ResourceTable::new();
+    table.set_max_capacity(MAX_RESOURCE_ENTRIES);
+    let state = GuestState {
+        wasi,
+        table,
+        limits,
+        component,
+        outputs,
+        outbox: Vec::new(),
+        now_ns: 0,
+        emits: 0,
+        max_emits: guest.max_emits,
+        max_message_bytes: guest.max_message_bytes,
+        logs,
+    };
+    let mut store = Store::new(engine, state);
+    store.limiter(|state| &mut state.limits);
+    store.set_hostcall_fuel(usize::try_from(guest.max_message_bytes + HOSTCALL_FUEL_SLACK).unwrap_or(usize::MAX));
+    store.set_max_component_handles(MAX_COMPONENT_HANDLES);
+    store
+}
+
+/// Epoch ticks for `budget`: one extra because the current tick may end at
+/// once, so the guest always gets at least its whole budget.
+pub(super) fn budget_ticks(budget: Duration) -> u64 {
+    let tick = EPOCH_TICK.as_nanos().max(1);
+    (budget.as_nanos().div_ceil(tick) as u64).saturating_add(1)
+}
+
+/// Turns a failed guest call into a reason a human can act on.
+pub(super) fn call_error(call: &'static str, budget: Duration, err: &wasmtime::Error) -> SandboxError {
+    let reason = match err.downcast_ref::<Trap>() {
+        Some(Trap::Interrupt) => format!("exceeded its time budget of {} ms", budget.as_millis().max(1)),
+        Some(Trap::StackOverflow) => "overflowed its stack (recursion too deep?)".to_string(),
+        Some(trap) => format!("trapped: {trap}"),
+        None => {
+            let cause = err.root_cause().to_string();
+            // StoreLimits (trap_on_grow_failure) says this when a memory or
+            // table would outgrow the component's limit.
+            match cause.strip_prefix("forcing trap when growing memory to ") {
+                Some(size) => format!("exceeded its memory limit (growing memory to {size})"),
+                // The hostcall fuel is the component's max-message.
+                None if cause.contains("fuel allocated for hostcalls has been exhausted") => {
+                    "passed more data to the host in one call than its max-message allows".to_string()
+                }
+                None => cause,
+            }
+        }
+    };
+    SandboxError::Call { call, reason }
+}
+
+pub(super) fn error_text(err: &wasmtime::Error) -> String {
+    let mut text = err.to_string();
+    let cause = err.root_cause().to_string();
+    if cause != text {
+        text = format!("{text}: {cause}");
+    }
+    text
+}
+
+pub(super) fn truncate(mut text: String, max: usize) -> String {
+    if text.len() > max {
+        let mut end = max;
+        while !text.is_char_boundary(end) {
+            end -= 1;
+        }
+        text.truncate(end);
+        text.push_str("...");
+    }
+    clip_control(text)
+}
+
+/// Replaces control characters so guest text cannot forge log lines.
+fn clip_control(text: String) -> String {
+    if text.chars().any(char::is_control) {
+        text.chars().map(|c| if c.is_control() { ' ' } else { c }).collect()
+    } else {
+        text
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_budget_always_gets_at_least_its_time() {
+        assert_eq!(budget_ticks(Duration::from_millis(10)), 11);
+        assert_eq!(budget_ticks(Duration::from_micros(1500)), 3);
+    }
+
+    #[test]
+    fn guest_text_is_cut_and_cleaned() {
+        assert_eq!(truncate("abcdef".into(), 3), "abc...");
+        assert_eq!(truncate("a\nb".into(), 10), "a b");
+        assert_eq!(truncate("ééé".into(), 3), "é...");
+    }
+}

@@ -1,0 +1,514 @@
+//! The store on disk: uploaded components (content-addressed), robot files,
+//! deployable sets (a robot file plus the exact components its sources
+//! name), which set is active and which were before it, the portal's users
+//! and the audit log.
+//!
+//! Layout under the store's root:
+//! ```text
+//! lock                        held while a writer changes anything
+//! users.json                  portal users (`users`)
+//! blobs/<sha256>              component and robot-file bytes, by content
+//! components.json             upload name -> record (`records::ComponentIndex`)
+//! sets/<id>.json              one set (`records::SetRecord`), never rewritten
+//! state.json                  active set, previously active sets, next id
+//! audit.log                   one JSON object per line, appended and fsynced
+//! ```
+//!
+//! Invariants:
+//! - one writer: every change goes through a [`StoreWriter`], which holds
+//!   the store's lock (a mutex in this process and an exclusive `flock` on
+//!   `lock`, so `subsume user` in another process waits its turn); reads
+//!   need no lock, because every file but `audit.log` is replaced
+//!   atomically (temporary file, fsync, rename, fsync of the folder);
+//! - ids are never reused and a set's record never changes once written;
+//! - what a record names is written before the record: a kill -9 at any
+//!   moment leaves the old state or the new one, never a record naming a
+//!   missing blob ([`Store::verify`] checks);
+//! - records carry a format version and older ones still load (`records`);
+//! - nothing here runs guest code or parses a component: callers validate
+//!   before they store.
+
+pub mod audit;
+pub mod records;
+pub mod users;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Mutex, MutexGuard};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use sha2::{Digest, Sha256};
+use thiserror::Error;
+
+pub use self::audit::{AuditEntry, MAX_AUDIT_READ, Outcome};
+pub use self::records::{
+    ComponentIndex, ComponentRecord, STORE_FORMAT, SetRecord, StoreState, WiringComponent, WiringConnection,
+    WiringGraph, World,
+};
+use self::users::{Users, UsersError};
+use crate::contract::clip;
+use crate::fsutil::write_atomically;
+
+/// Most sets kept; the oldest ones that are neither active nor in the
+/// rollback history are forgotten beyond this (bounds the store's growth).
+pub const MAX_SETS: usize = 200;
+/// Previously active sets remembered for rollback.
+pub const MAX_HISTORY: usize = 20;
+/// Most named components in the store.
+pub const MAX_STORED_COMPONENTS: usize = 500;
+/// Largest index file (components.json, state.json, a set) read.
+pub const MAX_INDEX_BYTES: u64 = 16 << 20;
+
+#[derive(Debug, Error)]
+pub enum StoreError {
+    #[error("store {path}: {reason}")]
+    Io { path: PathBuf, reason: String },
+    #[error("store {path}: damaged: {reason}")]
+    Damaged { path: PathBuf, reason: String },
+    #[error("no set {0} in the store")]
+    NoSet(u64),
+    #[error("{0}")]
+    Refused(String),
+    #[error(transparent)]
+    Users(#[from] UsersError),
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> StoreError + '_ {
+    move |e| StoreError::Io { path: path.to_path_buf(), reason: e.to_string() }
+}
+
+/// Seconds since the Unix epoch.
+pub fn unix_now() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_secs()).unwrap_or(0)
+}
+
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    hex::encode(Sha256::digest(bytes))
+}
+
+/// The store rooted at a folder. Reads take `&self`; changes take a
+/// [`StoreWriter`] from [`Store::lock`].
+#[derive(Debug)]
+pub struct Store {
+    root: PathBuf,
+    writer: Mutex<()>,
+    users: std::sync::Arc<Users>,
+}
+
+/// The one writer of a store, while it lives. Reads through it see every
+/// change it made.
+pub struct StoreWriter<'s> {
+    store: &'s Store,
+    _in_process: MutexGuard<'s, ()>,
+    /// Holds the exclusive `flock` until dropped.
+    _across_processes: std::fs::File,
+}
+
+impl std::ops::Deref for StoreWriter<'_> {
+    type Target = Store;
+
+    fn deref(&self) -> &Store {
+        self.store
+    }
+}
+
+impl Store {
+    /// Opens (creating when missing) the store at `root`.
+    pub fn open(root: &Path) -> Result<Store, StoreError> {
+        for dir in [root.to_path_buf(), root.join("blobs"), root.join("sets")] {
+            std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+        }
+        let store = Store {
+            root: root.to_path_buf(),
+            writer: Mutex::new(()),
+            users: std::sync::Arc::new(Users::new(root.join("users.json"))),
+        };
+        store.state()?;
+        store.components()?;
+        Ok(store)
+    }
+
+    /// The writer: waits for any other writer, in this process or another.
+    pub fn lock(&self) -> Result<StoreWriter<'_>, StoreError> {
+        let guard = self
+            .writer
+            .lock()
+            .map_err(|_| StoreError::Refused("the store's lock was poisoned by a crash of another writer".into()))?;
+        let path = self.root.join("lock");
+        let file =
+            std::fs::OpenOptions::new().create(true).truncate(false).write(true).open(&path).map_err(io(&path))?;
+        file.lock().map_err(io(&path))?;
+        Ok(StoreWriter { store: self, _in_process: guard, _across_processes: file })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// The portal's users (read them here; change them through a writer).
+    pub fn users(&self) -> &std::sync::Arc<Users> {
+        &self.users
+    }
+
+    pub fn blob_path(&self, sha256: &str) -> PathBuf {
+        self.root.join("blobs").join(sha256)
+    }
+
+    /// Reads a blob back, checking its content still matches its name.
+    pub fn blob(&self, sha256: &str) -> Result<Vec<u8>, StoreError> {
+        if sha256.len() != 64 || !sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
+            return Err(StoreError::Refused(format!("'{}' is not a sha256", clip(sha256))));
+        }
+        let path = self.blob_path(sha256);
+        let bytes = std::fs::read(&path).map_err(io(&path))?;
+        if sha256_hex(&bytes) != sha256 {
+            return Err(StoreError::Damaged { path, reason: "content does not match its sha256".into() });
+        }
+        Ok(bytes)
+    }
+
+    /// The bytes of index file `path`, or `None` when it does not exist.
+    fn read_index(&self, path: &Path) -> Result<Option<Vec<u8>>, StoreError> {
+        let size = match std::fs::metadata(path) {
+            Ok(m) => m.len(),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+            Err(e) => return Err(io(path)(e)),
+        };
+        if size > MAX_INDEX_BYTES {
+            return Err(StoreError::Damaged { path: path.into(), reason: format!("{size} bytes is too large") });
+        }
+        std::fs::read(path).map(Some).map_err(io(path))
+    }
+
+    fn damaged(path: &Path) -> impl Fn(String) -> StoreError + '_ {
+        move |reason| StoreError::Damaged { path: path.to_path_buf(), reason }
+    }
+
+    /// Every named component, by name.
+    pub fn components(&self) -> Result<BTreeMap<String, ComponentRecord>, StoreError> {
+        let path = self.root.join("components.json");
+        match self.read_index(&path)? {
+            None => Ok(BTreeMap::new()),
+            Some(bytes) => ComponentIndex::parse(&bytes).map(|i| i.components).map_err(Self::damaged(&path)),
+        }
+    }
+
+    pub fn state(&self) -> Result<StoreState, StoreError> {
+        let path = self.root.join("state.json");
+        match self.read_index(&path)? {
+            None => Ok(StoreState::default()),
+            Some(bytes) => StoreState::parse(&bytes).map_err(Self::damaged(&path)),
+        }
+    }
+
+    fn set_path(&self, id: u64) -> PathBuf {
+        self.root.join("sets").join(format!("{id}.json"))
+    }
+
+    pub fn set(&self, id: u64) -> Result<SetRecord, StoreError> {
+        let path = self.set_path(id);
+        match self.read_index(&path)? {
+            None => Err(StoreError::NoSet(id)),
+            Some(bytes) => SetRecord::parse(&bytes).map_err(Self::damaged(&path)),
+        }
+    }
+
+    /// Ids of every stored set, oldest first.
+    fn set_ids(&self) -> Result<Vec<u64>, StoreError> {
+        let dir = self.root.join("sets");
+        let mut ids: Vec<u64> = std::fs::read_dir(&dir)
+            .map_err(io(&dir))?
+            .filter_map(|e| e.ok())
+            .filter_map(|e| e.file_name().to_str()?.strip_suffix(".json")?.parse().ok())
+            .collect();
+        ids.sort_unstable();
+        Ok(ids)
+    }
+
+    /// Every set, oldest first. A set forgotten while this reads is left out.
+    pub fn sets(&self) -> Result<Vec<SetRecord>, StoreError> {
+        let mut sets = Vec::new();
+        for id in self.set_ids()? {
+            match self.set(id) {
+                Ok(set) => sets.push(set),
+                Err(StoreError::NoSet(_)) => {}
+                Err(e) => return Err(e),
+            }
+        }
+        Ok(sets)
+    }
+
+    /// The newest `limit` audit entries (at most [`MAX_AUDIT_READ`]), oldest
+    /// first. Lines that do not parse (a torn last write) are skipped.
+    pub fn audit_entries(&self, limit: usize) -> Result<Vec<AuditEntry>, StoreError> {
+        audit::read(&self.root.join("audit.log"), limit)
+    }
+
+    /// Checks that everything the state names exists and matches its hash,
+    /// that every set parses and has an id below `next_set`, and that every
+    /// component's blob is intact.
+    pub fn verify(&self) -> Result<(), StoreError> {
+        let state = self.state()?;
+        for id in state.active.iter().chain(state.history.iter()) {
+            let set = self.set(*id)?;
+            for sha in set.sources.values().chain(std::iter::once(&set.config_sha256)) {
+                self.blob(sha)?;
+            }
+        }
+        for id in self.set_ids()? {
+            let set = self.set(id)?;
+            if set.id != id || id >= state.next_set {
+                return Err(StoreError::Damaged {
+                    path: self.set_path(id),
+                    reason: format!("holds set {} (next id {})", set.id, state.next_set),
+                });
+            }
+        }
+        for record in self.components()?.values() {
+            self.blob(&record.sha256)?;
+        }
+        Ok(())
+    }
+}
+
+impl StoreWriter<'_> {
+    fn write_json<T: serde::Serialize>(&self, path: &Path, value: &T) -> Result<(), StoreError> {
+        let bytes = serde_json::to_vec_pretty(value)
+            .map_err(|e| StoreError::Io { path: path.into(), reason: e.to_string() })?;
+        write_atomically(path, &bytes).map_err(io(path))
+    }
+
+    /// Stores `bytes` by content; returns its sha256. Idempotent.
+    pub fn put_blob(&self, bytes: &[u8]) -> Result<String, StoreError> {
+        let sha = sha256_hex(bytes);
+        let path = self.blob_path(&sha);
+        let complete = std::fs::metadata(&path).is_ok_and(|m| m.len() == bytes.len() as u64);
+        if !complete {
+            write_atomically(&path, bytes).map_err(io(&path))?;
+        }
+        Ok(sha)
+    }
+
+    /// Records `record` under its name (its blob must be stored already).
+    pub fn put_component(&self, record: ComponentRecord) -> Result<(), StoreError> {
+        let mut components = self.components()?;
+        if !components.contains_key(&record.name) && components.len() >= MAX_STORED_COMPONENTS {
+            return Err(StoreError::Refused(format!("the store holds {MAX_STORED_COMPONENTS} components already")));
+        }
+        if !self.blob_path(&record.sha256).is_file() {
+            return Err(StoreError::Refused(format!("blob {} is not stored", record.sha256)));
+        }
+        components.insert(record.name.clone(), record);
+        let index = ComponentIndex { format: STORE_FORMAT, components };
+        self.write_json(&self.root.join("components.json"), &index)
+    }
+
+    fn write_state(&self, state: &StoreState) -> Result<(), StoreError> {
+        self.write_json(&self.root.join("state.json"), state)
+    }
+
+    /// Stores a new set (id assigned here) and returns it. Its blobs must be
+    /// stored already.
+    pub fn add_set(&self, mut record: SetRecord) -> Result<SetRecord, StoreError> {
+        for sha in record.sources.values().chain(std::iter::once(&record.config_sha256)) {
+            if !self.blob_path(sha).is_file() {
+                return Err(StoreError::Refused(format!("blob {sha} is not stored")));
+            }
+        }
+        let mut state = self.state()?;
+        // A set file beyond the counter (a crash between the two writes
+        // below in an older host) must not be overwritten.
+        let highest = self.set_ids()?.last().copied().unwrap_or(0);
+        record.id = state.next_set.max(highest + 1);
+        record.format = STORE_FORMAT;
+        state.next_set = record.id + 1;
+        // The counter first: a crash between the two writes skips an id,
+        // it never reuses one.
+        self.write_state(&state)?;
+        self.write_json(&self.set_path(record.id), &record)?;
+        self.forget_old_sets(&state)?;
+        Ok(record)
+    }
+
+    fn forget_old_sets(&self, state: &StoreState) -> Result<(), StoreError> {
+        let ids = self.set_ids()?;
+        let excess = ids.len().saturating_sub(MAX_SETS);
+        for id in ids.iter().take(excess) {
+            if state.active != Some(*id) && !state.history.contains(id) {
+                let _ = std::fs::remove_file(self.set_path(*id));
+            }
+        }
+        Ok(())
+    }
+
+    /// Records that set `id` is now the active one (the previous active set
+    /// goes onto the rollback history).
+    pub fn mark_active(&self, id: u64) -> Result<StoreState, StoreError> {
+        self.set(id)?;
+        let mut state = self.state()?;
+        if let Some(previous) = state.active
+            && previous != id
+        {
+            state.history.push(previous);
+            let excess = state.history.len().saturating_sub(MAX_HISTORY);
+            state.history.drain(..excess);
+        }
+        state.active = Some(id);
+        self.write_state(&state)?;
+        Ok(state)
+    }
+
+    /// Records a rollback: `id` (the last of the history) is active again.
+    pub fn mark_rolled_back(&self, id: u64) -> Result<StoreState, StoreError> {
+        let mut state = self.state()?;
+        if state.history.last() != Some(&id) {
+            return Err(StoreError::Refused(format!("set {id} is not the previous active set")));
+        }
+        state.history.pop();
+        state.active = Some(id);
+        self.write_state(&state)?;
+        Ok(state)
+    }
+
+    pub fn set_boot_config(&self, sha256: &str) -> Result<(), StoreError> {
+        let mut state = self.state()?;
+        state.boot_config_sha256 = Some(sha256.to_string());
+        self.write_state(&state)
+    }
+
+    /// Records one request in the audit log: now, by `user`. A log that
+    /// cannot be written is reported in the host log; the request stands.
+    pub fn record(&self, user: &str, action: &str, target: &str, outcome: Outcome<'_>) {
+        let entry = AuditEntry {
+            time: unix_now(),
+            user: user.into(),
+            action: action.into(),
+            target: clip(target),
+            result: outcome.result().into(),
+            detail: clip(outcome.detail()),
+        };
+        if let Err(e) = audit::append(&self.root.join("audit.log"), &entry) {
+            tracing::error!("cannot write the audit log: {e}");
+        }
+    }
+
+    /// The users, to change (see `users::Users`).
+    pub fn users_mut(&self) -> users::UsersWriter<'_> {
+        users::UsersWriter::new(&self.store.users)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::io::Write;
+
+    use super::*;
+
+    fn set(store: &Store, text: &[u8]) -> Result<SetRecord, StoreError> {
+        let writer = store.lock()?;
+        let sha = writer.put_blob(text)?;
+        writer.add_set(SetRecord {
+            format: STORE_FORMAT,
+            id: 0,
+            created_by: "alice".into(),
+            created_at: unix_now(),
+            platform: Some("control".into()),
+            config_name: "robot.xml".into(),
+            config_sha256: sha,
+            base_dir: PathBuf::from("/tmp"),
+            sources: BTreeMap::new(),
+            changes: vec![],
+            graph: WiringGraph::default(),
+        })
+    }
+
+    #[test]
+    fn sets_activate_and_roll_back_in_order() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        let store = Store::open(dir.path())?;
+        let one = set(&store, b"<robot/>")?;
+        let two = set(&store, b"<robot name='b'/>")?;
+        assert_eq!((one.id, two.id), (1, 2));
+        let writer = store.lock()?;
+        writer.mark_active(1)?;
+        let state = writer.mark_active(2)?;
+        assert_eq!((state.active, state.history.clone()), (Some(2), vec![1]));
+        assert!(writer.mark_rolled_back(2).is_err());
+        let state = writer.mark_rolled_back(1)?;
+        assert_eq!((state.active, state.history), (Some(1), vec![]));
+        assert!(matches!(writer.mark_active(9), Err(StoreError::NoSet(9))));
+        drop(writer);
+        let reopened = Store::open(dir.path())?;
+        assert_eq!(reopened.state()?.active, Some(1));
+        assert_eq!(reopened.sets()?.len(), 2);
+        reopened.verify()
+    }
+
+    /// Many threads staging at once, each with its own store handle (as two
+    /// processes would): every set gets its own id and keeps its own bytes.
+    #[test]
+    fn concurrent_writers_never_share_an_id() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        Store::open(dir.path())?;
+        let results: Vec<Result<Vec<(u64, String)>, StoreError>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..8)
+                .map(|t| {
+                    let root = dir.path().to_path_buf();
+                    scope.spawn(move || {
+                        let store = Store::open(&root)?;
+                        let mut made = Vec::new();
+                        for i in 0..10 {
+                            let text = format!("<robot name='t{t}-{i}'/>");
+                            let set = set(&store, text.as_bytes())?;
+                            made.push((set.id, text));
+                            if i % 3 == 0 {
+                                store.lock()?.mark_active(set.id)?;
+                            }
+                        }
+                        Ok(made)
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Ok(Vec::new()))).collect()
+        });
+        let store = Store::open(dir.path())?;
+        let mut ids = Vec::new();
+        for made in results {
+            for (id, text) in made? {
+                let set = store.set(id)?;
+                assert_eq!(store.blob(&set.config_sha256)?, text.as_bytes(), "set {id}");
+                ids.push(id);
+            }
+        }
+        let count = ids.len();
+        ids.sort_unstable();
+        ids.dedup();
+        assert_eq!((ids.len(), count), (80, 80));
+        assert_eq!(store.state()?.next_set, 81);
+        store.verify()
+    }
+
+    #[test]
+    fn damaged_blobs_and_torn_audit_lines_are_found() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        let store = Store::open(dir.path())?;
+        let one = set(&store, b"<robot/>")?;
+        let writer = store.lock()?;
+        writer.mark_active(one.id)?;
+        writer.record("alice", "activate", "set 1", Outcome::Ok(""));
+        drop(writer);
+        let entry = store.audit_entries(10)?.pop();
+        let mut log = std::fs::OpenOptions::new()
+            .append(true)
+            .open(dir.path().join("audit.log"))
+            .map_err(io(Path::new("audit.log")))?;
+        log.write_all(b"{\"time\": 2, \"us").map_err(io(Path::new("audit.log")))?;
+        assert_eq!(store.audit_entries(10)?.len(), 1);
+        assert_eq!(entry.map(|e| (e.user, e.result)), Some(("alice".into(), "ok".into())));
+        std::fs::write(store.blob_path(&one.config_sha256), b"tampered").map_err(io(Path::new("blob")))?;
+        let err = store.verify().err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err.ends_with("content does not match its sha256"), "{err}");
+        assert!(store.blob("../../etc/passwd").is_err());
+        Ok(())
+    }
+}

@@ -1,0 +1,236 @@
+//! `builtin:teleop`: the network platform, declared ([`TeleopBuiltin`]):
+//! its parameters with their bounds and the checks between them, the
+//! operators file (read with the rest of the robot file), and starting the
+//! servers.
+
+use std::path::Path;
+use std::time::Duration;
+
+use super::delay::DelaySettings;
+use super::mode::ModePolicy;
+use super::{TeleopComponent, TeleopServers, TeleopSettings, load_operators};
+use crate::builtin::{
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in, port,
+    positive_up_to,
+};
+use crate::config::ParamProblem;
+use crate::contract::{ValueKind, clip};
+use crate::runtime::Component;
+use crate::store::users::Directory;
+
+/// Most operators served at once: each holds a connection and a task.
+pub const MAX_OPERATORS: i64 = 64;
+/// Longest probe period (a day) and shortest (a tenth of a second: more
+/// often would make the probe itself the load on the link).
+pub const PROBE_PERIOD_RANGE_S: (f64, f64) = (0.1, 86_400.0);
+/// Largest round-trip threshold and playout delay, seconds: a link slower
+/// than this is not one to drive over.
+pub const MAX_LINK_DELAY_S: f64 = 10.0;
+/// Largest playout delay of the constant-delay buffer: every command waits
+/// this long at most.
+pub const MAX_PLAYOUT_DELAY_S: f64 = 5.0;
+
+const PARAMS: &[ParamDecl] = &[
+    ParamDecl {
+        name: "listen",
+        ty: ParamType::Address { optional: false },
+        default: "127.0.0.1:7070",
+        unit: "",
+        doc: "TCP address of the line protocol (docs/teleop.md)",
+    },
+    ParamDecl {
+        name: "websocket",
+        ty: ParamType::Address { optional: true },
+        default: "",
+        unit: "",
+        doc: "address of the WebSocket endpoint /teleop (JSON messages); empty: none",
+    },
+    ParamDecl {
+        name: "operators",
+        ty: ParamType::File { optional: true },
+        default: "",
+        unit: "",
+        doc: "file of NAME TOKEN lines, relative to the robot file; optional with the portal (its operators log in)",
+    },
+    ParamDecl {
+        name: "probe-period",
+        ty: number_in(PROBE_PERIOD_RANGE_S.0, PROBE_PERIOD_RANGE_S.1),
+        default: "300",
+        unit: "s",
+        doc: "time between round-trip measurements (and one on connect)",
+    },
+    ParamDecl {
+        name: "direct-below",
+        ty: number_in(0.0, MAX_LINK_DELAY_S),
+        default: "0.1",
+        unit: "s",
+        doc: "round-trip time under which direct mode is allowed",
+    },
+    ParamDecl {
+        name: "shared-below",
+        ty: number_in(0.0, MAX_LINK_DELAY_S),
+        default: "0.3",
+        unit: "s",
+        doc: "round-trip time under which shared mode is allowed",
+    },
+    ParamDecl {
+        name: "max-operators",
+        ty: ParamType::Integer { min: 1, max: MAX_OPERATORS },
+        default: "4",
+        unit: "",
+        doc: "connections served at once",
+    },
+    ParamDecl {
+        name: "delay",
+        ty: ParamType::Required,
+        default: "adaptive",
+        unit: "s",
+        doc: "playout delay: adaptive (follows jitter) or a fixed number of seconds",
+    },
+    ParamDecl {
+        name: "min-delay",
+        ty: number_in(0.0, MAX_PLAYOUT_DELAY_S),
+        default: "0.01",
+        unit: "s",
+        doc: "smallest adaptive playout delay",
+    },
+    ParamDecl {
+        name: "max-delay",
+        ty: number_in(0.0, MAX_PLAYOUT_DELAY_S),
+        default: "0.2",
+        unit: "s",
+        doc: "largest adaptive playout delay",
+    },
+    ParamDecl {
+        name: "horizon",
+        ty: positive_up_to(MAX_LINK_DELAY_S),
+        default: "0.5",
+        unit: "s",
+        doc: "commands older than this are dropped as stale",
+    },
+];
+
+/// The `teleop` kind.
+pub struct TeleopBuiltin;
+
+/// A fixed playout delay, or `None` for adaptive; the error completes
+/// "parameter 'delay' ...".
+fn fixed_delay(text: &str) -> Result<Option<Duration>, String> {
+    let text = text.trim();
+    if text == "adaptive" {
+        return Ok(None);
+    }
+    text.parse::<f64>()
+        .ok()
+        .filter(|s| (0.0..=MAX_PLAYOUT_DELAY_S).contains(s))
+        .map(|s| Some(Duration::from_secs_f64(s)))
+        .ok_or_else(|| format!("must be adaptive or a number in [0, {MAX_PLAYOUT_DELAY_S}] s, got '{}'", clip(text)))
+}
+
+fn operators(params: &Params, base_dir: &Path) -> Result<Vec<(String, String)>, String> {
+    let file = params.text("operators").unwrap_or_default();
+    if file.is_empty() { Ok(Vec::new()) } else { load_operators(&base_dir.join(file)) }
+}
+
+/// The settings of a network platform from checked parameters.
+pub fn settings(params: &Params, base_dir: &Path) -> Result<TeleopSettings, BuiltinError> {
+    let listen = params
+        .address("listen")?
+        .ok_or_else(|| BuiltinError::Param { name: "listen".into(), why: "is empty".into() })?;
+    let max_operators = params.integer("max-operators")?;
+    Ok(TeleopSettings {
+        listen,
+        websocket: params.address("websocket")?,
+        operators: operators(params, base_dir).map_err(|why| BuiltinError::Param { name: "operators".into(), why })?,
+        directory: None,
+        probe_period: params.seconds("probe-period")?,
+        policy: ModePolicy {
+            direct_below: params.seconds("direct-below")?,
+            shared_below: params.seconds("shared-below")?,
+        },
+        max_connections: usize::try_from(max_operators).map_err(|_| BuiltinError::Param {
+            name: "max-operators".into(),
+            why: format!("is out of range: {max_operators}"),
+        })?,
+        delay: DelaySettings {
+            fixed: fixed_delay(params.text("delay")?)
+                .map_err(|why| BuiltinError::Param { name: "delay".into(), why })?,
+            min_delay: params.seconds("min-delay")?,
+            max_delay: params.seconds("max-delay")?,
+            horizon: params.seconds("horizon")?,
+        },
+    })
+}
+
+impl Builtin for TeleopBuiltin {
+    fn kind(&self) -> &'static str {
+        "teleop"
+    }
+
+    fn summary(&self) -> &'static str {
+        "Remote operators over TCP and WebSocket: latency probe, control modes, constant-delay buffer"
+    }
+
+    fn params(&self) -> &'static [ParamDecl] {
+        PARAMS
+    }
+
+    fn default_priority(&self) -> Option<i32> {
+        Some(1)
+    }
+
+    fn carried(&self) -> bool {
+        true
+    }
+
+    fn check(&self, params: &Params, ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
+        let mut problems = Vec::new();
+        if let Err(why) = fixed_delay(params.text("delay").unwrap_or_default()) {
+            problems.push(ParamProblem::new("delay", why));
+        }
+        if let Err(why) = operators(params, ctx.base_dir) {
+            problems.push(ParamProblem::new("operators", why));
+        }
+        let number = |name: &str| params.number(name).unwrap_or(0.0);
+        if number("direct-below") > number("shared-below") {
+            problems.push(ParamProblem::new(
+                "direct-below",
+                format!(
+                    "must not exceed shared-below ({} s), got {} s",
+                    number("shared-below"),
+                    number("direct-below")
+                ),
+            ));
+        }
+        if number("min-delay") > number("max-delay") {
+            problems.push(ParamProblem::new(
+                "min-delay",
+                format!("must not exceed max-delay ({} s), got {} s", number("max-delay"), number("min-delay")),
+            ));
+        }
+        problems
+    }
+
+    fn ports(&self, _params: &Params) -> Ports {
+        Ports {
+            inputs: vec![],
+            outputs: vec![
+                port("cmd", ValueKind::Command, "operator commands, released by the delay buffer"),
+                port("goal", ValueKind::Vector, "operator goals (GOTO x y) as [x, y], for a planner"),
+            ],
+        }
+    }
+
+    fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
+        let mut settings = settings(params, ctx.base_dir)?;
+        settings.directory = ctx.services.get::<Directory>();
+        let priority = ctx.priorities.get(ctx.index).cloned().unwrap_or_default();
+        let name = ctx.component()?.name.clone();
+        let component =
+            TeleopComponent::start(&name, &ctx.robot.name, settings, ctx.clock, ctx.waker.clone(), priority)?;
+        if let Some(servers) = ctx.services.get::<TeleopServers>() {
+            servers.register(component.context());
+        }
+        Ok(Box::new(component))
+    }
+}
