@@ -1,9 +1,10 @@
 #![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
-//! The portal end to end: the real binary over real HTTP. A kill -9 during
-//! uploads and activations leaves a consistent store and the last activated
-//! set comes back; and Debian's headless Chromium, driven by playwright-core
-//! (tests/browser/portal.mjs), logs in, uploads, activates, watches and
-//! drives.
+//! The portal end to end: the real binary over real HTTP. Many users
+//! uploading, staging, activating and rolling back at once never lose or
+//! rewrite a record; a kill -9 during uploads and activations leaves a
+//! consistent store and the last activated set comes back; and Debian's
+//! headless Chromium, driven by playwright-core (tests/browser/portal.mjs),
+//! logs in, uploads, activates, watches and drives.
 
 #[path = "../host/tests/support/mod.rs"]
 mod support;
@@ -31,13 +32,17 @@ impl Drop for Host {
 }
 
 fn add_admin(store: &Path) {
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .args(["user", "add", "admin", "--role", "admin", "--password-stdin", "--store"])
-        .arg(store)
-        .stdin(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
+    add_user(store, "admin", "admin", &[]);
+}
+
+/// `subsume user add NAME --role ROLE [--platform P]...` with [`PASSWORD`].
+fn add_user(store: &Path, name: &str, role: &str, platforms: &[&str]) {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
+    for platform in platforms {
+        command.args(["--platform", platform]);
+    }
+    let mut child = command.stdin(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
     child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
     assert!(child.wait().unwrap().success());
 }
@@ -88,7 +93,11 @@ fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8
 }
 
 fn login(address: &str) -> String {
-    let body = serde_json::json!({ "name": "admin", "password": PASSWORD }).to_string();
+    login_as(address, "admin")
+}
+
+fn login_as(address: &str, name: &str) -> String {
+    let body = serde_json::json!({ "name": name, "password": PASSWORD }).to_string();
     let (status, json) = http(address, "POST", "/api/v1/login", None, body.as_bytes());
     assert_eq!(status, 200, "{json}");
     json["token"].as_str().unwrap().to_string()
@@ -99,6 +108,177 @@ fn demo_using(component: &str) -> String {
     std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
         .unwrap()
         .replace("../guest-components/rust/target/wasm32-wasip2/release/avoider.wasm", &format!("{component}.wasm"))
+}
+
+/// A light robot whose control and network platforms carry the given
+/// values, named so the running set can be told apart.
+fn light_robot(name: &str, control: u64, network: u64, component: Option<&str>) -> String {
+    let relay = component.map_or_else(String::new, |c| {
+        format!(
+            "    <component name=\"relay\" source=\"{c}.wasm\" rate=\"0\"/>\n    <connect from=\"source.out\" to=\"relay.scalar-in\"/>\n"
+        )
+    });
+    format!(
+        r#"<robot name="{name}">
+  <platform name="control">
+    <component name="source" source="builtin:publish" rate="20"><param name="value" value="{control}"/></component>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="source.out" to="sink.in"/>
+{relay}  </platform>
+  <platform name="network">
+    <component name="beacon" source="builtin:publish" rate="1"><param name="value" value="{network}"/></component>
+  </platform>
+</robot>
+"#
+    )
+}
+
+/// A component whose bytes differ from every other's (a custom section).
+fn unique_component(wasm: &[u8], tag: &str) -> Vec<u8> {
+    let name = b"test";
+    let content_len = 1 + name.len() + tag.len();
+    assert!(content_len < 128);
+    let mut out = wasm.to_vec();
+    out.extend_from_slice(&[0, content_len as u8, name.len() as u8]);
+    out.extend_from_slice(name);
+    out.extend_from_slice(tag.as_bytes());
+    out
+}
+
+/// One request of a round: who sends what where.
+struct Request {
+    user: &'static str,
+    method: &'static str,
+    path: String,
+    body: Vec<u8>,
+}
+
+#[test]
+fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
+    const ROUNDS: usize = 10;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let users: [(&str, &str, &[&str]); 5] = [
+        ("admin", "admin", &[]),
+        ("ctl", "developer", &["control"]),
+        ("net", "developer", &["network"]),
+        ("view", "viewer", &[]),
+        ("op", "operator", &[]),
+    ];
+    for (name, role, platforms) in users {
+        add_user(&store, name, role, platforms);
+    }
+    let boot = dir.path().join("light.xml");
+    std::fs::write(&boot, light_robot("boot", 0, 0, None)).unwrap();
+    let host = start(&store, &boot);
+    let tokens: std::collections::HashMap<&str, String> =
+        users.iter().map(|(name, _, _)| (*name, login_as(&host.address, name))).collect();
+    let relay = std::fs::read(support::guest("test-relay")).unwrap();
+    let audit_before = subsume::store::Store::open(&store).unwrap().audit_entries(usize::MAX).unwrap().len();
+    // Every staging that answered 2xx: its id and the bytes it sent.
+    let mut staged: Vec<(u64, Vec<u8>)> = Vec::new();
+    let mut requests_sent = 0;
+    for round in 0..ROUNDS {
+        let mut batch: Vec<Request> = Vec::new();
+        let component = |user: &'static str, platform: &str, k: usize| Request {
+            user,
+            method: "PUT",
+            path: format!("/api/v1/platforms/{platform}/components/r{round}u{k}"),
+            body: unique_component(&relay, &format!("{round}-{k}")),
+        };
+        batch.push(component("ctl", "control", 0));
+        batch.push(component("ctl", "control", 1));
+        batch.push(component("admin", "control", 2));
+        batch.push(component("net", "network", 3));
+        batch.push(component("net", "control", 4)); // refused: not net's platform
+        batch.push(component("view", "control", 5)); // refused: a viewer
+        for k in 0..16 {
+            // Components of the round before are stored by now.
+            let uses = (round > 0 && k % 4 == 0).then(|| format!("r{}u{}", round - 1, k % 3));
+            let (user, platform, control, network) = match k % 4 {
+                0 | 1 => ("ctl", "control", (round * 100 + k) as u64, 0),
+                2 => ("net", "network", 0, (round * 100 + k) as u64),
+                _ => ("net", "network", (round * 100 + k) as u64, 0), // refused: changes control
+            };
+            let name = format!("s{round}-{k}");
+            batch.push(Request {
+                user,
+                method: "PUT",
+                path: format!("/api/v1/platforms/{platform}/configs/{name}.xml"),
+                body: light_robot(&name, control, network, uses.as_deref()).into_bytes(),
+            });
+        }
+        // Activate sets staged earlier; roll back now and then.
+        let mut earlier: Vec<u64> = staged.iter().map(|(id, _)| *id).collect();
+        earlier.reverse();
+        for (k, user) in ["ctl", "admin", "net", "op", "ctl", "admin"].into_iter().enumerate() {
+            let id = earlier.get(k * 2).copied().unwrap_or(999);
+            batch.push(Request { user, method: "POST", path: format!("/api/v1/sets/{id}/activate"), body: vec![] });
+        }
+        for user in ["admin", "ctl", "view", "admin"] {
+            batch.push(Request { user, method: "POST", path: "/api/v1/rollback".into(), body: vec![] });
+        }
+        assert!(batch.len() >= 32, "{} requests in a round", batch.len());
+        requests_sent += batch.len();
+        // All at once: every request waits at the barrier, then sends.
+        let barrier = std::sync::Arc::new(std::sync::Barrier::new(batch.len()));
+        let answers: Vec<(Request, u16, Value)> = std::thread::scope(|scope| {
+            let handles: Vec<_> = batch
+                .into_iter()
+                .map(|request| {
+                    let (barrier, address, token) = (barrier.clone(), &host.address, &tokens[request.user]);
+                    scope.spawn(move || {
+                        barrier.wait();
+                        let (status, json) = http(address, request.method, &request.path, Some(token), &request.body);
+                        (request, status, json)
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        for (request, status, json) in answers {
+            assert!(
+                status != 0 && status != 500,
+                "round {round}: {} {} -> {status} {json}",
+                request.method,
+                request.path
+            );
+            if request.path.contains("/configs/") && (200..300).contains(&status) {
+                staged.push((json["set"]["id"].as_u64().unwrap(), request.body));
+            }
+        }
+    }
+    // Which stagings pass depends on what is active at the moment (a
+    // developer may not change the other platform); enough must.
+    assert!(staged.len() >= ROUNDS * 4, "only {} stagings succeeded", staged.len());
+    // The running set is the one state.json names, and it runs its own file.
+    let (status, live) = http(&host.address, "GET", "/api/v1/status", Some(&tokens["admin"]), b"");
+    assert_eq!(status, 200);
+    let opened = subsume::store::Store::open(&store).unwrap();
+    let state = opened.state().unwrap();
+    assert_eq!(live["set"].as_u64(), state.active, "{live}");
+    let active = opened.set(state.active.unwrap()).unwrap();
+    let active_text = String::from_utf8(opened.blob(&active.config_sha256).unwrap()).unwrap();
+    assert!(active_text.contains(&format!("<robot name=\"{}\">", live["robot"].as_str().unwrap())), "{live}");
+    drop(host);
+    // Every 2xx staging has its own set, holding its own bytes; ids are unique.
+    let mut ids: Vec<u64> = staged.iter().map(|(id, _)| *id).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), staged.len(), "a set id was given twice");
+    for (id, bytes) in &staged {
+        let set = opened.set(*id).unwrap();
+        assert_eq!(&opened.blob(&set.config_sha256).unwrap(), bytes, "set {id}");
+    }
+    // state.json names only sets that exist, and the store is whole.
+    for id in state.active.iter().chain(&state.history) {
+        opened.set(*id).unwrap_or_else(|e| panic!("state names set {id}: {e}"));
+    }
+    opened.verify().unwrap();
+    // One audit line per request, refused ones included.
+    let entries = opened.audit_entries(usize::MAX).unwrap();
+    assert_eq!(entries.len() - audit_before, requests_sent, "audit lines for {requests_sent} requests");
+    assert!(entries.iter().any(|e| e.action == "upload-component" && e.user == "view" && e.result == "refused"));
 }
 
 #[test]
