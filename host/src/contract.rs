@@ -1,7 +1,11 @@
-//! The host's side of the WIT contract `subsume:robot@0.1.0` (`wit/robot.wit`):
+//! The host's side of the WIT contract `subsume:robot@0.2.0` (`wit/robot.wit`):
 //! the generated bindings, and the rules the host checks on what a component
 //! declares (port and parameter names, kinds, defaults). Native built-ins use
 //! the same types, so the runtime never tells them apart from WASM guests.
+//!
+//! [`v1`] holds the bindings of 0.1.0 (`wit/0.1.0/robot.wit`) and the
+//! conversions between the two, so components and translators built
+//! against 0.1.0 keep running: everything inside the host speaks 0.2.0.
 
 use std::fmt;
 
@@ -32,8 +36,121 @@ pub mod translator_bindings {
 }
 
 pub use bindings::subsume::robot::types::{
-    Description, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value, ValueKind,
+    Description, LinkPlan, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Scan, Value, ValueKind,
 };
+
+/// The contract's previous version, `subsume:robot@0.1.0`, and the way its
+/// values, kinds and descriptions map onto 0.2.0's (every 0.1.0 value is a
+/// 0.2.0 value; a 0.2.0 scan reaches a 0.1.0 component as its ranges).
+pub mod v1 {
+    /// Generated from `wit/0.1.0/robot.wit`'s `component` world.
+    pub mod bindings {
+        wasmtime::component::bindgen!({
+            world: "component",
+            path: "../wit/0.1.0",
+            imports: { default: trappable },
+            additional_derives: [PartialEq],
+        });
+    }
+
+    /// Generated from `wit/0.1.0/robot.wit`'s `translator` world.
+    pub mod translator_bindings {
+        wasmtime::component::bindgen!({
+            world: "translator",
+            path: "../wit/0.1.0",
+            imports: { default: trappable },
+            with: {
+                "subsume:robot/types": super::bindings::subsume::robot::types,
+                "subsume:robot/host": super::bindings::subsume::robot::host,
+            },
+        });
+    }
+
+    use self::bindings::subsume::robot::types as old;
+    use super::{Description, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value, ValueKind};
+
+    /// `value` as a 0.1.0 guest receives it: a scan becomes its ranges.
+    pub fn value_to_v1(value: &Value) -> old::Value {
+        match value {
+            Value::Flag(b) => old::Value::Flag(*b),
+            Value::Scalar(x) => old::Value::Scalar(*x),
+            Value::Vector(v) => old::Value::Vector(v.clone()),
+            Value::Text(t) => old::Value::Text(t.clone()),
+            Value::Command(c) => old::Value::Command(c.clone()),
+            Value::Bytes(b) => old::Value::Bytes(b.clone()),
+            Value::Scan(s) => old::Value::Vector(s.ranges.clone()),
+        }
+    }
+
+    /// A value a 0.1.0 guest emitted.
+    pub fn value_from_v1(value: old::Value) -> Value {
+        match value {
+            old::Value::Flag(b) => Value::Flag(b),
+            old::Value::Scalar(x) => Value::Scalar(x),
+            old::Value::Vector(v) => Value::Vector(v),
+            old::Value::Text(t) => Value::Text(t),
+            old::Value::Command(c) => Value::Command(c),
+            old::Value::Bytes(b) => Value::Bytes(b),
+        }
+    }
+
+    pub fn kind_from_v1(kind: old::ValueKind) -> ValueKind {
+        match kind {
+            old::ValueKind::Flag => ValueKind::Flag,
+            old::ValueKind::Scalar => ValueKind::Scalar,
+            old::ValueKind::Vector => ValueKind::Vector,
+            old::ValueKind::Text => ValueKind::Text,
+            old::ValueKind::Command => ValueKind::Command,
+            old::ValueKind::Bytes => ValueKind::Bytes,
+            old::ValueKind::Any => ValueKind::Any,
+        }
+    }
+
+    pub fn log_level_from_v1(level: old::LogLevel) -> LogLevel {
+        match level {
+            old::LogLevel::Trace => LogLevel::Trace,
+            old::LogLevel::Debug => LogLevel::Debug,
+            old::LogLevel::Info => LogLevel::Info,
+            old::LogLevel::Warn => LogLevel::Warn,
+            old::LogLevel::Error => LogLevel::Error,
+        }
+    }
+
+    /// What a 0.1.0 component said about itself, in 0.2.0's terms.
+    pub fn description_from_v1(d: old::Description) -> Description {
+        let ports = |ports: Vec<old::PortSpec>| -> Vec<PortSpec> {
+            ports.into_iter().map(|p| PortSpec { name: p.name, kind: kind_from_v1(p.kind), doc: p.doc }).collect()
+        };
+        Description {
+            name: d.name,
+            version: d.version,
+            summary: d.summary,
+            inputs: ports(d.inputs),
+            outputs: ports(d.outputs),
+            params: d
+                .params
+                .into_iter()
+                .map(|p| ParamSpec {
+                    name: p.name,
+                    kind: match p.kind {
+                        old::ParamKind::Text => ParamKind::Text,
+                        old::ParamKind::Number => ParamKind::Number,
+                        old::ParamKind::Integer => ParamKind::Integer,
+                        old::ParamKind::Flag => ParamKind::Flag,
+                    },
+                    default_value: p.default_value,
+                    doc: p.doc,
+                })
+                .collect(),
+            default_priority: d.default_priority,
+        }
+    }
+
+    /// Parameters for a 0.1.0 guest's `init`.
+    pub fn params_to_v1(params: &[Param]) -> Vec<old::Param> {
+        params.iter().map(|p| old::Param { name: p.name.clone(), value: p.value.clone() }).collect()
+    }
+}
 
 /// Longest port, parameter or component name. Names appear in logs, reports
 /// and URLs; a guest must not be able to flood them.
@@ -55,6 +172,7 @@ pub fn kind_of(value: &Value) -> ValueKind {
         Value::Text(_) => ValueKind::Text,
         Value::Command(_) => ValueKind::Command,
         Value::Bytes(_) => ValueKind::Bytes,
+        Value::Scan(_) => ValueKind::Scan,
     }
 }
 
@@ -69,6 +187,7 @@ impl ValueKind {
             ValueKind::Command => "command",
             ValueKind::Bytes => "bytes",
             ValueKind::Any => "any",
+            ValueKind::Scan => "scan",
         }
     }
 
@@ -82,6 +201,7 @@ impl ValueKind {
             "command" => ValueKind::Command,
             "bytes" => ValueKind::Bytes,
             "any" => ValueKind::Any,
+            "scan" => ValueKind::Scan,
             _ => return None,
         })
     }
@@ -92,8 +212,9 @@ impl ValueKind {
     }
 
     /// Whether an output of kind `self` may feed an input of kind `input`.
+    /// A scan may feed a vector input, which receives the ranges.
     pub fn can_feed(self, input: ValueKind) -> bool {
-        input == ValueKind::Any || input == self
+        input == ValueKind::Any || input == self || (self == ValueKind::Scan && input == ValueKind::Vector)
     }
 }
 
@@ -361,7 +482,9 @@ mod tests {
         assert!(ValueKind::Any.accepts(&Value::Bytes(vec![1])));
         assert!(ValueKind::Vector.can_feed(ValueKind::Any));
         assert!(!ValueKind::Vector.can_feed(ValueKind::Scalar));
-        for k in ["flag", "scalar", "vector", "text", "command", "bytes", "any"] {
+        assert!(ValueKind::Scan.can_feed(ValueKind::Vector));
+        assert!(!ValueKind::Vector.can_feed(ValueKind::Scan));
+        for k in ["flag", "scalar", "vector", "text", "command", "bytes", "any", "scan"] {
             assert_eq!(ValueKind::parse(k).map(ValueKind::name), Some(k));
         }
     }

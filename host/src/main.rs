@@ -245,9 +245,12 @@ fn describe(path: &Path, as_json: bool, cache_dir: Option<PathBuf>) -> anyhow::R
     let artifact = sandbox.load(&bytes).with_context(|| format!("failed to load component {}", path.display()))?;
     let d = &artifact.description;
     if as_json {
-        println!("{}", serde_json::to_string_pretty(&DescriptionDoc::new(d, &artifact.sha256))?);
+        let mut doc = serde_json::to_value(DescriptionDoc::new(d, &artifact.sha256))?;
+        doc["contract"] = artifact.contract.name().into();
+        println!("{}", serde_json::to_string_pretty(&doc)?);
     } else {
         print!("{}", description_text(d, &artifact.sha256));
+        println!("contract: subsume:robot@{}", artifact.contract.name());
     }
     Ok(ExitCode::SUCCESS)
 }

@@ -151,12 +151,17 @@ impl std::fmt::Display for Language {
 }
 
 /// Files every project gets, whatever its language.
-const COMMON_FILES: [(&str, &str); 4] = [
+const COMMON_FILES: [(&str, &str); 3] = [
     ("README.md", include_str!("../../templates/common/README.md")),
     ("robot.xml", include_str!("../../templates/common/robot.xml")),
     ("arena.world", include_str!("../../templates/common/arena.world")),
-    ("wit/robot.wit", include_str!("../../wit/robot.wit")),
 ];
+
+/// The contract a project is built against, as `wit/robot.wit`: the Rust
+/// SDK speaks 0.2.0; the C, Python and JavaScript templates are still
+/// written against 0.1.0, which the host keeps running.
+const WIT_CURRENT: &str = include_str!("../../wit/robot.wit");
+const WIT_0_1: &str = include_str!("../../wit/0.1.0/robot.wit");
 
 /// The Rust guest SDK, copied into Rust projects as `sdk/src/lib.rs`.
 const SDK_SOURCE: &str = include_str!("../../guest-components/rust/sdk/src/lib.rs");
@@ -317,6 +322,8 @@ pub fn render(name: &str, language: Language) -> Vec<(String, String)> {
     let fill = |text: &str| vars.iter().fold(text.to_string(), |text, (key, value)| text.replace(key, value));
     let mut files: Vec<(String, String)> =
         COMMON_FILES.iter().chain(language.files()).map(|(path, text)| (path.to_string(), fill(text))).collect();
+    let wit = if language == Language::Rust { WIT_CURRENT } else { WIT_0_1 };
+    files.push(("wit/robot.wit".to_string(), wit.to_string()));
     if language == Language::Rust {
         files.push(("sdk/src/lib.rs".to_string(), SDK_SOURCE.replace(SDK_WIT_PATH.0, SDK_WIT_PATH.1)));
     }
@@ -399,7 +406,8 @@ mod tests {
                 assert!(!text.contains("{{"), "{language} {path} keeps a placeholder");
             }
             let file = |name: &str| files.iter().find(|(path, _)| path == name).map(|(_, text)| text.as_str());
-            assert_eq!(file("wit/robot.wit"), Some(include_str!("../../wit/robot.wit")));
+            let contract = if language == Language::Rust { WIT_CURRENT } else { WIT_0_1 };
+            assert_eq!(file("wit/robot.wit"), Some(contract), "{language}");
             let robot = file("robot.xml").unwrap_or_default();
             assert!(robot.contains(&format!("source=\"{}\"", language.wasm_path("wall-follower"))), "{robot}");
             let source = file(language.source()).unwrap_or_default();

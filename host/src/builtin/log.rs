@@ -108,5 +108,12 @@ pub fn format_value(value: &Value) -> String {
         Value::Text(t) => format!("text {:?}", clip(t)),
         Value::Command(c) => format!("command '{}'", clip(c)),
         Value::Bytes(b) => format!("bytes ({} bytes)", b.len()),
+        Value::Scan(s) => format!(
+            "scan of {} rays from {:.3} rad by {:.3} rad: {}",
+            s.ranges.len(),
+            s.angle_min,
+            s.angle_increment,
+            format_value(&Value::Vector(s.ranges.clone()))
+        ),
     }
 }

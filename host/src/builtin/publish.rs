@@ -105,6 +105,7 @@ fn parse_value(kind: ValueKind, text: &str) -> Result<Value, String> {
             .map(Value::Bytes)
             .map_err(|_| format!("expects hex bytes like '0a ff', got '{}'", clip(text))),
         ValueKind::Any => Err("a value needs a concrete kind".into()),
+        ValueKind::Scan => Err("a scan is not written as a parameter".into()),
     }
 }
 

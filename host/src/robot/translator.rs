@@ -130,6 +130,9 @@ impl Translator for WasmTranslator {
             WitFeedback::Ranges(r) => Feedback::Ranges(r),
             WitFeedback::Bumper(b) => Feedback::Bumper(b),
             WitFeedback::Battery(v) => Feedback::Battery(v),
+            // The link's `ranges` output carries the readings; the geometry
+            // is the link's own (see docs/protocols.md).
+            WitFeedback::Scan(s) => Feedback::Ranges(s.ranges),
         }));
         Ok(())
     }

@@ -7,10 +7,10 @@ use std::time::Duration;
 use wasmtime::{Engine, Store};
 
 use super::SandboxError;
-use super::engine::{INIT_BUDGET, WasmArtifact};
+use super::engine::{ComponentPre, INIT_BUDGET, WasmArtifact};
 use super::guest::{GuestLimits, GuestState, MAX_GUEST_MESSAGE_BYTES, budget_ticks, call_error, new_store, truncate};
-use crate::contract::bindings;
 use crate::contract::{Param, Value, ValueKind};
+use crate::contract::{bindings, v1};
 use crate::runtime::{CallError, Component, Outbox};
 
 /// A running, initialised instance of `artifact` in a new store of `engine`.
@@ -23,30 +23,66 @@ pub(super) fn instantiate_component(
 ) -> Result<WasmComponent, SandboxError> {
     let budget = limits.budget;
     let outputs: Arc<[ValueKind]> = artifact.description.outputs.iter().map(|p| p.kind).collect();
+    let inputs: Arc<[ValueKind]> = artifact.description.inputs.iter().map(|p| p.kind).collect();
     let mut store = new_store(engine, name.into(), limits, outputs);
     store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
-    let instance = artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
-    match instance.call_init(&mut store, params) {
+    let instantiation = |e| call_error("instantiation", INIT_BUDGET, &e);
+    let (instance, init) = match &artifact.pre {
+        ComponentPre::V2(pre) => {
+            let instance = pre.instantiate(&mut store).map_err(instantiation)?;
+            let init = instance.call_init(&mut store, params);
+            (Instance::V2(instance), init)
+        }
+        ComponentPre::V1(pre) => {
+            let instance = pre.instantiate(&mut store).map_err(instantiation)?;
+            let init = instance.call_init(&mut store, &v1::params_to_v1(params));
+            (Instance::V1(instance), init)
+        }
+    };
+    match init {
         Ok(Ok(())) => {}
         Ok(Err(message)) => {
             return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
         }
         Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
     }
-    // Values emitted during init are dropped: nothing is wired yet.
+    // Values emitted (or errors reported) during init are dropped: nothing
+    // is wired yet.
     store.data_mut().outbox.clear();
-    Ok(WasmComponent { store, instance, budget, budget_ticks: budget_ticks(budget) })
+    store.data_mut().reported = None;
+    Ok(WasmComponent { store, instance, inputs, budget, budget_ticks: budget_ticks(budget) })
+}
+
+/// An instance of the world its component was built against.
+enum Instance {
+    V2(bindings::Component),
+    V1(v1::bindings::Component),
 }
 
 /// A running WASM component: its store and instance.
 pub struct WasmComponent {
     store: Store<GuestState>,
-    instance: bindings::Component,
+    instance: Instance,
+    /// Kinds of the declared inputs, by index: a scan reaches a `vector`
+    /// input as its ranges.
+    inputs: Arc<[ValueKind]>,
     budget: Duration,
     budget_ticks: u64,
 }
 
 impl WasmComponent {
+    /// Prepares the store for a call at `now_ns`.
+    fn begin(&mut self, now_ns: u64) {
+        let state = self.store.data_mut();
+        state.now_ns = now_ns;
+        state.emits = 0;
+        state.reported = None;
+        self.store.set_epoch_deadline(self.budget_ticks);
+    }
+
+    /// Routes what the call emitted, or faults it; an error the component
+    /// reported (an `err` result in 0.1.0, `report` in 0.2.0) is returned
+    /// as [`CallError::Reported`] after routing.
     fn finish(
         &mut self,
         call: &'static str,
@@ -55,8 +91,13 @@ impl WasmComponent {
     ) -> Result<(), CallError> {
         match result {
             Ok(result) => {
-                out.append(&mut self.store.data_mut().outbox);
-                result.map_err(|message| CallError::Reported(truncate(message, MAX_GUEST_MESSAGE_BYTES)))
+                let state = self.store.data_mut();
+                out.append(&mut state.outbox);
+                let reported = result.err().or_else(|| state.reported.take());
+                match reported {
+                    Some(message) => Err(CallError::Reported(truncate(message, MAX_GUEST_MESSAGE_BYTES))),
+                    None => Ok(()),
+                }
             }
             Err(err) => {
                 // The call did not complete: what it emitted is not routed.
@@ -80,20 +121,25 @@ impl Component for WasmComponent {
         now_ns: u64,
         out: &mut Outbox,
     ) -> Result<(), CallError> {
-        let state = self.store.data_mut();
-        state.now_ns = now_ns;
-        state.emits = 0;
-        self.store.set_epoch_deadline(self.budget_ticks);
-        let result = self.instance.call_on_input(&mut self.store, port, value);
+        self.begin(now_ns);
+        let result = match &self.instance {
+            Instance::V2(instance) => match value {
+                Value::Scan(scan) if self.inputs.get(port as usize) == Some(&ValueKind::Vector) => {
+                    instance.call_on_input(&mut self.store, port, &Value::Vector(scan.ranges.clone())).map(Ok)
+                }
+                _ => instance.call_on_input(&mut self.store, port, value).map(Ok),
+            },
+            Instance::V1(instance) => instance.call_on_input(&mut self.store, port, &v1::value_to_v1(value)),
+        };
         self.finish("on-input", result, out)
     }
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
-        let state = self.store.data_mut();
-        state.now_ns = now_ns;
-        state.emits = 0;
-        self.store.set_epoch_deadline(self.budget_ticks);
-        let result = self.instance.call_tick(&mut self.store, now_ns);
+        self.begin(now_ns);
+        let result = match &self.instance {
+            Instance::V2(instance) => instance.call_tick(&mut self.store, now_ns).map(Ok),
+            Instance::V1(instance) => instance.call_tick(&mut self.store, now_ns),
+        };
         self.finish("tick", result, out)
     }
 }

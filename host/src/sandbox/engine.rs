@@ -16,14 +16,11 @@ use wasmtime::{Config, Engine, InstanceAllocationStrategy, PoolingAllocationConf
 use super::SandboxError;
 use super::cache::CompileCache;
 use super::component::{WasmComponent, instantiate_component};
-use super::guest::{
-    GuestLimits, GuestState, MAX_GUEST_MESSAGE_BYTES, budget_ticks, call_error, error_text, new_store, truncate,
-};
+use super::guest::{GuestLimits, GuestState, budget_ticks, call_error, error_text, new_store};
 use super::translator::WasmTranslator;
 use crate::config::limits::MAX_COMPONENTS;
-use crate::contract::bindings;
-use crate::contract::translator_bindings;
 use crate::contract::{Description, Param, ValueKind, check_description};
+use crate::contract::{bindings, translator_bindings, v1};
 use crate::runtime::Component;
 
 /// ticker thread's wake-up latency).
@@ -51,7 +48,39 @@ pub struct WasmArtifact {
     /// Hex sha256 of the `.wasm` bytes.
     pub sha256: String,
     pub description: Description,
-    pub(super) pre: bindings::ComponentPre<GuestState>,
+    /// The contract version the component was built against.
+    pub contract: Contract,
+    pub(super) pre: ComponentPre,
+}
+
+/// A version of the WIT contract `subsume:robot`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Contract {
+    /// `subsume:robot@0.1.0` (`wit/0.1.0/robot.wit`).
+    V0_1,
+    /// `subsume:robot@0.2.0` (`wit/robot.wit`).
+    V0_2,
+}
+
+impl Contract {
+    pub fn name(self) -> &'static str {
+        match self {
+            Contract::V0_1 => "0.1.0",
+            Contract::V0_2 => "0.2.0",
+        }
+    }
+}
+
+/// A component pre-linked against the world of its contract version.
+pub(super) enum ComponentPre {
+    V2(bindings::ComponentPre<GuestState>),
+    V1(v1::bindings::ComponentPre<GuestState>),
+}
+
+/// A translator pre-linked against the world of its contract version.
+pub(super) enum TranslatorPre {
+    V2(translator_bindings::TranslatorPre<GuestState>),
+    V1(v1::translator_bindings::TranslatorPre<GuestState>),
 }
 
 impl std::fmt::Debug for WasmArtifact {
@@ -63,7 +92,9 @@ impl std::fmt::Debug for WasmArtifact {
 /// A compiled, linked translator component.
 pub struct TranslatorArtifact {
     pub sha256: String,
-    pub(super) pre: translator_bindings::TranslatorPre<GuestState>,
+    /// The contract version the translator was built against.
+    pub contract: Contract,
+    pub(super) pre: TranslatorPre,
 }
 
 impl std::fmt::Debug for TranslatorArtifact {
@@ -116,6 +147,8 @@ impl Sandbox {
         wasmtime_wasi::p2::add_to_linker_sync(&mut linker).map_err(|e| SandboxError::Engine(e.to_string()))?;
         bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
             .map_err(|e| SandboxError::Engine(e.to_string()))?;
+        v1::bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
+            .map_err(|e| SandboxError::Engine(e.to_string()))?;
         let cache = CompileCache::new(&engine, cache_dir);
         let ticker = EpochTicker::start(engine.clone());
         Ok(Sandbox { engine, linker, cache, pooling, _ticker: ticker })
@@ -134,10 +167,22 @@ impl Sandbox {
         let sha256 = hex::encode(Sha256::digest(bytes));
         let component = self.cache.compile(&self.engine, &sha256, bytes)?;
         let instance_pre = self.linker.instantiate_pre(&component).map_err(|e| SandboxError::World(error_text(&e)))?;
-        let pre = bindings::ComponentPre::new(instance_pre).map_err(|e| SandboxError::World(error_text(&e)))?;
+        let pre = match bindings::ComponentPre::new(instance_pre.clone()) {
+            Ok(pre) => ComponentPre::V2(pre),
+            Err(as_v2) => match v1::bindings::ComponentPre::new(instance_pre) {
+                Ok(pre) => ComponentPre::V1(pre),
+                // Report against the current contract: that is what a new
+                // component is meant to fit.
+                Err(_) => return Err(SandboxError::World(error_text(&as_v2))),
+            },
+        };
         let description = self.describe(&pre)?;
         check_description(&description).map_err(SandboxError::BadDescription)?;
-        Ok(Arc::new(WasmArtifact { sha256, description, pre }))
+        let contract = match pre {
+            ComponentPre::V2(_) => Contract::V0_2,
+            ComponentPre::V1(_) => Contract::V0_1,
+        };
+        Ok(Arc::new(WasmArtifact { sha256, description, contract, pre }))
     }
 
     /// Checks that `bytes` are a component of the `translator` world and
@@ -147,9 +192,14 @@ impl Sandbox {
         let sha256 = hex::encode(Sha256::digest(bytes));
         let component = self.cache.compile(&self.engine, &sha256, bytes)?;
         let instance_pre = self.linker.instantiate_pre(&component).map_err(|e| SandboxError::World(error_text(&e)))?;
-        let pre = translator_bindings::TranslatorPre::new(instance_pre)
-            .map_err(|e| SandboxError::TranslatorWorld(error_text(&e)))?;
-        Ok(Arc::new(TranslatorArtifact { sha256, pre }))
+        let (contract, pre) = match translator_bindings::TranslatorPre::new(instance_pre.clone()) {
+            Ok(pre) => (Contract::V0_2, TranslatorPre::V2(pre)),
+            Err(as_v2) => match v1::translator_bindings::TranslatorPre::new(instance_pre) {
+                Ok(pre) => (Contract::V0_1, TranslatorPre::V1(pre)),
+                Err(_) => return Err(SandboxError::TranslatorWorld(error_text(&as_v2))),
+            },
+        };
+        Ok(Arc::new(TranslatorArtifact { sha256, contract, pre }))
     }
 
     /// A running translator named `name`, initialised with `params`.
@@ -160,29 +210,27 @@ impl Sandbox {
         limits: &GuestLimits,
         params: &[Param],
     ) -> Result<WasmTranslator, SandboxError> {
-        let budget = limits.budget;
-        let mut store = self.new_store(format!("{name}/translator").into(), limits, Arc::from([]));
-        store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
-        let instance =
-            artifact.pre.instantiate(&mut store).map_err(|e| call_error("instantiation", INIT_BUDGET, &e))?;
-        match instance.call_init(&mut store, params) {
-            Ok(Ok(())) => {}
-            Ok(Err(message)) => {
-                return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
-            }
-            Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
-        }
-        Ok(WasmTranslator { store, instance, budget, budget_ticks: budget_ticks(budget), malformed: 0, broken: None })
+        let store = self.new_store(format!("{name}/translator").into(), limits, Arc::from([]));
+        WasmTranslator::start(store, &artifact.pre, limits.budget, params)
     }
 
-    fn describe(&self, pre: &bindings::ComponentPre<GuestState>) -> Result<Description, SandboxError> {
+    fn describe(&self, pre: &ComponentPre) -> Result<Description, SandboxError> {
         let limits =
             GuestLimits { memory_bytes: DESCRIBE_MEMORY_BYTES, budget: DESCRIBE_BUDGET, ..GuestLimits::default() };
         let mut store = self.new_store("describe".into(), &limits, Arc::from([]));
         store.set_epoch_deadline(budget_ticks(DESCRIBE_BUDGET));
         let call = "instantiation for describe()";
-        let instance = pre.instantiate(&mut store).map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
-        instance.call_describe(&mut store).map_err(|e| call_error("describe()", DESCRIBE_BUDGET, &e))
+        let failed = |e| call_error("describe()", DESCRIBE_BUDGET, &e);
+        match pre {
+            ComponentPre::V2(pre) => {
+                let instance = pre.instantiate(&mut store).map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
+                instance.call_describe(&mut store).map_err(failed)
+            }
+            ComponentPre::V1(pre) => {
+                let instance = pre.instantiate(&mut store).map_err(|e| call_error(call, DESCRIBE_BUDGET, &e))?;
+                instance.call_describe(&mut store).map(v1::description_from_v1).map_err(failed)
+            }
+        }
     }
 
     /// A running instance of `artifact` named `name`, initialised with

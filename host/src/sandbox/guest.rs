@@ -14,6 +14,8 @@ use super::SandboxError;
 use super::engine::{EPOCH_TICK, MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE, MAX_TABLES_PER_STORE};
 use super::guest_output::GuestOutput;
 use crate::contract::bindings::subsume::robot as wit;
+use crate::contract::v1;
+use crate::contract::v1::bindings::subsume::robot as old;
 use crate::contract::{LogLevel, Value, ValueKind, kind_of};
 use crate::runtime::Outbox;
 
@@ -53,6 +55,8 @@ pub struct GuestState {
     pub(super) max_message_bytes: u64,
     /// Log lines per second, shared with stdout and stderr.
     pub(super) logs: LogBudget,
+    /// What the current call reported with `host.report` (0.2.0).
+    pub(super) reported: Option<String>,
 }
 
 impl WasiView for GuestState {
@@ -65,6 +69,46 @@ impl wit::types::Host for GuestState {}
 
 impl wit::host::Host for GuestState {
     fn emit(&mut self, port: u32, value: Value) -> wasmtime::Result<()> {
+        self.take_emit(port, value)
+    }
+
+    fn log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
+        self.write_log(level, message)
+    }
+
+    fn now_ns(&mut self) -> wasmtime::Result<u64> {
+        Ok(self.now_ns)
+    }
+
+    fn report(&mut self, message: String) -> wasmtime::Result<()> {
+        // Bounded like everything else a guest hands the host.
+        self.reported = Some(truncate(message, MAX_GUEST_MESSAGE_BYTES));
+        Ok(())
+    }
+}
+
+/// The host side of `subsume:robot@0.1.0`: the same functions, on 0.1.0's
+/// types.
+impl old::types::Host for GuestState {}
+
+impl old::host::Host for GuestState {
+    fn emit(&mut self, port: u32, value: old::types::Value) -> wasmtime::Result<()> {
+        self.take_emit(port, v1::value_from_v1(value))
+    }
+
+    fn log(&mut self, level: old::types::LogLevel, message: String) -> wasmtime::Result<()> {
+        self.write_log(v1::log_level_from_v1(level), message)
+    }
+
+    fn now_ns(&mut self) -> wasmtime::Result<u64> {
+        Ok(self.now_ns)
+    }
+}
+
+impl GuestState {
+    /// Checks an emitted value against the component's caps and declared
+    /// outputs, and keeps it for routing; a broken rule traps the guest.
+    fn take_emit(&mut self, port: u32, value: Value) -> wasmtime::Result<()> {
         self.emits += 1;
         if self.emits > self.max_emits {
             return Err(wasmtime::format_err!("emitted more than {} values in one call (max-emits)", self.max_emits));
@@ -92,7 +136,7 @@ impl wit::host::Host for GuestState {
         Ok(())
     }
 
-    fn log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
+    fn write_log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
         self.logs.take().map_err(wasmtime::Error::msg)?;
         let message = truncate(message, MAX_GUEST_MESSAGE_BYTES);
         let component = &*self.component;
@@ -104,10 +148,6 @@ impl wit::host::Host for GuestState {
             LogLevel::Error => tracing::error!(component, "{message}"),
         }
         Ok(())
-    }
-
-    fn now_ns(&mut self) -> wasmtime::Result<u64> {
-        Ok(self.now_ns)
     }
 }
 
@@ -182,6 +222,7 @@ fn value_bytes(value: &Value) -> u64 {
         Value::Vector(v) => 8 * v.len() as u64,
         Value::Text(t) | Value::Command(t) => t.len() as u64,
         Value::Bytes(b) => b.len() as u64,
+        Value::Scan(s) => 32 + 8 * s.ranges.len() as u64,
     }
 }
 
@@ -220,6 +261,7 @@ pub(super) fn new_store(
         max_emits: guest.max_emits,
         max_message_bytes: guest.max_message_bytes,
         logs,
+        reported: None,
     };
     let mut store = Store::new(engine, state);
     store.limiter(|state| &mut state.limits);

@@ -25,9 +25,9 @@ use thiserror::Error;
 
 pub use component::WasmComponent;
 pub use engine::{
-    DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, INIT_BUDGET, MAX_INSTANCES_PER_STORE, MAX_TABLES_PER_STORE,
-    MAX_WASM_STACK_BYTES, POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES, Sandbox, TranslatorArtifact, WasmArtifact,
-    check_component_header,
+    Contract, DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, INIT_BUDGET, MAX_INSTANCES_PER_STORE,
+    MAX_TABLES_PER_STORE, MAX_WASM_STACK_BYTES, POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES, Sandbox,
+    TranslatorArtifact, WasmArtifact, check_component_header,
 };
 pub use guest::{
     GuestLimits, HOSTCALL_FUEL_SLACK, LogBudget, MAX_COMPONENT_HANDLES, MAX_GUEST_MESSAGE_BYTES, MAX_RESOURCE_ENTRIES,

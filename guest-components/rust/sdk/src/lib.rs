@@ -22,10 +22,14 @@
 //! ```
 //!
 //! The SDK owns the wit-bindgen boilerplate: the bindings of the
-//! `subsume:robot/component` world, the one instance of the component's state
-//! and the export glue.
+//! `subsume:robot/component` world (`subsume:robot@0.2.0`), the one instance
+//! of the component's state and the export glue. An `Err` from `on_input` or
+//! `tick` reaches the host through `host.report`: it is logged and counted,
+//! and the component keeps running.
 
 #[doc(hidden)]
+// Generated: a `value` holding a `scan` flattens to many core arguments.
+#[allow(clippy::too_many_arguments)]
 pub mod bindings {
     wit_bindgen::generate!({
         world: "component",
@@ -37,6 +41,7 @@ pub mod bindings {
 }
 
 #[doc(hidden)]
+#[allow(clippy::too_many_arguments)]
 pub mod translator_bindings {
     wit_bindgen::generate!({
         world: "translator",
@@ -47,10 +52,10 @@ pub mod translator_bindings {
     });
 }
 
-pub use translator_bindings::subsume::robot::types::{Decoded, Feedback, Pose};
+pub use translator_bindings::subsume::robot::types::{Decoded, Feedback, LinkPlan, Pose, Scan as FeedbackScan};
 
 pub use bindings::subsume::robot::types::{
-    Description as RawDescription, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Value, ValueKind,
+    Description as RawDescription, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Scan, Value, ValueKind,
 };
 
 /// What a component implements. `describe` is static (called before `init`);
@@ -179,6 +184,12 @@ pub fn now_ns() -> u64 {
     bindings::subsume::robot::host::now_ns()
 }
 
+/// Tells the host the current call failed (the export glue does this with
+/// the `Err` of `on_input` and `tick`).
+pub fn report(message: &str) {
+    bindings::subsume::robot::host::report(message);
+}
+
 /// Exports `$component` (a type implementing [`Component`]) as the
 /// component's implementation of the `subsume:robot/component` world.
 #[macro_export]
@@ -201,17 +212,23 @@ macro_rules! component {
                 __SUBSUME_STATE.with(|cell| *cell.borrow_mut() = ::core::option::Option::Some(state));
                 ::core::result::Result::Ok(())
             }
-            fn on_input(port: u32, value: $crate::Value) -> ::core::result::Result<(), ::std::string::String> {
-                __SUBSUME_STATE.with(|cell| match cell.borrow_mut().as_mut() {
+            fn on_input(port: u32, value: $crate::Value) {
+                let result = __SUBSUME_STATE.with(|cell| match cell.borrow_mut().as_mut() {
                     ::core::option::Option::Some(state) => $crate::Component::on_input(state, port, value),
                     ::core::option::Option::None => ::core::result::Result::Err("on-input called before init".into()),
-                })
+                });
+                if let ::core::result::Result::Err(message) = result {
+                    $crate::report(&message);
+                }
             }
-            fn tick(now_ns: u64) -> ::core::result::Result<(), ::std::string::String> {
-                __SUBSUME_STATE.with(|cell| match cell.borrow_mut().as_mut() {
+            fn tick(now_ns: u64) {
+                let result = __SUBSUME_STATE.with(|cell| match cell.borrow_mut().as_mut() {
                     ::core::option::Option::Some(state) => $crate::Component::tick(state, now_ns),
                     ::core::option::Option::None => ::core::result::Result::Err("tick called before init".into()),
-                })
+                });
+                if let ::core::result::Result::Err(message) = result {
+                    $crate::report(&message);
+                }
             }
         }
 
@@ -229,6 +246,16 @@ pub trait Translator: Sized + 'static {
     fn encode(&mut self, command: &str) -> Result<Vec<u8>, String>;
     /// Feeds bytes from the controller; returns the feedback they complete.
     fn decode(&mut self, bytes: &[u8]) -> Decoded;
+    /// What the link sends on opening and closing the device, and how often
+    /// it calls `poll` (asked once, after `init`). The default: nothing.
+    fn link(&self) -> LinkPlan {
+        LinkPlan { opening: Vec::new(), poll_period_ms: 0, closing: Vec::new() }
+    }
+    /// Bytes to send at a poll (a sensor request, a keep-alive).
+    fn poll(&mut self, now_ns: u64) -> Vec<u8> {
+        let _ = now_ns;
+        Vec::new()
+    }
 }
 
 /// Exports `$translator` (a type implementing [`Translator`]) as the
@@ -259,6 +286,22 @@ macro_rules! translator {
                 __SUBSUME_TRANSLATOR.with(|cell| match cell.borrow_mut().as_mut() {
                     ::core::option::Option::Some(state) => $crate::Translator::encode(state, &command),
                     ::core::option::Option::None => ::core::result::Result::Err("encode called before init".into()),
+                })
+            }
+            fn link() -> $crate::LinkPlan {
+                __SUBSUME_TRANSLATOR.with(|cell| match cell.borrow().as_ref() {
+                    ::core::option::Option::Some(state) => $crate::Translator::link(state),
+                    ::core::option::Option::None => $crate::LinkPlan {
+                        opening: ::std::vec::Vec::new(),
+                        poll_period_ms: 0,
+                        closing: ::std::vec::Vec::new(),
+                    },
+                })
+            }
+            fn poll(now_ns: u64) -> ::std::vec::Vec<u8> {
+                __SUBSUME_TRANSLATOR.with(|cell| match cell.borrow_mut().as_mut() {
+                    ::core::option::Option::Some(state) => $crate::Translator::poll(state, now_ns),
+                    ::core::option::Option::None => ::std::vec::Vec::new(),
                 })
             }
             fn decode(bytes: ::std::vec::Vec<u8>) -> $crate::Decoded {
