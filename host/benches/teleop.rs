@@ -39,9 +39,9 @@ fn main() {
     <component name="arbiter" source="builtin:arbiter" rate="1"/>
     <component name="motors" source="builtin:serial" rate="1">
       <param name="device" value="{}"/>
-      <param name="min-interval" value="0.000001"/>
-      <param name="watchdog" value="1000"/>
-      <param name="refresh" value="1000"/>
+      <param name="min-interval" value="0.001"/>
+      <param name="watchdog" value="10"/>
+      <param name="refresh" value="10"/>
     </component>
     <connect from="teleop.cmd" to="arbiter.commands"/>
     <connect from="arbiter.cmd" to="motors.cmd"/>
@@ -62,14 +62,16 @@ fn main() {
     let host =
         std::thread::spawn(move || subsume::run::run(&options, host_shutdown).map(|_| ()).map_err(|e| e.to_string()));
 
-    let stream = (0..200)
-        .find_map(|_| {
-            TcpStream::connect(("127.0.0.1", port)).ok().or_else(|| {
-                std::thread::sleep(Duration::from_millis(20));
-                None
-            })
+    let stream = (0..200).find_map(|_| {
+        TcpStream::connect(("127.0.0.1", port)).ok().or_else(|| {
+            std::thread::sleep(Duration::from_millis(20));
+            None
         })
-        .expect("the host never listened");
+    });
+    let Some(stream) = stream else {
+        let why = if host.is_finished() { format!("{:?}", host.join()) } else { "it is still starting".into() };
+        panic!("the host never listened: {why}");
+    };
     stream.set_nodelay(true).unwrap();
     let mut writer = stream.try_clone().unwrap();
     let mut reader = BufReader::new(stream);
