@@ -57,12 +57,16 @@ pub enum FaultInjection {
     /// `panic-thread:SECONDS`: a thread outside the control loop panics
     /// this long after the loop started.
     PanicThread(Duration),
+    /// `hang-control:SECONDS`: the control thread blocks between two
+    /// cycles, for good, this long after the loop started (a stuck loop:
+    /// the stall watchdog's case, and a shutdown that cannot finish).
+    HangControl(Duration),
 }
 
 /// Why `SUBSUME_FAULT_INJECTION` did not parse.
 #[derive(Clone, Debug, PartialEq, Eq, Error)]
 #[error(
-    "SUBSUME_FAULT_INJECTION must be panic-control:SECONDS or panic-thread:SECONDS (a test-only setting), got '{0}'"
+    "SUBSUME_FAULT_INJECTION must be panic-control:SECONDS, panic-thread:SECONDS or hang-control:SECONDS (a test-only setting), got '{0}'"
 )]
 pub struct FaultInjectionError(String);
 
@@ -82,6 +86,7 @@ impl std::str::FromStr for FaultInjection {
         match what.trim() {
             "panic-control" => Ok(FaultInjection::PanicControl(after)),
             "panic-thread" => Ok(FaultInjection::PanicThread(after)),
+            "hang-control" => Ok(FaultInjection::HangControl(after)),
             _ => Err(bad()),
         }
     }
@@ -184,11 +189,13 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
     let control = std::thread::Builder::new()
         .name("subsume-control".into())
         .spawn(move || {
-            let panic_at_ns = match injected {
-                Some(FaultInjection::PanicControl(after)) => Some(clock.now_ns() + after.as_nanos() as u64),
+            let at = |after: Duration| clock.now_ns() + after.as_nanos() as u64;
+            let fault = match injected {
+                Some(FaultInjection::PanicControl(after)) => Some((at(after), false)),
+                Some(FaultInjection::HangControl(after)) => Some((at(after), true)),
                 _ => None,
             };
-            let mut cycle_hook = InjectPanic { inner: &mut hook, at_ns: panic_at_ns };
+            let mut cycle_hook = InjectFault { inner: &mut hook, fault };
             let stopped_by =
                 control_loop::run_watched(&mut graph, &clock, &shutdown, until_ns, &mut cycle_hook, Some(&heartbeat));
             (graph, hook, stopped_by, clock.now_ns())
@@ -199,19 +206,29 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
     joined
 }
 
-/// The cycle hook, and the control thread's injected panic when it is due.
-struct InjectPanic<'a> {
+/// The cycle hook, and the control thread's injected fault when it is due:
+/// (when, whether it hangs rather than panics).
+struct InjectFault<'a> {
     inner: &'a mut dyn CycleHook,
-    at_ns: Option<u64>,
+    fault: Option<(u64, bool)>,
 }
 
-impl CycleHook for InjectPanic<'_> {
+impl CycleHook for InjectFault<'_> {
     fn between_cycles(&mut self, graph: &mut Graph, now_ns: u64) {
-        if self.at_ns.is_some_and(|at| now_ns >= at) {
-            #[allow(clippy::panic)] // The test-only fault injection: a real panic on the control thread.
-            {
-                panic!("fault injection: the control thread panics");
+        match self.fault {
+            Some((at, true)) if now_ns >= at => {
+                tracing::warn!("fault injection: the control thread hangs");
+                loop {
+                    std::thread::sleep(Duration::from_secs(3600));
+                }
             }
+            Some((at, false)) if now_ns >= at => {
+                #[allow(clippy::panic)] // The test-only fault injection: a real panic on the control thread.
+                {
+                    panic!("fault injection: the control thread panics");
+                }
+            }
+            _ => {}
         }
         self.inner.between_cycles(graph, now_ns);
     }
