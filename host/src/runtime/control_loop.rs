@@ -163,7 +163,7 @@ pub fn run_watched(
 ) -> StopReason {
     let stopped_by = cycle(graph, clock, shutdown, until_ns, hook, heartbeat);
     // Building the report is not a stall.
-    graph.beat(None, Activity::Asleep);
+    graph.asleep();
     stopped_by
 }
 
@@ -202,7 +202,7 @@ fn cycle(
         }
         let now = clock.now_ns();
         if wake > now {
-            graph.beat(None, Activity::Asleep);
+            graph.asleep();
             if shutdown.wait(Duration::from_nanos(wake - now)) {
                 return StopReason::Requested;
             }

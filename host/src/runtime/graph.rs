@@ -180,7 +180,7 @@ impl Graph {
     /// Publishes what the control thread does now; returns the word the
     /// watchdog would declare stalled (0 without a heartbeat).
     #[inline]
-    pub fn beat(&mut self, node: Option<usize>, activity: Activity) -> u64 {
+    pub(super) fn beat(&mut self, node: Option<usize>, activity: Activity) -> u64 {
         match &self.heartbeat {
             Some(heartbeat) => {
                 self.beats = self.beats.wrapping_add(1);
@@ -190,20 +190,24 @@ impl Graph {
         }
     }
 
+    /// Tells the stall watchdog that the control thread is about to wait
+    /// (for the next tick, or for good): waiting is never a stall.
+    pub fn asleep(&mut self) {
+        self.beat(None, Activity::Asleep);
+    }
+
     /// Whether the watchdog declared the call published as `word` stalled.
     #[inline]
     fn stalled(&self, word: u64) -> bool {
         word != 0 && self.heartbeat.as_ref().is_some_and(|h| h.stalled(word))
     }
 
-    /// The fault reason of a call that held the loop for `held`.
-    fn stall_reason(&self, activity: Activity, held: std::time::Duration) -> String {
+    /// The fault reason of a call that held the loop for `held` (`None`: a
+    /// call the graph does not time, held at least the limit).
+    fn stall_reason(&self, activity: Activity, held: Option<std::time::Duration>) -> String {
         let limit = self.heartbeat.as_ref().map_or(0, |h| h.limit().as_millis());
-        format!(
-            "{} stalled the control loop: it held it for {} ms (the stall limit is {limit} ms)",
-            activity.name(),
-            held.as_millis()
-        )
+        let held = held.map_or_else(|| format!("at least {limit} ms"), |held| format!("{} ms", held.as_millis()));
+        format!("{} stalled the control loop: it held it for {held} (the stall limit is {limit} ms)", activity.name())
     }
 
     /// Adds a component with `outputs` output ports, ticked `rate_hz` times a
@@ -285,7 +289,7 @@ impl Graph {
                 self.nodes[index].component.poll(now_ns, &mut outbox);
                 if self.stalled(word) {
                     outbox.clear();
-                    let reason = self.stall_reason(Activity::Poll, self.heartbeat_limit());
+                    let reason = self.stall_reason(Activity::Poll, None);
                     self.fault(index, reason, now_ns);
                 }
                 self.route(index, &mut outbox);
@@ -295,10 +299,6 @@ impl Graph {
         // Polls are not timed: the next call starts its own clock.
         self.mark = None;
         self.deliver(now_ns);
-    }
-
-    fn heartbeat_limit(&self) -> std::time::Duration {
-        self.heartbeat.as_ref().map_or(std::time::Duration::ZERO, |h| h.limit())
     }
 
     /// Routes `value` as if component `from` had emitted it on `port`, and
@@ -385,7 +385,7 @@ impl Graph {
         if stalled {
             // The watchdog stopped the motors past this call: what it
             // emitted is stale, and the component is faulted.
-            result = Err(CallError::Fault(self.stall_reason(activity, started.elapsed())));
+            result = Err(CallError::Fault(self.stall_reason(activity, Some(started.elapsed()))));
         }
         let node = &mut self.nodes[index];
         match result {
@@ -418,7 +418,7 @@ impl Graph {
         // A call that held the loop past the limit is faulted even when the
         // watchdog's verdict came too late for it (or it slept through it).
         if !stalled && self.heartbeat.as_ref().is_some_and(|h| held >= h.limit()) {
-            let reason = self.stall_reason(activity, held);
+            let reason = self.stall_reason(activity, Some(held));
             self.fault(index, reason, now_ns);
         }
     }
@@ -440,7 +440,7 @@ impl Graph {
             let mut restarted = restarter();
             let held = started.elapsed();
             if self.stalled(word) || self.heartbeat.as_ref().is_some_and(|h| held >= h.limit()) {
-                restarted = Err(RestartError(self.stall_reason(Activity::Restart, held)));
+                restarted = Err(RestartError(self.stall_reason(Activity::Restart, Some(held))));
             }
             let node = &mut self.nodes[index];
             match restarted {

@@ -14,8 +14,9 @@
 //!
 //! Invariants: the watchdog never touches the graph, only the heartbeat and
 //! the motor stops the graph handed it; a stall is declared no sooner than
-//! `limit` after the watchdog first saw the call, and no later than
-//! `limit + limit / 4`; the loop sleeping is never a stall.
+//! `limit` after the call began, and one sampling period (`limit / 4`)
+//! later at most, plus however long the watchdog thread waits for a CPU;
+//! the loop sleeping is never a stall.
 
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};
