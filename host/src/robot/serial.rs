@@ -486,7 +486,7 @@ impl SerialLink {
             StopOutcome::Closed => {}
             StopOutcome::NotConnected => tracing::info!(
                 component = %self.name,
-                "{} is not connected: no final STOP could be sent (the controller's watchdog must stop it)",
+                "{} could not be opened for the final STOP (gone, or held by another link)",
                 self.settings.device.display()
             ),
             StopOutcome::Failed(why) => tracing::error!(component = %self.name, "the final STOP failed: {why}"),
