@@ -7,18 +7,23 @@
 //!   a 100-element vector;
 //! - chain throughput: values pushed through a chain of 8 relay guests,
 //!   counted as deliveries per second;
-//! - load from the compile cache, and instantiate + init from the loaded form.
+//! - load from the compile cache, and instantiate + init from the loaded form;
+//! - what the stall watchdog costs the hop: the same hop and chain with the
+//!   graph attached to a heartbeat and the watchdog thread sampling it,
+//!   interleaved with unwatched rounds in one run.
 //!
 //! Run: `cargo bench --bench hop` (BENCHMARKS.md records the figures).
 
 #[path = "../tests/support/mod.rs"]
 mod support;
 
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use subsume::config::Policy;
 use subsume::contract::Value;
-use subsume::runtime::{Component, Graph, Vacant};
+use subsume::runtime::stall::DEFAULT_STALL_LIMIT;
+use subsume::runtime::{Component, Graph, Heartbeat, StallWatchdog, Vacant};
 use subsume::sandbox::{GuestLimits, Sandbox};
 
 const BUDGET: Duration = Duration::from_millis(100);
@@ -66,7 +71,24 @@ fn percentile(sorted: &[u64], p: f64) -> u64 {
 }
 
 fn hop_latency(sandbox: &Sandbox, bytes: &[u8], label: &str, port: u32, value: Value, overhead: u64) {
+    let (p50, p99, samples) = hop_samples(sandbox, bytes, port, &value, overhead, None);
+    println!("hop latency, {label:<18} p50 {p50:>6} ns   p99 {p99:>6} ns   ({samples} samples)");
+}
+
+/// (p50, p99, samples) of the hop; with `watch`, the graph publishes its
+/// heartbeat there.
+fn hop_samples(
+    sandbox: &Sandbox,
+    bytes: &[u8],
+    port: u32,
+    value: &Value,
+    overhead: u64,
+    watch: Option<&Arc<Heartbeat>>,
+) -> (u64, u64, usize) {
     let (mut graph, source) = chain(sandbox, bytes, 1, port);
+    if let Some(heartbeat) = watch {
+        graph.attach(heartbeat);
+    }
     let samples = 200_000;
     for _ in 0..20_000 {
         graph.inject(source, port, value.clone(), 0);
@@ -78,12 +100,63 @@ fn hop_latency(sandbox: &Sandbox, bytes: &[u8], label: &str, port: u32, value: V
         graph.inject(source, port, v, 0);
         times.push((start.elapsed().as_nanos() as u64).saturating_sub(overhead));
     }
+    // Between rounds the bench, not a stuck call, holds the thread.
+    graph.asleep();
     times.sort_unstable();
+    (percentile(&times, 0.50), percentile(&times, 0.99), samples)
+}
+
+/// The hop and the chain with and without the stall watchdog (its
+/// heartbeat attached, its thread sampling), in alternating rounds.
+fn watchdog_cost(sandbox: &Sandbox, bytes: &[u8], overhead: u64) {
+    let heartbeat = Heartbeat::new(DEFAULT_STALL_LIMIT);
+    let watchdog = StallWatchdog::start(heartbeat.clone(), Box::new(|_| {})).unwrap();
+    let value = Value::Scalar(1.5);
+    let (mut plain, mut watched) = (Vec::new(), Vec::new());
+    for round in 0..4 {
+        let (p50, p99, _) = hop_samples(sandbox, bytes, 0, &value, overhead, None);
+        let (wp50, wp99, _) = hop_samples(sandbox, bytes, 0, &value, overhead, Some(&heartbeat));
+        println!(
+            "round {round}: hop, scalar: unwatched p50 {p50} ns p99 {p99} ns; watched p50 {wp50} ns p99 {wp99} ns"
+        );
+        plain.push(p50 as f64);
+        watched.push(wp50 as f64);
+    }
+    let (mut plain_rate, mut watched_rate) = (Vec::new(), Vec::new());
+    for round in 0..4 {
+        let rate = chain_rate(sandbox, bytes, None);
+        let watched_chain = chain_rate(sandbox, bytes, Some(&heartbeat));
+        println!("round {round}: chain of 8: unwatched {rate:.2} M/s; watched {watched_chain:.2} M/s");
+        plain_rate.push(rate);
+        watched_rate.push(watched_chain);
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     println!(
-        "hop latency, {label:<18} p50 {:>6} ns   p99 {:>6} ns   ({samples} samples)",
-        percentile(&times, 0.50),
-        percentile(&times, 0.99)
+        "stall watchdog: hop p50 watched/unwatched = {:.3}, chain throughput watched/unwatched = {:.3} (means of 4 rounds); stalls seen: {}",
+        mean(&watched) / mean(&plain),
+        mean(&watched_rate) / mean(&plain_rate),
+        watchdog.stalls()
     );
+}
+
+/// Deliveries per second (millions) through a chain of 8 relays.
+fn chain_rate(sandbox: &Sandbox, bytes: &[u8], watch: Option<&Arc<Heartbeat>>) -> f64 {
+    let relays = 8;
+    let (mut graph, source) = chain(sandbox, bytes, relays, 0);
+    if let Some(heartbeat) = watch {
+        graph.attach(heartbeat);
+    }
+    let values = 200_000u64;
+    for i in 0..10_000 {
+        graph.inject(source, 0, Value::Scalar(i as f64), 0);
+    }
+    let start = Instant::now();
+    for i in 0..values {
+        graph.inject(source, 0, Value::Scalar(i as f64), 0);
+    }
+    let rate = (values * (relays as u64 + 1)) as f64 / start.elapsed().as_secs_f64() / 1e6;
+    graph.asleep();
+    rate
 }
 
 /// The floor under a hop: one `on-input` call of the relay guest (which
@@ -176,5 +249,6 @@ fn main() {
     let unchecked = Sandbox::without_budgets_for_benchmarks(None).unwrap();
     hop_latency(&unchecked, &bytes, "scalar, no epochs", 0, Value::Scalar(1.5), overhead);
     throughput(&sandbox, &bytes);
+    watchdog_cost(&sandbox, &bytes, overhead);
     load_and_instantiate(&bytes);
 }

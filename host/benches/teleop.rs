@@ -57,6 +57,8 @@ fn main() {
         cache_dir: None,
         overrides: vec![],
         portal: None,
+        stall_limit: subsume::runtime::stall::DEFAULT_STALL_LIMIT,
+        fault_injection: None,
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -11,8 +11,9 @@ use subsume::assemble::{Loader, registry};
 use subsume::config::{self, ParamOverride};
 use subsume::contract::{Description, DescriptionDoc};
 use subsume::fsutil;
-use subsume::run::{PortalOptions, RunError, RunOptions};
+use subsume::run::{FaultInjection, PortalOptions, RunError, RunOptions};
 use subsume::runtime::control_loop::Shutdown;
+use subsume::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
 use subsume::sandbox::{Sandbox, read_component_file};
 
 #[derive(Parser)]
@@ -53,6 +54,11 @@ enum Command {
         /// without portal or store.
         #[arg(long, value_name = "ADDRESS|off", env = "SUBSUME_HTTP", default_value = "127.0.0.1:8080")]
         http: String,
+        /// The stall watchdog's limit: when one call holds the control loop
+        /// this long, every motor gets STOP and the component is faulted
+        /// (0.01 to 10).
+        #[arg(long, value_name = "SECONDS", default_value = "0.1")]
+        stall_limit: f64,
     },
     /// Manage the portal's users (stored in the store's users.json).
     User {
@@ -151,8 +157,8 @@ fn main() -> ExitCode {
     let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report, params, http } => portal_options(&http, store_dir, logs)
-            .and_then(|portal| run(config, duration, report, params, cache_dir, portal)),
+        Command::Run { config, duration, report, params, http, stall_limit } => portal_options(&http, store_dir, logs)
+            .and_then(|portal| run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit })),
         Command::User { action } => user(action, store_dir),
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
@@ -176,22 +182,53 @@ fn main() -> ExitCode {
     }
 }
 
-fn run(
-    config_path: PathBuf,
+/// `subsume run`'s arguments.
+struct RunArgs {
+    config: PathBuf,
     duration: Option<f64>,
-    report_path: Option<PathBuf>,
-    overrides: Vec<ParamOverride>,
+    report: Option<PathBuf>,
+    params: Vec<ParamOverride>,
     cache_dir: Option<PathBuf>,
     portal: Option<PortalOptions>,
-) -> anyhow::Result<ExitCode> {
+    stall_limit: f64,
+}
+
+fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
+    let RunArgs {
+        config: config_path,
+        duration,
+        report: report_path,
+        params: overrides,
+        cache_dir,
+        portal,
+        stall_limit,
+    } = args;
     let duration = match duration {
         None => None,
         Some(s) if s.is_finite() && s > 0.0 => Some(Duration::from_secs_f64(s)),
         Some(s) => bail!("--duration must be a positive number of seconds, got {s}"),
     };
+    let (min, max) = (MIN_STALL_LIMIT.as_secs_f64(), MAX_STALL_LIMIT.as_secs_f64());
+    if !(stall_limit.is_finite() && (min..=max).contains(&stall_limit)) {
+        bail!("--stall-limit must be between {min} and {max} seconds, got {stall_limit}");
+    }
+    let fault_injection = match std::env::var("SUBSUME_FAULT_INJECTION") {
+        Ok(text) if !text.is_empty() => Some(text.parse::<FaultInjection>()?),
+        _ => None,
+    };
+    // From here on a panic on any thread stops every motor, then exits.
+    subsume::run::stop_motors_on_panic();
     let shutdown = Shutdown::new();
     let signals = install_signal_handlers(shutdown.clone())?;
-    let options = RunOptions { config_path, duration, cache_dir, overrides, portal };
+    let options = RunOptions {
+        config_path,
+        duration,
+        cache_dir,
+        overrides,
+        portal,
+        stall_limit: Duration::from_secs_f64(stall_limit),
+        fault_injection,
+    };
     let result = subsume::run::run(&options, shutdown);
     signals.close();
     let report = match result {
@@ -416,7 +453,8 @@ fn default_cache_dir() -> Option<PathBuf> {
         .or_else(|| env("HOME").map(|d| d.join(".cache").join("subsume")))
 }
 
-/// SIGINT and SIGTERM request a clean shutdown; a second one exits at once.
+/// SIGINT and SIGTERM request a clean shutdown; a second one sends the
+/// final STOP on every serial link and exits at once (130).
 fn install_signal_handlers(shutdown: Shutdown) -> anyhow::Result<signal_hook::iterator::Handle> {
     use signal_hook::consts::{SIGINT, SIGTERM};
     let mut signals =
@@ -427,6 +465,9 @@ fn install_signal_handlers(shutdown: Shutdown) -> anyhow::Result<signal_hook::it
         .spawn(move || {
             for signal in signals.forever() {
                 if shutdown.is_requested() {
+                    for (name, outcome) in subsume::run::halt_every_motor() {
+                        eprintln!("second signal: serial link '{name}': {outcome}");
+                    }
                     eprintln!("second signal: exiting now");
                     std::process::exit(130);
                 }

@@ -1,7 +1,9 @@
 //! The composition root of `subsume run`: starts the sandbox, the store and
 //! the portal's runtime when asked, assembles the robot, runs the control
-//! loop on its own thread until a shutdown or the duration, and returns the
-//! final report. Nothing but `main.rs`, tests and benches imports this.
+//! loop on its own thread (with the stall watchdog beside it) until a
+//! shutdown or the duration, and returns the final report; it also holds the
+//! exits that cannot wait for the loop (the panic policy, halting every
+//! motor). Nothing but `main.rs`, tests and benches imports this.
 
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -15,8 +17,10 @@ use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::portal::{self, logs::LogRing};
 use crate::report::{self, Report};
-use crate::runtime::Graph;
+use crate::robot::serial::{HALT_WAIT, halt_every_link};
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
+use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
+use crate::runtime::{Graph, Heartbeat, StallWatchdog, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
 use crate::store::users::Directory;
 use crate::store::{Store, StoreError};
@@ -34,6 +38,58 @@ pub struct RunOptions {
     pub overrides: Vec<ParamOverride>,
     /// Serve the portal and run from the store; `None`: run the file alone.
     pub portal: Option<PortalOptions>,
+    /// How long one call may hold the control loop before the stall
+    /// watchdog stops the motors and faults the component (`--stall-limit`;
+    /// `runtime::stall::DEFAULT_STALL_LIMIT` unless set).
+    pub stall_limit: Duration,
+    /// Faults caused on purpose, for the tests only
+    /// (`SUBSUME_FAULT_INJECTION`, see ARCHITECTURE.md).
+    pub fault_injection: Option<FaultInjection>,
+}
+
+/// A fault the tests cause in the real binary, to check that every way out
+/// leaves the motors stopped. Read only from `SUBSUME_FAULT_INJECTION`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum FaultInjection {
+    /// `panic-control:SECONDS`: the control thread panics this long after
+    /// the loop started.
+    PanicControl(Duration),
+    /// `panic-thread:SECONDS`: a thread outside the control loop panics
+    /// this long after the loop started.
+    PanicThread(Duration),
+    /// `hang-control:SECONDS`: the control thread blocks between two
+    /// cycles, for good, this long after the loop started (a stuck loop:
+    /// the stall watchdog's case, and a shutdown that cannot finish).
+    HangControl(Duration),
+}
+
+/// Why `SUBSUME_FAULT_INJECTION` did not parse.
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+#[error(
+    "SUBSUME_FAULT_INJECTION must be panic-control:SECONDS, panic-thread:SECONDS or hang-control:SECONDS (a test-only setting), got '{0}'"
+)]
+pub struct FaultInjectionError(String);
+
+impl std::str::FromStr for FaultInjection {
+    type Err = FaultInjectionError;
+
+    fn from_str(text: &str) -> Result<FaultInjection, FaultInjectionError> {
+        let bad = || FaultInjectionError(crate::contract::clip(text));
+        let (what, seconds) = text.split_once(':').ok_or_else(bad)?;
+        let after = seconds
+            .trim()
+            .parse::<f64>()
+            .ok()
+            .filter(|s| s.is_finite() && *s >= 0.0 && *s <= 3600.0)
+            .map(Duration::from_secs_f64)
+            .ok_or_else(bad)?;
+        match what.trim() {
+            "panic-control" => Ok(FaultInjection::PanicControl(after)),
+            "panic-thread" => Ok(FaultInjection::PanicThread(after)),
+            "hang-control" => Ok(FaultInjection::HangControl(after)),
+            _ => Err(bad()),
+        }
+    }
 }
 
 /// Where the portal listens and where its store lives.
@@ -67,6 +123,13 @@ pub enum RunError {
     PortalRuntime(#[source] std::io::Error),
     #[error("the control loop thread failed: {0}")]
     ControlLoop(String),
+    #[error(
+        "the stall limit must be between {} and {} ms, got {} ms",
+        MIN_STALL_LIMIT.as_millis(),
+        MAX_STALL_LIMIT.as_millis(),
+        .0.as_millis()
+    )]
+    StallLimit(Duration),
 }
 
 impl From<DeployError> for RunError {
@@ -83,6 +146,9 @@ impl From<DeployError> for RunError {
 /// control loop until `shutdown` is requested or the duration passes, and
 /// returns the run's report.
 pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError> {
+    if !(MIN_STALL_LIMIT..=MAX_STALL_LIMIT).contains(&options.stall_limit) {
+        return Err(RunError::StallLimit(options.stall_limit));
+    }
     if let Some(portal) = &options.portal {
         return run_with_portal(options, portal, shutdown);
     }
@@ -98,30 +164,116 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     );
     let clock = Clock::new();
     let graph = assemble::build_graph(&config, &mut loader, clock, &shutdown.waker()).map_err(RunError::Start)?;
-    let (graph, _, stopped_by, ran_ns) =
-        run_control_thread(graph, clock, shutdown, options.duration, control_loop::NoHook)?;
+    let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
     Ok(final_report(&config, &graph, stopped_by, ran_ns))
 }
 
-/// Runs the control loop on its own thread, with `hook` between cycles,
-/// until a shutdown or `duration`; returns the graph, the hook, why it
-/// stopped and how long it ran (ns).
+/// Runs the control loop on its own thread, with `hook` between cycles and
+/// the stall watchdog beside it, until a shutdown or the duration; returns
+/// the graph, the hook, why it stopped and how long it ran (ns).
 fn run_control_thread<H: CycleHook + Send + 'static>(
     mut graph: Graph,
     clock: Clock,
     shutdown: Shutdown,
-    duration: Option<Duration>,
+    options: &RunOptions,
     mut hook: H,
 ) -> Result<(Graph, H, StopReason, u64), RunError> {
-    let until_ns = duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
+    let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
+    let heartbeat = Heartbeat::new(options.stall_limit);
+    let watchdog = StallWatchdog::start(heartbeat.clone(), Box::new(|_| {}))
+        .map_err(|e| RunError::ControlLoop(format!("cannot start the stall watchdog: {e}")))?;
+    let injected = options.fault_injection;
+    if let Some(FaultInjection::PanicThread(after)) = injected {
+        inject_thread_panic(after)?;
+    }
     let control = std::thread::Builder::new()
         .name("subsume-control".into())
         .spawn(move || {
-            let stopped_by = control_loop::run_with(&mut graph, &clock, &shutdown, until_ns, &mut hook);
+            let at = |after: Duration| clock.now_ns() + after.as_nanos() as u64;
+            let fault = match injected {
+                Some(FaultInjection::PanicControl(after)) => Some((at(after), false)),
+                Some(FaultInjection::HangControl(after)) => Some((at(after), true)),
+                _ => None,
+            };
+            let mut cycle_hook = InjectFault { inner: &mut hook, fault };
+            let stopped_by =
+                control_loop::run_watched(&mut graph, &clock, &shutdown, until_ns, &mut cycle_hook, Some(&heartbeat));
             (graph, hook, stopped_by, clock.now_ns())
         })
         .map_err(|e| RunError::ControlLoop(e.to_string()))?;
-    control.join().map_err(|_| RunError::ControlLoop("it panicked".into()))
+    let joined = control.join().map_err(|_| RunError::ControlLoop("it panicked".into()));
+    drop(watchdog);
+    joined
+}
+
+/// The cycle hook, and the control thread's injected fault when it is due:
+/// (when, whether it hangs rather than panics).
+struct InjectFault<'a> {
+    inner: &'a mut dyn CycleHook,
+    fault: Option<(u64, bool)>,
+}
+
+impl CycleHook for InjectFault<'_> {
+    fn between_cycles(&mut self, graph: &mut Graph, now_ns: u64) {
+        match self.fault {
+            Some((at, true)) if now_ns >= at => {
+                tracing::warn!("fault injection: the control thread hangs");
+                loop {
+                    std::thread::sleep(Duration::from_secs(3600));
+                }
+            }
+            Some((at, false)) if now_ns >= at => {
+                #[allow(clippy::panic)] // The test-only fault injection: a real panic on the control thread.
+                {
+                    panic!("fault injection: the control thread panics");
+                }
+            }
+            _ => {}
+        }
+        self.inner.between_cycles(graph, now_ns);
+    }
+}
+
+/// Starts a thread outside the control loop that panics after `after`.
+fn inject_thread_panic(after: Duration) -> Result<(), RunError> {
+    std::thread::Builder::new()
+        .name("fault-injection".into())
+        .spawn(move || {
+            std::thread::sleep(after);
+            #[allow(clippy::panic)] // The test-only fault injection: a real panic outside the loop.
+            {
+                panic!("fault injection: a thread outside the control loop panics");
+            }
+        })
+        .map(drop)
+        .map_err(|e| RunError::ControlLoop(format!("cannot start the fault injection: {e}")))
+}
+
+/// Sends the final STOP on every serial link of this process at once,
+/// without the control loop: for an exit that cannot wait for it (a second
+/// signal). Each link waits at most `robot::serial::HALT_WAIT` for its
+/// device.
+pub fn halt_every_motor() -> Vec<(String, StopOutcome)> {
+    halt_every_link(HALT_WAIT)
+}
+
+/// The panic policy of `subsume run`, for the binary to install: a panic on
+/// any thread first sends the final STOP on every serial link, then prints
+/// the panic as Rust does, then ends the process with exit code 101. After
+/// a panic the state of the run is unknown (a lock may be poisoned, a
+/// thread the loop relies on gone), so the robot does not go on under it;
+/// the run report is not written.
+pub fn stop_motors_on_panic() {
+    let previous = std::panic::take_hook();
+    std::panic::set_hook(Box::new(move |info| {
+        let outcomes = halt_every_link(HALT_WAIT);
+        previous(info);
+        for (name, outcome) in outcomes {
+            eprintln!("after the panic, serial link '{name}': {outcome}");
+        }
+        eprintln!("error: a thread panicked; the motors were told to stop; exiting");
+        std::process::exit(101);
+    }));
 }
 
 fn final_report(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, ran_ns: u64) -> Report {
@@ -184,7 +336,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         }
     });
     tracing::info!("portal on http://{address}/ (store {})", portal.store_dir.display());
-    let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options.duration, hook)?;
+    let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
     runtime.shutdown_timeout(Duration::from_secs(1));
     Ok(final_report(hook.config(), &graph, stopped_by, ran_ns))
 }

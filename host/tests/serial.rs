@@ -9,10 +9,11 @@ use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
 use subsume::contract::Value;
-use subsume::robot::protocol::Profile;
-use subsume::robot::serial::{LinkSettings, SerialLink};
-use subsume::robot::translator::{DriveGeometry, ProfileTranslator};
-use subsume::runtime::Component;
+use subsume::robot::control::ControlCommand;
+use subsume::robot::protocol::{Feedback, Profile};
+use subsume::robot::serial::{LinkError, LinkSettings, SerialLink};
+use subsume::robot::translator::{DriveGeometry, ProfileTranslator, TranslateError, Translator};
+use subsume::runtime::{Component, StopOutcome};
 
 const MS: u64 = 1_000_000;
 const WAIT: Duration = Duration::from_secs(5);
@@ -24,16 +25,36 @@ fn pty() -> (TTYPort, TTYPort, PathBuf) {
     (master, slave, path)
 }
 
-fn link(device: &Path, min_interval_ms: u64, watchdog_ms: u64, refresh_ms: u64) -> SerialLink {
-    let settings = LinkSettings {
+fn settings(device: &Path, min_interval_ms: u64, watchdog_ms: u64, refresh_ms: u64) -> LinkSettings {
+    LinkSettings {
         device: device.to_path_buf(),
         baud: 115_200,
         min_interval_ns: min_interval_ms * MS,
         watchdog_ns: watchdog_ms * MS,
         refresh_ns: refresh_ms * MS,
-    };
-    let translator = ProfileTranslator::new(Profile::Ascii, DriveGeometry { wheel_base: 0.3, max_wheel_speed: 1.0 });
-    SerialLink::start("motors", settings, Box::new(translator)).unwrap()
+    }
+}
+
+const GEOMETRY: DriveGeometry = DriveGeometry { wheel_base: 0.3, max_wheel_speed: 1.0 };
+
+fn link(device: &Path, min_interval_ms: u64, watchdog_ms: u64, refresh_ms: u64) -> SerialLink {
+    let translator = ProfileTranslator::new(Profile::Ascii, GEOMETRY);
+    SerialLink::start("motors", settings(device, min_interval_ms, watchdog_ms, refresh_ms), Box::new(translator))
+        .unwrap()
+}
+
+/// What has arrived at the master end by now (the PTY holds what was
+/// written; one read timeout of 20 ms ends the read).
+fn read_available(master: &mut TTYPort) -> Vec<u8> {
+    let mut bytes = Vec::new();
+    let mut buffer = [0u8; 256];
+    while let Ok(n) = master.read(&mut buffer) {
+        if n == 0 {
+            break;
+        }
+        bytes.extend_from_slice(&buffer[..n]);
+    }
+    bytes
 }
 
 fn wait_until(what: &str, mut condition: impl FnMut() -> bool) {
@@ -166,4 +187,134 @@ fn the_link_reconnects_when_the_far_end_closes_and_comes_back_and_replays_nothin
     command(&mut link, "STOP", 100 * MS);
     assert_eq!(read_lines(&mut master, 1), vec!["S"], "stale frames were replayed");
     assert!(link.status().frames_dropped_link >= 1);
+}
+
+/// The bytes `profile` puts on the wire for `command`.
+fn frame(profile: Profile, command: &str) -> Vec<u8> {
+    let mut out = Vec::new();
+    ProfileTranslator::new(profile, GEOMETRY).encode(&command.parse().unwrap(), &mut out).unwrap();
+    out
+}
+
+#[test]
+fn dropping_the_link_sends_stop_last_in_each_profile() {
+    for profile in [Profile::Ascii, Profile::Binary] {
+        let (mut master, _slave, path) = pty();
+        let translator = ProfileTranslator::new(profile, GEOMETRY);
+        let mut link = SerialLink::start("motors", settings(&path, 20, 10_000, 10_000), Box::new(translator)).unwrap();
+        wait_until("connected", || link.status().connected);
+        command(&mut link, "VEL 0.2 0", 0);
+        let moving = frame(profile, "VEL 0.2 0");
+        let mut wire = Vec::new();
+        wait_until("the command arrives", || {
+            wire.extend(read_available(&mut master));
+            wire.len() >= moving.len()
+        });
+        assert_eq!(wire, moving, "{profile:?}");
+        // The final STOP is written and drained before drop returns.
+        drop(link);
+        assert_eq!(read_available(&mut master), frame(profile, "STOP"), "{profile:?}");
+    }
+}
+
+#[test]
+fn stop_now_goes_out_at_once_and_the_link_then_holds_stop_until_a_new_command() {
+    let (mut master, _slave, path) = pty();
+    let mut link = link(&path, 20, 10_000, 100);
+    wait_until("connected", || link.status().connected);
+    command(&mut link, "VEL 0.2 0", 0);
+    assert_eq!(read_lines(&mut master, 1), vec!["M 200 200"]);
+    // From another thread, without a tick: the loop is not needed.
+    let stop = link.link_stop().clone();
+    let outcome = std::thread::spawn(move || stop.stop_now(Duration::from_millis(200))).join().unwrap();
+    assert_eq!(outcome, StopOutcome::Sent);
+    assert_eq!(read_available(&mut master), b"S\n");
+    // The refresh repeats STOP (one period after the loop saw it), not the
+    // command from before the stop.
+    tick(&mut link, 150 * MS);
+    tick(&mut link, 249 * MS);
+    tick(&mut link, 250 * MS);
+    assert_eq!(read_lines(&mut master, 1), vec!["S"]);
+    assert_eq!(link.status().emergency_stops, 1);
+    // A new command moves the motors again.
+    command(&mut link, "VEL 0.1 0", 300 * MS);
+    assert_eq!(read_lines(&mut master, 1), vec!["M 100 100"]);
+}
+
+#[test]
+fn a_faulted_link_sends_its_final_stop_and_nothing_after() {
+    let (mut master, _slave, path) = pty();
+    let mut link = link(&path, 20, 10_000, 100);
+    wait_until("connected", || link.status().connected);
+    command(&mut link, "VEL 0.2 0", 0);
+    assert_eq!(read_lines(&mut master, 1), vec!["M 200 200"]);
+    link.faulted();
+    assert_eq!(read_available(&mut master), b"S\n");
+    assert!(link.link_stop().is_halted());
+    assert_eq!(link.link_stop().stop_now(Duration::from_millis(200)), StopOutcome::Closed);
+    command(&mut link, "VEL 0.3 0", 100 * MS);
+    tick(&mut link, 200 * MS);
+    wait_until("the link let go of the device", || !link.status().connected);
+    assert_eq!(read_available(&mut master), b"", "nothing after the final STOP");
+    drop(link);
+    assert_eq!(read_available(&mut master), b"", "the final STOP goes out once");
+}
+
+#[test]
+fn the_final_stop_reaches_a_device_the_link_had_not_opened_yet() {
+    let dir = tempfile::tempdir().unwrap();
+    let device = dir.path().join("motor-controller");
+    let link = link(&device, 20, 10_000, 10_000);
+    // The device appears while the link waits in its reconnect backoff.
+    let (mut master, _slave, path) = pty();
+    std::os::unix::fs::symlink(&path, &device).unwrap();
+    drop(link);
+    assert_eq!(read_available(&mut master), b"S\n");
+}
+
+#[test]
+fn a_link_never_stops_a_device_another_link_holds() {
+    let (mut master, _slave, path) = pty();
+    let mut holder = link(&path, 20, 10_000, 10_000);
+    wait_until("connected", || holder.status().connected);
+    command(&mut holder, "VEL 0.2 0", 0);
+    assert_eq!(read_lines(&mut master, 1), vec!["M 200 200"]);
+    // A second link on the same device cannot open it (ports are opened
+    // exclusively), so its end must not reach the first one's motors.
+    let second = link(&path, 20, 10_000, 10_000);
+    assert_eq!(second.link_stop().halt(Duration::from_millis(200)), StopOutcome::NotConnected);
+    drop(second);
+    assert_eq!(read_available(&mut master), b"");
+    command(&mut holder, "VEL 0.1 0", 100 * MS);
+    assert_eq!(read_lines(&mut master, 1), vec!["M 100 100"]);
+}
+
+/// A translator for hardware without a STOP.
+struct NoStop;
+
+impl Translator for NoStop {
+    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        match command {
+            ControlCommand::Stop => Err(TranslateError::Refused("this controller has no stop".into())),
+            _ => {
+                out.extend_from_slice(b"go\n");
+                Ok(())
+            }
+        }
+    }
+    fn decode(&mut self, _bytes: &[u8], _out: &mut Vec<Feedback>) -> Result<(), TranslateError> {
+        Ok(())
+    }
+    fn malformed(&self) -> u64 {
+        0
+    }
+}
+
+#[test]
+fn a_translator_that_cannot_encode_stop_is_refused_before_the_device_opens() {
+    let (mut master, _slave, path) = pty();
+    let refused = SerialLink::start("motors", settings(&path, 20, 10_000, 10_000), Box::new(NoStop));
+    let Err(error @ LinkError::NoStopFrame(_)) = refused else { panic!("a link without STOP started") };
+    assert_eq!(error.to_string(), "the translator cannot encode STOP: this controller has no stop");
+    assert_eq!(read_available(&mut master), b"");
 }

@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use super::protocol::Profile;
-use super::serial::{LinkSettings, SerialLink};
+use super::serial::{LinkError, LinkSettings, SerialLink};
 use super::translator::{DriveGeometry, ProfileTranslator, Translator};
 use crate::builtin::{
     self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
@@ -185,8 +185,10 @@ impl Builtin for SerialBuiltin {
             }
         };
         let name = ctx.component()?.name.clone();
-        let link = SerialLink::start(&name, settings, translator)
-            .map_err(|e| BuiltinError::io("cannot start the serial thread", e))?;
+        let link = SerialLink::start(&name, settings, translator).map_err(|e| match e {
+            LinkError::Thread(source) => BuiltinError::io("cannot start the serial thread", source),
+            refused @ LinkError::NoStopFrame(_) => BuiltinError::Refused(refused.to_string()),
+        })?;
         Ok(Box::new(link))
     }
 }

@@ -12,17 +12,28 @@
 //! read; when it disappears the link treats the motors as stopped, discards
 //! queued frames (never replays stale commands), and reopens it with backoff.
 //!
+//! Stopping without the loop: the translator's STOP frame is encoded once,
+//! when the link starts (a translator that cannot encode STOP is refused).
+//! [`LinkStop`], shared with any thread, writes that frame straight to the
+//! device, past the queue, and drains it (`tcdrain`): `stop_now` for the
+//! stall watchdog (frames the loop made before it are never written; later
+//! ones are), `halt` for the end of the link (nothing is written after it).
+//! The link halts when it is dropped (every way the host ends a run, an
+//! activation that removes or replaces it) and when it faults; the panic
+//! hook and the second signal halt every live link ([`halt_every_link`]).
+//!
 //! Invariants: guest code never reaches the device: only this component
 //! writes to it, and only translator output; the control loop never blocks
-//! on the device (bounded channels, `try_send`).
+//! on the device (bounded channels, `try_send`); the last frame a link
+//! writes is its STOP.
 
 use std::io::{ErrorKind, Read, Write};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::{Arc, Mutex, mpsc};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError, TryLockError, Weak, mpsc};
 use std::thread::JoinHandle;
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
@@ -30,7 +41,7 @@ use super::control::{self, ControlCommand};
 use super::protocol::Feedback;
 use super::translator::{TranslateError, Translator};
 use crate::contract::Value;
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
 
 /// Frames waiting for the I/O thread; more means the device is stuck, and
 /// further frames are dropped (and counted) rather than queued.
@@ -41,6 +52,158 @@ pub const RX_QUEUE_CHUNKS: usize = 256;
 pub const READ_TIMEOUT: Duration = Duration::from_millis(50);
 /// First and longest wait between attempts to reopen a lost device.
 pub const RECONNECT_BACKOFF: (Duration, Duration) = (Duration::from_millis(50), Duration::from_secs(2));
+/// Longest a link that is closing waits for its device to take the final
+/// STOP: the writer holds the device for at most one frame, each write
+/// bounded by `READ_TIMEOUT`.
+pub const HALT_WAIT: Duration = Duration::from_millis(500);
+/// How often a thread waiting for the device looks again.
+const LOCK_POLL: Duration = Duration::from_micros(100);
+
+/// Why a link did not start.
+#[derive(Debug, thiserror::Error)]
+pub enum LinkError {
+    /// Without its STOP frame a link could not stop the motors on its way
+    /// out, so it does not start.
+    #[error("the translator cannot encode STOP: {0}")]
+    NoStopFrame(TranslateError),
+    #[error("cannot start the serial thread: {0}")]
+    Thread(#[source] std::io::Error),
+}
+
+/// A frame for the I/O thread, stamped with the stop generation it was
+/// made in: a stop from outside the loop makes older frames stale.
+struct Frame {
+    generation: u64,
+    bytes: Vec<u8>,
+}
+
+/// The part of a link any thread may use to stop its motors now, without
+/// the control loop (see the module's docs).
+pub struct LinkStop {
+    name: String,
+    device: PathBuf,
+    baud: u32,
+    /// The translator's STOP, encoded when the link started.
+    stop_frame: Vec<u8>,
+    /// The device's write side while the I/O thread holds it open.
+    port: Mutex<Option<serialport::TTYPort>>,
+    /// Bumped by every stop from outside the loop; frames made before it are
+    /// never written.
+    generation: AtomicU64,
+    /// Set by the final STOP: nothing is written after it.
+    halted: AtomicBool,
+    /// STOPs sent from outside the control loop (the stall watchdog).
+    emergency_stops: AtomicU64,
+}
+
+/// Takes `mutex` if it comes free before `deadline`. A poisoned lock is
+/// taken all the same: stopping the motors matters more than the panic
+/// that poisoned it.
+fn lock_within<T>(mutex: &Mutex<T>, deadline: Instant) -> Option<MutexGuard<'_, T>> {
+    loop {
+        match mutex.try_lock() {
+            Ok(guard) => return Some(guard),
+            Err(TryLockError::Poisoned(poisoned)) => return Some(poisoned.into_inner()),
+            Err(TryLockError::WouldBlock) if Instant::now() < deadline => std::thread::sleep(LOCK_POLL),
+            Err(TryLockError::WouldBlock) => return None,
+        }
+    }
+}
+
+impl LinkStop {
+    /// The STOP frame this link sends.
+    pub fn stop_frame(&self) -> &[u8] {
+        &self.stop_frame
+    }
+
+    fn write_stop(&self, port: &mut serialport::TTYPort) -> StopOutcome {
+        match port.write_all(&self.stop_frame).and_then(|()| port.flush()) {
+            Ok(()) => StopOutcome::Sent,
+            Err(e) => StopOutcome::Failed(format!("writing to {}: {e}", self.device.display())),
+        }
+    }
+
+    fn busy(&self, wait: Duration) -> StopOutcome {
+        StopOutcome::Failed(format!("{} stayed busy for {} ms", self.device.display(), wait.as_millis()))
+    }
+
+    /// Sends STOP now, ahead of the queue, and drains it to the device;
+    /// commands the loop makes afterwards still go out.
+    pub fn stop_now(&self, wait: Duration) -> StopOutcome {
+        if self.halted.load(Ordering::Acquire) {
+            return StopOutcome::Closed;
+        }
+        let Some(mut port) = lock_within(&self.port, Instant::now() + wait) else { return self.busy(wait) };
+        if self.halted.load(Ordering::Acquire) {
+            return StopOutcome::Closed;
+        }
+        self.generation.fetch_add(1, Ordering::AcqRel);
+        self.emergency_stops.fetch_add(1, Ordering::Relaxed);
+        match port.as_mut() {
+            Some(port) => self.write_stop(port),
+            None => StopOutcome::NotConnected,
+        }
+    }
+
+    /// Sends the final STOP: nothing is written after it. When the I/O
+    /// thread does not hold the device (still opening it, or in its
+    /// reconnect backoff), the device is opened once for the STOP; the
+    /// open fails while anyone else holds it (ports are opened exclusively),
+    /// so a link never stops a device another link drives.
+    pub fn halt(&self, wait: Duration) -> StopOutcome {
+        let Some(mut port) = lock_within(&self.port, Instant::now() + wait) else {
+            self.halted.store(true, Ordering::Release);
+            return self.busy(wait);
+        };
+        if self.halted.swap(true, Ordering::AcqRel) {
+            return StopOutcome::Closed;
+        }
+        self.generation.fetch_add(1, Ordering::AcqRel);
+        if let Some(port) = port.as_mut() {
+            return self.write_stop(port);
+        }
+        match serialport::new(self.device.to_string_lossy(), self.baud).timeout(READ_TIMEOUT).open_native() {
+            Ok(mut port) => self.write_stop(&mut port),
+            Err(_) => StopOutcome::NotConnected,
+        }
+    }
+
+    /// Whether the final STOP was sent (or tried).
+    pub fn is_halted(&self) -> bool {
+        self.halted.load(Ordering::Acquire)
+    }
+}
+
+impl MotorStop for LinkStop {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn stop_now(&self, wait: Duration) -> StopOutcome {
+        LinkStop::stop_now(self, wait)
+    }
+}
+
+/// Every link alive in this process, for the panic hook and the second
+/// signal.
+static LIVE_LINKS: Mutex<Vec<Weak<LinkStop>>> = Mutex::new(Vec::new());
+
+fn register(link: &Arc<LinkStop>) {
+    let mut live = LIVE_LINKS.lock().unwrap_or_else(PoisonError::into_inner);
+    live.retain(|l| l.strong_count() > 0);
+    live.push(Arc::downgrade(link));
+}
+
+/// Sends the final STOP on every live link of this process, waiting at most
+/// `wait` for each device: for the panic hook and an exit that cannot wait
+/// for the control loop. Returns each link's name and outcome.
+pub fn halt_every_link(wait: Duration) -> Vec<(String, StopOutcome)> {
+    let links: Vec<Arc<LinkStop>> = match lock_within(&LIVE_LINKS, Instant::now() + wait) {
+        Some(live) => live.iter().filter_map(Weak::upgrade).collect(),
+        None => return vec![("every link".into(), StopOutcome::Failed("the list of links stayed locked".into()))],
+    };
+    links.iter().map(|link| (link.name.clone(), link.halt(wait))).collect()
+}
 
 /// Settings of one link.
 #[derive(Clone, Debug, PartialEq)]
@@ -88,6 +251,8 @@ pub struct SerialStatus {
     pub malformed_feedback: u64,
     /// Commands the translator refused (e.g. GOTO to the motors).
     pub rejected_commands: u64,
+    /// STOPs sent from outside the control loop (the stall watchdog).
+    pub emergency_stops: u64,
 }
 
 /// The `builtin:serial` component.
@@ -95,9 +260,13 @@ pub struct SerialLink {
     name: String,
     settings: LinkSettings,
     translator: Box<dyn Translator>,
-    tx: SyncSender<Vec<u8>>,
+    tx: SyncSender<Frame>,
     rx: Receiver<Vec<u8>>,
     io: Arc<IoCounters>,
+    stop: Arc<LinkStop>,
+    /// The stop generation this side has seen: a newer one means a STOP went
+    /// out past the loop.
+    generation: u64,
     thread: Option<JoinHandle<()>>,
     /// The newest command and when it arrived.
     latest_at: Option<u64>,
@@ -115,18 +284,37 @@ pub struct SerialLink {
 pub const OUTPUTS: [&str; 4] = ["pose", "ranges", "bumper", "battery"];
 
 impl SerialLink {
-    /// Starts the link's I/O thread (which opens the device, retrying with
-    /// backoff until it appears).
-    pub fn start(name: &str, settings: LinkSettings, translator: Box<dyn Translator>) -> std::io::Result<SerialLink> {
+    /// Encodes the translator's STOP and starts the link's I/O thread (which
+    /// opens the device, retrying with backoff until it appears).
+    pub fn start(
+        name: &str,
+        settings: LinkSettings,
+        mut translator: Box<dyn Translator>,
+    ) -> Result<SerialLink, LinkError> {
+        let mut stop_frame = Vec::new();
+        translator.encode(&ControlCommand::Stop, &mut stop_frame).map_err(LinkError::NoStopFrame)?;
+        let stop = Arc::new(LinkStop {
+            name: name.to_string(),
+            device: settings.device.clone(),
+            baud: settings.baud,
+            stop_frame,
+            port: Mutex::new(None),
+            generation: AtomicU64::new(0),
+            halted: AtomicBool::new(false),
+            emergency_stops: AtomicU64::new(0),
+        });
         let (tx, tx_rx) = mpsc::sync_channel(TX_QUEUE_FRAMES);
         let (rx_tx, rx) = mpsc::sync_channel(RX_QUEUE_CHUNKS);
         let io = Arc::new(IoCounters::default());
         let thread_io = io.clone();
+        let thread_stop = stop.clone();
         let thread_settings = settings.clone();
         let label = name.to_string();
         let thread = std::thread::Builder::new()
             .name(format!("serial-{name}"))
-            .spawn(move || io_thread(&label, &thread_settings, &tx_rx, &rx_tx, &thread_io))?;
+            .spawn(move || io_thread(&label, &thread_settings, &thread_stop, &tx_rx, &rx_tx, &thread_io))
+            .map_err(LinkError::Thread)?;
+        register(&stop);
         let stats = SerialStatus { device: settings.device.display().to_string(), ..SerialStatus::default() };
         Ok(SerialLink {
             name: name.to_string(),
@@ -135,6 +323,8 @@ impl SerialLink {
             tx,
             rx,
             io,
+            stop,
+            generation: 0,
             thread: Some(thread),
             latest_at: None,
             pending: None,
@@ -144,6 +334,23 @@ impl SerialLink {
             frame: Vec::new(),
             stats,
         })
+    }
+
+    /// The handle that stops this link's motors from any thread.
+    pub fn link_stop(&self) -> &Arc<LinkStop> {
+        &self.stop
+    }
+
+    /// Takes in a STOP sent past the loop: the motors stand, so nothing
+    /// older than it is sent, and the refresh repeats STOP until a new
+    /// command arrives.
+    fn follow_outside_stops(&mut self, now_ns: u64) {
+        let generation = self.stop.generation.load(Ordering::Acquire);
+        if generation != self.generation {
+            self.generation = generation;
+            self.pending = None;
+            self.last_sent = Some((ControlCommand::Stop, now_ns));
+        }
     }
 
     /// Queues `command` for the rate limit.
@@ -171,7 +378,7 @@ impl SerialLink {
         }
         self.last_sent = Some((command, now_ns));
         self.stats.frames_sent += 1;
-        match self.tx.try_send(self.frame.clone()) {
+        match self.tx.try_send(Frame { generation: self.generation, bytes: self.frame.clone() }) {
             Ok(()) => {}
             Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => self.stats.frames_dropped_link += 1,
         }
@@ -205,6 +412,7 @@ impl SerialLink {
             bytes_read: self.io.bytes_read.load(Ordering::Relaxed),
             frames_dropped_link: self.stats.frames_dropped_link + self.io.frames_discarded.load(Ordering::Relaxed),
             malformed_feedback: self.translator.malformed(),
+            emergency_stops: self.stop.emergency_stops.load(Ordering::Relaxed),
             ..self.stats.clone()
         }
     }
@@ -224,6 +432,7 @@ impl Component for SerialLink {
         };
         let command =
             control::parse(text).map_err(|e| CallError::Reported(format!("ignored an invalid control string: {e}")))?;
+        self.follow_outside_stops(now_ns);
         self.stats.commands_in += 1;
         self.latest_at = Some(now_ns);
         if self.watchdog_tripped {
@@ -235,6 +444,7 @@ impl Component for SerialLink {
     }
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        self.follow_outside_stops(now_ns);
         self.emit_feedback(out)?;
         let stale = self.latest_at.is_none_or(|at| now_ns.saturating_sub(at) > self.settings.watchdog_ns);
         if stale && !self.watchdog_tripped && self.last_sent.is_some() {
@@ -255,10 +465,39 @@ impl Component for SerialLink {
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
         serde_json::to_value(SerialLink::status(self)).ok().map(|v| ("serial", v))
     }
+
+    fn faulted(&mut self) {
+        self.halt();
+    }
+
+    fn motor_stop(&self) -> Option<Arc<dyn MotorStop>> {
+        Some(self.stop.clone())
+    }
+}
+
+impl SerialLink {
+    /// Sends the final STOP (once) and logs what became of it.
+    fn halt(&self) {
+        if self.stop.is_halted() {
+            return;
+        }
+        match self.stop.halt(HALT_WAIT) {
+            StopOutcome::Sent => tracing::info!(component = %self.name, "final STOP sent to the motors"),
+            StopOutcome::Closed => {}
+            StopOutcome::NotConnected => tracing::info!(
+                component = %self.name,
+                "{} could not be opened for the final STOP (gone, or held by another link)",
+                self.settings.device.display()
+            ),
+            StopOutcome::Failed(why) => tracing::error!(component = %self.name, "the final STOP failed: {why}"),
+        }
+    }
 }
 
 impl Drop for SerialLink {
+    /// The final STOP goes out before the device closes.
     fn drop(&mut self) {
+        self.halt();
         self.io.stop.store(true, Ordering::Relaxed);
         if let Some(thread) = self.thread.take() {
             let _ = thread.join();
@@ -270,17 +509,19 @@ impl Drop for SerialLink {
 fn io_thread(
     name: &str,
     settings: &LinkSettings,
-    frames: &Receiver<Vec<u8>>,
+    stop: &LinkStop,
+    frames: &Receiver<Frame>,
     received: &SyncSender<Vec<u8>>,
     io: &IoCounters,
 ) {
     let mut backoff = RECONNECT_BACKOFF.0;
     let mut ever_connected = false;
     let mut warned = false;
-    while !io.stop.load(Ordering::Relaxed) {
+    // A halted link has sent its final STOP: it neither writes nor reopens.
+    while !io.stop.load(Ordering::Relaxed) && !stop.is_halted() {
         let opened =
             serialport::new(settings.device.to_string_lossy(), settings.baud).timeout(READ_TIMEOUT).open_native();
-        let mut port = match opened {
+        let port = match opened {
             Ok(port) => port,
             Err(err) => {
                 if !warned {
@@ -305,7 +546,7 @@ fn io_thread(
         warned = false;
         backoff = RECONNECT_BACKOFF.0;
         io.connected.store(true, Ordering::Relaxed);
-        let failure = run_connection(&mut port, frames, received, io);
+        let failure = run_connection(port, stop, frames, received, io);
         io.connected.store(false, Ordering::Relaxed);
         if let Some(why) = failure {
             tracing::warn!(
@@ -320,10 +561,12 @@ fn io_thread(
 
 /// Serves one open device until it fails (returns why) or a stop is asked:
 /// a reader thread feeds received bytes to the control loop while this
-/// thread writes frames.
+/// thread writes frames. The port's write side lives in `stop` meanwhile, so
+/// any thread can write the STOP frame.
 fn run_connection(
-    port: &mut serialport::TTYPort,
-    frames: &Receiver<Vec<u8>>,
+    port: serialport::TTYPort,
+    stop: &LinkStop,
+    frames: &Receiver<Frame>,
     received: &SyncSender<Vec<u8>>,
     io: &IoCounters,
 ) -> Option<String> {
@@ -331,13 +574,24 @@ fn run_connection(
         Ok(reader) => reader,
         Err(err) => return Some(format!("cannot clone the port for reading: {err}")),
     };
+    {
+        let mut slot = stop.port.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut port = port;
+        if stop.halted.load(Ordering::Acquire) {
+            // Halted while the device was opening: the final STOP is ours.
+            let _ = stop.write_stop(&mut port);
+            return None;
+        }
+        *slot = Some(port);
+    }
     let failed = Mutex::new(None::<String>);
     std::thread::scope(|scope| {
-        scope.spawn(|| read_loop(&mut reader, received, io, &failed));
-        if let Some(why) = write_loop(port, frames, io, &failed) {
+        scope.spawn(|| read_loop(&mut reader, stop, received, io, &failed));
+        if let Some(why) = write_loop(stop, frames, io, &failed) {
             set_failed(&failed, why);
         }
     });
+    drop(stop.port.lock().unwrap_or_else(PoisonError::into_inner).take());
     failed.into_inner().ok().flatten()
 }
 
@@ -352,22 +606,30 @@ fn is_failed(failed: &Mutex<Option<String>>) -> bool {
 }
 
 fn write_loop(
-    port: &mut serialport::TTYPort,
-    frames: &Receiver<Vec<u8>>,
+    stop: &LinkStop,
+    frames: &Receiver<Frame>,
     io: &IoCounters,
     failed: &Mutex<Option<String>>,
 ) -> Option<String> {
     loop {
-        if io.stop.load(Ordering::Relaxed) || is_failed(failed) {
+        if io.stop.load(Ordering::Relaxed) || stop.is_halted() || is_failed(failed) {
             return None;
         }
         match frames.recv_timeout(READ_TIMEOUT) {
             Ok(frame) => {
-                if let Err(err) = port.write_all(&frame).and_then(|()| port.flush()) {
+                let mut port = stop.port.lock().unwrap_or_else(PoisonError::into_inner);
+                // Under the lock a STOP from outside cannot slip in between
+                // this check and the write.
+                if stop.halted.load(Ordering::Acquire) || frame.generation != stop.generation.load(Ordering::Acquire) {
+                    io.frames_discarded.fetch_add(1, Ordering::Relaxed);
+                    continue;
+                }
+                let Some(port) = port.as_mut() else { return Some("the device was closed".into()) };
+                if let Err(err) = port.write_all(&frame.bytes).and_then(|()| port.flush()) {
                     return Some(format!("write failed: {err}"));
                 }
                 io.frames_written.fetch_add(1, Ordering::Relaxed);
-                io.bytes_written.fetch_add(frame.len() as u64, Ordering::Relaxed);
+                io.bytes_written.fetch_add(frame.bytes.len() as u64, Ordering::Relaxed);
             }
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => return None,
@@ -377,12 +639,13 @@ fn write_loop(
 
 fn read_loop(
     port: &mut serialport::TTYPort,
+    stop: &LinkStop,
     received: &SyncSender<Vec<u8>>,
     io: &IoCounters,
     failed: &Mutex<Option<String>>,
 ) {
     let mut buffer = [0u8; 1024];
-    while !io.stop.load(Ordering::Relaxed) && !is_failed(failed) {
+    while !io.stop.load(Ordering::Relaxed) && !stop.is_halted() && !is_failed(failed) {
         match port.read(&mut buffer) {
             Ok(0) => {
                 set_failed(failed, "the device closed".into());

@@ -2,6 +2,9 @@
 //! `Module`), implemented alike by WASM guests and native built-ins, the
 //! values a call emits ([`Outbox`]) and why a call failed ([`CallError`]).
 
+use std::sync::Arc;
+
+use super::stall::MotorStop;
 use crate::contract::Value;
 
 /// Values a component emitted during one call: (output port index, value).
@@ -54,6 +57,16 @@ pub trait Component: Send {
     /// others (the arbiter) react here; emitted values are routed.
     fn peer_faulted(&mut self, component: usize, now_ns: u64, out: &mut Outbox) {
         let _ = (component, now_ns, out);
+    }
+    /// This component has just faulted and will not be called again (until
+    /// a restart brings a fresh instance). A component that drives hardware
+    /// leaves it safe here (the serial link sends its final STOP).
+    fn faulted(&mut self) {}
+    /// The handle that stops this component's motors from any thread,
+    /// without the control loop (the stall watchdog uses it). Only
+    /// components that own a motor device have one.
+    fn motor_stop(&self) -> Option<Arc<dyn MotorStop>> {
+        None
     }
     /// Component `component` has been restarted after a fault.
     fn peer_restarted(&mut self, component: usize, now_ns: u64) {

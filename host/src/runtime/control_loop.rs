@@ -6,6 +6,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use super::Graph;
+use super::stall::{Activity, Heartbeat};
 
 /// Longest sleep when no component ticks: the loop still notices a shutdown
 /// at once (the condvar wakes it), this only bounds idle wake-ups.
@@ -145,6 +146,35 @@ pub fn run_with(
     until_ns: Option<u64>,
     hook: &mut dyn CycleHook,
 ) -> StopReason {
+    run_watched(graph, clock, shutdown, until_ns, hook, None)
+}
+
+/// Like [`run_with`], publishing the loop's pulse on `heartbeat` for a
+/// [`StallWatchdog`](super::StallWatchdog): every graph the loop runs
+/// (including one an activation swapped in) is attached before its first
+/// call, and the loop says when it sleeps.
+pub fn run_watched(
+    graph: &mut Graph,
+    clock: &Clock,
+    shutdown: &Shutdown,
+    until_ns: Option<u64>,
+    hook: &mut dyn CycleHook,
+    heartbeat: Option<&Arc<Heartbeat>>,
+) -> StopReason {
+    let stopped_by = cycle(graph, clock, shutdown, until_ns, hook, heartbeat);
+    // Building the report is not a stall.
+    graph.asleep();
+    stopped_by
+}
+
+fn cycle(
+    graph: &mut Graph,
+    clock: &Clock,
+    shutdown: &Shutdown,
+    until_ns: Option<u64>,
+    hook: &mut dyn CycleHook,
+    heartbeat: Option<&Arc<Heartbeat>>,
+) -> StopReason {
     loop {
         if shutdown.is_requested() {
             return StopReason::Requested;
@@ -153,7 +183,15 @@ pub fn run_with(
         if until_ns.is_some_and(|until| now >= until) {
             return StopReason::Duration;
         }
+        if let Some(heartbeat) = heartbeat {
+            graph.attach(heartbeat);
+            graph.beat(None, Activity::Cycle);
+        }
         hook.between_cycles(graph, now);
+        if let Some(heartbeat) = heartbeat {
+            // The hook may have swapped in a new graph.
+            graph.attach(heartbeat);
+        }
         graph.step(now);
         if graph.has_pending() {
             continue;
@@ -163,8 +201,11 @@ pub fn run_with(
             wake = wake.min(until);
         }
         let now = clock.now_ns();
-        if wake > now && shutdown.wait(Duration::from_nanos(wake - now)) {
-            return StopReason::Requested;
+        if wake > now {
+            graph.asleep();
+            if shutdown.wait(Duration::from_nanos(wake - now)) {
+                return StopReason::Requested;
+            }
         }
     }
 }

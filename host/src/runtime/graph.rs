@@ -18,7 +18,8 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 use std::time::Instant;
 
-use super::component::{CallError, Component, Outbox, Restarter, Vacant};
+use super::component::{CallError, Component, Outbox, RestartError, Restarter, Vacant};
+use super::stall::{Activity, Heartbeat};
 use super::wiring::{MAX_RESTART_BACKOFF_NS, Mailbox, Policy, RestartPolicy};
 use crate::contract::Value;
 
@@ -115,6 +116,10 @@ pub struct Graph {
     /// When the last call (and its routing) ended, within this cycle: the
     /// start of the next call's time, so a call costs one clock read.
     mark: Option<Instant>,
+    /// The stall watchdog's heartbeat, once the loop attached one.
+    heartbeat: Option<Arc<Heartbeat>>,
+    /// Numbers the heartbeat's words (wraps).
+    beats: u32,
 }
 
 impl Drop for Graph {
@@ -145,7 +150,64 @@ impl Graph {
             messages_dropped: 0,
             cycles: 0,
             mark: None,
+            heartbeat: None,
+            beats: 0,
         }
+    }
+
+    /// Publishes this graph's pulse on `heartbeat` (and tells it the
+    /// components' names and motor stops) unless it does already. The
+    /// control loop calls it every cycle: after an activation swapped the
+    /// graph, the new one is attached before its first call.
+    pub fn attach(&mut self, heartbeat: &Arc<Heartbeat>) {
+        if self.heartbeat.as_ref().is_some_and(|h| Arc::ptr_eq(h, heartbeat)) {
+            return;
+        }
+        self.beats = heartbeat.last_seq();
+        self.heartbeat = Some(heartbeat.clone());
+        self.publish_components();
+    }
+
+    /// Tells the heartbeat the components' names and motor stops.
+    fn publish_components(&self) {
+        if let Some(heartbeat) = &self.heartbeat {
+            let names = self.nodes.iter().map(|n| n.name.clone()).collect();
+            let stops = self.nodes.iter().filter_map(|n| n.component.motor_stop()).collect();
+            heartbeat.attach(names, stops);
+        }
+    }
+
+    /// Publishes what the control thread does now; returns the word the
+    /// watchdog would declare stalled (0 without a heartbeat).
+    #[inline]
+    pub(super) fn beat(&mut self, node: Option<usize>, activity: Activity) -> u64 {
+        match &self.heartbeat {
+            Some(heartbeat) => {
+                self.beats = self.beats.wrapping_add(1);
+                heartbeat.beat(self.beats, node, activity)
+            }
+            None => 0,
+        }
+    }
+
+    /// Tells the stall watchdog that the control thread is about to wait
+    /// (for the next tick, or for good): waiting is never a stall.
+    pub fn asleep(&mut self) {
+        self.beat(None, Activity::Asleep);
+    }
+
+    /// Whether the watchdog declared the call published as `word` stalled.
+    #[inline]
+    fn stalled(&self, word: u64) -> bool {
+        word != 0 && self.heartbeat.as_ref().is_some_and(|h| h.stalled(word))
+    }
+
+    /// The fault reason of a call that held the loop for `held` (`None`: a
+    /// call the graph does not time, held at least the limit).
+    fn stall_reason(&self, activity: Activity, held: Option<std::time::Duration>) -> String {
+        let limit = self.heartbeat.as_ref().map_or(0, |h| h.limit().as_millis());
+        let held = held.map_or_else(|| format!("at least {limit} ms"), |held| format!("{} ms", held.as_millis()));
+        format!("{} stalled the control loop: it held it for {held} (the stall limit is {limit} ms)", activity.name())
     }
 
     /// Adds a component with `outputs` output ports, ticked `rate_hz` times a
@@ -222,12 +284,20 @@ impl Graph {
         }
         for index in 0..self.nodes.len() {
             if self.nodes[index].state == ComponentState::Running {
+                let word = self.beat(Some(index), Activity::Poll);
                 let mut outbox = std::mem::take(&mut self.scratch);
                 self.nodes[index].component.poll(now_ns, &mut outbox);
+                if self.stalled(word) {
+                    outbox.clear();
+                    let reason = self.stall_reason(Activity::Poll, None);
+                    self.fault(index, reason, now_ns);
+                }
                 self.route(index, &mut outbox);
                 self.scratch = outbox;
             }
         }
+        // Polls are not timed: the next call starts its own clock.
+        self.mark = None;
         self.deliver(now_ns);
     }
 
@@ -302,13 +372,22 @@ impl Graph {
     /// time of its call and of routing what it emitted.
     fn call(&mut self, index: usize, now_ns: u64, input: Option<(u32, Value, usize)>) {
         let started = self.mark.take().unwrap_or_else(Instant::now);
+        let activity = if input.is_some() { Activity::OnInput } else { Activity::Tick };
+        let word = self.beat(Some(index), activity);
         let mut outbox = std::mem::take(&mut self.scratch);
         let node = &mut self.nodes[index];
-        let result = match &input {
+        let mut result = match &input {
             None => node.component.tick(now_ns, &mut outbox),
             Some((port, value, from)) => node.component.on_input(*port, value, *from, now_ns, &mut outbox),
         };
         node.stats.calls += 1;
+        let stalled = self.stalled(word);
+        if stalled {
+            // The watchdog stopped the motors past this call: what it
+            // emitted is stale, and the component is faulted.
+            result = Err(CallError::Fault(self.stall_reason(activity, Some(started.elapsed()))));
+        }
+        let node = &mut self.nodes[index];
         match result {
             Ok(()) => {}
             Err(CallError::Reported(message)) => {
@@ -316,10 +395,10 @@ impl Graph {
                 let quiet = node.last_error_log_ns.is_some_and(|t| now_ns.saturating_sub(t) < ERROR_LOG_INTERVAL_NS);
                 if !quiet {
                     node.last_error_log_ns = Some(now_ns);
-                    let call = if input.is_some() { "on-input" } else { "tick" };
                     tracing::warn!(
                         component = &*node.name,
-                        "{call} returned an error: {message} ({} so far)",
+                        "{} returned an error: {message} ({} so far)",
+                        activity.name(),
                         node.stats.errors
                     );
                 }
@@ -333,29 +412,47 @@ impl Graph {
         self.route(index, &mut outbox);
         self.scratch = outbox;
         let ended = Instant::now();
-        self.nodes[index].stats.call_ns += ended.duration_since(started).as_nanos() as u64;
+        let held = ended.duration_since(started);
+        self.nodes[index].stats.call_ns += held.as_nanos() as u64;
         self.mark = Some(ended);
+        // A call that held the loop past the limit is faulted even when the
+        // watchdog's verdict came too late for it (or it slept through it).
+        if !stalled && self.heartbeat.as_ref().is_some_and(|h| held >= h.limit()) {
+            let reason = self.stall_reason(activity, Some(held));
+            self.fault(index, reason, now_ns);
+        }
     }
 
     /// Restarts the faulted components whose restart is due.
     fn restart_due(&mut self, now_ns: u64) {
         for index in 0..self.nodes.len() {
             let node = &mut self.nodes[index];
-            if node.restart_at_ns.is_none_or(|at| at > now_ns) {
+            if node.restart_at_ns.is_none_or(|at| at > now_ns) || node.restart.is_none() {
                 continue;
             }
             node.restart_at_ns = None;
-            let Some((policy, restarter)) = node.restart.as_mut() else { continue };
             node.stats.restarts += 1;
             let attempt = node.stats.restarts;
-            match restarter() {
+            let word = self.beat(Some(index), Activity::Restart);
+            let started = Instant::now();
+            let Some((policy, restarter)) = self.nodes[index].restart.as_mut() else { continue };
+            let max_restarts = policy.max_restarts;
+            let mut restarted = restarter();
+            let held = started.elapsed();
+            if self.stalled(word) || self.heartbeat.as_ref().is_some_and(|h| held >= h.limit()) {
+                restarted = Err(RestartError(self.stall_reason(Activity::Restart, Some(held))));
+            }
+            let node = &mut self.nodes[index];
+            match restarted {
                 Ok(component) => {
-                    tracing::info!(component = &*node.name, "restarted (restart {attempt} of {})", policy.max_restarts);
+                    tracing::info!(component = &*node.name, "restarted (restart {attempt} of {max_restarts})");
                     node.component = component;
                     node.state = ComponentState::Running;
                     node.next_tick_ns = now_ns;
+                    self.publish_components();
                     for other in 0..self.nodes.len() {
                         if other != index && self.nodes[other].state == ComponentState::Running {
+                            self.beat(Some(other), Activity::PeerRestarted);
                             self.nodes[other].component.peer_restarted(index, now_ns);
                         }
                     }
@@ -396,6 +493,7 @@ impl Graph {
             return;
         }
         tracing::error!(component = &*node.name, "component faulted and is stopped: {reason}; the others keep running");
+        node.component.faulted();
         node.state = ComponentState::Faulted { reason, at_ns: now_ns };
         Self::schedule_restart(node, now_ns);
         for &connection in &node.incoming {
@@ -407,6 +505,7 @@ impl Graph {
         let mut outbox = Vec::new();
         for other in 0..self.nodes.len() {
             if other != index && self.nodes[other].state == ComponentState::Running {
+                self.beat(Some(other), Activity::PeerFaulted);
                 self.nodes[other].component.peer_faulted(index, now_ns, &mut outbox);
                 self.route(other, &mut outbox);
             }
@@ -536,5 +635,6 @@ impl Graph {
         if let Some(node) = self.nodes.get_mut(index) {
             node.component = component;
         }
+        self.publish_components();
     }
 }

@@ -1,6 +1,7 @@
 //! The runtime: components behind one trait ([`component`]), how they are
-//! wired ([`wiring`]), the graph that schedules them ([`graph`]) and the
-//! control loop that drives it in real time ([`control_loop`]).
+//! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
+//! control loop that drives it in real time ([`control_loop`]) and the
+//! watchdog outside it that stops the motors when it stalls ([`stall`]).
 //!
 //! Import rule: nothing here imports `config` or any built-in; the robot
 //! file's validator and the assembler feed the graph through the types of
@@ -9,8 +10,10 @@
 pub mod component;
 pub mod control_loop;
 pub mod graph;
+pub mod stall;
 pub mod wiring;
 
 pub use component::{CallError, Component, Outbox, Restarter, Vacant};
 pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
+pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
 pub use wiring::{Policy, PriorityCell, RestartPolicy};

@@ -47,12 +47,14 @@ pub fn cache_dir() -> PathBuf {
 }
 
 /// The far end of a pseudo-terminal playing a motor controller: records
-/// every line the host writes, with the time it arrived.
+/// every line the host writes, with the time it arrived, and every byte.
 pub struct MotorRecorder {
     master: serialport::TTYPort,
     pending: String,
     /// Each complete line and when it was read.
     pub lines: Vec<(std::time::Instant, String)>,
+    /// Every byte read, in order (binary protocols have no lines).
+    pub bytes: Vec<u8>,
 }
 
 impl MotorRecorder {
@@ -62,13 +64,14 @@ impl MotorRecorder {
         let (mut master, slave) = serialport::TTYPort::pair().unwrap_or_else(|e| panic!("no pseudo-terminal: {e}"));
         let _ = master.set_timeout(std::time::Duration::from_millis(10));
         let device = slave.name().unwrap_or_default();
-        (MotorRecorder { master, pending: String::new(), lines: Vec::new() }, slave, device)
+        (MotorRecorder { master, pending: String::new(), lines: Vec::new(), bytes: Vec::new() }, slave, device)
     }
 
     /// Reads what has arrived (waiting at most the port's 10 ms timeout).
     pub fn read(&mut self) {
         let mut buffer = [0u8; 256];
         if let Ok(n) = std::io::Read::read(&mut self.master, &mut buffer) {
+            self.bytes.extend_from_slice(&buffer[..n]);
             self.pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
             while let Some(end) = self.pending.find('\n') {
                 self.lines.push((std::time::Instant::now(), self.pending[..end].to_string()));
