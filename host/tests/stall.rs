@@ -228,7 +228,11 @@ fn a_loop_that_sleeps_between_ticks_is_not_stalled() {
     let (graph, stalls) = run_watched(graph, Duration::from_millis(2500), Box::new(NoHook));
     assert_eq!(stalls, vec![]);
     assert_eq!(graph.state(ticker), Some(&ComponentState::Running));
-    assert_eq!(graph.stats(ticker).unwrap().ticks, 3);
+    // Ticks at 0, 1 and 2 s; on a loaded machine the run may start late
+    // and end before the third. What matters is that it ticked and was
+    // never taken for a stall.
+    let ticks = graph.stats(ticker).unwrap().ticks;
+    assert!((2..=3).contains(&ticks), "{ticks} ticks in 2.5 s at 1 Hz");
 }
 
 /// Swaps in `next` at `at_ns`, as an activation does.
