@@ -277,6 +277,11 @@ fn the_portal_teleoperation_and_metrics_speak_tls() {
     assert!(lines.iter().any(|l| l.starts_with("OK ")), "{lines:?}");
     assert!(lines.iter().any(|l| l.starts_with("MODE direct")), "{lines:?}");
 
+    // Every scrape counts afresh: the loop's cycles go on.
+    std::thread::sleep(Duration::from_millis(500));
+    let again = peer(&["metrics", &url, ca], &[]);
+    let cycles = |m: &Value| sample(m, "subsume_loop_cycles", "subsume_loop_cycles_total", &[]).unwrap();
+    assert!(cycles(&again) > cycles(&metrics), "{} then {}", cycles(&metrics), cycles(&again));
     let m = &metrics;
     let avoid = [("component", "avoid"), ("platform", "control")];
     assert_eq!(m["families"]["subsume_component_calls"]["type"], "counter");

@@ -171,6 +171,17 @@ async fn live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
     }
 }
 
+/// The next live status the control loop publishes (the last one may be
+/// old: the loop publishes only while someone is subscribed). It comes
+/// within one cycle, or `deploy::LIVE_PERIOD` while others watch; after a
+/// second without one, the last.
+async fn fresh_live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
+    let mut live = state.deployer.live().subscribe();
+    live.borrow_and_update();
+    let _ = tokio::time::timeout(Duration::from_secs(1), live.changed()).await;
+    live.borrow().clone()
+}
+
 pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
     let current = live_status(&state).await;
     Json(serde_json::to_value(&*current).unwrap_or_default())
@@ -192,7 +203,7 @@ pub(super) async fn metrics(
         )
         .into_response();
     }
-    let current = live_status(&state).await;
+    let current = fresh_live_status(&state).await;
     let Some(status) = current.as_ref() else {
         return ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "the control loop has not published a status yet")
             .into_response();
