@@ -328,6 +328,76 @@ fn the_portal_teleoperation_and_metrics_speak_tls() {
 }
 
 #[test]
+fn the_keyboard_client_speaks_tls() {
+    let pki = make_pki();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let (cert, key) = (pki.cert.to_str().unwrap(), pki.key.to_str().unwrap());
+    let host = start(
+        &store,
+        &["--http", "off", "--tls-cert", cert, "--tls-key", key, "--duration", "60"],
+        &["teleoperation on tls "],
+    );
+    let address = host.address("teleoperation on tls ");
+    // Another CA's certificate is refused, before the terminal is touched.
+    let other = make_pki();
+    let refused = run_to_end(
+        subsume(&store)
+            .args(["teleop", &address, "--name", OPERATOR.0, "--token", OPERATOR.1])
+            .args(["--tls-ca", other.ca.to_str().unwrap()]),
+    );
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(stderr.contains(&format!("error: TLS with {address} failed: invalid peer certificate")), "{stderr}");
+    // The right CA: `script` gives the client a real terminal; it logs in,
+    // is measured, gets direct mode, and quits on q.
+    let client = format!(
+        "{} teleop {address} --name {} --token {} --tls-ca {}",
+        env!("CARGO_BIN_EXE_subsume"),
+        OPERATOR.0,
+        OPERATOR.1,
+        pki.ca.display()
+    );
+    let mut terminal = Command::new("script")
+        .args(["-qfec", &client, "/dev/null"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("script (from bsdutils) runs the client in a pseudo-terminal");
+    let mut keys = terminal.stdin.take().unwrap();
+    let mut screen_out = terminal.stdout.take().unwrap();
+    let (screen_tx, screen) = mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        use std::io::Read as _;
+        let mut buffer = [0u8; 4096];
+        while let Ok(n) = screen_out.read(&mut buffer) {
+            if n == 0 || screen_tx.send(String::from_utf8_lossy(&buffer[..n]).into_owned()).is_err() {
+                break;
+            }
+        }
+    });
+    let mut seen = String::new();
+    for text in ["mode direct", "rtt "] {
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while !seen.contains(text) {
+            assert!(std::time::Instant::now() < deadline, "the client never showed {text:?}: {seen:?}");
+            if let Ok(chunk) = screen.recv_timeout(Duration::from_millis(100)) {
+                seen.push_str(&chunk);
+            }
+        }
+    }
+    keys.write_all(b"q").unwrap();
+    keys.flush().unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while terminal.try_wait().unwrap().is_none() {
+        assert!(std::time::Instant::now() < deadline, "the client did not quit");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(terminal.wait().unwrap().success());
+}
+
+#[test]
 fn the_portal_works_in_a_real_browser_over_https() {
     let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
     assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");

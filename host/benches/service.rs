@@ -283,20 +283,12 @@ fn main() -> Result<(), String> {
         .map_err(|e| e.to_string())?;
     add.stdin.take().ok_or("no stdin")?.write_all(format!("{PASSWORD}\n").as_bytes()).map_err(|e| e.to_string())?;
     add.wait().map_err(|e| e.to_string())?;
-    let mut roots = rustls::RootCertStore::empty();
-    use rustls::pki_types::pem::PemObject as _;
-    let ca = rustls::pki_types::CertificateDer::from_pem_file(dir.path().join("ca.pem")).map_err(|e| e.to_string())?;
-    roots.add(ca).map_err(|e| e.to_string())?;
-    let config = rustls::ClientConfig::builder_with_provider(Arc::new(rustls::crypto::ring::default_provider()))
-        .with_safe_default_protocol_versions()
-        .map_err(|e| e.to_string())?
-        .with_root_certificates(roots)
-        .with_no_client_auth();
+    let config = subsume::tls::client_config(&dir.path().join("ca.pem")).map_err(|e| e.to_string())?;
     let avoider = std::fs::read(repo().join("guest-components/rust/target/wasm32-wasip2/release/avoider.wasm"))
         .map_err(|e| format!("build the guests first (scripts/setup): {e}"))?;
     let seconds: u64 = std::env::var("SERVICE_BENCH_SECONDS").ok().and_then(|s| s.parse().ok()).unwrap_or(15);
     for (label, tls) in [("http", false), ("https", true)] {
-        let client = Client { tls: tls.then(|| Arc::new(config.clone())) };
+        let client = Client { tls: tls.then(|| config.clone()) };
         let host = start(&store, &dir.path().join("cache"), tls.then_some(dir.path()))?;
         let login = serde_json::json!({ "name": "bench", "password": PASSWORD }).to_string();
         let (_, body) = client.request(&host.portal, "POST", "/api/v1/login", "", login.as_bytes())?;

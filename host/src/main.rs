@@ -94,6 +94,9 @@ enum Command {
         /// Operator token (or set SUBSUME_TOKEN).
         #[arg(long, env = "SUBSUME_TOKEN", hide_env_values = true)]
         token: String,
+        /// Speak TLS to a host with a certificate, trusting this CA (PEM).
+        #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_CA")]
+        tls_ca: Option<PathBuf>,
     },
     /// Print what a component declares: ports, parameters, default
     /// priority. COMPONENT is a .wasm file or builtin:KIND (with its
@@ -184,8 +187,8 @@ fn main() -> ExitCode {
                 ExitCode::SUCCESS
             })
             .map_err(anyhow::Error::from),
-        Command::Teleop { address, name, token } => {
-            let options = subsume::teleop::client::ClientOptions { address, name, token };
+        Command::Teleop { address, name, token, tls_ca } => {
+            let options = subsume::teleop::client::ClientOptions { address, name, token, tls_ca };
             subsume::teleop::client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::from)
         }
     };

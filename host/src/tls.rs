@@ -142,6 +142,27 @@ impl TlsIdentity {
     }
 }
 
+/// A client configuration trusting the CA certificates in `ca` (PEM) and
+/// nothing else: for `subsume teleop --tls-ca` and the benchmarks.
+pub fn client_config(ca: &Path) -> Result<Arc<rustls::ClientConfig>, TlsError> {
+    let pem = read_pem("CA certificate", ca)?;
+    let mut roots = rustls::RootCertStore::empty();
+    for cert in CertificateDer::pem_reader_iter(BufReader::new(pem.as_slice())) {
+        let cert = cert.map_err(|e| TlsError::Pem { path: ca.into(), why: format!("not a PEM certificate: {e}") })?;
+        roots.add(cert).map_err(|e| TlsError::Pem { path: ca.into(), why: format!("not a CA certificate: {e}") })?;
+    }
+    if roots.is_empty() {
+        return Err(TlsError::NoCertificate { path: ca.into() });
+    }
+    let provider = Arc::new(rustls::crypto::ring::default_provider());
+    let config = rustls::ClientConfig::builder_with_provider(provider)
+        .with_safe_default_protocol_versions()
+        .map_err(|e| TlsError::Pem { path: ca.into(), why: e.to_string() })?
+        .with_root_certificates(roots)
+        .with_no_client_auth();
+    Ok(Arc::new(config))
+}
+
 /// The owner's transport settings, shared by every listener of the host
 /// (the portal, and each network platform through `builtin::Services`).
 #[derive(Clone, Debug, Default)]
