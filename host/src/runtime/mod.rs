@@ -18,4 +18,4 @@ pub use component::{CallError, Component, Outbox, Restarter, Vacant};
 pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use histogram::Histogram;
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
-pub use wiring::{Policy, PriorityCell, RestartPolicy};
+pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};
