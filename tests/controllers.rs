@@ -395,7 +395,7 @@ fn the_demo_runs_as_a_create2_and_reaches_its_goal_without_collisions() {
     let dir = tempfile::tempdir().unwrap();
     let report_path = dir.path().join("report.json");
     let output = subsume()
-        .args(["run", "config/demo-create2.xml", "--duration", "60", "--report", report_path.to_str().unwrap()])
+        .args(["run", "config/demo-create2.xml", "--duration", "50", "--report", report_path.to_str().unwrap()])
         .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"])
         .output()
         .unwrap();
