@@ -376,6 +376,115 @@ fn xor(text: &str) -> u8 {
     text.bytes().fold(0, |x, b| x ^ b)
 }
 
+/// A Create 2 stream frame of `packets` (id, data...), with its checksum.
+fn create2_frame(packets: &[u8]) -> Vec<u8> {
+    let mut frame = vec![19, packets.len() as u8];
+    frame.extend_from_slice(packets);
+    let sum = frame.iter().fold(0u8, |s, b| s.wrapping_add(*b));
+    frame.push(0u8.wrapping_sub(sum));
+    frame
+}
+
+#[test]
+fn create2_counts_wrap_garbage_is_skipped_and_a_silent_stream_is_asked_for_again() {
+    let sandbox = sandbox();
+    let mut create2 = translator(&sandbox, "translator-create2", &[("wheel-base", "0.235"), ("origin-x", "1")]);
+    let plan = Translator::plan(&create2);
+    let opening = vec![128, 131, 148, 10, 7, 22, 43, 44, 46, 47, 48, 49, 50, 51];
+    assert_eq!(
+        (plan.opening.clone(), plan.closing.clone(), plan.poll_period_ns),
+        (opening.clone(), vec![150, 0, 173], 1_000_000_000)
+    );
+    // Right 0.3 m/s then left -0.1 m/s, big-endian mm/s; STOP is zeros.
+    assert_eq!(encode_bytes(&mut create2, "VEL 0.1 1.7021"), [145, 0x01, 0x2C, 0xFF, 0x9C]);
+    assert_eq!(encode_bytes(&mut create2, "STOP"), [145, 0, 0, 0, 0]);
+    // Counts just below the wrap, then 2 past it on both wheels: forward
+    // 2 counts, from the origin option.
+    let first = create2_frame(&[43, 0xFF, 0xFF, 44, 0xFF, 0xFF]);
+    let second = create2_frame(&[43, 0x00, 0x01, 44, 0x00, 0x01]);
+    let mut bytes = b"\x13garbage".to_vec();
+    bytes.extend(&first);
+    bytes.extend([19, 6, 43, 0, 0, 44, 0, 0, 0x99]); // a bad checksum
+    bytes.extend(&second);
+    let mut feedback = Vec::new();
+    // In chunks of three bytes: frames straddle the calls.
+    for chunk in bytes.chunks(3) {
+        feedback.extend(decode(&mut create2, chunk));
+    }
+    let step = 2.0 * std::f64::consts::PI * 0.072 / 508.8;
+    assert_eq!(feedback[0], Feedback::Odometry { x: 1.0, y: 0.0, heading: 0.0 });
+    let Feedback::Odometry { x, y, heading } = feedback[1] else { panic!("{feedback:?}") };
+    assert!((x - 1.0 - step).abs() < 1e-12 && y == 0.0 && heading == 0.0, "{feedback:?}");
+    assert_eq!(feedback.len(), 2);
+    assert!(Translator::malformed(&create2) >= 2);
+    // The first poll arms; a frame since keeps the next quiet; silence
+    // until the one after asks for the stream again.
+    assert_eq!(poll_bytes(&mut create2), b"");
+    decode(&mut create2, &first);
+    assert_eq!(poll_bytes(&mut create2), b"");
+    assert_eq!(poll_bytes(&mut create2), opening);
+}
+
+#[test]
+fn roboclaw_acks_and_encoder_answers_that_start_with_ff_are_told_apart() {
+    let sandbox = sandbox();
+    let params = [("wheel-base", "0.3"), ("counts-per-metre", "1000"), ("address", "129")];
+    let mut claw = translator(&sandbox, "translator-roboclaw", &params);
+    assert_eq!(poll_bytes(&mut claw), [129, 78]);
+    // An ACK, then the answer: counters -1 and -1 (they start with FF).
+    let answer = |m1: i32, m2: i32| {
+        let mut data = vec![129, 78];
+        data.extend(m1.to_be_bytes());
+        data.extend(m2.to_be_bytes());
+        let crc = crc16(&data);
+        data.extend(crc.to_be_bytes());
+        data.split_off(2)
+    };
+    let mut bytes = vec![0xFF];
+    bytes.extend(answer(-1, -1));
+    // Byte by byte: the decoder waits for a whole answer before taking FF.
+    let mut feedback = Vec::new();
+    for byte in &bytes {
+        feedback.extend(decode(&mut claw, std::slice::from_ref(byte)));
+    }
+    assert_eq!(feedback, vec![Feedback::Odometry { x: 0.0, y: 0.0, heading: 0.0 }]);
+    // Backwards 100 counts on both: 0.1 m back; then an ACK alone.
+    assert_eq!(poll_bytes(&mut claw), [129, 78]);
+    let mut bytes = answer(-101, -101);
+    bytes.push(0xFF);
+    assert_eq!(decode(&mut claw, &bytes), vec![Feedback::Odometry { x: -0.1, y: 0.0, heading: 0.0 }]);
+    // An answer with a bad CRC is garbage, not odometry.
+    assert_eq!(poll_bytes(&mut claw), [129, 78]);
+    let mut bad = answer(5, 5);
+    bad[9] ^= 1;
+    assert_eq!(decode(&mut claw, &bad), vec![]);
+    assert_eq!(Translator::malformed(&claw), 1);
+    // Mixed speed with the CRC basicmicro computes (the PTY test checks
+    // the same bytes against basicmicro itself).
+    let mut expected = vec![129, 37, 0, 0, 0, 100, 0, 0, 0, 100];
+    expected.extend(crc16(&expected).to_be_bytes());
+    assert_eq!(encode_bytes(&mut claw, "VEL 0.1 0"), expected);
+}
+
+/// CRC16-CCITT (XModem), as Basicmicro documents it.
+fn crc16(bytes: &[u8]) -> u16 {
+    bytes.iter().fold(0u16, |crc, byte| {
+        (0..8).fold(crc ^ (u16::from(*byte) << 8), |c, _| if c & 0x8000 != 0 { (c << 1) ^ 0x1021 } else { c << 1 })
+    })
+}
+
+fn encode_bytes(translator: &mut WasmTranslator, command: &str) -> Vec<u8> {
+    let mut out = Vec::new();
+    Translator::encode(translator, &command.parse::<ControlCommand>().unwrap(), &mut out).unwrap();
+    out
+}
+
+fn poll_bytes(translator: &mut WasmTranslator) -> Vec<u8> {
+    let mut out = Vec::new();
+    Translator::poll(translator, 0, &mut out).unwrap();
+    out
+}
+
 #[test]
 fn translators_refuse_missing_or_bad_options_at_init() {
     let sandbox = sandbox();

@@ -43,6 +43,10 @@ const LIGHT_BUMPS: [u8; 6] = [46, 47, 48, 49, 50, 51];
 /// The packets streamed, in order.
 const STREAMED: [u8; 10] = [BUMPS_AND_WHEEL_DROPS, VOLTAGE, LEFT_ENCODER, RIGHT_ENCODER, 46, 47, 48, 49, 50, 51];
 
+/// The payload of a frame of the packets streamed: one id byte each and
+/// their data. A longer N marks a 19 that is no header.
+const STREAMED_PAYLOAD: usize = STREAMED.len() + 1 + 2 + 2 + 2 + 6 * 2;
+
 /// The OI's speed limit for one wheel, mm/s.
 const MAX_WHEEL_MM_S: f64 = 500.0;
 /// Metres of wheel travel per encoder count: a 72 mm wheel, 508.8 counts a
@@ -199,6 +203,11 @@ impl Translator for Create2 {
                 self.buffer.drain(..start);
             }
             let Some(&n) = self.buffer.get(1) else { break };
+            if usize::from(n) > STREAMED_PAYLOAD {
+                decoded.malformed += 1;
+                self.buffer.drain(..1);
+                continue;
+            }
             let total = usize::from(n) + 3;
             if self.buffer.len() < total {
                 break;
