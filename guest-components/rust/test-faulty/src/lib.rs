@@ -20,7 +20,7 @@
 //!   then spins forever while holding control;
 //! - `sleep-on-tick`, `sleep-on-input`, `sleep-on-init`: sleeps 10 s there
 //!   (`std::thread::sleep`: a monotonic-clock subscription and a blocking
-//!   wait on it);
+//!   wait on it); in `tick` it logs "sleeping now" first;
 //! - `poll-far-future`: `wasi:io/poll.poll` on a subscription an hour
 //!   ahead of the monotonic clock;
 //! - `read-stdin`: reads stdin, and returns what happened as its `err`;
@@ -196,6 +196,9 @@ impl Component for Faulty {
                 Err(format!("file: {file}; socket: {socket}; environment: {environment}"))
             }
             "sleep-on-tick" => {
+                // The host log's timestamp marks the blocking call (the
+                // blocking bench measures from it).
+                log(LogLevel::Info, "sleeping now");
                 std::thread::sleep(SLEEP);
                 Ok(())
             }
