@@ -45,6 +45,12 @@ pub enum SimError {
 }
 /// How often the simulated controller reads, steps and may send feedback.
 pub const SIM_PERIOD: Duration = Duration::from_millis(5);
+/// Longest time one step of the controller's loop catches up on. The
+/// simulation runs in real time, so when its thread waited for a core (a
+/// loaded machine) it steps the whole wait (in physics steps of
+/// `physics::MAX_STEP_S`); only a longer stall loses time, which bounds the
+/// physics steps one iteration computes (200).
+pub const MAX_CATCH_UP: Duration = Duration::from_secs(1);
 /// Simulated battery voltage reported in feedback.
 pub const BATTERY_VOLTS: f64 = 12.6;
 
@@ -204,7 +210,7 @@ fn controller(name: &str, mut port: TTYPort, mut sim: Simulation, settings: SimS
             sim.set_wheels(0.0, 0.0);
         }
         let now = Instant::now();
-        sim.step(now.duration_since(last_step).as_secs_f64().min(0.1));
+        sim.step(now.duration_since(last_step).min(MAX_CATCH_UP).as_secs_f64());
         last_step = now;
         if let Wire::Create2(oi) = &mut wire {
             oi.track(sim.pose());
