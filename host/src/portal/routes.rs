@@ -158,15 +158,12 @@ pub(super) async fn rollback(
 
 pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
     let mut live = state.deployer.live().subscribe();
-    // Being subscribed makes the control loop publish; wait briefly for a
-    // fresh status when none was published yet.
-    let current = live.borrow_and_update().clone();
-    let current = if current.is_none() {
-        let _ = tokio::time::timeout(Duration::from_secs(1), live.changed()).await;
-        live.borrow().clone()
-    } else {
-        current
-    };
+    // Being subscribed makes the control loop publish (it publishes only
+    // while someone watches, so what was last published may be old): wait
+    // briefly for a fresh status.
+    live.borrow_and_update();
+    let _ = tokio::time::timeout(Duration::from_secs(1), live.changed()).await;
+    let current = live.borrow().clone();
     Json(serde_json::to_value(&*current).unwrap_or_default())
 }
 
