@@ -314,7 +314,7 @@ fn check_prints_every_error_one_per_line_and_exits_1() {
 fn check_accepts_a_good_file_with_a_summary() {
     let output = run(&["check", "config/demo.xml"]);
     assert_eq!(output.status.code(), Some(0), "{}", text(&output.stdout));
-    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 8 components, 9 connections\n");
+    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 9 components, 12 connections\n");
     // Parameters can be set from the command line; a bad one is reported.
     let output = run(&["check", "config/demo.xml", "--param", "avoid.threshold=near"]);
     assert_eq!(output.status.code(), Some(1));

@@ -507,7 +507,13 @@ pub fn path_clearance(points: &[[f64; 2]], radius: f64, v: f64, w: f64, lookahea
     }
     let speed = v.abs();
     let steps = (lookahead / MARCH_STEP_M).ceil().max(1.0) as usize;
-    let start: Vec<f64> = points.iter().map(|p| p[0] * p[0] + p[1] * p[1]).collect();
+    // Only points the disc can reach within the look-ahead matter.
+    let reach2 = (lookahead + radius).powi(2);
+    let (points, start): (Vec<[f64; 2]>, Vec<f64>) =
+        points.iter().map(|p| (*p, p[0] * p[0] + p[1] * p[1])).filter(|(_, d2)| *d2 <= reach2).unzip();
+    if points.is_empty() {
+        return None;
+    }
     for step in 1..=steps {
         let s = step as f64 * MARCH_STEP_M;
         let t = s / speed;
