@@ -22,6 +22,8 @@ const PASSWORD: &str = "portal-test-password";
 struct Host {
     child: Child,
     address: String,
+    /// The network platform's TCP address, once it said where it listens.
+    teleop: std::sync::mpsc::Receiver<String>,
 }
 
 impl Drop for Host {
@@ -62,15 +64,19 @@ fn start(store: &Path, robot: &Path) -> Host {
         .unwrap();
     let stderr = child.stderr.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
+    let (teleop_tx, teleop) = std::sync::mpsc::channel();
     std::thread::spawn(move || {
         for line in BufReader::new(stderr).lines().map_while(Result::ok) {
             if let Some(rest) = line.split("portal on http://").nth(1) {
                 let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
             }
+            if let Some(rest) = line.split("teleoperation on tcp ").nth(1) {
+                let _ = teleop_tx.send(rest.split_whitespace().next().unwrap_or("").to_string());
+            }
         }
     });
     let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    Host { child, address }
+    Host { child, address, teleop }
 }
 
 /// One HTTP/1.1 request; returns (status, JSON body).
@@ -403,7 +409,8 @@ fn start_plain(store: &Path, robot: &Path) -> Host {
         }
     });
     let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    Host { child, address }
+    let (_, teleop) = std::sync::mpsc::channel();
+    Host { child, address, teleop }
 }
 
 #[test]
@@ -498,4 +505,37 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
     let entries = subsume::store::Store::open(&store).unwrap().audit_entries(usize::MAX).unwrap();
     let last = entries.last().unwrap();
     assert!(last.user == "admin" && last.detail.contains("changes parameter 'stop-distance'"), "{last:?}");
+}
+
+/// The first line the network platform at `address` sends.
+fn teleop_hello(address: &str) -> String {
+    let stream = TcpStream::connect(address).unwrap();
+    stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
+    let mut line = String::new();
+    BufReader::new(stream).read_line(&mut line).unwrap();
+    line.trim_end().to_string()
+}
+
+#[test]
+fn after_an_activation_operators_are_greeted_with_the_robot_that_runs_now() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let teleop = host.teleop.recv_timeout(Duration::from_secs(30)).expect("the network platform did not listen");
+    let hello = teleop_hello(&teleop);
+    assert!(hello.ends_with(" robot=demo"), "{hello}");
+    let token = login(&host.address);
+    let renamed = std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
+        .unwrap()
+        .replace(r#"<robot name="demo">"#, r#"<robot name="demo-renamed">"#);
+    let (status, staged) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/configs/renamed.xml", Some(&token), renamed.as_bytes());
+    assert_eq!(status, 201, "{staged}");
+    let id = staged["set"]["id"].as_u64().unwrap();
+    let (status, body) = http(&host.address, "POST", &format!("/api/v1/sets/{id}/activate"), Some(&token), b"");
+    assert_eq!(status, 200, "{body}");
+    // The platform was carried over (same address), and greets with the new name.
+    let hello = teleop_hello(&teleop);
+    assert!(hello.ends_with(" robot=demo-renamed"), "{hello}");
 }

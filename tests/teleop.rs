@@ -104,6 +104,9 @@ struct Operator {
     pong_delay: Duration,
     started: Instant,
     seq: u64,
+    /// The CONTROL notices received so far (they come when the arbiter's
+    /// verdict changes, between the replies).
+    controls: Vec<String>,
 }
 
 impl Operator {
@@ -116,10 +119,28 @@ impl Operator {
             pong_delay: Duration::ZERO,
             started: Instant::now(),
             seq: 0,
+            controls: Vec::new(),
         };
         let hello = operator.line();
         assert!(hello.starts_with("HELLO subsume ") && hello.ends_with(" robot=net"), "{hello}");
         operator
+    }
+
+    /// Connects to a host that is not one of [`start`]'s: returns the
+    /// operator and the HELLO line.
+    fn connect_to(address: &str) -> (Operator, String) {
+        let stream = TcpStream::connect(address).unwrap();
+        stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
+        let mut operator = Operator {
+            reader: BufReader::new(stream.try_clone().unwrap()),
+            writer: stream,
+            pong_delay: Duration::ZERO,
+            started: Instant::now(),
+            seq: 0,
+            controls: Vec::new(),
+        };
+        let hello = operator.line();
+        (operator, hello)
     }
 
     fn send(&mut self, line: &str) {
@@ -134,8 +155,21 @@ impl Operator {
         line.trim_end().to_string()
     }
 
-    /// The next line that is not a PING (PINGs are answered on the way).
+    /// The next line that is neither a PING (answered on the way) nor a
+    /// CONTROL notice (kept in `controls`).
     fn reply(&mut self) -> String {
+        loop {
+            let line = self.not_ping();
+            if line.starts_with("CONTROL ") {
+                self.controls.push(line);
+            } else {
+                return line;
+            }
+        }
+    }
+
+    /// The next line that is not a PING (answered on the way).
+    fn not_ping(&mut self) -> String {
         loop {
             let line = self.line();
             match line.strip_prefix("PING ") {
@@ -145,6 +179,22 @@ impl Operator {
                     self.send(&format!("PONG {nonce}"));
                 }
                 None => return line,
+            }
+        }
+    }
+
+    /// Reads (answering PINGs) until a CONTROL notice starting with
+    /// `prefix` has arrived; returns it.
+    fn await_control(&mut self, prefix: &str) -> String {
+        loop {
+            if let Some(found) = self.controls.iter().find(|c| c.starts_with(prefix)) {
+                return found.clone();
+            }
+            let line = self.not_ping();
+            if line.starts_with("CONTROL ") {
+                self.controls.push(line);
+            } else {
+                assert!(line.starts_with("DROP") || line.starts_with("RTT") || line.starts_with("MODE"), "{line}");
             }
         }
     }
@@ -485,4 +535,79 @@ fn the_keyboard_client_drives_from_a_real_terminal() {
     // It drove: the network source held control for most of that time.
     let held = report["arbiter"]["held_s"][0][1].as_f64().unwrap();
     assert!(held > 1.0, "{}", report["arbiter"]);
+}
+
+/// Sends `command` every 50 ms for `for_ms`, reading what arrives meanwhile.
+fn drive(operator: &mut Operator, command: &str, for_ms: u64) {
+    for _ in 0..for_ms / 50 {
+        operator.command(command);
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+#[test]
+fn the_readme_drive_works_on_the_demo_and_the_operator_is_told_who_holds_control() {
+    // README: run the demo (config/demo.xml), then drive it as operator
+    // `demo` with the token from config/demo-operators, in direct mode,
+    // while the planner (priority 1) drives toward its goal.
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", "config/demo.xml"])
+        .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="])
+        .args(["--duration", "20", "--report", report.to_str().unwrap()])
+        .env("NO_COLOR", "1")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (found, address) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("teleoperation on tcp ").nth(1) {
+                let _ = found.send(rest.split_whitespace().next().unwrap_or("").to_string());
+            }
+        }
+    });
+    let address = address.recv_timeout(Duration::from_secs(60)).expect("the demo never listened");
+    let (mut demo, hello) = Operator::connect_to(&address);
+    assert!(hello.ends_with(" robot=demo"), "{hello}");
+    let rtt = demo.login("demo", "demo-token-change-me");
+    assert!(allowed(&rtt).contains("direct"), "{rtt}");
+    // Supervisory (priority 0) is below the planner: the operator is told,
+    // with the mode that would win.
+    demo.send("MODE supervisory");
+    assert!(demo.reply().starts_with("MODE supervisory granted"));
+    drive(&mut demo, "VEL 0 0.6", 500);
+    // (The avoider, priority 3, may hold instead if the robot is near a
+    // wall by now: then no mode would win.)
+    let suppressed = demo.await_control("CONTROL suppressed ");
+    assert!(
+        [
+            "CONTROL suppressed planner 1 suppressed by planner (priority 1): direct or shared mode would win",
+            "CONTROL suppressed avoid 3 suppressed by avoid (priority 3): no control mode outranks it"
+        ]
+        .contains(&suppressed.as_str()),
+        "{suppressed}"
+    );
+    // Direct mode ties with the planner, and the operator wins the tie.
+    demo.send("MODE direct");
+    assert!(demo.reply().starts_with("MODE direct granted"));
+    drive(&mut demo, "VEL 0 0.6", 3000);
+    assert_eq!(demo.await_control("CONTROL held"), "CONTROL held your commands drive the robot");
+    demo.send("QUIT");
+    wait_for_exit(&mut child, Duration::from_secs(40));
+    let report = read_report(&report);
+    let held: f64 = report["arbiter"]["held_s"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|entry| entry[0] == "teleop")
+        .and_then(|entry| entry[1].as_f64())
+        .unwrap();
+    assert!(held > 0.5, "the operator held control for {held} s: {}", report["arbiter"]);
 }

@@ -411,6 +411,10 @@ $('drive-connect').addEventListener('click', async () => {
       if (m.allowed.includes($('drive-mode').value)) send({ type: 'mode', mode: $('drive-mode').value });
     }
     if (m.type === 'mode') $('drive-status').dataset.mode = m.mode;
+    if (m.type === 'control') {
+      $('drive-status').dataset.control = m.state;
+      $('drive-status').textContent = m.message;
+    }
     driveLog(JSON.stringify(m));
   };
 });

@@ -197,6 +197,7 @@ fn hostile_run(world: &Path, seed: u64) -> (u64, f64, f64, u64) {
             name: format!("hostile{d}"),
             priority: PriorityCell::new((rng.range(-1000.0, 1000.0)) as i32),
             timeout_ns: 400_000_000,
+            operator: false,
         })
         .collect();
     let mut arbiter = ArbiterComponent::new("arbiter", sources);

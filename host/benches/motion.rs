@@ -38,8 +38,13 @@ fn main() {
     while !link.status().connected {
         std::thread::sleep(Duration::from_millis(1));
     }
-    let source =
-        Source { component: 7, name: "planner".into(), priority: PriorityCell::new(1), timeout_ns: u64::MAX / 2 };
+    let source = Source {
+        component: 7,
+        name: "planner".into(),
+        priority: PriorityCell::new(1),
+        timeout_ns: u64::MAX / 2,
+        operator: false,
+    };
     let mut arbiter = ArbiterComponent::new("arbiter", vec![source]);
 
     let samples = 3000;

@@ -3,9 +3,17 @@
 //! timeout; the highest-priority active source wins and suppresses the rest;
 //! when none is active, the motors get an explicit STOP.
 //!
-//! Ties: among active sources of the same (top) priority, the current holder
-//! keeps control; if it is not among them, the source listed first in the
-//! robot file wins. A faulted source stops counting at once.
+//! Ties: among active sources of the same (top) priority, a source that
+//! answers to a person (the network platform, `builtin:teleop`) wins over
+//! autonomous ones: an operator who asked for direct control (priority 1,
+//! like the planner) drives, rather than being silently ignored. Otherwise
+//! the current holder keeps control; if it is not among them, the source
+//! listed first in the robot file wins. A faulted source stops counting at
+//! once.
+//!
+//! Every decision also updates each source's [`Standing`] (holds,
+//! suppressed by whom, idle) in the host's [`Standings`] when it changed, so
+//! the network platform can tell its operator.
 //!
 //! [`Arbiter`] is the decision logic, driven with explicit time; the
 //! `builtin:arbiter` component ([`ArbiterComponent`]) wires it into the graph:
@@ -15,9 +23,13 @@
 use serde::Serialize;
 
 use crate::builtin::{self, BuildContext, Builtin, BuiltinError, ParamDecl, Params, Ports};
+use crate::config::ComponentSource;
 use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::{CallError, Component, Outbox, PriorityCell};
+use crate::runtime::{CallError, Component, Outbox, PriorityCell, Standing, Standings};
+
+/// The built-in kind whose sources answer to a person (they win ties).
+const OPERATOR_KIND: &str = "teleop";
 
 /// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
@@ -31,6 +43,9 @@ pub struct Source {
     pub priority: PriorityCell,
     /// How long after its last command the source stays active.
     pub timeout_ns: u64,
+    /// The source answers to a person (a remote operator): it wins ties
+    /// against sources that do not.
+    pub operator: bool,
 }
 
 #[derive(Clone, Debug)]
@@ -132,7 +147,9 @@ impl Arbiter {
         let winner = top.and_then(|top| {
             let tied =
                 |i: &usize| Self::is_active(&self.sources[*i], now_ns) && self.sources[*i].source.priority.get() == top;
-            self.holder.filter(tied).or_else(|| (0..self.sources.len()).find(tied))
+            let operator_tied = (0..self.sources.len()).any(|i| tied(&i) && self.sources[i].source.operator);
+            let candidate = |i: &usize| tied(i) && (!operator_tied || self.sources[*i].source.operator);
+            self.holder.filter(candidate).or_else(|| (0..self.sources.len()).find(candidate))
         });
         if winner != self.holder {
             self.switches += 1;
@@ -160,6 +177,29 @@ impl Arbiter {
             .collect()
     }
 
+    /// How source `index` stands after the last decision, at `now_ns`.
+    pub fn standing(&self, index: usize, now_ns: u64) -> Standing {
+        match (self.holder, self.sources.get(index)) {
+            (_, None) => Standing::Idle,
+            (Some(holder), _) if holder == index => Standing::Holds,
+            (Some(holder), Some(state)) if Self::is_active(state, now_ns) => Standing::Suppressed {
+                by: self.sources[holder].source.name.clone(),
+                priority: self.sources[holder].source.priority.get(),
+            },
+            _ => Standing::Idle,
+        }
+    }
+
+    /// The number of sources.
+    pub fn len(&self) -> usize {
+        self.sources.len()
+    }
+
+    /// Whether there are no sources.
+    pub fn is_empty(&self) -> bool {
+        self.sources.is_empty()
+    }
+
     pub fn status(&self, now_ns: u64) -> ArbiterStatus {
         ArbiterStatus {
             holder: self.holder.map(|h| self.sources[h].source.name.clone()),
@@ -181,16 +221,58 @@ pub struct ArbiterComponent {
     arbiter: Arbiter,
     last_sent: Option<(Option<usize>, ControlCommand)>,
     now_ns: u64,
+    standings: Standings,
+    /// Each source's standing as last written to `standings`.
+    published: Vec<Standing>,
 }
 
 impl ArbiterComponent {
     pub fn new(name: &str, sources: Vec<Source>) -> ArbiterComponent {
-        ArbiterComponent { name: name.to_string(), arbiter: Arbiter::new(sources), last_sent: None, now_ns: 0 }
+        ArbiterComponent::with_standings(name, sources, Standings::default())
+    }
+
+    /// An arbiter that writes its sources' standings to `standings`.
+    pub fn with_standings(name: &str, sources: Vec<Source>, standings: Standings) -> ArbiterComponent {
+        let published = vec![Standing::Idle; sources.len()];
+        ArbiterComponent {
+            name: name.to_string(),
+            arbiter: Arbiter::new(sources),
+            last_sent: None,
+            now_ns: 0,
+            standings,
+            published,
+        }
+    }
+
+    /// Writes the standings that changed since the last decision. Most
+    /// decisions change none: one comparison per source, no allocation.
+    fn publish_standings(&mut self, now_ns: u64) {
+        for index in 0..self.arbiter.len() {
+            let unchanged = match (&self.published[index], self.arbiter.holder, self.arbiter.sources.get(index)) {
+                (Standing::Holds, Some(holder), _) => holder == index,
+                (Standing::Idle, holder, Some(state)) => holder != Some(index) && !Arbiter::is_active(state, now_ns),
+                (Standing::Suppressed { by, priority }, Some(holder), Some(state)) => {
+                    holder != index
+                        && Arbiter::is_active(state, now_ns)
+                        && self.arbiter.sources[holder].source.name == *by
+                        && self.arbiter.sources[holder].source.priority.get() == *priority
+                }
+                _ => false,
+            };
+            if !unchanged {
+                let standing = self.arbiter.standing(index, now_ns);
+                if let Some(source) = self.arbiter.source(index) {
+                    self.standings.set(&source.name, standing.clone());
+                }
+                self.published[index] = standing;
+            }
+        }
     }
 
     fn decide_and_emit(&mut self, now_ns: u64, always: bool, out: &mut Outbox) {
         self.now_ns = now_ns;
         let decision = self.arbiter.decide(now_ns);
+        self.publish_standings(now_ns);
         let previous_holder = self.last_sent.map(|(h, _)| h);
         if previous_holder != Some(decision.holder) {
             self.log_change(decision.holder, now_ns);
@@ -305,6 +387,7 @@ impl Builtin for ArbiterBuiltin {
                 name: from.name.clone(),
                 priority,
                 timeout_ns: from.timeout.as_nanos() as u64,
+                operator: from.source == ComponentSource::Builtin(OPERATOR_KIND.into()),
             });
         }
         if sources.len() > MAX_SOURCES {
@@ -318,7 +401,8 @@ impl Builtin for ArbiterBuiltin {
             "motion sources: {}",
             if listed.is_empty() { "none".into() } else { listed.join(", ") }
         );
-        Ok(Box::new(ArbiterComponent::new(name, sources)))
+        let standings = ctx.services.get::<Standings>().map(|s| (*s).clone()).unwrap_or_default();
+        Ok(Box::new(ArbiterComponent::with_standings(name, sources, standings)))
     }
 }
 
@@ -329,7 +413,13 @@ mod tests {
     const MS: u64 = 1_000_000;
 
     fn source(component: usize, name: &str, priority: i32) -> Source {
-        Source { component, name: name.into(), priority: PriorityCell::new(priority), timeout_ns: 500 * MS }
+        Source {
+            component,
+            name: name.into(),
+            priority: PriorityCell::new(priority),
+            timeout_ns: 500 * MS,
+            operator: false,
+        }
     }
 
     fn vel(v: f64) -> ControlCommand {
@@ -420,5 +510,66 @@ mod tests {
         assert!(matches!(err, Err(CallError::Reported(m)) if m.contains("column 1")));
         component.peer_faulted(20, 4 * MS, &mut out);
         assert_eq!(out.last(), Some(&(0, Value::Command("STOP".into()))));
+    }
+
+    fn operator(component: usize, name: &str, priority: i32) -> Source {
+        Source { operator: true, ..source(component, name, priority) }
+    }
+
+    /// (time ms, a component's offer, the operator's new priority, the
+    /// holder expected).
+    type Step = (u64, Option<(usize, f64)>, Option<i32>, Option<usize>);
+
+    #[test]
+    fn an_operator_wins_a_tie_against_autonomous_sources_but_not_a_higher_priority() {
+        // 0: planner (10, priority 1), 1: operator (20, 1 in direct mode),
+        // 2: avoid (30, 3).
+        let op = operator(20, "net", 1);
+        let cell = op.priority.clone();
+        let mut arbiter = Arbiter::new(vec![source(10, "planner", 1), op, source(30, "avoid", 3)]);
+        #[rustfmt::skip]
+        let table: Vec<Step> = vec![
+            (0,   Some((10, 0.2)), None,    Some(0)), // the planner drives alone
+            (10,  Some((20, 0.5)), None,    Some(1)), // direct (1) = planner (1): the operator takes it at once
+            (20,  Some((10, 0.2)), None,    Some(1)), // the planner does not take it back
+            (30,  Some((30, 0.0)), None,    Some(2)), // avoid (3) outranks every mode
+            (40,  None,            Some(2), Some(2)), // shared (2): still below avoid
+            (590, Some((10, 0.2)), Some(0), Some(0)), // avoid and the operator timed out: the planner
+            (600, Some((20, 0.5)), None,    Some(0)), // supervisory (0) loses to the planner
+            (610, Some((20, 0.5)), Some(1), Some(1)), // back to direct: the operator again
+        ];
+        for (ms, offer, priority, holder) in table {
+            let now = ms * MS;
+            if let Some(p) = priority {
+                cell.set(p);
+            }
+            if let Some((component, v)) = offer {
+                arbiter.offer(component, vel(v), now);
+            }
+            assert_eq!(arbiter.decide(now).holder, holder, "at {ms} ms");
+        }
+    }
+
+    #[test]
+    fn standings_are_written_when_they_change_and_name_the_holder() {
+        let standings = Standings::default();
+        let sources = vec![source(10, "planner", 1), operator(20, "net", 0)];
+        let mut component = ArbiterComponent::with_standings("arbiter", sources, standings.clone());
+        let mut out = Vec::new();
+        let command = Value::Command("VEL 0.2 0".into());
+        assert_eq!(standings.get("net"), Standing::Idle);
+        component.on_input(0, &command, 10, 0, &mut out).ok();
+        assert_eq!(standings.get("planner"), Standing::Holds);
+        assert_eq!(standings.get("net"), Standing::Idle, "a silent source is idle, not suppressed");
+        component.on_input(0, &command, 20, MS, &mut out).ok();
+        assert_eq!(standings.get("net"), Standing::Suppressed { by: "planner".into(), priority: 1 });
+        let generation = standings.generation();
+        component.tick(2 * MS, &mut out).ok();
+        assert_eq!(standings.generation(), generation, "an unchanged decision writes nothing");
+        component.peer_faulted(10, 3 * MS, &mut out);
+        assert_eq!(standings.get("net"), Standing::Holds);
+        assert_eq!(standings.get("planner"), Standing::Idle);
+        component.tick(600 * MS, &mut out).ok();
+        assert_eq!(standings.get("net"), Standing::Idle, "the operator's commands timed out");
     }
 }

@@ -20,7 +20,7 @@ use crate::report::{self, Report};
 use crate::robot::serial::{HALT_WAIT, halt_every_link};
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
-use crate::runtime::{Graph, Heartbeat, StallWatchdog, StopOutcome};
+use crate::runtime::{Graph, Heartbeat, RunningRobot, StallWatchdog, Standings, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
 use crate::store::users::Directory;
 use crate::store::{Store, StoreError};
@@ -301,7 +301,13 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         Ok(_) => {}
         Err(e) => return Err(StoreError::from(e).into()),
     }
-    let services = Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default()));
+    // One of each for every set this host runs: a network platform carried
+    // across an activation reads the new set's robot name and arbiter.
+    let services = Services::default()
+        .with(directory.clone())
+        .with(Arc::new(TeleopServers::default()))
+        .with(Arc::new(RunningRobot::default()))
+        .with(Arc::new(Standings::default()));
     let clock = Clock::new();
     let boot = Deployer::boot(BootOptions {
         store,

@@ -12,12 +12,13 @@ pub mod registry;
 
 use std::collections::HashMap;
 use std::path::PathBuf;
+use std::sync::Arc;
 
 pub use self::loader::{Loader, StartError, Surroundings};
 use crate::builtin::Services;
 use crate::config::{ComponentConfig, ComponentSource, RobotConfig};
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{Component, Graph, PriorityCell, Vacant};
+use crate::runtime::{Component, Graph, PriorityCell, RunningRobot, Standings, Vacant};
 
 /// Components a new graph takes over from the running one instead of
 /// building them: their graph slots hold [`Vacant`] until the swap moves
@@ -58,6 +59,7 @@ pub fn build(
     carry: &Carry,
 ) -> Result<Built, Vec<StartError>> {
     let start_ns = clock.now_ns();
+    let services = &with_graph_services(services, config);
     let mut ptys = carry.sim_ptys.clone();
     let priorities: Vec<PriorityCell> = config
         .components
@@ -117,6 +119,20 @@ pub fn build(
         graph.connect(c.from.component, c.from.port, c.to.component, c.to.port, c.policy);
     }
     Ok(Built { graph, priorities, sim_ptys: ptys })
+}
+
+/// `services`, plus what the components of one graph share when the host
+/// did not provide it for all its graphs: the standings of the motion
+/// sources and the running robot's name.
+fn with_graph_services(services: &Services, config: &RobotConfig) -> Services {
+    let mut services = services.clone();
+    if services.get::<Standings>().is_none() {
+        services = services.with(Arc::new(Standings::default()));
+    }
+    if services.get::<RunningRobot>().is_none() {
+        services = services.with(Arc::new(RunningRobot::new(&config.name)));
+    }
+    services
 }
 
 /// What identifies a running instance: everything but its place in the file.

@@ -9,6 +9,7 @@ use super::swap::SwapRequest;
 use super::{DeployError, Deployer, Deployment, Permission, authorise, stage};
 use crate::assemble::{self, Built, Carry, Loader};
 use crate::config::RobotConfig;
+use crate::runtime::RunningRobot;
 use crate::store::users::{Role, User};
 use crate::store::{SetRecord, StoreError};
 
@@ -75,6 +76,9 @@ impl Deployer {
                     done,
                 };
                 self.slot.hand_over(request, &old_graph, &self.waker)?;
+                if let Some(robot) = self.services.get::<RunningRobot>() {
+                    robot.rename(&ready.config.name);
+                }
                 let recorded = if rollback { writer.mark_rolled_back(id) } else { writer.mark_active(id) };
                 if let Err(e) = recorded {
                     tracing::error!("set {id} runs, but the store could not record it: {e}");

@@ -42,9 +42,9 @@ use crate::builtin::Services;
 pub use crate::config::limits::MAX_CONFIG_BYTES as MAX_CONFIG_UPLOAD_BYTES;
 use crate::config::{ComponentSource, ParamOverride, RobotConfig};
 pub use crate::config::{Diagnostic, Diagnostics, Platform};
-use crate::runtime::Graph;
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::wiring::PriorityCell;
+use crate::runtime::{Graph, RunningRobot};
 use crate::sandbox::{Sandbox, read_component_file};
 use crate::store::users::User;
 use crate::store::{Outcome, STORE_FORMAT, SetRecord, Store, StoreError, StoreWriter, sha256_hex, unix_now};
@@ -197,6 +197,9 @@ impl Deployer {
         };
         let mut loader = Loader::new(&sandbox);
         let config = stage::validate_set(&store, &set, &mut loader, &overrides)?;
+        if let Some(robot) = services.get::<RunningRobot>() {
+            robot.rename(&config.name);
+        }
         let built = assemble::build(&config, &mut loader, clock, &waker, &services, &Carry::default())
             .map_err(DeployError::Start)?;
         let config = Arc::new(config);

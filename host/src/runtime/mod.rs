@@ -16,4 +16,4 @@ pub mod wiring;
 pub use component::{CallError, Component, Outbox, Restarter, Vacant};
 pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
-pub use wiring::{Policy, PriorityCell, RestartPolicy};
+pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};

@@ -4,6 +4,7 @@
 //! servers.
 
 use std::path::Path;
+use std::sync::Arc;
 use std::time::Duration;
 
 use super::delay::DelaySettings;
@@ -15,7 +16,7 @@ use crate::builtin::{
 };
 use crate::config::ParamProblem;
 use crate::contract::{ValueKind, clip};
-use crate::runtime::Component;
+use crate::runtime::{Component, RunningRobot, Standings};
 use crate::store::users::Directory;
 
 /// Most operators served at once: each holds a connection and a task.
@@ -226,8 +227,13 @@ impl Builtin for TeleopBuiltin {
         settings.directory = ctx.services.get::<Directory>();
         let priority = ctx.priorities.get(ctx.index).cloned().unwrap_or_default();
         let name = ctx.component()?.name.clone();
-        let component =
-            TeleopComponent::start(&name, &ctx.robot.name, settings, ctx.clock, ctx.waker.clone(), priority)?;
+        let robot = ctx.services.get::<RunningRobot>().unwrap_or_else(|| Arc::new(RunningRobot::new(&ctx.robot.name)));
+        let standings = ctx.services.get::<Standings>().map(|s| (*s).clone()).unwrap_or_default();
+        let component = TeleopComponent::start(
+            &name,
+            super::Surroundings { robot, standings, clock: ctx.clock, waker: ctx.waker.clone(), priority },
+            settings,
+        )?;
         if let Some(servers) = ctx.services.get::<TeleopServers>() {
             servers.register(component.context());
         }

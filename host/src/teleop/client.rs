@@ -41,6 +41,8 @@ struct View {
     linear: f64,
     angular: f64,
     last: String,
+    /// Whether our commands drive the robot, from the host's CONTROL lines.
+    control: Option<String>,
 }
 
 /// Why the keyboard client stopped with an error.
@@ -183,6 +185,15 @@ fn handle_line(line: &str, view: &mut View) -> Option<String> {
                 return Some(format!("MODE {best}"));
             }
         }
+        Some("CONTROL") => {
+            view.control = match (words.next(), words.next()) {
+                (Some("held"), _) => Some("you drive".into()),
+                (Some("suppressed"), Some(holder)) => Some(format!("{holder} drives")),
+                (Some("idle"), _) => Some("idle".into()),
+                _ => None,
+            };
+            view.last = line.split_once(' ').map_or(line, |(_, rest)| rest).to_string();
+        }
         Some("MODE") => {
             view.granted = words.next().and_then(Mode::parse);
             view.requested = None;
@@ -196,7 +207,8 @@ fn handle_line(line: &str, view: &mut View) -> Option<String> {
 fn draw(view: &View) {
     let mode = view.granted.map_or("none".to_string(), |m| m.to_string());
     let status = format!(
-        "\r\x1b[2Kmode {mode} | rtt {} | vel {:+.2} m/s turn {:+.2} rad/s | arrows, space, m, q | {}",
+        "\r\x1b[2Kmode {mode} | {} | rtt {} | vel {:+.2} m/s turn {:+.2} rad/s | arrows, space, m, q | {}",
+        view.control.as_deref().unwrap_or("idle"),
         view.rtt.as_deref().unwrap_or("?"),
         view.linear,
         view.angular,
@@ -245,5 +257,12 @@ mod tests {
         assert_eq!(view.rtt.as_deref(), Some("12.5 ms (jitter 0.3 ms)"));
         assert_eq!(handle_line("MODE shared granted: rtt 12.5 ms", &mut view), None);
         assert_eq!(view.granted, Some(Mode::Shared));
+        handle_line(
+            "CONTROL suppressed avoid 3 suppressed by avoid (priority 3): no control mode outranks it",
+            &mut view,
+        );
+        assert_eq!(view.control.as_deref(), Some("avoid drives"));
+        handle_line("CONTROL held your commands drive the robot", &mut view);
+        assert_eq!(view.control.as_deref(), Some("you drive"));
     }
 }

@@ -40,7 +40,7 @@ use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
 use crate::robot::control::ControlCommand;
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{CallError, Component, Outbox, PriorityCell};
+use crate::runtime::{CallError, Component, Outbox, PriorityCell, RunningRobot, Standing, Standings};
 use crate::store::users::Directory;
 
 /// Events from sessions waiting for the control loop; more are dropped and
@@ -150,7 +150,8 @@ pub struct SessionReport {
 
 /// State shared by the sessions (network runtime) and the component.
 pub struct ServerContext {
-    pub robot: String,
+    /// The robot that runs now (renamed by activations).
+    pub robot: Arc<RunningRobot>,
     pub settings: TeleopSettings,
     pub clock: Clock,
     events: SyncSender<NetEvent>,
@@ -256,18 +257,28 @@ pub struct TeleopComponent {
     base_priority: i32,
     runtime: Option<tokio::runtime::Runtime>,
     listen: SocketAddr,
+    /// The arbiters' verdicts on this source, and what the operator in
+    /// control was last told of them.
+    standings: Standings,
+    standings_seen: u64,
+    told: Standing,
+    mode: Option<Mode>,
+}
+
+/// What a network platform shares with the rest of the host.
+pub struct Surroundings {
+    pub robot: Arc<RunningRobot>,
+    pub standings: Standings,
+    pub clock: Clock,
+    pub waker: Waker,
+    /// This source's priority, which the operator's mode moves.
+    pub priority: PriorityCell,
 }
 
 impl TeleopComponent {
     /// Binds the listeners and starts the network runtime.
-    pub fn start(
-        name: &str,
-        robot: &str,
-        settings: TeleopSettings,
-        clock: Clock,
-        waker: Waker,
-        priority: PriorityCell,
-    ) -> Result<TeleopComponent, BuiltinError> {
+    pub fn start(name: &str, around: Surroundings, settings: TeleopSettings) -> Result<TeleopComponent, BuiltinError> {
+        let Surroundings { robot, standings, clock, waker, priority } = around;
         if settings.operators.is_empty() && settings.directory.is_none() {
             return Err(BuiltinError::Refused(
                 "nobody may log in: give the 'operators' parameter (a file of NAME TOKEN lines) \
@@ -292,7 +303,7 @@ impl TeleopComponent {
             .map_err(|e| BuiltinError::io("cannot start the network runtime", e))?;
         let (events_tx, events) = std::sync::mpsc::sync_channel(EVENT_QUEUE);
         let ctx = Arc::new(ServerContext {
-            robot: robot.to_string(),
+            robot,
             settings,
             clock,
             events: events_tx,
@@ -338,6 +349,10 @@ impl TeleopComponent {
             base_priority,
             runtime: Some(runtime),
             listen,
+            standings_seen: standings.generation(),
+            standings,
+            told: Standing::Idle,
+            mode: None,
         })
     }
 
@@ -451,6 +466,27 @@ impl TeleopServers {
     }
 }
 
+impl TeleopComponent {
+    /// Tells the operator in control when the arbiters' verdict on this
+    /// source changed: one atomic load when nothing did.
+    fn tell_standing(&mut self) {
+        let generation = self.standings.generation();
+        if generation == self.standings_seen {
+            return;
+        }
+        self.standings_seen = generation;
+        let standing = self.standings.get(&self.name);
+        if standing == self.told {
+            return;
+        }
+        let controller = self.ctx.controller.lock().ok().and_then(|c| c.as_ref().map(|(session, _)| *session));
+        if let Some(control) = controller.and_then(|session| self.sessions.get(&session)) {
+            let _ = control.notices.try_send(protocol::control_message(&standing, self.mode, self.base_priority));
+        }
+        self.told = standing;
+    }
+}
+
 impl Component for TeleopComponent {
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
         self.poll(now_ns, out);
@@ -477,6 +513,7 @@ impl Component for TeleopComponent {
                 }
                 NetEvent::Mode { session, mode } => match mode {
                     Some(mode) => {
+                        self.mode = Some(mode);
                         let priority = self.base_priority + mode.priority_offset();
                         self.priority.set(priority);
                         tracing::info!(component = %self.name, session, "operator in {mode} mode: network priority {priority}");
@@ -500,6 +537,7 @@ impl Component for TeleopComponent {
                 out.push((0, Value::Command(command.to_string())));
             }
         }
+        self.tell_standing();
     }
 
     fn next_wake(&self) -> Option<u64> {
@@ -528,6 +566,7 @@ impl Component for TeleopComponent {
             "sessions": sessions,
             "commands": totals,
             "priority": self.priority.get(),
+            "robot": self.ctx.robot.name(),
         });
         Some(("network", value))
     }

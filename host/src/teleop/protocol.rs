@@ -6,6 +6,7 @@ use serde::Serialize;
 use serde_json::json;
 
 use crate::robot::control::{self, ControlCommand};
+use crate::runtime::Standing;
 use crate::teleop::mode::Mode;
 
 /// Longest line (or WebSocket message) a client may send: a command is a
@@ -36,13 +37,34 @@ pub enum ClientMessage {
 /// What the host sends.
 #[derive(Clone, Debug, PartialEq)]
 pub enum ServerMessage {
-    Hello { robot: String },
+    Hello {
+        robot: String,
+    },
     Ok(String),
     Error(String),
-    Ping { nonce: u64 },
-    Rtt { rtt_ms: f64, jitter_ms: f64, allowed: Vec<Mode> },
-    Mode { mode: Mode, reason: String },
-    Dropped { seq: u64, reason: String },
+    Ping {
+        nonce: u64,
+    },
+    Rtt {
+        rtt_ms: f64,
+        jitter_ms: f64,
+        allowed: Vec<Mode>,
+    },
+    Mode {
+        mode: Mode,
+        reason: String,
+    },
+    Dropped {
+        seq: u64,
+        reason: String,
+    },
+    /// Whether the operator's commands drive the robot, told when it
+    /// changes: `held`, `suppressed` (by `holder` at `priority`) or `idle`.
+    Control {
+        state: &'static str,
+        holder: Option<(String, i32)>,
+        message: String,
+    },
 }
 
 /// Parses one protocol line.
@@ -131,6 +153,10 @@ impl ServerMessage {
             }
             ServerMessage::Mode { mode, reason } => format!("MODE {mode} {reason}"),
             ServerMessage::Dropped { seq, reason } => format!("DROP {seq} {reason}"),
+            ServerMessage::Control { state, holder: Some((name, priority)), message } => {
+                format!("CONTROL {state} {name} {priority} {message}")
+            }
+            ServerMessage::Control { state, holder: None, message } => format!("CONTROL {state} {message}"),
         }
     }
 
@@ -148,8 +174,47 @@ impl ServerMessage {
             }
             ServerMessage::Mode { mode, reason } => json!({"type": "mode", "mode": mode, "reason": reason}),
             ServerMessage::Dropped { seq, reason } => json!({"type": "drop", "seq": seq, "reason": reason}),
+            ServerMessage::Control { state, holder, message } => json!({
+                "type": "control",
+                "state": state,
+                "holder": holder.as_ref().map(|(name, _)| name),
+                "priority": holder.as_ref().map(|(_, priority)| priority),
+                "message": message,
+            }),
         };
         value.to_string()
+    }
+}
+
+/// What the operator is told about `standing`, in `mode`, whose source
+/// has `base` priority plus the mode's offset (operators win ties).
+pub fn control_message(standing: &Standing, mode: Option<Mode>, base: i32) -> ServerMessage {
+    match standing {
+        Standing::Holds => {
+            ServerMessage::Control { state: "held", holder: None, message: "your commands drive the robot".into() }
+        }
+        Standing::Idle => ServerMessage::Control {
+            state: "idle",
+            holder: None,
+            message: "no command of yours is driving the robot".into(),
+        },
+        Standing::Suppressed { by, priority } => {
+            let winning: Vec<&str> = Mode::ALL
+                .into_iter()
+                .filter(|m| Some(*m) != mode && base + m.priority_offset() >= *priority)
+                .map(Mode::name)
+                .collect();
+            let hint = match winning.as_slice() {
+                [] => "no control mode outranks it".to_string(),
+                [one] => format!("{one} mode would win"),
+                several => format!("{} mode would win", several.join(" or ")),
+            };
+            ServerMessage::Control {
+                state: "suppressed",
+                holder: Some((by.clone(), *priority)),
+                message: format!("suppressed by {by} (priority {priority}): {hint}"),
+            }
+        }
     }
 }
 
@@ -227,5 +292,37 @@ mod tests {
         let rtt = ServerMessage::Rtt { rtt_ms: 42.0, jitter_ms: 1.5, allowed: vec![Mode::Direct, Mode::Shared] };
         assert_eq!(rtt.to_line(), "RTT 42.0 JITTER 1.5 ALLOWED direct,shared");
         assert_eq!(rtt.to_json(), r#"{"allowed":["direct","shared"],"jitter_ms":1.5,"rtt_ms":42.0,"type":"rtt"}"#);
+    }
+
+    #[test]
+    fn control_notices_say_who_holds_and_which_mode_would_win() {
+        let planner = Standing::Suppressed { by: "planner".into(), priority: 1 };
+        let avoid = Standing::Suppressed { by: "avoid".into(), priority: 3 };
+        let cases = [
+            (
+                &planner,
+                Some(Mode::Supervisory),
+                "CONTROL suppressed planner 1 suppressed by planner (priority 1): direct or shared mode would win",
+            ),
+            (
+                &planner,
+                Some(Mode::Direct),
+                "CONTROL suppressed planner 1 suppressed by planner (priority 1): shared mode would win",
+            ),
+            (
+                &avoid,
+                Some(Mode::Shared),
+                "CONTROL suppressed avoid 3 suppressed by avoid (priority 3): no control mode outranks it",
+            ),
+            (&Standing::Holds, Some(Mode::Direct), "CONTROL held your commands drive the robot"),
+            (&Standing::Idle, None, "CONTROL idle no command of yours is driving the robot"),
+        ];
+        for (standing, mode, line) in cases {
+            assert_eq!(control_message(standing, mode, 1).to_line(), line);
+        }
+        assert_eq!(
+            control_message(&avoid, Some(Mode::Shared), 1).to_json(),
+            r#"{"holder":"avoid","message":"suppressed by avoid (priority 3): no control mode outranks it","priority":3,"state":"suppressed","type":"control"}"#
+        );
     }
 }

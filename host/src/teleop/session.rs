@@ -205,7 +205,7 @@ pub async fn serve_tcp(stream: tokio::net::TcpStream, id: u64, address: String, 
     let (notices, mut notice_rx) = mpsc::channel(NOTICE_QUEUE);
     let mut session = Session::new(id, Framing::Lines, &ctx);
     ctx.open_session(id, &address, notices);
-    if transport.send(&session, &ServerMessage::Hello { robot: ctx.robot.clone() }).await.is_err() {
+    if transport.send(&session, &ServerMessage::Hello { robot: ctx.robot.name() }).await.is_err() {
         ctx.close_session(id, &session.operator);
         return;
     }
@@ -244,7 +244,7 @@ pub async fn serve_websocket(
     let (notices, mut notice_rx) = mpsc::channel(NOTICE_QUEUE);
     let mut session = Session::new(id, Framing::Json, &ctx);
     ctx.open_session(id, &address, notices);
-    let hello = ServerMessage::Hello { robot: ctx.robot.clone() }.to_json();
+    let hello = ServerMessage::Hello { robot: ctx.robot.name() }.to_json();
     if socket.send(Message::Text(hello.into())).await.is_err() {
         ctx.close_session(id, &session.operator);
         return;
