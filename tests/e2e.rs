@@ -109,8 +109,9 @@ fn the_demo_robot_reaches_its_goal_without_collisions() {
 }
 
 /// A robot whose only motion source drives straight at a wall, with or
-/// without the obstacle avoider above it; returns the report.
-fn drive_at_a_wall(with_avoider: bool) -> Json {
+/// without the obstacle avoider above it, through an envelope with or
+/// without its collision monitor (the ranges wired in); returns the report.
+fn drive_at_a_wall(with_avoider: bool, monitor: bool) -> Json {
     let dir = tempfile::tempdir().unwrap();
     let world = support::repo_root().join("tests/worlds/wall-ahead.world");
     let avoider = if with_avoider {
@@ -122,24 +123,38 @@ fn drive_at_a_wall(with_avoider: bool) -> Json {
     } else {
         ""
     };
+    let envelope = if monitor {
+        // The owner's defaults, with the sensors wired in.
+        r#"<component name="envelope" source="builtin:envelope" rate="20"/>
+    <connect from="motors.ranges" to="envelope.ranges"/>
+    <connect from="motors.pose" to="envelope.pose"/>"#
+    } else {
+        r#"<component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>"#
+    };
     let body = format!(
         r#"<robot name="wall">
   <platform name="control">
     <component name="sim" source="builtin:sim"><param name="world" value="{}"/></component>
     <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
     <component name="filter" source="GUEST(range-filter)" rate="0"/>
-    <component name="driver" source="builtin:publish" rate="10" priority="1">
+    <component name="driver" source="builtin:publish" rate="10" priority="{priority}">
       <param name="kind" value="command"/>
       <param name="value" value="VEL 0.4 0"/>
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20"/>
     <connect from="motors.ranges" to="filter.ranges"/>
     <connect from="driver.out" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    {envelope}
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
     {avoider}
   </platform>
 </robot>"#,
-        world.display()
+        world.display(),
+        priority = if with_avoider { 1 } else { 1000 },
     );
     let robot = robot_file(dir.path(), &body);
     let report_path = dir.path().join("report.json");
@@ -150,17 +165,40 @@ fn drive_at_a_wall(with_avoider: bool) -> Json {
 
 #[test]
 fn the_avoider_prevents_the_collision_a_blind_source_would_cause() {
-    let blind = drive_at_a_wall(false);
+    let blind = drive_at_a_wall(false, false);
     assert!(
         blind["sim"]["collisions"].as_u64().unwrap() >= 1,
         "without the avoider the robot hits the wall: {}",
         blind["sim"]
     );
-    let guarded = drive_at_a_wall(true);
+    let guarded = drive_at_a_wall(true, false);
     assert_eq!(guarded["sim"]["collisions"], 0, "{}", guarded["sim"]);
     let held = &guarded["arbiter"]["held_s"];
     assert!(held[1][0] == "avoid" && held[1][1].as_f64().unwrap() > 0.5, "{held}");
     assert!(guarded["sim"]["distance_travelled_m"].as_f64().unwrap() > 3.0, "{}", guarded["sim"]);
+}
+
+#[test]
+fn the_envelope_stops_a_blind_top_priority_driver_short_of_the_wall() {
+    let report = drive_at_a_wall(false, true);
+    let (sim, envelope) = (&report["sim"], &report["envelope"]);
+    assert_eq!(sim["collisions"], 0, "{sim}");
+    // The wall is at x = 5, the body a disc of 0.18 m, the stop zone 0.1 m:
+    // the robot got close (it was not just frozen) and stopped outside the
+    // stop zone (the slowdown zone's ramp ends at its edge).
+    let clearance = 5.0 - sim["x"].as_f64().unwrap() - 0.18;
+    assert!(clearance > 0.09 && clearance < 0.2, "clearance {clearance} m: {sim}");
+    assert!(envelope["scaled"].as_u64().unwrap() > 0, "{envelope}");
+    let causes = &envelope["causes"];
+    assert!(
+        causes["slowdown-zone"].as_u64().unwrap_or(0) + causes["time-to-collision"].as_u64().unwrap_or(0) > 0,
+        "{envelope}"
+    );
+    let closest = envelope["closest_ever_m"].as_f64().unwrap();
+    assert!(closest > 0.09, "closest approach {closest} m: {envelope}");
+    // What it changed, why, and the reading behind it.
+    let last = envelope["last"]["text"].as_str().unwrap();
+    assert!(last.contains("VEL 0.4 0.0") && last.contains("m ahead,") && last.contains("zone"), "{envelope}");
 }
 
 #[test]
@@ -182,7 +220,12 @@ fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_ti
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
 </robot>"#
         ),
@@ -271,7 +314,7 @@ fn check_prints_every_error_one_per_line_and_exits_1() {
 fn check_accepts_a_good_file_with_a_summary() {
     let output = run(&["check", "config/demo.xml"]);
     assert_eq!(output.status.code(), Some(0), "{}", text(&output.stdout));
-    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 8 components, 9 connections\n");
+    assert_eq!(text(&output.stdout), "config/demo.xml: ok: robot 'demo', 9 components, 12 connections\n");
     // Parameters can be set from the command line; a bad one is reported.
     let output = run(&["check", "config/demo.xml", "--param", "avoid.threshold=near"]);
     assert_eq!(output.status.code(), Some(1));

@@ -445,7 +445,12 @@ fn a_component_that_holds_control_and_then_loops_leaves_the_robot_stopped() {
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
     <connect from="grabber.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
 </robot>"#
     );

@@ -255,7 +255,12 @@ fn every_language_keeps_the_robot_off_the_wall() {
     <connect from="motors-{lang}.ranges" to="avoid-{lang}.ranges"/>
     <connect from="driver-{lang}.out" to="arbiter-{lang}.commands"/>
     <connect from="avoid-{lang}.cmd" to="arbiter-{lang}.commands"/>
-    <connect from="arbiter-{lang}.cmd" to="motors-{lang}.cmd"/>
+    <component name="envelope-{lang}" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter-{lang}.cmd" to="envelope-{lang}.cmd"/>
+    <connect from="envelope-{lang}.cmd" to="motors-{lang}.cmd"/>
 "#,
             avoider = avoider(lang).display()
         );

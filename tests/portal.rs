@@ -367,6 +367,146 @@ fn the_portal_works_in_a_real_browser() {
     }
 }
 
+/// The owner's robot for the envelope tests: a wall 4 m ahead, the
+/// envelope between the arbiter and the motors, and `extra` (a driver).
+fn wall_robot(extra: &str, envelope_params: &str) -> String {
+    format!(
+        r#"<robot name="wall">
+  <platform name="control">
+    <component name="sim" source="builtin:sim"><param name="world" value="wall.world"/></component>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="envelope" source="builtin:envelope" rate="20">{envelope_params}</component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="motors.ranges" to="envelope.ranges"/>
+    <connect from="motors.pose" to="envelope.pose"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+{extra}  </platform>
+</robot>
+"#
+    )
+}
+
+/// `subsume run ROBOT` with the portal on a free port (no teleop to move).
+fn start_plain(store: &Path, robot: &Path) -> Host {
+    support::guest_dir();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
+        .arg(robot)
+        .args(["--http", "127.0.0.1:0"])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("portal on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
+            }
+        }
+    });
+    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
+    let (_, teleop) = std::sync::mpsc::channel();
+    Host { child, address, teleop }
+}
+
+#[test]
+fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    add_user(&store, "dev", "developer", &["control"]);
+    std::fs::copy(support::repo_root().join("tests/worlds/wall-ahead.world"), dir.path().join("wall.world")).unwrap();
+    let boot = dir.path().join("wall.xml");
+    std::fs::write(&boot, wall_robot("", "")).unwrap();
+    let host = start_plain(&store, &boot);
+    let dev = login_as(&host.address, "dev");
+    let commander = std::fs::read(support::guest("test-commander")).unwrap();
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/components/rammer", Some(&dev), &commander);
+    assert!((200..300).contains(&status), "{status} {json}");
+    let driver = r#"    <component name="rammer" source="rammer.wasm" rate="20" priority="1000" timeout="300ms">
+      <param name="command" value="VEL 0.45 0"/>
+      <param name="ticks" value="100000000"/>
+    </component>
+    <connect from="rammer.cmd" to="arbiter.commands"/>
+"#;
+    let stage = |name: &str, xml: &str| {
+        http(&host.address, "PUT", &format!("/api/v1/platforms/control/configs/{name}"), Some(&dev), xml.as_bytes())
+    };
+    let (status, staged) = stage("ram.xml", &wall_robot(driver, ""));
+    assert!((200..300).contains(&status), "{status} {staged}");
+    let id = staged["set"]["id"].as_u64().unwrap();
+    let (status, json) = http(&host.address, "POST", &format!("/api/v1/sets/{id}/activate"), Some(&dev), b"");
+    assert!((200..300).contains(&status), "{status} {json}");
+
+    // The driver holds control with the top priority; at 0.45 m/s it would
+    // reach the wall in under 9 s. Watch for 20 s.
+    let mut closest = f64::INFINITY;
+    let started = std::time::Instant::now();
+    let mut live = Value::Null;
+    while started.elapsed() < Duration::from_secs(20) {
+        std::thread::sleep(Duration::from_millis(250));
+        let (status, json) = http(&host.address, "GET", "/api/v1/status", Some(&dev), b"");
+        assert_eq!(status, 200);
+        live = json;
+        assert_eq!(live["set"].as_u64(), Some(id), "{live}");
+        assert_eq!(live["sim"]["collisions"], 0, "{}", live["sim"]);
+        closest = closest.min(5.0 - live["sim"]["x"].as_f64().unwrap() - 0.18);
+    }
+    assert_eq!(live["arbiter"]["holder"], "rammer", "{}", live["arbiter"]);
+    // It drove (not just frozen) and came to rest outside the stop zone (0.1 m).
+    assert!(live["sim"]["x"].as_f64().unwrap() > 4.0, "{}", live["sim"]);
+    assert!(closest > 0.09, "closest approach {closest} m");
+    let envelope = &live["envelope"];
+    assert!(envelope["scaled"].as_u64().unwrap() > 0, "{envelope}");
+    assert!(envelope["settings"]["stop_distance"].as_f64() == Some(0.1), "the live view carries the zones: {envelope}");
+
+    // The same file, loosening the envelope: refused, naming the setting,
+    // and nothing changes.
+    let sets_before = subsume::store::Store::open(&store).unwrap().sets().unwrap().len();
+    let loose = wall_robot(driver, r#"<param name="stop-distance" value="0"/>"#);
+    let (status, json) = stage("loose.xml", &loose);
+    assert_eq!(status, 403, "{json}");
+    let error = json["error"].as_str().unwrap_or_default();
+    assert!(error.contains("parameter 'stop-distance' of envelope 'envelope'"), "{json}");
+    // Unwiring its ranges, or feeding the motors around it, fails the same way.
+    let blind = wall_robot(driver, "").replace("    <connect from=\"motors.ranges\" to=\"envelope.ranges\"/>\n", "");
+    let (status, json) = stage("blind.xml", &blind);
+    assert_eq!(status, 403, "{json}");
+    assert!(json["error"].as_str().unwrap_or_default().contains("removes motors (builtin:serial).ranges"), "{json}");
+    let around = wall_robot(driver, "").replace(
+        "<connect from=\"envelope.cmd\" to=\"motors.cmd\"/>",
+        "<connect from=\"arbiter.cmd\" to=\"motors.cmd\"/>",
+    );
+    let (status, json) = stage("around.xml", &around);
+    assert_eq!(status, 422, "{json}");
+    let text = json["diagnostics"][0]["text"].as_str().unwrap_or_default();
+    assert!(text.starts_with("around.xml:10:") && text.contains("must pass a builtin:envelope"), "{json}");
+    let opened = subsume::store::Store::open(&store).unwrap();
+    assert_eq!(opened.sets().unwrap().len(), sets_before, "no set was stored");
+    let (_, live) = http(&host.address, "GET", "/api/v1/status", Some(&dev), b"");
+    assert_eq!(live["set"].as_u64(), Some(id));
+    assert_eq!(live["envelope"]["settings"]["stop_distance"].as_f64(), Some(0.1));
+    let entries = opened.audit_entries(usize::MAX).unwrap();
+    assert!(
+        entries.iter().any(|e| e.user == "dev" && e.result == "refused" && e.detail.contains("stop-distance")),
+        "the refusal is audited"
+    );
+
+    // An admin may change it, and the audit line says how.
+    let admin = login(&host.address);
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/configs/loose.xml", Some(&admin), loose.as_bytes());
+    assert!((200..300).contains(&status), "{status} {json}");
+    let entries = subsume::store::Store::open(&store).unwrap().audit_entries(usize::MAX).unwrap();
+    let last = entries.last().unwrap();
+    assert!(last.user == "admin" && last.detail.contains("changes parameter 'stop-distance'"), "{last:?}");
+}
+
 /// The first line the network platform at `address` sends.
 fn teleop_hello(address: &str) -> String {
     let stream = TcpStream::connect(address).unwrap();

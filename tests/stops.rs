@@ -112,7 +112,12 @@ fn robot(device: &str, wire: Wire, command: &str, refresh: &str) -> String {
       <param name="refresh" value="{refresh}"/>
     </component>
     <connect from="driver.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
 </robot>
 "#,

@@ -363,7 +363,12 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
     <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>"#,
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>"#,
         world.display()
     );
     let mut host = start("", &components, 6);
@@ -400,7 +405,12 @@ fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
         r#"<component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>"#
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>"#
     );
     let host = start("", &components, 30);
     let mut alice = Operator::connect(&host);

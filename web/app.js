@@ -116,10 +116,19 @@ function renderStatus(s) {
     const state = el('td', { class: c.state }, c.state + (c.fault ? ': ' + c.fault : ''));
     body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts))));
   }
-  drawMap(sim);
+  const envelope = s.envelope;
+  if (envelope) {
+    const closest = envelope.closest_ever_m == null ? '-' : `${envelope.closest_ever_m.toFixed(2)} m`;
+    $('envelope').textContent = `passed ${envelope.passed}, scaled ${envelope.scaled}, stopped ${envelope.stopped}; closest approach ${closest}`;
+    $('intervention').textContent = envelope.last ? `${envelope.last.at_s.toFixed(1)} s: ${envelope.last.text}` : '-';
+  } else {
+    $('envelope').textContent = 'none';
+    $('intervention').textContent = '-';
+  }
+  drawMap(sim, envelope);
 }
 
-function drawMap(sim) {
+function drawMap(sim, envelope) {
   const canvas = $('map');
   const ctx = canvas.getContext('2d');
   ctx.clearRect(0, 0, canvas.width, canvas.height);
@@ -138,7 +147,22 @@ function drawMap(sim) {
   const [goal, tolerance] = world.world.goal;
   ctx.fillStyle = '#11772b';
   ctx.beginPath(); ctx.arc(X(goal.x), Y(goal.y), Math.max(4, tolerance * scale), 0, 2 * Math.PI); ctx.fill();
+  const zones = envelope && envelope.settings;
+  if (zones && zones.geofence && zones.geofence.length >= 3) {
+    // The geofence, in odometry coordinates (the simulator's world frame).
+    ctx.strokeStyle = 'rgba(200, 0, 0, 0.8)'; ctx.lineWidth = 1; ctx.setLineDash([6, 4]);
+    ctx.beginPath();
+    zones.geofence.forEach(([x, y], i) => (i ? ctx.lineTo(X(x), Y(y)) : ctx.moveTo(X(x), Y(y))));
+    ctx.closePath(); ctx.stroke(); ctx.setLineDash([]);
+  }
   if (!sim) return;
+  if (zones) {
+    // Slowdown and stop zones around the footprint.
+    for (const [extra, colour] of [[zones.slow_distance, 'rgba(230, 160, 0, 0.25)'], [zones.stop_distance, 'rgba(220, 0, 0, 0.35)']]) {
+      ctx.fillStyle = colour;
+      ctx.beginPath(); ctx.arc(X(sim.x), Y(sim.y), (zones.radius + extra) * scale, 0, 2 * Math.PI); ctx.fill();
+    }
+  }
   const rays = sim.ranges || [];
   const fov = world.fov || Math.PI;
   ctx.strokeStyle = 'rgba(255, 120, 0, 0.6)'; ctx.lineWidth = 1;

@@ -44,7 +44,12 @@ fn main() {
       <param name="refresh" value="10"/>
     </component>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
 </robot>"#,
         slave.name().unwrap()

@@ -15,9 +15,10 @@
 //! - [`sandbox`]: wasmtime: engine, compile cache, guests and translators;
 //! - [`store`]: blobs, sets, state, users and the audit log, one writer;
 //! - [`builtin`]: the framework of native components;
-//! - [`arbiter`], [`robot`], [`sim`], [`teleop`]: the built-ins and what
-//!   they own (subsumption; control strings, protocols, translators, the
-//!   serial link; the simulated robot; the network platform);
+//! - [`arbiter`], [`envelope`], [`robot`], [`sim`], [`teleop`]: the
+//!   built-ins and what they own (subsumption; the safety envelope; control
+//!   strings, protocols, translators, the serial link; the simulated robot;
+//!   the network platform);
 //! - [`assemble`]: robot file + loader -> a wired graph; the registry;
 //! - [`report`]: the run report and the live status;
 //! - [`metrics`]: the live status as Prometheus (OpenMetrics) text;
@@ -31,6 +32,7 @@ pub mod builtin;
 pub mod config;
 pub mod contract;
 pub mod deploy;
+pub mod envelope;
 pub mod fsutil;
 pub mod metrics;
 pub mod portal;

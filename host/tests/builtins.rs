@@ -150,7 +150,11 @@ fn table(builtin: &dyn Builtin) -> String {
     }
     let _ = writeln!(s, "\n| parameter | default | allowed | meaning |\n|---|---|---|---|");
     for p in params {
-        let default = if p.default.is_empty() { "(required)".to_string() } else { format!("`{}`", p.default) };
+        let default = match (p.default.is_empty(), p.check(p.default).is_ok()) {
+            (true, true) => "(empty)".to_string(),
+            (true, false) => "(required)".to_string(),
+            _ => format!("`{}`", p.default),
+        };
         let _ = writeln!(s, "| `{}` | {default} | {} | {} |", p.name, p.expected(), p.doc);
     }
     s
@@ -219,7 +223,7 @@ fn describe_builtin_prints_every_declared_parameter_with_its_bounds() {
     assert!(!output.status.success());
     assert!(
         String::from_utf8_lossy(&output.stderr)
-            .contains("unknown built-in 'nope' (known: arbiter, log, publish, serial, sim, teleop)")
+            .contains("unknown built-in 'nope' (known: arbiter, envelope, log, publish, serial, sim, teleop)")
     );
 }
 

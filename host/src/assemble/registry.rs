@@ -5,12 +5,14 @@ use crate::arbiter::ArbiterBuiltin;
 use crate::builtin::Builtin;
 use crate::builtin::log::Log;
 use crate::builtin::publish::Publish;
+use crate::envelope::EnvelopeBuiltin;
 use crate::robot::builtin::SerialBuiltin;
 use crate::sim::builtin::SimBuiltin;
 use crate::teleop::builtin::TeleopBuiltin;
 
 /// Every built-in, in alphabetical order of kind.
-pub const BUILTINS: &[&dyn Builtin] = &[&ArbiterBuiltin, &Log, &Publish, &SerialBuiltin, &SimBuiltin, &TeleopBuiltin];
+pub const BUILTINS: &[&dyn Builtin] =
+    &[&ArbiterBuiltin, &EnvelopeBuiltin, &Log, &Publish, &SerialBuiltin, &SimBuiltin, &TeleopBuiltin];
 
 /// The built-in of `kind`.
 pub fn find(kind: &str) -> Option<&'static dyn Builtin> {

@@ -183,7 +183,61 @@ pub(super) fn validate(
             ));
             continue;
         }
+        let target = &robot.components[to.component];
+        let into_motors = target.source == ComponentSource::Builtin("serial".into())
+            && target.description.inputs.get(to.port as usize).is_some_and(|p| p.name == "cmd");
+        if into_motors && source.source != ComponentSource::Builtin("envelope".into()) {
+            errors.push(map.at(
+                connect.from.offset,
+                format!(
+                    "'{}' feeds serial link '{}' directly: motion commands must pass a builtin:envelope \
+                     (connect '{}' to an envelope's 'cmd' input and the envelope's 'cmd' to '{}')",
+                    connect.from.value, target.name, connect.from.value, connect.to.value
+                ),
+            ));
+            continue;
+        }
         robot.connections.push(ConnectionConfig { from, to, policy, platform });
+    }
+    for (index, component) in robot.components.iter().enumerate() {
+        if component.source != ComponentSource::Builtin("envelope".into()) {
+            continue;
+        }
+        let fenced = component.params.iter().any(|p| p.name == "geofence" && !p.value.trim().is_empty());
+        let pose = component.description.inputs.iter().position(|p| p.name == "pose");
+        let wired = robot.connections.iter().any(|c| c.to.component == index && Some(c.to.port as usize) == pose);
+        let cap =
+            component.params.iter().find(|p| p.name == "max-priority").and_then(|p| p.value.trim().parse::<i32>().ok());
+        if let Some(cap) = cap {
+            for source in robot.components.iter().enumerate().filter(|(i, c)| {
+                matches!(c.source, ComponentSource::Wasm(_))
+                    && c.priority.is_some_and(|p| p > cap)
+                    && robot.connections.iter().any(|k| {
+                        k.from.component == *i
+                            && robot.components[k.to.component].source == ComponentSource::Builtin("arbiter".into())
+                    })
+            }) {
+                let (_, source) = source;
+                errors.push(map.at(
+                    source.offset,
+                    format!(
+                        "component '{}' claims priority {}, but envelope '{}' allows WASM motion sources at most {cap}",
+                        source.name,
+                        source.priority.unwrap_or_default(),
+                        component.name
+                    ),
+                ));
+            }
+        }
+        if fenced && !wired {
+            errors.push(map.at(
+                component.offset,
+                format!(
+                    "envelope '{}' has a geofence but no pose: connect the odometry to '{}.pose'",
+                    component.name, component.name
+                ),
+            ));
+        }
     }
     robot
 }

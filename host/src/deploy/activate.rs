@@ -10,7 +10,7 @@ use super::{DeployError, Deployer, Deployment, Permission, authorise, stage};
 use crate::assemble::{self, Built, Carry, Loader};
 use crate::config::RobotConfig;
 use crate::runtime::RunningRobot;
-use crate::store::users::User;
+use crate::store::users::{Role, User};
 use crate::store::{SetRecord, StoreError};
 
 /// A set whose graph is built and waits for the swap.
@@ -19,6 +19,8 @@ pub(super) struct Ready {
     config: Arc<RobotConfig>,
     built: Built,
     carry: Vec<(usize, usize)>,
+    /// How an admin's switch changes the envelope, for the audit line.
+    envelope: Option<String>,
 }
 
 impl Deployer {
@@ -93,10 +95,17 @@ impl Deployer {
                     priorities: ready.built.priorities,
                     sim_ptys: ready.built.sim_ptys,
                 };
-                Ok(ready.set)
+                Ok((ready.set, ready.envelope))
             },
-            |set| format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id),
+            |(set, envelope)| {
+                let done = format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id);
+                match envelope {
+                    Some(change) => format!("{done}; it {change}"),
+                    None => done,
+                }
+            },
         )
+        .map(|(set, _)| set)
     }
 
     fn prepare_switch(&self, user: &User, id: u64, active: &Deployment) -> Result<Ready, DeployError> {
@@ -117,6 +126,14 @@ impl Deployer {
                 user.name
             )));
         }
+        let envelope = stage::envelope_change(&active.config, &config);
+        if let Some(change) = &envelope
+            && user.role != Role::Admin
+        {
+            return Err(DeployError::Forbidden(format!(
+                "set {id} {change}: the envelope's settings are the robot owner's, and only an admin may change them"
+            )));
+        }
         let pairs = assemble::carry_plan(&active.config, &config);
         let mut carry = Carry::default();
         for &(old, new) in &pairs {
@@ -130,6 +147,6 @@ impl Deployer {
         }
         let built = assemble::build(&config, &mut loader, self.clock, &self.waker, &self.services, &carry)
             .map_err(DeployError::Start)?;
-        Ok(Ready { set, config: Arc::new(config), built, carry: pairs })
+        Ok(Ready { set, config: Arc::new(config), built, carry: pairs, envelope })
     }
 }

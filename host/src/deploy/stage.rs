@@ -13,7 +13,7 @@ use crate::config::{
     RobotConfig, limits,
 };
 use crate::contract::{Description, clip};
-use crate::store::users::User;
+use crate::store::users::{Role, User};
 use crate::store::{STORE_FORMAT, SetRecord, Store, WiringComponent, WiringConnection, WiringGraph, unix_now};
 
 /// Longest robot-file name kept (it names diagnostics).
@@ -23,6 +23,8 @@ pub const MAX_FILE_NAME_LEN: usize = 64;
 pub(super) struct Staged {
     record: SetRecord,
     bytes: Vec<u8>,
+    /// How an admin's file changes the envelope, for the audit line.
+    envelope: Option<String>,
 }
 
 impl Deployer {
@@ -45,10 +47,14 @@ impl Deployer {
             prepared,
             |writer, staged: Staged| {
                 let config_sha256 = writer.put_blob(&staged.bytes)?;
-                Ok(writer.add_set(SetRecord { config_sha256, ..staged.record })?)
+                Ok((writer.add_set(SetRecord { config_sha256, ..staged.record })?, staged.envelope))
             },
-            |set| format!("staged as set {}", set.id),
+            |(set, envelope)| match envelope {
+                Some(change) => format!("staged as set {}; it {change}", set.id),
+                None => format!("staged as set {}", set.id),
+            },
         )
+        .map(|(set, _)| set)
     }
 
     fn prepare_stage(
@@ -97,13 +103,21 @@ impl Deployer {
                 user.name
             )));
         }
+        let envelope = envelope_change(&active_config, &config);
+        if let Some(change) = &envelope
+            && user.role != Role::Admin
+        {
+            return Err(DeployError::Forbidden(format!(
+                "{file_name} {change}: the envelope's settings are the robot owner's, and only an admin may change them"
+            )));
+        }
         let record = SetRecord {
             sources,
             changes: changes.iter().map(|p| p.name().to_string()).collect(),
             graph: wiring_graph(&config),
             ..record
         };
-        Ok(Staged { record, bytes: bytes.to_vec() })
+        Ok(Staged { record, bytes: bytes.to_vec(), envelope })
     }
 }
 
@@ -274,4 +288,68 @@ pub fn wiring_graph(config: &RobotConfig) -> WiringGraph {
         })
         .collect();
     WiringGraph { robot: config.name.clone(), components, connections }
+}
+
+/// The first difference between the envelopes of two robots (their
+/// parameters, rate and every connection into or out of them), in words
+/// naming the setting; None when they are the same. Envelope settings are
+/// the owner's: only an admin may change them.
+pub fn envelope_change(old: &RobotConfig, new: &RobotConfig) -> Option<String> {
+    fn envelopes(robot: &RobotConfig) -> BTreeMap<String, (usize, &ComponentConfig)> {
+        robot
+            .components
+            .iter()
+            .enumerate()
+            .filter(|(_, c)| c.source == ComponentSource::Builtin("envelope".into()))
+            .map(|(i, c)| (c.name.clone(), (i, c)))
+            .collect()
+    }
+    let wiring = |robot: &RobotConfig, index: usize| -> Vec<String> {
+        let port = |component: usize, port: u32, output: bool| -> String {
+            let Some(c) = robot.components.get(component) else { return "?".into() };
+            let ports = if output { &c.description.outputs } else { &c.description.inputs };
+            let source = match &c.source {
+                ComponentSource::Builtin(kind) => format!("builtin:{kind}"),
+                ComponentSource::Wasm(_) => format!("wasm:{}", c.description.name),
+            };
+            format!("{} ({source}).{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
+        };
+        let mut lines: Vec<String> = robot
+            .connections
+            .iter()
+            .filter(|c| c.from.component == index || c.to.component == index)
+            .map(|c| {
+                format!("{} -> {}", port(c.from.component, c.from.port, true), port(c.to.component, c.to.port, false))
+            })
+            .collect();
+        lines.sort();
+        lines
+    };
+    let (before, after) = (envelopes(old), envelopes(new));
+    for (name, (i, was)) in &before {
+        let Some((j, now)) = after.get(name) else {
+            return Some(format!("removes envelope '{name}'"));
+        };
+        for (p, q) in was.params.iter().zip(&now.params) {
+            if p.name != q.name || p.value.trim() != q.value.trim() {
+                return Some(format!(
+                    "changes parameter '{}' of envelope '{name}' from '{}' to '{}'",
+                    q.name,
+                    clip(p.value.trim()),
+                    clip(q.value.trim())
+                ));
+            }
+        }
+        if was.rate_hz != now.rate_hz {
+            return Some(format!("changes the rate of envelope '{name}' from {} to {}", was.rate_hz, now.rate_hz));
+        }
+        let (w0, w1) = (wiring(old, *i), wiring(new, *j));
+        if let Some(gone) = w0.iter().find(|l| !w1.contains(l)) {
+            return Some(format!("changes the wiring of envelope '{name}': removes {gone}"));
+        }
+        if let Some(added) = w1.iter().find(|l| !w0.contains(l)) {
+            return Some(format!("changes the wiring of envelope '{name}': adds {added}"));
+        }
+    }
+    after.keys().find(|name| !before.contains_key(*name)).map(|name| format!("adds envelope '{name}'"))
 }

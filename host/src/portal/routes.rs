@@ -157,20 +157,6 @@ pub(super) async fn rollback(
     Ok(Json(json!({ "active": set })))
 }
 
-/// The live status: the last one published, or, when none was (nobody was
-/// watching), the next one, waited for briefly (being subscribed makes the
-/// control loop publish).
-async fn live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
-    let mut live = state.deployer.live().subscribe();
-    let current = live.borrow_and_update().clone();
-    if current.is_none() {
-        let _ = tokio::time::timeout(Duration::from_secs(1), live.changed()).await;
-        live.borrow().clone()
-    } else {
-        current
-    }
-}
-
 /// The next live status the control loop publishes (the last one may be
 /// old: the loop publishes only while someone is subscribed). It comes
 /// within one cycle, or `deploy::LIVE_PERIOD` while others watch; after a
@@ -183,7 +169,7 @@ async fn fresh_live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
 }
 
 pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
-    let current = live_status(&state).await;
+    let current = fresh_live_status(&state).await;
     Json(serde_json::to_value(&*current).unwrap_or_default())
 }
 

@@ -385,7 +385,7 @@ impl StoreWriter<'_> {
             action: action.into(),
             target: clip(target),
             result: outcome.result().into(),
-            detail: clip(outcome.detail()),
+            detail: audit::clip_detail(outcome.detail()),
         };
         if let Err(e) = audit::append(&self.root.join("audit.log"), &entry) {
             tracing::error!("cannot write the audit log: {e}");

@@ -1,0 +1,507 @@
+//! The safety envelope (`builtin:envelope`): the owner's limits between the
+//! arbiter and the serial link, which uploaded code cannot remove.
+//!
+//! Every motion command passes it after arbitration and before
+//! translation: validation refuses a robot file whose serial link takes
+//! commands from anything but an envelope (`config::validate`), and a
+//! developer's upload or activation that changes an envelope's settings or
+//! wiring is refused (`deploy::stage::envelope_change`). It passes, scales
+//! down or stops what the arbiter chose, never more ([`logic`], pure, with
+//! explicit time); every intervention is counted, logged and kept for the
+//! report and the live view (the `envelope` section), with the reading
+//! behind it.
+//!
+//! Ports: `cmd` in (the arbiter's command), `ranges` in (the link's range
+//! readings), `pose` in (odometry), `cmd` out (what may reach the motors).
+//! A sensor input left unwired turns its checks off (no collision monitor
+//! without ranges); a geofence needs the pose wired (a validation error
+//! otherwise).
+
+pub mod logic;
+
+use std::collections::{BTreeMap, VecDeque};
+use std::f64::consts::TAU;
+
+use serde::Serialize;
+
+use self::logic::{Action, Envelope, MAX_FENCE_POINTS, Settings, Verdict};
+use crate::builtin::{
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
+    positive_up_to,
+};
+use crate::config::ParamProblem;
+use crate::contract::{Value, ValueKind, clip};
+use crate::robot::control::{self, ControlCommand};
+use crate::runtime::{CallError, Component, Outbox};
+
+/// Fastest speed (m/s) and turn (rad/s) an envelope may allow.
+pub const MAX_SPEED_M_S: f64 = 10.0;
+pub const MAX_TURN_RAD_S: f64 = 20.0;
+/// Largest accelerations an envelope may allow (m/s², rad/s²).
+pub const MAX_ACCEL: f64 = 100.0;
+/// Largest footprint radius and zone, m.
+pub const MAX_ZONE_M: f64 = 5.0;
+/// Longest time-to-collision and staleness limits, s.
+pub const MAX_ENVELOPE_TIME_S: f64 = 10.0;
+/// Interventions kept for the live view: a stream of them must not grow
+/// the status without bound.
+pub const RECENT_INTERVENTIONS: usize = 10;
+/// Least time between two log lines for the same kind of intervention: a
+/// driver pushing at a wall 20 times a second must not flood the log.
+pub const LOG_INTERVAL_NS: u64 = 1_000_000_000;
+/// Port indices.
+pub const INPUT_CMD: u32 = 0;
+pub const INPUT_RANGES: u32 = 1;
+pub const INPUT_POSE: u32 = 2;
+
+const PARAMS: &[ParamDecl] = &[
+    ParamDecl {
+        name: "max-speed",
+        ty: positive_up_to(MAX_SPEED_M_S),
+        default: "0.5",
+        unit: "m/s",
+        doc: "fastest forward speed",
+    },
+    ParamDecl {
+        name: "max-reverse",
+        ty: number_in(0.0, MAX_SPEED_M_S),
+        default: "0.1",
+        unit: "m/s",
+        doc: "fastest reverse speed (0: no reversing)",
+    },
+    ParamDecl {
+        name: "max-turn",
+        ty: positive_up_to(MAX_TURN_RAD_S),
+        default: "2.0",
+        unit: "rad/s",
+        doc: "fastest turn",
+    },
+    ParamDecl {
+        name: "max-accel",
+        ty: positive_up_to(MAX_ACCEL),
+        default: "1.0",
+        unit: "m/s2",
+        doc: "largest increase of the linear speed per second (slowing down is never delayed)",
+    },
+    ParamDecl {
+        name: "max-turn-accel",
+        ty: positive_up_to(MAX_ACCEL),
+        default: "6.0",
+        unit: "rad/s2",
+        doc: "largest increase of the turn rate per second",
+    },
+    ParamDecl {
+        name: "radius",
+        ty: positive_up_to(MAX_ZONE_M),
+        default: "0.18",
+        unit: "m",
+        doc: "the footprint: a disc of this radius around the range sensor",
+    },
+    ParamDecl {
+        name: "stop-distance",
+        ty: number_in(0.0, MAX_ZONE_M),
+        default: "0.1",
+        unit: "m",
+        doc: "stop zone: linear motion stops when an obstacle is this close along the path",
+    },
+    ParamDecl {
+        name: "slow-distance",
+        ty: number_in(0.0, MAX_ZONE_M),
+        default: "0.4",
+        unit: "m",
+        doc: "slowdown zone: the speed falls from max-speed at this clearance to 0 at the stop zone (equal: none)",
+    },
+    ParamDecl {
+        name: "ttc",
+        ty: number_in(0.0, MAX_ENVELOPE_TIME_S),
+        default: "1.0",
+        unit: "s",
+        doc: "least time to collision at the commanded speed (0: off)",
+    },
+    ParamDecl {
+        name: "fov",
+        ty: positive_up_to(TAU),
+        default: "3.14159",
+        unit: "rad",
+        doc: "angle covered by the range readings, right to left, centred on the heading",
+    },
+    ParamDecl {
+        name: "stale",
+        ty: positive_up_to(MAX_ENVELOPE_TIME_S),
+        default: "0.5",
+        unit: "s",
+        doc: "STOP when the wired ranges or pose are older than this",
+    },
+    ParamDecl {
+        name: "max-priority",
+        ty: ParamType::Integer { min: -1000, max: 1000 },
+        default: "1000",
+        unit: "",
+        doc: "highest priority a WASM component feeding the arbiter may claim (validation refuses more)",
+    },
+    ParamDecl {
+        name: "geofence",
+        ty: ParamType::Text,
+        default: "",
+        unit: "m",
+        doc: "polygon in odometry coordinates the robot may not leave: 'x,y x,y x,y ...' (empty: none)",
+    },
+];
+
+/// Parses a geofence: at least three `x,y` corners separated by blanks.
+pub fn parse_geofence(text: &str) -> Result<Vec<[f64; 2]>, String> {
+    let text = text.trim();
+    if text.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut corners = Vec::new();
+    for (i, word) in text.split_whitespace().enumerate() {
+        if i >= MAX_FENCE_POINTS {
+            return Err(format!("has more than {MAX_FENCE_POINTS} corners"));
+        }
+        let corner = word.split_once(',').and_then(|(x, y)| {
+            let (x, y) = (x.trim().parse::<f64>().ok()?, y.trim().parse::<f64>().ok()?);
+            (x.is_finite() && y.is_finite()).then_some([x, y])
+        });
+        match corner {
+            Some(c) => corners.push(c),
+            None => return Err(format!("corner {} is not 'x,y' in metres: '{}'", i + 1, clip(word))),
+        }
+    }
+    if corners.len() < 3 {
+        return Err(format!("needs at least 3 corners 'x,y', got {}", corners.len()));
+    }
+    Ok(corners)
+}
+
+/// The settings of checked `params`, with which sensors are wired.
+pub fn settings(params: &Params, watch_ranges: bool, watch_pose: bool) -> Result<Settings, BuiltinError> {
+    let geofence =
+        parse_geofence(params.text("geofence")?).map_err(|why| BuiltinError::Param { name: "geofence".into(), why })?;
+    Ok(Settings {
+        max_speed: params.number("max-speed")?,
+        max_reverse: params.number("max-reverse")?,
+        max_turn: params.number("max-turn")?,
+        max_accel: params.number("max-accel")?,
+        max_turn_accel: params.number("max-turn-accel")?,
+        radius: params.number("radius")?,
+        stop_distance: params.number("stop-distance")?,
+        slow_distance: params.number("slow-distance")?,
+        ttc_s: params.number("ttc")?,
+        fov: params.number("fov")?,
+        stale_ns: params.seconds("stale")?.as_nanos() as u64,
+        geofence,
+        watch_ranges,
+        watch_pose,
+    })
+}
+
+/// The `envelope` kind.
+pub struct EnvelopeBuiltin;
+
+impl Builtin for EnvelopeBuiltin {
+    fn kind(&self) -> &'static str {
+        "envelope"
+    }
+
+    fn summary(&self) -> &'static str {
+        "Safety envelope between the arbiter and the motors: limits, collision monitor, geofence, stale sensors"
+    }
+
+    fn params(&self) -> &'static [ParamDecl] {
+        PARAMS
+    }
+
+    fn check(&self, params: &Params, _ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
+        let mut problems = Vec::new();
+        if let Err(why) = parse_geofence(params.text("geofence").unwrap_or_default()) {
+            problems.push(ParamProblem::new("geofence", why));
+        }
+        let (stop, slow) = (params.number("stop-distance"), params.number("slow-distance"));
+        if let (Ok(stop), Ok(slow)) = (stop, slow)
+            && stop > slow
+        {
+            problems.push(ParamProblem::new(
+                "stop-distance",
+                format!("must not exceed slow-distance ({slow} m), got {stop} m"),
+            ));
+        }
+        problems
+    }
+
+    fn ports(&self, _params: &Params) -> Ports {
+        Ports {
+            inputs: vec![
+                builtin::port("cmd", ValueKind::Command, "the arbiter's command"),
+                builtin::port("ranges", ValueKind::Vector, "range readings in metres, right to left over fov"),
+                builtin::port("pose", ValueKind::Vector, "odometry [x m, y m, heading rad]"),
+            ],
+            outputs: vec![builtin::port("cmd", ValueKind::Command, "the command as the envelope lets it through")],
+        }
+    }
+
+    fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
+        let wired = |port: u32| ctx.robot.connections.iter().any(|c| c.to.component == ctx.index && c.to.port == port);
+        let settings = settings(params, wired(INPUT_RANGES), wired(INPUT_POSE))?;
+        let name = ctx.component()?.name.clone();
+        if !settings.watch_ranges {
+            tracing::warn!(component = %name, "no ranges wired: the collision monitor is off");
+        }
+        if !settings.geofence.is_empty() && !settings.watch_pose {
+            return Err(BuiltinError::Refused("a geofence needs the pose wired to the envelope's 'pose' input".into()));
+        }
+        Ok(Box::new(EnvelopeComponent::new(&name, settings)))
+    }
+}
+
+/// One intervention, as the live view and the report show it.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Intervention {
+    pub at_s: f64,
+    pub action: Action,
+    /// What came in and what went out.
+    pub command: String,
+    pub output: String,
+    /// Why, with the reading behind it.
+    pub cause: String,
+    /// "stopped VEL 0.45 0.0: obstacle 0.18 m ahead, stop zone 0.25 m".
+    pub text: String,
+}
+
+/// The envelope's section of the report and the live status.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct EnvelopeStatus {
+    /// The zones and limits (the live view draws the zones).
+    pub settings: Settings,
+    pub passed: u64,
+    pub scaled: u64,
+    pub stopped: u64,
+    /// Interventions by cause.
+    pub causes: BTreeMap<&'static str, u64>,
+    pub last: Option<Intervention>,
+    pub recent: VecDeque<Intervention>,
+    /// Smallest clearance between the footprint and a range point, now
+    /// and over the run, m.
+    pub closest_m: Option<f64>,
+    pub closest_ever_m: Option<f64>,
+    /// The odometry pose the envelope last saw.
+    pub pose: Option<[f64; 3]>,
+    /// Commands that were not valid control strings (stopped).
+    pub rejected: u64,
+}
+
+/// `builtin:envelope` at run time.
+pub struct EnvelopeComponent {
+    name: String,
+    envelope: Envelope,
+    /// The arbiter's latest command (a review re-judges it).
+    last_command: Option<ControlCommand>,
+    status: EnvelopeStatus,
+    logged: BTreeMap<&'static str, u64>,
+}
+
+impl EnvelopeComponent {
+    pub fn new(name: &str, settings: Settings) -> EnvelopeComponent {
+        EnvelopeComponent {
+            name: name.to_string(),
+            status: EnvelopeStatus {
+                settings: settings.clone(),
+                passed: 0,
+                scaled: 0,
+                stopped: 0,
+                causes: BTreeMap::new(),
+                last: None,
+                recent: VecDeque::new(),
+                closest_m: None,
+                closest_ever_m: None,
+                pose: None,
+                rejected: 0,
+            },
+            envelope: Envelope::new(settings),
+            last_command: None,
+            logged: BTreeMap::new(),
+        }
+    }
+
+    /// The report's section.
+    pub fn report(&self) -> &EnvelopeStatus {
+        &self.status
+    }
+
+    fn record(&mut self, command: ControlCommand, verdict: &Verdict, now_ns: u64, out: &mut Outbox) {
+        out.push((0, Value::Command(verdict.command.to_string())));
+        match verdict.action {
+            Action::Passed => {
+                self.status.passed += 1;
+                return;
+            }
+            Action::Scaled => self.status.scaled += 1,
+            Action::Stopped => self.status.stopped += 1,
+        }
+        let Some(cause) = &verdict.cause else { return };
+        *self.status.causes.entry(cause.kind()).or_default() += 1;
+        let verb = match verdict.action {
+            Action::Scaled => format!("scaled {command} to {}", verdict.command),
+            _ => format!("stopped {command}"),
+        };
+        let intervention = Intervention {
+            at_s: now_ns as f64 / 1e9,
+            action: verdict.action,
+            command: command.to_string(),
+            output: verdict.command.to_string(),
+            cause: cause.to_string(),
+            text: format!("{verb}: {cause}"),
+        };
+        let due = self.logged.get(cause.kind()).is_none_or(|at| now_ns.saturating_sub(*at) >= LOG_INTERVAL_NS);
+        if due {
+            self.logged.insert(cause.kind(), now_ns);
+            match verdict.action {
+                Action::Stopped => tracing::warn!(component = %self.name, "{}", intervention.text),
+                _ => tracing::info!(component = %self.name, "{}", intervention.text),
+            }
+        }
+        if self.status.recent.len() >= RECENT_INTERVENTIONS {
+            self.status.recent.pop_front();
+        }
+        self.status.recent.push_back(intervention.clone());
+        self.status.last = Some(intervention);
+    }
+
+    /// Re-judges the latest command after new data or on a tick; emits
+    /// only a more restrictive output.
+    fn review(&mut self, now_ns: u64, out: &mut Outbox) {
+        if let Some(command) = self.last_command
+            && let Some(verdict) = self.envelope.review(command, now_ns)
+        {
+            self.record(command, &verdict, now_ns, out);
+        }
+    }
+}
+
+impl Component for EnvelopeComponent {
+    fn on_input(
+        &mut self,
+        port: u32,
+        value: &Value,
+        _from: usize,
+        now_ns: u64,
+        out: &mut Outbox,
+    ) -> Result<(), CallError> {
+        match (port, value) {
+            (INPUT_CMD, Value::Command(text)) => match control::parse(text) {
+                Ok(command) => {
+                    self.last_command = Some(command);
+                    let verdict = self.envelope.decide(command, now_ns);
+                    self.record(command, &verdict, now_ns, out);
+                    Ok(())
+                }
+                Err(err) => {
+                    // Whatever was meant, nothing unchecked moves the robot.
+                    self.status.rejected += 1;
+                    self.last_command = Some(ControlCommand::Stop);
+                    let verdict = self.envelope.decide(ControlCommand::Stop, now_ns);
+                    out.push((0, Value::Command(verdict.command.to_string())));
+                    Err(CallError::Reported(format!("stopped an invalid control string: {err}")))
+                }
+            },
+            (INPUT_RANGES, Value::Vector(ranges)) => {
+                self.envelope.ranges(ranges, now_ns);
+                let closest = self.envelope.closest();
+                self.status.closest_m = closest;
+                if let Some(c) = closest {
+                    self.status.closest_ever_m = Some(self.status.closest_ever_m.map_or(c, |e| e.min(c)));
+                }
+                self.review(now_ns, out);
+                Ok(())
+            }
+            (INPUT_POSE, Value::Vector(pose)) => {
+                if self.envelope.pose(pose, now_ns) {
+                    self.status.pose = pose.get(..3).and_then(|p| <[f64; 3]>::try_from(p).ok());
+                    self.review(now_ns, out);
+                    Ok(())
+                } else {
+                    Err(CallError::Reported(format!("pose: expected [x, y, heading], got {} numbers", pose.len())))
+                }
+            }
+            _ => Err(CallError::Reported(format!("input {port}: unexpected {}", crate::contract::kind_of(value)))),
+        }
+    }
+
+    fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        self.review(now_ns, out);
+        Ok(())
+    }
+
+    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+        serde_json::to_value(&self.status).ok().map(|v| ("envelope", v))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: u64 = 1_000_000;
+
+    fn component(pairs: &[(&str, &str)]) -> EnvelopeComponent {
+        let params = Params::from_pairs(PARAMS, pairs).unwrap_or_default();
+        let settings = settings(&params, true, false).map_err(|e| e.to_string());
+        EnvelopeComponent::new("envelope", settings.unwrap_or_else(|e| panic!("{e}")))
+    }
+
+    fn cmd(text: &str) -> Value {
+        Value::Command(text.into())
+    }
+
+    #[test]
+    fn geofences_parse_or_say_which_corner_is_wrong() {
+        assert_eq!(parse_geofence(""), Ok(vec![]));
+        assert_eq!(parse_geofence(" 0,0 4,0  4,3 "), Ok(vec![[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]]));
+        assert_eq!(parse_geofence("0,0 4,0"), Err("needs at least 3 corners 'x,y', got 2".into()));
+        assert_eq!(parse_geofence("0,0 4;0 1,1"), Err("corner 2 is not 'x,y' in metres: '4;0'".into()));
+        assert_eq!(parse_geofence("0,0 inf,0 1,1"), Err("corner 2 is not 'x,y' in metres: 'inf,0'".into()));
+        let many = vec!["1,1"; MAX_FENCE_POINTS + 1].join(" ");
+        assert!(parse_geofence(&many).is_err());
+    }
+
+    #[test]
+    fn a_wall_in_the_stop_zone_stops_at_once_and_is_reported() {
+        let mut envelope = component(&[("max-accel", "100"), ("stop-distance", "0.25")]);
+        let mut out = Vec::new();
+        envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0, 4.0, 4.0]), 0, 0, &mut out).ok();
+        envelope.on_input(INPUT_CMD, &cmd("VEL 0.45 0"), 0, 10 * MS, &mut out).ok();
+        assert_eq!(out.last(), Some(&(0, cmd("VEL 0.45 0.0"))));
+        // A reading in the stop zone: STOP goes out on the reading itself.
+        envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0, 0.36, 4.0]), 0, 20 * MS, &mut out).ok();
+        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        let status = envelope.report();
+        assert_eq!((status.passed, status.stopped), (1, 1));
+        assert_eq!(
+            status.last.as_ref().map(|i| i.text.as_str()),
+            Some("stopped VEL 0.45 0.0: obstacle 0.18 m ahead, stop zone 0.25 m")
+        );
+        assert_eq!(status.causes.get("stop-zone"), Some(&1));
+        assert!(status.closest_ever_m.is_some_and(|c| (c - 0.18).abs() < 1e-9));
+        // The driver keeps pushing: every command is stopped.
+        envelope.on_input(INPUT_CMD, &cmd("VEL 0.45 0"), 0, 30 * MS, &mut out).ok();
+        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        // Garbage is stopped too, and counted.
+        let err = envelope.on_input(INPUT_CMD, &cmd("FLY"), 0, 40 * MS, &mut out);
+        assert!(err.is_err());
+        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        assert_eq!(envelope.report().rejected, 1);
+    }
+
+    #[test]
+    fn a_tick_stops_when_the_ranges_go_stale() {
+        let mut envelope = component(&[("max-accel", "100"), ("stale", "0.2")]);
+        let mut out = Vec::new();
+        envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0; 5]), 0, 0, &mut out).ok();
+        envelope.on_input(INPUT_CMD, &cmd("VEL 0.3 0"), 0, 10 * MS, &mut out).ok();
+        envelope.tick(150 * MS, &mut out).ok();
+        assert_eq!(out.len(), 1, "fresh data: the tick sends nothing");
+        envelope.tick(250 * MS, &mut out).ok();
+        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        assert_eq!(envelope.report().causes.get("stale-ranges"), Some(&1));
+    }
+}
