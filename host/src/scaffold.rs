@@ -177,6 +177,9 @@ const WIT_0_1: &str = include_str!("../../wit/0.1.0/robot.wit");
 
 /// The Rust guest SDK, copied into Rust projects as `sdk/src/lib.rs`.
 const SDK_SOURCE: &str = include_str!("../../guest-components/rust/sdk/src/lib.rs");
+/// The SDK's other module (`pub mod drive;` in lib.rs): a project without
+/// it does not build.
+const SDK_DRIVE: &str = include_str!("../../guest-components/rust/sdk/src/drive.rs");
 /// Where the SDK finds the WIT files in this repository, and in a project.
 const SDK_WIT_PATH: (&str, &str) = ("path: \"../../../wit\"", "path: \"../wit\"");
 
@@ -339,6 +342,7 @@ pub fn render(name: &str, language: Language) -> Vec<(String, String)> {
     files.push(("wit/robot.wit".to_string(), wit.to_string()));
     if language == Language::Rust {
         files.push(("sdk/src/lib.rs".to_string(), SDK_SOURCE.replace(SDK_WIT_PATH.0, SDK_WIT_PATH.1)));
+        files.push(("sdk/src/drive.rs".to_string(), SDK_DRIVE.to_string()));
     }
     files
 }
