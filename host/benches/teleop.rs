@@ -64,6 +64,7 @@ fn main() {
         portal: None,
         stall_limit: subsume::runtime::stall::DEFAULT_STALL_LIMIT,
         fault_injection: None,
+        tls: Default::default(),
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -8,7 +8,8 @@
 //! invariants each keeps, and the import rules between them (checked by
 //! `host/tests/architecture.rs`). From the bottom up:
 //!
-//! - [`contract`], [`fsutil`]: the WIT contract's host side; atomic writes;
+//! - [`contract`], [`fsutil`], [`tls`]: the WIT contract's host side;
+//!   atomic writes; TLS identities and the plain-text rule for listeners;
 //! - [`runtime`]: the component trait, wiring, the graph and control loop;
 //! - [`config`]: the robot file, as written and as validated;
 //! - [`sandbox`]: wasmtime: engine, compile cache, guests and translators;
@@ -20,6 +21,7 @@
 //!   the network platform);
 //! - [`assemble`]: robot file + loader -> a wired graph; the registry;
 //! - [`report`]: the run report and the live status;
+//! - [`metrics`]: the live status as Prometheus (OpenMetrics) text;
 //! - [`deploy`]: the use cases (boot, upload, stage, activate, rollback);
 //! - [`portal`]: HTTP in front of `deploy`;
 //! - [`run`], [`scaffold`]: `subsume run` and `subsume new`.
@@ -32,6 +34,7 @@ pub mod contract;
 pub mod deploy;
 pub mod envelope;
 pub mod fsutil;
+pub mod metrics;
 pub mod portal;
 pub mod report;
 pub mod robot;
@@ -42,3 +45,4 @@ pub mod scaffold;
 pub mod sim;
 pub mod store;
 pub mod teleop;
+pub mod tls;

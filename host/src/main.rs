@@ -59,6 +59,17 @@ enum Command {
         /// (0.01 to 10).
         #[arg(long, value_name = "SECONDS", default_value = "0.1")]
         stall_limit: f64,
+        /// The certificate chain (PEM, the host's first) the portal and the
+        /// network platforms serve TLS with; needs --tls-key.
+        #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_CERT")]
+        tls_cert: Option<PathBuf>,
+        /// The private key (PEM) of --tls-cert.
+        #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_KEY")]
+        tls_key: Option<PathBuf>,
+        /// Allow plain HTTP and plain teleoperation on addresses other than
+        /// loopback (passwords and commands then cross the network in clear).
+        #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
+        allow_plain_http: bool,
     },
     /// Manage the portal's users (stored in the store's users.json).
     User {
@@ -83,6 +94,9 @@ enum Command {
         /// Operator token (or set SUBSUME_TOKEN).
         #[arg(long, env = "SUBSUME_TOKEN", hide_env_values = true)]
         token: String,
+        /// Speak TLS to a host with a certificate, trusting this CA (PEM).
+        #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_CA")]
+        tls_ca: Option<PathBuf>,
     },
     /// Print what a component declares: ports, parameters, default
     /// priority. COMPONENT is a .wasm file or builtin:KIND (with its
@@ -157,8 +171,13 @@ fn main() -> ExitCode {
     let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report, params, http, stall_limit } => portal_options(&http, store_dir, logs)
-            .and_then(|portal| run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit })),
+        Command::Run { config, duration, report, params, http, stall_limit, tls_cert, tls_key, allow_plain_http } => {
+            portal_options(&http, store_dir, logs).and_then(|portal| {
+                let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
+                let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
+                run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit, tls })
+            })
+        }
         Command::User { action } => user(action, store_dir),
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
@@ -168,8 +187,8 @@ fn main() -> ExitCode {
                 ExitCode::SUCCESS
             })
             .map_err(anyhow::Error::from),
-        Command::Teleop { address, name, token } => {
-            let options = subsume::teleop::client::ClientOptions { address, name, token };
+        Command::Teleop { address, name, token, tls_ca } => {
+            let options = subsume::teleop::client::ClientOptions { address, name, token, tls_ca };
             subsume::teleop::client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::from)
         }
     };
@@ -191,6 +210,7 @@ struct RunArgs {
     cache_dir: Option<PathBuf>,
     portal: Option<PortalOptions>,
     stall_limit: f64,
+    tls: subsume::tls::HostTls,
 }
 
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
@@ -202,6 +222,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         cache_dir,
         portal,
         stall_limit,
+        tls,
     } = args;
     let duration = match duration {
         None => None,
@@ -228,6 +249,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         portal,
         stall_limit: Duration::from_secs_f64(stall_limit),
         fault_injection,
+        tls,
     };
     let result = subsume::run::run(&options, shutdown);
     signals.close();

@@ -7,7 +7,7 @@ use serde::Serialize;
 
 use crate::config::{Policy, RobotConfig};
 use crate::runtime::control_loop::StopReason;
-use crate::runtime::{ComponentState, Graph};
+use crate::runtime::{ComponentState, Graph, Histogram};
 
 /// Version of the report's layout; bumped when a field changes meaning.
 pub const REPORT_FORMAT: u32 = 1;
@@ -25,6 +25,10 @@ pub struct Report {
     pub components: Vec<ComponentReport>,
     pub connections: Vec<ConnectionReport>,
     pub messages: MessageTotals,
+    /// How late the control loop ran its scheduled cycles (for
+    /// `/metrics`; not in the JSON).
+    #[serde(skip)]
+    pub lateness: Histogram,
     /// Sections of built-in components, by kind: `arbiter`, `serial`, `sim`
     /// (`kind:component` when a kind appears twice).
     #[serde(flatten)]
@@ -53,6 +57,11 @@ pub struct ComponentReport {
     pub last_error: Option<String>,
     /// Restarts after faults (`restart="on-failure"`).
     pub restarts: u64,
+    /// Times it was faulted (a restarted component may fault again).
+    pub faults: u64,
+    /// The time of each call (for `/metrics`; not in the JSON).
+    #[serde(skip)]
+    pub call_times: Histogram,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -134,6 +143,8 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
                 errors: stats.errors,
                 last_error: stats.last_error,
                 restarts: stats.restarts,
+                faults: stats.faults,
+                call_times: stats.call_times,
             }
         })
         .collect();
@@ -181,6 +192,7 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
         stopped_by: stopped_by.to_string(),
         duration_s,
         cycles: graph.cycles(),
+        lateness: graph.lateness().clone(),
         components,
         connections,
         messages: MessageTotals { routed: graph.messages_routed(), delivered, dropped: graph.messages_dropped() },

@@ -25,6 +25,7 @@ use crate::sandbox::{Sandbox, SandboxError};
 use crate::store::users::Directory;
 use crate::store::{Store, StoreError};
 use crate::teleop::TeleopServers;
+use crate::tls::{HostTls, TlsError};
 
 /// What `subsume run` was asked to do.
 #[derive(Clone, Debug)]
@@ -45,6 +46,9 @@ pub struct RunOptions {
     /// Faults caused on purpose, for the tests only
     /// (`SUBSUME_FAULT_INJECTION`, see ARCHITECTURE.md).
     pub fault_injection: Option<FaultInjection>,
+    /// The certificate the portal and the network platforms serve TLS
+    /// with, and whether plain text may leave loopback.
+    pub tls: HostTls,
 }
 
 /// A fault the tests cause in the real binary, to check that every way out
@@ -113,6 +117,8 @@ pub enum RunError {
     Store(#[from] StoreError),
     #[error(transparent)]
     Deploy(DeployError),
+    #[error(transparent)]
+    Tls(#[from] TlsError),
     #[error("the portal cannot listen on {address}: {source}")]
     Listen {
         address: std::net::SocketAddr,
@@ -163,7 +169,10 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         config.connections.len()
     );
     let clock = Clock::new();
-    let graph = assemble::build_graph(&config, &mut loader, clock, &shutdown.waker()).map_err(RunError::Start)?;
+    let services = Services::default().with(Arc::new(options.tls.clone()));
+    let graph = assemble::build(&config, &mut loader, clock, &shutdown.waker(), &services, &assemble::Carry::default())
+        .map(|built| built.graph)
+        .map_err(RunError::Start)?;
     let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
     Ok(final_report(&config, &graph, stopped_by, ran_ns))
 }
@@ -301,13 +310,17 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         Ok(_) => {}
         Err(e) => return Err(StoreError::from(e).into()),
     }
+    if options.tls.identity.is_none() {
+        options.tls.check_plain("portal", portal.listen)?;
+    }
     // One of each for every set this host runs: a network platform carried
     // across an activation reads the new set's robot name and arbiter.
     let services = Services::default()
         .with(directory.clone())
         .with(Arc::new(TeleopServers::default()))
         .with(Arc::new(RunningRobot::default()))
-        .with(Arc::new(Standings::default()));
+        .with(Arc::new(Standings::default()))
+        .with(Arc::new(options.tls.clone()));
     let clock = Clock::new();
     let boot = Deployer::boot(BootOptions {
         store,
@@ -329,19 +342,28 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .enable_all()
         .build()
         .map_err(RunError::PortalRuntime)?;
-    let state = portal::PortalState::new(deployer, directory, portal.logs.clone());
+    let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
+    let state = match acceptor {
+        Some(_) => portal::PortalState::over_tls(deployer, directory, portal.logs.clone()),
+        None => portal::PortalState::new(deployer, directory, portal.logs.clone()),
+    };
+    let scheme = if acceptor.is_some() { "https" } else { "http" };
     runtime.spawn(async move {
-        match tokio::net::TcpListener::from_std(listener) {
-            Ok(listener) => {
+        let listener = match tokio::net::TcpListener::from_std(listener) {
+            Ok(listener) => listener,
+            Err(e) => return tracing::error!("the portal cannot serve: {e}"),
+        };
+        match acceptor {
+            Some(acceptor) => crate::tls::serve_https(listener, acceptor, portal::app(state)).await,
+            None => {
                 let app = portal::app(state).into_make_service_with_connect_info::<std::net::SocketAddr>();
                 if let Err(e) = axum::serve(listener, app).await {
                     tracing::error!("the portal stopped: {e}");
                 }
             }
-            Err(e) => tracing::error!("the portal cannot serve: {e}"),
         }
     });
-    tracing::info!("portal on http://{address}/ (store {})", portal.store_dir.display());
+    tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
     runtime.shutdown_timeout(Duration::from_secs(1));
     Ok(final_report(hook.config(), &graph, stopped_by, ran_ns))

@@ -62,6 +62,18 @@ impl Language {
         }
     }
 
+    /// The CPU-time budget per call the project's `robot.xml` gives its
+    /// component. Compiled languages: 5 ms, hundreds of times what their
+    /// calls take. Interpreted ones (CPython, SpiderMonkey): 50 ms, room for
+    /// their slower first calls and garbage collection, and still half the
+    /// default stall limit (100 ms).
+    pub fn budget(self) -> &'static str {
+        match self {
+            Language::Rust | Language::C => "5ms",
+            Language::Python | Language::Js => "50ms",
+        }
+    }
+
     /// Where the build leaves the component, relative to the project.
     pub fn wasm_path(self, name: &str) -> String {
         match self {
@@ -318,6 +330,7 @@ pub fn render(name: &str, language: Language) -> Vec<(String, String)> {
         ("{{wasm}}", wasm.as_str()),
         ("{{source}}", language.source()),
         ("{{needs}}", language.needs()),
+        ("{{budget}}", language.budget()),
     ];
     let fill = |text: &str| vars.iter().fold(text.to_string(), |text, (key, value)| text.replace(key, value));
     let mut files: Vec<(String, String)> =
@@ -410,6 +423,7 @@ mod tests {
             assert_eq!(file("wit/robot.wit"), Some(contract), "{language}");
             let robot = file("robot.xml").unwrap_or_default();
             assert!(robot.contains(&format!("source=\"{}\"", language.wasm_path("wall-follower"))), "{robot}");
+            assert!(robot.contains(&format!("budget=\"{}\"", language.budget())), "{robot}");
             let source = file(language.source()).unwrap_or_default();
             assert!(source.contains("\"wall-follower\"") || source.contains("'wall-follower'"), "{language}");
         }

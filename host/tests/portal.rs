@@ -53,6 +53,11 @@ fn password(name: &str) -> String {
 }
 
 async fn portal() -> Portal {
+    portal_over(false).await
+}
+
+/// The portal, as served over TLS (`over_tls`) or plain HTTP.
+async fn portal_over(over_tls: bool) -> Portal {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("robot.xml"), ROBOT).unwrap();
     let store = Arc::new(Store::open(&dir.path().join("store")).unwrap());
@@ -75,7 +80,11 @@ async fn portal() -> Portal {
     })
     .map_err(|e| e.to_string())
     .unwrap();
-    let state = PortalState::new(boot.deployer, directory, portal::logs::LogRing::new());
+    let state = if over_tls {
+        PortalState::over_tls(boot.deployer, directory, portal::logs::LogRing::new())
+    } else {
+        PortalState::new(boot.deployer, directory, portal::logs::LogRing::new())
+    };
     let app = portal::app(state);
     let mut tokens = std::collections::HashMap::new();
     for (name, _, _) in USERS {
@@ -372,4 +381,67 @@ async fn the_openapi_document_lists_exactly_the_routes() {
         assert_eq!(response.status(), StatusCode::OK, "{path}");
     }
     assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/portal/openapi.json").is_file());
+}
+
+/// The session cookie a login sets.
+async fn login_cookie(app: &axum::Router) -> String {
+    let body = serde_json::json!({ "name": "viewer", "password": password("viewer") }).to_string();
+    let request = Request::post("/api/v1/login").body(Body::from(body)).unwrap();
+    let response = app.clone().oneshot(request).await.unwrap();
+    assert_eq!(response.status(), StatusCode::OK);
+    response.headers()["set-cookie"].to_str().unwrap().to_string()
+}
+
+#[tokio::test]
+async fn cookies_are_secure_when_the_portal_speaks_tls() {
+    let plain = login_cookie(&portal_over(false).await.app).await;
+    let tls = login_cookie(&portal_over(true).await.app).await;
+    for cookie in [&plain, &tls] {
+        assert!(cookie.contains("; HttpOnly; SameSite=Strict;"), "{cookie}");
+    }
+    assert!(!plain.contains("Secure"), "{plain}");
+    assert!(tls.ends_with("; Secure"), "{tls}");
+    // Logging out clears the cookie with the same attributes.
+    let portal = portal_over(true).await;
+    let request = Request::post("/api/v1/logout")
+        .header("authorization", format!("Bearer {}", portal.tokens["viewer"]))
+        .body(Body::empty())
+        .unwrap();
+    let response = portal.app.clone().oneshot(request).await.unwrap();
+    let cleared = response.headers()["set-cookie"].to_str().unwrap();
+    assert!(cleared.contains("Max-Age=0") && cleared.ends_with("; Secure"), "{cleared}");
+}
+
+#[tokio::test]
+async fn metrics_are_for_loopback_peers_and_logged_in_users() {
+    let portal = portal().await;
+    let scrape = |peer: &str, token: Option<&str>| {
+        let mut request = Request::get("/metrics");
+        if let Some(token) = token {
+            request = request.header("authorization", format!("Bearer {token}"));
+        }
+        let mut request = request.body(Body::empty()).unwrap();
+        let peer: std::net::SocketAddr = peer.parse().unwrap();
+        request.extensions_mut().insert(axum::extract::ConnectInfo(peer));
+        let app = portal.app.clone();
+        async move {
+            let response = app.oneshot(request).await.unwrap();
+            let status = response.status();
+            let bytes = axum::body::to_bytes(response.into_body(), usize::MAX).await.unwrap();
+            (status, serde_json::from_slice::<Value>(&bytes).unwrap_or(Value::Null))
+        }
+    };
+    let (status, json) = scrape("192.0.2.7:40000", None).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED, "{json}");
+    assert!(json["error"].as_str().unwrap().starts_with("metrics are for loopback peers and logged-in users"));
+    let (status, _) = scrape("192.0.2.7:40000", Some("not-a-session")).await;
+    assert_eq!(status, StatusCode::UNAUTHORIZED);
+    // Admitted: no control loop runs here, so no status was published.
+    let not_yet = "the control loop has not published a status yet";
+    for (peer, token) in [("192.0.2.7:40000", Some(portal.tokens["viewer"].as_str())), ("127.0.0.1:40000", None)] {
+        let (status, json) = scrape(peer, token).await;
+        assert_eq!((status, json["error"].as_str()), (StatusCode::SERVICE_UNAVAILABLE, Some(not_yet)), "{peer}");
+    }
+    let (status, _) = scrape("[::1]:40000", None).await;
+    assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
 }

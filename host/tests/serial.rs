@@ -12,7 +12,7 @@ use subsume::contract::Value;
 use subsume::robot::control::ControlCommand;
 use subsume::robot::protocol::{Feedback, Profile};
 use subsume::robot::serial::{LinkError, LinkSettings, SerialLink};
-use subsume::robot::translator::{DriveGeometry, ProfileTranslator, TranslateError, Translator};
+use subsume::robot::translator::{DriveGeometry, LinkPlan, ProfileTranslator, TranslateError, Translator};
 use subsume::runtime::{Component, StopOutcome};
 
 const MS: u64 = 1_000_000;
@@ -317,4 +317,88 @@ fn a_translator_that_cannot_encode_stop_is_refused_before_the_device_opens() {
     let Err(error @ LinkError::NoStopFrame(_)) = refused else { panic!("a link without STOP started") };
     assert_eq!(error.to_string(), "the translator cannot encode STOP: this controller has no stop");
     assert_eq!(read_available(&mut master), b"");
+}
+
+/// A translator with a link plan: ascii commands, an opening and closing
+/// sequence, and a poll that asks for a reading; replies `V <n>` decode to a
+/// battery voltage.
+struct Planned {
+    inner: ProfileTranslator,
+    polls: Vec<u64>,
+}
+
+impl Translator for Planned {
+    fn encode(&mut self, command: &ControlCommand, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        self.inner.encode(command, out)
+    }
+    fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), TranslateError> {
+        self.inner.decode(bytes, out)
+    }
+    fn malformed(&self) -> u64 {
+        self.inner.malformed()
+    }
+    fn plan(&self) -> LinkPlan {
+        LinkPlan { opening: b"HELLO\n".to_vec(), poll_period_ns: 100 * MS, closing: b"BYE\n".to_vec() }
+    }
+    fn poll(&mut self, now_ns: u64, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        self.polls.push(now_ns);
+        out.extend_from_slice(b"?\n");
+        Ok(())
+    }
+}
+
+fn planned() -> Box<Planned> {
+    Box::new(Planned { inner: ProfileTranslator::new(Profile::Ascii, GEOMETRY), polls: Vec::new() })
+}
+
+#[test]
+fn the_link_plan_opens_polls_feeds_replies_to_decode_and_closes_after_stop() {
+    let (mut master, _slave, path) = pty();
+    let mut link = SerialLink::start("motors", settings(&path, 20, 10_000, 10_000), planned()).unwrap();
+    wait_until("connected", || link.status().connected);
+    // The opening is on the wire before any command.
+    assert_eq!(read_lines(&mut master, 1), vec!["HELLO"]);
+    assert_eq!(link.status().openings_written, 1);
+    command(&mut link, "VEL 0.2 0", 0);
+    // Polls at their period on the loop's clock: 0, 100 and 200 ms.
+    for ms in [0, 50, 99, 100, 150, 200] {
+        tick(&mut link, ms * MS);
+    }
+    assert_eq!(read_lines(&mut master, 4), vec!["M 200 200", "?", "?", "?"]);
+    assert_eq!(link.status().polls_sent, 3);
+    // The controller's reply to a poll reaches decode.
+    master.write_all(b"P 12600\n").unwrap();
+    let mut outputs = Vec::new();
+    let mut now = 200 * MS;
+    wait_until("the reply is decoded", || {
+        now += MS;
+        outputs.extend(tick(&mut link, now));
+        !outputs.is_empty()
+    });
+    assert_eq!(outputs[0], (3, Value::Scalar(12.6)));
+    read_available(&mut master);
+    // Closing: STOP, then the closing bytes, then nothing.
+    drop(link);
+    assert_eq!(read_available(&mut master), b"S\nBYE\n");
+}
+
+#[test]
+fn the_opening_is_sent_again_on_every_reconnect_before_any_command() {
+    let dir = tempfile::tempdir().unwrap();
+    let device = dir.path().join("motor-controller");
+    let (mut master, slave, first) = pty();
+    std::os::unix::fs::symlink(&first, &device).unwrap();
+    let mut link = SerialLink::start("motors", settings(&device, 20, 10_000, 10_000), planned()).unwrap();
+    wait_until("connected", || link.status().connected);
+    assert_eq!(read_lines(&mut master, 1), vec!["HELLO"]);
+    drop(master);
+    drop(slave);
+    std::fs::remove_file(&device).unwrap();
+    wait_until("the loss is noticed", || !link.status().connected);
+    let (mut master, _slave, second) = pty();
+    std::os::unix::fs::symlink(&second, &device).unwrap();
+    wait_until("reconnected", || link.status().connected);
+    command(&mut link, "STOP", 100 * MS);
+    assert_eq!(read_lines(&mut master, 2), vec!["HELLO", "S"]);
+    assert_eq!(link.status().openings_written, 2);
 }

@@ -2,6 +2,8 @@
 // see its ports, stage and activate a robot file using it, see it in the
 // live view, drive with the pad, roll back. Screenshots go to $ARTIFACTS.
 // Usage: node portal.mjs URL USER PASSWORD COMPONENT.wasm ROBOT.xml BAD.xml
+// Over https, CA_SPKI is the base64 SHA-256 of the test CA's public key:
+// Chromium accepts chains through that CA and no other unknown one.
 import { chromium } from 'playwright-core';
 import path from 'node:path';
 import fs from 'node:fs';
@@ -13,7 +15,8 @@ const step = (text) => console.log(`step: ${text}`);
 
 const browser = await chromium.launch({
   executablePath: '/usr/bin/chromium',
-  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
+  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking']
+    .concat(process.env.CA_SPKI ? [`--ignore-certificate-errors-spki-list=${process.env.CA_SPKI}`] : []),
 });
 const page = await browser.newPage({ viewport: { width: 1280, height: 900 } });
 page.setDefaultTimeout(20000);
@@ -29,6 +32,15 @@ try {
   await page.click('#login-button');
   await page.waitForSelector('#tabs:not([hidden])');
   await page.waitForSelector(`#whoami:has-text("${user}")`);
+  if (url.startsWith('https:')) {
+    step('over https, the session cookie is Secure');
+    const cookies = await page.context().cookies();
+    const session = cookies.find((c) => c.name === 'subsume_session');
+    if (!session || !session.secure || !session.httpOnly) {
+      throw new Error(`the session cookie is not Secure and HttpOnly: ${JSON.stringify(session)}`);
+    }
+    if (await page.evaluate(() => location.protocol) !== 'https:') throw new Error('the page is not on https');
+  }
 
   step('upload a component and see its ports');
   await page.click('#tabs button[data-tab="components"]');

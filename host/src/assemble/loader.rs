@@ -12,7 +12,7 @@ use std::sync::Arc;
 use super::registry;
 use crate::builtin::{self, BuildContext, BuiltinError, CheckContext, Params, Services, WasmTranslators};
 use crate::config::{ComponentConfig, ComponentSource, ParamProblem, ResolveError, Resolver, RobotConfig};
-use crate::contract::{Description, clip};
+use crate::contract::{Description, Param, clip};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::{Component, PriorityCell, Restarter};
 use crate::sandbox::{
@@ -211,7 +211,14 @@ impl WasmTranslators for Loader<'_> {
     }
 
     fn start(&mut self, artifact: &TranslatorArtifact, link: &ComponentConfig) -> Result<WasmTranslator, SandboxError> {
-        self.sandbox.instantiate_translator(artifact, &link.name, &GuestLimits::of(link), &link.params)
+        // The link's `options` reach the translator as parameters of their own.
+        let mut params = link.params.clone();
+        if let Some(options) = link.params.iter().find(|p| p.name == "options") {
+            let pairs = crate::robot::builtin::translator_options(&options.value)
+                .map_err(|why| SandboxError::Call { call: "init()", reason: format!("options: {why}") })?;
+            params.extend(pairs.into_iter().map(|(name, value)| Param { name, value }));
+        }
+        self.sandbox.instantiate_translator(artifact, &link.name, &GuestLimits::of(link), &params)
     }
 }
 

@@ -122,15 +122,19 @@ fn session_token(headers: &HeaderMap) -> Option<String> {
         .find_map(|pair| pair.trim().strip_prefix(&format!("{COOKIE}=")).map(str::to_string))
 }
 
+/// The user whose session `headers` carry, if it is open.
+pub(super) fn user_of(headers: &HeaderMap, state: &PortalState) -> Option<User> {
+    let token = session_token(headers)?;
+    let name = state.sessions.user(&token)?;
+    // Re-read: a user removed or changed with `subsume user` takes effect.
+    state.directory.users.get(&name)
+}
+
 impl FromRequestParts<Arc<PortalState>> for Authed {
     type Rejection = ApiError;
 
     async fn from_request_parts(parts: &mut Parts, state: &Arc<PortalState>) -> Result<Authed, ApiError> {
-        let token = session_token(&parts.headers).ok_or_else(ApiError::unauthorized)?;
-        let name = state.sessions.user(&token).ok_or_else(ApiError::unauthorized)?;
-        // Re-read: a user removed or changed with `subsume user` takes effect.
-        let user = state.directory.users.get(&name).ok_or_else(ApiError::unauthorized)?;
-        Ok(Authed(user))
+        user_of(&parts.headers, state).map(Authed).ok_or_else(ApiError::unauthorized)
     }
 }
 
@@ -192,7 +196,9 @@ pub(super) async fn login(
     };
     let token = state.sessions.open(&user.name)?;
     tracing::info!("{} logged in to the portal", user.name);
-    let cookie = format!("{COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}", SESSION_TTL.as_secs());
+    let secure = if state.secure_cookies { "; Secure" } else { "" };
+    let cookie =
+        format!("{COOKIE}={token}; Path=/; HttpOnly; SameSite=Strict; Max-Age={}{secure}", SESSION_TTL.as_secs());
     let mut response = Json(json!({ "token": token, "user": user_json(&user) })).into_response();
     if let Ok(value) = HeaderValue::from_str(&cookie) {
         response.headers_mut().insert(header::SET_COOKIE, value);
@@ -204,7 +210,8 @@ pub(super) async fn logout(State(state): State<Arc<PortalState>>, headers: Heade
     if let Some(token) = session_token(&headers) {
         state.sessions.close(&token);
     }
-    let cookie = format!("{COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0");
+    let secure = if state.secure_cookies { "; Secure" } else { "" };
+    let cookie = format!("{COOKIE}=; Path=/; HttpOnly; SameSite=Strict; Max-Age=0{secure}");
     ([(header::SET_COOKIE, cookie)], StatusCode::NO_CONTENT).into_response()
 }
 

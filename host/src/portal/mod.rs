@@ -13,8 +13,11 @@
 //!   a session (`auth`);
 //! - request bodies are bounded by named limits before a use case sees them;
 //! - a refused request changes nothing and says why in JSON (`error`);
-//! - the session cookie is HttpOnly and SameSite=Strict, and the pad
-//!   authenticates with a one-time ticket.
+//! - the session cookie is HttpOnly and SameSite=Strict (and Secure when
+//!   the portal speaks TLS), and the pad authenticates with a one-time
+//!   ticket;
+//! - `/metrics` answers peers on a loopback address and logged-in users
+//!   only.
 
 pub mod auth;
 pub mod error;
@@ -48,6 +51,8 @@ pub struct PortalState {
     pub logs: Arc<LogRing>,
     sessions: Sessions,
     limiter: LoginLimiter,
+    /// The portal speaks TLS: cookies carry `Secure`.
+    secure_cookies: bool,
 }
 
 impl PortalState {
@@ -58,6 +63,20 @@ impl PortalState {
             logs,
             sessions: Sessions::default(),
             limiter: LoginLimiter::default(),
+            secure_cookies: false,
+        })
+    }
+
+    /// The state of a portal served over TLS: its cookies carry `Secure`,
+    /// so a browser never sends them over plain HTTP.
+    pub fn over_tls(deployer: Arc<Deployer>, directory: Arc<Directory>, logs: Arc<LogRing>) -> Arc<PortalState> {
+        Arc::new(PortalState {
+            deployer,
+            directory,
+            logs,
+            sessions: Sessions::default(),
+            limiter: LoginLimiter::default(),
+            secure_cookies: true,
         })
     }
 }
@@ -96,6 +115,7 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .nest("/api/v1", api)
         .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], INDEX_HTML) }))
         .route("/app.js", get(|| async { ([(header::CONTENT_TYPE, "text/javascript; charset=utf-8")], APP_JS) }))
+        .route("/metrics", get(metrics))
         .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE_CSS) }))
         .with_state(state)
 }

@@ -18,6 +18,7 @@ use super::auth::{Authed, ClientAddress};
 use super::error::ApiError;
 use crate::contract::clip;
 use crate::deploy::{Permission, Platform, authorise};
+use crate::report::LiveStatus;
 use crate::store::{ComponentRecord, MAX_AUDIT_READ, StoreState};
 use crate::teleop::TeleopServers;
 
@@ -156,15 +157,45 @@ pub(super) async fn rollback(
     Ok(Json(json!({ "active": set })))
 }
 
-pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+/// The next live status the control loop publishes (the last one may be
+/// old: the loop publishes only while someone is subscribed). It comes
+/// within one cycle, or `deploy::LIVE_PERIOD` while others watch; after a
+/// second without one, the last.
+async fn fresh_live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
     let mut live = state.deployer.live().subscribe();
-    // Being subscribed makes the control loop publish (it publishes only
-    // while someone watches, so what was last published may be old): wait
-    // briefly for a fresh status.
     live.borrow_and_update();
     let _ = tokio::time::timeout(Duration::from_secs(1), live.changed()).await;
-    let current = live.borrow().clone();
+    live.borrow().clone()
+}
+
+pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+    let current = fresh_live_status(&state).await;
     Json(serde_json::to_value(&*current).unwrap_or_default())
+}
+
+/// Prometheus metrics (OpenMetrics text) of the running set: for peers on
+/// a loopback address (a Prometheus or agent on the robot) and for
+/// logged-in users (a session cookie or `Authorization: Bearer`).
+pub(super) async fn metrics(
+    State(state): State<Arc<PortalState>>,
+    ClientAddress(peer): ClientAddress,
+    headers: axum::http::HeaderMap,
+) -> Response {
+    let local = peer.is_some_and(|p| p.ip().is_loopback());
+    if !local && super::auth::user_of(&headers, &state).is_none() {
+        return ApiError::new(
+            StatusCode::UNAUTHORIZED,
+            "metrics are for loopback peers and logged-in users: log in, or scrape from the robot itself",
+        )
+        .into_response();
+    }
+    let current = fresh_live_status(&state).await;
+    let Some(status) = current.as_ref() else {
+        return ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "the control loop has not published a status yet")
+            .into_response();
+    };
+    let text = crate::metrics::encode(status);
+    ([(axum::http::header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE)], text).into_response()
 }
 
 /// Server-sent events: `status` (the live status, 5 per second) and `log`

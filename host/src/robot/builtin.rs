@@ -49,6 +49,13 @@ const PARAMS: &[ParamDecl] = &[
         doc: "ascii, binary (docs/protocols.md), or a .wasm translator component",
     },
     ParamDecl {
+        name: "options",
+        ty: ParamType::Text,
+        default: "",
+        unit: "",
+        doc: "settings for a WASM translator: name=value pairs separated by spaces (docs/protocols.md)",
+    },
+    ParamDecl {
         name: "min-interval",
         ty: number_in(0.001, 1.0),
         default: "0.02",
@@ -105,6 +112,44 @@ fn translator_choice(name: &str, base_dir: &Path) -> Result<TranslatorChoice, St
         .ok_or_else(|| format!("names no translator: '{}' (expected ascii, binary or a .wasm translator)", clip(name)))
 }
 
+/// Most `name=value` pairs in `options`, and the longest value: the
+/// translator's `init` gets them, so a robot file cannot flood it.
+pub const MAX_TRANSLATOR_OPTIONS: usize = 32;
+pub const MAX_OPTION_VALUE_BYTES: usize = 256;
+
+/// Why a link's `options` parameter does not read.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct OptionsError(String);
+
+/// The `name=value` pairs of a link's `options` parameter, in order.
+pub fn translator_options(text: &str) -> Result<Vec<(String, String)>, OptionsError> {
+    parse_options(text).map_err(OptionsError)
+}
+
+fn parse_options(text: &str) -> Result<Vec<(String, String)>, String> {
+    let mut pairs: Vec<(String, String)> = Vec::new();
+    for word in text.split_ascii_whitespace() {
+        let Some((name, value)) = word.split_once('=') else {
+            return Err(format!("expected name=value pairs, found '{}'", clip(word)));
+        };
+        if name.is_empty() || !name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-') {
+            return Err(format!("'{}' is not an option name (letters, digits and '-')", clip(name)));
+        }
+        if value.len() > MAX_OPTION_VALUE_BYTES {
+            return Err(format!("the value of '{name}' is longer than {MAX_OPTION_VALUE_BYTES} bytes"));
+        }
+        if pairs.iter().any(|(n, _)| n == name) || PARAMS.iter().any(|p| p.name == name) {
+            return Err(format!("'{name}' is given twice (or is one of the link's own parameters)"));
+        }
+        pairs.push((name.to_string(), value.to_string()));
+    }
+    if pairs.len() > MAX_TRANSLATOR_OPTIONS {
+        return Err(format!("{} options; at most {MAX_TRANSLATOR_OPTIONS}", pairs.len()));
+    }
+    Ok(pairs)
+}
+
 /// The `serial` kind.
 pub struct SerialBuiltin;
 
@@ -127,13 +172,18 @@ impl Builtin for SerialBuiltin {
 
     fn check(&self, params: &Params, ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
         let name = params.text("translator").unwrap_or_default();
-        match translator_choice(name, ctx.base_dir) {
-            Ok(TranslatorChoice::Profile(_)) => Vec::new(),
-            Ok(TranslatorChoice::Wasm(path)) => match ctx.translators.load(&path) {
+        let options = params.text("options").unwrap_or_default();
+        match (translator_choice(name, ctx.base_dir), translator_options(options)) {
+            (_, Err(why)) => vec![ParamProblem::new("options", why.to_string())],
+            (Ok(TranslatorChoice::Profile(_)), Ok(pairs)) if !pairs.is_empty() => {
+                vec![ParamProblem::new("options", "are for a WASM translator; the built-in profiles take none")]
+            }
+            (Ok(TranslatorChoice::Profile(_)), Ok(_)) => Vec::new(),
+            (Ok(TranslatorChoice::Wasm(path)), Ok(_)) => match ctx.translators.load(&path) {
                 Ok(_) => Vec::new(),
                 Err(e) => vec![ParamProblem::new("translator", format!("does not load: {e}"))],
             },
-            Err(why) => vec![ParamProblem::new("translator", why)],
+            (Err(why), Ok(_)) => vec![ParamProblem::new("translator", why)],
         }
     }
 
@@ -190,5 +240,25 @@ impl Builtin for SerialBuiltin {
             refused @ LinkError::NoStopFrame(_) => BuiltinError::Refused(refused.to_string()),
         })?;
         Ok(Box::new(link))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn options_are_name_value_pairs_and_bad_ones_are_named() {
+        let pairs = translator_options("  counts-per-metre=2000 left=m2 ").unwrap();
+        assert_eq!(pairs, vec![("counts-per-metre".into(), "2000".into()), ("left".into(), "m2".into())]);
+        assert_eq!(translator_options(""), Ok(vec![]));
+        let error = |text: &str| translator_options(text).unwrap_err().to_string();
+        assert_eq!(error("mode"), "expected name=value pairs, found 'mode'");
+        assert_eq!(error("=1"), "'' is not an option name (letters, digits and '-')");
+        assert_eq!(error("a=1 a=2"), "'a' is given twice (or is one of the link's own parameters)");
+        assert_eq!(error("baud=9600"), "'baud' is given twice (or is one of the link's own parameters)");
+        let many: Vec<String> = (0..=MAX_TRANSLATOR_OPTIONS).map(|i| format!("o{i}=1")).collect();
+        assert_eq!(error(&many.join(" ")), "33 options; at most 32");
+        assert!(error(&format!("a={}", "x".repeat(MAX_OPTION_VALUE_BYTES + 1))).contains("longer than 256 bytes"));
     }
 }

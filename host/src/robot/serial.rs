@@ -22,10 +22,17 @@
 //! activation that removes or replaces it) and when it faults; the panic
 //! hook and the second signal halt every live link ([`halt_every_link`]).
 //!
+//! The translator's link plan: its `opening` bytes are written each time the
+//! device opens (and reopens), before any frame; its `poll` is called every
+//! `poll-period` on the control loop and what it returns (a sensor request,
+//! a keep-alive) is queued like a frame, past the rate limit; its `closing`
+//! bytes follow the final STOP in the same write. Replies to polls reach the
+//! translator's `decode` with the rest of the controller's bytes.
+//!
 //! Invariants: guest code never reaches the device: only this component
 //! writes to it, and only translator output; the control loop never blocks
-//! on the device (bounded channels, `try_send`); the last frame a link
-//! writes is its STOP.
+//! on the device (bounded channels, `try_send`); the last command a link
+//! writes is its STOP, followed only by the translator's closing bytes.
 
 use std::io::{ErrorKind, Read, Write};
 use std::path::PathBuf;
@@ -39,7 +46,7 @@ use serde::Serialize;
 
 use super::control::{self, ControlCommand};
 use super::protocol::Feedback;
-use super::translator::{TranslateError, Translator};
+use super::translator::{LinkPlan, TranslateError, Translator};
 use crate::contract::Value;
 use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
 
@@ -85,6 +92,10 @@ pub struct LinkStop {
     baud: u32,
     /// The translator's STOP, encoded when the link started.
     stop_frame: Vec<u8>,
+    /// Written each time the device opens, before any frame.
+    opening: Vec<u8>,
+    /// Written after the final STOP.
+    closing: Vec<u8>,
     /// The device's write side while the I/O thread holds it open.
     port: Mutex<Option<serialport::TTYPort>>,
     /// Bumped by every stop from outside the loop; frames made before it are
@@ -117,7 +128,18 @@ impl LinkStop {
     }
 
     fn write_stop(&self, port: &mut serialport::TTYPort) -> StopOutcome {
-        match port.write_all(&self.stop_frame).and_then(|()| port.flush()) {
+        self.write_bytes(port, &self.stop_frame)
+    }
+
+    /// The final STOP and then the translator's closing bytes, in one write.
+    fn write_final(&self, port: &mut serialport::TTYPort) -> StopOutcome {
+        let mut bytes = self.stop_frame.clone();
+        bytes.extend_from_slice(&self.closing);
+        self.write_bytes(port, &bytes)
+    }
+
+    fn write_bytes(&self, port: &mut serialport::TTYPort, bytes: &[u8]) -> StopOutcome {
+        match port.write_all(bytes).and_then(|()| port.flush()) {
             Ok(()) => StopOutcome::Sent,
             Err(e) => StopOutcome::Failed(format!("writing to {}: {e}", self.device.display())),
         }
@@ -160,10 +182,10 @@ impl LinkStop {
         }
         self.generation.fetch_add(1, Ordering::AcqRel);
         if let Some(port) = port.as_mut() {
-            return self.write_stop(port);
+            return self.write_final(port);
         }
         match serialport::new(self.device.to_string_lossy(), self.baud).timeout(READ_TIMEOUT).open_native() {
-            Ok(mut port) => self.write_stop(&mut port),
+            Ok(mut port) => self.write_final(&mut port),
             Err(_) => StopOutcome::NotConnected,
         }
     }
@@ -228,6 +250,7 @@ struct IoCounters {
     reconnects: AtomicU64,
     frames_discarded: AtomicU64,
     rx_dropped: AtomicU64,
+    openings_written: AtomicU64,
     stop: AtomicBool,
 }
 
@@ -253,6 +276,10 @@ pub struct SerialStatus {
     pub rejected_commands: u64,
     /// STOPs sent from outside the control loop (the stall watchdog).
     pub emergency_stops: u64,
+    /// Times the translator's opening bytes were written (each open).
+    pub openings_written: u64,
+    /// Polls that gave bytes to send (sensor requests, keep-alives).
+    pub polls_sent: u64,
 }
 
 /// The `builtin:serial` component.
@@ -260,6 +287,10 @@ pub struct SerialLink {
     name: String,
     settings: LinkSettings,
     translator: Box<dyn Translator>,
+    /// How often the translator is polled; 0: never.
+    poll_period_ns: u64,
+    /// When the translator was last polled.
+    last_poll: Option<u64>,
     tx: SyncSender<Frame>,
     rx: Receiver<Vec<u8>>,
     io: Arc<IoCounters>,
@@ -293,11 +324,14 @@ impl SerialLink {
     ) -> Result<SerialLink, LinkError> {
         let mut stop_frame = Vec::new();
         translator.encode(&ControlCommand::Stop, &mut stop_frame).map_err(LinkError::NoStopFrame)?;
+        let LinkPlan { opening, poll_period_ns, closing } = translator.plan();
         let stop = Arc::new(LinkStop {
             name: name.to_string(),
             device: settings.device.clone(),
             baud: settings.baud,
             stop_frame,
+            opening,
+            closing,
             port: Mutex::new(None),
             generation: AtomicU64::new(0),
             halted: AtomicBool::new(false),
@@ -320,6 +354,8 @@ impl SerialLink {
             name: name.to_string(),
             settings,
             translator,
+            poll_period_ns,
+            last_poll: None,
             tx,
             rx,
             io,
@@ -385,6 +421,27 @@ impl SerialLink {
         Ok(())
     }
 
+    /// Polls the translator when its period has passed and queues what it
+    /// asks to send.
+    fn poll(&mut self, now_ns: u64) -> Result<(), CallError> {
+        if self.poll_period_ns == 0 || self.last_poll.is_some_and(|at| now_ns.saturating_sub(at) < self.poll_period_ns)
+        {
+            return Ok(());
+        }
+        self.last_poll = Some(now_ns);
+        self.frame.clear();
+        self.translator.poll(now_ns, &mut self.frame).map_err(|why| CallError::Fault(why.to_string()))?;
+        if self.frame.is_empty() {
+            return Ok(());
+        }
+        self.stats.polls_sent += 1;
+        match self.tx.try_send(Frame { generation: self.generation, bytes: self.frame.clone() }) {
+            Ok(()) => {}
+            Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => self.stats.frames_dropped_link += 1,
+        }
+        Ok(())
+    }
+
     fn emit_feedback(&mut self, out: &mut Outbox) -> Result<(), CallError> {
         while let Ok(bytes) = self.rx.try_recv() {
             self.translator.decode(&bytes, &mut self.feedback).map_err(|why| CallError::Fault(why.to_string()))?;
@@ -413,6 +470,7 @@ impl SerialLink {
             frames_dropped_link: self.stats.frames_dropped_link + self.io.frames_discarded.load(Ordering::Relaxed),
             malformed_feedback: self.translator.malformed(),
             emergency_stops: self.stop.emergency_stops.load(Ordering::Relaxed),
+            openings_written: self.io.openings_written.load(Ordering::Relaxed),
             ..self.stats.clone()
         }
     }
@@ -459,7 +517,8 @@ impl Component for SerialLink {
         {
             self.pending = Some(if self.watchdog_tripped { ControlCommand::Stop } else { command });
         }
-        self.flush(now_ns)
+        self.flush(now_ns)?;
+        self.poll(now_ns)
     }
 
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
@@ -579,8 +638,16 @@ fn run_connection(
         let mut port = port;
         if stop.halted.load(Ordering::Acquire) {
             // Halted while the device was opening: the final STOP is ours.
-            let _ = stop.write_stop(&mut port);
+            let _ = stop.write_final(&mut port);
             return None;
+        }
+        // The opening goes first: no frame can reach the device before it,
+        // since frames are written under this lock.
+        if !stop.opening.is_empty() {
+            if let StopOutcome::Failed(why) = stop.write_bytes(&mut port, &stop.opening) {
+                return Some(format!("the opening sequence failed: {why}"));
+            }
+            io.openings_written.fetch_add(1, Ordering::Relaxed);
         }
         *slot = Some(port);
     }

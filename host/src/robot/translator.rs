@@ -31,6 +31,28 @@ pub trait Translator: Send {
     fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), TranslateError>;
     /// Bytes or messages from the controller skipped as malformed.
     fn malformed(&self) -> u64;
+    /// What the link sends on opening and closing the device, and how often
+    /// it polls. The default (the built-in profiles): nothing.
+    fn plan(&self) -> LinkPlan {
+        LinkPlan::default()
+    }
+    /// Appends the bytes a poll at `now_ns` asks to send (a sensor request,
+    /// a keep-alive). `Err` (a fault) only when the translator broke.
+    fn poll(&mut self, now_ns: u64, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        let _ = (now_ns, out);
+        Ok(())
+    }
+}
+
+/// What a translator needs from the link besides `encode` and `decode`.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LinkPlan {
+    /// Sent every time the device opens, before any command.
+    pub opening: Vec<u8>,
+    /// How often `poll` is called, nanoseconds; 0: never.
+    pub poll_period_ns: u64,
+    /// Sent after the final STOP, when the link closes.
+    pub closing: Vec<u8>,
 }
 
 /// Geometry of a differential-drive base.
@@ -139,6 +161,19 @@ impl Translator for WasmTranslator {
 
     fn malformed(&self) -> u64 {
         WasmTranslator::malformed(self)
+    }
+
+    fn plan(&self) -> LinkPlan {
+        let plan = WasmTranslator::plan(self);
+        LinkPlan {
+            opening: plan.opening.clone(),
+            poll_period_ns: u64::from(plan.poll_period_ms) * 1_000_000,
+            closing: plan.closing.clone(),
+        }
+    }
+
+    fn poll(&mut self, now_ns: u64, out: &mut Vec<u8>) -> Result<(), TranslateError> {
+        WasmTranslator::poll(self, now_ns, out).map_err(|e| TranslateError::Fault(e.to_string()))
     }
 }
 

@@ -196,7 +196,8 @@ fn cycle(
         if graph.has_pending() {
             continue;
         }
-        let mut wake = graph.next_due_ns().unwrap_or(now + IDLE_WAIT.as_nanos() as u64);
+        let due = graph.next_due_ns();
+        let mut wake = due.unwrap_or(now + IDLE_WAIT.as_nanos() as u64);
         if let Some(until) = until_ns {
             wake = wake.min(until);
         }
@@ -206,6 +207,16 @@ fn cycle(
             if shutdown.wait(Duration::from_nanos(wake - now)) {
                 return StopReason::Requested;
             }
+            // Lateness of a scheduled cycle: how long after its time the
+            // loop got to run it (an early wake-up by the network is not
+            // counted).
+            let woke = clock.now_ns();
+            if due.is_some() && woke >= wake {
+                graph.record_lateness(woke - wake);
+            }
+        } else if due.is_some() {
+            // Already behind: the next cycle starts at once, this late.
+            graph.record_lateness(now - wake);
         }
     }
 }

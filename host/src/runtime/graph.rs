@@ -19,6 +19,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::component::{CallError, Component, Outbox, RestartError, Restarter, Vacant};
+use super::histogram::Histogram;
 use super::stall::{Activity, Heartbeat};
 use super::wiring::{MAX_RESTART_BACKOFF_NS, Mailbox, Policy, RestartPolicy};
 use crate::contract::Value;
@@ -60,6 +61,10 @@ pub struct ComponentStats {
     pub last_error: Option<String>,
     /// Times the component was restarted after a fault.
     pub restarts: u64,
+    /// Times it was faulted (trap, budget, stall, broken rule).
+    pub faults: u64,
+    /// The time of each call, as `call_ns` counts it.
+    pub call_times: Histogram,
 }
 
 /// Counters of one connection.
@@ -120,6 +125,8 @@ pub struct Graph {
     heartbeat: Option<Arc<Heartbeat>>,
     /// Numbers the heartbeat's words (wraps).
     beats: u32,
+    /// How late the loop ran each cycle it had scheduled (`control_loop`).
+    lateness: Histogram,
 }
 
 impl Drop for Graph {
@@ -152,6 +159,7 @@ impl Graph {
             mark: None,
             heartbeat: None,
             beats: 0,
+            lateness: Histogram::default(),
         }
     }
 
@@ -413,7 +421,10 @@ impl Graph {
         self.scratch = outbox;
         let ended = Instant::now();
         let held = ended.duration_since(started);
-        self.nodes[index].stats.call_ns += held.as_nanos() as u64;
+        let held_ns = held.as_nanos() as u64;
+        let stats = &mut self.nodes[index].stats;
+        stats.call_ns += held_ns;
+        stats.call_times.record(held_ns);
         self.mark = Some(ended);
         // A call that held the loop past the limit is faulted even when the
         // watchdog's verdict came too late for it (or it slept through it).
@@ -494,6 +505,7 @@ impl Graph {
         }
         tracing::error!(component = &*node.name, "component faulted and is stopped: {reason}; the others keep running");
         node.component.faulted();
+        node.stats.faults += 1;
         node.state = ComponentState::Faulted { reason, at_ns: now_ns };
         Self::schedule_restart(node, now_ns);
         for &connection in &node.incoming {
@@ -615,6 +627,17 @@ impl Graph {
     /// Values dropped from full queues since the start.
     pub fn messages_dropped(&self) -> u64 {
         self.messages_dropped
+    }
+
+    /// How late the loop ran the cycles it had scheduled.
+    pub fn lateness(&self) -> &Histogram {
+        &self.lateness
+    }
+
+    /// Counts one scheduled cycle that ran `late_ns` after its time
+    /// (called by the control loop).
+    pub fn record_lateness(&mut self, late_ns: u64) {
+        self.lateness.record(late_ns);
     }
 
     /// Cycles run since the start.

@@ -10,10 +10,12 @@
 pub mod component;
 pub mod control_loop;
 pub mod graph;
+pub mod histogram;
 pub mod stall;
 pub mod wiring;
 
 pub use component::{CallError, Component, Outbox, Restarter, Vacant};
 pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
+pub use histogram::Histogram;
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
 pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};

@@ -1,5 +1,5 @@
 //! A running WASM component: its store, its instance and the calls the
-//! graph makes into it, each under an epoch deadline.
+//! graph makes into it, each under its CPU-time budget (`budget.rs`).
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -8,7 +8,7 @@ use wasmtime::{Engine, Store};
 
 use super::SandboxError;
 use super::engine::{ComponentPre, INIT_BUDGET, WasmArtifact};
-use super::guest::{GuestLimits, GuestState, MAX_GUEST_MESSAGE_BYTES, budget_ticks, call_error, new_store, truncate};
+use super::guest::{GuestLimits, GuestState, MAX_GUEST_MESSAGE_BYTES, arm, call_error, new_store, truncate};
 use crate::contract::{Param, Value, ValueKind};
 use crate::contract::{bindings, v1};
 use crate::runtime::{CallError, Component, Outbox};
@@ -25,7 +25,7 @@ pub(super) fn instantiate_component(
     let outputs: Arc<[ValueKind]> = artifact.description.outputs.iter().map(|p| p.kind).collect();
     let inputs: Arc<[ValueKind]> = artifact.description.inputs.iter().map(|p| p.kind).collect();
     let mut store = new_store(engine, name.into(), limits, outputs);
-    store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
+    arm(&mut store, INIT_BUDGET);
     let instantiation = |e| call_error("instantiation", INIT_BUDGET, &e);
     let (instance, init) = match &artifact.pre {
         ComponentPre::V2(pre) => {
@@ -50,7 +50,7 @@ pub(super) fn instantiate_component(
     // is wired yet.
     store.data_mut().outbox.clear();
     store.data_mut().reported = None;
-    Ok(WasmComponent { store, instance, inputs, budget, budget_ticks: budget_ticks(budget) })
+    Ok(WasmComponent { store, instance, inputs, budget })
 }
 
 /// An instance of the world its component was built against.
@@ -67,7 +67,6 @@ pub struct WasmComponent {
     /// input as its ranges.
     inputs: Arc<[ValueKind]>,
     budget: Duration,
-    budget_ticks: u64,
 }
 
 impl WasmComponent {
@@ -77,7 +76,7 @@ impl WasmComponent {
         state.now_ns = now_ns;
         state.emits = 0;
         state.reported = None;
-        self.store.set_epoch_deadline(self.budget_ticks);
+        arm(&mut self.store, self.budget);
     }
 
     /// Routes what the call emitted, or faults it; an error the component

@@ -1,5 +1,6 @@
 //! The one wasmtime engine of the process, its linker (WASI p2 without
-//! preopens, sockets, environment or arguments; `subsume:robot/host`), the
+//! preopens, sockets, environment or arguments, with the host's
+//! non-blocking clocks and poll: `wasi.rs`; `subsume:robot/host`), the
 //! epoch ticker, and loading components: compile (or take from the cache),
 //! link against a world, describe.
 
@@ -16,30 +17,38 @@ use wasmtime::{Config, Engine, InstanceAllocationStrategy, PoolingAllocationConf
 use super::SandboxError;
 use super::cache::CompileCache;
 use super::component::{WasmComponent, instantiate_component};
-use super::guest::{GuestLimits, GuestState, budget_ticks, call_error, error_text, new_store};
+use super::guest::{GuestLimits, GuestState, arm, call_error, error_text, new_store};
 use super::translator::WasmTranslator;
 use crate::config::limits::MAX_COMPONENTS;
 use crate::contract::{Description, Param, ValueKind, check_description};
 use crate::contract::{bindings, translator_bindings, v1};
 use crate::runtime::Component;
 
-/// ticker thread's wake-up latency).
+/// How often the ticker thread advances the engine's epoch: the granularity
+/// of the budget checks (`budget.rs`). A runaway call is stopped about one
+/// tick after its CPU time reaches its budget (plus the ticker thread's
+/// wake-up latency).
 pub const EPOCH_TICK: Duration = Duration::from_millis(1);
-/// Budget of `describe`: a component that loops there must not hang loading.
+/// Budget (CPU time) of `describe`: a component that loops there must not hang loading.
 pub const DESCRIBE_BUDGET: Duration = Duration::from_millis(500);
-/// starting must not hang startup or activation.
+/// Budget (CPU time) of instantiation plus `init`: a component that loops
+/// while starting must not hang startup or activation.
 pub const INIT_BUDGET: Duration = Duration::from_secs(1);
 /// Memory given to the throwaway instance that answers `describe`.
 pub const DESCRIBE_MEMORY_BYTES: u64 = 64 << 20;
+/// Native stack a guest may use; deep recursion traps instead of crashing
 /// the host.
 pub const MAX_WASM_STACK_BYTES: usize = 512 << 10;
+/// Core instances one component may create (componentize-py components
 /// create about 38): bounds what one component takes from the pool.
 pub const MAX_INSTANCES_PER_STORE: usize = 64;
 /// Tables and memories one component may create.
 pub const MAX_TABLES_PER_STORE: usize = 64;
 pub const MAX_MEMORIES_PER_STORE: usize = 64;
+/// Largest linear memory the instance pool reserves a slot for; per-component
 /// limits from the robot file are at most this.
 pub const POOL_MAX_MEMORY_BYTES: u64 = 1 << 30;
+/// Core instances (and memories) the whole pool holds: enough for
 /// [`MAX_COMPONENTS`] components plus throwaway `describe` instances.
 pub const POOL_TOTAL_CORE_INSTANCES: u32 = 1000;
 
@@ -144,7 +153,7 @@ impl Sandbox {
             }
         };
         let mut linker = Linker::new(&engine);
-        wasmtime_wasi::p2::add_to_linker_sync(&mut linker).map_err(|e| SandboxError::Engine(e.to_string()))?;
+        super::wasi::add_to_linker(&mut linker).map_err(|e| SandboxError::Engine(e.to_string()))?;
         bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
             .map_err(|e| SandboxError::Engine(e.to_string()))?;
         v1::bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
@@ -218,7 +227,7 @@ impl Sandbox {
         let limits =
             GuestLimits { memory_bytes: DESCRIBE_MEMORY_BYTES, budget: DESCRIBE_BUDGET, ..GuestLimits::default() };
         let mut store = self.new_store("describe".into(), &limits, Arc::from([]));
-        store.set_epoch_deadline(budget_ticks(DESCRIBE_BUDGET));
+        arm(&mut store, DESCRIBE_BUDGET);
         let call = "instantiation for describe()";
         let failed = |e| call_error("describe()", DESCRIBE_BUDGET, &e);
         match pre {

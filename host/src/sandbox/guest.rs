@@ -1,7 +1,8 @@
 //! What one guest's store holds and may do: its WASI context (stdout and
-//! stderr to the log, nothing else), the `subsume:robot/host` functions with
-//! their checks (`emit` kinds and caps, `log` rate), its limits, and turning
-//! a failed call into a reason a human can act on.
+//! stderr to the log, stdin closed, seeded generators, nothing else), the
+//! `subsume:robot/host` functions with their checks (`emit` kinds and caps,
+//! `log` rate), its limits (the CPU-time budget of the running call:
+//! `budget.rs`), and turning a failed call into a reason a human can act on.
 
 use std::sync::Arc;
 use std::time::Duration;
@@ -10,22 +11,20 @@ use wasmtime::component::ResourceTable;
 use wasmtime::{Engine, Store, StoreLimits, StoreLimitsBuilder, Trap};
 use wasmtime_wasi::{WasiCtx, WasiCtxBuilder, WasiCtxView, WasiView};
 
+use rand::SeedableRng as _;
+use rand::rngs::StdRng;
+
 use super::SandboxError;
-use super::engine::{EPOCH_TICK, MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE, MAX_TABLES_PER_STORE};
+use super::budget::{self, CallBudget};
+use super::engine::{MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE, MAX_TABLES_PER_STORE};
 use super::guest_output::GuestOutput;
+use super::wasi::random_seed;
 use crate::contract::bindings::subsume::robot as wit;
 use crate::contract::v1;
 use crate::contract::v1::bindings::subsume::robot as old;
 use crate::contract::{LogLevel, Value, ValueKind, kind_of};
 use crate::runtime::Outbox;
 
-/// How often the ticker thread advances the engine's epoch. A call is stopped
-/// between its budget and its budget plus one tick after it starts (plus the
-/// Budget of instantiation plus `init`: a component that loops while
-/// Native stack a guest may use; deep recursion traps instead of crashing
-/// Core instances one component may create (componentize-py components
-/// Largest linear memory the instance pool reserves a slot for; per-component
-/// Core instances (and memories) the whole pool holds: enough for
 /// Entries a guest may hold in its WASI resource table (open streams,
 /// pollables): a guest must not grow host-side tables without bound.
 pub const MAX_RESOURCE_ENTRIES: usize = 1000;
@@ -47,8 +46,12 @@ pub struct GuestState {
     pub(super) outputs: Arc<[ValueKind]>,
     /// Values emitted during the current call.
     pub(super) outbox: Outbox,
-    /// The host clock at the start of the current call.
+    /// The host clock at the start of the current call (the cycle's time).
     pub(super) now_ns: u64,
+    /// The wall clock as the current call sees it, read at its first ask.
+    pub(super) wall_at_call: Option<Duration>,
+    /// The current call's time limits (the epoch callback's state).
+    pub(super) call: CallBudget,
     /// Values emitted in the current call, against `max_emits`.
     pub(super) emits: u32,
     pub(super) max_emits: u32,
@@ -233,9 +236,16 @@ pub(super) fn new_store(
     outputs: Arc<[ValueKind]>,
 ) -> Store<GuestState> {
     let logs = LogBudget::new(guest.max_logs_per_s);
+    let seed = random_seed(&component);
+    let mut insecure_seed = seed;
+    insecure_seed[0] ^= 0xFF;
     let wasi = WasiCtxBuilder::new()
+        .stdin(std::io::empty())
         .stdout(GuestOutput::new(component.clone(), "stdout", logs.clone()))
         .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()))
+        .secure_random(StdRng::from_seed(seed))
+        .insecure_random(StdRng::from_seed(insecure_seed))
+        .insecure_random_seed(u128::from_le_bytes(seed[..16].try_into().unwrap_or_default()))
         .allow_tcp(false)
         .allow_udp(false)
         .allow_ip_name_lookup(false)
@@ -257,6 +267,8 @@ pub(super) fn new_store(
         outputs,
         outbox: Vec::new(),
         now_ns: 0,
+        wall_at_call: None,
+        call: CallBudget::new(guest.budget),
         emits: 0,
         max_emits: guest.max_emits,
         max_message_bytes: guest.max_message_bytes,
@@ -267,22 +279,32 @@ pub(super) fn new_store(
     store.limiter(|state| &mut state.limits);
     store.set_hostcall_fuel(usize::try_from(guest.max_message_bytes + HOSTCALL_FUEL_SLACK).unwrap_or(usize::MAX));
     store.set_max_component_handles(MAX_COMPONENT_HANDLES);
+    store.epoch_deadline_callback(|mut store| budget::check(&mut store.data_mut().call));
     store
 }
 
-/// Epoch ticks for `budget`: one extra because the current tick may end at
-/// once, so the guest always gets at least its whole budget.
-pub(super) fn budget_ticks(budget: Duration) -> u64 {
-    let tick = EPOCH_TICK.as_nanos().max(1);
-    (budget.as_nanos().div_ceil(tick) as u64).saturating_add(1)
+/// Prepares `store` for a call under `budget` (CPU time; the wall-clock cap
+/// follows from it): the first epoch check comes at the next tick, and the
+/// call sees the wall clock afresh.
+pub(super) fn arm(store: &mut Store<GuestState>, budget: Duration) {
+    let state = store.data_mut();
+    state.call.reset(budget);
+    state.wall_at_call = None;
+    store.set_epoch_deadline(1);
 }
 
 /// Turns a failed guest call into a reason a human can act on.
 pub(super) fn call_error(call: &'static str, budget: Duration, err: &wasmtime::Error) -> SandboxError {
     let reason = match err.downcast_ref::<Trap>() {
+        // Budgets end calls with `budget::OverBudget` (its text, below);
+        // an interrupt without one is still a budget.
         Some(Trap::Interrupt) => format!("exceeded its time budget of {} ms", budget.as_millis().max(1)),
         Some(Trap::StackOverflow) => "overflowed its stack (recursion too deep?)".to_string(),
         Some(trap) => format!("trapped: {trap}"),
+        None if err.downcast_ref::<wasmtime_wasi::I32Exit>().is_some() => {
+            let status = err.downcast_ref::<wasmtime_wasi::I32Exit>().map_or(0, |e| e.0);
+            format!("called exit (status {status}): a component may not end the process")
+        }
         None => {
             let cause = err.root_cause().to_string();
             // StoreLimits (trap_on_grow_failure) says this when a memory or
@@ -333,12 +355,6 @@ fn clip_control(text: String) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_budget_always_gets_at_least_its_time() {
-        assert_eq!(budget_ticks(Duration::from_millis(10)), 11);
-        assert_eq!(budget_ticks(Duration::from_micros(1500)), 3);
-    }
 
     #[test]
     fn guest_text_is_cut_and_cleaned() {

@@ -1,18 +1,22 @@
 //! The WebAssembly sandbox: the one wasmtime [`Engine`] of the process, the
 //! linker that offers guests the `subsume:robot/host` interface and a minimal
 //! WASI (no preopened directories, no sockets, no environment, no arguments;
-//! stdout and stderr go to the log), a [`Store`] per component with memory
-//! limits, an epoch deadline before every call, and an on-disk cache of
-//! compiled components.
+//! stdin closed; stdout and stderr go to the log; the cycle's clocks, seeded
+//! generators, and a poll that never waits), a [`Store`] per component with
+//! memory limits, a CPU-time budget and a wall-clock cap on every call, and
+//! an on-disk cache of compiled components.
 //!
 //! Invariants:
 //! - bytes that came from outside are only ever compiled (`Component::new`),
 //!   never deserialized; only artifacts this host wrote to its own cache
 //!   directory, named by the sha256 of their source, are deserialized;
-//! - every call into a guest runs under an epoch deadline;
+//! - every call into a guest runs under its CPU-time budget and wall-clock
+//!   cap (epoch checks, `budget.rs`);
+//! - no WASI function a guest can reach waits for time or input (`wasi.rs`);
 //! - a guest that traps, overruns its budget or breaks a host rule is
 //!   reported as [`CallError::Fault`] and its store is never called again.
 
+mod budget;
 mod cache;
 mod component;
 mod engine;
@@ -20,9 +24,11 @@ mod guest;
 mod guest_output;
 pub mod preamble;
 mod translator;
+mod wasi;
 
 use thiserror::Error;
 
+pub use budget::{OverBudget, WALL_CAP_FACTOR, thread_cpu_time, wall_cap};
 pub use component::WasmComponent;
 pub use engine::{
     Contract, DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, INIT_BUDGET, MAX_INSTANCES_PER_STORE,
@@ -34,6 +40,7 @@ pub use guest::{
 };
 pub use guest_output::{GuestOutput, MAX_GUEST_LINE_BYTES};
 pub use translator::{MAX_FEEDBACK_PER_DECODE, MAX_TRANSLATED_FRAME_BYTES, TranslatorCallError, WasmTranslator};
+pub use wasi::{BlockingCall, random_seed};
 
 #[derive(Clone, Debug, Error)]
 pub enum SandboxError {

@@ -10,7 +10,7 @@ use wasmtime::Store;
 
 use super::SandboxError;
 use super::engine::{INIT_BUDGET, TranslatorPre};
-use super::guest::{GuestState, MAX_GUEST_MESSAGE_BYTES, budget_ticks, call_error, truncate};
+use super::guest::{GuestState, MAX_GUEST_MESSAGE_BYTES, arm, call_error, truncate};
 use crate::contract::bindings::subsume::robot::types::{Decoded, Feedback as WitFeedback, Pose};
 use crate::contract::v1::translator_bindings as v1_bindings;
 use crate::contract::{LinkPlan, Param, translator_bindings, v1};
@@ -38,7 +38,6 @@ pub struct WasmTranslator {
     instance: Instance,
     plan: LinkPlan,
     budget: Duration,
-    budget_ticks: u64,
     malformed: u64,
     /// Why it broke, once it has: it is never called again.
     broken: Option<String>,
@@ -65,7 +64,7 @@ impl WasmTranslator {
         budget: Duration,
         params: &[Param],
     ) -> Result<WasmTranslator, SandboxError> {
-        store.set_epoch_deadline(budget_ticks(INIT_BUDGET));
+        arm(&mut store, INIT_BUDGET);
         let instantiation = |e| call_error("instantiation", INIT_BUDGET, &e);
         let (instance, init) = match pre {
             TranslatorPre::V2(pre) => {
@@ -94,15 +93,7 @@ impl WasmTranslator {
             }
             Instance::V1(_) => LinkPlan { opening: Vec::new(), poll_period_ms: 0, closing: Vec::new() },
         };
-        Ok(WasmTranslator {
-            store,
-            instance,
-            plan,
-            budget,
-            budget_ticks: budget_ticks(budget),
-            malformed: 0,
-            broken: None,
-        })
+        Ok(WasmTranslator { store, instance, plan, budget, malformed: 0, broken: None })
     }
 
     fn check(&self) -> Result<(), TranslatorCallError> {
@@ -132,7 +123,7 @@ impl WasmTranslator {
     /// Appends the bytes for control string `command` to `out`.
     pub fn encode(&mut self, command: &str, out: &mut Vec<u8>) -> Result<(), TranslatorCallError> {
         self.check()?;
-        self.store.set_epoch_deadline(self.budget_ticks);
+        arm(&mut self.store, self.budget);
         let result = match &self.instance {
             Instance::V2(instance) => instance.call_encode(&mut self.store, command),
             Instance::V1(instance) => instance.call_encode(&mut self.store, command),
@@ -154,7 +145,7 @@ impl WasmTranslator {
     /// The feedback that `bytes` complete.
     pub fn decode(&mut self, bytes: &[u8]) -> Result<Vec<WitFeedback>, TranslatorCallError> {
         self.check()?;
-        self.store.set_epoch_deadline(self.budget_ticks);
+        arm(&mut self.store, self.budget);
         let decoded = match &self.instance {
             Instance::V2(instance) => instance.call_decode(&mut self.store, bytes),
             Instance::V1(instance) => instance.call_decode(&mut self.store, bytes).map(decoded_from_v1),
@@ -177,7 +168,7 @@ impl WasmTranslator {
     pub fn poll(&mut self, now_ns: u64, out: &mut Vec<u8>) -> Result<(), TranslatorCallError> {
         self.check()?;
         let Instance::V2(instance) = &self.instance else { return Ok(()) };
-        self.store.set_epoch_deadline(self.budget_ticks);
+        arm(&mut self.store, self.budget);
         match instance.call_poll(&mut self.store, now_ns) {
             Ok(bytes) if bytes.len() <= MAX_TRANSLATED_FRAME_BYTES => {
                 out.extend_from_slice(&bytes);

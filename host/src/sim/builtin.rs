@@ -4,14 +4,15 @@
 
 use std::f64::consts::TAU;
 
+use super::create2::LIGHT_BUMP_RAYS;
 use super::physics::{Body, Simulation};
 use super::world::{self, World};
-use super::{SimComponent, SimSettings, SimulatedRobot};
+use super::{SimComponent, SimProtocol, SimSettings, SimulatedRobot};
 use crate::builtin::{
     BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, positive_up_to,
 };
 use crate::config::ParamProblem;
-use crate::robot::protocol::{MAX_RANGES, Profile};
+use crate::robot::protocol::MAX_RANGES;
 use crate::robot::translator::DriveGeometry;
 use crate::runtime::Component;
 
@@ -33,10 +34,10 @@ const PARAMS: &[ParamDecl] = &[
     },
     ParamDecl {
         name: "protocol",
-        ty: ParamType::Choice(&["ascii", "binary"]),
+        ty: ParamType::Choice(&["ascii", "binary", "create2"]),
         default: "ascii",
         unit: "",
-        doc: "wire protocol of the simulated controller",
+        doc: "wire protocol of the simulated controller: ascii, binary (docs/protocols.md) or create2 (iRobot Create 2 OI)",
     },
     ParamDecl {
         name: "wheel-base",
@@ -106,9 +107,15 @@ fn load_world(params: &Params, ctx_base: &std::path::Path) -> Result<World, Stri
 
 fn settings(params: &Params, world: World) -> Result<SimSettings, BuiltinError> {
     let protocol = params.text("protocol")?;
-    let profile = Profile::parse(protocol)
+    let protocol = SimProtocol::parse(protocol)
         .ok_or_else(|| BuiltinError::Param { name: "protocol".into(), why: format!("is unknown: '{protocol}'") })?;
     let rays = params.integer("rays")?;
+    if protocol == SimProtocol::Create2 && rays != LIGHT_BUMP_RAYS as i64 {
+        return Err(BuiltinError::Param {
+            name: "rays".into(),
+            why: format!("must be {LIGHT_BUMP_RAYS} with protocol create2 (one per light bump), not {rays}"),
+        });
+    }
     Ok(SimSettings {
         world,
         body: Body {
@@ -122,7 +129,7 @@ fn settings(params: &Params, world: World) -> Result<SimSettings, BuiltinError> 
             fov: params.number("fov")?,
             max_range: params.number("max-range")?,
         },
-        profile,
+        protocol,
         feedback_hz: params.number("feedback-rate")?,
         controller_watchdog: params.seconds("controller-watchdog")?,
     })
@@ -154,6 +161,7 @@ impl Builtin for SimBuiltin {
         match settings(params, world).map(|s| Simulation::new(s.world, s.body)) {
             Ok(Ok(_)) => Vec::new(),
             Ok(Err(e)) => vec![ParamProblem::new("world", format!("does not fit this robot: {e}"))],
+            Err(BuiltinError::Param { name, why }) => vec![ParamProblem::new(&name, why)],
             Err(e) => vec![ParamProblem::new("world", e.to_string())],
         }
     }

@@ -2,7 +2,10 @@
 //! world, behind a real pseudo-terminal. Its thread plays the motor
 //! controller: it reads command bytes from the PTY's master end, speaks the
 //! same protocol as real firmware (`robot::protocol`), moves the robot and
-//! writes odometry, range and bumper feedback back. The host's serial link
+//! writes odometry, range and bumper feedback back. With `protocol` set to
+//! `create2` it speaks the iRobot Create 2 Open Interface instead
+//! ([`create2`]): the demo then runs "as a Create 2", with the Create 2
+//! WASM translator on the host's side. The host's serial link
 //! opens the PTY's other end like any serial device, so the bytes cross a
 //! real tty exactly as they would cross a cable.
 //!
@@ -11,6 +14,7 @@
 //! the control loop's.
 
 pub mod builtin;
+pub mod create2;
 pub mod physics;
 pub mod world;
 
@@ -23,6 +27,7 @@ use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
 
+use self::create2::{OpenInterface, Readings, WheelCommand};
 use self::physics::{Body, SimStatus, Simulation};
 use self::world::World;
 use crate::robot::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
@@ -40,6 +45,12 @@ pub enum SimError {
 }
 /// How often the simulated controller reads, steps and may send feedback.
 pub const SIM_PERIOD: Duration = Duration::from_millis(5);
+/// Longest time one step of the controller's loop catches up on. The
+/// simulation runs in real time, so when its thread waited for a core (a
+/// loaded machine) it steps the whole wait (in physics steps of
+/// `physics::MAX_STEP_S`); only a longer stall loses time, which bounds the
+/// physics steps one iteration computes (200).
+pub const MAX_CATCH_UP: Duration = Duration::from_secs(1);
 /// Simulated battery voltage reported in feedback.
 pub const BATTERY_VOLTS: f64 = 12.6;
 
@@ -48,12 +59,36 @@ pub const BATTERY_VOLTS: f64 = 12.6;
 pub struct SimSettings {
     pub world: World,
     pub body: Body,
-    pub profile: Profile,
+    pub protocol: SimProtocol,
     /// Feedback messages (odometry, ranges, bumper) per second.
     pub feedback_hz: f64,
     /// The simulated controller stops the wheels when no command came for
     /// this long (real controllers have such a watchdog too).
     pub controller_watchdog: Duration,
+}
+
+/// The wire protocol of a simulated controller.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SimProtocol {
+    /// A built-in profile (docs/protocols.md).
+    Profile(Profile),
+    /// The iRobot Create 2 Open Interface ([`create2`]).
+    Create2,
+}
+
+impl SimProtocol {
+    pub fn parse(name: &str) -> Option<SimProtocol> {
+        match name {
+            "create2" => Some(SimProtocol::Create2),
+            other => Profile::parse(other).map(SimProtocol::Profile),
+        }
+    }
+}
+
+/// One side of the wire, as the simulated controller speaks it.
+enum Wire {
+    Profile { profile: Profile, decoder: Decoder, messages: Vec<Message> },
+    Create2(OpenInterface),
 }
 
 /// What the simulated controller shares with the host.
@@ -119,8 +154,13 @@ impl Drop for SimulatedRobot {
 
 /// The simulated motor controller's loop.
 fn controller(name: &str, mut port: TTYPort, mut sim: Simulation, settings: SimSettings, shared: &Shared) {
-    let mut decoder = Decoder::new(settings.profile);
-    let mut messages = Vec::new();
+    let mut wire = match settings.protocol {
+        SimProtocol::Profile(profile) => {
+            Wire::Profile { profile, decoder: Decoder::new(profile), messages: Vec::new() }
+        }
+        SimProtocol::Create2 => Wire::Create2(OpenInterface::new(settings.body.geometry.wheel_base)),
+    };
+    let mut commands = Vec::new();
     let mut buffer = [0u8; 1024];
     let mut out = Vec::new();
     let feedback_period = Duration::from_secs_f64(1.0 / settings.feedback_hz.max(0.1));
@@ -129,7 +169,27 @@ fn controller(name: &str, mut port: TTYPort, mut sim: Simulation, settings: SimS
     let mut last_feedback = Instant::now();
     while !shared.stop.load(Ordering::Relaxed) {
         match port.read(&mut buffer) {
-            Ok(n) if n > 0 => decoder.feed(&buffer[..n], &mut messages),
+            Ok(n) if n > 0 => match &mut wire {
+                Wire::Profile { decoder, messages, .. } => {
+                    decoder.feed(&buffer[..n], messages);
+                    for message in messages.drain(..) {
+                        match message {
+                            Message::Command(MotorCommand::Wheels { left, right }) => {
+                                commands.push(WheelCommand::Wheels(left, right));
+                            }
+                            Message::Command(MotorCommand::Stop) => commands.push(WheelCommand::Stop),
+                            Message::Feedback(_) => {
+                                shared.malformed.fetch_add(1, Ordering::Relaxed);
+                            }
+                        }
+                    }
+                }
+                Wire::Create2(oi) => {
+                    let before = oi.malformed();
+                    oi.feed(&buffer[..n], &mut commands);
+                    shared.malformed.fetch_add(oi.malformed() - before, Ordering::Relaxed);
+                }
+            },
             Ok(_) => {}
             Err(e) if e.kind() == ErrorKind::TimedOut || e.kind() == ErrorKind::WouldBlock => {}
             Err(e) => {
@@ -137,38 +197,45 @@ fn controller(name: &str, mut port: TTYPort, mut sim: Simulation, settings: SimS
                 std::thread::sleep(SIM_PERIOD);
             }
         }
-        for message in messages.drain(..) {
-            match message {
-                Message::Command(MotorCommand::Wheels { left, right }) => {
-                    sim.set_wheels(left, right);
-                    last_command = Instant::now();
-                    shared.commands.fetch_add(1, Ordering::Relaxed);
-                }
-                Message::Command(MotorCommand::Stop) => {
-                    sim.set_wheels(0.0, 0.0);
-                    last_command = Instant::now();
-                    shared.commands.fetch_add(1, Ordering::Relaxed);
-                }
-                Message::Feedback(_) => {
-                    shared.malformed.fetch_add(1, Ordering::Relaxed);
-                }
-            }
+        for command in commands.drain(..) {
+            let (left, right) = match command {
+                WheelCommand::Wheels(left, right) => (left, right),
+                WheelCommand::Stop => (0.0, 0.0),
+            };
+            sim.set_wheels(left, right);
+            last_command = Instant::now();
+            shared.commands.fetch_add(1, Ordering::Relaxed);
         }
         if last_command.elapsed() > settings.controller_watchdog {
             sim.set_wheels(0.0, 0.0);
         }
         let now = Instant::now();
-        sim.step(now.duration_since(last_step).as_secs_f64().min(0.1));
+        sim.step(now.duration_since(last_step).min(MAX_CATCH_UP).as_secs_f64());
         last_step = now;
+        if let Wire::Create2(oi) = &mut wire {
+            oi.track(sim.pose());
+        }
         if last_feedback.elapsed() >= feedback_period {
             last_feedback = Instant::now();
             let (x, y, heading) = sim.pose();
             out.clear();
-            let profile = settings.profile;
-            profile.encode_feedback(&Feedback::Odometry { x, y, heading }, &mut out);
-            profile.encode_feedback(&Feedback::Ranges(sim.ranges()), &mut out);
-            profile.encode_feedback(&Feedback::Bumper(sim.bumper()), &mut out);
-            profile.encode_feedback(&Feedback::Battery(BATTERY_VOLTS), &mut out);
+            match &wire {
+                Wire::Profile { profile, .. } => {
+                    profile.encode_feedback(&Feedback::Odometry { x, y, heading }, &mut out);
+                    profile.encode_feedback(&Feedback::Ranges(sim.ranges()), &mut out);
+                    profile.encode_feedback(&Feedback::Bumper(sim.bumper()), &mut out);
+                    profile.encode_feedback(&Feedback::Battery(BATTERY_VOLTS), &mut out);
+                }
+                Wire::Create2(oi) => {
+                    let readings = Readings {
+                        bumper: sim.bumper(),
+                        volts: BATTERY_VOLTS,
+                        ranges: sim.ranges(),
+                        max_range: settings.body.max_range,
+                    };
+                    out.extend(oi.frame(&readings).unwrap_or_default());
+                }
+            }
             // Nobody may be listening (the host reconnecting): that is fine.
             let _ = port.write_all(&out);
             if let Ok(mut status) = shared.status.lock() {

@@ -3,6 +3,7 @@
 //! operators file (read with the rest of the robot file), and starting the
 //! servers.
 
+use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Duration;
@@ -18,6 +19,7 @@ use crate::config::ParamProblem;
 use crate::contract::{ValueKind, clip};
 use crate::runtime::{Component, RunningRobot, Standings};
 use crate::store::users::Directory;
+use crate::tls::{HostTls, TlsIdentity};
 
 /// Most operators served at once: each holds a connection and a task.
 pub const MAX_OPERATORS: i64 = 64;
@@ -45,6 +47,13 @@ const PARAMS: &[ParamDecl] = &[
         default: "",
         unit: "",
         doc: "address of the WebSocket endpoint /teleop (JSON messages); empty: none",
+    },
+    ParamDecl {
+        name: "tls",
+        ty: ParamType::Choice(&["auto", "on", "off"]),
+        default: "auto",
+        unit: "",
+        doc: "TLS on both listeners with the host's certificate (--tls-cert): auto (when the host has one), on (required), off",
     },
     ParamDecl {
         name: "operators",
@@ -144,6 +153,7 @@ pub fn settings(params: &Params, base_dir: &Path) -> Result<TeleopSettings, Buil
         websocket: params.address("websocket")?,
         operators: operators(params, base_dir).map_err(|why| BuiltinError::Param { name: "operators".into(), why })?,
         directory: None,
+        tls: None,
         probe_period: params.seconds("probe-period")?,
         policy: ModePolicy {
             direct_below: params.seconds("direct-below")?,
@@ -161,6 +171,34 @@ pub fn settings(params: &Params, base_dir: &Path) -> Result<TeleopSettings, Buil
             horizon: params.seconds("horizon")?,
         },
     })
+}
+
+/// The identity both listeners serve TLS with (`None`: plain text), from
+/// the `tls` parameter and the host's transport settings: `on` needs the
+/// host's certificate, and plain text off loopback needs the owner's
+/// `--allow-plain-http`.
+fn transport(
+    mode: &str,
+    host: &HostTls,
+    listen: SocketAddr,
+    websocket: Option<SocketAddr>,
+) -> Result<Option<TlsIdentity>, BuiltinError> {
+    let identity = match mode {
+        "off" => None,
+        "on" => Some(host.identity.clone().ok_or_else(|| BuiltinError::Param {
+            name: "tls".into(),
+            why: "is on but the host has no certificate: run it with --tls-cert and --tls-key".into(),
+        })?),
+        _ => host.identity.clone(),
+    };
+    if identity.is_none() {
+        let refused = |e: crate::tls::TlsError| BuiltinError::Refused(e.to_string());
+        host.check_plain("teleoperation line protocol", listen).map_err(refused)?;
+        if let Some(websocket) = websocket {
+            host.check_plain("teleoperation websocket", websocket).map_err(refused)?;
+        }
+    }
+    Ok(identity)
 }
 
 impl Builtin for TeleopBuiltin {
@@ -225,6 +263,8 @@ impl Builtin for TeleopBuiltin {
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
         let mut settings = settings(params, ctx.base_dir)?;
         settings.directory = ctx.services.get::<Directory>();
+        let host = ctx.services.get::<HostTls>().unwrap_or_default();
+        settings.tls = transport(params.text("tls")?, &host, settings.listen, settings.websocket)?;
         let priority = ctx.priorities.get(ctx.index).cloned().unwrap_or_default();
         let name = ctx.component()?.name.clone();
         let robot = ctx.services.get::<RunningRobot>().unwrap_or_else(|| Arc::new(RunningRobot::new(&ctx.robot.name)));

@@ -3,10 +3,11 @@
 //! the requested control mode, `q` (or Esc, Ctrl-C) quits. It speaks the TCP
 //! line protocol of docs/teleop.md, answers pings at once, sends the current
 //! command ten times a second while a mode is granted, and shows the granted
-//! mode and the measured round-trip time.
+//! mode and the measured round-trip time. With `--tls-ca` it speaks TLS,
+//! checking the host's certificate against that CA.
 
-use std::io::{BufRead, BufReader, Write};
-use std::net::TcpStream;
+use std::io::Write;
+use std::path::PathBuf;
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
@@ -29,6 +30,8 @@ pub struct ClientOptions {
     pub address: String,
     pub name: String,
     pub token: String,
+    /// Speak TLS, trusting this CA (PEM) for the host's certificate.
+    pub tls_ca: Option<PathBuf>,
 }
 
 /// What the screen shows.
@@ -55,28 +58,71 @@ pub fn run(options: &ClientOptions) -> Result<(), ClientError> {
     session(options).map_err(ClientError)
 }
 
+/// A connection to the host: plain TCP or TLS.
+trait Connection: tokio::io::AsyncRead + tokio::io::AsyncWrite + Send + Unpin {}
+impl<T: tokio::io::AsyncRead + tokio::io::AsyncWrite + Send + Unpin> Connection for T {}
+
+/// Connects to the host, over TLS when `tls_ca` names the CA to trust.
+async fn connect(options: &ClientOptions) -> Result<Box<dyn Connection>, String> {
+    let tcp = tokio::net::TcpStream::connect(&options.address)
+        .await
+        .map_err(|e| format!("cannot connect to {}: {e}", options.address))?;
+    let _ = tcp.set_nodelay(true);
+    let Some(ca) = &options.tls_ca else { return Ok(Box::new(tcp)) };
+    let config = crate::tls::client_config(ca).map_err(|e| e.to_string())?;
+    let host = options.address.rsplit_once(':').map_or(options.address.as_str(), |(host, _)| host);
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    let name = tokio_rustls::rustls::pki_types::ServerName::try_from(host.to_string())
+        .map_err(|e| format!("'{host}' is not a host name or address for TLS: {e}"))?;
+    tokio_rustls::TlsConnector::from(config)
+        .connect(name, tcp)
+        .await
+        .map(|stream| Box::new(stream) as Box<dyn Connection>)
+        .map_err(|e| format!("TLS with {} failed: {e}", options.address))
+}
+
 fn session(options: &ClientOptions) -> Result<(), String> {
-    let stream =
-        TcpStream::connect(&options.address).map_err(|e| format!("cannot connect to {}: {e}", options.address))?;
-    let _ = stream.set_nodelay(true);
-    let mut writer = stream.try_clone().map_err(|e| e.to_string())?;
+    use tokio::io::{AsyncBufReadExt as _, AsyncWriteExt as _};
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .map_err(|e| format!("cannot start the network thread: {e}"))?;
+    let stream = runtime.block_on(connect(options))?;
+    // One thread does the network I/O (reads and writes at once, TLS or
+    // not); the terminal loop talks to it through channels.
     let (lines_tx, lines) = mpsc::channel::<String>();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stream).lines().map_while(Result::ok) {
-            if lines_tx.send(line).is_err() {
-                break;
+    let (out_tx, mut out_rx) = tokio::sync::mpsc::unbounded_channel::<String>();
+    let io = std::thread::spawn(move || {
+        runtime.block_on(async move {
+            let (read, mut write) = tokio::io::split(stream);
+            let mut reader = tokio::io::BufReader::new(read).lines();
+            loop {
+                tokio::select! {
+                    line = reader.next_line() => match line {
+                        Ok(Some(line)) => if lines_tx.send(line).is_err() { break },
+                        _ => break,
+                    },
+                    out = out_rx.recv() => match out {
+                        Some(text) => if write.write_all(text.as_bytes()).await.is_err() { break },
+                        None => {
+                            let _ = write.shutdown().await;
+                            break;
+                        }
+                    },
+                }
             }
-        }
+        });
     });
-    let mut send = |line: &str| {
-        writer.write_all(format!("{line}\n").as_bytes()).map_err(|e| format!("the host closed the connection: {e}"))
-    };
+    let send = |line: &str| out_tx.send(format!("{line}\n")).map_err(|_| "the host closed the connection".to_string());
     send(&format!("AUTH {} {}", options.name, options.token))?;
 
     terminal::enable_raw_mode().map_err(|e| format!("cannot use the terminal: {e}"))?;
-    let result = event_loop(&lines, &mut send);
+    let result = event_loop(&lines, &mut |line: &str| send(line));
     let _ = terminal::disable_raw_mode();
     println!();
+    // What was sent last (QUIT) goes out before the process ends.
+    drop(out_tx);
+    let _ = io.join();
     result
 }
 

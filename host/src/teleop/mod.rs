@@ -68,6 +68,9 @@ pub struct TeleopSettings {
     /// Connections served at once; more are refused.
     pub max_connections: usize,
     pub delay: DelaySettings,
+    /// Serve TLS on both listeners with this identity (the `tls`
+    /// parameter, resolved against the host's certificate).
+    pub tls: Option<crate::tls::TlsIdentity>,
 }
 
 impl TeleopSettings {
@@ -313,9 +316,12 @@ impl TeleopComponent {
             connections: Default::default(),
         });
         let tcp_ctx = ctx.clone();
+        let line_tls = ctx.settings.tls.as_ref().map(|identity| identity.line_acceptor());
+        let http_tls = ctx.settings.tls.as_ref().map(|identity| identity.http_acceptor());
+        let over_tls = line_tls.is_some();
         runtime.spawn(async move {
             match tokio::net::TcpListener::from_std(tcp) {
-                Ok(listener) => accept_tcp(listener, tcp_ctx).await,
+                Ok(listener) => accept_tcp(listener, tcp_ctx, line_tls).await,
                 Err(e) => tracing::error!("cannot serve teleoperation: {e}"),
             }
         });
@@ -323,21 +329,27 @@ impl TeleopComponent {
             let ws_address = ws.local_addr().map_err(|e| BuiltinError::io("cannot read the websocket address", e))?;
             let ws_ctx = ctx.clone();
             runtime.spawn(async move {
-                match tokio::net::TcpListener::from_std(ws) {
-                    Ok(listener) => {
-                        let app = websocket_router(ws_ctx);
+                let listener = match tokio::net::TcpListener::from_std(ws) {
+                    Ok(listener) => listener,
+                    Err(e) => return tracing::error!("cannot serve the teleoperation websocket: {e}"),
+                };
+                let app = websocket_router(ws_ctx);
+                match http_tls {
+                    Some(acceptor) => crate::tls::serve_https(listener, acceptor, app).await,
+                    None => {
                         if let Err(e) =
                             axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>()).await
                         {
                             tracing::error!("the teleoperation websocket stopped: {e}");
                         }
                     }
-                    Err(e) => tracing::error!("cannot serve the teleoperation websocket: {e}"),
                 }
             });
-            tracing::info!(component = name, "teleoperation websocket on ws://{ws_address}/teleop");
+            let scheme = if over_tls { "wss" } else { "ws" };
+            tracing::info!(component = name, "teleoperation websocket on {scheme}://{ws_address}/teleop");
         }
-        tracing::info!(component = name, "teleoperation on tcp {listen}");
+        let transport = if over_tls { "tls" } else { "tcp" };
+        tracing::info!(component = name, "teleoperation on {transport} {listen}");
         let base_priority = priority.get();
         Ok(TeleopComponent {
             name: name.to_string(),
@@ -367,9 +379,15 @@ impl TeleopComponent {
     }
 }
 
-/// Accepts TCP operators, refusing those over the connection limit.
-async fn accept_tcp(listener: tokio::net::TcpListener, ctx: Arc<ServerContext>) {
+/// Accepts line-protocol operators (over TLS when `tls` is given),
+/// refusing those over the connection limit.
+async fn accept_tcp(
+    listener: tokio::net::TcpListener,
+    ctx: Arc<ServerContext>,
+    tls: Option<tokio_rustls::TlsAcceptor>,
+) {
     let mut next_id = 1u64;
+    let handshakes = Arc::new(tokio::sync::Semaphore::new(crate::tls::MAX_HANDSHAKES));
     loop {
         let (stream, address) = match listener.accept().await {
             Ok(accepted) => accepted,
@@ -380,13 +398,33 @@ async fn accept_tcp(listener: tokio::net::TcpListener, ctx: Arc<ServerContext>) 
             }
         };
         let _ = stream.set_nodelay(true);
-        if !admit(&ctx) {
-            tokio::spawn(refuse(stream, ctx.settings.max_connections));
-            continue;
-        }
         let id = next_id;
         next_id += 1;
-        tokio::spawn(session::serve_tcp(stream, id, address.to_string(), ctx.clone()));
+        let ctx = ctx.clone();
+        match &tls {
+            None if !admit(&ctx) => {
+                tokio::spawn(refuse(stream, ctx.settings.max_connections));
+            }
+            None => {
+                tokio::spawn(session::serve_tcp(stream, id, address.to_string(), ctx));
+            }
+            Some(acceptor) => {
+                // The handshake runs on the connection's own task, so a
+                // peer that stalls in it holds up nobody else.
+                let acceptor = acceptor.clone();
+                let Ok(permit) = handshakes.clone().acquire_owned().await else { return };
+                tokio::spawn(async move {
+                    let handshaken = crate::tls::handshake(&acceptor, stream, address).await;
+                    drop(permit);
+                    let Some(stream) = handshaken else { return };
+                    if admit(&ctx) {
+                        session::serve_tcp(stream, id, address.to_string(), ctx).await;
+                    } else {
+                        refuse(stream, ctx.settings.max_connections).await;
+                    }
+                });
+            }
+        }
     }
 }
 
@@ -400,10 +438,11 @@ fn admit(ctx: &ServerContext) -> bool {
     admitted
 }
 
-async fn refuse(mut stream: tokio::net::TcpStream, max: usize) {
+async fn refuse<S: tokio::io::AsyncWrite + Unpin>(mut stream: S, max: usize) {
     use tokio::io::AsyncWriteExt;
     let line = format!("ERR busy: at most {max} operators are served at once\n");
     let _ = stream.write_all(line.as_bytes()).await;
+    let _ = stream.shutdown().await;
 }
 
 /// The `/teleop` WebSocket route of the `websocket` parameter's listener.
@@ -613,6 +652,7 @@ mod tests {
             policy: ModePolicy::default(),
             max_connections: 1,
             delay: DelaySettings::default(),
+            tls: None,
         };
         assert!(settings.check_token("alice", "0123456789abcdef"));
         assert!(!settings.check_token("alice", "0123456789abcdeF"));

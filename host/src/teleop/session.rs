@@ -197,9 +197,13 @@ struct Session {
     started: Instant,
 }
 
-/// Serves one TCP connection until it closes.
-pub async fn serve_tcp(stream: tokio::net::TcpStream, id: u64, address: String, ctx: Arc<ServerContext>) {
-    let (read, write) = stream.into_split();
+/// Serves one line-protocol connection (plain TCP or TLS) until it
+/// closes.
+pub async fn serve_tcp<S>(stream: S, id: u64, address: String, ctx: Arc<ServerContext>)
+where
+    S: AsyncRead + AsyncWrite + Send + Unpin + 'static,
+{
+    let (read, write) = tokio::io::split(stream);
     let mut lines = LineReader::new(read);
     let mut transport = LineTransport { writer: write };
     let (notices, mut notice_rx) = mpsc::channel(NOTICE_QUEUE);

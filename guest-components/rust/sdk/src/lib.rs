@@ -52,6 +52,8 @@ pub mod translator_bindings {
     });
 }
 
+pub mod drive;
+
 pub use translator_bindings::subsume::robot::types::{Decoded, Feedback, LinkPlan, Pose, Scan as FeedbackScan};
 
 pub use bindings::subsume::robot::types::{

@@ -18,15 +18,74 @@
 //!   what happened as its `err` (all must fail for lack of capability);
 //! - `command-then-loop`: drives (`VEL 0.3 0` on `cmd`) for `after` ticks,
 //!   then spins forever while holding control;
+//! - `sleep-on-tick`, `sleep-on-input`, `sleep-on-init`: sleeps 10 s there
+//!   (`std::thread::sleep`: a monotonic-clock subscription and a blocking
+//!   wait on it); in `tick` it logs "sleeping now" first;
+//! - `poll-far-future`: `wasi:io/poll.poll` on a subscription an hour
+//!   ahead of the monotonic clock;
+//! - `read-stdin`: reads stdin, and returns what happened as its `err`;
+//! - `busy-wall-clock`: spins until the wall clock says 10 ms passed;
+//! - `exit-on-tick`: calls `exit(3)` (WASI 0.2 carries it as status 1);
+//! - `random-probe`: returns as its `err` a hash with the std library's
+//!   random keys (from `wasi:random`): the same for the same seed;
 //! - `none`: behaves.
+//!
+//! With `drive` = `yes`, every good tick also emits `VEL 0.3 0` on `cmd`.
+
+use std::io::Read as _;
+use std::time::{Duration, SystemTime};
 
 use subsume_guest::{
     Component, Description, LogLevel, ParamKind, Params, Value, ValueKind, emit, input, log, output, param,
 };
 
+/// The two WASI interfaces `poll-far-future` calls directly (Rust's std
+/// library has no `poll`), as WASI 0.2.0 defines them (the linker merges
+/// them with the standard library's copies, which must match).
+mod wasi_poll {
+    wit_bindgen::generate!({
+        inline: r#"
+            package test:faulty;
+
+            package wasi:io@0.2.0 {
+                interface poll {
+                    resource pollable {
+                        ready: func() -> bool;
+                        block: func();
+                    }
+                    poll: func(in: list<borrow<pollable>>) -> list<u32>;
+                }
+            }
+
+            package wasi:clocks@0.2.0 {
+                interface monotonic-clock {
+                    use wasi:io/poll@0.2.0.{pollable};
+                    type instant = u64;
+                    type duration = u64;
+                    now: func() -> instant;
+                    resolution: func() -> duration;
+                    subscribe-instant: func(when: instant) -> pollable;
+                    subscribe-duration: func(when: duration) -> pollable;
+                }
+            }
+
+            world probe {
+                import wasi:io/poll@0.2.0;
+                import wasi:clocks/monotonic-clock@0.2.0;
+            }
+        "#,
+        world: "test:faulty/probe",
+        generate_all,
+    });
+}
+
+/// How long the sleeping modes sleep.
+const SLEEP: Duration = Duration::from_secs(10);
+
 struct Faulty {
     mode: String,
     after: i64,
+    drive: bool,
     ticks: i64,
     hoard: Vec<&'static mut [u8]>,
 }
@@ -54,6 +113,7 @@ impl Component for Faulty {
             .output(output("data", ValueKind::Vector, "giant-emit's giant vector"))
             .param(param("mode", ParamKind::Text, "none", "how to misbehave"))
             .param(param("after", ParamKind::Integer, "0", "good ticks before misbehaving"))
+            .param(param("drive", ParamKind::Text, "no", "yes: every good tick emits VEL 0.3 0 on cmd"))
             .priority(2)
     }
 
@@ -62,23 +122,27 @@ impl Component for Faulty {
         match mode.as_str() {
             "error-on-init" => return Err("refusing to start, as asked".into()),
             "loop-on-init" => spin(),
+            "sleep-on-init" => std::thread::sleep(SLEEP),
             _ => {}
         }
-        Ok(Faulty { mode, after: params.integer("after")?, ticks: 0, hoard: Vec::new() })
+        let drive = params.text("drive").unwrap_or("no") == "yes";
+        Ok(Faulty { mode, after: params.integer("after")?, drive, ticks: 0, hoard: Vec::new() })
     }
 
     fn on_input(&mut self, _port: u32, _value: Value) -> Result<(), String> {
-        if self.mode == "loop-on-input" {
-            spin();
+        match self.mode.as_str() {
+            "loop-on-input" => spin(),
+            "sleep-on-input" if self.ticks >= self.after => std::thread::sleep(SLEEP),
+            _ => {}
         }
         Ok(())
     }
 
     fn tick(&mut self, _now_ns: u64) -> Result<(), String> {
-        if self.ticks < self.after || self.mode == "none" {
+        if self.ticks < self.after || matches!(self.mode.as_str(), "none" | "sleep-on-input") {
             self.ticks += 1;
             emit(0, &Value::Scalar(self.ticks as f64));
-            if self.mode == "command-then-loop" {
+            if self.mode == "command-then-loop" || self.drive {
                 emit(2, &Value::Command("VEL 0.3 0".into()));
             }
             return Ok(());
@@ -130,6 +194,44 @@ impl Component for Faulty {
                 };
                 self.mode = "none".into();
                 Err(format!("file: {file}; socket: {socket}; environment: {environment}"))
+            }
+            "sleep-on-tick" => {
+                // The host log's timestamp marks the blocking call (the
+                // blocking bench measures from it).
+                log(LogLevel::Info, "sleeping now");
+                std::thread::sleep(SLEEP);
+                Ok(())
+            }
+            "poll-far-future" => {
+                use wasi_poll::wasi::clocks::monotonic_clock;
+                let hour_ahead = monotonic_clock::now().saturating_add(3_600_000_000_000);
+                let far = monotonic_clock::subscribe_instant(hour_ahead);
+                let ready = wasi_poll::wasi::io::poll::poll(&[&far]);
+                Err(format!("poll returned {ready:?}"))
+            }
+            "read-stdin" => {
+                let mut buffer = [0u8; 64];
+                let read = match std::io::stdin().read(&mut buffer) {
+                    Ok(0) => "end of file".to_string(),
+                    Ok(n) => format!("read {n} bytes"),
+                    Err(e) => format!("error ({e})"),
+                };
+                self.mode = "none".into();
+                Err(format!("stdin: {read}"))
+            }
+            "busy-wall-clock" => {
+                let start = SystemTime::now();
+                while start.elapsed().unwrap_or_default() < Duration::from_millis(10) {
+                    std::hint::black_box(0u64);
+                }
+                Ok(())
+            }
+            "exit-on-tick" => std::process::exit(3),
+            "random-probe" => {
+                use std::hash::BuildHasher as _;
+                let hash = std::collections::hash_map::RandomState::new().hash_one(0u8);
+                self.mode = "none".into();
+                Err(format!("hash: {hash:016x}"))
             }
             "error-on-tick" => Err(format!("failing on purpose at tick {}", self.ticks)),
             other => Err(format!("unknown mode '{other}'")),

@@ -1,0 +1,188 @@
+//! A hardware translator for Basicmicro RoboClaw motor controllers in
+//! packet serial mode, as a WASM component of the `translator` world.
+//!
+//! - Commands: 37, "drive M1/M2 with signed speed" (mixed speed):
+//!   `address 37 m1(i32) m2(i32) crc16`, speeds in encoder counts per second,
+//!   big-endian; STOP is speed 0 on both. The controller answers every write
+//!   with one byte, 0xFF (ACK).
+//! - Poll (every `poll-ms`, 50 by default): 78, "read encoder counters":
+//!   `address 78` (a read carries no CRC); the answer is `enc1(u32) enc2(u32) crc16`, the CRC taken
+//!   over the address, the command and the data. Counts become odometry by
+//!   dead reckoning from `origin-x/y/heading`.
+//! - The CRC is CRC16-CCITT (XModem: polynomial 0x1021, initial 0), sent
+//!   high byte first.
+//!
+//! Options (the link's `options`): `counts-per-metre` (required: encoder
+//! counts per metre of wheel travel), `address` (128..=135, default 128),
+//! `left=m1|m2` (default m1), `poll-ms`, `origin-x`, `origin-y`,
+//! `origin-heading`.
+
+use subsume_guest::drive::{Geometry, Odometry};
+use subsume_guest::{Decoded, Feedback, LinkPlan, Params, Translator};
+
+const MIXED_SPEED: u8 = 37;
+const READ_ENCODERS: u8 = 78;
+const ACK: u8 = 0xFF;
+/// Encoder answer: two u32 and the CRC.
+const ENCODER_REPLY_BYTES: usize = 10;
+/// Most encoder reads outstanding: older ones are taken as lost.
+const MAX_PENDING_READS: u32 = 4;
+/// Most bytes kept while waiting for the rest of an answer.
+const MAX_BUFFER: usize = 1024;
+/// Shortest and longest poll period a robot file may set, ms.
+const POLL_MS_RANGE: (u32, u32) = (5, 10_000);
+
+/// CRC16-CCITT as the RoboClaw computes it.
+fn crc16(bytes: &[u8]) -> u16 {
+    let mut crc: u16 = 0;
+    for byte in bytes {
+        crc ^= u16::from(*byte) << 8;
+        for _ in 0..8 {
+            crc = if crc & 0x8000 != 0 { (crc << 1) ^ 0x1021 } else { crc << 1 };
+        }
+    }
+    crc
+}
+
+struct RoboClaw {
+    geometry: Geometry,
+    odometry: Odometry,
+    address: u8,
+    counts_per_metre: f64,
+    left_is_m1: bool,
+    poll_ms: u32,
+    buffer: Vec<u8>,
+    pending_reads: u32,
+    counts: Option<(u32, u32)>,
+}
+
+impl RoboClaw {
+    fn packet(&self, command: u8, data: &[u8]) -> Vec<u8> {
+        let mut bytes = vec![self.address, command];
+        bytes.extend_from_slice(data);
+        let crc = crc16(&bytes);
+        bytes.extend_from_slice(&crc.to_be_bytes());
+        bytes
+    }
+
+    /// Whether the buffer starts with a well-formed encoder answer.
+    fn encoder_reply_at_start(&self) -> bool {
+        let Some(reply) = self.buffer.get(..ENCODER_REPLY_BYTES) else { return false };
+        let mut covered = vec![self.address, READ_ENCODERS];
+        covered.extend_from_slice(&reply[..8]);
+        crc16(&covered) == u16::from_be_bytes([reply[8], reply[9]])
+    }
+
+    fn encoders(&mut self, reply: &[u8], out: &mut Vec<Feedback>) {
+        let m1 = u32::from_be_bytes([reply[0], reply[1], reply[2], reply[3]]);
+        let m2 = u32::from_be_bytes([reply[4], reply[5], reply[6], reply[7]]);
+        let (left, right) = if self.left_is_m1 { (m1, m2) } else { (m2, m1) };
+        if let Some((old_left, old_right)) = self.counts {
+            // Counters wrap at 32 bits: the difference is the travel.
+            let dl = left.wrapping_sub(old_left) as i32;
+            let dr = right.wrapping_sub(old_right) as i32;
+            self.odometry.advance(f64::from(dl) / self.counts_per_metre, f64::from(dr) / self.counts_per_metre);
+        }
+        self.counts = Some((left, right));
+        out.push(Feedback::Odometry(self.odometry.pose()));
+    }
+}
+
+impl Translator for RoboClaw {
+    fn init(params: &Params) -> Result<Self, String> {
+        let geometry = Geometry::from_params(params, 0.3, 0.5)?;
+        let odometry = Odometry::from_params(params, geometry.wheel_base)?;
+        if params.text("counts-per-metre").is_none() {
+            return Err("option 'counts-per-metre' is required (encoder counts per metre of wheel travel)".into());
+        }
+        let counts_per_metre = params.number("counts-per-metre")?;
+        if !(counts_per_metre.is_finite() && counts_per_metre > 0.0) {
+            return Err("option 'counts-per-metre' must be positive".into());
+        }
+        let address = match params.text("address") {
+            None => 128,
+            Some(_) => params.integer("address")?,
+        };
+        let address = u8::try_from(address)
+            .ok()
+            .filter(|a| (128..=135).contains(a))
+            .ok_or_else(|| format!("option 'address': {address} is not a packet serial address (128 to 135)"))?;
+        let left_is_m1 = match params.text("left").map(str::trim) {
+            None | Some("m1") => true,
+            Some("m2") => false,
+            Some(other) => return Err(format!("option 'left': '{other}' is not m1 or m2")),
+        };
+        let poll_ms = match params.text("poll-ms") {
+            None => 50,
+            Some(_) => params.integer("poll-ms")?,
+        };
+        let poll_ms = u32::try_from(poll_ms)
+            .ok()
+            .filter(|p| (POLL_MS_RANGE.0..=POLL_MS_RANGE.1).contains(p))
+            .ok_or_else(|| format!("option 'poll-ms': {poll_ms} is not within {POLL_MS_RANGE:?}"))?;
+        Ok(RoboClaw {
+            geometry,
+            odometry,
+            address,
+            counts_per_metre,
+            left_is_m1,
+            poll_ms,
+            buffer: Vec::new(),
+            pending_reads: 0,
+            counts: None,
+        })
+    }
+
+    fn link(&self) -> LinkPlan {
+        LinkPlan { opening: Vec::new(), poll_period_ms: self.poll_ms, closing: Vec::new() }
+    }
+
+    fn encode(&mut self, command: &str) -> Result<Vec<u8>, String> {
+        let (left, right) = self.geometry.command(command)?;
+        let qpps = |v: f64| (v * self.counts_per_metre).round().clamp(f64::from(i32::MIN), f64::from(i32::MAX)) as i32;
+        let (m1, m2) = if self.left_is_m1 { (qpps(left), qpps(right)) } else { (qpps(right), qpps(left)) };
+        let mut data = m1.to_be_bytes().to_vec();
+        data.extend_from_slice(&m2.to_be_bytes());
+        Ok(self.packet(MIXED_SPEED, &data))
+    }
+
+    fn decode(&mut self, bytes: &[u8]) -> Decoded {
+        let mut decoded = Decoded { feedback: Vec::new(), malformed: 0 };
+        self.buffer.extend_from_slice(bytes);
+        let mut garbage = false;
+        while let Some(&first) = self.buffer.first() {
+            if self.pending_reads > 0 && self.encoder_reply_at_start() {
+                let reply: Vec<u8> = self.buffer.drain(..ENCODER_REPLY_BYTES).collect();
+                self.pending_reads -= 1;
+                self.encoders(&reply, &mut decoded.feedback);
+                garbage = false;
+                continue;
+            }
+            // An answer to a read may still be arriving: wait for it whole
+            // before taking its first byte for anything else.
+            if self.pending_reads > 0 && self.buffer.len() < ENCODER_REPLY_BYTES {
+                break;
+            }
+            self.buffer.remove(0);
+            if first == ACK {
+                garbage = false;
+            } else if !garbage {
+                garbage = true;
+                decoded.malformed += 1;
+            }
+        }
+        if self.buffer.len() > MAX_BUFFER {
+            self.buffer.clear();
+            decoded.malformed += 1;
+        }
+        decoded
+    }
+
+    fn poll(&mut self, _now_ns: u64) -> Vec<u8> {
+        self.pending_reads = (self.pending_reads + 1).min(MAX_PENDING_READS);
+        // A read is the address and the command alone: the CRC comes back.
+        vec![self.address, READ_ENCODERS]
+    }
+}
+
+subsume_guest::translator!(RoboClaw);

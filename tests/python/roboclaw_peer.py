@@ -1,0 +1,184 @@
+"""Plays a Basicmicro RoboClaw (packet serial) on a pseudo-terminal, checked
+against the basicmicro package.
+
+    roboclaw_peer.py ADDRESS M1_QPPS M2_QPPS
+
+The host is expected to drive M1/M2 at these encoder speeds (counts/s).
+basicmicro (PyPI, 2.0.10; nobody here wrote it) is the reference: the bytes
+its SpeedM1M2 (command 37 with its CRC16) and GetEncoders (78) write are
+what the host must send, and every encoder answer sent here is first read
+back through its GetEncoders, CRC check included.
+
+The controller side: a write (37) with a good CRC is answered 0xFF (ACK)
+and sets the speeds; a bad CRC gets no answer, as on the RoboClaw. A read
+(78) is answered `enc1 enc2 crc`. The counters follow the speeds.
+
+Summary (one JSON line): every byte received (hex), the reference frames,
+counts of good writes, bad CRCs, reads and unparsed bytes, and the counters
+after each read.
+"""
+
+import struct
+import sys
+import time
+
+from basicmicro import Basicmicro
+
+import peer_common
+
+MIXED_SPEED = 37
+READ_ENCODERS = 78
+TICK = 0.005
+
+
+class FakePort:
+    """Stands in for pyserial under basicmicro: keeps what it writes and
+    answers its reads from `answer`."""
+
+    is_open = True
+
+    def __init__(self):
+        self.written = bytearray()
+        self.answer = bytearray(b"\xff")
+
+    def write(self, data):
+        self.written += data
+
+    def read(self, n):
+        data = bytes(self.answer[:n])
+        del self.answer[:n]
+        return data
+
+    def flushInput(self):
+        pass
+
+    def reset_input_buffer(self):
+        pass
+
+    def close(self):
+        pass
+
+
+def reference():
+    claw = Basicmicro("/dev/null", 38400)
+    claw._port = FakePort()
+    claw._connected = True
+    return claw
+
+
+def take(claw, call):
+    claw._port.written.clear()
+    claw._port.answer = bytearray(b"\xff")
+    call()
+    return bytes(claw._port.written)
+
+
+def read_request(claw, address):
+    """What GetEncoders writes, given a good answer (zero counters)."""
+    claw._port.written.clear()
+    zeros = bytes(8)
+    claw._port.answer = bytearray(zeros + struct.pack(">H", crc16(claw, bytes([address, READ_ENCODERS]) + zeros)))
+    ok, _, _ = claw.GetEncoders(address)
+    assert ok
+    return bytes(claw._port.written)
+
+
+def crc16(claw, data):
+    claw.crc_clear()
+    for byte in data:
+        claw.crc_update(byte)
+    return claw._crc & 0xFFFF
+
+
+class Controller:
+    def __init__(self, address, claw):
+        self.address = address
+        self.claw = claw
+        self.received = bytearray()
+        self.pending = bytearray()
+        self.speeds = [0, 0]
+        self.counts = [0.0, 0.0]
+        self.last = None
+        self.writes = 0
+        self.bad_crc = 0
+        self.reads = 0
+        self.unparsed = 0
+        self.readings = []
+
+    def on_bytes(self, data):
+        self.received += data
+        self.pending += data
+        while len(self.pending) >= 2:
+            address, command = self.pending[0], self.pending[1]
+            if address != self.address or command not in (MIXED_SPEED, READ_ENCODERS):
+                self.unparsed += 1
+                del self.pending[0]
+                continue
+            if command == READ_ENCODERS:
+                del self.pending[:2]
+                self.answer_read()
+                continue
+            if len(self.pending) < 12:
+                return
+            packet = bytes(self.pending[:12])
+            if crc16(self.claw, packet[:10]) != struct.unpack(">H", packet[10:])[0]:
+                self.bad_crc += 1
+                del self.pending[0]
+                continue
+            del self.pending[:12]
+            self.speeds = list(struct.unpack(">2i", packet[2:10]))
+            self.writes += 1
+            self.pty.write(b"\xff")
+
+    def answer_read(self):
+        self.advance()
+        enc = [int(round(c)) & 0xFFFFFFFF for c in self.counts]
+        data = struct.pack(">2I", *enc)
+        crc = crc16(self.claw, bytes([self.address, READ_ENCODERS]) + data)
+        answer = data + struct.pack(">H", crc)
+        # basicmicro must read the answer back as these counters.
+        self.claw._port.answer = bytearray(answer)
+        ok, enc1, enc2 = self.claw.GetEncoders(self.address)
+        assert ok and (enc1, enc2) == tuple(enc), (ok, enc1, enc2, enc)
+        self.reads += 1
+        self.readings.append(enc)
+        self.pty.write(answer)
+
+    def advance(self, now=None):
+        now = time.monotonic() if now is None else now
+        if self.last is not None:
+            for i in range(2):
+                self.counts[i] += self.speeds[i] * (now - self.last)
+        self.last = now
+
+    def on_timer(self, now):
+        self.advance(now)
+
+
+def main():
+    address, m1, m2 = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+    claw = reference()
+    references = {
+        "drive": take(claw, lambda: claw.SpeedM1M2(address, m1, m2)).hex(),
+        "halt": take(claw, lambda: claw.SpeedM1M2(address, 0, 0)).hex(),
+        "read": read_request(claw, address).hex(),
+    }
+    pty = peer_common.Pty()
+    controller = Controller(address, claw)
+    controller.pty = pty
+    peer_common.serve(pty, controller.on_bytes, controller.on_timer, TICK)
+    peer_common.finish(
+        {
+            "received": bytes(controller.received).hex(),
+            "references": references,
+            "writes": controller.writes,
+            "bad_crc": controller.bad_crc,
+            "reads": controller.reads,
+            "unparsed": controller.unparsed,
+            "readings": controller.readings,
+        }
+    )
+
+
+if __name__ == "__main__":
+    main()

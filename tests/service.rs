@@ -1,0 +1,592 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! The host as a service on a network, from outside: the real binary with a
+//! certificate from a test CA made here with the openssl CLI. The portal,
+//! its login cookie (Secure), `/metrics`, the line protocol and the
+//! teleoperation WebSocket speak TLS, checked by independent clients
+//! (Python's ssl, `openssl s_client`, Debian's Chromium); plain text is
+//! refused off loopback unless allowed; `/metrics` parses with the
+//! `prometheus_client` package's OpenMetrics parser and counts what
+//! happened; the systemd unit passes `systemd-analyze verify`.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::sync::mpsc;
+use std::time::Duration;
+
+use serde_json::Value;
+
+const PASSWORD: &str = "service-test-password";
+/// The demo robot's operator (config/demo-operators).
+const OPERATOR: (&str, &str) = ("demo", "demo-token-change-me");
+
+/// A test CA and a server certificate it signed for 127.0.0.1 and
+/// localhost, made with the openssl CLI.
+struct Pki {
+    _dir: tempfile::TempDir,
+    ca: PathBuf,
+    cert: PathBuf,
+    key: PathBuf,
+    /// The CA's key, which does not match `cert`.
+    ca_key: PathBuf,
+}
+
+fn openssl(dir: &Path, args: &[&str]) {
+    let output = Command::new("openssl").current_dir(dir).args(args).output().expect("the openssl CLI is needed");
+    assert!(output.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&output.stderr));
+}
+
+fn make_pki() -> Pki {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"];
+    let mut ca = vec!["req", "-x509"];
+    ca.extend(ec);
+    ca.extend(["-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=subsume test CA"]);
+    ca.extend(["-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign"]);
+    openssl(d, &ca);
+    let mut csr = vec!["req"];
+    csr.extend(ec);
+    csr.extend(["-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
+    openssl(d, &csr);
+    std::fs::write(
+        d.join("server.ext"),
+        "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=critical,CA:FALSE\n\
+         keyUsage=critical,digitalSignature\nextendedKeyUsage=serverAuth\n\
+         subjectKeyIdentifier=hash\nauthorityKeyIdentifier=keyid,issuer\n",
+    )
+    .unwrap();
+    openssl(
+        d,
+        &[
+            "x509",
+            "-req",
+            "-in",
+            "server.csr",
+            "-CA",
+            "ca.pem",
+            "-CAkey",
+            "ca.key",
+            "-CAcreateserial",
+            "-out",
+            "server.pem",
+            "-days",
+            "2",
+            "-extfile",
+            "server.ext",
+        ],
+    );
+    // The host serves its certificate and the CA's, as a full chain does.
+    let chain = [std::fs::read(d.join("server.pem")).unwrap(), std::fs::read(d.join("ca.pem")).unwrap()].concat();
+    std::fs::write(d.join("chain.pem"), chain).unwrap();
+    Pki {
+        ca: d.join("ca.pem"),
+        cert: d.join("chain.pem"),
+        key: d.join("server.key"),
+        ca_key: d.join("ca.key"),
+        _dir: dir,
+    }
+}
+
+struct Host {
+    child: Child,
+    /// Addresses the host logged, by what it said before them.
+    found: Vec<(String, String)>,
+}
+
+impl Drop for Host {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Host {
+    fn address(&self, marker: &str) -> String {
+        self.found.iter().find(|(m, _)| m == marker).map(|(_, a)| a.clone()).unwrap_or_default()
+    }
+}
+
+const MARKERS: [&str; 6] = [
+    "portal on https://",
+    "portal on http://",
+    "teleoperation on tls ",
+    "teleoperation on tcp ",
+    "teleoperation websocket on wss://",
+    "teleoperation websocket on ws://",
+];
+
+fn subsume(store: &Path) -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command
+        .current_dir(support::repo_root())
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap()])
+        .env_remove("SUBSUME_HTTP")
+        .env("NO_COLOR", "1");
+    command
+}
+
+fn add_admin(store: &Path) {
+    let mut child = subsume(store)
+        .args(["user", "add", "admin", "--role", "admin", "--password-stdin"])
+        .stdin(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
+    assert!(child.wait().unwrap().success());
+}
+
+/// `subsume run config/demo.xml ARGS` on free ports; returns once it logged
+/// every address in `wait_for`.
+fn start(store: &Path, args: &[&str], wait_for: &[&str]) -> Host {
+    support::guest_dir();
+    let mut child = subsume(store)
+        .args(["run", "config/demo.xml", "--param", "teleop.listen=127.0.0.1:0"])
+        .args(["--param", "teleop.websocket=127.0.0.1:0"])
+        .args(args)
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            for marker in MARKERS {
+                if let Some(at) = line.find(marker) {
+                    let rest = &line[at + marker.len()..];
+                    let address = rest.split(|c: char| c.is_whitespace() || c == '/').next().unwrap_or("");
+                    let _ = tx.send((marker.to_string(), address.to_string()));
+                }
+            }
+            if line.contains("ERROR") || line.contains("error:") {
+                eprintln!("host: {line}");
+            }
+        }
+    });
+    let mut host = Host { child, found: Vec::new() };
+    while !wait_for.iter().all(|w| host.found.iter().any(|(m, _)| m == w)) {
+        let found = rx.recv_timeout(Duration::from_secs(60)).expect("the host did not listen");
+        host.found.push(found);
+    }
+    host
+}
+
+fn python() -> PathBuf {
+    let python = support::repo_root().join("tests/python/.venv/bin/python");
+    assert!(python.is_file(), "run scripts/setup first: it installs tests/python/.venv");
+    python
+}
+
+/// `tests/python/service_peer.py ARGS`, its JSON answer.
+fn peer(args: &[&str], env: &[(&str, &str)]) -> Value {
+    let output = Command::new(python())
+        .arg(support::repo_root().join("tests/python/service_peer.py"))
+        .args(args)
+        .envs(env.iter().copied())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "service_peer.py {args:?}: {stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    serde_json::from_str(&stdout).unwrap_or_else(|e| panic!("{e}: {stdout}"))
+}
+
+/// The value of the sample `name` whose labels include `labels`.
+fn sample(metrics: &Value, family: &str, name: &str, labels: &[(&str, &str)]) -> Option<f64> {
+    metrics["families"][family]["samples"].as_array()?.iter().find_map(|s| {
+        let matches = s[0] == name && labels.iter().all(|(k, v)| s[1][*k] == *v);
+        if matches { s[2].as_f64() } else { None }
+    })
+}
+
+fn run_to_end(command: &mut Command) -> Output {
+    command.stdout(Stdio::piped()).stderr(Stdio::piped()).output().unwrap()
+}
+
+#[test]
+fn the_portal_teleoperation_and_metrics_speak_tls() {
+    let pki = make_pki();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let (cert, key, ca) = (pki.cert.to_str().unwrap(), pki.key.to_str().unwrap(), pki.ca.to_str().unwrap());
+    let host = start(
+        &store,
+        &["--http", "127.0.0.1:0", "--tls-cert", cert, "--tls-key", key],
+        &["portal on https://", "teleoperation on tls ", "teleoperation websocket on wss://"],
+    );
+    let portal = host.address("portal on https://");
+    let url = format!("https://{portal}/");
+
+    // The login over TLS, verified against the test CA; its cookie is Secure.
+    let login = peer(&["login", &url, ca, "admin", PASSWORD], &[]);
+    assert_eq!(login["status"], 200, "{login}");
+    let cookie = login["set_cookie"].as_str().unwrap();
+    assert!(cookie.starts_with("subsume_session="), "{cookie}");
+    for attribute in ["HttpOnly", "SameSite=Strict", "Secure"] {
+        assert!(cookie.split("; ").any(|a| a == attribute), "{attribute} missing: {cookie}");
+    }
+
+    // Plain HTTP on the TLS port gets no HTTP answer.
+    let plain = peer(&["plain-http", &portal], &[]);
+    assert_eq!(plain["http"], false, "{plain}");
+
+    // The line protocol over TLS (Python's ssl): log in, get measured,
+    // drive in direct mode; stay connected while /metrics is scraped.
+    let teleop = host.address("teleoperation on tls ");
+    let operator = {
+        let (teleop, ca) = (teleop.clone(), ca.to_string());
+        std::thread::spawn(move || {
+            peer(&["teleop-lines", &teleop, &ca, OPERATOR.0, OPERATOR.1, "25"], &[("HOLD_SECONDS", "4")])
+        })
+    };
+    // openssl s_client is a second, independent client of the same port.
+    let mut s_client = Command::new("openssl")
+        .args(["s_client", "-connect", &teleop, "-CAfile", ca, "-verify_return_error", "-quiet"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    // Logs in as another operator name would fail; a wrong token is refused
+    // over TLS as over TCP. QUIT ends the session.
+    s_client.stdin.take().unwrap().write_all(b"AUTH demo wrong-token-0000\nQUIT\n").unwrap();
+    let s_client = s_client.wait_with_output().unwrap();
+    let said = String::from_utf8_lossy(&s_client.stdout);
+    assert!(said.starts_with("HELLO subsume "), "s_client got: {said}\n{}", String::from_utf8_lossy(&s_client.stderr));
+    assert!(said.contains("ERR "), "{said}");
+
+    // The teleoperation WebSocket over TLS greets with its hello.
+    let ws = peer(&["teleop-websocket", &host.address("teleoperation websocket on wss://"), ca], &[]);
+    assert!(ws["status"].as_str().unwrap().contains(" 101 "), "{ws}");
+    assert_eq!(ws["opcode"], 1, "{ws}");
+    assert!(ws["message"].as_str().unwrap().contains("\"hello\""), "{ws}");
+
+    // Metrics while the operator is connected: from loopback, no login.
+    std::thread::sleep(Duration::from_secs(2));
+    let metrics = peer(&["metrics", &url, ca], &[]);
+    assert_eq!(metrics["status"], 200, "{metrics}");
+    assert!(metrics["content_type"].as_str().unwrap().starts_with("application/openmetrics-text"));
+    let operator = operator.join().unwrap();
+    let lines: Vec<&str> = operator["lines"].as_array().unwrap().iter().filter_map(Value::as_str).collect();
+    assert!(operator["tls_version"].as_str().unwrap().starts_with("TLSv1."), "{operator}");
+    assert!(lines.iter().any(|l| l.starts_with("OK ")), "{lines:?}");
+    assert!(lines.iter().any(|l| l.starts_with("MODE direct")), "{lines:?}");
+
+    // Every scrape counts afresh: the loop's cycles go on.
+    std::thread::sleep(Duration::from_millis(500));
+    let again = peer(&["metrics", &url, ca], &[]);
+    let cycles = |m: &Value| sample(m, "subsume_loop_cycles", "subsume_loop_cycles_total", &[]).unwrap();
+    assert!(cycles(&again) > cycles(&metrics), "{} then {}", cycles(&metrics), cycles(&again));
+    let m = &metrics;
+    let avoid = [("component", "avoid"), ("platform", "control")];
+    assert_eq!(m["families"]["subsume_component_calls"]["type"], "counter");
+    assert!(sample(m, "subsume_component_calls", "subsume_component_calls_total", &avoid).unwrap() > 10.0);
+    assert_eq!(m["families"]["subsume_component_call_seconds"]["type"], "histogram");
+    let calls = sample(m, "subsume_component_call_seconds", "subsume_component_call_seconds_count", &avoid).unwrap();
+    let inf = sample(
+        m,
+        "subsume_component_call_seconds",
+        "subsume_component_call_seconds_bucket",
+        &[("component", "avoid"), ("le", "+Inf")],
+    )
+    .unwrap();
+    assert!(calls > 10.0 && inf == calls, "count {calls}, +Inf bucket {inf}");
+    assert_eq!(sample(m, "subsume_component_faults", "subsume_component_faults_total", &avoid), Some(0.0));
+    assert_eq!(sample(m, "subsume_component_running", "subsume_component_running", &avoid), Some(1.0));
+    assert!(sample(m, "subsume_component_messages_in", "subsume_component_messages_in_total", &avoid).unwrap() > 0.0);
+    let lateness = sample(m, "subsume_loop_lateness_seconds", "subsume_loop_lateness_seconds_count", &[]).unwrap();
+    assert!(lateness > 10.0, "{lateness}");
+    assert!(
+        sample(m, "subsume_arbiter_switches", "subsume_arbiter_switches_total", &[("arbiter", "arbiter")]).is_some()
+    );
+    let frames = sample(m, "subsume_serial_frames", "subsume_serial_frames_total", &[("link", "motors")]).unwrap();
+    assert!(frames > 0.0, "{frames}");
+    assert_eq!(sample(m, "subsume_serial_connected", "subsume_serial_connected", &[("link", "motors")]), Some(1.0));
+    let rtt = sample(m, "subsume_teleop_rtt_seconds", "subsume_teleop_rtt_seconds", &[("operator", "demo")]);
+    assert!(rtt.is_some_and(|s| s > 0.0 && s < 1.0), "{rtt:?}: {}", m["families"]["subsume_teleop_rtt_seconds"]);
+    let released = sample(
+        m,
+        "subsume_teleop_commands_released",
+        "subsume_teleop_commands_released_total",
+        &[("network", "teleop")],
+    );
+    assert!(released.is_some_and(|r| r > 0.0), "{released:?}");
+    for reason in ["stale", "duplicate", "full", "superseded"] {
+        let dropped = sample(
+            m,
+            "subsume_teleop_commands_dropped",
+            "subsume_teleop_commands_dropped_total",
+            &[("reason", reason)],
+        );
+        assert!(dropped.is_some(), "{reason}");
+    }
+}
+
+#[test]
+fn the_keyboard_client_speaks_tls() {
+    let pki = make_pki();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let (cert, key) = (pki.cert.to_str().unwrap(), pki.key.to_str().unwrap());
+    let host = start(
+        &store,
+        &["--http", "off", "--tls-cert", cert, "--tls-key", key, "--duration", "60"],
+        &["teleoperation on tls "],
+    );
+    let address = host.address("teleoperation on tls ");
+    // Another CA's certificate is refused, before the terminal is touched.
+    let other = make_pki();
+    let refused = run_to_end(
+        subsume(&store)
+            .args(["teleop", &address, "--name", OPERATOR.0, "--token", OPERATOR.1])
+            .args(["--tls-ca", other.ca.to_str().unwrap()]),
+    );
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(stderr.contains(&format!("error: TLS with {address} failed: invalid peer certificate")), "{stderr}");
+    // The right CA: `script` gives the client a real terminal; it logs in,
+    // is measured, gets direct mode, and quits on q.
+    let client = format!(
+        "{} teleop {address} --name {} --token {} --tls-ca {}",
+        env!("CARGO_BIN_EXE_subsume"),
+        OPERATOR.0,
+        OPERATOR.1,
+        pki.ca.display()
+    );
+    let mut terminal = Command::new("script")
+        .args(["-qfec", &client, "/dev/null"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("script (from bsdutils) runs the client in a pseudo-terminal");
+    let mut keys = terminal.stdin.take().unwrap();
+    let mut screen_out = terminal.stdout.take().unwrap();
+    let (screen_tx, screen) = mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        use std::io::Read as _;
+        let mut buffer = [0u8; 4096];
+        while let Ok(n) = screen_out.read(&mut buffer) {
+            if n == 0 || screen_tx.send(String::from_utf8_lossy(&buffer[..n]).into_owned()).is_err() {
+                break;
+            }
+        }
+    });
+    let mut seen = String::new();
+    for text in ["mode direct", "rtt "] {
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while !seen.contains(text) {
+            assert!(std::time::Instant::now() < deadline, "the client never showed {text:?}: {seen:?}");
+            if let Ok(chunk) = screen.recv_timeout(Duration::from_millis(100)) {
+                seen.push_str(&chunk);
+            }
+        }
+    }
+    keys.write_all(b"q").unwrap();
+    keys.flush().unwrap();
+    let deadline = std::time::Instant::now() + Duration::from_secs(10);
+    while terminal.try_wait().unwrap().is_none() {
+        assert!(std::time::Instant::now() < deadline, "the client did not quit");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(terminal.wait().unwrap().success());
+}
+
+#[test]
+fn the_portal_works_in_a_real_browser_over_https() {
+    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
+    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
+    let pki = make_pki();
+    // Chromium trusts chains through the test CA's key, and nothing else
+    // (the hash of its SubjectPublicKeyInfo).
+    let spki = Command::new("sh")
+        .arg("-c")
+        .arg("openssl x509 -in \"$1\" -pubkey -noout | openssl pkey -pubin -outform der | openssl dgst -sha256 -binary | base64")
+        .args(["sh", pki.ca.to_str().unwrap()])
+        .output()
+        .unwrap();
+    let spki = String::from_utf8(spki.stdout).unwrap().trim().to_string();
+    assert_eq!(spki.len(), 44, "{spki}");
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let (cert, key) = (pki.cert.to_str().unwrap(), pki.key.to_str().unwrap());
+    let host = start(&store, &["--http", "127.0.0.1:0", "--tls-cert", cert, "--tls-key", key], &["portal on https://"]);
+    let demo = std::fs::read_to_string(support::repo_root().join("config/demo.xml")).unwrap();
+    let robot = dir.path().join("browser-demo.xml");
+    let using =
+        demo.replace("../guest-components/rust/target/wasm32-wasip2/release/avoider.wasm", "browser-avoider.wasm");
+    std::fs::write(&robot, &using).unwrap();
+    let bad = dir.path().join("broken.xml");
+    std::fs::write(&bad, using.replace("arbiter.commands\"/>", "arbiter.command\"/>")).unwrap();
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts/https");
+    let output = Command::new("node")
+        .current_dir(support::repo_root().join("tests/browser"))
+        .env("ARTIFACTS", &artifacts)
+        .env("CA_SPKI", &spki)
+        .arg("portal.mjs")
+        .arg(format!("https://{}/", host.address("portal on https://")))
+        .args(["admin", PASSWORD])
+        .arg(support::guest("avoider"))
+        .arg(&robot)
+        .arg(&bad)
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
+        artifacts.display()
+    );
+    assert!(stdout.contains("step: over https, the session cookie is Secure"), "{stdout}");
+    assert!(stdout.contains("ok: "), "{stdout}");
+}
+
+#[test]
+fn plain_text_is_refused_off_loopback_unless_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    // The portal on every interface without a certificate: refused, before
+    // anything starts.
+    let refused = run_to_end(subsume(&store).args(["run", "config/demo.xml", "--http", "0.0.0.0:0"]));
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(
+        stderr.contains("error: the portal would speak plain text on 0.0.0.0:0, which is not a loopback address"),
+        "{stderr}"
+    );
+    assert!(stderr.contains("--allow-plain-http"), "{stderr}");
+    // The network platform too, without the portal.
+    let refused = run_to_end(subsume(&store).args([
+        "run",
+        "config/demo.xml",
+        "--http",
+        "off",
+        "--param",
+        "teleop.listen=0.0.0.0:0",
+        "--param",
+        "teleop.websocket=",
+    ]));
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(stderr.contains("the teleoperation line protocol would speak plain text on 0.0.0.0:0"), "{stderr}");
+    // tls="on" needs the host's certificate.
+    let refused = run_to_end(subsume(&store).args([
+        "run",
+        "config/demo.xml",
+        "--http",
+        "off",
+        "--param",
+        "teleop.tls=on",
+        "--param",
+        "teleop.listen=127.0.0.1:0",
+        "--param",
+        "teleop.websocket=",
+    ]));
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(!refused.status.success());
+    assert!(
+        stderr.contains("parameter 'tls' is on but the host has no certificate: run it with --tls-cert and --tls-key"),
+        "{stderr}"
+    );
+    // The owner may opt in.
+    let host = start(
+        &store,
+        &["--http", "0.0.0.0:0", "--allow-plain-http", "--duration", "30"],
+        &["portal on http://", "teleoperation on tcp "],
+    );
+    assert!(host.address("portal on http://").starts_with("0.0.0.0:"));
+}
+
+#[test]
+fn bad_certificates_are_refused_with_the_file_named() {
+    let pki = make_pki();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let run = |extra: &[&str]| {
+        let output = run_to_end(subsume(&store).args(["run", "config/demo.xml", "--http", "127.0.0.1:0"]).args(extra));
+        assert!(!output.status.success(), "{extra:?} started");
+        String::from_utf8_lossy(&output.stderr).to_string()
+    };
+    let (cert, key, ca_key) = (pki.cert.to_str().unwrap(), pki.key.to_str().unwrap(), pki.ca_key.to_str().unwrap());
+    let missing = dir.path().join("missing.pem");
+    let stderr = run(&["--tls-cert", missing.to_str().unwrap(), "--tls-key", key]);
+    assert!(stderr.contains(&format!("error: cannot read the TLS certificate {}", missing.display())), "{stderr}");
+    let stderr = run(&["--tls-cert", cert]);
+    assert!(stderr.contains("error: --tls-cert and --tls-key go together"), "{stderr}");
+    // The key in place of the certificate, and a key of another certificate.
+    let stderr = run(&["--tls-cert", key, "--tls-key", key]);
+    assert!(stderr.contains("server.key: no certificate in it"), "{stderr}");
+    let stderr = run(&["--tls-cert", cert, "--tls-key", ca_key]);
+    assert!(stderr.contains("do not make a TLS identity"), "{stderr}");
+    let stderr = run(&["--tls-cert", cert, "--tls-key", cert]);
+    assert!(stderr.contains("chain.pem: no private key in it"), "{stderr}");
+}
+
+#[test]
+fn the_systemd_unit_installs_verifies_and_is_hardened() {
+    let analyze = Command::new("systemd-analyze").arg("--version").output();
+    assert!(analyze.is_ok_and(|o| o.status.success()), "systemd-analyze is needed (Debian package systemd)");
+    let root = support::repo_root();
+    let dir = tempfile::tempdir().unwrap();
+    // The install script's dry run writes every file under a root of our
+    // own and says what it would run.
+    let output = Command::new(root.join("packaging/install"))
+        .args(["--dry-run", "--simulator", "--device", "/dev/ttyACM0", "--root"])
+        .arg(dir.path())
+        .arg("--binary")
+        .arg(env!("CARGO_BIN_EXE_subsume"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "{stdout}\n{}", String::from_utf8_lossy(&output.stderr));
+    for file in [
+        "usr/local/bin/subsume",
+        "etc/systemd/system/subsume.service",
+        "etc/systemd/system/subsume.service.d/simulator.conf",
+        "etc/subsume/subsume.env",
+        "etc/subsume/robot.xml",
+    ] {
+        assert!(dir.path().join(file).is_file(), "{file} not installed: {stdout}");
+    }
+    assert!(stdout.contains("would run: useradd --system"), "{stdout}");
+    assert!(stdout.contains("would run: systemctl enable subsume.service"), "{stdout}");
+    let unit = std::fs::read_to_string(dir.path().join("etc/systemd/system/subsume.service")).unwrap();
+    assert!(unit.contains("DeviceAllow=/dev/ttyACM0 rw") && !unit.contains("@DEVICE@"), "{unit}");
+    for setting in ["User=subsume", "DevicePolicy=closed", "Restart=on-failure", "NoNewPrivileges=yes"] {
+        assert!(unit.lines().any(|l| l == setting), "{setting} missing");
+    }
+    // A bad device is refused before anything is written.
+    let refused = Command::new(root.join("packaging/install"))
+        .args(["--dry-run", "--device", "ttyUSB0", "--root"])
+        .arg(dir.path().join("other"))
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("--device must be a path under /dev"));
+    assert!(!dir.path().join("other").exists());
+    // systemd-analyze verify checks the unit's syntax, every setting's
+    // value and that ExecStart's binary exists: point it at the one built.
+    let checked = dir.path().join("subsume.service");
+    std::fs::write(&checked, unit.replace("/usr/local/bin/subsume", env!("CARGO_BIN_EXE_subsume"))).unwrap();
+    let verify = Command::new("systemd-analyze").args(["verify", "--man=no"]).arg(&checked).output().unwrap();
+    let said = format!("{}{}", String::from_utf8_lossy(&verify.stdout), String::from_utf8_lossy(&verify.stderr));
+    assert!(verify.status.success() && said.trim().is_empty(), "systemd-analyze verify: {said}");
+    // Its exposure, as systemd-analyze security rates it offline (0 to
+    // 100 here; 1.6 of 10, "OK", when this was written).
+    let security = Command::new("systemd-analyze")
+        .args(["security", "--offline=yes", "--threshold=25", "--no-pager"])
+        .arg(&checked)
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&security.stdout);
+    assert!(security.status.success(), "systemd-analyze security: {said}{}", String::from_utf8_lossy(&security.stderr));
+    assert!(said.contains("Overall exposure level for subsume.service"), "{said}");
+}
