@@ -100,6 +100,14 @@ fn cost_per_command() {
         let v = if i % 2 == 0 { 0.3 } else { 0.31 };
         std::hint::black_box(envelope.decide(ControlCommand::Vel { linear: v, angular: 0.8 }, 1_000 + i));
     });
+    // Obstacles within reach on every ray: the arc is marched in full.
+    let mut near = Envelope::new(demo_settings());
+    near.ranges(&[0.5; 9], 0);
+    near.pose(&[5.0, 4.0, 0.0], 0);
+    let arc_near = median(&mut |i| {
+        let v = if i % 2 == 0 { 0.3 } else { 0.31 };
+        std::hint::black_box(near.decide(ControlCommand::Vel { linear: v, angular: 0.8 }, 1_000 + i));
+    });
     let scan_cost = median(&mut |i| envelope.ranges(std::hint::black_box(&scan), i));
     let mut component = EnvelopeComponent::new("envelope", demo_settings());
     let mut out = Vec::new();
@@ -112,6 +120,7 @@ fn cost_per_command() {
     });
     println!("envelope decide, straight (9 rays + gap points): {straight} ns/command");
     println!("envelope decide, arc (march along the arc):      {arc} ns/command");
+    println!("envelope decide, arc, every ray 0.5 m (marched) : {arc_near} ns/command");
     println!("envelope scan of 9 rays (points, gaps):          {scan_cost} ns/scan");
     println!("builtin:envelope call (parse, decide, format):   {call} ns/command");
 }
