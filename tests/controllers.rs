@@ -121,12 +121,17 @@ fn driving_robot(device: &str, translator: &str, options: &str, wheel_base: &str
       <param name="value" value="{command}"/>
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
     <component name="pose-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="ranges-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="bumper-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="battery-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <connect from="driver.out" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
     <connect from="motors.pose" to="pose-log.in"/>
     <connect from="motors.ranges" to="ranges-log.in"/>
     <connect from="motors.bumper" to="bumper-log.in"/>

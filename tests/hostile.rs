@@ -198,10 +198,15 @@ fn held_control_then(source: &str, params: &str, budget: Duration, reason: &str)
     <component name="good" source="GUEST(test-counter)" rate="100"/>
     <component name="sink" source="builtin:log" rate="0"><param name="interval" value="10"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
     {feed}
     <connect from="good.count" to="sink.in"/>
     <connect from="bad.cmd" to="arbiter.commands"/>
-    <connect from="arbiter.cmd" to="motors.cmd"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
 </robot>"#
     );
