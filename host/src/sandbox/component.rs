@@ -101,10 +101,18 @@ impl WasmComponent {
             Err(err) => {
                 // The call did not complete: what it emitted is not routed.
                 self.store.data_mut().outbox.clear();
-                let reason = match call_error(call, self.budget, &err) {
+                let mut reason = match call_error(call, self.budget, &err) {
                     SandboxError::Call { reason, .. } => format!("{call}: {reason}"),
                     other => other.to_string(),
                 };
+                // A trap after the guest explained itself on stderr (a Rust
+                // panic, a Python exception, a JavaScript error): say what
+                // it said, not only `unreachable`.
+                if err.downcast_ref::<wasmtime::Trap>().is_some()
+                    && let Some(words) = self.store.data().last_words.take()
+                {
+                    reason = format!("{reason} (the component said: {words})");
+                }
                 Err(CallError::Fault(reason))
             }
         }

@@ -17,7 +17,7 @@ use rand::rngs::StdRng;
 use super::SandboxError;
 use super::budget::{self, CallBudget};
 use super::engine::{MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE, MAX_TABLES_PER_STORE};
-use super::guest_output::GuestOutput;
+use super::guest_output::{GuestOutput, LastWords};
 use super::wasi::random_seed;
 use crate::contract::bindings::subsume::robot as wit;
 use crate::contract::v1;
@@ -60,6 +60,8 @@ pub struct GuestState {
     pub(super) logs: LogBudget,
     /// What the current call reported with `host.report` (0.2.0).
     pub(super) reported: Option<String>,
+    /// What the guest last wrote to stderr in the current call.
+    pub(super) last_words: LastWords,
 }
 
 impl WasiView for GuestState {
@@ -236,13 +238,14 @@ pub(super) fn new_store(
     outputs: Arc<[ValueKind]>,
 ) -> Store<GuestState> {
     let logs = LogBudget::new(guest.max_logs_per_s);
+    let last_words = LastWords::default();
     let seed = random_seed(&component);
     let mut insecure_seed = seed;
     insecure_seed[0] ^= 0xFF;
     let wasi = WasiCtxBuilder::new()
         .stdin(std::io::empty())
         .stdout(GuestOutput::new(component.clone(), "stdout", logs.clone()))
-        .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()))
+        .stderr(GuestOutput::new(component.clone(), "stderr", logs.clone()).keeping_last_words(last_words.clone()))
         .secure_random(StdRng::from_seed(seed))
         .insecure_random(StdRng::from_seed(insecure_seed))
         .insecure_random_seed(u128::from_le_bytes(seed[..16].try_into().unwrap_or_default()))
@@ -274,6 +277,7 @@ pub(super) fn new_store(
         max_message_bytes: guest.max_message_bytes,
         logs,
         reported: None,
+        last_words,
     };
     let mut store = Store::new(engine, state);
     store.limiter(|state| &mut state.limits);
@@ -290,6 +294,7 @@ pub(super) fn arm(store: &mut Store<GuestState>, budget: Duration) {
     let state = store.data_mut();
     state.call.reset(budget);
     state.wall_at_call = None;
+    state.last_words.clear();
     store.set_epoch_deadline(1);
 }
 

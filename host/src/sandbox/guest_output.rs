@@ -1,5 +1,8 @@
 //! A guest's stdout and stderr, written line by line to the host log with the
 //! component's name. Nothing the guest prints reaches the host's own stdout.
+//! What a guest last wrote to stderr in a call ([`LastWords`]: a Rust panic's
+//! message, a Python traceback's last line, a JavaScript error) is kept, so a
+//! fault can say what the guest said rather than only `unreachable`.
 
 use std::io;
 use std::pin::Pin;
@@ -16,6 +19,50 @@ use super::LogBudget;
 /// so a guest printing without newlines cannot grow host memory.
 pub const MAX_GUEST_LINE_BYTES: usize = 4096;
 
+/// Longest text kept of what a guest last said on stderr: a fault reason
+/// is shown in the report and the portal, and the guest controls the text.
+pub const MAX_LAST_WORDS_BYTES: usize = 240;
+
+/// The last meaningful line a guest wrote to stderr in the current call
+/// (a panic's message, an exception), cleared when a call begins.
+#[derive(Clone, Default)]
+pub struct LastWords(Arc<Mutex<String>>);
+
+impl LastWords {
+    /// Forgets what an earlier call said.
+    pub fn clear(&self) {
+        if let Ok(mut words) = self.0.lock() {
+            words.clear();
+        }
+    }
+
+    /// What the guest last said in this call, if anything.
+    pub fn take(&self) -> Option<String> {
+        let words = std::mem::take(&mut *self.0.lock().ok()?);
+        (!words.is_empty()).then_some(words)
+    }
+
+    fn hear(&self, line: &str) {
+        let line = line.trim();
+        // Rust's panic header and its hint after the message, the
+        // traceback's header and frames, and componentize-py's own panic
+        // after the traceback say nothing about what went wrong.
+        let noise = line.is_empty()
+            || line.starts_with("note: run with `RUST_BACKTRACE")
+            || (line.starts_with("thread '") && line.contains(" panicked at "))
+            || line == "Python function threw an unexpected exception"
+            || line.starts_with("Traceback (most recent call last)")
+            || line.starts_with("File \"")
+            || line.starts_with("at ");
+        if noise {
+            return;
+        }
+        if let Ok(mut words) = self.0.lock() {
+            *words = super::guest::truncate(line.to_string(), MAX_LAST_WORDS_BYTES);
+        }
+    }
+}
+
 /// One of a guest's output streams.
 #[derive(Clone)]
 pub struct GuestOutput {
@@ -23,11 +70,18 @@ pub struct GuestOutput {
     stream: &'static str,
     pending: Arc<Mutex<Vec<u8>>>,
     logs: LogBudget,
+    last_words: Option<LastWords>,
 }
 
 impl GuestOutput {
     pub fn new(component: Arc<str>, stream: &'static str, logs: LogBudget) -> Self {
-        GuestOutput { component, stream, pending: Arc::new(Mutex::new(Vec::new())), logs }
+        GuestOutput { component, stream, pending: Arc::new(Mutex::new(Vec::new())), logs, last_words: None }
+    }
+
+    /// This stream, keeping its last meaningful line in `last_words`.
+    pub fn keeping_last_words(mut self, last_words: LastWords) -> Self {
+        self.last_words = Some(last_words);
+        self
     }
 
     /// Logs every complete line; `Err` when the guest is over its log rate.
@@ -50,6 +104,9 @@ impl GuestOutput {
     fn emit_line(&self, line: &[u8]) {
         let text = String::from_utf8_lossy(line);
         let text = text.trim_end_matches('\r');
+        if let Some(last_words) = &self.last_words {
+            last_words.hear(text);
+        }
         if self.stream == "stderr" {
             tracing::warn!(component = &*self.component, stream = self.stream, "{text}");
         } else {
@@ -112,5 +169,47 @@ impl tokio::io::AsyncWrite for GuestOutput {
     }
     fn poll_shutdown(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         Poll::Ready(Ok(()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn last_words_are_the_last_line_that_says_what_went_wrong() {
+        let cases: [(&[&str], Option<&str>); 4] = [
+            (
+                &[
+                    "thread '<unnamed>' panicked at src/lib.rs:152:33:",
+                    "giving up on purpose at tick 4",
+                    "note: run with `RUST_BACKTRACE=1` environment variable to display a backtrace",
+                ],
+                Some("giving up on purpose at tick 4"),
+            ),
+            (
+                &[
+                    "Traceback (most recent call last):",
+                    "  File \"app.py\", line 58, in tick",
+                    "ValueError: giving up",
+                    "thread '<unnamed>' (1) panicked at runtime/src/lib.rs:1293:29:",
+                    "Python function threw an unexpected exception",
+                ],
+                Some("ValueError: giving up"),
+            ),
+            (&["Error: bad state", "    at tick (app.js:3:9)"], Some("Error: bad state")),
+            (&["", "note: run with `RUST_BACKTRACE=1`"], None),
+        ];
+        for (lines, expected) in cases {
+            let words = LastWords::default();
+            for line in lines {
+                words.hear(line);
+            }
+            assert_eq!(words.take().as_deref(), expected, "{lines:?}");
+            assert_eq!(words.take(), None, "taken once");
+        }
+        let words = LastWords::default();
+        words.hear(&"x".repeat(1000));
+        assert!(words.take().is_some_and(|w| w.len() <= MAX_LAST_WORDS_BYTES + 3));
     }
 }
