@@ -448,7 +448,7 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
     // time (the figure; the sim keeps real time).
     let mut closest = f64::INFINITY;
     let started = std::time::Instant::now();
-    let mut live = Value::Null;
+    let mut live: Value;
     let mut sim_start = None;
     loop {
         std::thread::sleep(Duration::from_millis(250));
