@@ -174,6 +174,14 @@ const STALL_LIMIT: Duration = Duration::from_millis(100);
 /// after the fault the arbiter's STOP can be written, by design.
 const STOP_PATH: Duration = Duration::from_millis(30);
 
+/// An envelope that passes every command unchanged (no sensors wired, limits
+/// far above what these guests send): the robots here check what reaches
+/// the motors, and the validator requires an envelope in front of them.
+const PASS_ENVELOPE: &str = r#"<component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>"#;
+
 const FIVE_MS: Duration = Duration::from_millis(5);
 
 /// What [`held_control_then`] saw.
@@ -214,10 +222,7 @@ fn held_control_then(source: &str, params: &str, budget: Duration, reason: &str)
     <component name="good" source="GUEST(test-counter)" rate="100"/>
     <component name="sink" source="builtin:log" rate="0"><param name="interval" value="10"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     {feed}
     <connect from="good.count" to="sink.in"/>
     <connect from="bad.cmd" to="arbiter.commands"/>
@@ -474,10 +479,7 @@ fn a_component_that_holds_control_and_then_loops_leaves_the_robot_stopped() {
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
     <connect from="grabber.cmd" to="arbiter.commands"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>

@@ -111,23 +111,13 @@ struct Operator {
 
 impl Operator {
     fn connect(host: &Host) -> Operator {
-        let stream = TcpStream::connect(&host.address).unwrap();
-        stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
-        let mut operator = Operator {
-            reader: BufReader::new(stream.try_clone().unwrap()),
-            writer: stream,
-            pong_delay: Duration::ZERO,
-            started: Instant::now(),
-            seq: 0,
-            controls: Vec::new(),
-        };
-        let hello = operator.line();
+        let (operator, hello) = Operator::connect_to(&host.address);
         assert!(hello.starts_with("HELLO subsume ") && hello.ends_with(" robot=net"), "{hello}");
         operator
     }
 
-    /// Connects to a host that is not one of [`start`]'s: returns the
-    /// operator and the HELLO line.
+    /// Connects to the platform at `address`: returns the operator and the
+    /// HELLO line.
     fn connect_to(address: &str) -> (Operator, String) {
         let stream = TcpStream::connect(address).unwrap();
         stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
