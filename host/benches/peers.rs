@@ -153,8 +153,8 @@ impl bindings::subsume::robot::host::Host for Bare {
 }
 
 /// The relay guest instantiated on a plain engine: wasmtime's defaults but
-/// for concurrency support, which the host turns off too (with it on, a call
-/// costs about three times as much), so the row is the engine at its best.
+/// for concurrency support, which the host turns off too (this build of
+/// wasmtime has it compiled out anyway), so the row is the engine at its best.
 struct BareRelay {
     store: Store<Bare>,
     instance: bindings::Component,
@@ -208,7 +208,7 @@ fn engine_settings(bytes: &[u8], rounds: usize, overhead: u64) {
         ("epoch interruption on (as subsume; deadline never reached)", |c| {
             c.epoch_interruption(true);
         }),
-        ("pooling allocator (as subsume's, default sizes)", |c| {
+        ("pooling allocator (default sizes)", |c| {
             c.allocation_strategy(wasmtime::InstanceAllocationStrategy::Pooling(
                 wasmtime::PoolingAllocationConfig::default(),
             ));
