@@ -193,10 +193,13 @@ fn host_b_avoids_for_host_a_and_when_b_dies_the_planner_takes_over_within_the_ti
     drop(b);
     let back = motors.lines.iter().find(|(at, l)| *at > killed && l == PLANNER).expect("the planner took over");
     let after = back.0.duration_since(killed);
-    // B's timeout is 300 ms; the arbiter ticks at 50 Hz, the link at 100 Hz.
-    assert!(after < Duration::from_millis(500), "the planner took over after {after:?}");
+    // B's timeout is 300 ms from its last command (sent before the kill);
+    // the arbiter ticks at 50 Hz, the link at 100 Hz; 300 ms of slack for a
+    // loaded machine (quiet runs take over in about 300 ms).
+    eprintln!("the planner took over {after:?} after the kill");
+    assert!(after < Duration::from_millis(600), "the planner took over after {after:?}");
     let late: Vec<&String> =
-        motors.lines.iter().filter(|(at, _)| *at > killed + Duration::from_millis(500)).map(|(_, l)| l).collect();
+        motors.lines.iter().filter(|(at, _)| *at > killed + Duration::from_millis(600)).map(|(_, l)| l).collect();
     assert!(late.iter().all(|l| l.as_str() == PLANNER), "after the timeout only the planner drives: {late:?}");
 
     let report = stop(a);
