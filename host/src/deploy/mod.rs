@@ -200,7 +200,7 @@ impl Deployer {
         if let Some(robot) = services.get::<RunningRobot>() {
             robot.rename(&config.name);
         }
-        let built = assemble::build(&config, &mut loader, clock, &waker, &services, &Carry::default())
+        let built = assemble::build(&config, &mut loader, clock.clone(), &waker, &services, &Carry::default())
             .map_err(DeployError::Start)?;
         let config = Arc::new(config);
         let live = LiveStatusCell::default();
