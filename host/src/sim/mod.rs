@@ -329,6 +329,8 @@ impl SimControl {
             return Err(SimError::Control("the simulation is running: its controller drives the wheels".into()));
         }
         core.sim.set_wheels(left, right);
+        // As a command would: the controller's watchdog counts from now.
+        core.last_command_s = core.sim.time_s();
         Ok(())
     }
 
@@ -530,5 +532,157 @@ impl Component for SimComponent {
             object.insert("pty".into(), self.robot.pty_path.display().to_string().into());
         }
         Some(("sim", value))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use std::sync::atomic::AtomicU64;
+
+    use super::*;
+    use crate::robot::translator::DriveGeometry;
+
+    fn settings() -> SimSettings {
+        let world = world::parse(Path::new("t.world"), "bounds 0 0 10 10\nstart 1 5 0\ngoal 9 9 0.2\nwall 4 0 4 10\n");
+        SimSettings {
+            world: world.unwrap(),
+            body: Body {
+                radius: 0.2,
+                geometry: DriveGeometry { wheel_base: 0.3, max_wheel_speed: 0.5 },
+                rays: 3,
+                fov: std::f64::consts::PI,
+                max_range: 4.0,
+            },
+            protocol: SimProtocol::Profile(Profile::Ascii),
+            feedback_hz: 10.0,
+            controller_watchdog: Duration::from_secs(1),
+        }
+    }
+
+    /// The host's side of the wire, reduced to what the lock-step needs:
+    /// writes command bytes, reads feedback bytes.
+    struct TestLink {
+        device: PathBuf,
+        port: Mutex<TTYPort>,
+        written: AtomicU64,
+        taken: AtomicU64,
+        expected: AtomicU64,
+        received: Mutex<Vec<u8>>,
+    }
+
+    impl TestLink {
+        fn send(&self, command: MotorCommand) {
+            let mut bytes = Vec::new();
+            Profile::Ascii.encode_command(&command, &mut bytes);
+            self.port.lock().unwrap().write_all(&bytes).unwrap();
+            self.written.fetch_add(bytes.len() as u64, Ordering::Relaxed);
+        }
+
+        /// The poses in the feedback received so far (and forgets them).
+        fn poses(&self) -> Vec<(f64, f64, f64)> {
+            let mut decoder = Decoder::new(Profile::Ascii);
+            let mut messages = Vec::new();
+            decoder.feed(&std::mem::take(&mut *self.received.lock().unwrap()), &mut messages);
+            messages
+                .into_iter()
+                .filter_map(|m| match m {
+                    Message::Feedback(Feedback::Odometry { x, y, heading }) => Some((x, y, heading)),
+                    _ => None,
+                })
+                .collect()
+        }
+    }
+
+    impl LockstepLink for TestLink {
+        fn device(&self) -> &Path {
+            &self.device
+        }
+        fn settle(&self, _deadline: Instant) -> bool {
+            true
+        }
+        fn take_written(&self) -> u64 {
+            let written = self.written.load(Ordering::Relaxed);
+            written - self.taken.swap(written, Ordering::Relaxed)
+        }
+        fn expect(&self, bytes: u64) {
+            self.expected.fetch_add(bytes, Ordering::Relaxed);
+        }
+        fn received(&self, deadline: Instant) -> bool {
+            let mut port = self.port.lock().unwrap();
+            let mut received = self.received.lock().unwrap();
+            let mut buffer = [0u8; 1024];
+            let mut total = 0;
+            while total < self.expected.swap(0, Ordering::Relaxed) as usize && Instant::now() < deadline {
+                let n = port.read(&mut buffer).unwrap_or(0);
+                received.extend_from_slice(&buffer[..n]);
+                total += n;
+            }
+            true
+        }
+    }
+
+    use crate::runtime::lockstep::LockstepLink;
+
+    #[test]
+    fn a_robot_in_lockstep_follows_controlled_time_and_is_reset_posed_paused_and_stepped() {
+        let lockstep = Arc::new(Lockstep::default());
+        let robot = SimulatedRobot::start("t", settings(), Some(&lockstep)).unwrap();
+        let port = serialport::new(robot.pty_path().to_string_lossy(), 115_200)
+            .timeout(Duration::from_millis(20))
+            .open_native()
+            .unwrap();
+        let link = Arc::new(TestLink {
+            device: robot.pty_path().clone(),
+            port: Mutex::new(port),
+            written: AtomicU64::new(0),
+            taken: AtomicU64::new(0),
+            expected: AtomicU64::new(0),
+            received: Mutex::new(Vec::new()),
+        });
+        let joined: Arc<dyn LockstepLink> = link.clone();
+        lockstep.join_link(&joined);
+        let control = robot.control();
+        let at = |s: f64| lockstep.before_cycle((s * 1e9) as u64);
+
+        // Time is what the loop says; a command sent before a cycle is acted
+        // on from that cycle; feedback goes out every 0.1 s of it.
+        at(0.0);
+        link.send(MotorCommand::Wheels { left: 0.2, right: 0.2 });
+        at(1.0);
+        let status = control.status();
+        assert!((status.time_s - 1.0).abs() < 1e-9 && (status.x - 1.2).abs() < 1e-9, "{status:?}");
+        let poses = link.poses();
+        assert_eq!(poses.len(), 2, "at 0 s and at 1 s: {poses:?}");
+        assert!((poses[1].0 - 1.2).abs() < 1e-3);
+        assert!(control.set_wheels(0.1, 0.1).is_err(), "its controller drives the wheels while running");
+        assert!(control.step(0.5).is_err(), "stepping needs a pause");
+
+        // Paused: the loop's time moves on, the world's does not.
+        control.pause(true);
+        at(2.0);
+        assert!((control.status().time_s - 1.0).abs() < 1e-9);
+        assert!((control.status().x - 1.2).abs() < 1e-9);
+        // Single steps, with wheels the caller sets.
+        control.set_wheels(0.5, 0.5).unwrap();
+        let stepped = control.step(0.5).unwrap();
+        assert!((stepped.time_s - 1.5).abs() < 1e-9 && (stepped.x - 1.45).abs() < 1e-9, "{stepped:?}");
+        for bad in [0.0, -1.0, f64::NAN, MAX_SINGLE_STEP_S + 1.0] {
+            assert!(control.step(bad).is_err(), "{bad}");
+        }
+        // A pose inside the wall is refused; a free one is taken and reported at once.
+        assert!(control.set_pose(3.9, 5.0, 0.0).is_err());
+        control.set_pose(2.0, 3.0, 1.0).unwrap();
+        at(2.1);
+        assert_eq!(link.poses().last().map(|p| (p.0, p.1)), Some((2.0, 3.0)));
+
+        // Reset: the start pose, time 0, nothing travelled; resumed, it goes on.
+        let reset = control.reset();
+        assert_eq!((reset.x, reset.y, reset.time_s, reset.distance_travelled_m), (1.0, 5.0, 0.0, 0.0));
+        control.pause(false);
+        at(2.6);
+        assert!((control.status().time_s - 0.5).abs() < 1e-9);
+        assert!(!control.is_paused());
     }
 }
