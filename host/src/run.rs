@@ -338,6 +338,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .with(Arc::new(TeleopServers::default()))
         .with(Arc::new(RunningRobot::default()))
         .with(Arc::new(Standings::default()))
+        .with(Arc::new(crate::sim::SimRegistry::default()))
         .with(Arc::new(options.tls.clone()));
     let clock = options.clock();
     let boot = Deployer::boot(BootOptions {

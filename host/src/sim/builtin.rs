@@ -176,6 +176,9 @@ impl Builtin for SimBuiltin {
         let name = ctx.component()?.name.clone();
         let robot = SimulatedRobot::start(&name, settings(params, world)?, ctx.clock.lockstep())
             .map_err(|e| BuiltinError::Refused(format!("the simulated robot did not start: {e}")))?;
+        if let Some(registry) = ctx.services.get::<super::SimRegistry>() {
+            robot.register(&name, &registry);
+        }
         ctx.ptys.insert(name, robot.pty_path().clone());
         Ok(Box::new(SimComponent::new(robot)))
     }

@@ -253,6 +253,12 @@ struct Shared {
     stop: AtomicBool,
 }
 
+impl std::fmt::Debug for Shared {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("simulated robot")
+    }
+}
+
 impl Shared {
     fn core(&self) -> std::sync::MutexGuard<'_, Core> {
         self.core.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
@@ -343,6 +349,29 @@ impl SimControl {
     }
 }
 
+/// The simulated robots this host runs, by component name, for the portal's
+/// simulator controls: provided through `builtin::Services`, filled by
+/// `builtin:sim` when it starts a robot.
+#[derive(Debug, Default)]
+pub struct SimRegistry {
+    robots: Mutex<Vec<(String, std::sync::Weak<Shared>)>>,
+}
+
+impl SimRegistry {
+    fn add(&self, name: &str, robot: &SimulatedRobot) {
+        if let Ok(mut robots) = self.robots.lock() {
+            robots.retain(|(n, r)| r.strong_count() > 0 && n != name);
+            robots.push((name.to_string(), Arc::downgrade(&robot.shared)));
+        }
+    }
+
+    /// The control of the running robot named `name`, if it runs.
+    pub fn get(&self, name: &str) -> Option<SimControl> {
+        let robots = self.robots.lock().ok()?;
+        robots.iter().rev().find(|(n, _)| n == name).and_then(|(_, r)| r.upgrade()).map(|shared| SimControl { shared })
+    }
+}
+
 /// A running simulated robot: the path of the PTY end the host opens, and
 /// either its controller thread (real time) or its part in the lock-step
 /// of a simulated clock.
@@ -404,6 +433,11 @@ impl SimulatedRobot {
     /// The handle that resets, poses, pauses and steps this robot.
     pub fn control(&self) -> SimControl {
         SimControl { shared: self.shared.clone() }
+    }
+
+    /// Lists this robot in `registry` under `name`.
+    pub fn register(&self, name: &str, registry: &SimRegistry) {
+        registry.add(name, self);
     }
 }
 
