@@ -441,3 +441,16 @@ document.addEventListener('keydown', (e) => {
 });
 
 boot();
+
+// ---- simulator controls (POST /sim/ACTION; those who may drive) -----------
+for (const button of document.querySelectorAll('#sim-controls button[data-sim]')) {
+  button.addEventListener('click', async () => {
+    try {
+      const sim = await api('POST', '/sim/' + button.dataset.sim);
+      $('sim-result').textContent =
+        `t = ${sim.time_s.toFixed(2)} s at (${sim.x.toFixed(2)}, ${sim.y.toFixed(2)})`;
+    } catch (err) {
+      $('sim-result').textContent = `refused: ${err.message}`;
+    }
+  });
+}
