@@ -534,6 +534,20 @@ fn after_an_activation_operators_are_greeted_with_the_robot_that_runs_now() {
     let hello = teleop_hello(&teleop);
     assert!(hello.ends_with(" robot=demo"), "{hello}");
     let token = login(&host.address);
+    // The set view shows the parameters `--param` sets on every set.
+    let (status, sets) = http(&host.address, "GET", "/api/v1/sets", Some(&token), b"");
+    assert_eq!(status, 200, "{sets}");
+    let active = sets["active"].as_u64().unwrap();
+    let (status, set) = http(&host.address, "GET", &format!("/api/v1/sets/{active}"), Some(&token), b"");
+    assert_eq!(status, 200, "{set}");
+    assert_eq!(
+        set["overrides"],
+        serde_json::json!([
+            { "component": "teleop", "param": "listen", "value": "127.0.0.1:0" },
+            { "component": "teleop", "param": "websocket", "value": "" },
+        ]),
+        "{set}"
+    );
     let renamed = std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
         .unwrap()
         .replace(r#"<robot name="demo">"#, r#"<robot name="demo-renamed">"#);

@@ -321,7 +321,11 @@ async function showGraph(id) {
   const svg = $('graph');
   svg.replaceChildren();
   $('graph-set').textContent = String(id);
-  const { graph } = await api('GET', `/sets/${id}`);
+  const { graph, overrides } = await api('GET', `/sets/${id}`);
+  $('graph-overrides').textContent = (overrides || []).length
+    ? 'In effect beyond the file (subsume run --param): ' +
+      overrides.map((o) => `${o.component}.${o.param}=${o.value}`).join(', ')
+    : '';
   if (!graph.components) { $('set-result').textContent = graph.error; return; }
   // Layers: visit from the components nothing feeds (breadth first, then
   // file order); an edge is forward when it goes to a later-visited

@@ -360,6 +360,12 @@ impl SimAction {
 }
 
 impl Deployer {
+    /// The parameters this host sets on every set it validates (`subsume
+    /// run --param`): what the set view shows as in effect beyond the file.
+    pub fn overrides(&self) -> &[ParamOverride] {
+        &self.overrides
+    }
+
     /// Resets, poses, pauses, resumes or steps the active set's simulated
     /// robot; for those who may drive (it moves the robot). Returns the
     /// simulation's state after it.

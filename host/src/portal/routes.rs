@@ -124,8 +124,16 @@ pub(super) async fn get_set(
     Path(id): Path<u64>,
 ) -> Result<Json<Json_>, ApiError> {
     let store = state.deployer.store.clone();
+    // Parameters set with `subsume run --param`: a set runs with those that
+    // name one of its components (the others are skipped for it).
+    let overrides = state.deployer.overrides().to_vec();
     blocking(move || {
         let set = store.set(id)?;
+        let overrides: Vec<Json_> = overrides
+            .iter()
+            .filter(|o| set.graph.components.iter().any(|c| c.name == o.component))
+            .map(|o| json!({ "component": o.component, "param": o.param, "value": o.value }))
+            .collect();
         let text = store.blob(&set.config_sha256)?;
         let status = set_status(id, &store.state()?);
         Ok(Json(json!({
@@ -133,6 +141,7 @@ pub(super) async fn get_set(
             "set": set,
             "status": status,
             "config": String::from_utf8_lossy(&text),
+            "overrides": overrides,
         })))
     })
     .await
