@@ -431,3 +431,30 @@ fn a_component_that_refuses_to_start_stops_startup() {
         "{stderr}"
     );
 }
+
+#[test]
+fn compiling_a_component_says_so_and_how_long_it_took_and_a_cached_one_is_silent() {
+    let cache = tempfile::tempdir().unwrap();
+    let describe = || {
+        let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
+            .current_dir(support::repo_root())
+            .env("NO_COLOR", "1")
+            .env("RUST_LOG", "info")
+            .arg("--cache-dir")
+            .arg(cache.path())
+            .arg("describe")
+            .arg(support::guest("avoider"))
+            .output()
+            .unwrap();
+        assert!(output.status.success(), "{}", text(&output.stderr));
+        text(&output.stderr)
+    };
+    let first = describe();
+    let before = first.find("compiling component ").unwrap_or_else(|| panic!("no progress line:\n{first}"));
+    let after = first.find("compiled component ").unwrap_or_else(|| panic!("no time line:\n{first}"));
+    assert!(before < after && first.contains("KiB; not in the cache yet)..."), "{first}");
+    let seconds = first[after..].split(" in ").nth(1).and_then(|t| t.split(" s").next()).unwrap_or("");
+    assert!(seconds.parse::<f64>().is_ok_and(|s| s >= 0.0), "{first}");
+    let second = describe();
+    assert!(!second.contains("compil"), "the cached component was compiled again:\n{second}");
+}

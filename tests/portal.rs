@@ -13,7 +13,7 @@ use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use serde_json::Value;
 
@@ -534,6 +534,20 @@ fn after_an_activation_operators_are_greeted_with_the_robot_that_runs_now() {
     let hello = teleop_hello(&teleop);
     assert!(hello.ends_with(" robot=demo"), "{hello}");
     let token = login(&host.address);
+    // The set view shows the parameters `--param` sets on every set.
+    let (status, sets) = http(&host.address, "GET", "/api/v1/sets", Some(&token), b"");
+    assert_eq!(status, 200, "{sets}");
+    let active = sets["active"].as_u64().unwrap();
+    let (status, set) = http(&host.address, "GET", &format!("/api/v1/sets/{active}"), Some(&token), b"");
+    assert_eq!(status, 200, "{set}");
+    assert_eq!(
+        set["overrides"],
+        serde_json::json!([
+            { "component": "teleop", "param": "listen", "value": "127.0.0.1:0" },
+            { "component": "teleop", "param": "websocket", "value": "" },
+        ]),
+        "{set}"
+    );
     let renamed = std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
         .unwrap()
         .replace(r#"<robot name="demo">"#, r#"<robot name="demo-renamed">"#);
@@ -546,4 +560,84 @@ fn after_an_activation_operators_are_greeted_with_the_robot_that_runs_now() {
     // The platform was carried over (same address), and greets with the new name.
     let hello = teleop_hello(&teleop);
     assert!(hello.ends_with(" robot=demo-renamed"), "{hello}");
+}
+
+/// The simulated robot's state as `/api/v1/status` shows it: (x, y, time_s).
+fn live_sim(address: &str, token: &str) -> (f64, f64, f64) {
+    let (status, json) = http(address, "GET", "/api/v1/status", Some(token), b"");
+    assert_eq!(status, 200, "{json}");
+    let sim = &json["sim"];
+    (
+        sim["x"].as_f64().unwrap_or(f64::NAN),
+        sim["y"].as_f64().unwrap_or(f64::NAN),
+        sim["time_s"].as_f64().unwrap_or(-1.0),
+    )
+}
+
+#[test]
+fn the_simulator_is_reset_posed_paused_and_stepped_over_http() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    add_user(&store, "viewer", "viewer", &[]);
+    add_user(&store, "op", "operator", &[]);
+    std::fs::copy(support::repo_root().join("tests/worlds/wall-ahead.world"), dir.path().join("wall.world")).unwrap();
+    let boot = dir.path().join("wall.xml");
+    std::fs::write(&boot, wall_robot("", "")).unwrap();
+    let host = start_plain(&store, &boot);
+    let op = login_as(&host.address, "op");
+    let viewer = login_as(&host.address, "viewer");
+    let post = |token: &str, path: &str| http(&host.address, "POST", &format!("/api/v1/sim/{path}"), Some(token), b"");
+
+    // A viewer may not touch it; an operator may.
+    let (status, json) = post(&viewer, "pause");
+    assert_eq!(status, 403, "{json}");
+    let (status, paused) = post(&op, "pause");
+    assert_eq!(status, 200, "{paused}");
+    let frozen = paused["time_s"].as_f64().unwrap();
+    std::thread::sleep(Duration::from_millis(300));
+    let (_, again) = post(&op, "pause");
+    assert_eq!(again["time_s"].as_f64().unwrap(), frozen, "paused: time stands still");
+
+    // Steps move time by exactly what was asked.
+    let (status, stepped) = post(&op, "step?seconds=0.5");
+    assert_eq!(status, 200, "{stepped}");
+    assert!((stepped["time_s"].as_f64().unwrap() - frozen - 0.5).abs() < 1e-6, "{stepped}");
+    for (bad, code, says) in [
+        ("step?seconds=0", 409, "a step must be more than 0"),
+        ("step?seconds=abc", 400, "the query parameter 'seconds' is not a number: 'abc'"),
+        ("step", 400, "the query parameter 'seconds' is missing"),
+        ("pose?x=1&y=1", 400, "the query parameter 'heading' is missing"),
+        ("fly", 404, "no simulator action 'fly'"),
+    ] {
+        let (status, json) = post(&op, bad);
+        assert_eq!(status, code, "{bad}: {json}");
+        assert!(json["error"].as_str().unwrap_or("").contains(says), "{bad}: {json}");
+    }
+
+    // A pose is taken at once, and shows in the live status; one in the
+    // wall is refused and changes nothing.
+    let (status, posed) = post(&op, "pose?x=2&y=1.5&heading=0.5");
+    assert_eq!(status, 200, "{posed}");
+    assert_eq!((posed["x"].as_f64(), posed["y"].as_f64()), (Some(2.0), Some(1.5)));
+    let (status, json) = post(&op, "pose?x=5&y=4&heading=0");
+    assert_eq!(status, 409, "{json}");
+    assert!(json["error"].as_str().unwrap_or("").contains("of an obstacle"), "{json}");
+    let deadline = Instant::now() + Duration::from_secs(10);
+    while live_sim(&host.address, &op).0 != 2.0 {
+        assert!(Instant::now() < deadline, "the pose never reached the live status");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+
+    // Running again, time moves; a step is refused while running; a reset
+    // puts the robot back at the start at time 0.
+    let (status, _) = post(&op, "resume");
+    assert_eq!(status, 200);
+    let (status, json) = post(&op, "step?seconds=0.1");
+    assert_eq!(status, 409, "{json}");
+    assert!(json["error"].as_str().unwrap_or("").contains("pause it before stepping"), "{json}");
+    let (status, reset) = post(&op, "reset");
+    assert_eq!(status, 200, "{reset}");
+    assert!(reset["time_s"].as_f64().unwrap() < 0.1 && reset["distance_travelled_m"] == 0.0, "{reset}");
+    assert_ne!((reset["x"].as_f64(), reset["y"].as_f64()), (Some(2.0), Some(1.5)));
 }

@@ -327,7 +327,11 @@ async function showGraph(id) {
   const svg = $('graph');
   svg.replaceChildren();
   $('graph-set').textContent = String(id);
-  const { graph } = await api('GET', `/sets/${id}`);
+  const { graph, overrides } = await api('GET', `/sets/${id}`);
+  $('graph-overrides').textContent = (overrides || []).length
+    ? 'In effect beyond the file (subsume run --param): ' +
+      overrides.map((o) => `${o.component}.${o.param}=${o.value}`).join(', ')
+    : '';
   if (!graph.components) { $('set-result').textContent = graph.error; return; }
   // Layers: visit from the components nothing feeds (breadth first, then
   // file order); an edge is forward when it goes to a later-visited
@@ -447,3 +451,16 @@ document.addEventListener('keydown', (e) => {
 });
 
 boot();
+
+// ---- simulator controls (POST /sim/ACTION; those who may drive) -----------
+for (const button of document.querySelectorAll('#sim-controls button[data-sim]')) {
+  button.addEventListener('click', async () => {
+    try {
+      const sim = await api('POST', '/sim/' + button.dataset.sim);
+      $('sim-result').textContent =
+        `t = ${sim.time_s.toFixed(2)} s at (${sim.x.toFixed(2)}, ${sim.y.toFixed(2)})`;
+    } catch (err) {
+      $('sim-result').textContent = `refused: ${err.message}`;
+    }
+  });
+}

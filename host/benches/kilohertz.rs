@@ -240,6 +240,7 @@ fn main() {
     let compiles = Arc::new(AtomicU64::new(0));
     let loader = load.then(|| {
         let (sandbox, artifacts, stop, compiles) = (sandbox.clone(), artifacts.clone(), stop.clone(), compiles.clone());
+        let clock = clock.clone();
         let python = std::fs::read(support::repo_root().join("guest-components/python/avoider/avoider.wasm")).unwrap();
         std::thread::spawn(move || {
             let Ok(start_ns) = start_rx.recv() else {

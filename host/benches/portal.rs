@@ -117,7 +117,7 @@ fn main() -> Result<(), String> {
         services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())),
         config_path: &repo().join("config/demo.xml"),
         overrides,
-        clock,
+        clock: clock.clone(),
         waker: shutdown.waker(),
     })
     .map_err(|e| e.to_string())?;

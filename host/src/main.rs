@@ -41,9 +41,13 @@ enum Command {
         /// The robot description.
         #[arg(default_value = "config/demo.xml")]
         config: PathBuf,
-        /// Stop after this many seconds.
+        /// Stop after this many seconds (simulated seconds with --speed).
         #[arg(long, value_name = "SECONDS")]
         duration: Option<f64>,
+        /// Run on simulated time: N times real time, or `max` (lock-step,
+        /// as fast as the CPU allows). Same inputs, same results.
+        #[arg(long, value_name = "N|max")]
+        speed: Option<String>,
         /// Write a JSON report here when stopped (see docs/report.md).
         #[arg(long, value_name = "FILE")]
         report: Option<PathBuf>,
@@ -191,13 +195,23 @@ fn main() -> ExitCode {
     let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report, params, http, stall_limit, tls_cert, tls_key, allow_plain_http } => {
-            portal_options(&http, store_dir, logs).and_then(|portal| {
-                let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
-                let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
-                run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit, tls })
-            })
-        }
+        Command::Run {
+            config,
+            duration,
+            speed,
+            report,
+            params,
+            http,
+            stall_limit,
+            tls_cert,
+            tls_key,
+            allow_plain_http,
+        } => portal_options(&http, store_dir, logs).and_then(|portal| {
+            let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
+            let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
+            let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
+            run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls })
+        }),
         Command::User { action } => user(action, store_dir),
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
@@ -225,6 +239,7 @@ fn main() -> ExitCode {
 struct RunArgs {
     config: PathBuf,
     duration: Option<f64>,
+    pace: Option<subsume::runtime::lockstep::Pace>,
     report: Option<PathBuf>,
     params: Vec<ParamOverride>,
     cache_dir: Option<PathBuf>,
@@ -237,6 +252,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let RunArgs {
         config: config_path,
         duration,
+        pace,
         report: report_path,
         params: overrides,
         cache_dir,
@@ -270,6 +286,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         stall_limit: Duration::from_secs_f64(stall_limit),
         fault_injection,
         tls,
+        pace,
     };
     let result = subsume::run::run(&options, shutdown);
     signals.close();

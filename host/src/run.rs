@@ -19,6 +19,7 @@ use crate::portal::{self, logs::LogRing};
 use crate::report::{self, Report};
 use crate::robot::serial::{HALT_WAIT, halt_every_link};
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
+use crate::runtime::lockstep::Pace;
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
 use crate::runtime::{Graph, Heartbeat, RunningRobot, StallWatchdog, Standings, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
@@ -49,6 +50,19 @@ pub struct RunOptions {
     /// The certificate the portal and the network platforms serve TLS
     /// with, and whether plain text may leave loopback.
     pub tls: HostTls,
+    /// Run on simulated time at this pace (`--speed`); real time when
+    /// `None`. The duration is then simulated time.
+    pub pace: Option<Pace>,
+}
+
+impl RunOptions {
+    /// The clock this run keeps: real time, or simulated at `pace`.
+    fn clock(&self) -> Clock {
+        match self.pace {
+            Some(pace) => Clock::simulated(pace),
+            None => Clock::new(),
+        }
+    }
 }
 
 /// A fault the tests cause in the real binary, to check that every way out
@@ -168,11 +182,12 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         config.components.len(),
         config.connections.len()
     );
-    let clock = Clock::new();
+    let clock = options.clock();
     let services = Services::default().with(Arc::new(options.tls.clone()));
-    let graph = assemble::build(&config, &mut loader, clock, &shutdown.waker(), &services, &assemble::Carry::default())
-        .map(|built| built.graph)
-        .map_err(RunError::Start)?;
+    let graph =
+        assemble::build(&config, &mut loader, clock.clone(), &shutdown.waker(), &services, &assemble::Carry::default())
+            .map(|built| built.graph)
+            .map_err(RunError::Start)?;
     let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
     Ok(final_report(&config, &graph, stopped_by, ran_ns))
 }
@@ -194,6 +209,9 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
     let injected = options.fault_injection;
     if let Some(FaultInjection::PanicThread(after)) = injected {
         inject_thread_panic(after)?;
+    }
+    if let Some(pace) = clock.pace() {
+        tracing::info!("simulated time: {pace}");
     }
     let control = std::thread::Builder::new()
         .name("subsume-control".into())
@@ -320,15 +338,16 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .with(Arc::new(TeleopServers::default()))
         .with(Arc::new(RunningRobot::default()))
         .with(Arc::new(Standings::default()))
+        .with(Arc::new(crate::sim::SimRegistry::default()))
         .with(Arc::new(options.tls.clone()));
-    let clock = Clock::new();
+    let clock = options.clock();
     let boot = Deployer::boot(BootOptions {
         store,
         sandbox,
         services,
         config_path: &options.config_path,
         overrides: options.overrides.clone(),
-        clock,
+        clock: clock.clone(),
         waker: shutdown.waker(),
     })?;
     let deploy::Boot { deployer, graph, hook } = boot;

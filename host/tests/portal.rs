@@ -164,6 +164,8 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("GET", "/api/v1/logs", b"", Allowed::AnyUser),
         ("GET", "/api/v1/audit", b"", Allowed::Developer),
         ("POST", "/api/v1/teleop/ticket", b"", Allowed::Drive),
+        ("POST", "/api/v1/sim/reset", b"", Allowed::Drive),
+        ("POST", "/api/v1/sim/step?seconds=0.1", b"", Allowed::Drive),
         ("POST", "/api/v1/logout", b"", Allowed::AnyUser),
     ]
 }

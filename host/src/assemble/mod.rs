@@ -82,7 +82,7 @@ pub fn build(
             robot: config,
             ptys: &mut ptys,
             priorities: &priorities,
-            clock,
+            clock: clock.clone(),
             waker: waker.clone(),
             services,
         };

@@ -145,7 +145,7 @@ impl Deployer {
                 carry.sim_ptys.insert(name.clone(), pty.clone());
             }
         }
-        let built = assemble::build(&config, &mut loader, self.clock, &self.waker, &self.services, &carry)
+        let built = assemble::build(&config, &mut loader, self.clock.clone(), &self.waker, &self.services, &carry)
             .map_err(DeployError::Start)?;
         Ok(Ready { set, config: Arc::new(config), built, carry: pairs, envelope })
     }

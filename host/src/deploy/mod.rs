@@ -200,7 +200,7 @@ impl Deployer {
         if let Some(robot) = services.get::<RunningRobot>() {
             robot.rename(&config.name);
         }
-        let built = assemble::build(&config, &mut loader, clock, &waker, &services, &Carry::default())
+        let built = assemble::build(&config, &mut loader, clock.clone(), &waker, &services, &Carry::default())
             .map_err(DeployError::Start)?;
         let config = Arc::new(config);
         let live = LiveStatusCell::default();
@@ -328,7 +328,73 @@ pub struct SimView {
     pub radius: Option<f64>,
 }
 
+/// What the portal may do to the active set's simulated robot.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum SimAction {
+    /// Back to the world's start, at rest, time 0.
+    Reset,
+    /// Put the robot here (m, m, rad), at rest.
+    Pose {
+        x: f64,
+        y: f64,
+        heading: f64,
+    },
+    Pause,
+    Resume,
+    /// While paused: run the world this many seconds forward.
+    Step {
+        seconds: f64,
+    },
+}
+
+impl SimAction {
+    pub fn name(&self) -> &'static str {
+        match self {
+            SimAction::Reset => "reset",
+            SimAction::Pose { .. } => "pose",
+            SimAction::Pause => "pause",
+            SimAction::Resume => "resume",
+            SimAction::Step { .. } => "step",
+        }
+    }
+}
+
 impl Deployer {
+    /// The parameters this host sets on every set it validates (`subsume
+    /// run --param`): what the set view shows as in effect beyond the file.
+    pub fn overrides(&self) -> &[ParamOverride] {
+        &self.overrides
+    }
+
+    /// Resets, poses, pauses, resumes or steps the active set's simulated
+    /// robot; for those who may drive (it moves the robot). Returns the
+    /// simulation's state after it.
+    pub fn sim_control(&self, user: &User, action: SimAction) -> Result<crate::sim::physics::SimStatus, DeployError> {
+        authorise(user, Permission::Drive)?;
+        let (_, config) = self.active()?;
+        let name = config
+            .components
+            .iter()
+            .find(|c| c.source == ComponentSource::Builtin("sim".into()))
+            .map(|c| c.name.clone())
+            .ok_or_else(|| DeployError::NotFound("the active set has no simulated robot".into()))?;
+        let control = self
+            .services
+            .get::<crate::sim::SimRegistry>()
+            .and_then(|registry| registry.get(&name))
+            .ok_or_else(|| DeployError::NotFound(format!("the simulated robot '{name}' is not running")))?;
+        let refused = |e: crate::sim::SimError| DeployError::Conflict(e.to_string());
+        let status = match action {
+            SimAction::Reset => control.reset(),
+            SimAction::Pose { x, y, heading } => control.set_pose(x, y, heading).map_err(refused)?,
+            SimAction::Pause => control.pause(true),
+            SimAction::Resume => control.pause(false),
+            SimAction::Step { seconds } => control.step(seconds).map_err(refused)?,
+        };
+        tracing::info!(user = %user.name, "simulator: {} ({name})", action.name());
+        Ok(status)
+    }
+
     /// The world and body of the active set's simulated robot.
     pub fn sim_view(&self) -> Result<SimView, DeployError> {
         let (set, config) = self.active()?;

@@ -1,6 +1,7 @@
 //! The web portal and its HTTP API under `/api/v1` (documented by
 //! `openapi.json`, served at `/api/v1/openapi.json`): login, component and
 //! robot-file uploads, sets, activation and rollback, the live status (SSE),
+//! the simulator's controls (reset, pose, pause, resume, step),
 //! the audit log, the teleoperation WebSocket, and the static web files of
 //! `web/`, embedded in the binary.
 //!
@@ -105,6 +106,7 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/status", get(status))
         .route("/events", get(events))
         .route("/world", get(world))
+        .route("/sim/{action}", post(sim_control))
         .route("/logs", get(recent_logs))
         .route("/audit", get(audit_log))
         .route("/teleop/ticket", post(teleop_ticket))

@@ -17,7 +17,7 @@ use super::PortalState;
 use super::auth::{Authed, ClientAddress};
 use super::error::ApiError;
 use crate::contract::clip;
-use crate::deploy::{Permission, Platform, authorise};
+use crate::deploy::{Permission, Platform, SimAction, authorise};
 use crate::report::LiveStatus;
 use crate::store::{ComponentRecord, MAX_AUDIT_READ, StoreState};
 use crate::teleop::TeleopServers;
@@ -124,8 +124,16 @@ pub(super) async fn get_set(
     Path(id): Path<u64>,
 ) -> Result<Json<Json_>, ApiError> {
     let store = state.deployer.store.clone();
+    // Parameters set with `subsume run --param`: a set runs with those that
+    // name one of its components (the others are skipped for it).
+    let overrides = state.deployer.overrides().to_vec();
     blocking(move || {
         let set = store.set(id)?;
+        let overrides: Vec<Json_> = overrides
+            .iter()
+            .filter(|o| set.graph.components.iter().any(|c| c.name == o.component))
+            .map(|o| json!({ "component": o.component, "param": o.param, "value": o.value }))
+            .collect();
         let text = store.blob(&set.config_sha256)?;
         let status = set_status(id, &store.state()?);
         Ok(Json(json!({
@@ -133,6 +141,7 @@ pub(super) async fn get_set(
             "set": set,
             "status": status,
             "config": String::from_utf8_lossy(&text),
+            "overrides": overrides,
         })))
     })
     .await
@@ -238,6 +247,51 @@ pub(super) async fn world(State(state): State<Arc<PortalState>>, Authed(_): Auth
     let deployer = state.deployer.clone();
     let view = blocking(move || Ok(deployer.sim_view()?)).await?;
     Ok(Json(serde_json::to_value(view).unwrap_or_default()))
+}
+
+/// A number from the query string, named in the error when missing or bad.
+fn query_number(query: &std::collections::HashMap<String, String>, name: &str) -> Result<f64, ApiError> {
+    let text = query
+        .get(name)
+        .ok_or_else(|| ApiError::new(StatusCode::BAD_REQUEST, format!("the query parameter '{name}' is missing")))?;
+    text.trim().parse::<f64>().ok().filter(|v| v.is_finite()).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::BAD_REQUEST,
+            format!("the query parameter '{name}' is not a number: '{}'", clip(text)),
+        )
+    })
+}
+
+/// Resets, poses, pauses, resumes or steps the active set's simulated robot
+/// (`POST /sim/{action}`; pose takes `x`, `y`, `heading`, step takes
+/// `seconds` in the query).
+pub(super) async fn sim_control(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(action): Path<String>,
+    axum::extract::Query(query): axum::extract::Query<std::collections::HashMap<String, String>>,
+) -> Result<Json<Json_>, ApiError> {
+    authorise(&user, Permission::Drive)?;
+    let action = match action.as_str() {
+        "reset" => SimAction::Reset,
+        "pause" => SimAction::Pause,
+        "resume" => SimAction::Resume,
+        "step" => SimAction::Step { seconds: query_number(&query, "seconds")? },
+        "pose" => SimAction::Pose {
+            x: query_number(&query, "x")?,
+            y: query_number(&query, "y")?,
+            heading: query_number(&query, "heading")?,
+        },
+        other => {
+            return Err(ApiError::new(
+                StatusCode::NOT_FOUND,
+                format!("no simulator action '{}': reset, pose, pause, resume or step", clip(other)),
+            ));
+        }
+    };
+    let deployer = state.deployer.clone();
+    let status = blocking(move || Ok(deployer.sim_control(&user, action)?)).await?;
+    Ok(Json(serde_json::to_value(status).unwrap_or_default()))
 }
 
 pub(super) async fn recent_logs(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {

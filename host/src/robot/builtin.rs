@@ -235,10 +235,13 @@ impl Builtin for SerialBuiltin {
             }
         };
         let name = ctx.component()?.name.clone();
-        let link = SerialLink::start(&name, settings, translator).map_err(|e| match e {
+        let mut link = SerialLink::start(&name, settings, translator).map_err(|e| match e {
             LinkError::Thread(source) => BuiltinError::io("cannot start the serial thread", source),
             refused @ LinkError::NoStopFrame(_) => BuiltinError::Refused(refused.to_string()),
         })?;
+        if let Some(lockstep) = ctx.clock.lockstep() {
+            link.join_lockstep(lockstep);
+        }
         Ok(Box::new(link))
     }
 }

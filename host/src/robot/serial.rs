@@ -48,6 +48,7 @@ use super::control::{self, ControlCommand};
 use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
 use crate::contract::Value;
+use crate::runtime::lockstep::{Lockstep, LockstepLink, wait_until};
 use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
 
 /// Frames waiting for the I/O thread; more means the device is stuck, and
@@ -105,6 +106,9 @@ pub struct LinkStop {
     halted: AtomicBool,
     /// STOPs sent from outside the control loop (the stall watchdog).
     emergency_stops: AtomicU64,
+    /// Every byte written to the device (frames, openings, STOPs), for the
+    /// lock-step of a simulated clock.
+    wire_out: AtomicU64,
 }
 
 /// Takes `mutex` if it comes free before `deadline`. A poisoned lock is
@@ -140,7 +144,10 @@ impl LinkStop {
 
     fn write_bytes(&self, port: &mut serialport::TTYPort, bytes: &[u8]) -> StopOutcome {
         match port.write_all(bytes).and_then(|()| port.flush()) {
-            Ok(()) => StopOutcome::Sent,
+            Ok(()) => {
+                self.wire_out.fetch_add(bytes.len() as u64, Ordering::Release);
+                StopOutcome::Sent
+            }
             Err(e) => StopOutcome::Failed(format!("writing to {}: {e}", self.device.display())),
         }
     }
@@ -244,6 +251,10 @@ pub struct LinkSettings {
 #[derive(Debug, Default)]
 struct IoCounters {
     connected: AtomicBool,
+    /// Open, with the translator's opening written: frames may go out.
+    ready: AtomicBool,
+    /// Frames handed to the I/O thread (for the lock-step).
+    frames_queued: AtomicU64,
     frames_written: AtomicU64,
     bytes_written: AtomicU64,
     bytes_read: AtomicU64,
@@ -309,6 +320,9 @@ pub struct SerialLink {
     feedback: Vec<Feedback>,
     frame: Vec<u8>,
     stats: SerialStatus,
+    /// Held so a simulated clock's lock-step registry (which keeps a weak
+    /// reference) keeps this link.
+    lockstep: Option<Arc<dyn LockstepLink>>,
 }
 
 /// Output ports of `builtin:serial`, in order.
@@ -336,6 +350,7 @@ impl SerialLink {
             generation: AtomicU64::new(0),
             halted: AtomicBool::new(false),
             emergency_stops: AtomicU64::new(0),
+            wire_out: AtomicU64::new(0),
         });
         let (tx, tx_rx) = mpsc::sync_channel(TX_QUEUE_FRAMES);
         let (rx_tx, rx) = mpsc::sync_channel(RX_QUEUE_CHUNKS);
@@ -369,7 +384,22 @@ impl SerialLink {
             feedback: Vec::new(),
             frame: Vec::new(),
             stats,
+            lockstep: None,
         })
+    }
+
+    /// Joins the lock-step of a simulated clock: the control loop then waits
+    /// for this link's frames to be written and its feedback received.
+    pub fn join_lockstep(&mut self, lockstep: &Lockstep) {
+        let part: Arc<dyn LockstepLink> = Arc::new(LinkPart {
+            device: self.settings.device.clone(),
+            io: self.io.clone(),
+            stop: self.stop.clone(),
+            taken: AtomicU64::new(0),
+            expected: AtomicU64::new(0),
+        });
+        lockstep.join_link(&part);
+        self.lockstep = Some(part);
     }
 
     /// The handle that stops this link's motors from any thread.
@@ -415,7 +445,9 @@ impl SerialLink {
         self.last_sent = Some((command, now_ns));
         self.stats.frames_sent += 1;
         match self.tx.try_send(Frame { generation: self.generation, bytes: self.frame.clone() }) {
-            Ok(()) => {}
+            Ok(()) => {
+                self.io.frames_queued.fetch_add(1, Ordering::Release);
+            }
             Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => self.stats.frames_dropped_link += 1,
         }
         Ok(())
@@ -436,7 +468,9 @@ impl SerialLink {
         }
         self.stats.polls_sent += 1;
         match self.tx.try_send(Frame { generation: self.generation, bytes: self.frame.clone() }) {
-            Ok(()) => {}
+            Ok(()) => {
+                self.io.frames_queued.fetch_add(1, Ordering::Release);
+            }
             Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) => self.stats.frames_dropped_link += 1,
         }
         Ok(())
@@ -564,6 +598,46 @@ impl Drop for SerialLink {
     }
 }
 
+/// A link's part in the lock-step of a simulated clock.
+struct LinkPart {
+    device: PathBuf,
+    io: Arc<IoCounters>,
+    stop: Arc<LinkStop>,
+    /// Bytes written that the robot has been told to read.
+    taken: AtomicU64,
+    /// Bytes the robot wrote to this link.
+    expected: AtomicU64,
+}
+
+impl LockstepLink for LinkPart {
+    fn device(&self) -> &std::path::Path {
+        &self.device
+    }
+
+    fn settle(&self, deadline: Instant) -> bool {
+        let io = &self.io;
+        wait_until(deadline, || {
+            io.ready.load(Ordering::Acquire)
+                && io.frames_queued.load(Ordering::Acquire)
+                    == io.frames_written.load(Ordering::Acquire) + io.frames_discarded.load(Ordering::Acquire)
+        })
+    }
+
+    fn take_written(&self) -> u64 {
+        let written = self.stop.wire_out.load(Ordering::Acquire);
+        written.saturating_sub(self.taken.swap(written, Ordering::AcqRel))
+    }
+
+    fn expect(&self, bytes: u64) {
+        self.expected.fetch_add(bytes, Ordering::AcqRel);
+    }
+
+    fn received(&self, deadline: Instant) -> bool {
+        let expected = self.expected.load(Ordering::Acquire);
+        wait_until(deadline, || self.io.bytes_read.load(Ordering::Acquire) >= expected)
+    }
+}
+
 /// Opens, writes, reads and reopens the device until told to stop.
 fn io_thread(
     name: &str,
@@ -593,7 +667,7 @@ fn io_thread(
         };
         // Frames queued while the device was gone are stale: never replay them.
         let stale = frames.try_iter().count() as u64;
-        io.frames_discarded.fetch_add(stale, Ordering::Relaxed);
+        io.frames_discarded.fetch_add(stale, Ordering::Release);
         if ever_connected {
             io.reconnects.fetch_add(1, Ordering::Relaxed);
             tracing::info!(component = name, "reconnected to {}", settings.device.display());
@@ -649,6 +723,7 @@ fn run_connection(
             io.openings_written.fetch_add(1, Ordering::Relaxed);
         }
         *slot = Some(port);
+        io.ready.store(true, Ordering::Release);
     }
     let failed = Mutex::new(None::<String>);
     std::thread::scope(|scope| {
@@ -657,6 +732,7 @@ fn run_connection(
             set_failed(&failed, why);
         }
     });
+    io.ready.store(false, Ordering::Release);
     drop(stop.port.lock().unwrap_or_else(PoisonError::into_inner).take());
     failed.into_inner().ok().flatten()
 }
@@ -687,15 +763,16 @@ fn write_loop(
                 // Under the lock a STOP from outside cannot slip in between
                 // this check and the write.
                 if stop.halted.load(Ordering::Acquire) || frame.generation != stop.generation.load(Ordering::Acquire) {
-                    io.frames_discarded.fetch_add(1, Ordering::Relaxed);
+                    io.frames_discarded.fetch_add(1, Ordering::Release);
                     continue;
                 }
                 let Some(port) = port.as_mut() else { return Some("the device was closed".into()) };
                 if let Err(err) = port.write_all(&frame.bytes).and_then(|()| port.flush()) {
                     return Some(format!("write failed: {err}"));
                 }
-                io.frames_written.fetch_add(1, Ordering::Relaxed);
+                stop.wire_out.fetch_add(frame.bytes.len() as u64, Ordering::Release);
                 io.bytes_written.fetch_add(frame.bytes.len() as u64, Ordering::Relaxed);
+                io.frames_written.fetch_add(1, Ordering::Release);
             }
             Err(RecvTimeoutError::Timeout) => {}
             Err(RecvTimeoutError::Disconnected) => return None,
@@ -718,10 +795,11 @@ fn read_loop(
                 return;
             }
             Ok(n) => {
-                io.bytes_read.fetch_add(n as u64, Ordering::Relaxed);
                 if received.try_send(buffer[..n].to_vec()).is_err() {
                     io.rx_dropped.fetch_add(1, Ordering::Relaxed);
                 }
+                // Counted once handed on: the lock-step waits for this.
+                io.bytes_read.fetch_add(n as u64, Ordering::Release);
             }
             Err(e)
                 if e.kind() == ErrorKind::TimedOut

@@ -1,21 +1,37 @@
 //! The control loop: reads the clock, steps the graph, sleeps until the next
 //! tick is due or a shutdown is asked for. It runs on its own thread; nothing
-//! else calls into components.
+//! else calls into components. On a simulated clock ([`Clock::simulated`])
+//! it jumps from one due cycle to the next instead of sleeping (paced to a
+//! multiple of real time, or not at all), and holds the simulated robots and
+//! their links in lock-step before each cycle ([`super::lockstep`]).
 
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use super::Graph;
+use super::lockstep::{Lockstep, Pace};
 use super::stall::{Activity, Heartbeat};
 
 /// Longest sleep when no component ticks: the loop still notices a shutdown
 /// at once (the condvar wakes it), this only bounds idle wake-ups.
 pub const IDLE_WAIT: Duration = Duration::from_millis(100);
 
-/// The host's monotonic clock: nanoseconds since it was made.
-#[derive(Clone, Copy, Debug)]
+/// The host's monotonic clock: nanoseconds since it was made; or, made
+/// with [`Clock::simulated`], simulated nanoseconds that only the control
+/// loop moves.
+#[derive(Clone, Debug)]
 pub struct Clock {
     start: Instant,
+    simulated: Option<Arc<Simulated>>,
+}
+
+/// The state of a simulated clock.
+#[derive(Debug)]
+struct Simulated {
+    now_ns: AtomicU64,
+    pace: Pace,
+    lockstep: Arc<Lockstep>,
 }
 
 impl Default for Clock {
@@ -26,11 +42,32 @@ impl Default for Clock {
 
 impl Clock {
     pub fn new() -> Clock {
-        Clock { start: Instant::now() }
+        Clock { start: Instant::now(), simulated: None }
+    }
+
+    /// A simulated clock at 0, advanced by the control loop from one due
+    /// cycle to the next at `pace`.
+    pub fn simulated(pace: Pace) -> Clock {
+        let simulated = Simulated { now_ns: AtomicU64::new(0), pace, lockstep: Arc::new(Lockstep::default()) };
+        Clock { start: Instant::now(), simulated: Some(Arc::new(simulated)) }
     }
 
     pub fn now_ns(&self) -> u64 {
-        self.start.elapsed().as_nanos() as u64
+        match &self.simulated {
+            Some(simulated) => simulated.now_ns.load(Ordering::Acquire),
+            None => self.start.elapsed().as_nanos() as u64,
+        }
+    }
+
+    /// The lock-step registry of a simulated clock: simulated robots and
+    /// serial links join it so the loop can hold them in step.
+    pub fn lockstep(&self) -> Option<&Arc<Lockstep>> {
+        self.simulated.as_ref().map(|s| &s.lockstep)
+    }
+
+    /// The pace of a simulated clock.
+    pub fn pace(&self) -> Option<Pace> {
+        self.simulated.as_ref().map(|s| s.pace)
     }
 }
 
@@ -119,6 +156,34 @@ impl Shutdown {
     }
 }
 
+impl Simulated {
+    /// Moves simulated time from `now` to `wake` (never back), first
+    /// waiting until real time since `origin` catches up with `wake` divided
+    /// by the speed (none at [`Pace::Lockstep`]). Returns true when a
+    /// shutdown is asked meanwhile.
+    fn advance(&self, origin: Instant, now: u64, wake: u64, shutdown: &Shutdown) -> bool {
+        let wake = wake.max(now);
+        if let Pace::Speed(speed) = self.pace {
+            let due = origin + Duration::from_secs_f64(wake as f64 / 1e9 / speed);
+            loop {
+                let left = due.saturating_duration_since(Instant::now());
+                if left.is_zero() {
+                    break;
+                }
+                // An early wake-up (input from outside) is taken at the next
+                // due cycle: simulated time only moves in steps of the graph.
+                if shutdown.wait(left) {
+                    return true;
+                }
+            }
+        } else if shutdown.is_requested() {
+            return true;
+        }
+        self.now_ns.store(wake, Ordering::Release);
+        false
+    }
+}
+
 /// Work done between two cycles, on the control thread: swapping in a newly
 /// activated graph, publishing the live status. It must be quick.
 pub trait CycleHook {
@@ -192,6 +257,13 @@ fn cycle(
             // The hook may have swapped in a new graph.
             graph.attach(heartbeat);
         }
+        if let Some(simulated) = &clock.simulated {
+            // Waiting for bytes on the simulated robots' wires (bounded by
+            // `lockstep::LOCKSTEP_WAIT`) is not a stall.
+            graph.asleep();
+            simulated.lockstep.before_cycle(now);
+            graph.beat(None, Activity::Cycle);
+        }
         graph.step(now);
         if graph.has_pending() {
             continue;
@@ -200,6 +272,13 @@ fn cycle(
         let mut wake = due.unwrap_or(now + IDLE_WAIT.as_nanos() as u64);
         if let Some(until) = until_ns {
             wake = wake.min(until);
+        }
+        if let Some(simulated) = &clock.simulated {
+            graph.asleep();
+            if simulated.advance(clock.start, now, wake, shutdown) {
+                return StopReason::Requested;
+            }
+            continue;
         }
         let now = clock.now_ns();
         if wake > now {

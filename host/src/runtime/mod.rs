@@ -1,7 +1,9 @@
 //! The runtime: components behind one trait ([`component`]), how they are
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
 //! control loop that drives it in real time ([`control_loop`]) and the
-//! watchdog outside it that stops the motors when it stalls ([`stall`]).
+//! watchdog outside it that stops the motors when it stalls ([`stall`]),
+//! and simulated time's lock-step between the loop, the simulated robots and
+//! their links ([`lockstep`]).
 //!
 //! Import rule: nothing here imports `config` or any built-in; the robot
 //! file's validator and the assembler feed the graph through the types of
@@ -11,6 +13,7 @@ pub mod component;
 pub mod control_loop;
 pub mod graph;
 pub mod histogram;
+pub mod lockstep;
 pub mod stall;
 pub mod wiring;
 

@@ -68,8 +68,14 @@ impl CompileCache {
                 }
             }
         }
+        // Compiling a large component (a Python one) takes seconds: say so
+        // before, and how long it took after.
+        let short = sha256.get(..12).unwrap_or(sha256);
+        tracing::info!("compiling component {short} ({} KiB; not in the cache yet)...", bytes.len().div_ceil(1024));
+        let started = std::time::Instant::now();
         let component =
             wasmtime::component::Component::new(engine, bytes).map_err(|e| SandboxError::Compile(error_text(&e)))?;
+        tracing::info!("compiled component {short} in {:.2} s", started.elapsed().as_secs_f64());
         if let Some(path) = cached {
             match component.serialize() {
                 Ok(serialized) => {

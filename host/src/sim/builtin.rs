@@ -174,8 +174,11 @@ impl Builtin for SimBuiltin {
         let world =
             load_world(params, ctx.base_dir).map_err(|why| BuiltinError::Param { name: "world".into(), why })?;
         let name = ctx.component()?.name.clone();
-        let robot = SimulatedRobot::start(&name, settings(params, world)?)
+        let robot = SimulatedRobot::start(&name, settings(params, world)?, ctx.clock.lockstep())
             .map_err(|e| BuiltinError::Refused(format!("the simulated robot did not start: {e}")))?;
+        if let Some(registry) = ctx.services.get::<super::SimRegistry>() {
+            robot.register(&name, &registry);
+        }
         ctx.ptys.insert(name, robot.pty_path().clone());
         Ok(Box::new(SimComponent::new(robot)))
     }

@@ -86,6 +86,50 @@ impl Simulation {
         Ok(sim)
     }
 
+    /// The robot back at the world's start pose, at rest, with time, distance,
+    /// collisions and the goal forgotten.
+    pub fn reset(&mut self) {
+        let (start, heading) = self.world.start;
+        *self = Simulation {
+            x: start.x,
+            y: start.y,
+            heading,
+            world: self.world.clone(),
+            body: self.body,
+            left: 0.0,
+            right: 0.0,
+            time_s: 0.0,
+            distance: 0.0,
+            collisions: 0,
+            bumper: false,
+            goal_reached_at: None,
+        };
+    }
+
+    /// Puts the robot at (`x`, `y`) facing `heading` (rad), at rest. Refused
+    /// (nothing changes) where the body would overlap an obstacle, or for a
+    /// coordinate that is not finite.
+    pub fn set_pose(&mut self, x: f64, y: f64, heading: f64) -> Result<(), SimError> {
+        if !(x.is_finite() && y.is_finite() && heading.is_finite()) {
+            return Err(SimError::BadPose(format!("({x}, {y}, {heading}) is not a finite pose")));
+        }
+        if self.collides(x, y) {
+            return Err(SimError::BadPose(format!("({x}, {y}) is within {} m of an obstacle", self.body.radius)));
+        }
+        self.x = x;
+        self.y = y;
+        self.heading = wrap(heading);
+        self.left = 0.0;
+        self.right = 0.0;
+        self.bumper = false;
+        Ok(())
+    }
+
+    /// Simulated seconds since the start (or the last reset).
+    pub fn time_s(&self) -> f64 {
+        self.time_s
+    }
+
     /// Sets the wheel speeds (m/s), limited to the body's fastest.
     pub fn set_wheels(&mut self, left: f64, right: f64) {
         let max = self.body.geometry.max_wheel_speed;
@@ -297,6 +341,26 @@ mod tests {
         s.step(1.0);
         let at = s.status().goal_reached_at_s.unwrap_or_default();
         assert!((at - 1.8).abs() < 0.01, "{at}");
+    }
+
+    #[test]
+    fn reset_and_set_pose_restart_an_experiment() {
+        let mut s = sim("bounds 0 0 10 10\nstart 1 5 0\ngoal 9 9 0.2\nwall 2 0 2 10\n");
+        s.set_wheels(0.5, 0.5);
+        s.step(5.0);
+        assert_eq!(s.status().collisions, 1);
+        s.reset();
+        let fresh = sim("bounds 0 0 10 10\nstart 1 5 0\ngoal 9 9 0.2\nwall 2 0 2 10\n");
+        assert_eq!(s.status(), fresh.status());
+        // At rest after a reset: time passes, nothing moves.
+        s.step(1.0);
+        assert_eq!(s.pose(), fresh.pose());
+        assert!(s.set_pose(1.9, 5.0, 0.0).is_err(), "inside the wall");
+        assert!(s.set_pose(f64::NAN, 5.0, 0.0).is_err());
+        assert_eq!(s.pose(), fresh.pose(), "a refused pose changes nothing");
+        assert!(s.set_pose(0.5, 2.0, 7.0).is_ok());
+        let (x, y, h) = s.pose();
+        assert!(x == 0.5 && y == 2.0 && (h - (7.0 - std::f64::consts::TAU)).abs() < 1e-12);
     }
 
     #[test]

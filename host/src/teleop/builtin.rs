@@ -271,7 +271,7 @@ impl Builtin for TeleopBuiltin {
         let standings = ctx.services.get::<Standings>().map(|s| (*s).clone()).unwrap_or_default();
         let component = TeleopComponent::start(
             &name,
-            super::Surroundings { robot, standings, clock: ctx.clock, waker: ctx.waker.clone(), priority },
+            super::Surroundings { robot, standings, clock: ctx.clock.clone(), waker: ctx.waker.clone(), priority },
             settings,
         )?;
         if let Some(servers) = ctx.services.get::<TeleopServers>() {
