@@ -66,6 +66,15 @@ pub fn open_classic(device: &Path, baud: u32, timeout: Duration) -> io::Result<T
     // SAFETY: `fd` is open for the whole block (owned by `file`), and
     // `termios` is a plain C struct that tcgetattr fills before it is read.
     unsafe {
+        // Exclusive, as serialport's own open: a device another link (or
+        // program) holds is refused, never shared.
+        if libc::flock(fd, libc::LOCK_EX | libc::LOCK_NB) != 0 {
+            return Err(io::Error::new(
+                io::ErrorKind::ResourceBusy,
+                format!("{} is held by another program", device.display()),
+            ));
+        }
+        check(libc::ioctl(fd, libc::TIOCEXCL))?;
         let mut termios: libc::termios = std::mem::zeroed();
         check(libc::tcgetattr(fd, &mut termios))?;
         libc::cfmakeraw(&mut termios);
@@ -114,6 +123,17 @@ mod tests {
         // Reads wait no longer than the timeout.
         let mut one = [0u8; 1];
         assert!(port.read(&mut one).is_err());
+    }
+
+    #[test]
+    fn the_classic_open_refuses_a_device_another_port_holds() {
+        let (_master, slave) = TTYPort::pair().unwrap();
+        let name = slave.name().unwrap();
+        drop(slave);
+        let _held = open_classic(Path::new(&name), 115200, Duration::from_millis(10)).unwrap();
+        let err = open_classic(Path::new(&name), 115200, Duration::from_millis(10)).unwrap_err();
+        assert!(err.to_string().contains("is held by another program"), "{err}");
+        assert!(open(Path::new(&name), 115200, Duration::from_millis(10)).is_err());
     }
 
     #[test]
