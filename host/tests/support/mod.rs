@@ -80,6 +80,11 @@ impl MotorRecorder {
         }
     }
 
+    /// Writes `bytes` to the host, as the controller would (feedback).
+    pub fn write(&mut self, bytes: &[u8]) {
+        let _ = std::io::Write::write_all(&mut self.master, bytes);
+    }
+
     /// Reads while `going` says so.
     pub fn read_while(&mut self, mut going: impl FnMut() -> bool) {
         while going() {
