@@ -218,3 +218,142 @@ fn a_bumper_hit_from_the_controller_engages_a_lock_that_only_a_release_ends() {
     assert!(reply.starts_with("OK released bumper after "), "{reply}");
     assert_drives(&mut motors, "after the release");
 }
+
+const PASSWORD: &str = "estop-test-password";
+
+/// `subsume user add NAME --role ROLE` with [`PASSWORD`].
+fn add_user(store: &std::path::Path, name: &str, role: &str) {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
+    if role == "developer" {
+        command.args(["--platform", "control"]);
+    }
+    let mut child = command.stdin(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
+    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
+    assert!(child.wait().unwrap().success());
+}
+
+/// `subsume run` with its portal on the robot of [`start`] (driver,
+/// arbiter, envelope, motors on `device`); returns the host and the
+/// portal's address.
+fn start_with_portal(device: &str, dir: &std::path::Path) -> (Child, String) {
+    support::guest_dir();
+    let store = dir.join("store");
+    for (name, role) in [("viewer", "viewer"), ("dev", "developer"), ("operator", "operator")] {
+        add_user(&store, name, role);
+    }
+    let xml = format!(
+        r#"<robot name="estop">
+  <platform name="control">
+    <component name="driver" source="{driver}" rate="20" timeout="200ms">
+      <param name="command" value="VEL 0.25 0"/>
+      <param name="ticks" value="100000000"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="driver.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+</robot>"#,
+        driver = support::guest("test-commander").display()
+    );
+    let robot = dir.join("robot.xml");
+    std::fs::write(&robot, xml).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
+        .arg(&robot)
+        .args(["--http", "127.0.0.1:0", "--duration", "90"])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("portal on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
+            }
+        }
+    });
+    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
+    (child, address)
+}
+
+/// `subsume estop|release ADDRESS --user USER`: (success, stdout + stderr).
+fn cli(action: &str, address: &str, user: &str) -> (bool, String) {
+    let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .args([action, address, "--user", user])
+        .env("SUBSUME_PASSWORD", PASSWORD)
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
+    (output.status.success(), text)
+}
+
+#[test]
+fn the_command_line_and_the_portal_button_stop_the_robot_and_only_a_driver_releases() {
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let dir = tempfile::tempdir().unwrap();
+    let (child, address) = start_with_portal(&device, dir.path());
+    let _host = Host { child, teleop: String::new(), _dir: tempfile::tempdir().unwrap() };
+    assert_drives(&mut motors, "before");
+    // The command line, as a viewer (a button on a small computer).
+    let engaged = Instant::now();
+    let (ok, said) = cli("estop", &address, "viewer");
+    assert!(ok, "{said}");
+    assert!(said.contains("estop engaged: the motors are stopped"), "{said}");
+    let lines = watch(&mut motors, 1000);
+    assert_stopped(&lines, engaged, "subsume estop");
+    // Neither a viewer nor a developer may release; nothing moves.
+    for user in ["viewer", "dev"] {
+        let (ok, said) = cli("release", &address, user);
+        assert!(!ok, "{user} released: {said}");
+        assert!(said.contains("403") && said.contains("may not drive"), "{said}");
+    }
+    let lines = watch(&mut motors, 300);
+    assert!(lines.iter().all(|(_, l)| l == "S"), "moved after a refused release: {lines:?}");
+    let (ok, said) = cli("release", &address, "operator");
+    assert!(ok && said.contains("released estop after"), "{said}");
+    assert_drives(&mut motors, "after the release");
+    // The portal's STOP button, clicked by a viewer in headless Chromium.
+    let browser_dir = support::repo_root().join("tests/browser");
+    assert!(
+        browser_dir.join("node_modules/playwright-core").is_dir(),
+        "run scripts/setup first: it installs playwright-core and chromium"
+    );
+    let node = Command::new("node")
+        .current_dir(&browser_dir)
+        .arg("estop.mjs")
+        .arg(format!("http://{address}/"))
+        .args(["viewer", PASSWORD])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let clicked = Instant::now();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(node.wait_with_output());
+    });
+    let mut output = None;
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while output.is_none() && Instant::now() < deadline {
+        motors.read();
+        output = rx.try_recv().ok();
+    }
+    let output = output.expect("the browser test finished").unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "browser: {stdout}{}", String::from_utf8_lossy(&output.stderr));
+    let lines = watch(&mut motors, 500);
+    let all: Vec<(Instant, String)> = motors.lines.iter().filter(|(at, _)| *at > clicked).cloned().collect();
+    assert!(all.iter().any(|(_, l)| l == "S"), "no STOP after the click");
+    assert!(lines.iter().all(|(_, l)| l == "S"), "moving after the portal STOP: {lines:?}");
+    assert_eq!(motors.lines.last().map(|(_, l)| l.as_str()), Some("S"));
+}

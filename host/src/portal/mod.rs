@@ -21,6 +21,7 @@
 //!   only.
 
 pub mod auth;
+pub mod client;
 pub mod error;
 pub mod logs;
 mod routes;
