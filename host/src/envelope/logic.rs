@@ -24,6 +24,14 @@
 //! - speed and turn-rate limits (`max_speed`, `max_reverse`, `max_turn`);
 //! - acceleration limits: speeds may grow by at most `max_accel` /
 //!   `max_turn_accel` per second; slowing down is never delayed.
+//!
+//! The zones budget the robot's reaction: a scan shows where things were
+//! when it arrived, and the next judgment comes one control interval later.
+//! The distance covered meanwhile (the last output's speed times the scan's
+//! age, plus the commanded speed times the longest recent interval between
+//! judgments, see [`REACTION_WINDOW_NS`]) is taken off every clearance
+//! before the zones are applied. On a busy machine, where cycles come late,
+//! the robot therefore slows and stops earlier, not later.
 
 use std::collections::BTreeMap;
 use std::fmt;
@@ -60,6 +68,13 @@ pub const MEMORY_CELL_M: f64 = 0.02;
 /// Most remembered points: bounds the memory and the work per command
 /// whatever the scans contain.
 pub const MAX_MEMORY_POINTS: usize = 512;
+/// How long the longest interval between two judgments is remembered: a
+/// machine that ran late recently is assumed to run late again.
+pub const REACTION_WINDOW_NS: u64 = 5_000_000_000;
+/// Longest interval budgeted as reaction time, s: beyond it the sensors are
+/// stale anyway (and a stall of seconds is the stall watchdog's case), so a
+/// single long pause cannot freeze the robot for the whole window.
+pub const MAX_REACTION_S: f64 = 0.5;
 /// Most range readings read per scan (the motor protocols' own bound).
 pub const MAX_RANGES: usize = crate::robot::protocol::MAX_RANGES;
 
@@ -233,11 +248,42 @@ pub struct Envelope {
     /// The last (linear, angular) sent and when.
     last_out: (f64, f64),
     last_out_at: Option<u64>,
+    /// When the last judgment ran, and the longest interval between two
+    /// judgments within [`REACTION_WINDOW_NS`] (interval, seen at).
+    last_judged_at: Option<u64>,
+    worst_interval: (u64, u64),
 }
 
 impl Envelope {
     pub fn new(settings: Settings) -> Envelope {
-        Envelope { settings, scan: None, pose: None, memory: BTreeMap::new(), last_out: (0.0, 0.0), last_out_at: None }
+        Envelope {
+            settings,
+            scan: None,
+            pose: None,
+            memory: BTreeMap::new(),
+            last_out: (0.0, 0.0),
+            last_out_at: None,
+            last_judged_at: None,
+            worst_interval: (0, 0),
+        }
+    }
+
+    /// Notes a judgment at `now_ns`, for the reaction time.
+    fn note_judgment(&mut self, now_ns: u64) {
+        if let Some(last) = self.last_judged_at {
+            let interval = now_ns.saturating_sub(last);
+            let (worst, seen_at) = self.worst_interval;
+            if interval >= worst || now_ns.saturating_sub(seen_at) > REACTION_WINDOW_NS {
+                self.worst_interval = (interval, now_ns);
+            }
+        }
+        self.last_judged_at = Some(now_ns.max(self.last_judged_at.unwrap_or(0)));
+    }
+
+    /// The reaction time budgeted now, s: the longest recent interval
+    /// between judgments, at most [`MAX_REACTION_S`].
+    pub fn reaction_s(&self) -> f64 {
+        (self.worst_interval.0 as f64 / 1e9).min(MAX_REACTION_S)
     }
 
     pub fn settings(&self) -> &Settings {
@@ -329,6 +375,7 @@ impl Envelope {
     /// What may reach the motors for `command` at `now_ns`; the output is
     /// remembered for the acceleration limit.
     pub fn decide(&mut self, command: ControlCommand, now_ns: u64) -> Verdict {
+        self.note_judgment(now_ns);
         let verdict = self.judge(command, now_ns);
         self.remember(&verdict, now_ns);
         verdict
@@ -339,6 +386,7 @@ impl Envelope {
     /// output (slower on one axis and faster on none): a review never
     /// starts or speeds up motion.
     pub fn review(&mut self, command: ControlCommand, now_ns: u64) -> Option<Verdict> {
+        self.note_judgment(now_ns);
         let verdict = self.judge(command, now_ns);
         let (v, w) = speeds(&verdict.command);
         let (lv, lw) = self.last_out;
@@ -399,18 +447,23 @@ impl Envelope {
         let mut linear_stop: Option<Cause> = None;
         if v != 0.0 {
             if let Some(scan) = &self.scan {
-                let lookahead = (s.slow_distance.max(v.abs() * s.ttc_s) + MARCH_STEP_M).min(MAX_LOOKAHEAD_M);
+                // The distance covered before this judgment can take effect.
+                let scan_age_s = age(scan.at_ns).min(s.stale_ns) as f64 / 1e9;
+                let margin = self.last_out.0.abs() * scan_age_s + v.abs() * self.reaction_s();
+                let lookahead = (s.slow_distance.max(v.abs() * s.ttc_s) + margin + MARCH_STEP_M).min(MAX_LOOKAHEAD_M);
                 let mut points = self.remembered(lookahead + s.radius);
                 points.extend_from_slice(&scan.points);
                 if let Some(ahead) = path_clearance(&points, s.radius, v, w, lookahead) {
-                    if ahead <= s.stop_distance {
-                        linear_stop = Some(Cause::StopZone { ahead, zone: s.stop_distance });
+                    // What is left once the robot has reacted.
+                    let left = ahead - margin;
+                    if left <= s.stop_distance {
+                        linear_stop = Some(Cause::StopZone { ahead, zone: s.stop_distance + margin });
                     } else {
-                        if ahead <= s.slow_distance && s.slow_distance > s.stop_distance {
-                            let cap = s.max_speed * (ahead - s.stop_distance) / (s.slow_distance - s.stop_distance);
-                            limit(cap / v.abs(), Cause::SlowZone { ahead, zone: s.slow_distance, cap });
+                        if left <= s.slow_distance && s.slow_distance > s.stop_distance {
+                            let cap = s.max_speed * (left - s.stop_distance) / (s.slow_distance - s.stop_distance);
+                            limit(cap / v.abs(), Cause::SlowZone { ahead, zone: s.slow_distance + margin, cap });
                         }
-                        let ttc = ahead / v.abs();
+                        let ttc = left / v.abs();
                         if ttc < s.ttc_s {
                             limit(ttc / s.ttc_s, Cause::TimeToCollision { ahead, ttc_s: ttc, limit_s: s.ttc_s });
                         }
@@ -811,6 +864,69 @@ mod tests {
         envelope.pose(&[1.0, 1.0, 0.0], MEMORY_NS + 300 * MS);
         envelope.ranges(&scan_ahead(4.0), MEMORY_NS + 300 * MS);
         assert_eq!(envelope.decide(vel(0.3, 0.0), MEMORY_NS + 300 * MS).action, Action::Passed);
+    }
+
+    #[test]
+    fn late_cycles_widen_the_zones_by_the_distance_covered_meanwhile() {
+        // (longest recent interval between judgments ms, ray ahead m,
+        // command, expected action, cause kind). Radius 0.2: the clearance
+        // is the reading - 0.2; the margin is 0.3 m/s times the interval.
+        #[rustfmt::skip]
+        let table: Vec<(u64, f64, f64, Action, Option<&str>)> = vec![
+            // clearance 0.35: passes with a prompt loop (cap 0.42, ttc 1.17 s) ...
+            (50,  0.55, 0.3, Action::Passed,  None),
+            // ... slows when 300 ms can pass before the next judgment (0.09 m)
+            (300, 0.55, 0.3, Action::Scaled,  Some("time-to-collision")),
+            // clearance 0.15: outside the stop zone, unless the robot covers
+            // more than 5 cm before it can react
+            (50,  0.35, 0.3, Action::Scaled,  Some("slowdown-zone")),
+            (300, 0.35, 0.3, Action::Stopped, Some("stop-zone")),
+            // a longer stall is budgeted as MAX_REACTION_S at most: clearance
+            // 0.3 less 0.15 leaves room to creep (0.9 s would leave 0.03 m)
+            (900, 0.50, 0.3, Action::Scaled,  Some("slowdown-zone")),
+        ];
+        for (interval_ms, ahead, v, action, cause) in table {
+            let mut envelope = Envelope::new(settings());
+            // Judgments every `interval_ms`, the robot standing still.
+            let mut now = 1_000 * MS;
+            envelope.ranges(&scan_ahead(4.0), now);
+            envelope.decide(ControlCommand::Stop, now);
+            now += interval_ms * MS;
+            envelope.ranges(&scan_ahead(ahead), now);
+            let verdict = envelope.decide(vel(v, 0.0), now);
+            assert_eq!(verdict.action, action, "{interval_ms} ms, {ahead} m: {verdict:?}");
+            assert_eq!(verdict.cause.as_ref().map(Cause::kind), cause, "{interval_ms} ms, {ahead} m: {verdict:?}");
+        }
+
+        // A late cycle is remembered for REACTION_WINDOW_NS, then forgotten
+        // once the loop has kept time again.
+        let mut envelope = Envelope::new(settings());
+        let mut now = 1_000 * MS;
+        envelope.decide(ControlCommand::Stop, now);
+        now += 300 * MS;
+        envelope.decide(ControlCommand::Stop, now);
+        assert!(close(envelope.reaction_s(), 0.3));
+        while now < 1_300 * MS + REACTION_WINDOW_NS + 100 * MS {
+            now += 50 * MS;
+            envelope.decide(ControlCommand::Stop, now);
+        }
+        assert!(close(envelope.reaction_s(), 0.05), "{}", envelope.reaction_s());
+
+        // The scan's age counts too: the robot kept moving at its last
+        // speed since the scan was taken.
+        let mut envelope = Envelope::new(settings());
+        let mut now = 1_000 * MS;
+        envelope.ranges(&scan_ahead(4.0), now);
+        for _ in 0..3 {
+            envelope.decide(vel(0.3, 0.0), now);
+            now += 10 * MS;
+        }
+        envelope.ranges(&scan_ahead(0.35), now);
+        assert_eq!(envelope.decide(vel(0.3, 0.0), now).action, Action::Scaled);
+        let mut aged = envelope.clone();
+        // The same reading, 200 ms old at 0.3 m/s: 6 cm already covered.
+        let verdict = aged.decide(vel(0.3, 0.0), now + 200 * MS);
+        assert_eq!(verdict.cause.as_ref().map(Cause::kind), Some("stop-zone"), "{verdict:?}");
     }
 
     #[test]

@@ -5,6 +5,7 @@
 
 pub mod builtin;
 pub mod control;
+pub mod device;
 pub mod protocol;
 pub mod serial;
 pub mod translator;

@@ -184,7 +184,7 @@ impl LinkStop {
         if let Some(port) = port.as_mut() {
             return self.write_final(port);
         }
-        match serialport::new(self.device.to_string_lossy(), self.baud).timeout(READ_TIMEOUT).open_native() {
+        match super::device::open(&self.device, self.baud, READ_TIMEOUT) {
             Ok(mut port) => self.write_final(&mut port),
             Err(_) => StopOutcome::NotConnected,
         }
@@ -595,8 +595,7 @@ fn io_thread(
     let mut warned = false;
     // A halted link has sent its final STOP: it neither writes nor reopens.
     while !io.stop.load(Ordering::Relaxed) && !stop.is_halted() {
-        let opened =
-            serialport::new(settings.device.to_string_lossy(), settings.baud).timeout(READ_TIMEOUT).open_native();
+        let opened = super::device::open(&settings.device, settings.baud, READ_TIMEOUT);
         let port = match opened {
             Ok(port) => port,
             Err(err) => {
