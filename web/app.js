@@ -165,6 +165,12 @@ function renderStatus(s) {
     $('envelope').textContent = 'none';
     $('intervention').textContent = '-';
   }
+  // Zenoh and ROS 2 bridges (docs/distributed.md): one line each.
+  const bridges = Object.keys(s).filter((k) => /^(zenoh|ros2)(:|$)/.test(k)).map((k) => s[k]);
+  $('bridges').textContent = bridges.length === 0 ? 'none' : bridges.map((b) => {
+    const seen = b.last_seen_s_ago == null ? 'never' : `${b.last_seen_s_ago.toFixed(1)} s ago`;
+    return `${b.key}: peers ${b.peers}, in ${b.in}, out ${b.out}, malformed ${b.malformed}, dropped ${b.dropped}, last seen ${seen}`;
+  }).join('\n');
   drawMap(sim, envelope);
 }
 

@@ -175,8 +175,28 @@ enum UserAction {
     List,
 }
 
+/// Allocations at least this large are mapped on their own and unmapped when
+/// freed. glibc's default threshold rises after the first large free, after
+/// which every login's argon2id working memory (19 MiB) stays resident in a
+/// per-thread arena: measured, the demo went from 15 to 74 MiB RSS after 10
+/// operator logins; with the threshold fixed it stays at 15 MiB.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+const MALLOC_MMAP_THRESHOLD: i32 = 128 << 10;
+
+/// Fixes glibc's mmap threshold (see [`MALLOC_MMAP_THRESHOLD`]); elsewhere
+/// nothing to do.
+fn return_large_blocks() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: mallopt only changes the allocator's tuning; called first in
+    // main, before any other thread exists.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_THRESHOLD, MALLOC_MMAP_THRESHOLD);
+    }
+}
+
 fn main() -> ExitCode {
     use tracing_subscriber::Layer as _;
+    return_large_blocks();
     use tracing_subscriber::layer::SubscriberExt as _;
     use tracing_subscriber::util::SubscriberInitExt as _;
     let cli = Cli::parse();

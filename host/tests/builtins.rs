@@ -223,7 +223,7 @@ fn describe_builtin_prints_every_declared_parameter_with_its_bounds() {
     assert!(!output.status.success());
     assert!(
         String::from_utf8_lossy(&output.stderr)
-            .contains("unknown built-in 'nope' (known: arbiter, envelope, log, publish, serial, sim, teleop)")
+            .contains("unknown built-in 'nope' (known: arbiter, envelope, log, publish, ros2-publish, ros2-subscribe, serial, sim, teleop, zenoh, zenoh-publish, zenoh-subscribe)")
     );
 }
 

@@ -2,6 +2,8 @@
 //! built-in is its own module plus one line here.
 
 use crate::arbiter::ArbiterBuiltin;
+use crate::bridge::ports::{ZenohPublish, ZenohSession, ZenohSubscribe};
+use crate::bridge::ros2_ports::{Ros2Publish, Ros2Subscribe};
 use crate::builtin::Builtin;
 use crate::builtin::log::Log;
 use crate::builtin::publish::Publish;
@@ -11,8 +13,20 @@ use crate::sim::builtin::SimBuiltin;
 use crate::teleop::builtin::TeleopBuiltin;
 
 /// Every built-in, in alphabetical order of kind.
-pub const BUILTINS: &[&dyn Builtin] =
-    &[&ArbiterBuiltin, &EnvelopeBuiltin, &Log, &Publish, &SerialBuiltin, &SimBuiltin, &TeleopBuiltin];
+pub const BUILTINS: &[&dyn Builtin] = &[
+    &ArbiterBuiltin,
+    &EnvelopeBuiltin,
+    &Log,
+    &Publish,
+    &Ros2Publish,
+    &Ros2Subscribe,
+    &SerialBuiltin,
+    &SimBuiltin,
+    &TeleopBuiltin,
+    &ZenohSession,
+    &ZenohPublish,
+    &ZenohSubscribe,
+];
 
 /// The built-in of `kind`.
 pub fn find(kind: &str) -> Option<&'static dyn Builtin> {

@@ -1,0 +1,284 @@
+//! The Zenoh sessions of this host: one per distinct set of settings
+//! (`connect`, `listen`, `zenoh-config`), opened by the first built-in that
+//! needs it and closed when the last one using it is dropped, so a robot
+//! file with nothing Zenoh starts nothing Zenoh.
+//!
+//! Defaults follow rmw_zenoh's session: peer mode, multicast scouting off
+//! (robots on one network do not find each other by accident), endpoints
+//! given explicitly. A JSON5 config file (Zenoh's own format) is the base
+//! when given, for TLS and user/password authentication; `connect` and
+//! `listen`, when given, replace its endpoints.
+//!
+//! Zenoh runs its own tokio runtime; nothing here runs on the control loop
+//! but the open at build time. A watcher thread per session counts its
+//! peers for the status.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use std::str::FromStr;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, Weak};
+use std::time::{Duration, SystemTime, UNIX_EPOCH};
+
+use thiserror::Error;
+use zenoh::Wait;
+
+use crate::builtin::{BuiltinError, ParamDecl, ParamType, Params};
+use crate::config::ParamProblem;
+use crate::contract::clip;
+
+/// Most endpoints one setting may list: each is a connection attempt.
+pub const MAX_ENDPOINTS: usize = 16;
+
+/// How often a session's peers are counted for the status.
+const PEER_POLL: Duration = Duration::from_millis(500);
+
+/// Why a session did not open.
+#[derive(Debug, Error)]
+pub enum SessionError {
+    #[error("zenoh config {path}: {why}")]
+    ConfigFile { path: PathBuf, why: String },
+    #[error("zenoh setting {key}: {why}")]
+    Setting { key: &'static str, why: String },
+    #[error("zenoh session did not open: {0}")]
+    Open(String),
+}
+
+impl From<SessionError> for BuiltinError {
+    fn from(e: SessionError) -> BuiltinError {
+        BuiltinError::Refused(e.to_string())
+    }
+}
+
+/// The session parameters every Zenoh built-in declares.
+pub const SESSION_PARAMS: [ParamDecl; 3] = [
+    ParamDecl {
+        name: "connect",
+        ty: ParamType::Text,
+        default: "",
+        unit: "",
+        doc: "zenoh endpoints to connect to, comma-separated (tcp/192.168.1.7:7447); empty: none",
+    },
+    ParamDecl {
+        name: "listen",
+        ty: ParamType::Text,
+        default: "",
+        unit: "",
+        doc: "zenoh endpoints to listen on, comma-separated (tcp/0.0.0.0:7447); empty: none",
+    },
+    ParamDecl {
+        name: "zenoh-config",
+        ty: ParamType::File { optional: true },
+        default: "",
+        unit: "",
+        doc: "a Zenoh JSON5 config file (TLS, user/password); connect and listen replace its endpoints",
+    },
+];
+
+/// What identifies a session: equal settings share one.
+#[derive(Clone, Debug, PartialEq, Eq, Hash)]
+pub struct SessionSettings {
+    pub connect: Vec<String>,
+    pub listen: Vec<String>,
+    pub config: Option<PathBuf>,
+}
+
+fn endpoints(text: &str, key: &'static str) -> Result<Vec<String>, SessionError> {
+    let list: Vec<String> = text.split(',').map(str::trim).filter(|s| !s.is_empty()).map(str::to_string).collect();
+    if list.len() > MAX_ENDPOINTS {
+        return Err(SessionError::Setting { key, why: format!("lists more than {MAX_ENDPOINTS} endpoints") });
+    }
+    for e in &list {
+        zenoh::config::EndPoint::from_str(e).map_err(|_| SessionError::Setting {
+            key,
+            why: format!("lists '{}', which is not an endpoint (PROTOCOL/ADDRESS: tcp/127.0.0.1:7447)", clip(e)),
+        })?;
+        if !e.starts_with("tcp/") {
+            return Err(SessionError::Setting {
+                key,
+                why: format!("lists '{}', but this host speaks zenoh over tcp only (tcp/HOST:PORT)", clip(e)),
+            });
+        }
+    }
+    Ok(list)
+}
+
+impl SessionSettings {
+    /// The settings in `params`, files relative to `base_dir`.
+    pub fn from_params(params: &Params, base_dir: &Path) -> Result<SessionSettings, SessionError> {
+        let text = |name| params.text(name).unwrap_or_default();
+        let config = Some(text("zenoh-config").trim()).filter(|s| !s.is_empty()).map(|f| base_dir.join(f));
+        Ok(SessionSettings {
+            connect: endpoints(text("connect"), "connect")?,
+            listen: endpoints(text("listen"), "listen")?,
+            config,
+        })
+    }
+
+    /// Every problem of the session parameters, for a built-in's check.
+    pub fn check(params: &Params, base_dir: &Path) -> Vec<ParamProblem> {
+        let mut problems = Vec::new();
+        for key in ["connect", "listen"] {
+            if let Err(SessionError::Setting { why, .. }) = endpoints(params.text(key).unwrap_or_default(), "connect") {
+                problems.push(ParamProblem::new(key, why));
+            }
+        }
+        if let Ok(settings) = SessionSettings::from_params(params, base_dir)
+            && let Err(e) = settings.zenoh_config()
+        {
+            problems.push(ParamProblem::new("zenoh-config", e.to_string()));
+        }
+        problems
+    }
+
+    /// The Zenoh configuration these settings stand for.
+    pub fn zenoh_config(&self) -> Result<zenoh::Config, SessionError> {
+        let set = |config: &mut zenoh::Config, key: &'static str, value: String| {
+            config.insert_json5(key, &value).map_err(|why| SessionError::Setting { key, why: why.to_string() })
+        };
+        let mut config = match &self.config {
+            Some(path) => zenoh::Config::from_file(path)
+                .map_err(|why| SessionError::ConfigFile { path: path.clone(), why: why.to_string() })?,
+            None => {
+                let mut config = zenoh::Config::default();
+                set(&mut config, "mode", "\"peer\"".into())?;
+                set(&mut config, "scouting/multicast/enabled", "false".into())?;
+                config
+            }
+        };
+        let json = |list: &[String]| serde_json::to_string(list).unwrap_or_else(|_| "[]".into());
+        if !self.connect.is_empty() || self.config.is_none() {
+            set(&mut config, "connect/endpoints", json(&self.connect))?;
+        }
+        if !self.listen.is_empty() || self.config.is_none() {
+            set(&mut config, "listen/endpoints", json(&self.listen))?;
+        }
+        Ok(config)
+    }
+}
+
+/// One open session, shared by the built-ins with its settings.
+pub struct Shared {
+    pub session: zenoh::Session,
+    /// This session's id, as tokens and GIDs spell it.
+    pub id: String,
+    peers: AtomicUsize,
+    next_entity: AtomicU64,
+}
+
+impl Shared {
+    /// How many peers the session is connected to (counted every 500 ms).
+    pub fn peers(&self) -> usize {
+        self.peers.load(Ordering::Relaxed)
+    }
+
+    /// A fresh entity id within this session (ROS 2 tokens and GIDs).
+    pub fn next_entity(&self) -> u32 {
+        self.next_entity.fetch_add(1, Ordering::Relaxed) as u32 + 1
+    }
+}
+
+type Registry = Mutex<HashMap<SessionSettings, Weak<Shared>>>;
+
+fn registry() -> &'static Registry {
+    static SESSIONS: std::sync::OnceLock<Registry> = std::sync::OnceLock::new();
+    SESSIONS.get_or_init(Default::default)
+}
+
+/// The session for `settings`: the running one, or a new one.
+pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> {
+    let mut sessions = registry().lock().map_err(|_| SessionError::Open("session registry poisoned".into()))?;
+    if let Some(shared) = sessions.get(settings).and_then(Weak::upgrade) {
+        return Ok(shared);
+    }
+    let config = settings.zenoh_config()?;
+    let session = zenoh::open(config).wait().map_err(|why| SessionError::Open(why.to_string()))?;
+    let id = session.zid().to_string();
+    let shared = Arc::new(Shared { session, id, peers: AtomicUsize::new(0), next_entity: AtomicU64::new(0) });
+    sessions.retain(|_, weak| weak.strong_count() > 0);
+    sessions.insert(settings.clone(), Arc::downgrade(&shared));
+    let watched = Arc::downgrade(&shared);
+    let _ = std::thread::Builder::new().name("zenoh-peers".into()).spawn(move || {
+        while let Some(shared) = watched.upgrade() {
+            let peers = shared.session.info().peers_zid().wait().count();
+            shared.peers.store(peers, Ordering::Relaxed);
+            drop(shared);
+            std::thread::sleep(PEER_POLL);
+        }
+    });
+    tracing::info!(session = %shared.id, connect = ?settings.connect, listen = ?settings.listen, "zenoh session open");
+    Ok(shared)
+}
+
+/// Nanoseconds since the UNIX epoch (timestamps on the wire).
+pub fn unix_ns() -> u64 {
+    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
+}
+
+/// Counters of one bridge (a Zenoh or ROS 2 built-in), for the report and
+/// the live status. Written by the control loop (out) and Zenoh's threads
+/// (in, malformed, dropped).
+#[derive(Debug, Default)]
+pub struct BridgeStats {
+    pub messages_in: AtomicU64,
+    pub messages_out: AtomicU64,
+    /// Payloads that did not decode (counted and dropped).
+    pub malformed: AtomicU64,
+    /// Messages dropped because a queue was full.
+    pub dropped: AtomicU64,
+    /// When the last message arrived, ns since the UNIX epoch (0: never).
+    pub last_seen_ns: AtomicU64,
+    /// The last decode error, for the status.
+    pub last_error: Mutex<Option<String>>,
+}
+
+impl BridgeStats {
+    pub fn malformed(&self, why: String) {
+        self.malformed.fetch_add(1, Ordering::Relaxed);
+        if let Ok(mut last) = self.last_error.lock() {
+            *last = Some(clip(&why));
+        }
+    }
+
+    /// The status section: key, peers, counters, last seen.
+    pub fn status(&self, key: &str, shared: &Shared) -> serde_json::Value {
+        let last = self.last_seen_ns.load(Ordering::Relaxed);
+        let age = (last > 0).then(|| unix_ns().saturating_sub(last) as f64 / 1e9);
+        serde_json::json!({
+            "key": key,
+            "session": shared.id,
+            "peers": shared.peers(),
+            "in": self.messages_in.load(Ordering::Relaxed),
+            "out": self.messages_out.load(Ordering::Relaxed),
+            "malformed": self.malformed.load(Ordering::Relaxed),
+            "dropped": self.dropped.load(Ordering::Relaxed),
+            "last_seen_s_ago": age,
+            "last_error": self.last_error.lock().ok().and_then(|e| e.clone()),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn endpoints_are_checked() {
+        assert_eq!(endpoints(" tcp/127.0.0.1:7447 , ", "connect").ok(), Some(vec!["tcp/127.0.0.1:7447".to_string()]));
+        assert!(endpoints("127.0.0.1:7447", "connect").is_err());
+        assert!(endpoints("udp/127.0.0.1:7447", "connect").is_err());
+        let many = vec!["tcp/127.0.0.1:1"; MAX_ENDPOINTS + 1].join(",");
+        assert!(endpoints(&many, "listen").is_err());
+    }
+
+    #[test]
+    fn the_default_config_is_peer_mode_without_multicast() {
+        let settings = SessionSettings { connect: vec!["tcp/127.0.0.1:7447".into()], listen: vec![], config: None };
+        let config = settings.zenoh_config().unwrap_or_default();
+        let get = |key| config.get_json(key).unwrap_or_default();
+        assert_eq!(get("mode"), "\"peer\"");
+        assert_eq!(get("scouting/multicast/enabled"), "false");
+        assert_eq!(get("connect/endpoints"), "[\"tcp/127.0.0.1:7447\"]");
+        assert_eq!(get("listen/endpoints"), "[]");
+    }
+}

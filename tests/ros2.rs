@@ -1,0 +1,256 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! The ROS 2 face end to end, against implementations no one here wrote:
+//! `tests/python/ros2_peer.py` is the ROS 2 side, built on the
+//! `eclipse-zenoh` package (the Zenoh peer) and `rosbags` (CDR for every
+//! message, REP-2016 type hashes computed from the definitions). The wire
+//! format (key expressions, attachment, liveliness tokens) is rmw_zenoh's
+//! (ros2/rmw_zenoh docs/design.md); the fixtures in `bridge::ros2`'s unit
+//! tests are the document's own examples.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::io::{BufRead, BufReader, Write};
+use std::path::PathBuf;
+use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+use subsume::bridge::cdr::{self, Header, LaserScan, Log, Odometry, Time, Twist};
+use subsume::bridge::ros2::MessageType;
+
+fn python() -> PathBuf {
+    let venv = support::repo_root().join("tests/python/.venv/bin/python");
+    assert!(venv.exists(), "run scripts/setup first: {} is missing", venv.display());
+    venv
+}
+
+fn peer_once(mode: &str) -> Json {
+    let out =
+        Command::new(python()).arg(support::repo_root().join("tests/python/ros2_peer.py")).arg(mode).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+#[test]
+fn the_type_hashes_are_the_ones_rosbags_computes_from_the_definitions() {
+    let hashes = peer_once("hashes");
+    for (name, ty) in MessageType::ALL {
+        assert_eq!(hashes[name], ty.rihs01(), "{name}");
+    }
+}
+
+#[test]
+fn the_cdr_bytes_are_the_ones_rosbags_writes() {
+    let fixtures = peer_once("fixtures");
+    let stamp = Time { sec: 12, nanosec: 34 };
+    let header = |frame: &str| Header { stamp, frame_id: frame.into() };
+    let ours = [
+        ("twist", Twist { linear: [0.5, 0.0, 0.0], angular: [0.0, 0.0, -1.0] }.encode()),
+        ("bool", cdr::encode_bool(true)),
+        ("log", Log { stamp, level: 20, name: "subsume".into(), msg: "hello".into(), ..Log::default() }.encode()),
+        (
+            "scan",
+            LaserScan {
+                header: header("base_scan"),
+                angle_min: -1.5,
+                angle_max: 1.5,
+                angle_increment: 1.5,
+                range_max: 4.0,
+                ranges: vec![1.0, 2.0, 3.0],
+                ..LaserScan::default()
+            }
+            .encode(),
+        ),
+        (
+            "odom",
+            Odometry {
+                header: header("odom"),
+                child_frame_id: "base_link".into(),
+                position: [1.5, -2.0, 0.0],
+                orientation: [0.0, 0.0, 0.5, 0.75],
+                twist: Twist::default(),
+            }
+            .encode(),
+        ),
+    ];
+    for (name, bytes) in ours {
+        assert_eq!(hex::encode(&bytes), fixtures[name].as_str().unwrap(), "{name}");
+        let theirs = hex::decode(fixtures[name].as_str().unwrap()).unwrap();
+        match name {
+            "twist" => assert!(Twist::decode(&theirs).is_ok()),
+            "log" => assert_eq!(Log::decode(&theirs).unwrap().msg, "hello"),
+            "scan" => assert_eq!(LaserScan::decode(&theirs).unwrap().ranges, vec![1.0, 2.0, 3.0]),
+            "odom" => assert_eq!(Odometry::decode(&theirs).unwrap().position, [1.5, -2.0, 0.0]),
+            _ => assert_eq!(cdr::decode_bool(&theirs), Ok(true)),
+        }
+    }
+}
+
+struct Peer {
+    child: Child,
+    stdin: Option<ChildStdin>,
+    stdout: BufReader<ChildStdout>,
+}
+
+impl Peer {
+    fn start(mode: &str, endpoint: &str) -> Peer {
+        let mut child = Command::new(python())
+            .arg(support::repo_root().join("tests/python/ros2_peer.py"))
+            .args([mode, endpoint])
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stdin = child.stdin.take();
+        let mut stdout = BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        stdout.read_line(&mut line).unwrap();
+        assert_eq!(line.trim(), "ready");
+        Peer { child, stdin, stdout }
+    }
+
+    fn finish(mut self) -> Json {
+        if let Some(mut stdin) = self.stdin.take() {
+            let _ = stdin.flush();
+        }
+        let mut line = String::new();
+        self.stdout.read_line(&mut line).unwrap();
+        let _ = self.child.wait();
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("peer said {line:?}: {e}"))
+    }
+}
+
+impl Drop for Peer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+/// `subsume run CONFIG --param zenoh.connect=ENDPOINT`, stopped by SIGTERM
+/// after `run_for`; returns its report.
+fn run_host(config: &str, endpoint: &str, run_for: Duration) -> Json {
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let report = dir.path().join("report.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .env("NO_COLOR", "1")
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", config])
+        .args(["--param", &format!("zenoh.connect={endpoint}")])
+        .args(["--duration", "120", "--report", report.to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    std::thread::sleep(run_for);
+    let status = Command::new("kill").args(["-15", &child.id().to_string()]).status().unwrap();
+    assert!(status.success());
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while child.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "the host did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+}
+
+fn section<'a>(report: &'a Json, key_part: &str) -> &'a Json {
+    report
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(name, v)| name.starts_with("ros2") && v["key"].as_str().unwrap_or("").contains(key_part))
+        .map(|(_, v)| v)
+        .unwrap_or_else(|| panic!("no ros2 section for {key_part}"))
+}
+
+#[test]
+fn use_a_ros2_tools_drive_the_simulated_robot_and_decode_scan_and_odom() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let peer = Peer::start("robot", &endpoint);
+    // Drive for a few seconds once connected; the host's session retries
+    // its connect until the peer answers.
+    let report = std::thread::scope(|s| {
+        let host = s.spawn(|| run_host("config/ros2-demo.xml", &endpoint, Duration::from_secs(6)));
+        std::thread::sleep(Duration::from_secs(5));
+        let summary = peer.finish();
+        (host.join().unwrap(), summary)
+    });
+    let (report, summary) = report;
+    assert_eq!(summary["bad"], Json::Array(vec![]), "{summary}");
+    // /odom decoded by rosbags: the Twist moved the robot.
+    let first = &summary["odom_first"];
+    let last = &summary["odom_last"];
+    let moved = ((last[0].as_f64().unwrap() - first[0].as_f64().unwrap()).powi(2)
+        + (last[1].as_f64().unwrap() - first[1].as_f64().unwrap()).powi(2))
+    .sqrt();
+    assert!(moved > 0.3, "the robot moved {moved} m: {first} -> {last}");
+    assert_eq!((last[3].as_str(), last[4].as_str()), (Some("odom"), Some("base_link")));
+    assert!(summary["odom_count"].as_u64().unwrap() > 20, "{summary}");
+    // /scan decoded by rosbags: the simulator's 9 rays over 180 degrees.
+    let scan = &summary["scan"];
+    assert_eq!(scan["ranges"].as_array().unwrap().len(), 9, "{scan}");
+    assert!((scan["angle_min"].as_f64().unwrap() + std::f64::consts::FRAC_PI_2).abs() < 1e-3, "{scan}");
+    assert!((scan["angle_increment"].as_f64().unwrap() - std::f64::consts::FRAC_PI_8).abs() < 1e-3, "{scan}");
+    assert_eq!(scan["frame_id"], "base_scan");
+    assert!(summary["scans"].as_u64().unwrap() > 20);
+    // The liveliness tokens `ros2 node list` and `ros2 topic list` read.
+    let tokens: Vec<&str> = summary["tokens"].as_array().unwrap().iter().filter_map(|t| t.as_str()).collect();
+    let has = |pattern: &[&str]| tokens.iter().any(|t| pattern.iter().all(|p| t.contains(p)));
+    assert!(has(&["@ros2_lv/0/", "/0/0/NN/%/%/subsume"]), "{tokens:?}");
+    for (kind, topic, ty) in [
+        ("MS", "%cmd_vel", MessageType::Twist),
+        ("MP", "%odom", MessageType::Odometry),
+        ("MP", "%scan", MessageType::LaserScan),
+        ("MP", "%rosout", MessageType::Log),
+    ] {
+        let tail = format!("/{kind}/%/%/subsume/{topic}/{}/{}/::,10:,:,:,,", ty.dds_name(), ty.rihs01());
+        assert!(tokens.iter().any(|t| t.ends_with(&tail)), "{tail} in {tokens:?}");
+    }
+    // The cut-short Twists were counted and dropped; the rest went in.
+    let cmd = section(&report, "/cmd_vel/");
+    let garbage = summary["garbage"].as_u64().unwrap();
+    let malformed = cmd["malformed"].as_u64().unwrap();
+    assert!(malformed >= 1 && malformed <= garbage, "{cmd} for {garbage} sent");
+    assert!(cmd["in"].as_u64().unwrap() > 20, "{cmd}");
+    assert!(section(&report, "/odom/")["out"].as_u64().unwrap() > 20);
+    assert!(section(&report, "/rosout/")["out"].as_u64().unwrap() > 0);
+    // /cmd_vel held control (priority 2, over the planner's 1).
+    let held = report["arbiter"]["held_s"].as_array().unwrap();
+    assert!(held.iter().any(|h| h[0] == "cmd-vel" && h[1].as_f64().unwrap_or(0.0) > 1.0), "{}", report["arbiter"]);
+}
+
+#[test]
+fn use_b_a_python_base_gets_cmd_vel_and_the_zero_twist_when_the_host_stops() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let peer = Peer::start("base", &endpoint);
+    let report = run_host("config/ros2-base.xml", &endpoint, Duration::from_secs(6));
+    // Let the last Twist arrive.
+    std::thread::sleep(Duration::from_millis(500));
+    let summary = peer.finish();
+    assert_eq!(summary["bad"], Json::Array(vec![]), "{summary}");
+    let twists: Vec<Vec<f64>> = summary["twists"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect())
+        .collect();
+    assert!(twists.len() > 20, "{} twists", twists.len());
+    // The planner drives toward its goal ahead: forward, decoded by rosbags.
+    assert!(twists.iter().any(|t| t[0] > 0.05), "{twists:?}");
+    // Only linear.x and angular.z are ever set.
+    assert!(twists.iter().all(|t| t[1] == 0.0 && t[2] == 0.0 && t[3] == 0.0 && t[4] == 0.0));
+    // The host stopped: the last Twist is the zero Twist.
+    assert_eq!(twists.last().unwrap(), &vec![0.0; 6], "{:?}", &twists[twists.len().saturating_sub(3)..]);
+    let scan = section(&report, "/scan/");
+    assert!(scan["in"].as_u64().unwrap() > 20, "{scan}");
+    assert_eq!(scan["malformed"], 0, "{scan}");
+    // The base was still connected when the host stopped.
+    assert_eq!(scan["peers"], 1, "{scan}");
+}

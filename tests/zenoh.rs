@@ -1,0 +1,217 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! Cooperating hosts end to end: two `subsume run` processes on loopback,
+//! joined by Zenoh (docs/distributed.md). Host A owns the motors (a
+//! pseudo-terminal this test plays), publishes its ranges and takes host
+//! B's commands as one more arbiter source (priority 3, timeout 300 ms)
+//! above a local stand-in planner (priority 1). Host B runs the WASM
+//! avoider on A's ranges. Killing B must hand the motors back to the
+//! planner within B's timeout.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+
+struct Host {
+    child: Child,
+    report: PathBuf,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for Host {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn free_port() -> u16 {
+    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
+}
+
+fn start(name: &str, body: &str) -> Host {
+    let dir = tempfile::tempdir().unwrap();
+    let mut xml = format!("<robot name=\"{name}\">\n{body}\n</robot>\n");
+    for guest in ["avoider", "range-filter"] {
+        xml = xml.replace(&format!("GUEST({guest})"), &support::guest(guest).display().to_string());
+    }
+    let robot = dir.path().join("robot.xml");
+    std::fs::write(&robot, xml).unwrap();
+    let report = dir.path().join("report.json");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
+        .args(["--duration", "60", "--report", report.to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let label = name.to_string();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if line.contains("control loop") || line.contains("zenoh session open") {
+                let _ = tx.send(());
+            }
+            if line.contains("ERROR") || line.contains("WARN") || line.contains("error:") {
+                eprintln!("{label}: {line}");
+            }
+        }
+    });
+    let _ = rx.recv_timeout(Duration::from_secs(60));
+    Host { child, report, _dir: dir }
+}
+
+fn stop(mut host: Host) -> Json {
+    let pid = host.child.id() as i32;
+    unsafe_kill(pid, 15);
+    let deadline = Instant::now() + Duration::from_secs(20);
+    while host.child.try_wait().unwrap().is_none() {
+        assert!(Instant::now() < deadline, "host did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    read_report(&host.report)
+}
+
+fn unsafe_kill(pid: i32, signal: i32) {
+    let status = Command::new("kill").arg(format!("-{signal}")).arg(pid.to_string()).status().unwrap();
+    assert!(status.success());
+}
+
+fn read_report(path: &Path) -> Json {
+    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// The report section of the bridge on `key`.
+fn bridge<'a>(report: &'a Json, key: &str) -> &'a Json {
+    report
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(name, v)| name.starts_with("zenoh") && v["key"] == key)
+        .map(|(_, v)| v)
+        .unwrap_or_else(|| panic!("no bridge on {key}: {report}"))
+}
+
+const PLANNER: &str = "M 200 200";
+
+type Lines = [(Instant, String)];
+
+/// Plays the motor controller until `until` or `done`: an obstacle 0.3 m
+/// ahead on every ray, 20 times a second; records what the host writes.
+fn feed_until(motors: &mut support::MotorRecorder, until: Instant, done: &dyn Fn(&Lines) -> bool) {
+    let mut next = Instant::now();
+    while Instant::now() < until && !done(&motors.lines) {
+        if Instant::now() >= next {
+            motors.write(b"R 300 300 300 300 300 300 300 300 300\n");
+            next += Duration::from_millis(50);
+        }
+        motors.read();
+    }
+}
+
+#[test]
+fn host_b_avoids_for_host_a_and_when_b_dies_the_planner_takes_over_within_the_timeout() {
+    support::guest_dir();
+    let port = free_port();
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let a = start(
+        "host-a",
+        &format!(
+            r#"<platform name="control">
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
+    <component name="planner" source="builtin:publish" rate="20" priority="1" timeout="300ms">
+      <param name="kind" value="command"/><param name="value" value="VEL 0.2 0"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="50"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="planner.out" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+  <platform name="network">
+    <component name="zenoh" source="builtin:zenoh"><param name="listen" value="tcp/127.0.0.1:{port}"/></component>
+    <component name="ranges-out" source="builtin:zenoh-publish"><param name="key" value="test/a/ranges"/></component>
+    <component name="remote-avoid" source="builtin:zenoh-subscribe" priority="3" timeout="300ms">
+      <param name="key" value="test/b/cmd"/><param name="kind" value="command"/>
+    </component>
+    <connect from="motors.ranges" to="ranges-out.in"/>
+    <connect from="remote-avoid.out" to="arbiter.commands"/>
+  </platform>"#
+        ),
+    );
+    let b = start(
+        "host-b",
+        &format!(
+            r#"<platform name="control">
+    <component name="avoid" source="GUEST(avoider)" rate="20" budget="5ms" memory="16MiB">
+      <param name="threshold" value="0.55"/><param name="creep-speed" value="0.1"/><param name="turn-rate" value="1.5"/>
+    </component>
+    <connect from="ranges-in.out" to="avoid.ranges"/>
+    <connect from="avoid.cmd" to="cmd-out.in"/>
+  </platform>
+  <platform name="network">
+    <component name="zenoh" source="builtin:zenoh"><param name="connect" value="tcp/127.0.0.1:{port}"/></component>
+    <component name="ranges-in" source="builtin:zenoh-subscribe">
+      <param name="key" value="test/a/ranges"/><param name="kind" value="vector"/>
+    </component>
+    <component name="cmd-out" source="builtin:zenoh-publish"><param name="key" value="test/b/cmd"/></component>
+  </platform>"#
+        ),
+    );
+    let turning = |l: &str| l.starts_with("M ") && l != PLANNER;
+    let started = Instant::now();
+    feed_until(&mut motors, started + Duration::from_secs(30), &|lines| lines.iter().any(|(_, l)| turning(l)));
+    let first_turn =
+        motors.lines.iter().position(|(_, l)| turning(l)).expect("host B's avoider never reached A's motors");
+    // B holds control while it keeps answering.
+    let held_from = Instant::now();
+    feed_until(&mut motors, held_from + Duration::from_secs(1), &|_| false);
+    let while_b: Vec<&String> = motors.lines.iter().filter(|(at, _)| *at > held_from).map(|(_, l)| l).collect();
+    assert!(
+        !while_b.is_empty() && while_b.iter().all(|l| turning(l)),
+        "B's commands win over the planner: {while_b:?}"
+    );
+    assert!(motors.lines[..first_turn].iter().any(|(_, l)| l == PLANNER), "the planner drove before B answered");
+
+    // B dies without a word.
+    let killed = Instant::now();
+    unsafe_kill(b.child.id() as i32, 9);
+    feed_until(&mut motors, killed + Duration::from_millis(1500), &|_| false);
+    drop(b);
+    let back = motors.lines.iter().find(|(at, l)| *at > killed && l == PLANNER).expect("the planner took over");
+    let after = back.0.duration_since(killed);
+    // B's timeout is 300 ms from its last command (sent before the kill);
+    // the arbiter ticks at 50 Hz, the link at 100 Hz; 300 ms of slack for a
+    // loaded machine (quiet runs take over in about 300 ms).
+    eprintln!("the planner took over {after:?} after the kill");
+    assert!(after < Duration::from_millis(600), "the planner took over after {after:?}");
+    let late: Vec<&String> =
+        motors.lines.iter().filter(|(at, _)| *at > killed + Duration::from_millis(600)).map(|(_, l)| l).collect();
+    assert!(late.iter().all(|l| l.as_str() == PLANNER), "after the timeout only the planner drives: {late:?}");
+
+    let report = stop(a);
+    let remote = bridge(&report, "test/b/cmd");
+    assert!(remote["in"].as_u64().unwrap() > 10, "{remote}");
+    assert_eq!(remote["malformed"], 0, "{remote}");
+    let ranges = bridge(&report, "test/a/ranges");
+    assert!(ranges["out"].as_u64().unwrap() > 10, "{ranges}");
+    // The remote source held control (at the robot file's priority 3, over
+    // the planner's 1), then the planner again.
+    let held = report["arbiter"]["held_s"].as_array().unwrap();
+    let held_by = |name: &str| held.iter().find(|h| h[0] == name).and_then(|h| h[1].as_f64()).unwrap_or(0.0);
+    assert!(held_by("remote-avoid") > 0.9 && held_by("planner") > 0.5, "{}", report["arbiter"]);
+    assert_eq!(report["arbiter"]["holder"], "planner");
+}
