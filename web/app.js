@@ -56,10 +56,49 @@ function start(user) {
   const logout = el('button', { id: 'logout' }, 'Log out');
   logout.addEventListener('click', async () => { await api('POST', '/logout').catch(() => {}); location.reload(); });
   $('whoami').append(' ', logout);
+  $('estop-bar').hidden = false;
+  refreshLocks();
   startLive();
   refreshComponents();
   refreshSets();
 }
+
+// ---- emergency stop (docs/estop.md) --------------------------------------
+// STOP on every tab for every logged-in user; release is a separate,
+// confirmed action, offered to users who may drive.
+const mayDrive = () => me && (me.role === 'operator' || me.role === 'admin');
+function renderLocks(engaged) {
+  const banner = $('lock-banner');
+  if (!engaged || engaged.length === 0) {
+    banner.textContent = '';
+    document.body.classList.remove('locked');
+    $('release').hidden = true;
+    return;
+  }
+  document.body.classList.add('locked');
+  banner.textContent = 'STOPPED: ' + engaged.map((e) => `${e.lock} by ${e.by} over ${e.how} since ${new Date(e.since_ms).toLocaleTimeString()}`).join('; ');
+  $('release').hidden = !mayDrive();
+}
+async function refreshLocks() {
+  try { renderLocks((await api('GET', '/locks')).engaged); } catch (err) { /* shown on the next status */ }
+}
+$('estop').addEventListener('click', async () => {
+  try {
+    renderLocks((await api('POST', '/estop')).engaged);
+  } catch (err) {
+    $('lock-banner').textContent = 'the stop failed: ' + err.message;
+  }
+});
+$('release').addEventListener('click', async () => {
+  if (!confirm('Release the emergency stop? The robot may move at once.')) return;
+  try {
+    await api('POST', '/release');
+  } catch (err) {
+    $('lock-banner').textContent = 'release refused: ' + err.message;
+    return;
+  }
+  refreshLocks();
+});
 
 // ---- tabs ----------------------------------------------------------------
 for (const button of document.querySelectorAll('#tabs button')) {
@@ -95,6 +134,7 @@ function renderStatus(s) {
   }
   $('active-set').textContent = `set ${s.set} (${s.robot})`;
   const arbiter = s.arbiter || {};
+  if (arbiter.engaged) renderLocks(arbiter.engaged);
   $('holder').textContent = arbiter.holder || 'nobody (STOP)';
   $('suppressed').textContent = (arbiter.suppressed || []).join(', ') || '-';
   const sessions = (s.network && s.network.sessions || []).filter((x) => x.disconnected_at_s == null && x.operator);

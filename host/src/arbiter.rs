@@ -15,6 +15,14 @@
 //! suppressed by whom, idle) in the host's [`Standings`] when it changed, so
 //! the network platform can tell its operator.
 //!
+//! Locks (docs/estop.md): while a lock of the host's [`Locks`] is engaged,
+//! every source below its priority is suppressed (a lock the robot file
+//! does not declare in `locks` is above every source), so unless a source
+//! at or above it drives, the motors get STOP. The arbiter checks the board
+//! once per cycle (one atomic load) and decides at once when it changed; a
+//! `true` on the `lock` input (a bumper) engages the `feed-lock`. Nothing
+//! here releases a lock.
+//!
 //! [`Arbiter`] is the decision logic, driven with explicit time; the
 //! `builtin:arbiter` component ([`ArbiterComponent`]) wires it into the graph:
 //! every connection into its `commands` input is a source, with the sending
@@ -22,17 +30,28 @@
 
 use serde::Serialize;
 
-use crate::builtin::{self, BuildContext, Builtin, BuiltinError, ParamDecl, Params, Ports};
-use crate::config::ComponentSource;
+use crate::builtin::{
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
+};
+use crate::config::{ComponentSource, ParamProblem};
 use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::{CallError, Component, Outbox, PriorityCell, Standing, Standings};
+use crate::runtime::locks::unix_now_ms;
+use crate::runtime::{CallError, Component, Engagement, LockEvent, Locks, Outbox, PriorityCell, Standing, Standings};
 
 /// The built-in kind whose sources answer to a person (they win ties).
 const OPERATOR_KIND: &str = "teleop";
 
 /// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
+
+/// Most locks one arbiter may declare (`locks`): the robot file is the
+/// only writer, and a lock is a word in the status and the portal.
+pub const MAX_DECLARED_LOCKS: usize = 16;
+
+/// The priority of a lock the robot file does not declare: above every
+/// source.
+pub const UNDECLARED_LOCK_PRIORITY: i32 = i32::MAX;
 
 /// One source of motion commands.
 #[derive(Clone, Debug, PartialEq)]
@@ -80,6 +99,23 @@ pub struct ArbiterStatus {
     pub held_s: Vec<(String, f64)>,
     /// Commands that were not valid control strings.
     pub rejected: u64,
+    /// The highest engaged lock, if any: its name and priority (`None`:
+    /// undeclared, above every source).
+    pub lock: Option<LockView>,
+    /// Every engaged lock.
+    pub engaged: Vec<Engagement>,
+    /// The latest lock events (at most `runtime::locks::MAX_LOCK_HISTORY`)
+    /// and how many there were.
+    pub lock_events: Vec<LockEvent>,
+    pub lock_events_total: u64,
+}
+
+/// The lock that bounds the arbiter's sources now.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+pub struct LockView {
+    pub name: String,
+    /// `None` when the robot file does not declare it (above everything).
+    pub priority: Option<i32>,
 }
 
 /// The subsumption decision, with explicit time.
@@ -91,14 +127,83 @@ pub struct Arbiter {
     switches: u64,
     stops_sent: u64,
     rejected: u64,
+    locks: Locks,
+    /// Declared locks and their priorities.
+    declared: Vec<(String, i32)>,
+    /// The board's generation the floor was computed at.
+    seen_locks: Option<u64>,
+    /// The highest engaged lock: (name, priority); sources below it do not count.
+    floor: Option<(String, i32)>,
 }
 
 impl Arbiter {
     /// An arbiter over `sources`, in robot-file order (the tie-break order).
     pub fn new(sources: Vec<Source>) -> Arbiter {
+        Arbiter::with_locks(sources, Locks::default(), Vec::new())
+    }
+
+    /// An arbiter over `sources` bounded by the host's `locks`, with the
+    /// priorities the robot file `declared` for some of them.
+    pub fn with_locks(sources: Vec<Source>, locks: Locks, declared: Vec<(String, i32)>) -> Arbiter {
         let sources =
             sources.into_iter().map(|source| SourceState { source, last: None, faulted: false, held_ns: 0 }).collect();
-        Arbiter { sources, holder: None, decided_at: None, switches: 0, stops_sent: 0, rejected: 0 }
+        Arbiter {
+            sources,
+            holder: None,
+            decided_at: None,
+            switches: 0,
+            stops_sent: 0,
+            rejected: 0,
+            locks,
+            declared,
+            seen_locks: None,
+            floor: None,
+        }
+    }
+
+    /// The host's locks this arbiter obeys.
+    pub fn locks(&self) -> &Locks {
+        &self.locks
+    }
+
+    /// Whether the locks changed since the last decision.
+    pub fn locks_changed(&self) -> bool {
+        self.seen_locks != Some(self.locks.generation())
+    }
+
+    /// A lock's priority: declared, or above everything.
+    fn lock_priority(&self, name: &str) -> i32 {
+        self.declared.iter().find(|(n, _)| n == name).map_or(UNDECLARED_LOCK_PRIORITY, |(_, p)| *p)
+    }
+
+    fn refresh_floor(&mut self) {
+        let generation = self.locks.generation();
+        if self.seen_locks == Some(generation) {
+            return;
+        }
+        self.seen_locks = Some(generation);
+        self.floor = self
+            .locks
+            .engaged()
+            .into_iter()
+            .map(|e| {
+                let priority = self.lock_priority(&e.lock);
+                (e.lock, priority)
+            })
+            .max_by_key(|(_, p)| *p);
+    }
+
+    /// The highest engaged lock as of the last decision.
+    pub fn lock(&self) -> Option<LockView> {
+        self.floor.as_ref().map(|(name, priority)| LockView {
+            name: name.clone(),
+            priority: (*priority != UNDECLARED_LOCK_PRIORITY).then_some(*priority),
+        })
+    }
+
+    /// Whether the engaged locks let `state` count.
+    fn above_floor(&self, state: &SourceState) -> bool {
+        self.floor.as_ref().is_none_or(|(_, p)| state.source.priority.get() >= *p)
     }
 
     /// Records `command` from the source whose component is `component`.
@@ -143,10 +248,11 @@ impl Arbiter {
             self.sources[holder].held_ns += now_ns.saturating_sub(at);
         }
         self.decided_at = Some(now_ns);
-        let top = self.sources.iter().filter(|s| Self::is_active(s, now_ns)).map(|s| s.source.priority.get()).max();
+        self.refresh_floor();
+        let counts = |s: &SourceState| Self::is_active(s, now_ns) && self.above_floor(s);
+        let top = self.sources.iter().filter(|s| counts(s)).map(|s| s.source.priority.get()).max();
         let winner = top.and_then(|top| {
-            let tied =
-                |i: &usize| Self::is_active(&self.sources[*i], now_ns) && self.sources[*i].source.priority.get() == top;
+            let tied = |i: &usize| counts(&self.sources[*i]) && self.sources[*i].source.priority.get() == top;
             let operator_tied = (0..self.sources.len()).any(|i| tied(&i) && self.sources[i].source.operator);
             let candidate = |i: &usize| tied(i) && (!operator_tied || self.sources[*i].source.operator);
             self.holder.filter(candidate).or_else(|| (0..self.sources.len()).find(candidate))
@@ -182,6 +288,10 @@ impl Arbiter {
         match (self.holder, self.sources.get(index)) {
             (_, None) => Standing::Idle,
             (Some(holder), _) if holder == index => Standing::Holds,
+            (_, Some(state)) if Self::is_active(state, now_ns) && !self.above_floor(state) => {
+                let (name, priority) = self.floor.clone().unwrap_or_default();
+                Standing::Suppressed { by: format!("lock {name}"), priority }
+            }
             (Some(holder), Some(state)) if Self::is_active(state, now_ns) => Standing::Suppressed {
                 by: self.sources[holder].source.name.clone(),
                 priority: self.sources[holder].source.priority.get(),
@@ -201,6 +311,7 @@ impl Arbiter {
     }
 
     pub fn status(&self, now_ns: u64) -> ArbiterStatus {
+        let (history, total) = self.locks.history();
         ArbiterStatus {
             holder: self.holder.map(|h| self.sources[h].source.name.clone()),
             suppressed: self.suppressed(now_ns).into_iter().map(|i| self.sources[i].source.name.clone()).collect(),
@@ -208,14 +319,20 @@ impl Arbiter {
             stops_sent: self.stops_sent,
             held_s: self.sources.iter().map(|s| (s.source.name.clone(), s.held_ns as f64 / 1e9)).collect(),
             rejected: self.rejected,
+            lock: self.lock(),
+            engaged: self.locks.engaged(),
+            lock_events: history,
+            lock_events_total: total,
         }
     }
 }
 
 /// The `builtin:arbiter` component: input `commands` (one connection per
-/// source), output `cmd` (the winner's command, or STOP). It re-decides on
-/// every command and every tick, emits at once when the output changes and
-/// on every tick otherwise (so the serial link's watchdog stays fed).
+/// source), input `lock` (flags: `true` engages the feed lock), output
+/// `cmd` (the winner's command, or STOP). It re-decides on every command,
+/// every tick and every cycle the host's locks changed, emits at once when
+/// the output changes and on every tick otherwise (so the serial link's
+/// watchdog stays fed).
 pub struct ArbiterComponent {
     name: String,
     arbiter: Arbiter,
@@ -224,6 +341,40 @@ pub struct ArbiterComponent {
     standings: Standings,
     /// Each source's standing as last written to `standings`.
     published: Vec<Standing>,
+    /// The lock the `lock` input engages, and its feeds.
+    feed: LockFeed,
+}
+
+/// What feeds the `lock` input: which lock it engages, the feeding
+/// components (index, name) with when each last sent (graph ns), and how
+/// long a feed may stay silent before that engages the lock (0: forever).
+#[derive(Clone, Debug, Default)]
+pub struct LockFeed {
+    pub lock: String,
+    pub feeds: Vec<(usize, String)>,
+    pub timeout_ns: u64,
+    last: Vec<Option<u64>>,
+    started_ns: Option<u64>,
+}
+
+impl LockFeed {
+    pub fn new(lock: &str, feeds: Vec<(usize, String)>, timeout_ns: u64) -> LockFeed {
+        let last = vec![None; feeds.len()];
+        LockFeed { lock: lock.to_string(), feeds, timeout_ns, last, started_ns: None }
+    }
+
+    /// The feed that has been silent longer than the timeout at `now_ns`.
+    fn silent(&self, now_ns: u64) -> Option<&str> {
+        if self.timeout_ns == 0 {
+            return None;
+        }
+        let started = self.started_ns.unwrap_or(now_ns);
+        self.feeds
+            .iter()
+            .zip(&self.last)
+            .find(|(_, last)| now_ns.saturating_sub(last.unwrap_or(started)) > self.timeout_ns)
+            .map(|((_, name), _)| name.as_str())
+    }
 }
 
 impl ArbiterComponent {
@@ -233,21 +384,31 @@ impl ArbiterComponent {
 
     /// An arbiter that writes its sources' standings to `standings`.
     pub fn with_standings(name: &str, sources: Vec<Source>, standings: Standings) -> ArbiterComponent {
-        let published = vec![Standing::Idle; sources.len()];
-        ArbiterComponent {
-            name: name.to_string(),
-            arbiter: Arbiter::new(sources),
-            last_sent: None,
-            now_ns: 0,
-            standings,
-            published,
-        }
+        ArbiterComponent::with_locks(name, Arbiter::new(sources), standings, LockFeed::default())
+    }
+
+    /// An arbiter component around `arbiter` (and the host's locks it
+    /// obeys), fed by `feed` on its `lock` input.
+    pub fn with_locks(name: &str, arbiter: Arbiter, standings: Standings, feed: LockFeed) -> ArbiterComponent {
+        let published = vec![Standing::Idle; arbiter.len()];
+        ArbiterComponent { name: name.to_string(), arbiter, last_sent: None, now_ns: 0, standings, published, feed }
     }
 
     /// Writes the standings that changed since the last decision. Most
     /// decisions change none: one comparison per source, no allocation.
-    fn publish_standings(&mut self, now_ns: u64) {
+    fn publish_standings(&mut self, now_ns: u64, locked: bool) {
         for index in 0..self.arbiter.len() {
+            if locked {
+                // While a lock is engaged (or just after): compare in full.
+                let standing = self.arbiter.standing(index, now_ns);
+                if standing != self.published[index] {
+                    if let Some(source) = self.arbiter.source(index) {
+                        self.standings.set(&source.name, standing.clone());
+                    }
+                    self.published[index] = standing;
+                }
+                continue;
+            }
             let unchanged = match (&self.published[index], self.arbiter.holder, self.arbiter.sources.get(index)) {
                 (Standing::Holds, Some(holder), _) => holder == index,
                 (Standing::Idle, holder, Some(state)) => holder != Some(index) && !Arbiter::is_active(state, now_ns),
@@ -271,8 +432,12 @@ impl ArbiterComponent {
 
     fn decide_and_emit(&mut self, now_ns: u64, always: bool, out: &mut Outbox) {
         self.now_ns = now_ns;
+        let locks_changed = self.arbiter.locks_changed();
         let decision = self.arbiter.decide(now_ns);
-        self.publish_standings(now_ns);
+        if locks_changed {
+            self.log_locks();
+        }
+        self.publish_standings(now_ns, locks_changed || self.arbiter.floor.is_some());
         let previous_holder = self.last_sent.map(|(h, _)| h);
         if previous_holder != Some(decision.holder) {
             self.log_change(decision.holder, now_ns);
@@ -282,6 +447,34 @@ impl ArbiterComponent {
             out.push((0, Value::Command(decision.command.to_string())));
         }
         self.last_sent = Some(output);
+    }
+
+    fn log_locks(&self) {
+        match self.arbiter.lock() {
+            Some(LockView { name, priority: None }) => {
+                tracing::warn!(component = %self.name, "lock '{name}' is engaged: every source is suppressed, STOP")
+            }
+            Some(LockView { name, priority: Some(p) }) => {
+                tracing::warn!(component = %self.name, "lock '{name}' is engaged: sources below priority {p} are suppressed")
+            }
+            None => tracing::info!(component = %self.name, "no lock is engaged"),
+        }
+    }
+
+    /// A flag on the `lock` input from component `from`.
+    fn on_lock_feed(&mut self, value: &Value, from: usize, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        let Value::Flag(engage) = value else {
+            return Err(CallError::Reported("lock: expected a flag".into()));
+        };
+        let Some(slot) = self.feed.feeds.iter().position(|(c, _)| *c == from) else { return Ok(()) };
+        self.feed.last[slot] = Some(now_ns);
+        if *engage {
+            let by = self.feed.feeds[slot].1.clone();
+            if self.arbiter.locks().engage(&self.feed.lock, &by, "feedback", unix_now_ms()) {
+                self.decide_and_emit(now_ns, false, out);
+            }
+        }
+        Ok(())
     }
 
     fn log_change(&self, holder: Option<usize>, now_ns: u64) {
@@ -300,12 +493,15 @@ impl ArbiterComponent {
 impl Component for ArbiterComponent {
     fn on_input(
         &mut self,
-        _port: u32,
+        port: u32,
         value: &Value,
         from: usize,
         now_ns: u64,
         out: &mut Outbox,
     ) -> Result<(), CallError> {
+        if port == LOCK_PORT {
+            return self.on_lock_feed(value, from, now_ns, out);
+        }
         let Value::Command(text) = value else {
             self.arbiter.reject();
             return Err(CallError::Reported("commands: expected a control string".into()));
@@ -325,8 +521,22 @@ impl Component for ArbiterComponent {
     }
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+        self.feed.started_ns.get_or_insert(now_ns);
+        if let Some(silent) = self.feed.silent(now_ns) {
+            let by = silent.to_string();
+            self.arbiter.locks().engage(&self.feed.lock, &by, "feed silent", unix_now_ms());
+        }
         self.decide_and_emit(now_ns, true, out);
         Ok(())
+    }
+
+    fn poll(&mut self, now_ns: u64, out: &mut Outbox) {
+        // One load per cycle: a lock engaged or released elsewhere (the
+        // portal, the network platform, the command line) is decided on in
+        // the cycle it wakes.
+        if self.arbiter.locks_changed() {
+            self.decide_and_emit(now_ns, false, out);
+        }
     }
 
     fn peer_faulted(&mut self, component: usize, now_ns: u64, out: &mut Outbox) {
@@ -343,8 +553,67 @@ impl Component for ArbiterComponent {
     }
 }
 
-/// The `arbiter` kind: no parameters; its sources are the connections
-/// into `commands`.
+/// The `lock` input's index.
+const LOCK_PORT: u32 = 1;
+
+const PARAMS: &[ParamDecl] = &[
+    ParamDecl {
+        name: "locks",
+        ty: ParamType::Text,
+        default: "",
+        unit: "",
+        doc: "declared locks, name=priority pairs separated by spaces (estop=5); a lock not declared is above every source",
+    },
+    ParamDecl {
+        name: "feed-lock",
+        ty: ParamType::Required,
+        default: "bumper",
+        unit: "",
+        doc: "the lock a true flag on the lock input engages (a bumper hit); it stays engaged until released",
+    },
+    ParamDecl {
+        name: "feed-timeout",
+        ty: number_in(0.0, 3600.0),
+        default: "0",
+        unit: "s",
+        doc: "a wired lock feed silent this long engages feed-lock (0: never; for feeds that repeat their state)",
+    },
+];
+
+/// The declared locks of `text`: `name=priority` pairs separated by spaces.
+pub fn parse_locks(text: &str) -> Result<Vec<(String, i32)>, LockSpecError> {
+    let mut locks: Vec<(String, i32)> = Vec::new();
+    for pair in text.split_ascii_whitespace() {
+        let (name, priority) =
+            pair.split_once('=').ok_or_else(|| LockSpecError(format!("'{pair}' is not name=priority")))?;
+        let valid = !name.is_empty()
+            && name.len() <= 32
+            && name.chars().all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_');
+        if !valid {
+            return Err(LockSpecError(format!("lock name '{name}' must be 1 to 32 letters, digits, '-' or '_'")));
+        }
+        let priority =
+            priority.parse::<i32>().ok().filter(|p| *p < UNDECLARED_LOCK_PRIORITY).ok_or_else(|| {
+                LockSpecError(format!("priority '{priority}' of lock '{name}' is not a whole number"))
+            })?;
+        if locks.iter().any(|(n, _)| n == name) {
+            return Err(LockSpecError(format!("lock '{name}' is declared twice")));
+        }
+        locks.push((name.to_string(), priority));
+    }
+    if locks.len() > MAX_DECLARED_LOCKS {
+        return Err(LockSpecError(format!("{} locks; at most {MAX_DECLARED_LOCKS} are allowed", locks.len())));
+    }
+    Ok(locks)
+}
+
+/// Why a `locks` parameter is refused (lowercase, names the pair).
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct LockSpecError(pub String);
+
+/// The `arbiter` kind: its sources are the connections into `commands`,
+/// its lock feeds the connections into `lock`.
 pub struct ArbiterBuiltin;
 
 impl Builtin for ArbiterBuiltin {
@@ -357,23 +626,44 @@ impl Builtin for ArbiterBuiltin {
     }
 
     fn params(&self) -> &'static [ParamDecl] {
-        &[]
+        PARAMS
+    }
+
+    fn check(&self, params: &Params, _ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
+        match parse_locks(params.text("locks").unwrap_or_default()) {
+            Ok(_) => Vec::new(),
+            Err(e) => vec![ParamProblem::new("locks", e.0)],
+        }
     }
 
     fn ports(&self, _params: &Params) -> Ports {
         Ports {
-            inputs: vec![builtin::port(
-                "commands",
-                ValueKind::Command,
-                "control strings; every connection is a source with its sender's priority",
-            )],
+            inputs: vec![
+                builtin::port(
+                    "commands",
+                    ValueKind::Command,
+                    "control strings; every connection is a source with its sender's priority",
+                ),
+                builtin::port("lock", ValueKind::Flag, "true engages feed-lock (a bumper); false releases nothing"),
+            ],
             outputs: vec![builtin::port("cmd", ValueKind::Command, "the winning command, or STOP")],
         }
     }
 
-    fn build(&self, _params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
+    fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
+        let declared = parse_locks(params.text("locks")?).map_err(|e| BuiltinError::Refused(e.0))?;
+        let mut feeds: Vec<(usize, String)> = Vec::new();
+        for connection in ctx.robot.connections.iter().filter(|c| c.to.component == ctx.index && c.to.port == LOCK_PORT)
+        {
+            let Some(from) = ctx.robot.components.get(connection.from.component) else { continue };
+            if !feeds.iter().any(|(c, _)| *c == connection.from.component) {
+                feeds.push((connection.from.component, from.name.clone()));
+            }
+        }
+        let feed = LockFeed::new(params.text("feed-lock")?, feeds, params.seconds("feed-timeout")?.as_nanos() as u64);
         let mut sources: Vec<Source> = Vec::new();
-        for connection in ctx.robot.connections.iter().filter(|c| c.to.component == ctx.index) {
+        for connection in ctx.robot.connections.iter().filter(|c| c.to.component == ctx.index && c.to.port != LOCK_PORT)
+        {
             let Some(from) = ctx.robot.components.get(connection.from.component) else { continue };
             if sources.iter().any(|s| s.component == connection.from.component) {
                 continue;
@@ -402,13 +692,18 @@ impl Builtin for ArbiterBuiltin {
             if listed.is_empty() { "none".into() } else { listed.join(", ") }
         );
         let standings = ctx.services.get::<Standings>().map(|s| (*s).clone()).unwrap_or_default();
-        Ok(Box::new(ArbiterComponent::with_standings(name, sources, standings)))
+        // The host's locks, so an engaged lock survives an activation; a
+        // graph without a host gets a board of its own.
+        let locks = ctx.services.get::<Locks>().map(|l| (*l).clone()).unwrap_or_default();
+        let arbiter = Arbiter::with_locks(sources, locks, declared);
+        Ok(Box::new(ArbiterComponent::with_locks(name, arbiter, standings, feed)))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::runtime::DEFAULT_LOCK;
 
     const MS: u64 = 1_000_000;
 
@@ -571,5 +866,166 @@ mod tests {
         assert_eq!(standings.get("planner"), Standing::Idle);
         component.tick(600 * MS, &mut out).ok();
         assert_eq!(standings.get("net"), Standing::Idle, "the operator's commands timed out");
+    }
+
+    /// What happens at a step of a lock table.
+    enum LockEvent_ {
+        Offer(usize, f64),
+        Engage(&'static str),
+        Release(Option<&'static str>),
+        Decide,
+    }
+
+    /// (time ms, event, the holder expected, the command expected).
+    type LockStep = (u64, LockEvent_, Option<usize>, ControlCommand);
+
+    fn run_lock_table(arbiter: &mut Arbiter, table: Vec<LockStep>) {
+        for (ms, event, holder, command) in table {
+            let now = ms * MS;
+            match event {
+                LockEvent_::Offer(component, v) => {
+                    arbiter.offer(component, vel(v), now);
+                }
+                LockEvent_::Engage(lock) => {
+                    arbiter.locks().engage(lock, "ann", "portal", ms);
+                }
+                LockEvent_::Release(lock) => {
+                    arbiter.locks().release(lock, "bob", "teleop", ms);
+                }
+                LockEvent_::Decide => {}
+            }
+            let decision = arbiter.decide(now);
+            assert_eq!((decision.holder, decision.command), (holder, command), "at {ms} ms");
+        }
+    }
+
+    #[test]
+    fn a_lock_stops_everything_below_it_until_an_explicit_release() {
+        use LockEvent_::*;
+        // 0: avoid (10, priority 3), 1: planner (20, 1), 2: dock (30, 6).
+        // Declared: "soft" at 2; "estop" is not declared: above everything.
+        let sources = vec![source(10, "avoid", 3), source(20, "planner", 1), source(30, "dock", 6)];
+        let mut arbiter = Arbiter::with_locks(sources, Locks::default(), vec![("soft".into(), 2)]);
+        let stop = ControlCommand::Stop;
+        #[rustfmt::skip]
+        let table: Vec<LockStep> = vec![
+            (0,    Offer(20, 0.2), Some(1), vel(0.2)), // the planner drives
+            (10,   Engage("estop"), None,   stop),     // engage: STOP at once
+            (20,   Offer(20, 0.3), None,    stop),     // the planner is suppressed
+            (30,   Offer(10, 0.1), None,    stop),     // so is avoid (3)
+            (40,   Offer(30, 0.1), None,    stop),     // and dock (6): undeclared is above everything
+            (5000, Decide,         None,    stop),     // no timeout releases it
+            (5001, Release(Some("soft")), None, stop), // releasing another lock changes nothing
+            (5002, Offer(20, 0.2), None,    stop),
+            (5003, Release(None),  Some(1), vel(0.2)), // an explicit release: the planner again
+            (5010, Engage("soft"), None,    stop),     // soft (2) suppresses the planner (1)...
+            (5020, Offer(10, 0.1), Some(0), vel(0.1)), // ...but not avoid (3)
+            (5030, Engage("estop"), None,   stop),     // a lock over a lock: the higher one bounds
+            (5040, Release(Some("estop")), Some(0), vel(0.1)), // soft still engaged: avoid drives
+            (5041, Offer(20, 0.2), Some(0), vel(0.1)),
+            (5600, Offer(20, 0.2), None,    stop),     // avoid timed out; the planner is below soft
+            (5601, Release(Some("soft")), Some(1), vel(0.2)),
+        ];
+        run_lock_table(&mut arbiter, table);
+        let status = arbiter.status(5601 * MS);
+        assert_eq!(status.lock, None);
+        assert_eq!(status.lock_events_total, 6, "three engages, three releases");
+        assert_eq!(status.lock_events[1].held_ms, Some(4993), "estop from 10 ms to 5003 ms");
+    }
+
+    #[test]
+    fn a_lock_suppresses_an_operator_holding_control_and_says_so() {
+        use LockEvent_::*;
+        let standings = Standings::default();
+        let sources = vec![source(10, "planner", 1), operator(20, "net", 2)];
+        let locks = Locks::default();
+        let arbiter = Arbiter::with_locks(sources, locks.clone(), Vec::new());
+        let mut component = ArbiterComponent::with_locks("arbiter", arbiter, standings.clone(), LockFeed::default());
+        let mut out = Vec::new();
+        component.on_input(0, &Value::Command("VEL 0.4 0".into()), 20, 0, &mut out).ok();
+        assert_eq!(standings.get("net"), Standing::Holds);
+        locks.engage(DEFAULT_LOCK, "ann", "portal", 0);
+        out.clear();
+        component.poll(MS, &mut out);
+        assert_eq!(out, vec![(0, Value::Command("STOP".into()))], "the cycle after the engage sends STOP");
+        assert_eq!(
+            standings.get("net"),
+            Standing::Suppressed { by: "lock estop".into(), priority: UNDECLARED_LOCK_PRIORITY }
+        );
+        out.clear();
+        component.poll(2 * MS, &mut out);
+        assert!(out.is_empty(), "an unchanged board decides nothing new");
+        component.on_input(0, &Value::Command("VEL 0.4 0".into()), 20, 3 * MS, &mut out).ok();
+        component.tick(4 * MS, &mut out).ok();
+        assert!(out.iter().all(|(_, v)| *v == Value::Command("STOP".into())), "nothing moves while engaged: {out:?}");
+        // A table over the operator's later commands.
+        let mut arbiter =
+            Arbiter::with_locks(vec![source(10, "planner", 1), operator(20, "net", 2)], locks.clone(), Vec::new());
+        #[rustfmt::skip]
+        run_lock_table(&mut arbiter, vec![
+            (10,  Offer(20, 0.4), None,    ControlCommand::Stop),
+            (20,  Release(None),  Some(1), vel(0.4)),
+            (30,  Engage("estop"), None,   ControlCommand::Stop),
+        ]);
+    }
+
+    #[test]
+    fn a_lock_survives_a_set_activation() {
+        use LockEvent_::*;
+        // The host's board, shared by the old set's arbiter and the new one.
+        let locks = Locks::default();
+        let mut old = Arbiter::with_locks(vec![source(10, "planner", 1)], locks.clone(), Vec::new());
+        #[rustfmt::skip]
+        run_lock_table(&mut old, vec![
+            (0,  Offer(10, 0.2), Some(0), vel(0.2)),
+            (10, Engage("estop"), None,   ControlCommand::Stop),
+        ]);
+        // The activation swaps in a new graph: a new arbiter, same board.
+        drop(old);
+        let mut new = Arbiter::with_locks(vec![source(11, "planner2", 1)], locks.clone(), Vec::new());
+        #[rustfmt::skip]
+        run_lock_table(&mut new, vec![
+            (20, Offer(11, 0.3), None,    ControlCommand::Stop), // the first decision is locked
+            (30, Release(None),  Some(0), vel(0.3)),
+        ]);
+    }
+
+    #[test]
+    fn a_feed_engages_but_never_releases_and_a_silent_feed_engages() {
+        let locks = Locks::default();
+        let arbiter = Arbiter::with_locks(vec![source(10, "planner", 1)], locks.clone(), Vec::new());
+        let feed = LockFeed::new("bumper", vec![(40, "motors".into())], 100 * MS);
+        let mut component = ArbiterComponent::with_locks("arbiter", arbiter, Standings::default(), feed);
+        let mut out = Vec::new();
+        component.tick(0, &mut out).ok();
+        component.on_input(1, &Value::Flag(false), 40, MS, &mut out).ok();
+        assert!(!locks.any_engaged());
+        component.on_input(1, &Value::Flag(true), 40, 2 * MS, &mut out).ok();
+        assert_eq!(locks.engaged()[0].lock, "bumper");
+        assert_eq!(locks.engaged()[0].by, "motors");
+        assert_eq!(out.last(), Some(&(0, Value::Command("STOP".into()))));
+        component.on_input(1, &Value::Flag(false), 40, 3 * MS, &mut out).ok();
+        assert!(locks.any_engaged(), "a feed's false releases nothing");
+        assert!(component.on_input(1, &Value::Scalar(1.0), 40, 3 * MS, &mut out).is_err());
+        locks.release(None, "bob", "portal", 0);
+        component.tick(90 * MS, &mut out).ok();
+        assert!(!locks.any_engaged(), "silent for 87 ms: within the timeout");
+        component.tick(104 * MS, &mut out).ok();
+        assert_eq!(locks.engaged()[0].how, "feed silent", "silent for 101 ms");
+    }
+
+    #[test]
+    fn declared_locks_are_checked() {
+        assert_eq!(parse_locks("estop=5  soft=-1").unwrap(), vec![("estop".into(), 5), ("soft".into(), -1)]);
+        assert_eq!(parse_locks("").unwrap(), vec![]);
+        for (text, why) in [
+            ("estop", "is not name=priority"),
+            ("estop=x", "is not a whole number"),
+            ("a=1 a=2", "declared twice"),
+            ("bad!=1", "lock name 'bad!'"),
+        ] {
+            let err = parse_locks(text).unwrap_err();
+            assert!(err.0.contains(why), "{text}: {err}");
+        }
     }
 }

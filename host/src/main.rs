@@ -87,6 +87,30 @@ enum Command {
         #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
         params: Vec<ParamOverride>,
     },
+    /// Engage the emergency stop on a running host through its portal
+    /// (any user, viewers included; docs/estop.md).
+    Estop {
+        /// The portal's address (HOST:PORT or http://HOST:PORT).
+        host: String,
+        /// The portal user to log in as.
+        #[arg(long, env = "SUBSUME_USER")]
+        user: String,
+        /// Their password (or set SUBSUME_PASSWORD).
+        #[arg(long, env = "SUBSUME_PASSWORD", hide_env_values = true)]
+        password: String,
+    },
+    /// Release every engaged lock on a running host through its portal
+    /// (a user who may drive: operator or admin).
+    Release {
+        /// The portal's address (HOST:PORT or http://HOST:PORT).
+        host: String,
+        /// The portal user to log in as (operator or admin).
+        #[arg(long, env = "SUBSUME_USER")]
+        user: String,
+        /// Their password (or set SUBSUME_PASSWORD).
+        #[arg(long, env = "SUBSUME_PASSWORD", hide_env_values = true)]
+        password: String,
+    },
     /// Drive a robot from the keyboard over its teleoperation port
     /// (arrows: speed and turn, space: stop, m: cycle mode, q: quit).
     Teleop {
@@ -221,6 +245,24 @@ fn main() -> ExitCode {
                 ExitCode::SUCCESS
             })
             .map_err(anyhow::Error::from),
+        Command::Estop { host, user, password } => {
+            use subsume::portal::client::{LockAction, lock_action};
+            lock_action(&host, &user, &password, LockAction::Engage)
+                .map(|said| {
+                    println!("{said}");
+                    ExitCode::SUCCESS
+                })
+                .map_err(anyhow::Error::from)
+        }
+        Command::Release { host, user, password } => {
+            use subsume::portal::client::{LockAction, lock_action};
+            lock_action(&host, &user, &password, LockAction::Release)
+                .map(|said| {
+                    println!("{said}");
+                    ExitCode::SUCCESS
+                })
+                .map_err(anyhow::Error::from)
+        }
         Command::Teleop { address, name, token, tls_ca } => {
             let options = subsume::teleop::client::ClientOptions { address, name, token, tls_ca };
             subsume::teleop::client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::from)

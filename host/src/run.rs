@@ -21,7 +21,7 @@ use crate::robot::serial::{HALT_WAIT, halt_every_link};
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
 use crate::runtime::lockstep::Pace;
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
-use crate::runtime::{Graph, Heartbeat, RunningRobot, StallWatchdog, Standings, StopOutcome};
+use crate::runtime::{Graph, Heartbeat, Locks, RunningRobot, StallWatchdog, Standings, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
 use crate::store::users::Directory;
 use crate::store::{Store, StoreError};
@@ -339,6 +339,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .with(Arc::new(RunningRobot::default()))
         .with(Arc::new(Standings::default()))
         .with(Arc::new(crate::sim::SimRegistry::default()))
+        .with(Arc::new(Locks::with_waker(shutdown.waker())))
         .with(Arc::new(options.tls.clone()));
     let clock = options.clock();
     let boot = Deployer::boot(BootOptions {

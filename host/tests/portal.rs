@@ -166,6 +166,9 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/teleop/ticket", b"", Allowed::Drive),
         ("POST", "/api/v1/sim/reset", b"", Allowed::Drive),
         ("POST", "/api/v1/sim/step?seconds=0.1", b"", Allowed::Drive),
+        ("POST", "/api/v1/estop", b"", Allowed::AnyUser),
+        ("POST", "/api/v1/release", b"", Allowed::Drive),
+        ("GET", "/api/v1/locks", b"", Allowed::AnyUser),
         ("POST", "/api/v1/logout", b"", Allowed::AnyUser),
     ]
 }
@@ -383,6 +386,60 @@ async fn the_openapi_document_lists_exactly_the_routes() {
         assert_eq!(response.status(), StatusCode::OK, "{path}");
     }
     assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/portal/openapi.json").is_file());
+}
+
+#[tokio::test]
+async fn anyone_may_stop_the_robot_and_only_a_driver_may_release_it_and_both_are_audited() {
+    let portal = portal().await;
+    let (status, json) = portal.call("viewer", "POST", "/api/v1/estop", "").await;
+    assert_eq!(status, StatusCode::OK, "{json}");
+    assert_eq!(json["newly"], true);
+    assert_eq!(json["engaged"][0]["by"], "viewer");
+    assert_eq!(json["engaged"][0]["how"], "portal");
+    let (_, json) = portal.call("control-dev", "POST", "/api/v1/estop", "").await;
+    assert_eq!(json["newly"], false, "the first engagement stands: {json}");
+    for user in ["viewer", "control-dev", "network-dev"] {
+        let (status, json) = portal.call(user, "POST", "/api/v1/release", "").await;
+        assert_eq!(status, StatusCode::FORBIDDEN, "{user}: {json}");
+        assert!(json["error"].as_str().unwrap().contains("needs a role that may drive"), "{json}");
+    }
+    let (_, json) = portal.call("viewer", "GET", "/api/v1/locks", "").await;
+    assert_eq!(json["engaged"].as_array().unwrap().len(), 1, "a refused release changes nothing: {json}");
+    let (status, json) = portal.call("operator", "POST", "/api/v1/release", r#"{"lock": 7}"#).await;
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{json}");
+    let (status, json) = portal.call("operator", "POST", "/api/v1/release", r#"{"lock": "bumper"}"#).await;
+    assert_eq!(status, StatusCode::CONFLICT, "{json}");
+    let (status, json) = portal.call("operator", "POST", "/api/v1/release", "").await;
+    assert_eq!(status, StatusCode::OK, "{json}");
+    assert_eq!(json["released"][0]["lock"], "estop");
+    let (status, _) = portal.call("operator", "POST", "/api/v1/release", "").await;
+    assert_eq!(status, StatusCode::CONFLICT, "nothing left to release");
+    // The audit log: the engage and release (written off the request by
+    // the audit thread) and the three refusals.
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(5);
+    loop {
+        let entries = portal.store.audit_entries(100).unwrap();
+        let lines: Vec<(String, String, String)> = entries
+            .iter()
+            .filter(|e| e.action.ends_with("-lock"))
+            .map(|e| (e.user.clone(), e.action.clone(), e.result.clone()))
+            .collect();
+        let expected = |u: &str, a: &str, r: &str| (u.to_string(), a.to_string(), r.to_string());
+        let want = [
+            expected("viewer", "engage-lock", "ok"),
+            expected("viewer", "release-lock", "refused"),
+            expected("control-dev", "release-lock", "refused"),
+            expected("network-dev", "release-lock", "refused"),
+            expected("operator", "release-lock", "ok"),
+        ];
+        if want.iter().all(|w| lines.contains(w)) {
+            let release = entries.iter().find(|e| e.action == "release-lock" && e.result == "ok").unwrap();
+            assert!(release.detail.contains("engaged (by viewer)"), "{release:?}");
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "audit lines missing: {lines:?}");
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
 }
 
 /// The session cookie a login sets.

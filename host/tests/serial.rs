@@ -110,6 +110,25 @@ fn a_burst_is_rate_limited_to_the_latest_command() {
 }
 
 #[test]
+fn a_stop_held_by_the_rate_limit_goes_out_when_the_interval_ends_not_at_the_next_tick() {
+    let (mut master, _slave, path) = pty();
+    let mut link = link(&path, 100, 10_000, 10_000);
+    wait_until("connected", || link.status().connected);
+    command(&mut link, "VEL 0.1 0", 0);
+    command(&mut link, "STOP", MS);
+    assert_eq!(link.next_wake(), Some(100 * MS), "the link asks for a cycle when the interval ends");
+    let mut out = Vec::new();
+    link.poll(99 * MS, &mut out);
+    assert_eq!(link.status().frames_sent, 1, "not before");
+    link.poll(100 * MS, &mut out);
+    assert_eq!(read_lines(&mut master, 2), vec!["M 100 100", "S"]);
+    assert_eq!(link.next_wake(), None);
+    // A held motion command still waits for the tick.
+    command(&mut link, "VEL 0.2 0", 150 * MS);
+    assert_eq!(link.next_wake(), None);
+}
+
+#[test]
 fn the_watchdog_sends_stop_when_commands_stop_coming() {
     let (mut master, _slave, path) = pty();
     let mut link = link(&path, 20, 300, 10_000);

@@ -18,7 +18,7 @@ pub use self::loader::{Loader, StartError, Surroundings};
 use crate::builtin::Services;
 use crate::config::{ComponentConfig, ComponentSource, RobotConfig};
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{Component, Graph, PriorityCell, RunningRobot, Standings, Vacant};
+use crate::runtime::{Component, Graph, Locks, PriorityCell, RunningRobot, Standings, Vacant};
 
 /// Components a new graph takes over from the running one instead of
 /// building them: their graph slots hold [`Vacant`] until the swap moves
@@ -59,7 +59,7 @@ pub fn build(
     carry: &Carry,
 ) -> Result<Built, Vec<StartError>> {
     let start_ns = clock.now_ns();
-    let services = &with_graph_services(services, config);
+    let services = &with_graph_services(services, config, waker);
     let mut ptys = carry.sim_ptys.clone();
     let priorities: Vec<PriorityCell> = config
         .components
@@ -124,8 +124,13 @@ pub fn build(
 /// `services`, plus what the components of one graph share when the host
 /// did not provide it for all its graphs: the standings of the motion
 /// sources and the running robot's name.
-fn with_graph_services(services: &Services, config: &RobotConfig) -> Services {
+fn with_graph_services(services: &Services, config: &RobotConfig, waker: &Waker) -> Services {
     let mut services = services.clone();
+    if services.get::<Locks>().is_none() {
+        // Without a host-wide board, the graph's arbiter and network
+        // platform share one of their own.
+        services = services.with(Arc::new(Locks::with_waker(waker.clone())));
+    }
     if services.get::<Standings>().is_none() {
         services = services.with(Arc::new(Standings::default()));
     }

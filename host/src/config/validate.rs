@@ -172,7 +172,14 @@ pub(super) fn validate(
             continue;
         }
         let source = &robot.components[from.component];
-        let feeds_arbiter = robot.components[to.component].source == ComponentSource::Builtin("arbiter".into());
+        // Motion sources (the arbiter's `commands`) need a priority; its
+        // `lock` input (emergency stops) does not.
+        let feeds_arbiter = robot.components[to.component].source == ComponentSource::Builtin("arbiter".into())
+            && robot.components[to.component]
+                .description
+                .inputs
+                .get(to.port as usize)
+                .is_some_and(|p| p.name == "commands");
         if feeds_arbiter && source.priority.is_none() {
             errors.push(map.at(
                 connect.from.offset,

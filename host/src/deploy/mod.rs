@@ -1,5 +1,6 @@
 //! The use cases of a run with a store: boot, upload a component, stage a
-//! robot file, activate a set, roll back. Each one is a method of
+//! robot file, activate a set, roll back, engage and release the emergency
+//! stop (`estop.rs`). Each one is a method of
 //! [`Deployer`] in its own file and has the same shape:
 //!
 //! 1. authorise ([`authorise`], the one permission check);
@@ -24,6 +25,7 @@
 //! - on any error the running set is untouched.
 
 mod activate;
+mod estop;
 mod stage;
 mod swap;
 mod upload;
@@ -34,6 +36,7 @@ use std::sync::{Arc, Mutex};
 
 use thiserror::Error;
 
+pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
 pub use self::stage::MAX_FILE_NAME_LEN;
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
@@ -178,7 +181,11 @@ impl Deployer {
     /// nothing was ever activated), in which case that file and the
     /// components it names are imported as a new set and activated.
     pub fn boot(options: BootOptions<'_>) -> Result<Boot, DeployError> {
-        let BootOptions { store, sandbox, services, config_path, overrides, clock, waker } = options;
+        let BootOptions { store, sandbox, mut services, config_path, overrides, clock, waker } = options;
+        if services.get::<crate::runtime::Locks>().is_none() {
+            // One board for every set this host will run.
+            services = services.with(Arc::new(crate::runtime::Locks::with_waker(waker.clone())));
+        }
         let text = crate::config::read_config(config_path).map_err(DeployError::Invalid)?;
         let sha = sha256_hex(text.as_bytes());
         let state = store.state()?;
@@ -207,6 +214,9 @@ impl Deployer {
         let slot = swap::SwapSlot::default();
         let hook = ControlHook::new(slot.clone(), config.clone(), set.id, live.clone());
         let deployment = Deployment { set, config, priorities: built.priorities, sim_ptys: built.sim_ptys };
+        if let Some(locks) = services.get::<crate::runtime::Locks>() {
+            estop::audit_locks(&locks, store.clone())?;
+        }
         let deployer = Deployer {
             store,
             sandbox,

@@ -1,6 +1,7 @@
 //! The web portal and its HTTP API under `/api/v1` (documented by
 //! `openapi.json`, served at `/api/v1/openapi.json`): login, component and
-//! robot-file uploads, sets, activation and rollback, the live status (SSE),
+//! robot-file uploads, sets, activation and rollback, the emergency stop
+//! (engage, release, the locks), the live status (SSE),
 //! the simulator's controls (reset, pose, pause, resume, step),
 //! the audit log, the teleoperation WebSocket, and the static web files of
 //! `web/`, embedded in the binary.
@@ -21,6 +22,7 @@
 //!   only.
 
 pub mod auth;
+pub mod client;
 pub mod error;
 pub mod logs;
 mod routes;
@@ -37,7 +39,7 @@ use self::logs::LogRing;
 use crate::deploy::{Deployer, MAX_CONFIG_UPLOAD_BYTES, MAX_UPLOAD_BYTES};
 use crate::store::users::Directory;
 
-/// Largest JSON request (login): nothing else sends JSON.
+/// Largest JSON request (login, release): nothing else sends JSON.
 pub const MAX_JSON_BYTES: usize = 16 << 10;
 
 const OPENAPI: &str = include_str!("openapi.json");
@@ -109,6 +111,9 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/sim/{action}", post(sim_control))
         .route("/logs", get(recent_logs))
         .route("/audit", get(audit_log))
+        .route("/estop", post(estop))
+        .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/locks", get(locks))
         .route("/teleop/ticket", post(teleop_ticket))
         .route("/teleop", get(teleop_socket))
         .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))

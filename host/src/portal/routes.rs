@@ -341,3 +341,44 @@ pub(super) async fn teleop_socket(
         Err(e) => e.into_response(),
     }
 }
+
+/// Engages the emergency stop: any logged-in user, viewers included. Not
+/// on a blocking thread: the lock is engaged at once, its audit line
+/// follows off the request.
+pub(super) async fn estop(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let engaged = state.deployer.engage_lock(&user, "portal")?;
+    Ok(Json(serde_json::to_value(engaged).unwrap_or_default()))
+}
+
+/// Releases a lock (`{"lock": NAME}`) or every engaged lock (no body): a
+/// user who may drive.
+pub(super) async fn release(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    body: Bytes,
+) -> Result<Json<Json_>, ApiError> {
+    let lock = if body.iter().all(u8::is_ascii_whitespace) {
+        None
+    } else {
+        let value: Json_ = serde_json::from_slice(&body).map_err(|e| {
+            ApiError::new(StatusCode::BAD_REQUEST, format!("expected {{\"lock\": NAME}} or no body: {e}"))
+        })?;
+        match value.get("lock") {
+            None | Some(Json_::Null) => None,
+            Some(Json_::String(name)) => Some(name.clone()),
+            Some(_) => return Err(ApiError::new(StatusCode::BAD_REQUEST, "field 'lock' must be a string")),
+        }
+    };
+    let deployer = state.deployer.clone();
+    let released = blocking(move || Ok(deployer.release_lock(&user, lock.as_deref(), "portal")?)).await?;
+    Ok(Json(json!({ "released": released })))
+}
+
+/// The engaged locks and the latest engage and release events.
+pub(super) async fn locks(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Result<Json<Json_>, ApiError> {
+    let view = state.deployer.locks_view()?;
+    Ok(Json(serde_json::to_value(view).unwrap_or_default()))
+}

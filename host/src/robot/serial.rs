@@ -511,6 +511,23 @@ impl SerialLink {
 }
 
 impl Component for SerialLink {
+    /// A STOP held back by the rate limit goes out as soon as the interval
+    /// ends (an emergency stop must not wait for the link's next tick).
+    fn next_wake(&self) -> Option<u64> {
+        match (self.pending, self.last_sent) {
+            (Some(ControlCommand::Stop), Some((_, at))) => Some(at.saturating_add(self.settings.min_interval_ns)),
+            _ => None,
+        }
+    }
+
+    fn poll(&mut self, now_ns: u64, _out: &mut Outbox) {
+        if self.pending == Some(ControlCommand::Stop)
+            && let Err(e) = self.flush(now_ns)
+        {
+            tracing::warn!(component = %self.name, "cannot send a held STOP: {e:?}");
+        }
+    }
+
     fn on_input(
         &mut self,
         _port: u32,

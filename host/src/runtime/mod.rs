@@ -1,6 +1,7 @@
 //! The runtime: components behind one trait ([`component`]), how they are
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
-//! control loop that drives it in real time ([`control_loop`]) and the
+//! control loop that drives it in real time ([`control_loop`]), the host's
+//! emergency-stop locks ([`locks`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
 //! and simulated time's lock-step between the loop, the simulated robots and
 //! their links ([`lockstep`]).
@@ -14,11 +15,13 @@ pub mod control_loop;
 pub mod graph;
 pub mod histogram;
 pub mod lockstep;
+pub mod locks;
 pub mod stall;
 pub mod wiring;
 
 pub use component::{CallError, Component, Outbox, Restarter, Vacant};
 pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use histogram::Histogram;
+pub use locks::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
 pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};

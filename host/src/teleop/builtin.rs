@@ -17,7 +17,7 @@ use crate::builtin::{
 };
 use crate::config::ParamProblem;
 use crate::contract::{ValueKind, clip};
-use crate::runtime::{Component, RunningRobot, Standings};
+use crate::runtime::{Component, Locks, RunningRobot, Standings};
 use crate::store::users::Directory;
 use crate::tls::{HostTls, TlsIdentity};
 
@@ -269,9 +269,10 @@ impl Builtin for TeleopBuiltin {
         let name = ctx.component()?.name.clone();
         let robot = ctx.services.get::<RunningRobot>().unwrap_or_else(|| Arc::new(RunningRobot::new(&ctx.robot.name)));
         let standings = ctx.services.get::<Standings>().map(|s| (*s).clone()).unwrap_or_default();
+        let locks = ctx.services.get::<Locks>().map(|l| (*l).clone()).unwrap_or_default();
         let component = TeleopComponent::start(
             &name,
-            super::Surroundings { robot, standings, clock: ctx.clock.clone(), waker: ctx.waker.clone(), priority },
+            super::Surroundings { robot, standings, clock: ctx.clock.clone(), waker: ctx.waker.clone(), priority, locks },
             settings,
         )?;
         if let Some(servers) = ctx.services.get::<TeleopServers>() {

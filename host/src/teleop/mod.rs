@@ -40,7 +40,7 @@ use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
 use crate::robot::control::ControlCommand;
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{CallError, Component, Outbox, PriorityCell, RunningRobot, Standing, Standings};
+use crate::runtime::{CallError, Component, Locks, Outbox, PriorityCell, RunningRobot, Standing, Standings};
 use crate::store::users::Directory;
 
 /// Events from sessions waiting for the control loop; more are dropped and
@@ -159,6 +159,9 @@ pub struct ServerContext {
     pub clock: Clock,
     events: SyncSender<NetEvent>,
     waker: Waker,
+    /// The host's locks: sessions engage and release them directly (not
+    /// through the control loop's queue, which a flood could fill).
+    pub locks: Locks,
     controller: Mutex<Option<(u64, String)>>,
     reports: Mutex<Vec<SessionReport>>,
     connections: std::sync::atomic::AtomicUsize,
@@ -276,12 +279,14 @@ pub struct Surroundings {
     pub waker: Waker,
     /// This source's priority, which the operator's mode moves.
     pub priority: PriorityCell,
+    /// The host's emergency-stop locks (`ESTOP`, `RELEASE`).
+    pub locks: Locks,
 }
 
 impl TeleopComponent {
     /// Binds the listeners and starts the network runtime.
     pub fn start(name: &str, around: Surroundings, settings: TeleopSettings) -> Result<TeleopComponent, BuiltinError> {
-        let Surroundings { robot, standings, clock, waker, priority } = around;
+        let Surroundings { robot, standings, clock, waker, priority, locks } = around;
         if settings.operators.is_empty() && settings.directory.is_none() {
             return Err(BuiltinError::Refused(
                 "nobody may log in: give the 'operators' parameter (a file of NAME TOKEN lines) \
@@ -311,6 +316,7 @@ impl TeleopComponent {
             clock,
             events: events_tx,
             waker,
+            locks,
             controller: Mutex::new(None),
             reports: Mutex::new(Vec::new()),
             connections: Default::default(),

@@ -31,6 +31,12 @@ pub enum ClientMessage {
     Pong {
         nonce: u64,
     },
+    /// Engage the emergency stop (docs/estop.md).
+    Estop,
+    /// Release a lock by name, or every engaged lock.
+    Release {
+        lock: Option<String>,
+    },
     Quit,
 }
 
@@ -104,14 +110,24 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
             _ => Err("PONG takes the nonce of the PING it answers: PONG <nonce>".into()),
         },
         "QUIT" if words.is_empty() => Ok(ClientMessage::Quit),
+        "ESTOP" if words.is_empty() => Ok(ClientMessage::Estop),
+        "ESTOP" => Err("ESTOP takes nothing: ESTOP".into()),
+        "RELEASE" => match words.as_slice() {
+            [] => Ok(ClientMessage::Release { lock: None }),
+            [lock] => Ok(ClientMessage::Release { lock: Some(lock.to_string()) }),
+            _ => Err("RELEASE takes at most a lock's name: RELEASE [lock]".into()),
+        },
         "" => Err("empty line".into()),
-        other => Err(format!("unknown message '{}': expected AUTH, MODE, CMD, PONG or QUIT", shown(other))),
+        other => {
+            Err(format!("unknown message '{}': expected AUTH, MODE, CMD, PONG, ESTOP, RELEASE or QUIT", shown(other)))
+        }
     }
 }
 
 /// Parses one JSON message: `{"type": "auth", "name": .., "token": ..}`,
 /// `{"type": "mode", "mode": ..}`, `{"type": "cmd", "seq": .., "time_ms": ..,
-/// "command": ..}`, `{"type": "pong", "nonce": ..}`, `{"type": "quit"}`.
+/// "command": ..}`, `{"type": "pong", "nonce": ..}`, `{"type": "estop"}`,
+/// `{"type": "release"}` (or with `"lock": ..`), `{"type": "quit"}`.
 pub(super) fn parse_json(text: &str) -> Result<ClientMessage, String> {
     let value: serde_json::Value = serde_json::from_str(text).map_err(|e| format!("not a JSON object: {e}"))?;
     let field = |name: &str| value.get(name).ok_or_else(|| format!("missing field '{name}'"));
@@ -134,7 +150,15 @@ pub(super) fn parse_json(text: &str) -> Result<ClientMessage, String> {
         }
         Some("pong") => Ok(ClientMessage::Pong { nonce: number_field("nonce")? }),
         Some("quit") => Ok(ClientMessage::Quit),
-        Some(other) => Err(format!("unknown message type '{}': expected auth, mode, cmd, pong or quit", shown(other))),
+        Some("estop") => Ok(ClientMessage::Estop),
+        Some("release") => match value.get("lock") {
+            None | Some(serde_json::Value::Null) => Ok(ClientMessage::Release { lock: None }),
+            Some(_) => Ok(ClientMessage::Release { lock: Some(text_field("lock")?) }),
+        },
+        Some(other) => Err(format!(
+            "unknown message type '{}': expected auth, mode, cmd, pong, estop, release or quit",
+            shown(other)
+        )),
         None => Err("missing field 'type'".into()),
     }
 }
@@ -256,6 +280,9 @@ mod tests {
             ),
             ("PONG 42", ClientMessage::Pong { nonce: 42 }),
             ("QUIT", ClientMessage::Quit),
+            ("ESTOP", ClientMessage::Estop),
+            ("release", ClientMessage::Release { lock: None }),
+            ("RELEASE bumper", ClientMessage::Release { lock: Some("bumper".into()) }),
         ];
         for (line, expected) in cases {
             assert_eq!(parse_line(line), Ok(expected), "{line}");
@@ -266,7 +293,7 @@ mod tests {
     fn bad_lines_say_why() {
         let cases = [
             ("", "empty line"),
-            ("HELLO", "unknown message 'HELLO': expected AUTH, MODE, CMD, PONG or QUIT"),
+            ("HELLO", "unknown message 'HELLO': expected AUTH, MODE, CMD, PONG, ESTOP, RELEASE or QUIT"),
             ("AUTH alice", "AUTH takes a name and a token: AUTH <name> <token>"),
             ("MODE manual", "unknown mode 'manual': expected direct, shared or supervisory"),
             ("CMD 1 2", "CMD takes a sequence number, a time and a control string: CMD <seq> <ms> <command>"),
@@ -288,6 +315,13 @@ mod tests {
         );
         assert_eq!(parse_json(r#"{"type":"mode","mode":"direct"}"#), Ok(ClientMessage::Mode(Mode::Direct)));
         assert_eq!(parse_json(r#"{"type":"pong"}"#), Err("missing field 'nonce'".into()));
+        assert_eq!(parse_json(r#"{"type":"estop"}"#), Ok(ClientMessage::Estop));
+        assert_eq!(parse_json(r#"{"type":"release"}"#), Ok(ClientMessage::Release { lock: None }));
+        assert_eq!(
+            parse_json(r#"{"type":"release","lock":"bumper"}"#),
+            Ok(ClientMessage::Release { lock: Some("bumper".into()) })
+        );
+        assert_eq!(parse_json(r#"{"type":"release","lock":3}"#), Err("field 'lock' must be a string".into()));
         assert!(parse_json("[1").is_err_and(|e| e.starts_with("not a JSON object")));
         let rtt = ServerMessage::Rtt { rtt_ms: 42.0, jitter_ms: 1.5, allowed: vec![Mode::Direct, Mode::Shared] };
         assert_eq!(rtt.to_line(), "RTT 42.0 JITTER 1.5 ALLOWED direct,shared");

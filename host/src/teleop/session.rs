@@ -14,6 +14,8 @@ use tokio::time::Instant;
 
 use super::protocol::{self, ClientMessage, MAX_LINE_BYTES, ModeChange, ServerMessage};
 use super::{NetEvent, ServerContext};
+use crate::runtime::DEFAULT_LOCK;
+use crate::runtime::locks::unix_now_ms;
 use crate::teleop::mode::{self, Mode};
 
 /// Pings in one measurement round; the round's RTT is their median.
@@ -135,6 +137,16 @@ pub enum Framing {
     Lines,
     /// One JSON object per message (WebSocket).
     Json,
+}
+
+impl Framing {
+    /// How a lock engaged or released over this framing is recorded.
+    fn lock_how(self) -> &'static str {
+        match self {
+            Framing::Lines => "teleop",
+            Framing::Json => "websocket",
+        }
+    }
 }
 
 /// Reads lines of at most [`MAX_LINE_BYTES`]; a longer line is reported and
@@ -367,6 +379,37 @@ impl Session {
                 Reply::Send(vec![ServerMessage::Error("authenticate first: AUTH <name> <token>".into())])
             }
             ClientMessage::Mode(mode) => Reply::Send(vec![self.request_mode(mode, ctx)]),
+            ClientMessage::Estop => {
+                let operator = self.operator.clone().unwrap_or_default();
+                let how = self.framing.lock_how();
+                let locks = &ctx.locks;
+                if locks.engage(DEFAULT_LOCK, &operator, how, unix_now_ms()) {
+                    tracing::warn!(operator = %operator, session = self.id, "emergency stop engaged over {how}");
+                    Reply::Send(vec![ServerMessage::Ok(format!("{DEFAULT_LOCK} engaged: the motors are stopped"))])
+                } else {
+                    let by = locks.engaged().into_iter().find(|e| e.lock == DEFAULT_LOCK).map(|e| e.by);
+                    Reply::Send(vec![ServerMessage::Ok(format!(
+                        "{DEFAULT_LOCK} is engaged already (by {}): the motors are stopped",
+                        by.unwrap_or_default()
+                    ))])
+                }
+            }
+            ClientMessage::Release { lock } => {
+                // Only users who may drive authenticate here, so an
+                // authenticated operator may release (docs/estop.md).
+                let operator = self.operator.clone().unwrap_or_default();
+                let released = ctx.locks.release(lock.as_deref(), &operator, self.framing.lock_how(), unix_now_ms());
+                if released.is_empty() {
+                    return Reply::Send(vec![ServerMessage::Error(match lock {
+                        Some(name) => format!("lock '{}' is not engaged", crate::contract::clip(&name)),
+                        None => "no lock is engaged".into(),
+                    })]);
+                }
+                let said: Vec<String> =
+                    released.iter().map(|(name, ms)| format!("{name} after {:.1} s", *ms as f64 / 1000.0)).collect();
+                tracing::warn!(operator = %operator, session = self.id, "released {}", said.join(", "));
+                Reply::Send(vec![ServerMessage::Ok(format!("released {}", said.join(", ")))])
+            }
             ClientMessage::Cmd { seq, time_ms, command } => {
                 if self.mode.is_none() {
                     return Reply::Send(vec![ServerMessage::Error(

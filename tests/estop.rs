@@ -1,0 +1,359 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! The emergency stop end to end: the built binary drives an external
+//! pseudo-terminal (the motor controller) while a WASM component drives;
+//! each way of engaging stops it, STOP is the last thing on the wire and
+//! nothing moves until a release (docs/estop.md).
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::io::{BufRead, BufReader, Write};
+use std::net::TcpStream;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc;
+use std::time::{Duration, Instant};
+
+const TOKEN: &str = "alice-token-0123456789";
+
+struct Host {
+    child: Child,
+    teleop: String,
+    _dir: tempfile::TempDir,
+}
+
+impl Drop for Host {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// `subsume run` (no portal) on a robot whose WASM driver sends `VEL 0.25
+/// 0` for ever, with the motors on `device`; `arbiter_extra` goes inside
+/// the arbiter, `wiring_extra` after the connections.
+fn start(device: &str, arbiter_extra: &str, wiring_extra: &str) -> Host {
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    std::fs::write(dir.path().join("operators"), format!("alice {TOKEN}\n")).unwrap();
+    let xml = format!(
+        r#"<robot name="estop">
+  <platform name="network">
+    <component name="teleop" source="builtin:teleop" rate="100" timeout="300ms">
+      <param name="listen" value="127.0.0.1:0"/>
+      <param name="operators" value="operators"/>
+    </component>
+  </platform>
+  <platform name="control">
+    <component name="driver" source="{driver}" rate="20" timeout="200ms">
+      <param name="command" value="VEL 0.25 0"/>
+      <param name="ticks" value="100000000"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20">{arbiter_extra}</component>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="driver.cmd" to="arbiter.commands"/>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+    {wiring_extra}
+  </platform>
+</robot>"#,
+        driver = support::guest("test-commander").display()
+    );
+    let robot = dir.path().join("robot.xml");
+    std::fs::write(&robot, xml).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
+        .args(["--duration", "60"])
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (found, address) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let marker = "teleoperation on tcp ";
+            if let Some(at) = line.find(marker) {
+                let rest = &line[at + marker.len()..];
+                let _ = found.send(rest.split_whitespace().next().unwrap_or("").to_string());
+            }
+            if line.contains("ERROR") || line.contains("error:") {
+                eprintln!("host: {line}");
+            }
+        }
+    });
+    let teleop = address.recv_timeout(Duration::from_secs(60)).expect("the host never listened");
+    Host { child, teleop, _dir: dir }
+}
+
+/// An authenticated operator on the line protocol (it never asks for a
+/// mode: it does not drive, it only stops and releases).
+struct Operator {
+    reader: BufReader<TcpStream>,
+    writer: TcpStream,
+}
+
+impl Operator {
+    fn connect(address: &str) -> Operator {
+        let stream = TcpStream::connect(address).unwrap();
+        stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
+        let mut operator = Operator { reader: BufReader::new(stream.try_clone().unwrap()), writer: stream };
+        assert!(operator.line().starts_with("HELLO "));
+        operator.writer.write_all(format!("AUTH alice {TOKEN}\n").as_bytes()).unwrap();
+        assert!(operator.reply().starts_with("OK authenticated as alice"));
+        operator
+    }
+
+    fn line(&mut self) -> String {
+        let mut line = String::new();
+        assert!(self.reader.read_line(&mut line).unwrap_or(0) > 0, "the host closed the connection");
+        line.trim_end().to_string()
+    }
+
+    /// The next OK or ERR line (PINGs answered, other notices skipped).
+    fn reply(&mut self) -> String {
+        loop {
+            let line = self.line();
+            if let Some(nonce) = line.strip_prefix("PING ") {
+                self.writer.write_all(format!("PONG {nonce}\n").as_bytes()).unwrap();
+            } else if line.starts_with("OK ") || line.starts_with("ERR ") {
+                return line;
+            }
+        }
+    }
+
+    fn say(&mut self, line: &str) -> String {
+        self.writer.write_all(format!("{line}\n").as_bytes()).unwrap();
+        self.reply()
+    }
+}
+
+/// Reads the motors for `for_ms` and returns the lines read in that time.
+fn watch(motors: &mut support::MotorRecorder, for_ms: u64) -> Vec<(Instant, String)> {
+    let from = motors.lines.len();
+    let until = Instant::now() + Duration::from_millis(for_ms);
+    motors.read_while(|| Instant::now() < until);
+    motors.lines[from..].to_vec()
+}
+
+const DRIVING: &str = "M 250 250";
+
+/// The driver is driving: motion lines reach the motors.
+fn assert_drives(motors: &mut support::MotorRecorder, what: &str) {
+    let deadline = Instant::now() + Duration::from_secs(20);
+    loop {
+        let lines = watch(motors, 200);
+        if lines.iter().any(|(_, l)| l == DRIVING) {
+            return;
+        }
+        assert!(Instant::now() < deadline, "{what}: the driver never moved the robot: {lines:?}");
+    }
+}
+
+/// From `engaged` on: the first line after the (loose) one-cycle margin is
+/// STOP, and nothing but STOP follows while it stays engaged.
+fn assert_stopped(lines: &[(Instant, String)], engaged: Instant, what: &str) {
+    let after: Vec<&(Instant, String)> = lines.iter().filter(|(at, _)| *at > engaged).collect();
+    let first_stop = after.iter().position(|(_, l)| l == "S").unwrap_or_else(|| panic!("{what}: no STOP: {lines:?}"));
+    let stop_at = after[first_stop].0;
+    // A loaded machine: bound by a cycle of the slowest component (50 ms)
+    // plus generous scheduling slack, not a tight wall-clock guess.
+    assert!(stop_at.duration_since(engaged) < Duration::from_millis(500), "{what}: STOP after {:?}", stop_at - engaged);
+    let moving: Vec<_> = after[first_stop..].iter().filter(|(_, l)| l != "S").collect();
+    assert!(moving.is_empty(), "{what}: motion after STOP while engaged: {moving:?}");
+    assert_eq!(lines.last().map(|(_, l)| l.as_str()), Some("S"), "{what}: STOP is the last thing on the wire");
+}
+
+#[test]
+fn estop_and_release_over_the_teleop_line_stop_a_driving_component_until_released() {
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let host = start(&device, "", "");
+    assert_drives(&mut motors, "before");
+    let mut alice = Operator::connect(&host.teleop);
+    let engaged = Instant::now();
+    assert_eq!(alice.say("ESTOP"), "OK estop engaged: the motors are stopped");
+    let lines = watch(&mut motors, 1500);
+    assert_stopped(&lines, engaged, "ESTOP");
+    assert!(alice.say("ESTOP").starts_with("OK estop is engaged already (by alice)"));
+    assert_eq!(alice.say("RELEASE bumper"), "ERR lock 'bumper' is not engaged");
+    // The driver kept sending all along: nothing moved. A release lets it.
+    let reply = alice.say("RELEASE");
+    assert!(reply.starts_with("OK released estop after "), "{reply}");
+    assert_drives(&mut motors, "after the release");
+    // A dropped connection releases nothing.
+    let engaged = Instant::now();
+    alice.say("ESTOP");
+    drop(alice);
+    let lines = watch(&mut motors, 1000);
+    assert_stopped(&lines, engaged, "ESTOP, then the operator left");
+}
+
+#[test]
+fn a_bumper_hit_from_the_controller_engages_a_lock_that_only_a_release_ends() {
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let host = start(
+        &device,
+        r#"<param name="locks" value="bumper=100"/>"#,
+        r#"<connect from="motors.bumper" to="arbiter.lock"/>"#,
+    );
+    assert_drives(&mut motors, "before");
+    let hit = Instant::now();
+    motors.write(b"B 1\n");
+    let lines = watch(&mut motors, 800);
+    assert_stopped(&lines, hit, "bumper");
+    // The bumper lets go: the lock stays.
+    motors.write(b"B 0\n");
+    let lines = watch(&mut motors, 800);
+    assert!(lines.iter().all(|(_, l)| l == "S"), "released by the bumper's false: {lines:?}");
+    let mut alice = Operator::connect(&host.teleop);
+    let reply = alice.say("RELEASE bumper");
+    assert!(reply.starts_with("OK released bumper after "), "{reply}");
+    assert_drives(&mut motors, "after the release");
+}
+
+const PASSWORD: &str = "estop-test-password";
+
+/// `subsume user add NAME --role ROLE` with [`PASSWORD`].
+fn add_user(store: &std::path::Path, name: &str, role: &str) {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
+    if role == "developer" {
+        command.args(["--platform", "control"]);
+    }
+    let mut child = command.stdin(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
+    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
+    assert!(child.wait().unwrap().success());
+}
+
+/// `subsume run` with its portal on the robot of [`start`] (driver,
+/// arbiter, envelope, motors on `device`); returns the host and the
+/// portal's address.
+fn start_with_portal(device: &str, dir: &std::path::Path) -> (Child, String) {
+    support::guest_dir();
+    let store = dir.join("store");
+    for (name, role) in [("viewer", "viewer"), ("dev", "developer"), ("operator", "operator")] {
+        add_user(&store, name, role);
+    }
+    let xml = format!(
+        r#"<robot name="estop">
+  <platform name="control">
+    <component name="driver" source="{driver}" rate="20" timeout="200ms">
+      <param name="command" value="VEL 0.25 0"/>
+      <param name="ticks" value="100000000"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>
+    <connect from="driver.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+</robot>"#,
+        driver = support::guest("test-commander").display()
+    );
+    let robot = dir.join("robot.xml");
+    std::fs::write(&robot, xml).unwrap();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
+        .arg(&robot)
+        .args(["--http", "127.0.0.1:0", "--duration", "90"])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("portal on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
+            }
+        }
+    });
+    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
+    (child, address)
+}
+
+/// `subsume estop|release ADDRESS --user USER`: (success, stdout + stderr).
+fn cli(action: &str, address: &str, user: &str) -> (bool, String) {
+    let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .args([action, address, "--user", user])
+        .env("SUBSUME_PASSWORD", PASSWORD)
+        .output()
+        .unwrap();
+    let text = format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
+    (output.status.success(), text)
+}
+
+#[test]
+fn the_command_line_and_the_portal_button_stop_the_robot_and_only_a_driver_releases() {
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let dir = tempfile::tempdir().unwrap();
+    let (child, address) = start_with_portal(&device, dir.path());
+    let _host = Host { child, teleop: String::new(), _dir: tempfile::tempdir().unwrap() };
+    assert_drives(&mut motors, "before");
+    // The command line, as a viewer (a button on a small computer).
+    let engaged = Instant::now();
+    let (ok, said) = cli("estop", &address, "viewer");
+    assert!(ok, "{said}");
+    assert!(said.contains("estop engaged: the motors are stopped"), "{said}");
+    let lines = watch(&mut motors, 1000);
+    assert_stopped(&lines, engaged, "subsume estop");
+    // Neither a viewer nor a developer may release; nothing moves.
+    for user in ["viewer", "dev"] {
+        let (ok, said) = cli("release", &address, user);
+        assert!(!ok, "{user} released: {said}");
+        assert!(said.contains("403") && said.contains("may not drive"), "{said}");
+    }
+    let lines = watch(&mut motors, 300);
+    assert!(lines.iter().all(|(_, l)| l == "S"), "moved after a refused release: {lines:?}");
+    let (ok, said) = cli("release", &address, "operator");
+    assert!(ok && said.contains("released estop after"), "{said}");
+    assert_drives(&mut motors, "after the release");
+    // The portal's STOP button, clicked by a viewer in headless Chromium.
+    let browser_dir = support::repo_root().join("tests/browser");
+    assert!(
+        browser_dir.join("node_modules/playwright-core").is_dir(),
+        "run scripts/setup first: it installs playwright-core and chromium"
+    );
+    let node = Command::new("node")
+        .current_dir(&browser_dir)
+        .arg("estop.mjs")
+        .arg(format!("http://{address}/"))
+        .args(["viewer", PASSWORD])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let clicked = Instant::now();
+    let (tx, rx) = mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(node.wait_with_output());
+    });
+    let mut output = None;
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while output.is_none() && Instant::now() < deadline {
+        motors.read();
+        output = rx.try_recv().ok();
+    }
+    let output = output.expect("the browser test finished").unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(output.status.success(), "browser: {stdout}{}", String::from_utf8_lossy(&output.stderr));
+    let lines = watch(&mut motors, 500);
+    let all: Vec<(Instant, String)> = motors.lines.iter().filter(|(at, _)| *at > clicked).cloned().collect();
+    assert!(all.iter().any(|(_, l)| l == "S"), "no STOP after the click");
+    assert!(lines.iter().all(|(_, l)| l == "S"), "moving after the portal STOP: {lines:?}");
+    assert_eq!(motors.lines.last().map(|(_, l)| l.as_str()), Some("S"));
+}
