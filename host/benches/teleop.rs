@@ -65,6 +65,7 @@ fn main() {
         stall_limit: subsume::runtime::stall::DEFAULT_STALL_LIMIT,
         fault_injection: None,
         tls: Default::default(),
+        record: None,
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -36,6 +36,7 @@ pub mod envelope;
 pub mod fsutil;
 pub mod metrics;
 pub mod portal;
+pub mod record;
 pub mod report;
 pub mod robot;
 pub mod run;

@@ -70,6 +70,14 @@ enum Command {
         /// loopback (passwords and commands then cross the network in clear).
         #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
         allow_plain_http: bool,
+        /// Record the run to this MCAP file (every value, call, fault,
+        /// status change and log line; docs/recording.md).
+        #[arg(long, value_name = "FILE.mcap")]
+        record: Option<PathBuf>,
+        /// Start the next file of the recording (FILE.1.mcap, ...) once one
+        /// reaches this many MiB.
+        #[arg(long, value_name = "MIB", default_value = "1024")]
+        record_max_mib: u64,
     },
     /// Manage the portal's users (stored in the store's users.json).
     User {
@@ -167,15 +175,32 @@ fn main() -> ExitCode {
         // A filter per layer: an unfiltered layer would turn on every trace
         // event in the process (cranelift traces slow compiles down 4x).
         .with(logs.layer().with_filter(tracing_subscriber::filter::LevelFilter::INFO))
+        .with(subsume::record::log::layer().with_filter(tracing_subscriber::filter::LevelFilter::INFO))
         .init();
     let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
     let result = match cli.command {
-        Command::Run { config, duration, report, params, http, stall_limit, tls_cert, tls_key, allow_plain_http } => {
+        Command::Run {
+            config,
+            duration,
+            report,
+            params,
+            http,
+            stall_limit,
+            tls_cert,
+            tls_key,
+            allow_plain_http,
+            record,
+            record_max_mib,
+        } => {
+            let record = record.map(|path| subsume::record::RecordOptions {
+                path,
+                max_file_bytes: record_max_mib.saturating_mul(1 << 20),
+            });
             portal_options(&http, store_dir, logs).and_then(|portal| {
                 let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
                 let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
-                run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit, tls })
+                run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit, tls, record })
             })
         }
         Command::User { action } => user(action, store_dir),
@@ -211,6 +236,7 @@ struct RunArgs {
     portal: Option<PortalOptions>,
     stall_limit: f64,
     tls: subsume::tls::HostTls,
+    record: Option<subsume::record::RecordOptions>,
 }
 
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
@@ -223,6 +249,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         portal,
         stall_limit,
         tls,
+        record,
     } = args;
     let duration = match duration {
         None => None,
@@ -250,6 +277,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         stall_limit: Duration::from_secs_f64(stall_limit),
         fault_injection,
         tls,
+        record,
     };
     let result = subsume::run::run(&options, shutdown);
     signals.close();

@@ -1,7 +1,8 @@
 //! The runtime: components behind one trait ([`component`]), how they are
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
 //! control loop that drives it in real time ([`control_loop`]) and the
-//! watchdog outside it that stops the motors when it stalls ([`stall`]).
+//! watchdog outside it that stops the motors when it stalls ([`stall`]), and
+//! what an observer such as the recorder sees of it ([`tap`]).
 //!
 //! Import rule: nothing here imports `config` or any built-in; the robot
 //! file's validator and the assembler feed the graph through the types of
@@ -12,10 +13,12 @@ pub mod control_loop;
 pub mod graph;
 pub mod histogram;
 pub mod stall;
+pub mod tap;
 pub mod wiring;
 
 pub use component::{CallError, Component, Outbox, Restarter, Vacant};
 pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use histogram::Histogram;
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
+pub use tap::{Call, Tap};
 pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};
