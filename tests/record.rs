@@ -209,4 +209,79 @@ fn a_killed_host_leaves_a_file_whose_chunks_read() {
     for topic in ["/motors/pose", "/arbiter/cmd", "/subsume/calls/avoid", "/subsume/log"] {
         assert!(channel(&read, topic)["count"].as_u64().unwrap() > 0, "{topic}");
     }
+    // Replay reads it too, up to the cut, and the components agree with it.
+    let (code, report, log) = replay(&[file.to_str().unwrap(), "config/demo.xml"]);
+    assert_eq!(code, Some(0), "{report} {log}");
+    assert_eq!(report["truncated"], true);
+    assert!(report["compared"].as_u64().unwrap() > 50, "{report}");
+}
+
+/// Records the demo for `seconds` into `dir`; returns the file.
+fn record_demo(dir: &Path, seconds: &str) -> PathBuf {
+    let file = dir.join("demo.mcap");
+    let mut args = vec!["run", "config/demo.xml", "--duration", seconds, "--record", file.to_str().unwrap()];
+    args.extend(FREE_PORTS);
+    let output = run(&args);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    file
+}
+
+fn replay(args: &[&str]) -> (Option<i32>, Json, String) {
+    let output = run(&[&["replay"], args, &["--json"]].concat());
+    let json = serde_json::from_slice(&output.stdout).unwrap_or(Json::Null);
+    (output.status.code(), json, text(&output.stderr))
+}
+
+#[test]
+fn identical_components_replay_bit_for_bit_and_a_changed_one_is_caught_where_it_diverges() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = record_demo(dir.path(), "3");
+    let recording = file.to_str().unwrap();
+    // Every WASM component of the demo, fed its recorded calls again.
+    let (code, report, log) = replay(&[recording, "config/demo.xml"]);
+    assert_eq!(code, Some(0), "{report} {log}");
+    assert_eq!(report["components"], serde_json::json!(["filter", "avoid", "planner"]));
+    assert!(report["compared"].as_u64().unwrap() > 100, "{report}");
+    assert_eq!(report["divergences"], serde_json::json!([]));
+    assert!(report["recorded_s"].as_f64().unwrap() > 2.5, "{report}");
+    // The planner with another top speed: its first command differs.
+    let (code, report, log) =
+        replay(&[recording, "config/demo.xml", "--only", "planner", "--param", "planner.max-speed=0.3"]);
+    assert_eq!(code, Some(1), "{report} {log}");
+    assert_eq!(report["components"], serde_json::json!(["planner"]));
+    let first = &report["divergences"][0];
+    assert_eq!(first["component"], "planner");
+    assert_eq!(first["port"], "cmd");
+    assert_eq!(first["index"], 0);
+    let recorded = read_mcap(&file, false);
+    let first_cmd = &recorded["first"]["/planner/cmd"];
+    assert_eq!(first["recorded"], first_cmd["value"], "the recorded value is the recording's");
+    assert_eq!(first["time_s"].as_f64().unwrap(), first_cmd["t"].as_u64().unwrap() as f64 / 1e9);
+    let replayed = first["replayed"]["command"].as_str().unwrap();
+    assert!(replayed.starts_with("VEL 0.300 "), "{first}");
+    assert_ne!(first["recorded"], first["replayed"]);
+    // The text form names time, port and both values.
+    let output =
+        run(&["replay", recording, "config/demo.xml", "--only", "planner", "--param", "planner.max-speed=0.3"]);
+    let stdout = text(&output.stdout);
+    assert!(stdout.contains("planner.cmd diverges at "), "{stdout}");
+    assert!(stdout.contains("(output 0): recorded {\"command\":\"VEL 0.450 "), "{stdout}");
+}
+
+#[test]
+fn replay_refuses_built_ins_unknown_names_and_what_is_not_a_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = record_demo(dir.path(), "1");
+    let recording = file.to_str().unwrap();
+    let output = run(&["replay", recording, "config/demo.xml", "--only", "arbiter"]);
+    assert_eq!(output.status.code(), Some(1));
+    let err = text(&output.stderr);
+    assert!(err.contains("config/demo.xml: 'arbiter' is arbiter: replay runs WASM components only"), "{err}");
+    let output = run(&["replay", recording, "config/demo.xml", "--only", "nobody"]);
+    assert!(text(&output.stderr).contains("config/demo.xml: no component 'nobody' in the robot file"));
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, b"not an mcap file at all").unwrap();
+    let output = run(&["replay", junk.to_str().unwrap(), "config/demo.xml"]);
+    assert_eq!(output.status.code(), Some(1));
+    assert!(text(&output.stderr).contains("junk.mcap: not a recording replay can read"), "{}", text(&output.stderr));
 }

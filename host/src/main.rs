@@ -79,6 +79,25 @@ enum Command {
         #[arg(long, value_name = "MIB", default_value = "1024")]
         record_max_mib: u64,
     },
+    /// Feed components of a robot file the inputs they got in a recording
+    /// (subsume run --record) and compare their outputs with the recorded
+    /// ones, bit for bit; exit 1 at a divergence.
+    Replay {
+        /// The recording (FILE.mcap).
+        recording: PathBuf,
+        /// The robot file naming the components to replay.
+        config: PathBuf,
+        /// Replay only these components (repeatable); every WASM component
+        /// of the file by default.
+        #[arg(long = "only", value_name = "COMPONENT")]
+        only: Vec<String>,
+        /// Set a component parameter, overriding the robot file (repeatable).
+        #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
+        params: Vec<ParamOverride>,
+        /// Print the result as JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Manage the portal's users (stored in the store's users.json).
     User {
         #[command(subcommand)]
@@ -204,6 +223,16 @@ fn main() -> ExitCode {
             })
         }
         Command::User { action } => user(action, store_dir),
+        Command::Replay { recording, config, only, params, json } => {
+            let options = subsume::record::replay::ReplayOptions {
+                recording,
+                config_path: config,
+                only,
+                overrides: params,
+                cache_dir,
+            };
+            replay(&options, json)
+        }
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
         Command::New { name, lang, dir } => subsume::scaffold::create(&name, lang, dir.as_deref())
@@ -300,6 +329,40 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         tracing::info!("report written to {}", path.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+fn replay(options: &subsume::record::replay::ReplayOptions, json: bool) -> anyhow::Result<ExitCode> {
+    let report = match subsume::record::replay::replay(options) {
+        Ok(report) => report,
+        Err(subsume::record::replay::ReplayError::Config(diagnostics)) => {
+            println!("{diagnostics}");
+            eprintln!("error: {} problem(s) in {}", diagnostics.0.len(), options.config_path.display());
+            return Ok(ExitCode::FAILURE);
+        }
+        Err(e) => return Err(e.into()),
+    };
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report).context("failed to encode the replay report")?);
+    } else {
+        let speed = if report.wall_s > 0.0 { report.recorded_s / report.wall_s } else { 0.0 };
+        println!(
+            "replayed {} against {}: {} calls, {} outputs compared, {:.2} recorded s in {:.2} s ({speed:.1}x real time){}",
+            report.components.join(", "),
+            options.recording.display(),
+            report.calls,
+            report.compared,
+            report.recorded_s,
+            report.wall_s,
+            if report.truncated { "; the recording was cut short" } else { "" }
+        );
+        for divergence in &report.divergences {
+            println!("{divergence}");
+        }
+        if report.identical() {
+            println!("identical: every output matches the recording bit for bit");
+        }
+    }
+    Ok(if report.identical() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
 
 fn check(config_path: &Path, overrides: &[ParamOverride], cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {

@@ -17,6 +17,7 @@
 //! started (`FILE.1.mcap`, `FILE.2.mcap`, ...).
 
 pub mod log;
+pub mod replay;
 
 pub mod schema;
 mod writer;
