@@ -285,3 +285,47 @@ fn replay_refuses_built_ins_unknown_names_and_what_is_not_a_recording() {
     assert_eq!(output.status.code(), Some(1));
     assert!(text(&output.stderr).contains("junk.mcap: not a recording replay can read"), "{}", text(&output.stderr));
 }
+
+#[test]
+fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses() {
+    use std::io::{BufRead, BufReader};
+    let mut args = vec!["run", "config/demo.xml", "--duration", "60", "--foxglove", "127.0.0.1:0"];
+    args.extend(FREE_PORTS);
+    let mut child = subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (found, address) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(at) = line.find("foxglove live view on ws://") {
+                let rest = &line[at + "foxglove live view on ".len()..];
+                let _ = found.send(rest.split_whitespace().next().unwrap_or_default().to_string());
+            }
+        }
+    });
+    let url = address.recv_timeout(Duration::from_secs(60)).expect("the live view never started");
+    let output = Command::new(python())
+        .arg(support::repo_root().join("tests/python/foxglove_client.py"))
+        .args([&url, "5", "/motors/pose", "/motors/pose/tf", "/arbiter/cmd", "/subsume/log"])
+        .output()
+        .unwrap();
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let seen: Json = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(seen["server"], "subsume");
+    assert_eq!(seen["channels"]["/motors/pose"]["schemaName"], "foxglove.PoseInFrame");
+    assert_eq!(seen["channels"]["/motors/pose"]["encoding"], "json");
+    assert_eq!(seen["channels"]["/motors/pose"]["schemaEncoding"], "jsonschema");
+    assert_eq!(seen["channels"]["/motors/pose/tf"]["schemaName"], "foxglove.FrameTransform");
+    assert_eq!(seen["times_in_order"], true);
+    for pose in seen["messages"]["/motors/pose"].as_array().unwrap() {
+        assert_eq!(pose["frame_id"], "world");
+        let value = pose["value"].as_array().unwrap();
+        assert_eq!(pose["pose"]["position"]["x"], value[0]);
+        assert_eq!(pose["pose"]["position"]["y"], value[1]);
+    }
+    let tf = &seen["messages"]["/motors/pose/tf"][0];
+    assert_eq!(tf["parent_frame_id"], "world");
+    assert_eq!(tf["child_frame_id"], "base_link");
+    assert!(seen["messages"]["/arbiter/cmd"][0]["value"]["command"].is_string(), "{seen}");
+}

@@ -78,6 +78,10 @@ enum Command {
         /// reaches this many MiB.
         #[arg(long, value_name = "MIB", default_value = "1024")]
         record_max_mib: u64,
+        /// Serve the same channels live to Foxglove or Lichtblick (Foxglove
+        /// WebSocket, subprotocol foxglove.sdk.v1) on this address, or `off`.
+        #[arg(long, value_name = "ADDRESS|off", env = "SUBSUME_FOXGLOVE", default_value = "off")]
+        foxglove: String,
     },
     /// Feed components of a robot file the inputs they got in a recording
     /// (subsume run --record) and compare their outputs with the recorded
@@ -211,16 +215,29 @@ fn main() -> ExitCode {
             allow_plain_http,
             record,
             record_max_mib,
+            foxglove,
         } => {
-            let record = record.map(|path| subsume::record::RecordOptions {
-                path,
-                max_file_bytes: record_max_mib.saturating_mul(1 << 20),
+            let live = match foxglove.as_str() {
+                "off" => Ok(None),
+                address => address
+                    .parse::<std::net::SocketAddr>()
+                    .map(Some)
+                    .map_err(|e| anyhow::anyhow!("--foxglove must be ADDRESS:PORT or off, got '{address}': {e}")),
+            };
+            let record = live.map(|live| {
+                (record.is_some() || live.is_some()).then(|| subsume::record::RecordOptions {
+                    path: record,
+                    max_file_bytes: record_max_mib.saturating_mul(1 << 20),
+                    live,
+                })
             });
-            portal_options(&http, store_dir, logs).and_then(|portal| {
-                let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
-                let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
-                run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit, tls, record })
-            })
+            record.and_then(|record| portal_options(&http, store_dir, logs).map(|portal| (portal, record))).and_then(
+                |(portal, record)| {
+                    let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
+                    let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
+                    run(RunArgs { config, duration, report, params, cache_dir, portal, stall_limit, tls, record })
+                },
+            )
         }
         Command::User { action } => user(action, store_dir),
         Command::Replay { recording, config, only, params, json } => {

@@ -183,6 +183,9 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
         return Ok(final_report(&config, &graph, stopped_by, ran_ns));
     };
+    if let Some(address) = record.live {
+        options.tls.check_plain("foxglove live view", address)?;
+    }
     let recorder = Recorder::start(record, Layout::of(&config), epoch_unix_ns(&clock))?;
     graph.set_tap(recorder.tap());
     let hook = recorder.hook(control_loop::NoHook);
@@ -399,6 +402,9 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         return Ok(final_report(hook.config(), &graph, stopped_by, ran_ns));
     };
     let mut graph = graph;
+    if let Some(address) = record.live {
+        options.tls.check_plain("foxglove live view", address)?;
+    }
     let recorder = Recorder::start(record, Layout::of(hook.config()), epoch_unix_ns(&clock))?;
     graph.set_tap(recorder.tap());
     let hook = recorder.swapping_hook(hook, |hook| Layout::of(hook.config()));

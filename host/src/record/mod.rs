@@ -16,6 +16,7 @@
 //! summary; a file past its size limit is finished and the next one
 //! started (`FILE.1.mcap`, `FILE.2.mcap`, ...).
 
+pub mod live;
 pub mod log;
 pub mod replay;
 
@@ -75,6 +76,10 @@ pub enum RecordError {
     MaxBytes(u64, PathBuf),
     #[error("recording {}: the file name must end in .mcap", .0.display())]
     Extension(PathBuf),
+    #[error("the foxglove live view cannot listen on {address}: {message}")]
+    Live { address: std::net::SocketAddr, message: String },
+    #[error("recording: neither a file nor a live view was asked for")]
+    Nothing,
     #[error("the recording's writer thread failed: {0}")]
     Thread(String),
 }
@@ -82,23 +87,29 @@ pub enum RecordError {
 /// What `--record` asked for.
 #[derive(Clone, Debug)]
 pub struct RecordOptions {
-    /// The first file; rotation adds `.1`, `.2`, ... before `.mcap`.
-    pub path: PathBuf,
+    /// The first file; rotation adds `.1`, `.2`, ... before `.mcap`. No
+    /// file: the live view only.
+    pub path: Option<PathBuf>,
     /// Size at which a file is finished and the next one started.
     pub max_file_bytes: u64,
+    /// Where the Foxglove WebSocket server listens, if it runs.
+    pub live: Option<std::net::SocketAddr>,
 }
 
 impl RecordOptions {
     pub fn new(path: PathBuf) -> RecordOptions {
-        RecordOptions { path, max_file_bytes: DEFAULT_MAX_FILE_BYTES }
+        RecordOptions { path: Some(path), max_file_bytes: DEFAULT_MAX_FILE_BYTES, live: None }
     }
 
     fn check(&self) -> Result<(), RecordError> {
-        if self.path.extension().is_none_or(|e| e != "mcap") {
-            return Err(RecordError::Extension(self.path.clone()));
+        let Some(path) = &self.path else {
+            return if self.live.is_some() { Ok(()) } else { Err(RecordError::Nothing) };
+        };
+        if path.extension().is_none_or(|e| e != "mcap") {
+            return Err(RecordError::Extension(path.clone()));
         }
         if self.max_file_bytes < MIN_MAX_FILE_BYTES {
-            return Err(RecordError::MaxBytes(self.max_file_bytes, self.path.clone()));
+            return Err(RecordError::MaxBytes(self.max_file_bytes, path.clone()));
         }
         Ok(())
     }
@@ -272,7 +283,9 @@ impl Recorder {
             .map_err(|e| RecordError::Thread(e.to_string()))?;
         let sink = Sink { sender, dropped };
         log::install(sink.clone());
-        tracing::info!("recording to {}", options.path.display());
+        if let Some(path) = &options.path {
+            tracing::info!("recording to {}", path.display());
+        }
         Ok(Recorder { sink, writer: Some(handle) })
     }
 

@@ -12,6 +12,7 @@ use std::time::Instant;
 use mcap::records::MessageHeader;
 use serde_json::{Value as Json, json};
 
+use super::live::Live;
 use super::schema::{self, FRAME_TRANSFORM, LASER_SCAN, POSE_IN_FRAME};
 use super::{
     CHUNK_BYTES, Event, FLUSH_INTERVAL, Layout, MAX_TEXT_BYTES, RecordError, RecordOptions, RecordSummary, calls_topic,
@@ -59,6 +60,8 @@ struct OpenFile {
 
 pub(super) struct Writer {
     options: RecordOptions,
+    /// The Foxglove live view, if it runs.
+    live: Option<Live>,
     layout: Arc<Layout>,
     epoch_unix_ns: u64,
     file: Option<OpenFile>,
@@ -74,8 +77,10 @@ impl Writer {
         layout: Arc<Layout>,
         epoch_unix_ns: u64,
     ) -> Result<Writer, RecordError> {
+        let live = options.live.map(Live::start).transpose()?;
         let mut writer = Writer {
             options,
+            live,
             layout,
             epoch_unix_ns,
             file: None,
@@ -83,12 +88,14 @@ impl Writer {
             summary: RecordSummary::default(),
             last_flush: Instant::now(),
         };
-        writer.open()?;
+        if writer.options.path.is_some() {
+            writer.open()?;
+        }
         Ok(writer)
     }
 
     fn path(&self) -> std::path::PathBuf {
-        rotated_path(&self.options.path, self.index)
+        self.options.path.as_deref().map(|p| rotated_path(p, self.index)).unwrap_or_default()
     }
 
     fn mcap_error(&self, source: mcap::McapError) -> RecordError {
@@ -159,6 +166,9 @@ impl Writer {
     }
 
     fn rotate_if_full(&mut self, dropped: u64) -> Result<(), RecordError> {
+        if self.file.is_none() {
+            return Ok(());
+        }
         let size = self.file.as_ref().map_or(0, |f| f.size.load(Ordering::Relaxed));
         if size < self.options.max_file_bytes {
             return Ok(());
@@ -248,6 +258,10 @@ impl Writer {
     ) -> Result<(), RecordError> {
         let path = self.path();
         let epoch = self.epoch_unix_ns;
+        let data = serde_json::to_vec(message).unwrap_or_default();
+        if let Some(live) = &mut self.live {
+            live.log(topic, schema_name, unix_ns, &data);
+        }
         let Some(open) = &mut self.file else { return Ok(()) };
         let error = |source| RecordError::Mcap { path: path.clone(), source };
         let channel = match open.channels.get(topic) {
@@ -271,7 +285,6 @@ impl Writer {
         open.sequence = open.sequence.wrapping_add(1);
         let header =
             MessageHeader { channel_id: channel, sequence: open.sequence, log_time: unix_ns, publish_time: unix_ns };
-        let data = serde_json::to_vec(message).unwrap_or_default();
         open.mcap.write_to_known_channel(&header, &data).map_err(error)?;
         self.summary.messages += 1;
         Ok(())
