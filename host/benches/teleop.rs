@@ -66,6 +66,7 @@ fn main() {
         fault_injection: None,
         tls: Default::default(),
         pace: None,
+        record: None,
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -37,6 +37,7 @@ pub mod envelope;
 pub mod fsutil;
 pub mod metrics;
 pub mod portal;
+pub mod record;
 pub mod report;
 pub mod robot;
 pub mod run;

@@ -74,6 +74,37 @@ enum Command {
         /// loopback (passwords and commands then cross the network in clear).
         #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
         allow_plain_http: bool,
+        /// Record the run to this MCAP file (every value, call, fault,
+        /// status change and log line; docs/recording.md).
+        #[arg(long, value_name = "FILE.mcap")]
+        record: Option<PathBuf>,
+        /// Start the next file of the recording (FILE.1.mcap, ...) once one
+        /// reaches this many MiB.
+        #[arg(long, value_name = "MIB", default_value = "1024")]
+        record_max_mib: u64,
+        /// Serve the same channels live to Foxglove or Lichtblick (Foxglove
+        /// WebSocket, subprotocol foxglove.sdk.v1) on this address, or `off`.
+        #[arg(long, value_name = "ADDRESS|off", env = "SUBSUME_FOXGLOVE", default_value = "off")]
+        foxglove: String,
+    },
+    /// Feed components of a robot file the inputs they got in a recording
+    /// (subsume run --record) and compare their outputs with the recorded
+    /// ones, bit for bit; exit 1 at a divergence.
+    Replay {
+        /// The recording (FILE.mcap).
+        recording: PathBuf,
+        /// The robot file naming the components to replay.
+        config: PathBuf,
+        /// Replay only these components (repeatable); every WASM component
+        /// of the file by default.
+        #[arg(long = "only", value_name = "COMPONENT")]
+        only: Vec<String>,
+        /// Set a component parameter, overriding the robot file (repeatable).
+        #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
+        params: Vec<ParamOverride>,
+        /// Print the result as JSON.
+        #[arg(long)]
+        json: bool,
     },
     /// Manage the portal's users (stored in the store's users.json).
     User {
@@ -215,6 +246,7 @@ fn main() -> ExitCode {
         // A filter per layer: an unfiltered layer would turn on every trace
         // event in the process (cranelift traces slow compiles down 4x).
         .with(logs.layer().with_filter(tracing_subscriber::filter::LevelFilter::INFO))
+        .with(subsume::record::log::layer().with_filter(tracing_subscriber::filter::LevelFilter::INFO))
         .init();
     let store_dir = cli.store.clone().or_else(default_store_dir);
     let cache_dir = if cli.no_cache { None } else { cli.cache_dir.clone().or_else(default_cache_dir) };
@@ -230,13 +262,44 @@ fn main() -> ExitCode {
             tls_cert,
             tls_key,
             allow_plain_http,
-        } => portal_options(&http, store_dir, logs).and_then(|portal| {
-            let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
-            let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
-            let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
-            run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls })
-        }),
+            record,
+            record_max_mib,
+            foxglove,
+        } => {
+            let live = match foxglove.as_str() {
+                "off" => Ok(None),
+                address => address
+                    .parse::<std::net::SocketAddr>()
+                    .map(Some)
+                    .map_err(|e| anyhow::anyhow!("--foxglove must be ADDRESS:PORT or off, got '{address}': {e}")),
+            };
+            let record = live.map(|live| {
+                (record.is_some() || live.is_some()).then(|| subsume::record::RecordOptions {
+                    path: record,
+                    max_file_bytes: record_max_mib.saturating_mul(1 << 20),
+                    live,
+                })
+            });
+            record.and_then(|record| portal_options(&http, store_dir, logs).map(|portal| (portal, record))).and_then(
+                |(portal, record)| {
+                    let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
+                    let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
+                    let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
+                    run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record })
+                },
+            )
+        }
         Command::User { action } => user(action, store_dir),
+        Command::Replay { recording, config, only, params, json } => {
+            let options = subsume::record::replay::ReplayOptions {
+                recording,
+                config_path: config,
+                only,
+                overrides: params,
+                cache_dir,
+            };
+            replay(&options, json)
+        }
         Command::Check { config, params } => check(&config, &params, cache_dir),
         Command::Describe { component, json } => describe(&component, json, cache_dir),
         Command::New { name, lang, dir } => subsume::scaffold::create(&name, lang, dir.as_deref())
@@ -288,6 +351,7 @@ struct RunArgs {
     portal: Option<PortalOptions>,
     stall_limit: f64,
     tls: subsume::tls::HostTls,
+    record: Option<subsume::record::RecordOptions>,
 }
 
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
@@ -301,6 +365,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         portal,
         stall_limit,
         tls,
+        record,
     } = args;
     let duration = match duration {
         None => None,
@@ -329,6 +394,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         fault_injection,
         tls,
         pace,
+        record,
     };
     let result = subsume::run::run(&options, shutdown);
     signals.close();
@@ -351,6 +417,40 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         tracing::info!("report written to {}", path.display());
     }
     Ok(ExitCode::SUCCESS)
+}
+
+fn replay(options: &subsume::record::replay::ReplayOptions, json: bool) -> anyhow::Result<ExitCode> {
+    let report = match subsume::record::replay::replay(options) {
+        Ok(report) => report,
+        Err(subsume::record::replay::ReplayError::Config(diagnostics)) => {
+            println!("{diagnostics}");
+            eprintln!("error: {} problem(s) in {}", diagnostics.0.len(), options.config_path.display());
+            return Ok(ExitCode::FAILURE);
+        }
+        Err(e) => return Err(e.into()),
+    };
+    if json {
+        println!("{}", serde_json::to_string_pretty(&report).context("failed to encode the replay report")?);
+    } else {
+        let speed = if report.wall_s > 0.0 { report.recorded_s / report.wall_s } else { 0.0 };
+        println!(
+            "replayed {} against {}: {} calls, {} outputs compared, {:.2} recorded s in {:.2} s ({speed:.1}x real time){}",
+            report.components.join(", "),
+            options.recording.display(),
+            report.calls,
+            report.compared,
+            report.recorded_s,
+            report.wall_s,
+            if report.truncated { "; the recording was cut short" } else { "" }
+        );
+        for divergence in &report.divergences {
+            println!("{divergence}");
+        }
+        if report.identical() {
+            println!("identical: every output matches the recording bit for bit");
+        }
+    }
+    Ok(if report.identical() { ExitCode::SUCCESS } else { ExitCode::FAILURE })
 }
 
 fn check(config_path: &Path, overrides: &[ParamOverride], cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {

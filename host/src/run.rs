@@ -16,6 +16,7 @@ use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::portal::{self, logs::LogRing};
+use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder};
 use crate::report::{self, Report};
 use crate::robot::serial::{HALT_WAIT, halt_every_link};
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
@@ -53,6 +54,8 @@ pub struct RunOptions {
     /// Run on simulated time at this pace (`--speed`); real time when
     /// `None`. The duration is then simulated time.
     pub pace: Option<Pace>,
+    /// Record the run to MCAP (`--record`).
+    pub record: Option<RecordOptions>,
 }
 
 impl RunOptions {
@@ -143,6 +146,8 @@ pub enum RunError {
     PortalRuntime(#[source] std::io::Error),
     #[error("the control loop thread failed: {0}")]
     ControlLoop(String),
+    #[error(transparent)]
+    Record(#[from] RecordError),
     #[error(
         "the stall limit must be between {} and {} ms, got {} ms",
         MIN_STALL_LIMIT.as_millis(),
@@ -184,12 +189,38 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     );
     let clock = options.clock();
     let services = Services::default().with(Arc::new(options.tls.clone()));
-    let graph =
+    let mut graph =
         assemble::build(&config, &mut loader, clock.clone(), &shutdown.waker(), &services, &assemble::Carry::default())
             .map(|built| built.graph)
             .map_err(RunError::Start)?;
-    let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
-    Ok(final_report(&config, &graph, stopped_by, ran_ns))
+    let Some(record) = &options.record else {
+        let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
+        return Ok(final_report(&config, &graph, stopped_by, ran_ns));
+    };
+    if let Some(address) = record.live {
+        options.tls.check_plain("foxglove live view", address)?;
+    }
+    let recorder = Recorder::start(record, Layout::of(&config), epoch_unix_ns(&clock))?;
+    graph.set_tap(recorder.tap());
+    let hook = recorder.hook(control_loop::NoHook);
+    let (mut graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
+    graph.take_tap();
+    let summary = recorder.finish()?;
+    let report = final_report(&config, &graph, stopped_by, ran_ns);
+    drop(graph);
+    log_recording(&summary);
+    Ok(report)
+}
+
+/// The wall-clock time of the clock's zero, in ns since the Unix epoch.
+fn epoch_unix_ns(clock: &Clock) -> u64 {
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+    now.saturating_sub(clock.now_ns())
+}
+
+fn log_recording(summary: &RecordSummary) {
+    let files: Vec<String> = summary.files.iter().map(|f| f.display().to_string()).collect();
+    tracing::info!("recorded {} messages ({} bytes) to {}", summary.messages, summary.bytes, files.join(", "));
 }
 
 /// Runs the control loop on its own thread, with `hook` between cycles and
@@ -384,7 +415,23 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         }
     });
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
-    let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
+    let Some(record) = &options.record else {
+        let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
+        runtime.shutdown_timeout(Duration::from_secs(1));
+        return Ok(final_report(hook.config(), &graph, stopped_by, ran_ns));
+    };
+    let mut graph = graph;
+    if let Some(address) = record.live {
+        options.tls.check_plain("foxglove live view", address)?;
+    }
+    let recorder = Recorder::start(record, Layout::of(hook.config()), epoch_unix_ns(&clock))?;
+    graph.set_tap(recorder.tap());
+    let hook = recorder.swapping_hook(hook, |hook| Layout::of(hook.config()));
+    let (mut graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
     runtime.shutdown_timeout(Duration::from_secs(1));
-    Ok(final_report(hook.config(), &graph, stopped_by, ran_ns))
+    graph.take_tap();
+    let summary = recorder.finish()?;
+    let report = final_report(hook.inner().config(), &graph, stopped_by, ran_ns);
+    log_recording(&summary);
+    Ok(report)
 }

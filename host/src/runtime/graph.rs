@@ -21,6 +21,7 @@ use std::time::Instant;
 use super::component::{CallError, Component, Outbox, RestartError, Restarter, Vacant};
 use super::histogram::Histogram;
 use super::stall::{Activity, Heartbeat};
+use super::tap::{Call, Tap};
 use super::wiring::{MAX_RESTART_BACKOFF_NS, Mailbox, Policy, RestartPolicy};
 use crate::contract::Value;
 
@@ -127,6 +128,10 @@ pub struct Graph {
     beats: u32,
     /// How late the loop ran each cycle it had scheduled (`control_loop`).
     lateness: Histogram,
+    /// The observer of every call and emission (a recorder), if any.
+    tap: Option<Box<dyn Tap>>,
+    /// The time of the cycle (or injection) in progress, for the tap.
+    now_ns: u64,
 }
 
 impl Drop for Graph {
@@ -160,7 +165,26 @@ impl Graph {
             heartbeat: None,
             beats: 0,
             lateness: Histogram::default(),
+            tap: None,
+            now_ns: 0,
         }
+    }
+
+    /// Lets `tap` observe every call, emission, fault and restart from now
+    /// on (replacing the tap there was, which is returned).
+    pub fn set_tap(&mut self, tap: Box<dyn Tap>) -> Option<Box<dyn Tap>> {
+        self.tap.replace(tap)
+    }
+
+    /// Removes the tap, if there is one (an activation moves it to the next
+    /// graph; stopping a recording drops it).
+    pub fn take_tap(&mut self) -> Option<Box<dyn Tap>> {
+        self.tap.take()
+    }
+
+    /// Whether a tap observes this graph.
+    pub fn has_tap(&self) -> bool {
+        self.tap.is_some()
     }
 
     /// Publishes this graph's pulse on `heartbeat` (and tells it the
@@ -272,6 +296,7 @@ impl Graph {
     /// One cycle at time `now_ns`: ticks every running component that is due,
     /// then delivers every routed value (and what its handling emits).
     pub fn step(&mut self, now_ns: u64) {
+        self.now_ns = now_ns;
         self.cycles += 1;
         self.mark = None;
         self.restart_due(now_ns);
@@ -313,6 +338,7 @@ impl Graph {
     /// delivers it at once. Lets native sources outside the loop feed the
     /// graph (and benchmarks inject values).
     pub fn inject(&mut self, from: usize, port: u32, value: Value, now_ns: u64) {
+        self.now_ns = now_ns;
         self.mark = None;
         self.scratch.push((port, value));
         let mut outbox = std::mem::take(&mut self.scratch);
@@ -382,6 +408,13 @@ impl Graph {
         let started = self.mark.take().unwrap_or_else(Instant::now);
         let activity = if input.is_some() { Activity::OnInput } else { Activity::Tick };
         let word = self.beat(Some(index), activity);
+        if let Some(tap) = &mut self.tap {
+            let call = match &input {
+                None => Call::Tick,
+                Some((port, value, from)) => Call::Input { port: *port, value, from: *from },
+            };
+            tap.call(index, call, now_ns);
+        }
         let mut outbox = std::mem::take(&mut self.scratch);
         let node = &mut self.nodes[index];
         let mut result = match &input {
@@ -457,6 +490,9 @@ impl Graph {
             match restarted {
                 Ok(component) => {
                     tracing::info!(component = &*node.name, "restarted (restart {attempt} of {max_restarts})");
+                    if let Some(tap) = &mut self.tap {
+                        tap.restarted(index, attempt, now_ns);
+                    }
                     node.component = component;
                     node.state = ComponentState::Running;
                     node.next_tick_ns = now_ns;
@@ -499,11 +535,15 @@ impl Graph {
     /// components are told at once (the arbiter stops counting it as a
     /// source) and what they emit is routed.
     pub fn fault(&mut self, index: usize, reason: String, now_ns: u64) {
+        self.now_ns = now_ns;
         let Some(node) = self.nodes.get_mut(index) else { return };
         if node.state != ComponentState::Running {
             return;
         }
         tracing::error!(component = &*node.name, "component faulted and is stopped: {reason}; the others keep running");
+        if let Some(tap) = &mut self.tap {
+            tap.faulted(index, &reason, now_ns);
+        }
         node.component.faulted();
         node.stats.faults += 1;
         node.state = ComponentState::Faulted { reason, at_ns: now_ns };
@@ -526,6 +566,11 @@ impl Graph {
 
     fn route(&mut self, from: usize, outbox: &mut Outbox) {
         self.nodes[from].stats.messages_out += outbox.len() as u64;
+        if let Some(tap) = &mut self.tap {
+            for (port, value) in outbox.iter() {
+                tap.emitted(from, *port, value, self.now_ns);
+            }
+        }
         for (port, value) in outbox.drain(..) {
             let Some(targets) = self.routes[from].get(port as usize) else {
                 continue;
@@ -612,6 +657,31 @@ impl Graph {
     /// a report section, in graph order.
     pub fn statuses(&self) -> Vec<(&str, &'static str, serde_json::Value)> {
         self.nodes.iter().filter_map(|n| n.component.status().map(|(kind, value)| (&*n.name, kind, value))).collect()
+    }
+
+    /// Component `index`'s (name, section kind, section), if it has a report
+    /// section.
+    pub fn component_status(&self, index: usize) -> Option<(&str, &'static str, serde_json::Value)> {
+        let node = self.nodes.get(index)?;
+        node.component.status().map(|(kind, value)| (&*node.name, kind, value))
+    }
+
+    /// Calls component `index` as a cycle would (`tick` without `input`,
+    /// else `on-input`) at `now_ns`, routing and tapping what it emits:
+    /// replay feeds a component its recorded calls one by one. A component
+    /// that is not running is not called.
+    pub fn drive(&mut self, index: usize, input: Option<(u32, Value, usize)>, now_ns: u64) {
+        self.now_ns = now_ns;
+        self.mark = None;
+        let Some(node) = self.nodes.get_mut(index) else { return };
+        if node.state != ComponentState::Running {
+            return;
+        }
+        match input {
+            None => node.stats.ticks += 1,
+            Some(_) => node.stats.messages_in += 1,
+        }
+        self.call(index, now_ns, input);
     }
 
     /// Counters of connection `index` (in the order connections were made).

@@ -3,8 +3,9 @@
 //! control loop that drives it in real time ([`control_loop`]), the host's
 //! emergency-stop locks ([`locks`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
-//! and simulated time's lock-step between the loop, the simulated robots and
-//! their links ([`lockstep`]).
+//! simulated time's lock-step between the loop, the simulated robots and
+//! their links ([`lockstep`]), and what an observer such as the recorder
+//! sees of it ([`tap`]).
 //!
 //! Import rule: nothing here imports `config` or any built-in; the robot
 //! file's validator and the assembler feed the graph through the types of
@@ -17,6 +18,7 @@ pub mod histogram;
 pub mod lockstep;
 pub mod locks;
 pub mod stall;
+pub mod tap;
 pub mod wiring;
 
 pub use component::{CallError, Component, Outbox, Restarter, Vacant};
@@ -24,4 +26,5 @@ pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use histogram::Histogram;
 pub use locks::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
+pub use tap::{Call, Tap};
 pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};

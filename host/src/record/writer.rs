@@ -1,0 +1,303 @@
+//! The writer thread's side of a recording: events -> JSON messages ->
+//! MCAP chunks in the file, channels created as topics first appear,
+//! periodic flushes and rotation by size.
+
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::io::{BufWriter, Seek, SeekFrom, Write};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use mcap::records::MessageHeader;
+use serde_json::{Value as Json, json};
+
+use super::live::Live;
+use super::schema::{self, FRAME_TRANSFORM, LASER_SCAN, POSE_IN_FRAME};
+use super::{
+    CHUNK_BYTES, Event, FLUSH_INTERVAL, Layout, MAX_TEXT_BYTES, RecordError, RecordOptions, RecordSummary, calls_topic,
+    is_pose, output_topic, rotated_path,
+};
+use crate::contract::{Value, ValueKind};
+
+/// A file that counts the bytes written to it (its size, for rotation).
+struct Counted {
+    file: BufWriter<File>,
+    position: u64,
+    /// The file's size so far, which the writer thread reads.
+    size: Arc<AtomicU64>,
+}
+
+impl Write for Counted {
+    fn write(&mut self, buf: &[u8]) -> std::io::Result<usize> {
+        let n = self.file.write(buf)?;
+        self.position += n as u64;
+        self.size.fetch_max(self.position, Ordering::Relaxed);
+        Ok(n)
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.file.flush()
+    }
+}
+
+impl Seek for Counted {
+    fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        self.position = self.file.seek(pos)?;
+        Ok(self.position)
+    }
+}
+
+/// The open file of a recording and where it is.
+struct OpenFile {
+    mcap: mcap::Writer<Counted>,
+    /// topic -> channel id, in this file.
+    channels: HashMap<String, u16>,
+    schemas: HashMap<&'static str, u16>,
+    sequence: u32,
+    size: Arc<AtomicU64>,
+}
+
+pub(super) struct Writer {
+    options: RecordOptions,
+    /// The Foxglove live view, if it runs.
+    live: Option<Live>,
+    layout: Arc<Layout>,
+    epoch_unix_ns: u64,
+    file: Option<OpenFile>,
+    /// Index of the open file (0: the path itself).
+    index: u32,
+    summary: RecordSummary,
+    last_flush: Instant,
+}
+
+impl Writer {
+    pub(super) fn create(
+        options: RecordOptions,
+        layout: Arc<Layout>,
+        epoch_unix_ns: u64,
+    ) -> Result<Writer, RecordError> {
+        let live = options.live.map(Live::start).transpose()?;
+        let mut writer = Writer {
+            options,
+            live,
+            layout,
+            epoch_unix_ns,
+            file: None,
+            index: 0,
+            summary: RecordSummary::default(),
+            last_flush: Instant::now(),
+        };
+        if writer.options.path.is_some() {
+            writer.open()?;
+        }
+        Ok(writer)
+    }
+
+    fn path(&self) -> std::path::PathBuf {
+        self.options.path.as_deref().map(|p| rotated_path(p, self.index)).unwrap_or_default()
+    }
+
+    fn mcap_error(&self, source: mcap::McapError) -> RecordError {
+        RecordError::Mcap { path: self.path(), source }
+    }
+
+    fn open(&mut self) -> Result<(), RecordError> {
+        let path = self.path();
+        let file = File::create(&path).map_err(|source| RecordError::Io { path: path.clone(), source })?;
+        let size = Arc::new(AtomicU64::new(0));
+        let counted = Counted { file: BufWriter::new(file), position: 0, size: size.clone() };
+        let mcap = mcap::WriteOptions::new()
+            .compression(None)
+            .chunk_size(Some(CHUNK_BYTES))
+            .profile("")
+            .library(format!("subsume {}", env!("CARGO_PKG_VERSION")))
+            .create(counted)
+            .map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
+        let mut open = OpenFile { mcap, channels: HashMap::new(), schemas: HashMap::new(), sequence: 0, size };
+        let metadata = mcap::records::Metadata {
+            name: "subsume.recording".into(),
+            metadata: BTreeMap::from([
+                ("robot".to_string(), self.layout.robot.clone()),
+                ("epoch_unix_ns".to_string(), self.epoch_unix_ns.to_string()),
+                ("file_index".to_string(), self.index.to_string()),
+                ("format".to_string(), "1".to_string()),
+            ]),
+        };
+        open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
+        self.summary.files.push(path);
+        self.file = Some(open);
+        Ok(())
+    }
+
+    /// Finishes the open file (summary and footer).
+    fn close(&mut self, dropped: u64) -> Result<(), RecordError> {
+        let Some(mut open) = self.file.take() else { return Ok(()) };
+        let end = mcap::records::Metadata {
+            name: "subsume.recording.end".into(),
+            metadata: BTreeMap::from([("dropped".to_string(), dropped.to_string())]),
+        };
+        open.mcap.write_metadata(&end).map_err(|e| self.mcap_error(e))?;
+        open.mcap.finish().map_err(|e| self.mcap_error(e))?;
+        let mut counted = open.mcap.into_inner();
+        counted.flush().map_err(|source| RecordError::Io { path: self.path(), source })?;
+        self.summary.bytes += open.size.load(Ordering::Relaxed);
+        Ok(())
+    }
+
+    pub(super) fn finish(&mut self, dropped: u64) -> Result<RecordSummary, RecordError> {
+        self.close(dropped)?;
+        self.summary.dropped = dropped;
+        Ok(self.summary.clone())
+    }
+
+    /// Writes finished chunks to the file every [`FLUSH_INTERVAL`] and
+    /// rotates past the size limit.
+    pub(super) fn flush_if_due(&mut self) -> Result<(), RecordError> {
+        if self.last_flush.elapsed() < FLUSH_INTERVAL {
+            return Ok(());
+        }
+        self.last_flush = Instant::now();
+        let path = self.path();
+        if let Some(open) = &mut self.file {
+            open.mcap.flush().map_err(|source| RecordError::Mcap { path, source })?;
+        }
+        Ok(())
+    }
+
+    fn rotate_if_full(&mut self, dropped: u64) -> Result<(), RecordError> {
+        if self.file.is_none() {
+            return Ok(());
+        }
+        let size = self.file.as_ref().map_or(0, |f| f.size.load(Ordering::Relaxed));
+        if size < self.options.max_file_bytes {
+            return Ok(());
+        }
+        self.close(dropped)?;
+        self.index += 1;
+        tracing::info!("recording continues in {}", self.path().display());
+        self.open()
+    }
+
+    pub(super) fn write(&mut self, event: Event, dropped: u64) -> Result<(), RecordError> {
+        self.rotate_if_full(dropped)?;
+        let epoch = self.epoch_unix_ns;
+        let layout = self.layout.clone();
+        let name = |index: usize| layout.components.get(index).map_or("?", |c| c.name.as_str());
+        match event {
+            Event::Call { index, t, input } => {
+                let message = match &input {
+                    None => json!({ "t": t, "call": "tick" }),
+                    Some((port, from, value)) => {
+                        let port_name = layout
+                            .components
+                            .get(index)
+                            .and_then(|c| c.inputs.get(*port as usize))
+                            .map_or("?", String::as_str);
+                        json!({ "t": t, "call": "input", "port": port, "port_name": port_name, "from": name(*from), "value": schema::value_json(value) })
+                    }
+                };
+                self.message(&calls_topic(name(index)), schema::CALL, epoch + t, &message)
+            }
+            Event::Emitted { from, port, t, value } => {
+                let Some(component) = layout.components.get(from) else { return Ok(()) };
+                let Some(spec) = component.outputs.get(port as usize) else { return Ok(()) };
+                let topic = output_topic(&component.name, &spec.name);
+                let unix = epoch + t;
+                match &value {
+                    Value::Scan(scan) if spec.kind == ValueKind::Scan => {
+                        self.message(&topic, LASER_SCAN, unix, &schema::laser_scan(scan, &component.name, unix))
+                    }
+                    Value::Vector(v) if is_pose(spec) && v.len() == 3 => {
+                        self.message(&topic, POSE_IN_FRAME, unix, &schema::pose_in_frame(v, unix))?;
+                        self.message(&format!("{topic}/tf"), FRAME_TRANSFORM, unix, &schema::frame_transform(v, unix))
+                    }
+                    _ => self.message(
+                        &topic,
+                        schema::VALUE,
+                        unix,
+                        &json!({ "t": t, "value": schema::value_json(&value) }),
+                    ),
+                }
+            }
+            Event::Fault { index, t, reason } => self.message(
+                "/subsume/events",
+                schema::EVENT,
+                epoch + t,
+                &json!({ "t": t, "component": name(index), "event": "fault", "reason": clip(&reason) }),
+            ),
+            Event::Restart { index, t, attempt } => self.message(
+                "/subsume/events",
+                schema::EVENT,
+                epoch + t,
+                &json!({ "t": t, "component": name(index), "event": "restart", "attempt": attempt }),
+            ),
+            Event::Status { index, t, kind, section } => self.message(
+                &format!("/subsume/status/{}", name(index)),
+                schema::STATUS,
+                epoch + t,
+                &json!({ "t": t, "component": name(index), "kind": kind, "status": section }),
+            ),
+            Event::Log { unix_ns, level, name, message } => {
+                self.message("/subsume/log", schema::LOG, unix_ns, &schema::log(level, &name, clip(&message), unix_ns))
+            }
+            Event::Layout(layout) => {
+                self.layout = layout;
+                Ok(())
+            }
+            Event::Stop => Ok(()),
+        }
+    }
+
+    fn message(
+        &mut self,
+        topic: &str,
+        schema_name: &'static str,
+        unix_ns: u64,
+        message: &Json,
+    ) -> Result<(), RecordError> {
+        let path = self.path();
+        let epoch = self.epoch_unix_ns;
+        let data = serde_json::to_vec(message).unwrap_or_default();
+        if let Some(live) = &mut self.live {
+            live.log(topic, schema_name, unix_ns, &data);
+        }
+        let Some(open) = &mut self.file else { return Ok(()) };
+        let error = |source| RecordError::Mcap { path: path.clone(), source };
+        let channel = match open.channels.get(topic) {
+            Some(&id) => id,
+            None => {
+                let schema_id = match open.schemas.get(schema_name) {
+                    Some(&id) => id,
+                    None => {
+                        let text = schema::schema(schema_name).to_string();
+                        let id = open.mcap.add_schema(schema_name, "jsonschema", text.as_bytes()).map_err(error)?;
+                        open.schemas.insert(schema_name, id);
+                        id
+                    }
+                };
+                let metadata = BTreeMap::from([("epoch_unix_ns".to_string(), epoch.to_string())]);
+                let id = open.mcap.add_channel(schema_id, topic, "json", &metadata).map_err(error)?;
+                open.channels.insert(topic.to_string(), id);
+                id
+            }
+        };
+        open.sequence = open.sequence.wrapping_add(1);
+        let header =
+            MessageHeader { channel_id: channel, sequence: open.sequence, log_time: unix_ns, publish_time: unix_ns };
+        open.mcap.write_to_known_channel(&header, &data).map_err(error)?;
+        self.summary.messages += 1;
+        Ok(())
+    }
+}
+
+fn clip(text: &str) -> &str {
+    if text.len() <= MAX_TEXT_BYTES {
+        return text;
+    }
+    let mut cut = MAX_TEXT_BYTES;
+    while !text.is_char_boundary(cut) {
+        cut -= 1;
+    }
+    &text[..cut]
+}

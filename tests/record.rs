@@ -1,0 +1,331 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! Recording and replay through the built binary: `subsume run --record`
+//! read back by the `mcap` package from PyPI (tests/python/mcap_reader.py),
+//! a killed host's file, rotation, and `subsume replay`.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+
+fn subsume() -> Command {
+    support::guest_dir();
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .arg("--cache-dir")
+        .arg(support::cache_dir())
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1");
+    command
+}
+
+fn run(args: &[&str]) -> Output {
+    subsume().args(args).output().unwrap()
+}
+
+fn text(bytes: &[u8]) -> String {
+    String::from_utf8_lossy(bytes).into_owned()
+}
+
+const FREE_PORTS: [&str; 4] = ["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"];
+
+fn python() -> PathBuf {
+    let python = support::repo_root().join("tests/python/.venv/bin/python");
+    assert!(python.is_file(), "run scripts/setup first: it installs tests/python/.venv");
+    python
+}
+
+/// What the `mcap` package reads in `file`.
+fn read_mcap(file: &Path, truncated: bool) -> Json {
+    let mut command = Command::new(python());
+    command.arg(support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
+    if truncated {
+        command.arg("--truncated");
+    }
+    let output = command.output().unwrap();
+    assert!(output.status.success(), "mcap reader failed on {}: {}", file.display(), text(&output.stderr));
+    serde_json::from_slice(&output.stdout).unwrap()
+}
+
+fn robot_file(dir: &Path, body: &str) -> PathBuf {
+    let mut xml = body.to_string();
+    for name in ["test-counter", "test-faulty", "test-relay", "avoider", "planner", "range-filter"] {
+        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
+    }
+    let path = dir.join("robot.xml");
+    std::fs::write(&path, xml).unwrap();
+    path
+}
+
+fn channel<'a>(read: &'a Json, topic: &str) -> &'a Json {
+    let channel = &read["channels"][topic];
+    assert!(channel.is_object(), "no channel {topic} in {}", read["channels"]);
+    channel
+}
+
+fn component<'a>(report: &'a Json, name: &str) -> &'a Json {
+    report["components"].as_array().unwrap().iter().find(|c| c["name"] == name).unwrap()
+}
+
+#[test]
+fn the_demo_recording_has_every_value_call_status_and_log_line() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("demo.mcap");
+    let report_path = dir.path().join("report.json");
+    let mut args = vec!["run", "config/demo.xml", "--duration", "3", "--record", file.to_str().unwrap()];
+    args.extend(["--report", report_path.to_str().unwrap()]);
+    args.extend(FREE_PORTS);
+    let output = run(&args);
+    let log = text(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    let read = read_mcap(&file, false);
+    assert_eq!(read["complete"], true);
+    assert_eq!(read["in_order_per_channel"], true);
+    // The summary a clean stop writes agrees with what was read.
+    assert_eq!(read["summary"]["message_count"], read["messages"]);
+    for (topic, entry) in read["channels"].as_object().unwrap() {
+        assert_eq!(read["summary"]["channel_message_counts"][topic], entry["count"], "{topic}");
+        assert_eq!(entry["schema_encoding"], "jsonschema", "{topic}");
+        assert_eq!(entry["message_encoding"], "json", "{topic}");
+        assert_eq!(entry["schema_is_json"], true, "{topic}");
+    }
+    // Foxglove's well-known schemas where they fit.
+    assert_eq!(channel(&read, "/motors/pose")["schema"], "foxglove.PoseInFrame");
+    assert_eq!(channel(&read, "/motors/pose/tf")["schema"], "foxglove.FrameTransform");
+    assert_eq!(channel(&read, "/subsume/log")["schema"], "foxglove.Log");
+    assert_eq!(channel(&read, "/arbiter/cmd")["schema"], "subsume.Value");
+    let pose = &read["first"]["/motors/pose"];
+    assert_eq!(pose["frame_id"], "world");
+    assert!(pose["pose"]["orientation"]["w"].is_number(), "{pose}");
+    assert_eq!(pose["value"].as_array().unwrap().len(), 3);
+    // Every value every component emitted is there: the report's counts.
+    let report: Json = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    for name in ["motors", "filter", "avoid", "planner", "arbiter", "envelope"] {
+        let recorded: u64 = read["channels"]
+            .as_object()
+            .unwrap()
+            .iter()
+            .filter(|(topic, _)| topic.starts_with(&format!("/{name}/")) && !topic.ends_with("/tf"))
+            .map(|(_, entry)| entry["count"].as_u64().unwrap())
+            .sum();
+        assert_eq!(recorded, component(&report, name)["messages_out"].as_u64().unwrap(), "{name}");
+        // Every call: ticks and inputs.
+        let c = component(&report, name);
+        let calls = channel(&read, &format!("/subsume/calls/{name}"))["count"].as_u64().unwrap();
+        assert_eq!(calls, c["ticks"].as_u64().unwrap() + c["messages_in"].as_u64().unwrap(), "{name}: {c}");
+    }
+    // The arbiter's decisions and the network platform's state.
+    let arbiter = &read["last"]["/subsume/status/arbiter"];
+    assert_eq!(arbiter["kind"], "arbiter");
+    assert!(arbiter["status"]["holder"].is_string() || arbiter["status"]["holder"].is_null(), "{arbiter}");
+    assert!(read["channels"]["/subsume/status/teleop"].is_object());
+    let input = &read["first"]["/subsume/calls/avoid"];
+    assert!(input["call"] == "tick" || input["call"] == "input", "{input}");
+    assert!(log.contains("recording finished:"), "{log}");
+    assert!(log.contains("0 events dropped"), "{log}");
+}
+
+#[test]
+fn faults_restarts_and_rotation_are_recorded_and_every_file_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    // A busy counter fills a 1 MiB file within a few seconds.
+    let robot = robot_file(
+        dir.path(),
+        r#"<robot name="busy">
+  <platform name="control">
+    <component name="bad" source="GUEST(test-faulty)" rate="50" budget="5ms" restart="on-failure" max-restarts="1">
+      <param name="mode" value="trap-on-tick"/>
+      <param name="after" value="5"/>
+    </component>
+    <component name="good" source="GUEST(test-counter)" rate="1000"/>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="good.count" to="sink.in"/>
+    <connect from="bad.out" to="sink.in"/>
+  </platform>
+</robot>"#,
+    );
+    let file = dir.path().join("busy.mcap");
+    let output = run(&[
+        "run",
+        robot.to_str().unwrap(),
+        "--duration",
+        "8",
+        "--record",
+        file.to_str().unwrap(),
+        "--record-max-mib",
+        "1",
+    ]);
+    let log = text(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    let second = dir.path().join("busy.1.mcap");
+    assert!(second.is_file(), "no rotation: {log}");
+    let first = read_mcap(&file, false);
+    let next = read_mcap(&second, false);
+    assert_eq!(first["complete"], true);
+    assert!(std::fs::metadata(&file).unwrap().len() >= 1 << 20);
+    assert!(
+        std::fs::metadata(&file).unwrap().len() < (1 << 20) + (1 << 19),
+        "a file overshoots its limit by a chunk at most"
+    );
+    // The counter's values continue across the files, none lost.
+    let last = first["last"]["/good/count"]["value"]["scalar"].as_f64().unwrap();
+    let resumed = next["first"]["/good/count"]["value"]["scalar"].as_f64().unwrap();
+    assert_eq!(resumed, last + 1.0);
+    let fault = &first["first"]["/subsume/events"];
+    assert_eq!(fault["component"], "bad");
+    assert_eq!(fault["event"], "fault");
+    assert!(!fault["reason"].as_str().unwrap().is_empty(), "{fault}");
+    // Brought back after 1 s: the restart is the next event.
+    let events = [&first, &next].map(|r| r["channels"]["/subsume/events"]["count"].as_u64().unwrap_or(0));
+    assert!(events.iter().sum::<u64>() >= 2, "{events:?}: {log}");
+    assert!(log.contains("restarted (restart 1 of 1)"), "{log}");
+}
+
+#[test]
+fn a_killed_host_leaves_a_file_whose_chunks_read() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("killed.mcap");
+    let mut args = vec!["run", "config/demo.xml", "--record", file.to_str().unwrap()];
+    args.extend(FREE_PORTS);
+    let mut child = subsume().args(&args).stderr(std::process::Stdio::null()).spawn().unwrap();
+    // Past a few flushes of finished chunks.
+    let started = Instant::now();
+    while std::fs::metadata(&file).map_or(0, |m| m.len()) < 300_000 {
+        assert!(started.elapsed() < Duration::from_secs(60), "the recording does not grow");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    child.kill().unwrap();
+    child.wait().unwrap();
+    let read = read_mcap(&file, true);
+    assert_eq!(read["complete"], false, "a killed host writes no footer");
+    assert!(read["messages"].as_u64().unwrap() > 500, "{}", read["messages"]);
+    assert_eq!(read["in_order_per_channel"], true);
+    for topic in ["/motors/pose", "/arbiter/cmd", "/subsume/calls/avoid", "/subsume/log"] {
+        assert!(channel(&read, topic)["count"].as_u64().unwrap() > 0, "{topic}");
+    }
+    // Replay reads it too, up to the cut, and the components agree with it.
+    let (code, report, log) = replay(&[file.to_str().unwrap(), "config/demo.xml"]);
+    assert_eq!(code, Some(0), "{report} {log}");
+    assert_eq!(report["truncated"], true);
+    assert!(report["compared"].as_u64().unwrap() > 50, "{report}");
+}
+
+/// Records the demo for `seconds` into `dir`; returns the file.
+fn record_demo(dir: &Path, seconds: &str) -> PathBuf {
+    let file = dir.join("demo.mcap");
+    let mut args = vec!["run", "config/demo.xml", "--duration", seconds, "--record", file.to_str().unwrap()];
+    args.extend(FREE_PORTS);
+    let output = run(&args);
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    file
+}
+
+fn replay(args: &[&str]) -> (Option<i32>, Json, String) {
+    let output = run(&[&["replay"], args, &["--json"]].concat());
+    let json = serde_json::from_slice(&output.stdout).unwrap_or(Json::Null);
+    (output.status.code(), json, text(&output.stderr))
+}
+
+#[test]
+fn identical_components_replay_bit_for_bit_and_a_changed_one_is_caught_where_it_diverges() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = record_demo(dir.path(), "3");
+    let recording = file.to_str().unwrap();
+    // Every WASM component of the demo, fed its recorded calls again.
+    let (code, report, log) = replay(&[recording, "config/demo.xml"]);
+    assert_eq!(code, Some(0), "{report} {log}");
+    assert_eq!(report["components"], serde_json::json!(["filter", "avoid", "planner"]));
+    assert!(report["compared"].as_u64().unwrap() > 100, "{report}");
+    assert_eq!(report["divergences"], serde_json::json!([]));
+    assert!(report["recorded_s"].as_f64().unwrap() > 2.5, "{report}");
+    // The planner with another top speed: its first command differs.
+    let (code, report, log) =
+        replay(&[recording, "config/demo.xml", "--only", "planner", "--param", "planner.max-speed=0.3"]);
+    assert_eq!(code, Some(1), "{report} {log}");
+    assert_eq!(report["components"], serde_json::json!(["planner"]));
+    let first = &report["divergences"][0];
+    assert_eq!(first["component"], "planner");
+    assert_eq!(first["port"], "cmd");
+    assert_eq!(first["index"], 0);
+    let recorded = read_mcap(&file, false);
+    let first_cmd = &recorded["first"]["/planner/cmd"];
+    assert_eq!(first["recorded"], first_cmd["value"], "the recorded value is the recording's");
+    assert_eq!(first["time_s"].as_f64().unwrap(), first_cmd["t"].as_u64().unwrap() as f64 / 1e9);
+    let replayed = first["replayed"]["command"].as_str().unwrap();
+    assert!(replayed.starts_with("VEL 0.300 "), "{first}");
+    assert_ne!(first["recorded"], first["replayed"]);
+    // The text form names time, port and both values.
+    let output =
+        run(&["replay", recording, "config/demo.xml", "--only", "planner", "--param", "planner.max-speed=0.3"]);
+    let stdout = text(&output.stdout);
+    assert!(stdout.contains("planner.cmd diverges at "), "{stdout}");
+    assert!(stdout.contains("(output 0): recorded {\"command\":\"VEL 0.450 "), "{stdout}");
+}
+
+#[test]
+fn replay_refuses_built_ins_unknown_names_and_what_is_not_a_recording() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = record_demo(dir.path(), "1");
+    let recording = file.to_str().unwrap();
+    let output = run(&["replay", recording, "config/demo.xml", "--only", "arbiter"]);
+    assert_eq!(output.status.code(), Some(1));
+    let err = text(&output.stderr);
+    assert!(err.contains("config/demo.xml: 'arbiter' is arbiter: replay runs WASM components only"), "{err}");
+    let output = run(&["replay", recording, "config/demo.xml", "--only", "nobody"]);
+    assert!(text(&output.stderr).contains("config/demo.xml: no component 'nobody' in the robot file"));
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, b"not an mcap file at all").unwrap();
+    let output = run(&["replay", junk.to_str().unwrap(), "config/demo.xml"]);
+    assert_eq!(output.status.code(), Some(1));
+    assert!(text(&output.stderr).contains("junk.mcap: not a recording replay can read"), "{}", text(&output.stderr));
+}
+
+#[test]
+fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses() {
+    use std::io::{BufRead, BufReader};
+    let mut args = vec!["run", "config/demo.xml", "--duration", "60", "--foxglove", "127.0.0.1:0"];
+    args.extend(FREE_PORTS);
+    let mut child = subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (found, address) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(at) = line.find("foxglove live view on ws://") {
+                let rest = &line[at + "foxglove live view on ".len()..];
+                let _ = found.send(rest.split_whitespace().next().unwrap_or_default().to_string());
+            }
+        }
+    });
+    let url = address.recv_timeout(Duration::from_secs(60)).expect("the live view never started");
+    let output = Command::new(python())
+        .arg(support::repo_root().join("tests/python/foxglove_client.py"))
+        .args([&url, "5", "/motors/pose", "/motors/pose/tf", "/arbiter/cmd", "/subsume/log"])
+        .output()
+        .unwrap();
+    child.kill().unwrap();
+    child.wait().unwrap();
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let seen: Json = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(seen["server"], "subsume");
+    assert_eq!(seen["channels"]["/motors/pose"]["schemaName"], "foxglove.PoseInFrame");
+    assert_eq!(seen["channels"]["/motors/pose"]["encoding"], "json");
+    assert_eq!(seen["channels"]["/motors/pose"]["schemaEncoding"], "jsonschema");
+    assert_eq!(seen["channels"]["/motors/pose/tf"]["schemaName"], "foxglove.FrameTransform");
+    assert_eq!(seen["times_in_order"], true);
+    for pose in seen["messages"]["/motors/pose"].as_array().unwrap() {
+        assert_eq!(pose["frame_id"], "world");
+        let value = pose["value"].as_array().unwrap();
+        assert_eq!(pose["pose"]["position"]["x"], value[0]);
+        assert_eq!(pose["pose"]["position"]["y"], value[1]);
+    }
+    let tf = &seen["messages"]["/motors/pose/tf"][0];
+    assert_eq!(tf["parent_frame_id"], "world");
+    assert_eq!(tf["child_frame_id"], "base_link");
+    assert!(seen["messages"]["/arbiter/cmd"][0]["value"]["command"].is_string(), "{seen}");
+}
