@@ -226,6 +226,53 @@ fn use_a_ros2_tools_drive_the_simulated_robot_and_decode_scan_and_odom() {
     assert!(held.iter().any(|h| h[0] == "cmd-vel" && h[1].as_f64().unwrap_or(0.0) > 1.0), "{}", report["arbiter"]);
 }
 
+/// The conventional e-stop topic (docs/estop.md): a `std_msgs/msg/Bool`
+/// true on `/estop` engages the arbiter's `estop` lock. The Twists on
+/// `/cmd_vel` keep coming, and nothing moves the robot again: a lock ends
+/// only by an explicit release.
+#[test]
+fn a_bool_on_the_estop_topic_stops_the_robot_and_the_lock_holds() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let mut child = Command::new(python())
+        .arg(support::repo_root().join("tests/python/ros2_peer.py"))
+        .args(["robot-estop", &endpoint, "2.5"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let stdin = child.stdin.take();
+    let mut stdout = BufReader::new(child.stdout.take().unwrap());
+    let mut line = String::new();
+    stdout.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "ready");
+    let peer = Peer { child, stdin, stdout };
+    let (report, summary) = std::thread::scope(|s| {
+        let host = s.spawn(|| run_host("config/ros2-demo.xml", &endpoint, Duration::from_secs(7)));
+        std::thread::sleep(Duration::from_secs(6));
+        let summary = peer.finish();
+        (host.join().unwrap(), summary)
+    });
+    assert_eq!(summary["bad"], Json::Array(vec![]), "{summary}");
+    let first = &summary["odom_first"];
+    let at_estop = &summary["odom_at_estop"];
+    let distance = |a: &Json, b: &Json| {
+        (a[0].as_f64().unwrap() - b[0].as_f64().unwrap()).hypot(a[1].as_f64().unwrap() - b[1].as_f64().unwrap())
+    };
+    assert!(distance(first, at_estop) > 0.1, "the Twists drove the robot before the e-stop: {summary}");
+    // From a second after the e-stop on, the robot stands still although
+    // the Twists keep coming.
+    let after = summary["odom_after_estop"].as_array().unwrap();
+    assert!(after.len() >= 5, "{summary}");
+    for odom in after {
+        assert!(distance(&after[0], odom) < 0.005, "moved after the e-stop: {} -> {odom}", after[0]);
+    }
+    // The arbiter names the lock, who engaged it and how.
+    let arbiter = &report["arbiter"];
+    let engaged = arbiter["engaged"].as_array().unwrap();
+    assert!(engaged.iter().any(|e| e.to_string().contains("estop")), "{arbiter}");
+    assert!(section(&report, "/estop/")["in"].as_u64().unwrap() >= 1, "{report}");
+}
+
 #[test]
 fn use_b_a_python_base_gets_cmd_vel_and_the_zero_twist_when_the_host_stops() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());

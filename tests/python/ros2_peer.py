@@ -101,10 +101,12 @@ def wait_for_stdin_close():
     return done
 
 
-def robot(endpoint):
+def robot(endpoint, estop_at=None):
+    """Drives with Twists on /cmd_vel; with `estop_at` (s), publishes
+    std_msgs/Bool true on /estop then, and keeps sending Twists."""
     session = open_session(endpoint)
     lock = threading.Lock()
-    state = {"odom": [], "scans": 0, "scan": None, "bad": [], "seq": {"odom": 0, "scan": 0}}
+    state = {"odom": [], "odom_t": [], "scans": 0, "scan": None, "bad": [], "seq": {"odom": 0, "scan": 0}}
 
     def on(topic, name):
         def callback(sample):
@@ -116,6 +118,7 @@ def robot(endpoint):
                         p = m.pose.pose
                         yaw = 2.0 * np.arctan2(p.orientation.z, p.orientation.w)
                         state["odom"].append([p.position.x, p.position.y, float(yaw), m.header.frame_id, m.child_frame_id])
+                        state["odom_t"].append(time.monotonic())
                     else:
                         state["scans"] += 1
                         state["scan"] = {
@@ -136,6 +139,8 @@ def robot(endpoint):
         session.declare_subscriber(key("scan", "sensor_msgs/msg/LaserScan"), on("scan", "sensor_msgs/msg/LaserScan")),
     ]
     pub = session.declare_publisher(key("cmd_vel", "geometry_msgs/msg/Twist"))
+    estop_pub = session.declare_publisher(key("estop", "std_msgs/msg/Bool"))
+    odom_at_estop = None
     gid = bytes(range(16))
     print("ready", flush=True)
     done = wait_for_stdin_close()
@@ -144,6 +149,11 @@ def robot(endpoint):
     while not done.wait(0.05):
         seq += 1
         pub.put(serialize(twist(0.3, 0.0), "geometry_msgs/msg/Twist"), attachment=attachment(seq, gid))
+        if estop_at is not None and odom_at_estop is None and seq * 0.05 >= estop_at:
+            estop_pub.put(serialize(msg("std_msgs/msg/Bool", data=True), "std_msgs/msg/Bool"), attachment=attachment(seq, gid))
+            with lock:
+                odom_at_estop = state["odom"][-1] if state["odom"] else None
+            estop_t = time.monotonic()
         if seq % 10 == 0:
             # Untrusted input: a Twist cut short, which the host must count and drop.
             garbage += 1
@@ -160,6 +170,9 @@ def robot(endpoint):
             "tokens": tokens,
             "sent": seq,
             "garbage": garbage,
+            "odom_at_estop": odom_at_estop,
+            # The odometry from one second after the e-stop on.
+            "odom_after_estop": [o for o, t in zip(state["odom"], state["odom_t"]) if odom_at_estop is not None and t >= estop_t + 1.0],
         }
     del subs
     session.close()
@@ -286,6 +299,8 @@ def main():
         fixtures()
     elif mode == "robot":
         robot(sys.argv[2])
+    elif mode == "robot-estop":
+        robot(sys.argv[2], estop_at=float(sys.argv[3]))
     elif mode == "base":
         base(sys.argv[2])
     else:

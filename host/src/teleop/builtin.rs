@@ -272,7 +272,14 @@ impl Builtin for TeleopBuiltin {
         let locks = ctx.services.get::<Locks>().map(|l| (*l).clone()).unwrap_or_default();
         let component = TeleopComponent::start(
             &name,
-            super::Surroundings { robot, standings, clock: ctx.clock.clone(), waker: ctx.waker.clone(), priority, locks },
+            super::Surroundings {
+                robot,
+                standings,
+                clock: ctx.clock.clone(),
+                waker: ctx.waker.clone(),
+                priority,
+                locks,
+            },
             settings,
         )?;
         if let Some(servers) = ctx.services.get::<TeleopServers>() {
