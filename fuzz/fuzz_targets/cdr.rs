@@ -13,7 +13,10 @@ libfuzzer_sys::fuzz_target!(|data: &[u8]| {
         assert_eq!(cdr::Twist::decode(&t.encode()), Ok(t));
     }
     if let Ok(o) = cdr::Odometry::decode(data) {
-        assert_eq!(cdr::Odometry::decode(&o.encode()).map(|b| (b.position, b.orientation)), Ok((o.position, o.orientation)));
+        assert_eq!(
+            cdr::Odometry::decode(&o.encode()).map(|b| (b.position, b.orientation)),
+            Ok((o.position, o.orientation))
+        );
     }
     if let Ok(s) = cdr::LaserScan::decode(data) {
         assert!(s.ranges.len() <= cdr::MAX_SEQUENCE_LEN);
