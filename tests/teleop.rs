@@ -223,7 +223,7 @@ fn every_line_gets_an_answer_and_the_connection_stays_usable() {
     let before_login = [
         ("CMD 1 0 STOP", "ERR authenticate first: AUTH <name> <token>"),
         ("MODE direct", "ERR authenticate first: AUTH <name> <token>"),
-        ("FLY", "ERR unknown message 'FLY': expected AUTH, MODE, CMD, PONG or QUIT"),
+        ("FLY", "ERR unknown message 'FLY': expected AUTH, MODE, CMD, PONG, ESTOP, RELEASE or QUIT"),
         ("AUTH alice", "ERR AUTH takes a name and a token: AUTH <name> <token>"),
         ("AUTH alice not-the-token-at-all", "ERR authentication failed"),
     ];
