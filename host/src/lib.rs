@@ -35,6 +35,7 @@ pub mod contract;
 pub mod deploy;
 pub mod envelope;
 pub mod fsutil;
+pub mod logfields;
 pub mod metrics;
 pub mod portal;
 pub mod record;

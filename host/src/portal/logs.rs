@@ -8,8 +8,9 @@ use std::collections::VecDeque;
 use std::sync::{Arc, Mutex};
 
 use serde::Serialize;
-use tracing::field::{Field, Visit};
 use tracing_subscriber::layer::Context;
+
+use crate::logfields::LogFields;
 
 /// Lines kept for a viewer who joins late.
 pub const LOG_RING_LINES: usize = 500;
@@ -67,39 +68,13 @@ impl LogRing {
 
 pub struct RingLayer(Arc<LogRing>);
 
-#[derive(Default)]
-struct Fields {
-    message: String,
-    component: Option<String>,
-    extra: String,
-}
-
-impl Visit for Fields {
-    fn record_str(&mut self, field: &Field, value: &str) {
-        match field.name() {
-            "message" => self.message = value.to_string(),
-            "component" => self.component = Some(value.to_string()),
-            other => self.extra.push_str(&format!(" {other}={value}")),
-        }
-    }
-
-    fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
-        match field.name() {
-            "message" => self.message = format!("{value:?}"),
-            "component" => self.component = Some(format!("{value:?}").trim_matches('"').to_string()),
-            other => self.extra.push_str(&format!(" {other}={value:?}")),
-        }
-    }
-}
-
 impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RingLayer {
     fn on_event(&self, event: &tracing::Event<'_>, _ctx: Context<'_, S>) {
         let level = *event.metadata().level();
         if level > tracing::Level::INFO || event.metadata().target().starts_with("wasmtime") {
             return;
         }
-        let mut fields = Fields::default();
-        event.record(&mut fields);
+        let fields = LogFields::of(event);
         let mut message = fields.message + &fields.extra;
         if message.len() > MAX_LOG_LINE_BYTES {
             let mut cut = MAX_LOG_LINE_BYTES;

@@ -7,8 +7,9 @@
 
 use std::sync::Mutex;
 
-use tracing::field::{Field, Visit};
 use tracing_subscriber::layer::Context;
+
+use crate::logfields::LogFields;
 
 use super::{Event, Sink, schema};
 
@@ -35,31 +36,6 @@ pub fn layer() -> RecordLogLayer {
     RecordLogLayer
 }
 
-#[derive(Default)]
-struct Fields {
-    message: String,
-    component: Option<String>,
-    extra: String,
-}
-
-impl Visit for Fields {
-    fn record_str(&mut self, field: &Field, value: &str) {
-        match field.name() {
-            "message" => self.message = value.to_string(),
-            "component" => self.component = Some(value.to_string()),
-            other => self.extra.push_str(&format!(" {other}={value}")),
-        }
-    }
-
-    fn record_debug(&mut self, field: &Field, value: &dyn std::fmt::Debug) {
-        match field.name() {
-            "message" => self.message = format!("{value:?}"),
-            "component" => self.component = Some(format!("{value:?}").trim_matches('"').to_string()),
-            other => self.extra.push_str(&format!(" {other}={value:?}")),
-        }
-    }
-}
-
 impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RecordLogLayer {
     fn on_event(&self, event: &tracing::Event<'_>, _ctx: Context<'_, S>) {
         let metadata = event.metadata();
@@ -68,8 +44,7 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RecordLogLayer {
         }
         let Ok(slot) = SINK.lock() else { return };
         let Some(sink) = slot.as_ref() else { return };
-        let mut fields = Fields::default();
-        event.record(&mut fields);
+        let fields = LogFields::of(event);
         let unix_ns = std::time::SystemTime::now()
             .duration_since(std::time::UNIX_EPOCH)
             .map(|d| d.as_nanos() as u64)
