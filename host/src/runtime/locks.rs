@@ -222,6 +222,42 @@ mod tests {
     }
 
     #[test]
+    fn operators_engaging_and_releasing_at_once_lose_no_change() {
+        // Eight threads (portal users, teleop sessions, a bumper) engage and
+        // release the same two locks at once, many times. Every successful
+        // engage is released exactly once, and every engage and release is
+        // one event and one generation step: nothing lost, nothing doubled.
+        let locks = Locks::default();
+        let threads = 8;
+        let rounds = 500;
+        let (engaged, released): (u64, u64) = std::thread::scope(|s| {
+            let handles: Vec<_> = (0..threads)
+                .map(|t| {
+                    let locks = locks.clone();
+                    s.spawn(move || {
+                        let lock = if t % 2 == 0 { "estop" } else { "dock" };
+                        let (mut e, mut r) = (0u64, 0u64);
+                        for i in 0..rounds {
+                            if locks.engage(lock, &format!("user{t}"), "test", i) {
+                                e += 1;
+                            }
+                            r += locks.release(Some(lock), &format!("user{t}"), "test", i + 1).len() as u64;
+                        }
+                        (e, r)
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+        });
+        assert!(engaged > 0);
+        assert_eq!(engaged, released, "every engagement was released exactly once");
+        assert!(locks.engaged().is_empty());
+        let (_, total) = locks.history();
+        assert_eq!(total, engaged + released);
+        assert_eq!(locks.generation(), engaged + released);
+    }
+
+    #[test]
     fn the_history_is_bounded() {
         let locks = Locks::default();
         for i in 0..(MAX_LOCK_HISTORY as u64) {
