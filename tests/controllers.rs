@@ -509,7 +509,11 @@ fn the_demo_runs_as_a_create2_and_reaches_its_goal_without_collisions() {
     let dir = tempfile::tempdir().unwrap();
     let report_path = dir.path().join("report.json");
     let output = subsume()
-        .args(["run", "config/demo-create2.xml", "--duration", "50", "--report", report_path.to_str().unwrap()])
+        // Simulated time in lock-step: the outcome depends on the robot and its
+        // protocol, not on how busy the machine is (in real time the goal came
+        // at 40-45 s of 50 on this machine, and later on a loaded one).
+        .args(["run", "config/demo-create2.xml", "--speed", "max", "--duration", "90"])
+        .args(["--report", report_path.to_str().unwrap()])
         .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"])
         .output()
         .unwrap();
