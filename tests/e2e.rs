@@ -190,9 +190,17 @@ fn the_envelope_stops_a_blind_top_priority_driver_short_of_the_wall() {
     assert_eq!(sim["collisions"], 0, "{sim}");
     // The wall is at x = 5, the body a disc of 0.18 m, the stop zone 0.1 m:
     // the robot got close (it was not just frozen) and stopped outside the
-    // stop zone (the slowdown zone's ramp ends at its edge).
+    // stop zone (the slowdown zone's ramp ends at its edge). How close
+    // depends on the reaction time the envelope budgeted (at 0.4 m/s, each
+    // 0.1 s of it is 4 cm kept back): 0.05 s at its 20 Hz on an idle
+    // machine, longer when a busy machine runs the loop late.
     let clearance = 5.0 - sim["x"].as_f64().unwrap() - 0.18;
-    assert!(clearance > 0.09 && clearance < 0.2, "clearance {clearance} m: {sim}");
+    let reaction_s = envelope["reaction_max_s"].as_f64().unwrap();
+    let farthest = 0.2 + 0.4 * (reaction_s - 0.05).max(0.0);
+    assert!(
+        clearance > 0.09 && clearance < farthest,
+        "clearance {clearance} m, at most {farthest} m: {sim} {envelope}"
+    );
     assert!(envelope["scaled"].as_u64().unwrap() > 0, "{envelope}");
     let causes = &envelope["causes"];
     assert!(

@@ -9,23 +9,16 @@ mod support;
 
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 const TOKEN: &str = "alice-token-0123456789";
 
 struct Host {
-    child: Child,
+    _process: support::HostProcess,
     teleop: String,
     _dir: tempfile::TempDir,
-}
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// `subsume run` (no portal) on a robot whose WASM driver sends `VEL 0.25
@@ -65,33 +58,11 @@ fn start(device: &str, arbiter_extra: &str, wiring_extra: &str) -> Host {
     );
     let robot = dir.path().join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
-        .args(["--duration", "60"])
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (found, address) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            let marker = "teleoperation on tcp ";
-            if let Some(at) = line.find(marker) {
-                let rest = &line[at + marker.len()..];
-                let _ = found.send(rest.split_whitespace().next().unwrap_or("").to_string());
-            }
-            if line.contains("ERROR") || line.contains("error:") {
-                eprintln!("host: {line}");
-            }
-        }
-    });
-    let teleop = address.recv_timeout(Duration::from_secs(60)).expect("the host never listened");
-    Host { child, teleop, _dir: dir }
+    let mut command = support::subsume();
+    command.env("SUBSUME_HTTP", "off").args(["run", robot.to_str().unwrap(), "--duration", "60"]);
+    let process = support::HostProcess::spawn(command);
+    let teleop = process.word_after("teleoperation on tcp ", Duration::from_secs(60));
+    Host { _process: process, teleop, _dir: dir }
 }
 
 /// An authenticated operator on the line protocol (it never asks for a
@@ -236,7 +207,7 @@ fn add_user(store: &std::path::Path, name: &str, role: &str) {
 /// `subsume run` with its portal on the robot of [`start`] (driver,
 /// arbiter, envelope, motors on `device`); returns the host and the
 /// portal's address.
-fn start_with_portal(device: &str, dir: &std::path::Path) -> (Child, String) {
+fn start_with_portal(device: &str, dir: &std::path::Path) -> (support::HostProcess, String) {
     support::guest_dir();
     let store = dir.join("store");
     for (name, role) in [("viewer", "viewer"), ("dev", "developer"), ("operator", "operator")] {
@@ -264,26 +235,13 @@ fn start_with_portal(device: &str, dir: &std::path::Path) -> (Child, String) {
     );
     let robot = dir.join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-        .arg(&robot)
-        .args(["--http", "127.0.0.1:0", "--duration", "90"])
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("portal on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    (child, address)
+    let mut command = support::subsume();
+    command.args(["--store", store.to_str().unwrap(), "run", robot.to_str().unwrap()]);
+    command.args(["--http", "127.0.0.1:0", "--duration", "90"]);
+    let process = support::HostProcess::spawn(command);
+    let url = process.word_after("portal on http://", Duration::from_secs(60));
+    let address = url.split('/').next().unwrap_or_default().to_string();
+    (process, address)
 }
 
 /// `subsume estop|release ADDRESS --user USER`: (success, stdout + stderr).
@@ -301,8 +259,7 @@ fn cli(action: &str, address: &str, user: &str) -> (bool, String) {
 fn the_command_line_and_the_portal_button_stop_the_robot_and_only_a_driver_releases() {
     let (mut motors, _slave, device) = support::MotorRecorder::new();
     let dir = tempfile::tempdir().unwrap();
-    let (child, address) = start_with_portal(&device, dir.path());
-    let _host = Host { child, teleop: String::new(), _dir: tempfile::tempdir().unwrap() };
+    let (_host, address) = start_with_portal(&device, dir.path());
     assert_drives(&mut motors, "before");
     // The command line, as a viewer (a button on a small computer).
     let engaged = Instant::now();

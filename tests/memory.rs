@@ -10,8 +10,7 @@ mod support;
 
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 const PASSWORD: &str = "memory-test-password-0123";
@@ -20,15 +19,6 @@ const OPERATOR: &str = "AUTH demo demo-token-change-me\n";
 /// RSS the host may gain over 10 logins: a fraction of one login's 19 MiB
 /// (before the fix it gained ~58 MiB).
 const MAX_GROWTH_KIB: u64 = 12 << 10;
-
-struct Host(Child);
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
-}
 
 fn rss_kib(pid: u32) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
@@ -64,33 +54,13 @@ fn operator_logins_do_not_keep_the_password_hash_memory() {
         .unwrap();
     add.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
     assert!(add.wait().unwrap().success());
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .arg("--store")
-        .arg(&store)
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap()])
-        .args(["run", "config/demo.xml", "--http", "127.0.0.1:0", "--duration", "120"])
-        .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"])
-        .env_remove("SUBSUME_HTTP")
-        .env("NO_COLOR", "1")
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let pid = child.id();
-    let _host = Host(child);
-    let (found, address) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(at) = line.find("teleoperation on tcp ") {
-                let rest = &line[at + "teleoperation on tcp ".len()..];
-                let _ =
-                    found.send(rest.split(|c: char| c.is_whitespace() || c == '/').next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address = address.recv_timeout(Duration::from_secs(60)).expect("the host never listened");
+    let mut command = support::subsume();
+    command.arg("--store").arg(&store).env_remove("SUBSUME_HTTP");
+    command.args(["run", "config/demo.xml", "--http", "127.0.0.1:0", "--duration", "120"]);
+    command.args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"]);
+    let host = support::HostProcess::spawn(command);
+    let pid = host.child.id();
+    let address = host.word_after("teleoperation on tcp ", Duration::from_secs(60));
     std::thread::sleep(Duration::from_secs(1));
     let before = rss_kib(pid);
     for _ in 0..10 {

@@ -19,18 +19,11 @@ const BOB_TOKEN: &str = "bob-token-0123456789";
 
 /// A running host and the address of its teleoperation port.
 struct Host {
-    child: Child,
+    process: support::HostProcess,
     address: String,
     websocket: Option<String>,
     _dir: tempfile::TempDir,
     report: std::path::PathBuf,
-}
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 /// Starts `subsume run` on a robot file whose body is `components` (inside
@@ -60,41 +53,16 @@ fn start(teleop_params: &str, components: &str, duration_s: u32) -> Host {
     let robot = dir.path().join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
     let report = dir.path().join("report.json");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
-        .args(["--duration", &duration_s.to_string(), "--report", report.to_str().unwrap()])
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (found, addresses) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            for marker in ["teleoperation on tcp ", "teleoperation websocket on ws://"] {
-                if let Some(at) = line.find(marker) {
-                    let rest = &line[at + marker.len()..];
-                    let address = rest.split(|c: char| c.is_whitespace() || c == '/').next().unwrap_or("").to_string();
-                    let _ = found.send((marker.contains("websocket"), address));
-                }
-            }
-            if line.contains("ERROR") || line.contains("error:") {
-                eprintln!("host: {line}");
-            }
-        }
+    let mut command = support::subsume();
+    command.env("SUBSUME_HTTP", "off").args(["run", robot.to_str().unwrap()]);
+    command.args(["--duration", &duration_s.to_string(), "--report", report.to_str().unwrap()]);
+    let process = support::HostProcess::spawn(command);
+    let address = process.word_after("teleoperation on tcp ", Duration::from_secs(30));
+    let websocket = teleop_params.contains("websocket").then(|| {
+        let url = process.word_after("teleoperation websocket on ws://", Duration::from_secs(30));
+        url.split('/').next().unwrap_or_default().to_string()
     });
-    let mut address = None;
-    let mut websocket = None;
-    let expect_ws = teleop_params.contains("websocket");
-    while address.is_none() || (expect_ws && websocket.is_none()) {
-        let (is_ws, found) = addresses.recv_timeout(Duration::from_secs(30)).expect("the host never listened");
-        if is_ws { websocket = Some(found) } else { address = Some(found) }
-    }
-    Host { child, address: address.unwrap_or_default(), websocket, _dir: dir, report }
+    Host { process, address, websocket, _dir: dir, report }
 }
 
 /// An operator on a TCP connection, answering pings after `pong_delay`.
@@ -372,7 +340,7 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
         std::thread::sleep(Duration::from_millis(50));
     }
     alice.send("QUIT");
-    wait_for_exit(&mut host.child, Duration::from_secs(20));
+    wait_for_exit(&mut host.process.child, Duration::from_secs(20));
     let report = read_report(&host.report);
     let travelled = report["sim"]["distance_travelled_m"].as_f64().unwrap();
     assert!((0.4..0.9).contains(&travelled), "{}", report["sim"]);
@@ -516,7 +484,7 @@ fn the_keyboard_client_drives_from_a_real_terminal() {
         assert!(Instant::now() < deadline, "the client did not quit");
         std::thread::sleep(Duration::from_millis(20));
     }
-    wait_for_exit(&mut host.child, Duration::from_secs(20));
+    wait_for_exit(&mut host.process.child, Duration::from_secs(20));
     let report = read_report(&host.report);
     let session = &report["network"]["sessions"][0];
     assert_eq!(session["operator"], "alice", "{session}");
@@ -543,27 +511,12 @@ fn the_readme_drive_works_on_the_demo_and_the_operator_is_told_who_holds_control
     support::guest_dir();
     let dir = tempfile::tempdir().unwrap();
     let report = dir.path().join("report.json");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", "config/demo.xml"])
-        .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="])
-        .args(["--duration", "20", "--report", report.to_str().unwrap()])
-        .env("NO_COLOR", "1")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (found, address) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("teleoperation on tcp ").nth(1) {
-                let _ = found.send(rest.split_whitespace().next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address = address.recv_timeout(Duration::from_secs(60)).expect("the demo never listened");
+    let mut command = support::subsume();
+    command.env("SUBSUME_HTTP", "off").args(["run", "config/demo.xml"]);
+    command.args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="]);
+    command.args(["--duration", "20", "--report", report.to_str().unwrap()]);
+    let mut host = support::HostProcess::spawn(command);
+    let address = host.word_after("teleoperation on tcp ", Duration::from_secs(60));
     let (mut demo, hello) = Operator::connect_to(&address);
     assert!(hello.ends_with(" robot=demo"), "{hello}");
     let rtt = demo.login("demo", "demo-token-change-me");
@@ -590,7 +543,7 @@ fn the_readme_drive_works_on_the_demo_and_the_operator_is_told_who_holds_control
     drive(&mut demo, "VEL 0 0.6", 3000);
     assert_eq!(demo.await_control("CONTROL held"), "CONTROL held your commands drive the robot");
     demo.send("QUIT");
-    wait_for_exit(&mut child, Duration::from_secs(40));
+    wait_for_exit(&mut host.child, Duration::from_secs(40));
     let report = read_report(&report);
     let held: f64 = report["arbiter"]["held_s"]
         .as_array()

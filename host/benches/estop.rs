@@ -86,25 +86,11 @@ fn from_browser(samples: usize) {
         + &xml[xml.find("<platform name=\"control\">").unwrap()..];
     let robot = dir.path().join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-        .arg(&robot)
-        .args(["--http", "127.0.0.1:0"])
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("portal on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address: String = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
+    let mut command = support::subsume();
+    command.args(["--store", store.to_str().unwrap(), "run", robot.to_str().unwrap(), "--http", "127.0.0.1:0"]);
+    let host = support::HostProcess::spawn(command);
+    let url = host.word_after("portal on http://", Duration::from_secs(60));
+    let address = url.split('/').next().unwrap_or_default().to_string();
     let mut node = Command::new("node")
         .current_dir(support::repo_root().join("tests/browser"))
         .arg("estop-bench.mjs")
@@ -139,8 +125,7 @@ fn from_browser(samples: usize) {
         }
     }
     assert!(node.wait().unwrap().success(), "the browser failed");
-    let _ = child.kill();
-    let _ = child.wait();
+    drop(host);
     let mut latencies: Vec<Duration> = clicked
         .iter()
         .filter_map(|at| stops.iter().find(|s| *s >= at).map(|s| Duration::from_secs_f64((s - at) / 1e3)))
@@ -168,25 +153,10 @@ fn main() {
     let xml = robot_xml(&device, "");
     let robot = dir.path().join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
-        .env("RUST_LOG", "info")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (found, address) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("teleoperation on tcp ").nth(1) {
-                let _ = found.send(rest.split_whitespace().next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address: String = address.recv_timeout(Duration::from_secs(60)).expect("the host never listened");
+    let mut command = support::subsume();
+    command.env("SUBSUME_HTTP", "off").args(["run", robot.to_str().unwrap()]);
+    let host = support::HostProcess::spawn(command);
+    let address = host.word_after("teleoperation on tcp ", Duration::from_secs(60));
     let stream = TcpStream::connect(&address).unwrap();
     stream.set_nodelay(true).unwrap();
     let mut writer = stream.try_clone().unwrap();
@@ -231,8 +201,7 @@ fn main() {
         latencies.push(stopped.duration_since(start));
         writer.write_all(b"RELEASE\n").unwrap();
     }
-    let _ = child.kill();
-    let _ = child.wait();
+    drop(host);
     latencies.sort();
     println!(
         "estop: teleop ESTOP line -> S on the PTY, {} samples: p50 {:.2} ms, p90 {:.2} ms, p95 {:.2} ms, p99 {:.2} ms, max {:.2} ms",

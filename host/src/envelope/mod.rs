@@ -284,6 +284,10 @@ pub struct EnvelopeStatus {
     /// and over the run, m.
     pub closest_m: Option<f64>,
     pub closest_ever_m: Option<f64>,
+    /// The longest reaction time the envelope budgeted over the run, s: the
+    /// worst recent interval between its judgments (a busy machine makes it
+    /// longer, and the robot keeps further from what it sees).
+    pub reaction_max_s: f64,
     /// The odometry pose the envelope last saw.
     pub pose: Option<[f64; 3]>,
     /// Commands that were not valid control strings (stopped).
@@ -314,6 +318,7 @@ impl EnvelopeComponent {
                 recent: VecDeque::new(),
                 closest_m: None,
                 closest_ever_m: None,
+                reaction_max_s: 0.0,
                 pose: None,
                 rejected: 0,
             },
@@ -330,6 +335,7 @@ impl EnvelopeComponent {
 
     fn record(&mut self, command: ControlCommand, verdict: &Verdict, now_ns: u64, out: &mut Outbox) {
         out.push((0, Value::Command(verdict.command.to_string())));
+        self.status.reaction_max_s = self.status.reaction_max_s.max(self.envelope.reaction_s());
         match verdict.action {
             Action::Passed => {
                 self.status.passed += 1;

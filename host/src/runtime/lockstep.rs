@@ -27,7 +27,12 @@ use std::time::{Duration, Instant};
 /// Longest one lock-step wait (a link settling, a robot reading its bytes,
 /// a link receiving its feedback) holds the loop: a wedged device cannot
 /// hang a simulated run; past it the run goes on without the lock-step.
-pub const LOCKSTEP_WAIT: Duration = Duration::from_millis(500);
+/// A wait ends as soon as the other side is there, so the bound costs
+/// nothing when all is well; it is long because a machine whose cores are
+/// all busy can keep the link's thread from running for over 500 ms (seen
+/// with both cores loaded and several hosts running), and a run must stay
+/// deterministic on a busy machine.
+pub const LOCKSTEP_WAIT: Duration = Duration::from_secs(5);
 /// How often a lock-step wait looks again.
 pub const LOCKSTEP_POLL: Duration = Duration::from_micros(20);
 

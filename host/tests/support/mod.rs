@@ -55,6 +55,12 @@ pub struct MotorRecorder {
     pub lines: Vec<(std::time::Instant, String)>,
     /// Every byte read, in order (binary protocols have no lines).
     pub bytes: Vec<u8>,
+    /// When the last read returned, and the longest time between two reads
+    /// returning: a line's time is late by at most that (a read waits at
+    /// most [`MotorRecorder::READ_TIMEOUT`], so more means this thread
+    /// waited for a CPU).
+    last_read: Option<std::time::Instant>,
+    pub max_read_gap: std::time::Duration,
 }
 
 impl MotorRecorder {
@@ -62,19 +68,35 @@ impl MotorRecorder {
     pub fn new() -> (MotorRecorder, serialport::TTYPort, String) {
         use serialport::SerialPort;
         let (mut master, slave) = serialport::TTYPort::pair().unwrap_or_else(|e| panic!("no pseudo-terminal: {e}"));
-        let _ = master.set_timeout(std::time::Duration::from_millis(10));
+        let _ = master.set_timeout(MotorRecorder::READ_TIMEOUT);
         let device = slave.name().unwrap_or_default();
-        (MotorRecorder { master, pending: String::new(), lines: Vec::new(), bytes: Vec::new() }, slave, device)
+        let recorder = MotorRecorder {
+            master,
+            pending: String::new(),
+            lines: Vec::new(),
+            bytes: Vec::new(),
+            last_read: None,
+            max_read_gap: std::time::Duration::ZERO,
+        };
+        (recorder, slave, device)
     }
 
-    /// Reads what has arrived (waiting at most the port's 10 ms timeout).
+    /// The longest a read waits for bytes.
+    pub const READ_TIMEOUT: std::time::Duration = std::time::Duration::from_millis(10);
+
+    /// Reads what has arrived (waiting at most [`Self::READ_TIMEOUT`]).
     pub fn read(&mut self) {
         let mut buffer = [0u8; 256];
-        if let Ok(n) = std::io::Read::read(&mut self.master, &mut buffer) {
+        let read = std::io::Read::read(&mut self.master, &mut buffer);
+        let now = std::time::Instant::now();
+        if let Some(last) = self.last_read.replace(now) {
+            self.max_read_gap = self.max_read_gap.max(now - last);
+        }
+        if let Ok(n) = read {
             self.bytes.extend_from_slice(&buffer[..n]);
             self.pending.push_str(&String::from_utf8_lossy(&buffer[..n]));
             while let Some(end) = self.pending.find('\n') {
-                self.lines.push((std::time::Instant::now(), self.pending[..end].to_string()));
+                self.lines.push((now, self.pending[..end].to_string()));
                 self.pending.drain(..=end);
             }
         }
@@ -90,5 +112,76 @@ impl MotorRecorder {
         while going() {
             self.read();
         }
+    }
+}
+
+/// `subsume` run from the repository root with the tests' compile cache,
+/// `RUST_LOG=info` and `NO_COLOR=1`; the caller adds the subcommand.
+pub fn subsume() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.current_dir(repo_root()).arg("--cache-dir").arg(cache_dir()).env("RUST_LOG", "info").env("NO_COLOR", "1");
+    command
+}
+
+/// A running host whose stderr a thread reads into a log, so a test can
+/// wait for what the host announces (its addresses) and show the whole log
+/// when something is missing.
+pub struct HostProcess {
+    pub child: std::process::Child,
+    log: std::sync::Arc<(std::sync::Mutex<Vec<String>>, std::sync::Condvar)>,
+}
+
+impl HostProcess {
+    /// Spawns `command` (stdout discarded, stderr read).
+    pub fn spawn(mut command: Command) -> HostProcess {
+        use std::io::BufRead;
+        let mut child = command
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap_or_else(|e| panic!("cannot start the host: {e}"));
+        let stderr = child.stderr.take().unwrap_or_else(|| panic!("no stderr pipe"));
+        let log = std::sync::Arc::new((std::sync::Mutex::new(Vec::new()), std::sync::Condvar::new()));
+        let writer = log.clone();
+        std::thread::spawn(move || {
+            for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+                let (lines, grew) = &*writer;
+                lines.lock().unwrap_or_else(|e| e.into_inner()).push(line);
+                grew.notify_all();
+            }
+        });
+        HostProcess { child, log }
+    }
+
+    /// Waits up to `timeout` for a log line holding `marker` and returns the
+    /// word after it (up to whitespace); panics with the log if none came.
+    pub fn word_after(&self, marker: &str, timeout: std::time::Duration) -> String {
+        let deadline = std::time::Instant::now() + timeout;
+        let (lines, grew) = &*self.log;
+        let mut lines = lines.lock().unwrap_or_else(|e| e.into_inner());
+        loop {
+            let found = lines.iter().find_map(|line| line.split_once(marker).map(|(_, rest)| rest.to_string()));
+            if let Some(rest) = found {
+                return rest.split_whitespace().next().unwrap_or_default().to_string();
+            }
+            let now = std::time::Instant::now();
+            if now >= deadline {
+                panic!("the host never said '{marker}':\n{}", lines.join("\n"));
+            }
+            lines = grew.wait_timeout(lines, deadline - now).unwrap_or_else(|e| e.into_inner()).0;
+        }
+    }
+
+    /// Every stderr line so far.
+    pub fn log(&self) -> String {
+        self.log.0.lock().unwrap_or_else(|e| e.into_inner()).join("\n")
+    }
+}
+
+impl Drop for HostProcess {
+    /// A test that ends early (or fails) leaves no host behind.
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
     }
 }
