@@ -183,7 +183,7 @@ impl Builtin for ZenohPublish {
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
         let key = params.text("key")?.to_string();
         let shared = session_for(params, ctx)?;
-        let outlet = Outlet::new(shared.clone(), key.clone(), Arc::new(BridgeStats::default()))?;
+        let outlet = Outlet::new(shared.clone(), key.clone(), Arc::new(BridgeStats::default()), None)?;
         Ok(Box::new(Publisher { key, shared, outlet }))
     }
 }
@@ -203,7 +203,7 @@ impl Component for Publisher {
         _now_ns: u64,
         _out: &mut Outbox,
     ) -> Result<(), CallError> {
-        self.outlet.send(wire::encode(value), None);
+        self.outlet.send(wire::encode(value));
         Ok(())
     }
 

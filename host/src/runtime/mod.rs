@@ -1,7 +1,8 @@
 //! The runtime: components behind one trait ([`component`]), how they are
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
 //! control loop that drives it in real time ([`control_loop`]), the host's
-//! emergency-stop locks ([`locks`]), the
+//! emergency-stop locks ([`locks`]), the process's list of final stops for
+//! exits that cannot wait for the loop ([`halt`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
 //! simulated time's lock-step between the loop, the simulated robots and
 //! their links ([`lockstep`]), and what an observer such as the recorder
@@ -14,6 +15,7 @@
 pub mod component;
 pub mod control_loop;
 pub mod graph;
+pub mod halt;
 pub mod histogram;
 pub mod locks;
 pub mod lockstep;
