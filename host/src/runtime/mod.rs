@@ -1,6 +1,7 @@
 //! The runtime: components behind one trait ([`component`]), how they are
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
-//! control loop that drives it in real time ([`control_loop`]), the host's
+//! control loop that drives it in real time ([`control_loop`]) and how long
+//! it waited for a CPU ([`cpu_wait`]), the host's
 //! emergency-stop locks ([`locks`]), the process's list of final stops for
 //! exits that cannot wait for the loop ([`halt`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
@@ -14,6 +15,7 @@
 
 pub mod component;
 pub mod control_loop;
+pub mod cpu_wait;
 pub mod graph;
 pub mod halt;
 pub mod histogram;
