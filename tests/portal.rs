@@ -339,7 +339,15 @@ fn the_portal_works_in_a_real_browser() {
     add_admin(&store);
     let host = start(&store, &support::repo_root().join("config/demo.xml"));
     let robot = dir.path().join("browser-demo.xml");
-    std::fs::write(&robot, demo_using("browser-avoider")).unwrap();
+    // With a Zenoh bridge (no peers: a session with no endpoints), so the
+    // live view's Bridges row has a line to show.
+    let bridged = demo_using("browser-avoider").replace(
+        "<platform name=\"network\">",
+        "<platform name=\"network\">\n    <component name=\"zenoh\" source=\"builtin:zenoh\"/>\n    \
+         <component name=\"ranges-out\" source=\"builtin:zenoh-publish\"><param name=\"key\" value=\"browser/ranges\"/></component>\n    \
+         <connect from=\"motors.ranges\" to=\"ranges-out.in\"/>",
+    );
+    std::fs::write(&robot, bridged).unwrap();
     let bad = dir.path().join("broken.xml");
     std::fs::write(&bad, demo_using("browser-avoider").replace("arbiter.commands\"/>", "arbiter.command\"/>")).unwrap();
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");

@@ -273,6 +273,17 @@ fn a_bool_on_the_estop_topic_stops_the_robot_and_the_lock_holds() {
     assert!(section(&report, "/estop/")["in"].as_u64().unwrap() >= 1, "{report}");
 }
 
+/// The Twists the Python base received, as [lx, ly, lz, ax, ay, az].
+fn twists_of(summary: &Json) -> Vec<Vec<f64>> {
+    assert_eq!(summary["bad"], Json::Array(vec![]), "{summary}");
+    summary["twists"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|t| t.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect())
+        .collect()
+}
+
 #[test]
 fn use_b_a_python_base_gets_cmd_vel_and_the_zero_twist_when_the_host_stops() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
@@ -280,14 +291,7 @@ fn use_b_a_python_base_gets_cmd_vel_and_the_zero_twist_when_the_host_stops() {
     let report = run_host("config/ros2-base.xml", &endpoint, Duration::from_secs(6));
     // Let the last Twist arrive.
     std::thread::sleep(Duration::from_millis(500));
-    let summary = peer.finish();
-    assert_eq!(summary["bad"], Json::Array(vec![]), "{summary}");
-    let twists: Vec<Vec<f64>> = summary["twists"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .map(|t| t.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect())
-        .collect();
+    let twists = twists_of(&peer.finish());
     assert!(twists.len() > 20, "{} twists", twists.len());
     // The planner drives toward its goal ahead: forward, decoded by rosbags.
     assert!(twists.iter().any(|t| t[0] > 0.05), "{twists:?}");
@@ -300,4 +304,85 @@ fn use_b_a_python_base_gets_cmd_vel_and_the_zero_twist_when_the_host_stops() {
     assert_eq!(scan["malformed"], 0, "{scan}");
     // The base was still connected when the host stopped.
     assert_eq!(scan["peers"], 1, "{scan}");
+}
+
+/// A run of config/ros2-base.xml that ends by a panic
+/// (`SUBSUME_FAULT_INJECTION=WHAT:SECONDS`) or a second SIGTERM; returns
+/// its exit code and what it printed on stderr.
+fn run_base_to_a_hard_exit(
+    endpoint: &str,
+    fault: Option<&str>,
+    second_signal_after: Option<Duration>,
+) -> (i32, String) {
+    support::guest_dir();
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .env("NO_COLOR", "1")
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", "config/ros2-base.xml"])
+        .args(["--param", &format!("zenoh.connect={endpoint}")])
+        .args(["--duration", "120"])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped());
+    if let Some(fault) = fault {
+        command.env("SUBSUME_FAULT_INJECTION", fault);
+    }
+    let mut child = command.spawn().unwrap();
+    let mut stderr = child.stderr.take().unwrap();
+    let log = std::thread::spawn(move || {
+        let mut text = String::new();
+        std::io::Read::read_to_string(&mut stderr, &mut text).unwrap();
+        text
+    });
+    if let Some(after) = second_signal_after {
+        std::thread::sleep(after);
+        // The first asks for a clean stop; the loop is hung by the fault,
+        // so only the second one ends the process.
+        for _ in 0..2 {
+            assert!(Command::new("kill").args(["-15", &child.id().to_string()]).status().unwrap().success());
+            std::thread::sleep(Duration::from_millis(300));
+        }
+    }
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        assert!(Instant::now() < deadline, "the host did not exit");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    (status.code().unwrap_or(-1), log.join().unwrap())
+}
+
+/// The base's Twists: forward ones came, and the last one is the zero Twist.
+fn assert_driven_then_zero(twists: &[Vec<f64>]) {
+    assert!(twists.iter().any(|t| t[0] > 0.05), "no forward Twist: {twists:?}");
+    assert_eq!(twists.last().unwrap(), &vec![0.0; 6], "{:?}", &twists[twists.len().saturating_sub(3)..]);
+}
+
+#[test]
+fn use_b_the_zero_twist_goes_out_when_the_host_panics() {
+    for fault in ["panic-control:5", "panic-thread:5"] {
+        let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+        let peer = Peer::start("base", &endpoint);
+        let (code, log) = run_base_to_a_hard_exit(&endpoint, Some(fault), None);
+        std::thread::sleep(Duration::from_millis(500));
+        let twists = twists_of(&peer.finish());
+        assert_eq!(code, 101, "{fault}: {log}");
+        assert!(log.contains("after the panic, ros2 publisher 'cmd-vel': STOP sent"), "{fault}: {log}");
+        assert_driven_then_zero(&twists);
+    }
+}
+
+#[test]
+fn use_b_the_zero_twist_goes_out_on_a_second_signal_when_the_loop_is_stuck() {
+    let endpoint = format!("tcp/127.0.0.1:{}", free_port());
+    let peer = Peer::start("base", &endpoint);
+    let (code, log) = run_base_to_a_hard_exit(&endpoint, Some("hang-control:5"), Some(Duration::from_secs(7)));
+    std::thread::sleep(Duration::from_millis(500));
+    let twists = twists_of(&peer.finish());
+    assert_eq!(code, 130, "{log}");
+    assert!(log.contains("second signal: ros2 publisher 'cmd-vel': STOP sent"), "{log}");
+    assert_driven_then_zero(&twists);
 }

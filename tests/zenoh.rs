@@ -215,3 +215,157 @@ fn host_b_avoids_for_host_a_and_when_b_dies_the_planner_takes_over_within_the_ti
     assert!(held_by("remote-avoid") > 0.9 && held_by("planner") > 0.5, "{}", report["arbiter"]);
     assert_eq!(report["arbiter"]["holder"], "planner");
 }
+
+/// A test CA, a certificate it signed for localhost and 127.0.0.1, and a
+/// user/password dictionary, made with the openssl CLI in a fresh folder.
+fn make_tls_pki() -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let openssl = |args: &[&str]| {
+        let out = Command::new("openssl").current_dir(d).args(args).output().expect("the openssl CLI is needed");
+        assert!(out.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&out.stderr));
+    };
+    let ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"];
+    let mut ca = vec!["req", "-x509"];
+    ca.extend(ec);
+    ca.extend(["-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=subsume zenoh test CA"]);
+    ca.extend(["-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign"]);
+    openssl(&ca);
+    let mut csr = vec!["req"];
+    csr.extend(ec);
+    csr.extend(["-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
+    openssl(&csr);
+    std::fs::write(
+        d.join("server.ext"),
+        "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=critical,CA:FALSE\n\
+         keyUsage=critical,digitalSignature\nextendedKeyUsage=serverAuth\n",
+    )
+    .unwrap();
+    openssl(&[
+        "x509",
+        "-req",
+        "-in",
+        "server.csr",
+        "-CA",
+        "ca.pem",
+        "-CAkey",
+        "ca.key",
+        "-CAcreateserial",
+        "-out",
+        "server.pem",
+        "-days",
+        "2",
+        "-extfile",
+        "server.ext",
+    ]);
+    std::fs::write(d.join("users.txt"), "robot-a:secret-a\nrobot-b:secret-b\n").unwrap();
+    dir
+}
+
+/// `subsume run` of a robot that publishes 7.25 on test/tls/out and
+/// subscribes to test/tls/in, its session from a JSON5 file connecting to
+/// `endpoint` over TLS as robot-b with `password`. Zenoh's
+/// `exit_on_failure` makes a refused session an error at start.
+fn tls_host(dir: &Path, pki: &Path, endpoint: &str, password: &str) -> Child {
+    let config = dir.join("zenoh.json5");
+    std::fs::write(
+        &config,
+        format!(
+            r#"{{
+  mode: "peer",
+  scouting: {{ multicast: {{ enabled: false }} }},
+  connect: {{ endpoints: ["{endpoint}"], exit_on_failure: true, timeout_ms: 5000 }},
+  transport: {{
+    link: {{ tls: {{ root_ca_certificate: "{ca}" }} }},
+    auth: {{ usrpwd: {{ user: "robot-b", password: "{password}" }} }},
+  }},
+}}"#,
+            ca = pki.join("ca.pem").display()
+        ),
+    )
+    .unwrap();
+    let robot = dir.join("robot.xml");
+    std::fs::write(
+        &robot,
+        r#"<robot name="tls-host">
+  <platform name="control">
+    <component name="value" source="builtin:publish" rate="20">
+      <param name="kind" value="scalar"/><param name="value" value="7.25"/>
+    </component>
+  </platform>
+  <platform name="network">
+    <component name="zenoh" source="builtin:zenoh"><param name="zenoh-config" value="zenoh.json5"/></component>
+    <component name="out" source="builtin:zenoh-publish"><param name="key" value="test/tls/out"/></component>
+    <component name="in" source="builtin:zenoh-subscribe">
+      <param name="key" value="test/tls/in"/><param name="kind" value="scalar"/>
+    </component>
+    <connect from="value.out" to="out.in"/>
+  </platform>
+</robot>
+"#,
+    )
+    .unwrap();
+    Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .current_dir(support::repo_root())
+        .env("SUBSUME_HTTP", "off")
+        .env("NO_COLOR", "1")
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
+        .args(["--duration", "60", "--report", dir.join("report.json").to_str().unwrap()])
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+#[test]
+fn a_host_and_an_eclipse_zenoh_peer_talk_over_tls_with_a_password_and_a_wrong_password_is_refused() {
+    let pki = make_tls_pki();
+    let endpoint = format!("tls/localhost:{}", free_port());
+    let python = support::repo_root().join("tests/python/.venv/bin/python");
+    assert!(python.exists(), "run scripts/setup first: {} is missing", python.display());
+    let mut peer = Command::new(python)
+        .arg(support::repo_root().join("tests/python/zenoh_tls_peer.py"))
+        .args([&endpoint, pki.path().to_str().unwrap()])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut peer_out = BufReader::new(peer.stdout.take().unwrap());
+    let mut line = String::new();
+    peer_out.read_line(&mut line).unwrap();
+    assert_eq!(line.trim(), "ready");
+
+    // The right password: values cross both ways over TLS.
+    let dir = tempfile::tempdir().unwrap();
+    let host = tls_host(dir.path(), pki.path(), &endpoint, "secret-b");
+    let mut host = Host { child: host, report: dir.path().join("report.json"), _dir: dir };
+    std::thread::sleep(Duration::from_secs(4));
+    assert!(host.child.try_wait().unwrap().is_none(), "the host exited early");
+    host.child.stderr.take();
+    let report = stop(host);
+    let inbound = bridge(&report, "test/tls/in");
+    assert!(inbound["in"].as_u64().unwrap() >= 10, "{inbound}");
+    assert_eq!(inbound["malformed"], 0, "{inbound}");
+    assert_eq!(inbound["peers"], 1, "{inbound}");
+    assert!(bridge(&report, "test/tls/out")["out"].as_u64().unwrap() >= 10, "{report}");
+
+    // A wrong password: the peer closes the handshake; the host says so and
+    // does not run.
+    let dir = tempfile::tempdir().unwrap();
+    let mut refused = tls_host(dir.path(), pki.path(), &endpoint, "not-the-password");
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut refused.stderr.take().unwrap(), &mut stderr).unwrap();
+    let status = refused.wait().unwrap();
+    assert_eq!(status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains(&format!("no peer accepted the connection to {endpoint}")), "{stderr}");
+    assert!(stderr.contains("user/password or the TLS certificate"), "{stderr}");
+
+    drop(peer.stdin.take());
+    line.clear();
+    peer_out.read_line(&mut line).unwrap();
+    let _ = peer.wait();
+    let summary: Json = serde_json::from_str(&line).unwrap_or_else(|e| panic!("peer said {line:?}: {e}"));
+    assert_eq!(summary["bad"], Json::Array(vec![]), "{summary}");
+    let received = summary["received"].as_array().unwrap();
+    assert!(received.len() >= 10 && received.iter().all(|x| x == 7.25), "{summary}");
+}

@@ -19,8 +19,11 @@
 //!   re-executed), handed to a native relay there, and the relay's output sent
 //!   back the same way; one way is half the round trip. This is what a
 //!   process-isolated framework pays to cross its isolation boundary, without
-//!   any of its own machinery. (The Zenoh put/subscribe half of row (e) waits
-//!   for the Zenoh ports.)
+//!   any of its own machinery. The Zenoh half: the same round trip as a
+//!   Zenoh put on `peers/ping` and a put back on `peers/pong` between two
+//!   peer sessions over TCP loopback (this process listens, the second one
+//!   connects), values in subsume's own Zenoh wire form
+//!   (`bridge::wire`), each side's subscriber a plain Zenoh FIFO channel.
 //!
 //! With `PEERS_ENGINE_SETTINGS=1`, the bare call is also measured on engines
 //! with one wasmtime setting changed (epochs, pooling, signals-based traps,
@@ -41,6 +44,7 @@ use std::io::{Read, Write};
 use std::os::unix::net::{UnixListener, UnixStream};
 use std::time::Instant;
 
+use subsume::bridge::wire;
 use subsume::config::Policy;
 use subsume::contract::bindings;
 use subsume::contract::{LogLevel, Value};
@@ -52,6 +56,11 @@ use wasmtime_wasi::{WasiCtx, WasiCtxBuilder, WasiCtxView, WasiView};
 
 /// Environment variable that turns this binary into the far process of row (e).
 const ECHO_SOCKET: &str = "PEERS_ECHO_SOCKET";
+/// The same for the Zenoh half of row (e): the endpoint to connect to.
+const ECHO_ZENOH: &str = "PEERS_ECHO_ZENOH";
+/// Round trips measured per round of the Zenoh row (each one two puts
+/// through Zenoh's runtime threads: slower than the socket).
+const ZENOH_SAMPLES: usize = 20_000;
 const SAMPLES: usize = 200_000;
 const WARMUP: usize = 20_000;
 /// Round trips measured per round of row (e) (each costs two context switches).
@@ -419,6 +428,103 @@ impl Drop for Echo {
     }
 }
 
+/// A Zenoh peer session: no multicast scouting, the given endpoints.
+fn zenoh_session(key: &str, endpoint: &str) -> zenoh::Session {
+    use zenoh::Wait;
+    let mut config = zenoh::Config::default();
+    config.insert_json5("mode", "\"peer\"").unwrap();
+    config.insert_json5("scouting/multicast/enabled", "false").unwrap();
+    config.insert_json5(key, &format!("[\"{endpoint}\"]")).unwrap();
+    zenoh::open(config).wait().unwrap()
+}
+
+/// The far process of the Zenoh row: each value on `peers/ping` decoded,
+/// handed to a native relay, its output put on `peers/pong`.
+fn zenoh_echo_child(endpoint: &str) {
+    use zenoh::Wait;
+    let session = zenoh_session("connect/endpoints", endpoint);
+    let pong = session.declare_publisher("peers/pong").wait().unwrap();
+    let ping = session.declare_subscriber("peers/ping").wait().unwrap();
+    let mut relay = NativeRelay;
+    let mut out = Vec::with_capacity(4);
+    while let Ok(sample) = ping.recv() {
+        let bytes = sample.payload().to_bytes();
+        if bytes.is_empty() {
+            break;
+        }
+        let value = wire::decode(&bytes).unwrap();
+        relay.on_input(0, &value, 0, 0, &mut out).unwrap();
+        for (_, value) in out.drain(..) {
+            pong.put(wire::encode(&value)).wait().unwrap();
+        }
+    }
+}
+
+struct ZenohEcho {
+    session: zenoh::Session,
+    ping: zenoh::pubsub::Publisher<'static>,
+    pong: zenoh::pubsub::Subscriber<zenoh::handlers::FifoChannelHandler<zenoh::sample::Sample>>,
+    child: std::process::Child,
+}
+
+impl ZenohEcho {
+    fn start() -> ZenohEcho {
+        use zenoh::Wait;
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let session = zenoh_session("listen/endpoints", &endpoint);
+        let ping = session.declare_publisher("peers/ping").wait().unwrap();
+        let pong = session.declare_subscriber("peers/pong").wait().unwrap();
+        let child =
+            std::process::Command::new(std::env::current_exe().unwrap()).env(ECHO_ZENOH, &endpoint).spawn().unwrap();
+        // Until the far side is connected and subscribed, pings are lost.
+        let hello = wire::encode(&Value::Scalar(0.0));
+        let deadline = Instant::now() + std::time::Duration::from_secs(30);
+        loop {
+            ping.put(hello.clone()).wait().unwrap();
+            if pong.recv_timeout(std::time::Duration::from_millis(100)).is_ok_and(|s| s.is_some()) {
+                break;
+            }
+            assert!(Instant::now() < deadline, "the zenoh echo process never answered");
+        }
+        // Drain answers to the extra hellos.
+        std::thread::sleep(std::time::Duration::from_millis(200));
+        while pong.try_recv().is_ok_and(|s| s.is_some()) {}
+        ZenohEcho { session, ping, pong, child }
+    }
+
+    /// One-way (half a round trip) p50 and p99 for `value`.
+    fn hop(&mut self, value: &Value, overhead: u64) -> (u64, u64) {
+        use zenoh::Wait;
+        let round_trip = || {
+            self.ping.put(wire::encode(value)).wait().unwrap();
+            let sample = self.pong.recv().unwrap();
+            black_box(wire::decode(&sample.payload().to_bytes()).unwrap());
+        };
+        for _ in 0..WARMUP / 10 {
+            round_trip();
+        }
+        let mut times = Vec::with_capacity(ZENOH_SAMPLES);
+        for _ in 0..ZENOH_SAMPLES {
+            let start = Instant::now();
+            round_trip();
+            times.push((start.elapsed().as_nanos() as u64).saturating_sub(overhead) / 2);
+        }
+        times.sort_unstable();
+        (percentile(&times, 0.50), percentile(&times, 0.99))
+    }
+}
+
+impl Drop for ZenohEcho {
+    fn drop(&mut self) {
+        use zenoh::Wait;
+        // An empty payload tells the far side to end.
+        let _ = self.ping.put(Vec::<u8>::new()).wait();
+        let _ = self.child.wait();
+        let _ = self.session.close().wait();
+    }
+}
+
 // ------------------------------------------------------------------ table
 
 #[derive(Default)]
@@ -449,6 +555,10 @@ fn main() {
         echo_child(&path);
         return;
     }
+    if let Ok(endpoint) = std::env::var(ECHO_ZENOH) {
+        zenoh_echo_child(&endpoint);
+        return;
+    }
     let rounds: usize = std::env::var("PEERS_ROUNDS").ok().and_then(|r| r.parse().ok()).unwrap_or(3).max(1);
     let bytes = std::fs::read(support::guest("test-relay")).unwrap();
     let v1_bytes = std::fs::read(support::guest("test-relay-v1")).unwrap();
@@ -456,6 +566,7 @@ fn main() {
     let overhead = timer_overhead();
     let mut bare = BareRelay::new(&bytes);
     let mut echo = Echo::start();
+    let mut zecho = ZenohEcho::start();
     let scalar = Value::Scalar(1.5);
 
     let mut a = Row::new("(a) native `Component` call (relay, emits once)");
@@ -467,6 +578,8 @@ fn main() {
     let mut d = Row { throughput: true, ..Row::new("(d) chain of 8 relay guests, per delivery") };
     let mut e = Row::new("(e) Unix socket to a second process, scalar (one way)");
     let mut ev = Row::new("(e) Unix socket to a second process, vector of 100 f64 (one way)");
+    let mut z = Row::new("(e) Zenoh put/subscribe to a second process over TCP loopback, scalar (one way)");
+    let mut zv = Row::new("(e) Zenoh put/subscribe to a second process over TCP loopback, vector of 100 f64 (one way)");
     for round in 0..rounds {
         eprintln!("round {} of {rounds}", round + 1);
         a.push(native_call(overhead));
@@ -479,15 +592,18 @@ fn main() {
         d.rounds.push((1e9 / rate, rate));
         e.push(echo.hop(&scalar, overhead));
         ev.push(echo.hop(&vector(), overhead));
+        z.push(zecho.hop(&scalar, overhead));
+        zv.push(zecho.hop(&vector(), overhead));
     }
     drop(echo);
+    drop(zecho);
 
     let floor = b.median().0;
     println!("timer overhead subtracted from each sample: {overhead} ns; {rounds} rounds, median round shown");
     println!();
     println!("| row | p50 | p99 | p50 / (b) |");
     println!("|---|---|---|---|");
-    for row in [&a, &a2, &b, &c, &cv, &c1, &d, &e, &ev] {
+    for row in [&a, &a2, &b, &c, &cv, &c1, &d, &e, &ev, &z, &zv] {
         let (first, second) = row.median();
         if row.throughput {
             println!(
@@ -515,7 +631,7 @@ fn main() {
     if std::env::var("PEERS_ENGINE_SETTINGS").is_ok_and(|v| v != "0") {
         engine_settings(&bytes, rounds, overhead);
     }
-    for row in [&a, &a2, &b, &c, &cv, &c1, &d, &e, &ev] {
+    for row in [&a, &a2, &b, &c, &cv, &c1, &d, &e, &ev, &z, &zv] {
         let firsts: Vec<String> = row.rounds.iter().map(|r| format!("{:.0}", r.0)).collect();
         println!("rounds, {}: {} ns", row.label, firsts.join(" / "));
     }

@@ -40,7 +40,7 @@ fn main() {
     let payload = wire::encode(&value);
 
     // The bridge: Outlet on A, Inlet on B woken like the control loop.
-    let outlet = Outlet::new(a.clone(), "bench/hop".into(), Arc::new(BridgeStats::default())).unwrap();
+    let outlet = Outlet::new(a.clone(), "bench/hop".into(), Arc::new(BridgeStats::default()), None).unwrap();
     let loop_signals = Shutdown::new();
     let inlet: Inlet<Value> = Inlet::new(
         b.clone(),
@@ -67,7 +67,7 @@ fn main() {
     let deadline = Instant::now() + Duration::from_secs(20);
     loop {
         assert!(Instant::now() < deadline, "the sessions never met");
-        outlet.send(payload.clone(), None);
+        outlet.send(payload.clone());
         publisher.put(payload.clone()).wait().unwrap();
         std::thread::sleep(Duration::from_millis(50));
         let hop = inlet.drain().count() > 0;
@@ -82,7 +82,7 @@ fn main() {
     for _ in 0..SAMPLES {
         // Remote hop.
         let start = Instant::now();
-        outlet.send(wire::encode(&value), None);
+        outlet.send(wire::encode(&value));
         let got = loop {
             loop_signals.wait(Duration::from_secs(1));
             if let Some(v) = inlet.drain().next() {

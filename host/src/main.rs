@@ -655,7 +655,8 @@ fn default_cache_dir() -> Option<PathBuf> {
 }
 
 /// SIGINT and SIGTERM request a clean shutdown; a second one sends the
-/// final STOP on every serial link and exits at once (130).
+/// final stop of every motor (serial links, ROS 2 `cmd_vel` publishers) and
+/// exits at once (130).
 fn install_signal_handlers(shutdown: Shutdown) -> anyhow::Result<signal_hook::iterator::Handle> {
     use signal_hook::consts::{SIGINT, SIGTERM};
     let mut signals =
@@ -666,8 +667,8 @@ fn install_signal_handlers(shutdown: Shutdown) -> anyhow::Result<signal_hook::it
         .spawn(move || {
             for signal in signals.forever() {
                 if shutdown.is_requested() {
-                    for (name, outcome) in subsume::run::halt_every_motor() {
-                        eprintln!("second signal: serial link '{name}': {outcome}");
+                    for (label, outcome) in subsume::run::halt_every_motor() {
+                        eprintln!("second signal: {label}: {outcome}");
                     }
                     eprintln!("second signal: exiting now");
                     std::process::exit(130);

@@ -18,7 +18,7 @@ use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::portal::{self, logs::LogRing};
 use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder};
 use crate::report::{self, Report};
-use crate::robot::serial::{HALT_WAIT, halt_every_link};
+use crate::robot::serial::HALT_WAIT;
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
 use crate::runtime::lockstep::Pace;
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
@@ -307,16 +307,16 @@ fn inject_thread_panic(after: Duration) -> Result<(), RunError> {
         .map_err(|e| RunError::ControlLoop(format!("cannot start the fault injection: {e}")))
 }
 
-/// Sends the final STOP on every serial link of this process at once,
-/// without the control loop: for an exit that cannot wait for it (a second
-/// signal). Each link waits at most `robot::serial::HALT_WAIT` for its
-/// device.
+/// Sends the final stop of every motor of this process at once (each
+/// serial link's STOP frame, each ROS 2 `cmd_vel` publisher's zero Twist:
+/// `runtime::halt`), without the control loop: for an exit that cannot wait
+/// for it (a second signal). Each waits at most `robot::serial::HALT_WAIT`.
 pub fn halt_every_motor() -> Vec<(String, StopOutcome)> {
-    halt_every_link(HALT_WAIT)
+    crate::runtime::halt::halt_all(HALT_WAIT)
 }
 
 /// The panic policy of `subsume run`, for the binary to install: a panic on
-/// any thread first sends the final STOP on every serial link, then prints
+/// any thread first sends the final stop of every motor (`halt_every_motor`), then prints
 /// the panic as Rust does, then ends the process with exit code 101. After
 /// a panic the state of the run is unknown (a lock may be poisoned, a
 /// thread the loop relies on gone), so the robot does not go on under it;
@@ -324,10 +324,10 @@ pub fn halt_every_motor() -> Vec<(String, StopOutcome)> {
 pub fn stop_motors_on_panic() {
     let previous = std::panic::take_hook();
     std::panic::set_hook(Box::new(move |info| {
-        let outcomes = halt_every_link(HALT_WAIT);
+        let outcomes = halt_every_motor();
         previous(info);
-        for (name, outcome) in outcomes {
-            eprintln!("after the panic, serial link '{name}': {outcome}");
+        for (label, outcome) in outcomes {
+            eprintln!("after the panic, {label}: {outcome}");
         }
         eprintln!("error: a thread panicked; the motors were told to stop; exiting");
         std::process::exit(101);

@@ -1,6 +1,7 @@
 // Drives the portal in Debian's headless Chromium: log in, upload a guest,
 // see its ports, stage and activate a robot file using it, see it in the
-// live view, drive with the pad, roll back. Screenshots go to $ARTIFACTS.
+// live view (its Zenoh bridge on the Bridges row), drive with the pad, roll
+// back. Screenshots go to $ARTIFACTS.
 // Usage: node portal.mjs URL USER PASSWORD COMPONENT.wasm ROBOT.xml BAD.xml
 // Over https, CA_SPKI is the base64 SHA-256 of the test CA's public key:
 // Chromium accepts chains through that CA and no other unknown one.
@@ -80,6 +81,9 @@ try {
   await page.waitForSelector('#health tr[data-component="avoid"] td.running');
   await page.waitForFunction(() => document.querySelector('#pose').textContent.startsWith('x '));
   await page.waitForSelector('#log li');
+  step('the Bridges row shows the Zenoh bridge and its counters');
+  await page.waitForFunction(() => /^browser\/ranges: peers 0, in 0, out [1-9]\d*, malformed 0, dropped 0, last seen never$/
+    .test(document.querySelector('#bridges').textContent));
   await shot('4-live');
 
   step('drive with the pad');
@@ -108,6 +112,7 @@ try {
   if (back === staged) throw new Error(`rollback kept set ${staged}`);
   await page.click('#tabs button[data-tab="live"]');
   await page.waitForSelector(`#active-set:has-text("set ${back}")`);
+  await page.waitForSelector('#bridges:text-is("none")');
   await shot('6-rolled-back');
   console.log(`ok: ${released} pad commands released; rolled back from set ${staged} to set ${back}`);
 } catch (err) {

@@ -46,7 +46,7 @@ fn check_key(key: &str, publish: bool) -> Result<(), String> {
 pub const SESSION_PARAM: ParamDecl = ParamDecl {
     name: "session",
     ty: ParamType::Required,
-    default: "zenoh",
+    default: crate::config::validate::DEFAULT_ZENOH_SESSION,
     unit: "",
     doc: "the builtin:zenoh component (in this robot file) whose session this uses",
 };
@@ -183,7 +183,7 @@ impl Builtin for ZenohPublish {
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
         let key = params.text("key")?.to_string();
         let shared = session_for(params, ctx)?;
-        let outlet = Outlet::new(shared.clone(), key.clone(), Arc::new(BridgeStats::default()))?;
+        let outlet = Outlet::new(shared.clone(), key.clone(), Arc::new(BridgeStats::default()), None)?;
         Ok(Box::new(Publisher { key, shared, outlet }))
     }
 }
@@ -203,7 +203,7 @@ impl Component for Publisher {
         _now_ns: u64,
         _out: &mut Outbox,
     ) -> Result<(), CallError> {
-        self.outlet.send(wire::encode(value), None);
+        self.outlet.send(wire::encode(value));
         Ok(())
     }
 
@@ -283,5 +283,17 @@ mod tests {
         assert!(check_key("/ranges", false).is_err());
         assert!(check_key("@ros2_lv/x", false).is_err());
         assert!(check_key("a/b?c", false).is_err());
+    }
+
+    /// The config layer checks each bridge's session by kind: every
+    /// built-in with a `session` parameter is on its list.
+    #[test]
+    fn every_bridge_with_a_session_is_checked_by_the_config_layer() {
+        use super::super::ros2_ports::{Ros2Publish, Ros2Subscribe};
+        let bridges: [&dyn Builtin; 4] = [&ZenohPublish, &ZenohSubscribe, &Ros2Publish, &Ros2Subscribe];
+        for bridge in bridges {
+            assert!(bridge.params().iter().any(|p| p.name == SESSION_PARAM.name), "{}", bridge.kind());
+            assert!(crate::config::validate::ZENOH_BRIDGES.contains(&bridge.kind()), "{}", bridge.kind());
+        }
     }
 }

@@ -13,13 +13,15 @@
 //!
 //! A Twist publisher sends the zero Twist when STOP comes in, when it
 //! faults and when it is dropped (every orderly exit), so a ROS 2 base
-//! behind it stops.
+//! behind it stops; it also joins `runtime::halt`, so the panic hook and a
+//! second signal send it past the queue, and nothing goes out after it.
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI64, Ordering};
+use std::time::Duration;
 
 use super::cdr::{self, Header, LaserScan, Log, Odometry, Time, Twist};
-use super::link::{Inlet, Outlet};
+use super::link::{Gate, Inlet, Outlet, Stamp};
 use super::ports::{SESSION_PARAM, session_for};
 use super::ros2::{self, Attachment, Distro, EntityKind, MessageType};
 use super::session::{BridgeStats, Shared, unix_ns};
@@ -27,7 +29,8 @@ use crate::builtin::{BuildContext, Builtin, BuiltinError, CheckContext, ParamDec
 use crate::config::ParamProblem;
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::halt::{self, Halt};
+use crate::runtime::{CallError, Component, Outbox, StopOutcome};
 use zenoh::Wait;
 
 /// Highest ROS 2 domain id (ROS 2's own limit for UDP ports is 232).
@@ -197,9 +200,30 @@ impl Builtin for Ros2Publish {
 
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
         let entity = declare(params, ctx, EntityKind::Publisher)?;
-        let outlet = Outlet::new(entity.shared.clone(), entity.key.clone(), Arc::new(BridgeStats::default()))?;
+        let sequence = Arc::new(AtomicI64::new(0));
+        let gid = entity.gid;
+        let stamp_sequence = sequence.clone();
+        let stamp: Stamp = Box::new(move || {
+            let sequence = stamp_sequence.fetch_add(1, Ordering::Relaxed) + 1;
+            Attachment { sequence, timestamp_ns: unix_ns() as i64, gid }.encode().to_vec()
+        });
+        let outlet =
+            Outlet::new(entity.shared.clone(), entity.key.clone(), Arc::new(BridgeStats::default()), Some(stamp))?;
+        let ty = message_type(params);
+        // A Twist publisher drives a base: it joins the exits that cannot
+        // wait for the loop (the panic hook, a second signal).
+        let halt = (ty == MessageType::Twist).then(|| {
+            let name = ctx.robot.components.get(ctx.index).map(|c| c.name.clone()).unwrap_or_default();
+            let action: Arc<dyn Halt> = Arc::new(ZeroTwist {
+                label: format!("ros2 publisher '{name}'"),
+                gate: outlet.gate(),
+                shared: entity.shared.clone(),
+            });
+            halt::register(&action);
+            action
+        });
         Ok(Box::new(Ros2Publisher {
-            ty: message_type(params),
+            ty,
             node: params.text("node")?.to_string(),
             frame_id: params.text("frame-id")?.to_string(),
             fov: params.number("fov")?,
@@ -210,10 +234,46 @@ impl Builtin for Ros2Publish {
                 "error" => 40,
                 _ => 20,
             },
-            sequence: AtomicI64::new(0),
             entity,
             outlet,
+            _halt: halt,
         }))
+    }
+}
+
+/// The final zero Twist of a `cmd_vel` publisher, from any thread.
+struct ZeroTwist {
+    label: String,
+    gate: Arc<Gate>,
+    shared: Arc<Shared>,
+}
+
+impl Halt for ZeroTwist {
+    fn label(&self) -> String {
+        self.label.clone()
+    }
+
+    fn halt(&self, wait: Duration) -> StopOutcome {
+        self.gate.halt(Twist::default().encode(), wait)
+    }
+
+    /// The process is about to exit: closing the session flushes what is
+    /// queued for the wire (the zero Twist) and tells the peers.
+    /// Waits at most `wait` (Zenoh's own close timeout is not a stable
+    /// setting, so the close runs on a thread of its own).
+    fn settle(&self, wait: Duration) {
+        let (done, closed) = std::sync::mpsc::sync_channel(1);
+        let shared = self.shared.clone();
+        let started = std::thread::Builder::new().name("zenoh-close".into()).spawn(move || {
+            let _ = done.send(shared.session.close().wait().map_err(|why| why.to_string()));
+        });
+        let outcome = match started {
+            Ok(_) => closed.recv_timeout(wait).map_err(|_| format!("not closed within {} ms", wait.as_millis())),
+            Err(e) => Err(format!("cannot start a thread: {e}")),
+        };
+        if let Err(why) | Ok(Err(why)) = outcome {
+            tracing::warn!("{}: closing the zenoh session: {why}", self.label);
+        }
     }
 }
 
@@ -224,17 +284,13 @@ struct Ros2Publisher {
     fov: f64,
     range_max: f64,
     level: u8,
-    sequence: AtomicI64,
     entity: Entity,
     outlet: Outlet,
+    /// Registered with `runtime::halt` while this lives (Twist only).
+    _halt: Option<Arc<dyn Halt>>,
 }
 
 impl Ros2Publisher {
-    fn attachment(&self) -> Vec<u8> {
-        let sequence = self.sequence.fetch_add(1, Ordering::Relaxed) + 1;
-        Attachment { sequence, timestamp_ns: unix_ns() as i64, gid: self.entity.gid }.encode().to_vec()
-    }
-
     /// The CDR payload for `value`, or why it has none.
     fn payload(&self, value: &Value) -> Result<Vec<u8>, String> {
         let header = || Header { stamp: Time::from_unix_ns(unix_ns()), frame_id: self.frame_id.clone() };
@@ -296,8 +352,8 @@ impl Ros2Publisher {
         }
     }
 
-    fn zero_twist(&self) -> Option<(Vec<u8>, Option<Vec<u8>>)> {
-        (self.ty == MessageType::Twist).then(|| (Twist::default().encode(), Some(self.attachment())))
+    fn zero_twist(&self) -> Option<Vec<u8>> {
+        (self.ty == MessageType::Twist).then(|| Twist::default().encode())
     }
 }
 
@@ -311,10 +367,7 @@ impl Component for Ros2Publisher {
         _out: &mut Outbox,
     ) -> Result<(), CallError> {
         match self.payload(value) {
-            Ok(payload) => {
-                let attachment = self.attachment();
-                self.outlet.send(payload, Some(attachment));
-            }
+            Ok(payload) => self.outlet.send(payload),
             Err(why) => self.outlet.stats.malformed(why),
         }
         Ok(())

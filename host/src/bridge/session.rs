@@ -57,7 +57,7 @@ pub const SESSION_PARAMS: [ParamDecl; 3] = [
         ty: ParamType::Text,
         default: "",
         unit: "",
-        doc: "zenoh endpoints to connect to, comma-separated (tcp/192.168.1.7:7447); empty: none",
+        doc: "zenoh endpoints to connect to, comma-separated (tcp/192.168.1.7:7447, tls/robot-a.local:7447); empty: none",
     },
     ParamDecl {
         name: "listen",
@@ -93,10 +93,13 @@ fn endpoints(text: &str, key: &'static str) -> Result<Vec<String>, SessionError>
             key,
             why: format!("lists '{}', which is not an endpoint (PROTOCOL/ADDRESS: tcp/127.0.0.1:7447)", clip(e)),
         })?;
-        if !e.starts_with("tcp/") {
+        if !(e.starts_with("tcp/") || e.starts_with("tls/")) {
             return Err(SessionError::Setting {
                 key,
-                why: format!("lists '{}', but this host speaks zenoh over tcp only (tcp/HOST:PORT)", clip(e)),
+                why: format!(
+                    "lists '{}', but this host speaks zenoh over tcp and tls only (tcp/HOST:PORT, tls/HOST:PORT)",
+                    clip(e)
+                ),
             });
         }
     }
@@ -192,7 +195,7 @@ pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> 
         return Ok(shared);
     }
     let config = settings.zenoh_config()?;
-    let session = zenoh::open(config).wait().map_err(|why| SessionError::Open(why.to_string()))?;
+    let session = zenoh::open(config.clone()).wait().map_err(|why| open_error(settings, &config, &why.to_string()))?;
     let id = session.zid().to_string();
     let shared = Arc::new(Shared { session, id, peers: AtomicUsize::new(0), next_entity: AtomicU64::new(0) });
     sessions.retain(|_, weak| weak.strong_count() > 0);
@@ -208,6 +211,27 @@ pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> 
     });
     tracing::info!(session = %shared.id, connect = ?settings.connect, listen = ?settings.listen, "zenoh session open");
     Ok(shared)
+}
+
+/// Why a session did not open, in words an operator can act on. Zenoh's
+/// handshake does not tell the connecting side why a peer closed it (a
+/// wrong user/password and an untrusted certificate look the same there),
+/// so the likely causes are named.
+fn open_error(settings: &SessionSettings, config: &zenoh::Config, why: &str) -> SessionError {
+    if why.starts_with("Unable to connect") {
+        let endpoints: Vec<String> = config
+            .get_json("connect/endpoints")
+            .ok()
+            .and_then(|json| serde_json::from_str(&json).ok())
+            .unwrap_or_default();
+        let file = settings.config.as_ref().map(|p| format!(" in {}", p.display())).unwrap_or_default();
+        return SessionError::Open(format!(
+            "no peer accepted the connection to {} within the connect timeout; a peer closes the handshake \
+             without saying why when the user/password or the TLS certificate{file} is refused, or it is not there",
+            clip(&endpoints.join(", "))
+        ));
+    }
+    SessionError::Open(clip(why.split(" at /").next().unwrap_or(why)))
 }
 
 /// Nanoseconds since the UNIX epoch (timestamps on the wire).

@@ -246,7 +246,51 @@ pub(super) fn validate(
             ));
         }
     }
+    zenoh_sessions(map, &robot, &known, errors);
     robot
+}
+
+/// The built-ins that name a Zenoh session with their `session` parameter
+/// (a unit test in `bridge::ports` keeps the list whole).
+pub const ZENOH_BRIDGES: [&str; 4] = ["zenoh-publish", "zenoh-subscribe", "ros2-publish", "ros2-subscribe"];
+
+/// The session a Zenoh bridge uses when its file names none (the
+/// `session` parameter's default in `bridge::ports`).
+pub const DEFAULT_ZENOH_SESSION: &str = "zenoh";
+
+/// Each Zenoh or ROS 2 bridge names a `builtin:zenoh` component of this
+/// robot as its session. A session that failed to load was reported
+/// already.
+fn zenoh_sessions(
+    map: &SourceMap<'_>,
+    robot: &RobotConfig,
+    known: &HashMap<String, (usize, Option<usize>)>,
+    errors: &mut Vec<Diagnostic>,
+) {
+    for component in &robot.components {
+        let ComponentSource::Builtin(kind) = &component.source else { continue };
+        if !ZENOH_BRIDGES.contains(&kind.as_str()) {
+            continue;
+        }
+        let session =
+            component.params.iter().find(|p| p.name == "session").map_or(DEFAULT_ZENOH_SESSION, |p| p.value.as_str());
+        let why = match known.get(session) {
+            Some((_, None)) => continue,
+            Some((_, Some(index))) => match &robot.components[*index].source {
+                ComponentSource::Builtin(k) if k == "zenoh" => continue,
+                other => format!("'{}' comes from {other}, not builtin:zenoh", clip(session)),
+            },
+            None => format!(
+                "this robot has no component '{}' (add <component name=\"{}\" source=\"builtin:zenoh\"/>)",
+                clip(session),
+                clip(session)
+            ),
+        };
+        errors.push(map.at(
+            component.offset,
+            format!("builtin:{kind} '{}' names zenoh session '{}', but {why}", component.name, clip(session)),
+        ));
+    }
 }
 
 fn component_config(

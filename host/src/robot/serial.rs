@@ -20,7 +20,7 @@
 //! ones are), `halt` for the end of the link (nothing is written after it).
 //! The link halts when it is dropped (every way the host ends a run, an
 //! activation that removes or replaces it) and when it faults; the panic
-//! hook and the second signal halt every live link ([`halt_every_link`]).
+//! hook and the second signal halt every live link (`runtime::halt`).
 //!
 //! The translator's link plan: its `opening` bytes are written each time the
 //! device opens (and reopens), before any frame; its `poll` is called every
@@ -38,7 +38,7 @@ use std::io::{ErrorKind, Read, Write};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, SyncSender, TrySendError};
-use std::sync::{Arc, Mutex, MutexGuard, PoisonError, TryLockError, Weak, mpsc};
+use std::sync::{Arc, Mutex, MutexGuard, PoisonError, TryLockError, mpsc};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -213,25 +213,21 @@ impl MotorStop for LinkStop {
     }
 }
 
-/// Every link alive in this process, for the panic hook and the second
-/// signal.
-static LIVE_LINKS: Mutex<Vec<Weak<LinkStop>>> = Mutex::new(Vec::new());
+impl crate::runtime::halt::Halt for LinkStop {
+    fn label(&self) -> String {
+        format!("serial link '{}'", self.name)
+    }
 
-fn register(link: &Arc<LinkStop>) {
-    let mut live = LIVE_LINKS.lock().unwrap_or_else(PoisonError::into_inner);
-    live.retain(|l| l.strong_count() > 0);
-    live.push(Arc::downgrade(link));
+    fn halt(&self, wait: Duration) -> StopOutcome {
+        LinkStop::halt(self, wait)
+    }
 }
 
-/// Sends the final STOP on every live link of this process, waiting at most
-/// `wait` for each device: for the panic hook and an exit that cannot wait
-/// for the control loop. Returns each link's name and outcome.
-pub fn halt_every_link(wait: Duration) -> Vec<(String, StopOutcome)> {
-    let links: Vec<Arc<LinkStop>> = match lock_within(&LIVE_LINKS, Instant::now() + wait) {
-        Some(live) => live.iter().filter_map(Weak::upgrade).collect(),
-        None => return vec![("every link".into(), StopOutcome::Failed("the list of links stayed locked".into()))],
-    };
-    links.iter().map(|link| (link.name.clone(), link.halt(wait))).collect()
+/// Puts `link` on the process's list of halt actions (the panic hook and
+/// the second signal).
+fn register(link: &Arc<LinkStop>) {
+    let action: Arc<dyn crate::runtime::halt::Halt> = link.clone();
+    crate::runtime::halt::register(&action);
 }
 
 /// Settings of one link.

@@ -2,7 +2,8 @@
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
 //! control loop that drives it in real time ([`control_loop`]) and how long
 //! it waited for a CPU ([`cpu_wait`]), the host's
-//! emergency-stop locks ([`locks`]), the
+//! emergency-stop locks ([`locks`]), the process's list of final stops for
+//! exits that cannot wait for the loop ([`halt`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
 //! simulated time's lock-step between the loop, the simulated robots and
 //! their links ([`lockstep`]), and what an observer such as the recorder
@@ -16,6 +17,7 @@ pub mod component;
 pub mod control_loop;
 pub mod cpu_wait;
 pub mod graph;
+pub mod halt;
 pub mod histogram;
 pub mod locks;
 pub mod lockstep;
