@@ -37,7 +37,7 @@ use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
-pub use self::stage::MAX_FILE_NAME_LEN;
+pub use self::stage::{MAX_CONCURRENT_VALIDATIONS, MAX_FILE_NAME_LEN, Validated};
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
 use crate::assemble::{self, Carry, Loader, StartError};
@@ -81,6 +81,9 @@ pub enum DeployError {
     NotFound(String),
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// The host is doing as many of these as it allows; try again soon.
+    #[error("{0}")]
+    Busy(String),
     /// The host failed (a thread, the control loop, a file it needs).
     #[error("{0}")]
     Host(String),
@@ -153,6 +156,8 @@ pub struct Deployer {
     live: LiveStatusCell,
     /// One compile at a time (see [`MAX_CONCURRENT_COMPILES`]).
     compiles: Mutex<()>,
+    /// One validation at a time (see [`MAX_CONCURRENT_VALIDATIONS`]).
+    validations: Mutex<()>,
 }
 
 /// Where a run starts: the deployer, the first graph, and the hook to run
@@ -228,6 +233,7 @@ impl Deployer {
             active: Mutex::new(deployment),
             live,
             compiles: Mutex::new(()),
+            validations: Mutex::new(()),
         };
         Ok(Boot { deployer: Arc::new(deployer), graph: built.graph, hook })
     }

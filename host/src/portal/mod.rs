@@ -101,6 +101,10 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
             "/platforms/{platform}/configs/{file}",
             put(upload_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
         )
+        .route(
+            "/platforms/{platform}/validate/{file}",
+            post(validate_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
+        )
         .route("/sets", get(list_sets))
         .route("/sets/{id}", get(get_set))
         .route("/sets/{id}/activate", post(activate))

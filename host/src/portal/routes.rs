@@ -79,6 +79,21 @@ pub(super) async fn upload_config(
     Ok((StatusCode::CREATED, Json(json!({ "set": set }))))
 }
 
+/// Validates a robot file as staging would and stores nothing (the
+/// editor's validate-as-you-type): 200 with what it would stage, or the
+/// diagnostics of `subsume check`.
+pub(super) async fn validate_config(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path((platform, file)): Path<(String, String)>,
+    body: Bytes,
+) -> Result<Json<crate::deploy::Validated>, ApiError> {
+    let platform = platform_of(&platform)?;
+    let deployer = state.deployer.clone();
+    let validated = blocking(move || Ok(deployer.validate(&user, platform, &file, &body)?)).await?;
+    Ok(Json(validated))
+}
+
 fn set_status(id: u64, state: &StoreState) -> &'static str {
     if state.active == Some(id) {
         "active"
