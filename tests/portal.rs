@@ -394,7 +394,9 @@ fn the_portals_own_views_work_in_a_real_browser() {
         artifacts.display()
     );
     assert!(stdout.contains("ok: "), "{stdout}");
-    for (n, shot) in ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged"].iter().enumerate() {
+    for (n, shot) in
+        ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings"].iter().enumerate()
+    {
         assert!(artifacts.join(format!("views-{}-{shot}.png", n + 1)).is_file(), "{shot}");
     }
 }

@@ -107,6 +107,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
     for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
     if (button.dataset.tab === 'components') refreshComponents();
     if (button.dataset.tab === 'sets') refreshSets();
+    if (button.dataset.tab === 'recordings') refreshRecordings();
   });
 }
 
@@ -740,3 +741,56 @@ function flowOrder(names, edges) {
   }
   return new Map([...left, ...right].map((n, i) => [n, i]));
 }
+
+// ---- recordings (POST /recordings/start|stop; developers and admins) ------
+function recordingStatus(text, className = '') {
+  $('recording-status').className = className;
+  $('recording-status').textContent = text;
+}
+async function refreshRecordings() {
+  const body = $('recording-list').querySelector('tbody');
+  try {
+    const { recording, files } = await api('GET', '/recordings');
+    $('recording-start').disabled = !!recording;
+    $('recording-stop').disabled = !recording;
+    if (recording) recordingStatus(`recording to ${recording.name} since ${new Date(recording.started_unix_ms).toLocaleTimeString()} (by ${recording.by})`);
+    else if (!$('recording-status').dataset.kept) recordingStatus('not recording');
+    body.replaceChildren(...files.slice().reverse().map((f) => {
+      const link = el('a', { href: `/api/v1/recordings/${encodeURIComponent(f.name)}`, download: f.name }, f.name);
+      const actions = el('td', {});
+      if (!f.recording) {
+        const remove = el('button', { class: 'delete', 'data-name': f.name }, 'delete');
+        remove.addEventListener('click', async () => {
+          if (!confirm(`Delete ${f.name}?`)) return;
+          try { await api('DELETE', `/recordings/${encodeURIComponent(f.name)}`); } catch (err) { recordingStatus(err.message, 'error'); }
+          refreshRecordings();
+        });
+        actions.append(remove);
+      } else {
+        actions.append('being written');
+      }
+      return el('tr', { 'data-name': f.name }, el('td', {}, link), el('td', { class: 'bytes' }, `${(f.bytes / 1024).toFixed(0)} KiB`),
+        el('td', {}, new Date(f.modified_unix_ms).toLocaleString()), actions);
+    }));
+  } catch (err) {
+    body.replaceChildren();
+    $('recording-start').disabled = true;
+    $('recording-stop').disabled = true;
+    recordingStatus(err.message, 'error');
+  }
+}
+$('recording-start').addEventListener('click', async () => {
+  delete $('recording-status').dataset.kept;
+  try { await api('POST', '/recordings/start'); } catch (err) { recordingStatus(`not started: ${err.message}`, 'error'); $('recording-status').dataset.kept = '1'; }
+  refreshRecordings();
+});
+$('recording-stop').addEventListener('click', async () => {
+  try {
+    const { stopped } = await api('POST', '/recordings/stop');
+    recordingStatus(`stopped ${stopped.name}: ${stopped.messages} messages, ${(stopped.bytes / 1024).toFixed(0)} KiB in ${stopped.files.join(', ')}`, 'ok');
+  } catch (err) {
+    recordingStatus(`not stopped: ${err.message}`, 'error');
+  }
+  $('recording-status').dataset.kept = '1';
+  refreshRecordings();
+});

@@ -16,6 +16,7 @@ use subsume::config::Platform;
 use subsume::deploy::MAX_UPLOAD_BYTES;
 use subsume::deploy::{BootOptions, Deployer};
 use subsume::portal::{self, PortalState};
+use subsume::record::control::Recordings;
 use subsume::runtime::control_loop::{Clock, Shutdown};
 use subsume::sandbox::Sandbox;
 use subsume::store::Store;
@@ -72,7 +73,9 @@ async fn portal_over(over_tls: bool) -> Portal {
     let boot = Deployer::boot(BootOptions {
         store: store.clone(),
         sandbox: Arc::new(Sandbox::new(Some(support::cache_dir())).unwrap()),
-        services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())),
+        services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())).with(Arc::new(
+            Recordings::new(dir.path().join("recordings"), subsume::record::DEFAULT_MAX_FILE_BYTES, 0, false).unwrap(),
+        )),
         config_path: &dir.path().join("robot.xml"),
         overrides: vec![],
         clock: Clock::new(),
@@ -165,6 +168,11 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("GET", "/api/v1/world", b"", Allowed::AnyUser),
         ("GET", "/api/v1/logs", b"", Allowed::AnyUser),
         ("GET", "/api/v1/audit", b"", Allowed::Developer),
+        ("GET", "/api/v1/recordings", b"", Allowed::Developer),
+        ("POST", "/api/v1/recordings/start", b"", Allowed::Developer),
+        ("POST", "/api/v1/recordings/stop", b"", Allowed::Developer),
+        ("GET", "/api/v1/recordings/rec-1.mcap", b"", Allowed::Developer),
+        ("DELETE", "/api/v1/recordings/rec-1.mcap", b"", Allowed::Developer),
         ("POST", "/api/v1/teleop/ticket", b"", Allowed::Drive),
         ("POST", "/api/v1/sim/reset", b"", Allowed::Drive),
         ("POST", "/api/v1/sim/step?seconds=0.1", b"", Allowed::Drive),

@@ -1,7 +1,8 @@
 // The portal's own views in Debian's headless Chromium: the history plots
 // (RTT, message rates, holder), the Drive tab's live map, the wiring as a
 // left-to-right data flow with arrows, and the robot-file editor that
-// validates as you type and stages what validated. Each check reads real
+// validates as you type and stages what validated, and recording from the
+// portal (start, stop, download). Each check reads real
 // content (values against /api/v1, pixels of the canvases); screenshots
 // go to $ARTIFACTS.
 // Usage: node views.mjs URL USER PASSWORD
@@ -149,6 +150,32 @@ try {
   check(stored.status === 'staged' && stored.set.changes.join() === 'control', JSON.stringify(stored.set));
   await page.waitForSelector(`#set-list tr[data-set="${id}"]`);
   await shot('views-6-editor-staged');
+  step('record from the portal: start, stop, list, download');
+  await page.click('#tabs button[data-tab="recordings"]');
+  await page.waitForSelector('#recording-status:has-text("not recording")');
+  await page.click('#recording-start');
+  await page.waitForSelector('#recording-status:has-text("recording to rec-")');
+  const recName = (await page.innerText('#recording-status')).match(/(rec-[\d-]+\.mcap)/)[1];
+  await page.waitForSelector(`#recording-list tr[data-name="${recName}"] td:has-text("being written")`);
+  await page.waitForTimeout(2000);
+  await page.click('#recording-stop');
+  await page.waitForSelector(`#recording-status:has-text("stopped ${recName}:")`);
+  const messages = Number((await page.innerText('#recording-status')).match(/: (\d+) messages/)[1]);
+  check(messages > 200, `only ${messages} messages in 2 s`);
+  await page.waitForSelector(`#recording-list tr[data-name="${recName}"] button.delete`);
+  const listed = (await getJson('/recordings')).files.find((f) => f.name === recName);
+  const [download] = await Promise.all([
+    page.waitForEvent('download'),
+    page.click(`#recording-list tr[data-name="${recName}"] a`),
+  ]);
+  const saved = path.join(artifacts, 'views-recording.mcap');
+  await download.saveAs(saved);
+  const bytes = fs.readFileSync(saved);
+  check(bytes.length === listed.bytes, `downloaded ${bytes.length} bytes, listed ${listed.bytes}`);
+  // MCAP's magic at both ends: a finished file.
+  const magic = Buffer.from([0x89, 0x4d, 0x43, 0x41, 0x50, 0x30, 0x0d, 0x0a]);
+  check(bytes.subarray(0, 8).equals(magic) && bytes.subarray(bytes.length - 8).equals(magic), 'the download is not a finished MCAP file');
+  await shot('views-7-recordings');
   console.log(`ok: ${edges.length} edges, ${validations} validation(s) for a burst, staged set ${id}`);
 } catch (err) {
   await shot('views-failure').catch(() => {});

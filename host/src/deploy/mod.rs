@@ -26,6 +26,7 @@
 
 mod activate;
 mod estop;
+mod recordings;
 mod stage;
 mod swap;
 mod upload;
@@ -37,6 +38,7 @@ use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
+pub use self::recordings::RecordingsView;
 pub use self::stage::{MAX_CONCURRENT_VALIDATIONS, MAX_FILE_NAME_LEN, Validated};
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
@@ -111,13 +113,15 @@ pub enum Permission {
     Drive,
     /// Read the audit log.
     ReadAudit,
+    /// Start, stop, list, download and delete recordings.
+    Record,
 }
 
 /// The one permission check of every use case.
 pub fn authorise(user: &User, permission: Permission) -> Result<(), DeployError> {
     let allowed = match permission {
         Permission::Change(platform) => user.may_change(platform),
-        Permission::Activate | Permission::ReadAudit => user.is_developer(),
+        Permission::Activate | Permission::ReadAudit | Permission::Record => user.is_developer(),
         Permission::Drive => user.may_drive(),
     };
     if allowed {
@@ -128,6 +132,7 @@ pub fn authorise(user: &User, permission: Permission) -> Result<(), DeployError>
         Permission::Activate => format!("{} may not activate sets", user.name),
         Permission::Drive => format!("{} may not drive (role {})", user.name, user.role.name()),
         Permission::ReadAudit => format!("{} may not read the audit log", user.name),
+        Permission::Record => format!("{} may not record (developers and admins may)", user.name),
     }))
 }
 
