@@ -4,7 +4,9 @@
 //! rewrite a record; a kill -9 during uploads and activations leaves a
 //! consistent store and the last activated set comes back; and Debian's
 //! headless Chromium, driven by playwright-core (tests/browser/portal.mjs),
-//! logs in, uploads, activates, watches and drives.
+//! logs in, uploads, activates, watches and drives; tests/browser/views.mjs
+//! checks the portal's own views (plots, the Drive tab's map, the wiring,
+//! the robot-file editor).
 
 #[path = "../host/tests/support/mod.rs"]
 mod support;
@@ -372,6 +374,38 @@ fn the_portal_works_in_a_real_browser() {
     assert!(stdout.contains("ok: "), "{stdout}");
     for shot in ["1-component", "2-diagnostics", "3-wiring", "4-live", "5-drive", "6-rolled-back"] {
         assert!(artifacts.join(format!("{shot}.png")).is_file(), "{shot}.png");
+    }
+}
+
+#[test]
+fn the_portals_own_views_work_in_a_real_browser() {
+    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
+    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let output = Command::new("node")
+        .current_dir(support::repo_root().join("tests/browser"))
+        .env("ARTIFACTS", &artifacts)
+        .arg("views.mjs")
+        .arg(format!("http://{}/", host.address))
+        .args(["admin", PASSWORD])
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
+        artifacts.display()
+    );
+    assert!(stdout.contains("ok: "), "{stdout}");
+    for (n, shot) in
+        ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings"].iter().enumerate()
+    {
+        assert!(artifacts.join(format!("views-{}-{shot}.png", n + 1)).is_file(), "{shot}");
     }
 }
 

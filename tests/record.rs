@@ -329,3 +329,160 @@ fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses() {
     assert_eq!(tf["child_frame_id"], "base_link");
     assert!(seen["messages"]["/arbiter/cmd"][0]["value"]["command"].is_string(), "{seen}");
 }
+
+/// One HTTP/1.1 request to the portal; returns (status, body bytes).
+fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &str) -> (u16, Vec<u8>) {
+    use std::io::{Read as _, Write as _};
+    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    stream.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    stream.write_all(head.as_bytes()).unwrap();
+    let mut response = Vec::new();
+    let _ = stream.read_to_end(&mut response);
+    let split = response.windows(4).position(|w| w == b"\r\n\r\n").unwrap() + 4;
+    let status = text(&response[..split]).split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    (status, response[split..].to_vec())
+}
+
+fn http_json(address: &str, method: &str, path: &str, token: Option<&str>) -> (u16, Json) {
+    let (status, body) = http(address, method, path, token, "");
+    (status, serde_json::from_slice(&body).unwrap_or(Json::Null))
+}
+
+#[test]
+fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    for (name, role) in [("admin", "admin"), ("viewer", "viewer"), ("operator", "operator")] {
+        let mut child = subsume()
+            .args(["user", "add", name, "--role", role, "--password-stdin", "--store"])
+            .arg(&store)
+            .stdin(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap();
+        use std::io::Write as _;
+        child.stdin.take().unwrap().write_all(b"recording-password-1\n").unwrap();
+        assert!(child.wait().unwrap().success());
+    }
+    let mut args = vec!["--store", store.to_str().unwrap(), "run", "config/demo.xml", "--http", "127.0.0.1:0"];
+    args.extend(FREE_PORTS);
+    let mut child = subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
+    let kept = log.clone();
+    std::thread::spawn(move || {
+        use std::io::BufRead as _;
+        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("portal on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
+            }
+            kept.lock().unwrap().push_str(&format!("{line}\n"));
+        }
+    });
+    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
+    let login = |name: &str| {
+        let body = serde_json::json!({ "name": name, "password": "recording-password-1" }).to_string();
+        let (status, body) = http(&address, "POST", "/api/v1/login", None, &body);
+        assert_eq!(status, 200, "{}", text(&body));
+        serde_json::from_slice::<Json>(&body).unwrap()["token"].as_str().unwrap().to_string()
+    };
+    let (admin, viewer, operator) = (login("admin"), login("viewer"), login("operator"));
+
+    // Viewers and operators may not record; the refusals are audited.
+    for token in [&viewer, &operator] {
+        let (status, json) = http_json(&address, "POST", "/api/v1/recordings/start", Some(token));
+        assert_eq!(status, 403, "{json}");
+        assert!(json["error"].as_str().unwrap().contains("may not record"), "{json}");
+        assert_eq!(http_json(&address, "GET", "/api/v1/recordings", Some(token)).0, 403);
+    }
+    let (status, json) = http_json(&address, "POST", "/api/v1/recordings/start", Some(&admin));
+    assert_eq!(status, 201, "{json}");
+    let name = json["recording"]["name"].as_str().unwrap().to_string();
+    assert!(name.starts_with("rec-") && name.ends_with(".mcap"), "{name}");
+    let (status, json) = http_json(&address, "POST", "/api/v1/recordings/start", Some(&admin));
+    assert_eq!(status, 409, "{json}");
+    assert!(json["error"].as_str().unwrap().contains(&name), "{json}");
+    std::thread::sleep(Duration::from_secs(3));
+    let (_, listed) = http_json(&address, "GET", "/api/v1/recordings", Some(&admin));
+    assert_eq!(listed["recording"]["name"], name.as_str(), "{listed}");
+    assert_eq!(listed["files"][0]["recording"], true, "{listed}");
+    let (status, stopped) = http_json(&address, "POST", "/api/v1/recordings/stop", Some(&admin));
+    assert_eq!(status, 200, "{stopped}");
+    assert_eq!(stopped["stopped"]["files"], serde_json::json!([name]), "{stopped}");
+    assert_eq!(stopped["stopped"]["dropped"], 0, "{stopped}");
+    assert_eq!(http_json(&address, "POST", "/api/v1/recordings/stop", Some(&admin)).0, 409);
+
+    // Listed, downloaded whole, and read by the mcap package.
+    let (_, listed) = http_json(&address, "GET", "/api/v1/recordings", Some(&admin));
+    assert!(listed["recording"].is_null(), "{listed}");
+    let file = &listed["files"][0];
+    assert_eq!((file["name"].as_str(), file["recording"].as_bool()), (Some(name.as_str()), Some(false)), "{listed}");
+    let (status, bytes) = http(&address, "GET", &format!("/api/v1/recordings/{name}"), Some(&admin), "");
+    assert_eq!(status, 200);
+    assert_eq!(bytes.len() as u64, file["bytes"].as_u64().unwrap());
+    let downloaded = dir.path().join("downloaded.mcap");
+    std::fs::write(&downloaded, &bytes).unwrap();
+    let read = read_mcap(&downloaded, false);
+    assert_eq!(read["complete"], true);
+    assert_eq!(read["in_order_per_channel"], true);
+    assert_eq!(read["messages"], stopped["stopped"]["messages"], "{read}");
+    assert_eq!(read["summary"]["message_count"], read["messages"]);
+    assert_eq!(channel(&read, "/motors/pose")["schema"], "foxglove.PoseInFrame");
+    assert_eq!(channel(&read, "/subsume/log")["schema"], "foxglove.Log");
+    assert!(read["last"]["/subsume/status/arbiter"]["status"].is_object(), "{}", read["last"]);
+    // The serial link reports the pose about 20 times a second (the Live
+    // tab shows motors 76 messages out/s over its four outputs): about 3 s.
+    let poses = channel(&read, "/motors/pose")["count"].as_u64().unwrap();
+    assert!((30..=200).contains(&poses), "{poses} poses in about 3 s");
+    for topic in ["/arbiter/cmd", "/subsume/calls/avoid", "/filter/filtered"] {
+        assert!(channel(&read, topic)["count"].as_u64().unwrap() > 0, "{topic}");
+    }
+
+    // Names are the host's: no paths, nothing outside the folder.
+    for (path, expected) in [
+        ("/api/v1/recordings/..%2Fstate.json", 400),
+        ("/api/v1/recordings/state.json", 400),
+        ("/api/v1/recordings/rec-1.mcap", 404),
+    ] {
+        let (status, json) = http_json(&address, "GET", path, Some(&admin));
+        assert_eq!(status, expected, "{path}: {json}");
+    }
+    assert_eq!(http(&address, "GET", &format!("/api/v1/recordings/{name}"), Some(&viewer), "").0, 403);
+
+    // Audited: who started and stopped, and who was refused.
+    let (_, audit) = http_json(&address, "GET", "/api/v1/audit", Some(&admin));
+    let entries = audit["entries"].as_array().unwrap();
+    let has = |action: &str, user: &str, result: &str| {
+        entries.iter().any(|e| e["action"] == action && e["user"] == user && e["result"] == result)
+    };
+    assert!(has("start-recording", "admin", "ok") && has("stop-recording", "admin", "ok"), "{audit}");
+    assert!(has("start-recording", "viewer", "refused") && has("start-recording", "operator", "refused"), "{audit}");
+
+    // Deleted on request; a recording running when the host stops is
+    // finished cleanly (summary and footer).
+    let (status, json) = http_json(&address, "DELETE", &format!("/api/v1/recordings/{name}"), Some(&admin));
+    assert_eq!(status, 200, "{json}");
+    let (status, json) = http_json(&address, "POST", "/api/v1/recordings/start", Some(&admin));
+    assert_eq!(status, 201, "{json}");
+    let second = json["recording"]["name"].as_str().unwrap().to_string();
+    std::thread::sleep(Duration::from_secs(1));
+    let (_, listed) = http_json(&address, "GET", "/api/v1/recordings", Some(&admin));
+    assert_eq!(listed["files"].as_array().unwrap().len(), 1, "{listed}");
+    let terminated = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    assert!(terminated.success());
+    let started = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        assert!(started.elapsed() < Duration::from_secs(30), "the host did not stop on SIGTERM");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let read = read_mcap(&store.join("recordings").join(&second), false);
+    assert_eq!(read["complete"], true, "{}", log.lock().unwrap());
+    assert!(read["messages"].as_u64().unwrap() > 100, "{read}");
+    assert!(log.lock().unwrap().contains(&format!("recording {second} stopped with the run")));
+}

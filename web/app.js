@@ -107,6 +107,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
     for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
     if (button.dataset.tab === 'components') refreshComponents();
     if (button.dataset.tab === 'sets') refreshSets();
+    if (button.dataset.tab === 'recordings') refreshRecordings();
   });
 }
 
@@ -172,10 +173,10 @@ function renderStatus(s) {
     return `${b.key}: peers ${b.peers}, in ${b.in}, out ${b.out}, malformed ${b.malformed}, dropped ${b.dropped}, last seen ${seen}`;
   }).join('\n');
   drawMap(sim, envelope);
+  viewsOnStatus(s);
 }
 
-function drawMap(sim, envelope) {
-  const canvas = $('map');
+function drawMap(sim, envelope, canvas = $('map')) {
   const ctx = canvas.getContext('2d');
   ctx.clearRect(0, 0, canvas.width, canvas.height);
   if (!world) return;
@@ -226,6 +227,9 @@ function drawMap(sim, envelope) {
   ctx.moveTo(X(sim.x), Y(sim.y));
   ctx.lineTo(X(sim.x + 0.3 * Math.cos(sim.heading)), Y(sim.y + 0.3 * Math.sin(sim.heading)));
   ctx.stroke();
+  // Where the robot was drawn and with how many rays (the browser tests read it).
+  canvas.dataset.robot = `${X(sim.x).toFixed(1)},${Y(sim.y).toFixed(1)}`;
+  canvas.dataset.rays = String(rays.length);
 }
 
 // ---- components ----------------------------------------------------------
@@ -373,22 +377,13 @@ async function showGraph(id) {
       overrides.map((o) => `${o.component}.${o.param}=${o.value}`).join(', ')
     : '';
   if (!graph.components) { $('set-result').textContent = graph.error; return; }
-  // Layers: visit from the components nothing feeds (breadth first, then
-  // file order); an edge is forward when it goes to a later-visited
-  // component, and a component sits one layer right of its deepest forward
-  // source. Back edges (feedback loops, e.g. arbiter -> motors) curve below.
+  // Layers: components in data-flow order (flowOrder); an edge is forward
+  // when it goes to a later component, and a component sits one layer
+  // right of its deepest forward source. Back edges (feedback loops, e.g.
+  // envelope -> motors) curve below.
   const names = graph.components.map((c) => c.name);
   const edges = graph.connections.map((c) => [c.from.split('.')[0], c.to.split('.')[0], c]);
-  const fed = new Set(edges.map(([, b]) => b));
-  const order = new Map();
-  const queue = names.filter((n) => !fed.has(n));
-  for (const n of names) if (!queue.includes(n)) queue.push(n);
-  while (queue.length) {
-    const n = queue.shift();
-    if (order.has(n)) continue;
-    order.set(n, order.size);
-    for (const [a, b] of edges) if (a === n && !order.has(b)) queue.unshift(b);
-  }
+  const order = flowOrder(names, edges);
   const forward = ([a, b]) => order.get(a) < order.get(b);
   const layer = new Map(names.map((n) => [n, 0]));
   for (const n of [...names].sort((x, y) => order.get(x) - order.get(y))) {
@@ -414,16 +409,25 @@ async function showGraph(id) {
     svg.append(n);
     return n;
   };
+  wiringArrowheads(add);
   for (const e of edges) {
     const [a, b, c] = e;
     const p = pos.get(a), q = pos.get(b);
     const stroke = c.platform === 'network' ? '#b36b00' : '#567';
+    const marker = c.platform === 'network' ? 'url(#arrow-network)' : 'url(#arrow)';
+    const tag = { class: 'edge', 'data-from': c.from, 'data-to': c.to, 'marker-end': marker };
+    let line;
     if (forward(e)) {
-      add('line', { x1: p.x + 140, y1: p.y + 20, x2: q.x, y2: q.y + 20, stroke, 'stroke-width': 1.5 });
+      // Data flows left to right: out of the source's right side into the
+      // target's left side.
+      line = add('line', { ...tag, x1: p.x + 140, y1: p.y + 20, x2: q.x - 2, y2: q.y + 20, stroke, 'stroke-width': 1.5 });
     } else {
       const low = height - 15;
-      add('path', { d: `M ${p.x + 70} ${p.y + 40} C ${p.x + 70} ${low}, ${q.x + 70} ${low}, ${q.x + 70} ${q.y + 40}`, fill: 'none', stroke, 'stroke-width': 1.5, 'stroke-dasharray': '4 3' });
+      line = add('path', { ...tag, 'data-back': '1', d: `M ${p.x + 70} ${p.y + 40} C ${p.x + 70} ${low}, ${q.x + 70} ${low}, ${q.x + 70} ${q.y + 42}`, fill: 'none', stroke, 'stroke-width': 1.5, 'stroke-dasharray': '4 3' });
     }
+    const title = document.createElementNS(ns, 'title');
+    title.textContent = `${c.from} -> ${c.to}`;
+    line.append(title);
   }
   for (const c of graph.components) {
     const p = pos.get(c.name);
@@ -504,3 +508,289 @@ for (const button of document.querySelectorAll('#sim-controls button[data-sim]')
     }
   });
 }
+
+// ---- the portal's own views (docs/portal.md): the Drive tab's map, -------
+// ---- history plots, the robot-file editor ---------------------------------
+
+// The history plots keep what this page saw of the live status (5 a
+// second) for PLOT_WINDOW_S: a page left open for days holds at most this
+// many samples (MAX_PLOT_SAMPLES) and draws in bounded time.
+const PLOT_WINDOW_S = 300;
+const MAX_PLOT_SAMPLES = 2000;
+const plotHistory = [];
+const plotLast = new Map();
+const PLOT_COLOURS = ['#0b5cad', '#c62828', '#11772b', '#b36b00', '#6a1b9a', '#00838f', '#5d4037', '#ad1457'];
+
+function viewsOnStatus(s) {
+  const now = Date.now() / 1000;
+  const rtt = {};
+  for (const x of (s.network && s.network.sessions) || []) {
+    if (x.disconnected_at_s == null && x.operator && x.rtt_ms != null) rtt[x.operator] = x.rtt_ms;
+  }
+  const rates = {};
+  for (const c of s.components) {
+    const before = plotLast.get(c.name);
+    const here = { t: s.duration_s, o: c.messages_out, set: s.set };
+    plotLast.set(c.name, here);
+    // Counters restart with each activated set: no rate across a swap.
+    if (before && here.set === before.set && here.t > before.t && here.o >= before.o) {
+      rates[c.name] = (here.o - before.o) / (here.t - before.t);
+    }
+  }
+  const arbiter = s.arbiter || {};
+  plotHistory.push({ t: now, rtt, rates, holder: arbiter.holder || (s.arbiter ? 'STOP' : 'no arbiter') });
+  while (plotHistory.length > MAX_PLOT_SAMPLES || (plotHistory.length && plotHistory[0].t < now - PLOT_WINDOW_S)) plotHistory.shift();
+  if (!$('tab-live').hidden) {
+    drawLines($('plot-rtt'), 'rtt', now);
+    drawLines($('plot-rates'), 'rates', now);
+    drawHolder($('plot-holder'), now);
+  }
+  if (!$('tab-drive').hidden) {
+    drawMap(s.sim, s.envelope, $('drive-map'));
+    $('drive-pose').textContent = s.sim
+      ? `x ${s.sim.x.toFixed(2)} y ${s.sim.y.toFixed(2)} heading ${s.sim.heading.toFixed(2)}; holds control: ${arbiter.holder || 'nobody (STOP)'}`
+      : (world ? '' : 'the active set has no simulator (builtin:sim): no map');
+  }
+}
+$('plot-window').textContent = String(PLOT_WINDOW_S / 60);
+
+// Time axis: what the page saw, at least the last minute and at most
+// PLOT_WINDOW_S seconds, now at the right edge.
+function plotSpan(now) {
+  const seen = plotHistory.length ? now - plotHistory[0].t : 0;
+  return Math.min(PLOT_WINDOW_S, Math.max(60, seen));
+}
+function plotFrame(canvas, now) {
+  const span = plotSpan(now);
+  const ctx = canvas.getContext('2d');
+  ctx.clearRect(0, 0, canvas.width, canvas.height);
+  const box = { left: 40, right: canvas.width - 110, top: 8, bottom: canvas.height - 18 };
+  ctx.strokeStyle = '#ccd'; ctx.lineWidth = 1;
+  ctx.strokeRect(box.left, box.top, box.right - box.left, box.bottom - box.top);
+  ctx.fillStyle = '#5b6570'; ctx.font = '10px sans-serif';
+  ctx.fillText(span >= 120 ? `-${(span / 60).toFixed(1)} min` : `-${span.toFixed(0)} s`, box.left, canvas.height - 5);
+  ctx.fillText('now', box.right - 18, canvas.height - 5);
+  return { ctx, box };
+}
+
+function drawLines(canvas, key, now) {
+  const { ctx, box } = plotFrame(canvas, now);
+  const names = [...new Set(plotHistory.flatMap((h) => Object.keys(h[key])))].sort();
+  let top = 0;
+  for (const h of plotHistory) for (const v of Object.values(h[key])) top = Math.max(top, v);
+  top = top > 0 ? top * 1.1 : 1;
+  const X = (t) => box.right - ((now - t) / plotSpan(now)) * (box.right - box.left);
+  const Y = (v) => box.bottom - (v / top) * (box.bottom - box.top);
+  ctx.fillStyle = '#5b6570';
+  ctx.fillText(top.toPrecision(3), 2, box.top + 8);
+  ctx.fillText('0', 2, box.bottom);
+  const last = {};
+  names.forEach((name, i) => {
+    const colour = PLOT_COLOURS[i % PLOT_COLOURS.length];
+    ctx.strokeStyle = colour; ctx.lineWidth = 1.5; ctx.beginPath();
+    let drawing = false;
+    for (const h of plotHistory) {
+      const v = h[key][name];
+      if (v == null) { drawing = false; continue; }
+      if (drawing) ctx.lineTo(X(h.t), Y(v)); else ctx.moveTo(X(h.t), Y(v));
+      drawing = true;
+      last[name] = v;
+    }
+    ctx.stroke();
+    ctx.fillStyle = colour;
+    ctx.fillText(`${name} ${last[name] == null ? '-' : last[name].toFixed(1)}`, box.right + 6, box.top + 10 + i * 12);
+  });
+  if (!names.length) { ctx.fillStyle = '#5b6570'; ctx.fillText(key === 'rtt' ? 'no operator connected' : 'no data yet', box.left + 8, box.top + 20); }
+  // The latest value of each series (the browser tests read it).
+  canvas.dataset.series = JSON.stringify(last);
+  canvas.dataset.samples = String(plotHistory.length);
+}
+
+function drawHolder(canvas, now) {
+  const { ctx, box } = plotFrame(canvas, now);
+  const holders = [...new Set(plotHistory.map((h) => h.holder))];
+  const X = (t) => box.right - ((now - t) / plotSpan(now)) * (box.right - box.left);
+  const row = Math.min(24, (box.bottom - box.top) / Math.max(1, holders.length));
+  holders.forEach((name, i) => {
+    const colour = name === 'STOP' ? '#c62828' : PLOT_COLOURS[i % PLOT_COLOURS.length];
+    ctx.fillStyle = colour;
+    ctx.fillText(name, box.right + 6, box.top + row * i + row / 2 + 4);
+    plotHistory.forEach((h, k) => {
+      if (h.holder !== name) return;
+      const next = plotHistory[k + 1];
+      const x0 = X(h.t), x1 = next ? X(next.t) : box.right;
+      ctx.fillRect(x0, box.top + row * i + 2, Math.max(1, x1 - x0), row - 4);
+    });
+  });
+  canvas.dataset.holders = JSON.stringify(holders);
+  canvas.dataset.current = plotHistory.length ? plotHistory[plotHistory.length - 1].holder : '';
+}
+
+// The wiring's arrowheads (one per platform colour).
+function wiringArrowheads(add) {
+  const defs = add('defs', {});
+  const ns = 'http://www.w3.org/2000/svg';
+  for (const [id, colour] of [['arrow', '#567'], ['arrow-network', '#b36b00']]) {
+    const marker = document.createElementNS(ns, 'marker');
+    for (const [k, v] of Object.entries({ id, viewBox: '0 0 10 10', refX: '10', refY: '5', markerWidth: '8', markerHeight: '8', orient: 'auto-start-reverse' })) marker.setAttribute(k, v);
+    const head = document.createElementNS(ns, 'path');
+    head.setAttribute('d', 'M 0 0 L 10 5 L 0 10 z');
+    head.setAttribute('fill', colour);
+    marker.append(head);
+    defs.append(marker);
+  }
+}
+
+// The robot-file editor: validates as you type (EDITOR_DEBOUNCE_MS after
+// the last key) with the host's own checks (POST .../validate/FILE: the
+// diagnostics of `subsume check`), and stages exactly the text that
+// validated.
+const EDITOR_DEBOUNCE_MS = 400;
+let editorTimer = null;
+let editorValidated = null;
+let editorSeq = 0;
+function editorTarget() {
+  return `/platforms/${$('editor-platform').value}/validate/${encodeURIComponent($('editor-name').value.trim())}`;
+}
+async function editorValidate() {
+  const text = $('editor').value;
+  const seqNow = ++editorSeq;
+  const status = $('editor-status');
+  status.className = '';
+  status.textContent = 'validating...';
+  $('editor-stage').disabled = true;
+  let result, error;
+  try { result = await api('POST', editorTarget(), text, { 'content-type': 'application/xml' }); } catch (err) { error = err; }
+  if (seqNow !== editorSeq) return; // a newer validation is under way
+  const list = $('editor-diagnostics');
+  list.replaceChildren();
+  if (error) {
+    status.className = 'error';
+    status.textContent = error.message;
+    for (const d of (error.body && error.body.diagnostics) || []) {
+      list.append(el('li', { 'data-line': String(d.line), 'data-column': String(d.column) }, `${d.line}:${d.column}: ${d.message}`));
+    }
+    editorValidated = null;
+    return;
+  }
+  status.className = 'ok';
+  status.textContent = `valid (${result.components} components, ${result.connections} connections; changes: ${result.changes.join(', ') || 'nothing'})`;
+  editorValidated = { text, platform: $('editor-platform').value, name: $('editor-name').value.trim() };
+  $('editor-stage').disabled = false;
+}
+function editorChanged() {
+  clearTimeout(editorTimer);
+  editorValidated = null;
+  $('editor-stage').disabled = true;
+  $('editor-status').className = '';
+  $('editor-status').textContent = 'editing...';
+  editorTimer = setTimeout(editorValidate, EDITOR_DEBOUNCE_MS);
+}
+$('editor').addEventListener('input', editorChanged);
+$('editor-name').addEventListener('input', editorChanged);
+$('editor-platform').addEventListener('change', editorChanged);
+$('editor-load').addEventListener('click', async () => {
+  try {
+    const { sets } = await api('GET', '/sets');
+    const active = sets.find((x) => x.status === 'active');
+    if (!active) throw new Error('no active set');
+    const { config, set } = await api('GET', `/sets/${active.id}`);
+    $('editor').value = config;
+    $('editor-name').value = set.config_name;
+    editorChanged();
+  } catch (err) {
+    $('editor-status').className = 'error';
+    $('editor-status').textContent = `could not load the active file: ${err.message}`;
+  }
+});
+$('editor-stage').addEventListener('click', async () => {
+  const staged = editorValidated;
+  if (!staged || staged.text !== $('editor').value) return;
+  try {
+    const { set } = await api('PUT', `/platforms/${staged.platform}/configs/${encodeURIComponent(staged.name)}`, staged.text, { 'content-type': 'application/xml' });
+    $('editor-status').className = 'ok';
+    $('editor-status').textContent = `staged as set ${set.id} (changes: ${set.changes.join(', ') || 'nothing'})`;
+    $('editor-stage').disabled = true;
+    await refreshSets();
+    showGraph(set.id);
+  } catch (err) {
+    $('editor-status').className = 'error';
+    $('editor-status').textContent = `not staged: ${err.message}`;
+  }
+});
+
+// The wiring's left-to-right order, with as few edges pointing back as the
+// greedy rule of Eades, Lin and Smyth (1993) finds: components nothing
+// feeds go first and those that feed nothing last; in a loop, the one
+// that sends the most more than it receives goes first (the sensors'
+// link, whose outputs feed the rest).
+function flowOrder(names, edges) {
+  const left = [];
+  const right = [];
+  const rest = new Set(names);
+  const degree = (n, out) => edges.filter(([a, b]) => a !== b && rest.has(a) && rest.has(b) && (out ? a === n : b === n)).length;
+  while (rest.size) {
+    for (let changed = true; changed;) {
+      changed = false;
+      for (const n of [...rest]) if (degree(n, true) === 0 && degree(n, false) > 0) { right.unshift(n); rest.delete(n); changed = true; }
+      for (const n of [...rest]) if (degree(n, false) === 0) { left.push(n); rest.delete(n); changed = true; }
+    }
+    let best = null;
+    for (const n of rest) if (best === null || degree(n, true) - degree(n, false) > degree(best, true) - degree(best, false)) best = n;
+    if (best !== null) { left.push(best); rest.delete(best); }
+  }
+  return new Map([...left, ...right].map((n, i) => [n, i]));
+}
+
+// ---- recordings (POST /recordings/start|stop; developers and admins) ------
+function recordingStatus(text, className = '') {
+  $('recording-status').className = className;
+  $('recording-status').textContent = text;
+}
+async function refreshRecordings() {
+  const body = $('recording-list').querySelector('tbody');
+  try {
+    const { recording, files } = await api('GET', '/recordings');
+    $('recording-start').disabled = !!recording;
+    $('recording-stop').disabled = !recording;
+    if (recording) recordingStatus(`recording to ${recording.name} since ${new Date(recording.started_unix_ms).toLocaleTimeString()} (by ${recording.by})`);
+    else if (!$('recording-status').dataset.kept) recordingStatus('not recording');
+    body.replaceChildren(...files.slice().reverse().map((f) => {
+      const link = el('a', { href: `/api/v1/recordings/${encodeURIComponent(f.name)}`, download: f.name }, f.name);
+      const actions = el('td', {});
+      if (!f.recording) {
+        const remove = el('button', { class: 'delete', 'data-name': f.name }, 'delete');
+        remove.addEventListener('click', async () => {
+          if (!confirm(`Delete ${f.name}?`)) return;
+          try { await api('DELETE', `/recordings/${encodeURIComponent(f.name)}`); } catch (err) { recordingStatus(err.message, 'error'); }
+          refreshRecordings();
+        });
+        actions.append(remove);
+      } else {
+        actions.append('being written');
+      }
+      return el('tr', { 'data-name': f.name }, el('td', {}, link), el('td', { class: 'bytes' }, `${(f.bytes / 1024).toFixed(0)} KiB`),
+        el('td', {}, new Date(f.modified_unix_ms).toLocaleString()), actions);
+    }));
+  } catch (err) {
+    body.replaceChildren();
+    $('recording-start').disabled = true;
+    $('recording-stop').disabled = true;
+    recordingStatus(err.message, 'error');
+  }
+}
+$('recording-start').addEventListener('click', async () => {
+  delete $('recording-status').dataset.kept;
+  try { await api('POST', '/recordings/start'); } catch (err) { recordingStatus(`not started: ${err.message}`, 'error'); $('recording-status').dataset.kept = '1'; }
+  refreshRecordings();
+});
+$('recording-stop').addEventListener('click', async () => {
+  try {
+    const { stopped } = await api('POST', '/recordings/stop');
+    recordingStatus(`stopped ${stopped.name}: ${stopped.messages} messages, ${(stopped.bytes / 1024).toFixed(0)} KiB in ${stopped.files.join(', ')}`, 'ok');
+  } catch (err) {
+    recordingStatus(`not stopped: ${err.message}`, 'error');
+  }
+  $('recording-status').dataset.kept = '1';
+  refreshRecordings();
+});

@@ -280,14 +280,18 @@ fn main() -> ExitCode {
                     live,
                 })
             });
-            record.and_then(|record| portal_options(&http, store_dir, logs).map(|portal| (portal, record))).and_then(
-                |(portal, record)| {
-                    let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
-                    let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
-                    let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
-                    run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record })
-                },
-            )
+            let portal = portal_options(&http, store_dir, logs).map(|portal| {
+                portal.map(|p| subsume::run::PortalOptions {
+                    record_max_file_bytes: record_max_mib.saturating_mul(1 << 20),
+                    ..p
+                })
+            });
+            record.and_then(|record| portal.map(|portal| (portal, record))).and_then(|(portal, record)| {
+                let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
+                let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
+                let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
+                run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record })
+            })
         }
         Command::User { action } => user(action, store_dir),
         Command::Replay { recording, config, only, params, json } => {
@@ -574,7 +578,7 @@ fn portal_options(
     let listen =
         http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
     let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
-    Ok(Some(PortalOptions { listen, store_dir, logs }))
+    Ok(Some(PortalOptions { listen, store_dir, logs, record_max_file_bytes: subsume::record::DEFAULT_MAX_FILE_BYTES }))
 }
 
 fn user(action: UserAction, store_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {

@@ -16,6 +16,7 @@ use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::portal::{self, logs::LogRing};
+use crate::record::control::{RecordingError, Recordings};
 use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder};
 use crate::report::{self, Report};
 use crate::robot::serial::HALT_WAIT;
@@ -120,6 +121,9 @@ pub struct PortalOptions {
     pub store_dir: PathBuf,
     /// Recent log lines (fed by the binary's `tracing` subscriber).
     pub logs: Arc<LogRing>,
+    /// Size of one file of a recording started from the portal before it
+    /// rotates (`--record-max-mib`, as for `--record`).
+    pub record_max_file_bytes: u64,
 }
 
 #[derive(Debug, Error)]
@@ -148,6 +152,8 @@ pub enum RunError {
     ControlLoop(String),
     #[error(transparent)]
     Record(#[from] RecordError),
+    #[error(transparent)]
+    Recording(#[from] RecordingError),
     #[error(
         "the stall limit must be between {} and {} ms, got {} ms",
         MIN_STALL_LIMIT.as_millis(),
@@ -373,6 +379,15 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .with(Arc::new(Locks::with_waker(shutdown.waker())))
         .with(Arc::new(options.tls.clone()));
     let clock = options.clock();
+    // Recordings started from the portal, in the store's folder; none while
+    // --record or --foxglove holds the graph's one tap.
+    let recordings = Arc::new(Recordings::new(
+        store.root().join("recordings"),
+        portal.record_max_file_bytes,
+        epoch_unix_ns(&clock),
+        options.record.is_some(),
+    )?);
+    let services = services.with(recordings.clone());
     let boot = Deployer::boot(BootOptions {
         store,
         sandbox,
@@ -416,9 +431,21 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     });
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let Some(record) = &options.record else {
+        let hook = recordings.hook(hook, |hook| Layout::of(hook.config()));
         let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
         runtime.shutdown_timeout(Duration::from_secs(1));
-        return Ok(final_report(hook.config(), &graph, stopped_by, ran_ns));
+        // A recording started from the portal ends cleanly with the run.
+        match recordings.finish() {
+            Some(Ok(stopped)) => tracing::info!(
+                "recording {} stopped with the run: {} messages, {} bytes",
+                stopped.name,
+                stopped.messages,
+                stopped.bytes
+            ),
+            Some(Err(e)) => tracing::error!("the portal's recording did not finish cleanly: {e}"),
+            None => {}
+        }
+        return Ok(final_report(hook.inner().config(), &graph, stopped_by, ran_ns));
     };
     let mut graph = graph;
     if let Some(address) = record.live {

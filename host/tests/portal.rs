@@ -16,6 +16,7 @@ use subsume::config::Platform;
 use subsume::deploy::MAX_UPLOAD_BYTES;
 use subsume::deploy::{BootOptions, Deployer};
 use subsume::portal::{self, PortalState};
+use subsume::record::control::Recordings;
 use subsume::runtime::control_loop::{Clock, Shutdown};
 use subsume::sandbox::Sandbox;
 use subsume::store::Store;
@@ -72,7 +73,9 @@ async fn portal_over(over_tls: bool) -> Portal {
     let boot = Deployer::boot(BootOptions {
         store: store.clone(),
         sandbox: Arc::new(Sandbox::new(Some(support::cache_dir())).unwrap()),
-        services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())),
+        services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())).with(Arc::new(
+            Recordings::new(dir.path().join("recordings"), subsume::record::DEFAULT_MAX_FILE_BYTES, 0, false).unwrap(),
+        )),
         config_path: &dir.path().join("robot.xml"),
         overrides: vec![],
         clock: Clock::new(),
@@ -155,6 +158,8 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("PUT", "/api/v1/platforms/network/components/x", b"not wasm", Allowed::Network),
         ("PUT", "/api/v1/platforms/control/configs/r.xml", b"<robot", Allowed::Control),
         ("PUT", "/api/v1/platforms/network/configs/r.xml", b"<robot", Allowed::Network),
+        ("POST", "/api/v1/platforms/control/validate/r.xml", b"<robot", Allowed::Control),
+        ("POST", "/api/v1/platforms/network/validate/r.xml", b"<robot", Allowed::Network),
         ("GET", "/api/v1/sets", b"", Allowed::AnyUser),
         ("GET", "/api/v1/sets/1", b"", Allowed::AnyUser),
         ("POST", "/api/v1/sets/999/activate", b"", Allowed::Developer),
@@ -163,6 +168,11 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("GET", "/api/v1/world", b"", Allowed::AnyUser),
         ("GET", "/api/v1/logs", b"", Allowed::AnyUser),
         ("GET", "/api/v1/audit", b"", Allowed::Developer),
+        ("GET", "/api/v1/recordings", b"", Allowed::Developer),
+        ("POST", "/api/v1/recordings/start", b"", Allowed::Developer),
+        ("POST", "/api/v1/recordings/stop", b"", Allowed::Developer),
+        ("GET", "/api/v1/recordings/rec-1.mcap", b"", Allowed::Developer),
+        ("DELETE", "/api/v1/recordings/rec-1.mcap", b"", Allowed::Developer),
         ("POST", "/api/v1/teleop/ticket", b"", Allowed::Drive),
         ("POST", "/api/v1/sim/reset", b"", Allowed::Drive),
         ("POST", "/api/v1/sim/step?seconds=0.1", b"", Allowed::Drive),
@@ -503,4 +513,52 @@ async fn metrics_are_for_loopback_peers_and_logged_in_users() {
     }
     let (status, _) = scrape("[::1]:40000", None).await;
     assert_eq!(status, StatusCode::SERVICE_UNAVAILABLE);
+}
+
+#[tokio::test]
+async fn validating_answers_like_staging_with_the_same_diagnostics_and_stores_nothing() {
+    let portal = portal().await;
+    let before = portal.snapshot();
+    let audit_lines = |json: &Value| json["entries"].as_array().unwrap().len();
+    let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
+    let audited = audit_lines(&audit);
+    let mut compared = 0;
+    for (case, uri, body, expected, _) in malformed_uploads() {
+        if !uri.contains("/configs/") || expected == StatusCode::PAYLOAD_TOO_LARGE {
+            continue;
+        }
+        let validate_uri = uri.replace("/configs/", "/validate/");
+        let (status, validated) = portal.call("control-dev", "POST", &validate_uri, body.clone()).await;
+        assert_eq!(portal.snapshot(), before, "{case}: validating changed the store");
+        let (staged_status, staged) = portal.call("control-dev", "PUT", &uri, body).await;
+        assert_eq!(status, staged_status, "{case}: {validated} vs {staged}");
+        assert_eq!(validated["diagnostics"], staged["diagnostics"], "{case}");
+        assert_eq!(validated["error"], staged["error"], "{case}");
+        compared += 1;
+    }
+    assert!(compared >= 8, "{compared}");
+    // The first problem of a bad file, located.
+    let (status, json) = portal
+        .call(
+            "control-dev",
+            "POST",
+            "/api/v1/platforms/control/validate/r.xml",
+            ROBOT.replace("sink.in", "sink.nowhere"),
+        )
+        .await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{json}");
+    let first = &json["diagnostics"][0];
+    assert_eq!((first["file"].as_str(), first["line"].as_u64()), (Some("r.xml"), Some(5)), "{json}");
+    assert!(first["column"].as_u64().unwrap() > 0 && first["message"].as_str().unwrap().contains("nowhere"), "{json}");
+    // A good file: what it would stage, and still nothing stored.
+    let robot = ROBOT.replace(r#"value="1""#, r#"value="2""#);
+    let (status, json) = portal.call("control-dev", "POST", "/api/v1/platforms/control/validate/new.xml", robot).await;
+    assert_eq!(status, StatusCode::OK, "{json}");
+    assert_eq!((json["components"].as_u64(), json["connections"].as_u64()), (Some(2), Some(1)), "{json}");
+    assert_eq!(json["changes"], serde_json::json!(["control"]), "{json}");
+    assert_eq!(json["graph"]["components"][0]["name"], "source", "{json}");
+    assert_eq!(portal.snapshot(), before);
+    // Validation writes no audit line; each refused staging above wrote one.
+    let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
+    assert_eq!(audit_lines(&audit), audited + compared, "{audit}");
 }

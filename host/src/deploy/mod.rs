@@ -26,6 +26,7 @@
 
 mod activate;
 mod estop;
+mod recordings;
 mod stage;
 mod swap;
 mod upload;
@@ -37,7 +38,8 @@ use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
-pub use self::stage::MAX_FILE_NAME_LEN;
+pub use self::recordings::RecordingsView;
+pub use self::stage::{MAX_CONCURRENT_VALIDATIONS, MAX_FILE_NAME_LEN, Validated};
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
 use crate::assemble::{self, Carry, Loader, StartError};
@@ -81,6 +83,9 @@ pub enum DeployError {
     NotFound(String),
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// The host is doing as many of these as it allows; try again soon.
+    #[error("{0}")]
+    Busy(String),
     /// The host failed (a thread, the control loop, a file it needs).
     #[error("{0}")]
     Host(String),
@@ -108,13 +113,15 @@ pub enum Permission {
     Drive,
     /// Read the audit log.
     ReadAudit,
+    /// Start, stop, list, download and delete recordings.
+    Record,
 }
 
 /// The one permission check of every use case.
 pub fn authorise(user: &User, permission: Permission) -> Result<(), DeployError> {
     let allowed = match permission {
         Permission::Change(platform) => user.may_change(platform),
-        Permission::Activate | Permission::ReadAudit => user.is_developer(),
+        Permission::Activate | Permission::ReadAudit | Permission::Record => user.is_developer(),
         Permission::Drive => user.may_drive(),
     };
     if allowed {
@@ -125,6 +132,7 @@ pub fn authorise(user: &User, permission: Permission) -> Result<(), DeployError>
         Permission::Activate => format!("{} may not activate sets", user.name),
         Permission::Drive => format!("{} may not drive (role {})", user.name, user.role.name()),
         Permission::ReadAudit => format!("{} may not read the audit log", user.name),
+        Permission::Record => format!("{} may not record (developers and admins may)", user.name),
     }))
 }
 
@@ -153,6 +161,8 @@ pub struct Deployer {
     live: LiveStatusCell,
     /// One compile at a time (see [`MAX_CONCURRENT_COMPILES`]).
     compiles: Mutex<()>,
+    /// One validation at a time (see [`MAX_CONCURRENT_VALIDATIONS`]).
+    validations: Mutex<()>,
 }
 
 /// Where a run starts: the deployer, the first graph, and the hook to run
@@ -228,6 +238,7 @@ impl Deployer {
             active: Mutex::new(deployment),
             live,
             compiles: Mutex::new(()),
+            validations: Mutex::new(()),
         };
         Ok(Boot { deployer: Arc::new(deployer), graph: built.graph, hook })
     }

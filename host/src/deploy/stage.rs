@@ -19,6 +19,21 @@ use crate::store::{STORE_FORMAT, SetRecord, Store, WiringComponent, WiringConnec
 /// Longest robot-file name kept (it names diagnostics).
 pub const MAX_FILE_NAME_LEN: usize = 64;
 
+/// Validations at once (the portal's editor validates as its users type):
+/// each one loads and describes every component the file names, so a few
+/// typists must not occupy the host's cores.
+pub const MAX_CONCURRENT_VALIDATIONS: usize = 1;
+
+/// What a robot file that validated would stage.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct Validated {
+    pub components: usize,
+    pub connections: usize,
+    /// The platforms it changes against the active set.
+    pub changes: Vec<String>,
+    pub graph: WiringGraph,
+}
+
 /// A robot file that validated, waiting to be stored.
 pub(super) struct Staged {
     record: SetRecord,
@@ -55,6 +70,33 @@ impl Deployer {
             },
         )
         .map(|(set, _)| set)
+    }
+
+    /// Validates an uploaded robot file exactly as [`Deployer::stage`]
+    /// would (the same permission, checks and diagnostics) and stores
+    /// nothing: the portal's editor calls it as its user types. One
+    /// validation at a time ([`MAX_CONCURRENT_VALIDATIONS`]); another
+    /// meanwhile is refused as busy.
+    pub fn validate(
+        &self,
+        user: &User,
+        platform: Platform,
+        file_name: &str,
+        bytes: &[u8],
+    ) -> Result<Validated, DeployError> {
+        authorise(user, Permission::Change(platform))?;
+        let _validating = self
+            .validations
+            .try_lock()
+            .map_err(|_| DeployError::Busy("another robot file is being validated; try again in a moment".into()))?;
+        let staged = self.prepare_stage(user, platform, file_name, bytes)?;
+        let graph = staged.record.graph;
+        Ok(Validated {
+            components: graph.components.len(),
+            connections: graph.connections.len(),
+            changes: staged.record.changes,
+            graph,
+        })
     }
 
     fn prepare_stage(

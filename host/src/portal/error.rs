@@ -84,6 +84,9 @@ impl From<DeployError> for ApiError {
             DeployError::Conflict(m) => ApiError::new(StatusCode::CONFLICT, m),
             DeployError::BadRequest(m) => ApiError::new(StatusCode::BAD_REQUEST, m),
             DeployError::NotFound(m) => ApiError::new(StatusCode::NOT_FOUND, m),
+            DeployError::Busy(m) => {
+                ApiError { retry_after: Some(1), ..ApiError::new(StatusCode::TOO_MANY_REQUESTS, m) }
+            }
             e @ DeployError::NotAComponent(_) => ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, e.to_string()),
             DeployError::WrongWorld(m) => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, m),
             DeployError::Store(StoreError::NoSet(id)) => ApiError::new(StatusCode::NOT_FOUND, format!("no set {id}")),

@@ -3,6 +3,7 @@
 //! robot-file uploads, sets, activation and rollback, the emergency stop
 //! (engage, release, the locks), the live status (SSE),
 //! the simulator's controls (reset, pose, pause, resume, step),
+//! recordings (start, stop, list, download, delete),
 //! the audit log, the teleoperation WebSocket, and the static web files of
 //! `web/`, embedded in the binary.
 //!
@@ -101,6 +102,10 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
             "/platforms/{platform}/configs/{file}",
             put(upload_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
         )
+        .route(
+            "/platforms/{platform}/validate/{file}",
+            post(validate_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
+        )
         .route("/sets", get(list_sets))
         .route("/sets/{id}", get(get_set))
         .route("/sets/{id}/activate", post(activate))
@@ -114,6 +119,10 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/estop", post(estop))
         .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/locks", get(locks))
+        .route("/recordings", get(list_recordings))
+        .route("/recordings/start", post(start_recording))
+        .route("/recordings/stop", post(stop_recording))
+        .route("/recordings/{name}", get(download_recording).delete(delete_recording))
         .route("/teleop/ticket", post(teleop_ticket))
         .route("/teleop", get(teleop_socket))
         .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))

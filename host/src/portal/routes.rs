@@ -79,6 +79,21 @@ pub(super) async fn upload_config(
     Ok((StatusCode::CREATED, Json(json!({ "set": set }))))
 }
 
+/// Validates a robot file as staging would and stores nothing (the
+/// editor's validate-as-you-type): 200 with what it would stage, or the
+/// diagnostics of `subsume check`.
+pub(super) async fn validate_config(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path((platform, file)): Path<(String, String)>,
+    body: Bytes,
+) -> Result<Json<crate::deploy::Validated>, ApiError> {
+    let platform = platform_of(&platform)?;
+    let deployer = state.deployer.clone();
+    let validated = blocking(move || Ok(deployer.validate(&user, platform, &file, &body)?)).await?;
+    Ok(Json(validated))
+}
+
 fn set_status(id: u64, state: &StoreState) -> &'static str {
     if state.active == Some(id) {
         "active"
@@ -381,4 +396,100 @@ pub(super) async fn release(
 pub(super) async fn locks(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Result<Json<Json_>, ApiError> {
     let view = state.deployer.locks_view()?;
     Ok(Json(serde_json::to_value(view).unwrap_or_default()))
+}
+
+/// Bytes read from disk per piece of a download.
+const DOWNLOAD_CHUNK: u64 = 256 << 10;
+
+/// The running recording and the recordings folder's files.
+pub(super) async fn list_recordings(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<crate::deploy::RecordingsView>, ApiError> {
+    let deployer = state.deployer.clone();
+    Ok(Json(blocking(move || Ok(deployer.list_recordings(&user)?)).await?))
+}
+
+/// Starts recording the running robot (`POST /recordings/start`).
+pub(super) async fn start_recording(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<(StatusCode, Json<Json_>), ApiError> {
+    let deployer = state.deployer.clone();
+    let info = blocking(move || Ok(deployer.start_recording(&user)?)).await?;
+    Ok((StatusCode::CREATED, Json(json!({ "recording": info }))))
+}
+
+/// Stops the running recording (`POST /recordings/stop`).
+pub(super) async fn stop_recording(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let stopped = blocking(move || Ok(deployer.stop_recording(&user)?)).await?;
+    Ok(Json(json!({ "stopped": stopped })))
+}
+
+/// Deletes a recording file (`DELETE /recordings/{name}`).
+pub(super) async fn delete_recording(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(name): Path<String>,
+) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let deleted = name.clone();
+    blocking(move || Ok(deployer.delete_recording(&user, &name)?)).await?;
+    Ok(Json(json!({ "deleted": deleted })))
+}
+
+/// Downloads a recording file (`GET /recordings/{name}`), streamed from
+/// disk: the bytes it had when asked (a running recording keeps growing).
+pub(super) async fn download_recording(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(name): Path<String>,
+) -> Result<Response, ApiError> {
+    use axum::http::header;
+    let deployer = state.deployer.clone();
+    let asked = name.clone();
+    let (path, size) = blocking(move || Ok(deployer.recording_file(&user, &asked)?)).await?;
+    let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(4);
+    tokio::task::spawn_blocking(move || {
+        use std::io::Read as _;
+        let mut file = match std::fs::File::open(&path) {
+            Ok(file) => file,
+            Err(e) => {
+                let _ = tx.blocking_send(Err(e));
+                return;
+            }
+        };
+        let mut left = size;
+        while left > 0 {
+            let mut piece = vec![0u8; DOWNLOAD_CHUNK.min(left) as usize];
+            match file.read(&mut piece) {
+                Ok(0) => break,
+                Ok(n) => {
+                    piece.truncate(n);
+                    left -= n as u64;
+                    if tx.blocking_send(Ok(Bytes::from(piece))).is_err() {
+                        break;
+                    }
+                }
+                Err(e) => {
+                    let _ = tx.blocking_send(Err(e));
+                    break;
+                }
+            }
+        }
+    });
+    let stream = futures_util::stream::unfold(rx, |mut rx| async move { rx.recv().await.map(|piece| (piece, rx)) });
+    Ok((
+        [
+            (header::CONTENT_TYPE, "application/octet-stream".to_string()),
+            (header::CONTENT_LENGTH, size.to_string()),
+            (header::CONTENT_DISPOSITION, format!("attachment; filename=\"{name}\"")),
+        ],
+        axum::body::Body::from_stream(stream),
+    )
+        .into_response())
 }

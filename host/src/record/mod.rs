@@ -16,6 +16,7 @@
 //! summary; a file past its size limit is finished and the next one
 //! started (`FILE.1.mcap`, `FILE.2.mcap`, ...).
 
+pub mod control;
 pub mod live;
 pub mod log;
 pub mod replay;
@@ -420,17 +421,30 @@ impl<H: CycleHook> CycleHook for RecordHook<H> {
             graph.set_tap(Box::new(RecordTap { sink: sink.clone() }));
             self.last.clear();
         }
-        if now_ns < self.next_ns {
-            return;
-        }
-        self.next_ns = now_ns + STATUS_PERIOD_NS;
-        self.last.resize(graph.len(), None);
-        for index in 0..graph.len() {
-            let Some((_, kind, section)) = graph.component_status(index) else { continue };
-            if self.last[index].as_ref() != Some(&section) {
-                self.last[index] = Some(section.clone());
-                sink.send(Event::Status { index, t: now_ns, kind, section });
-            }
+        sample_status(sink, graph, now_ns, &mut self.next_ns, &mut self.last);
+    }
+}
+
+/// Sends the components' status sections that changed, every
+/// [`STATUS_PERIOD_NS`] (`next_ns`: the next sample; `last`: the sections
+/// sent last, per component).
+fn sample_status(
+    sink: &Sink,
+    graph: &Graph,
+    now_ns: u64,
+    next_ns: &mut u64,
+    last: &mut Vec<Option<serde_json::Value>>,
+) {
+    if now_ns < *next_ns {
+        return;
+    }
+    *next_ns = now_ns + STATUS_PERIOD_NS;
+    last.resize(graph.len(), None);
+    for (index, sent) in last.iter_mut().enumerate() {
+        let Some((_, kind, section)) = graph.component_status(index) else { continue };
+        if sent.as_ref() != Some(&section) {
+            *sent = Some(section.clone());
+            sink.send(Event::Status { index, t: now_ns, kind, section });
         }
     }
 }
