@@ -66,7 +66,7 @@ pub fn families(status: &LiveStatus) -> Vec<Family> {
         "how long after its time the control loop ran each scheduled cycle",
         MetricType::Histogram,
     );
-    lateness.samples.push((vec![], Sample::Histogram(report.lateness.clone())));
+    lateness.samples.push((vec![], Sample::Histogram(report.loop_lateness.histogram.clone())));
     out.push(lateness);
     out.extend(component_families(report));
     out.extend(section_families(report));
@@ -247,7 +247,7 @@ pub fn encode(status: &LiveStatus) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::report::{ComponentReport, MessageTotals};
+    use crate::report::{ComponentReport, LoopLateness, MessageTotals};
 
     fn status() -> LiveStatus {
         let mut call_times = Histogram::default();
@@ -309,7 +309,13 @@ mod tests {
                 components: vec![component, arbiter, teleop],
                 connections: vec![],
                 messages: MessageTotals { routed: 0, delivered: 0, dropped: 0 },
-                lateness,
+                loop_lateness: LoopLateness {
+                    cycles: 1,
+                    total_ms: 2000.0,
+                    max_ms: 2000.0,
+                    waited_for_cpu_ms: 0.0,
+                    histogram: lateness,
+                },
                 sections,
             },
         }

@@ -25,14 +25,44 @@ pub struct Report {
     pub components: Vec<ComponentReport>,
     pub connections: Vec<ConnectionReport>,
     pub messages: MessageTotals,
-    /// How late the control loop ran its scheduled cycles (for
-    /// `/metrics`; not in the JSON).
-    #[serde(skip)]
-    pub lateness: Histogram,
+    /// How late the control loop ran its scheduled cycles, and how long it
+    /// waited for a CPU: a reader can tell a busy machine from a slow host.
+    pub loop_lateness: LoopLateness,
     /// Sections of built-in components, by kind: `arbiter`, `serial`, `sim`
     /// (`kind:component` when a kind appears twice).
     #[serde(flatten)]
     pub sections: serde_json::Map<String, serde_json::Value>,
+}
+
+/// `loop_lateness` in the JSON (docs/report.md).
+#[derive(Clone, Debug, Serialize)]
+pub struct LoopLateness {
+    /// Scheduled cycles whose lateness the loop measured.
+    pub cycles: u64,
+    /// The sum of their lateness.
+    pub total_ms: f64,
+    /// The worst one.
+    pub max_ms: f64,
+    /// How long the control thread was ready to run but waited for a CPU
+    /// (the kernel's run delay; 0 on simulated time or where the kernel
+    /// keeps none).
+    pub waited_for_cpu_ms: f64,
+    /// The whole histogram, for `/metrics`.
+    #[serde(skip)]
+    pub histogram: Histogram,
+}
+
+impl LoopLateness {
+    pub fn of(graph: &Graph) -> LoopLateness {
+        let histogram = graph.lateness().clone();
+        LoopLateness {
+            cycles: histogram.count(),
+            total_ms: histogram.sum_ns() as f64 / 1e6,
+            max_ms: histogram.max_ns() as f64 / 1e6,
+            waited_for_cpu_ms: graph.cpu_wait().waited_ns() as f64 / 1e6,
+            histogram,
+        }
+    }
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -192,7 +222,7 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
         stopped_by: stopped_by.to_string(),
         duration_s,
         cycles: graph.cycles(),
-        lateness: graph.lateness().clone(),
+        loop_lateness: LoopLateness::of(graph),
         components,
         connections,
         messages: MessageTotals { routed: graph.messages_routed(), delivered, dropped: graph.messages_dropped() },

@@ -10,6 +10,7 @@ use std::sync::{Arc, Condvar, Mutex};
 use std::time::{Duration, Instant};
 
 use super::Graph;
+use super::cpu_wait::{READ_INTERVAL, thread_run_delay_ns};
 use super::lockstep::{Lockstep, Pace};
 use super::stall::{Activity, Heartbeat};
 
@@ -229,6 +230,11 @@ pub fn run_watched(
     let stopped_by = cycle(graph, clock, shutdown, until_ns, hook, heartbeat);
     // Building the report is not a stall.
     graph.asleep();
+    if clock.simulated.is_none()
+        && let Some(reading) = thread_run_delay_ns()
+    {
+        graph.note_cpu_wait(reading);
+    }
     stopped_by
 }
 
@@ -240,6 +246,7 @@ fn cycle(
     hook: &mut dyn CycleHook,
     heartbeat: Option<&Arc<Heartbeat>>,
 ) -> StopReason {
+    let mut next_cpu_wait_read = 0;
     loop {
         if shutdown.is_requested() {
             return StopReason::Requested;
@@ -256,6 +263,15 @@ fn cycle(
         if let Some(heartbeat) = heartbeat {
             // The hook may have swapped in a new graph.
             graph.attach(heartbeat);
+        }
+        // On real time, how long the thread waited for a CPU: read when a
+        // graph starts (an activation may have swapped one in), then once
+        // every READ_INTERVAL.
+        if clock.simulated.is_none() && (!graph.cpu_wait().started() || now >= next_cpu_wait_read) {
+            if let Some(reading) = thread_run_delay_ns() {
+                graph.note_cpu_wait(reading);
+            }
+            next_cpu_wait_read = now + READ_INTERVAL.as_nanos() as u64;
         }
         if let Some(simulated) = &clock.simulated {
             // Waiting for bytes on the simulated robots' wires (bounded by

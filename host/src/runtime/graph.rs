@@ -19,6 +19,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use super::component::{CallError, Component, Outbox, RestartError, Restarter, Vacant};
+use super::cpu_wait::CpuWait;
 use super::histogram::Histogram;
 use super::stall::{Activity, Heartbeat};
 use super::tap::{Call, Tap};
@@ -129,6 +130,9 @@ pub struct Graph {
     beats: u32,
     /// How late the loop ran each cycle it had scheduled (`control_loop`).
     lateness: Histogram,
+    /// How long the control thread waited for a CPU while running this
+    /// graph (`control_loop`).
+    cpu_wait: CpuWait,
     /// The observer of every call and emission (a recorder), if any.
     tap: Option<Box<dyn Tap>>,
     /// The time of the cycle (or injection) in progress, for the tap.
@@ -166,6 +170,7 @@ impl Graph {
             heartbeat: None,
             beats: 0,
             lateness: Histogram::default(),
+            cpu_wait: CpuWait::default(),
             tap: None,
             now_ns: 0,
         }
@@ -724,6 +729,16 @@ impl Graph {
     /// (called by the control loop).
     pub fn record_lateness(&mut self, late_ns: u64) {
         self.lateness.record(late_ns);
+    }
+
+    /// How long the control thread waited for a CPU while running this graph.
+    pub fn cpu_wait(&self) -> &CpuWait {
+        &self.cpu_wait
+    }
+
+    /// A reading of the control thread's run delay (`control_loop`).
+    pub fn note_cpu_wait(&mut self, reading_ns: u64) {
+        self.cpu_wait.note(reading_ns);
     }
 
     /// Cycles run since the start.

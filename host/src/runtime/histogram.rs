@@ -25,6 +25,7 @@ pub struct Histogram {
     counts: [u64; BUCKETS],
     sum_ns: u64,
     count: u64,
+    max_ns: u64,
 }
 
 impl Histogram {
@@ -37,6 +38,7 @@ impl Histogram {
         self.counts[bucket] += 1;
         self.sum_ns = self.sum_ns.saturating_add(ns);
         self.count += 1;
+        self.max_ns = self.max_ns.max(ns);
     }
 
     pub fn count(&self) -> u64 {
@@ -45,6 +47,11 @@ impl Histogram {
 
     pub fn sum_ns(&self) -> u64 {
         self.sum_ns
+    }
+
+    /// The longest duration recorded (0 when none was).
+    pub fn max_ns(&self) -> u64 {
+        self.max_ns
     }
 
     /// (upper bound in seconds, count in that bucket alone) for every
@@ -81,6 +88,7 @@ mod tests {
         assert_eq!(buckets.iter().map(|b| b.1).sum::<u64>(), 10);
         assert_eq!(h.count(), 10);
         assert_eq!(h.sum_ns(), u64::MAX);
+        assert_eq!(h.max_ns(), u64::MAX);
     }
 
     #[test]

@@ -1,6 +1,7 @@
 //! The runtime: components behind one trait ([`component`]), how they are
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
-//! control loop that drives it in real time ([`control_loop`]), the host's
+//! control loop that drives it in real time ([`control_loop`]) and how long
+//! it waited for a CPU ([`cpu_wait`]), the host's
 //! emergency-stop locks ([`locks`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
 //! simulated time's lock-step between the loop, the simulated robots and
@@ -13,6 +14,7 @@
 
 pub mod component;
 pub mod control_loop;
+pub mod cpu_wait;
 pub mod graph;
 pub mod histogram;
 pub mod locks;
