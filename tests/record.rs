@@ -55,7 +55,7 @@ fn read_mcap(file: &Path, truncated: bool) -> Json {
 
 fn robot_file(dir: &Path, body: &str) -> PathBuf {
     let mut xml = body.to_string();
-    for name in ["test-counter", "test-faulty", "test-relay", "avoider", "planner", "range-filter"] {
+    for name in ["test-counter", "test-faulty", "test-relay-v1", "test-relay", "avoider", "planner", "range-filter"] {
         xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
     }
     let path = dir.join("robot.xml");
@@ -100,6 +100,25 @@ fn the_demo_recording_has_every_value_call_status_and_log_line() {
     assert_eq!(channel(&read, "/motors/pose/tf")["schema"], "foxglove.FrameTransform");
     assert_eq!(channel(&read, "/subsume/log")["schema"], "foxglove.Log");
     assert_eq!(channel(&read, "/arbiter/cmd")["schema"], "subsume.Value");
+    // The simulated robot's ranges are a scan with its geometry (config/demo.xml:
+    // 9 rays over fov 3.14159, max-range 4 m by default): Foxglove's LaserScan.
+    assert_eq!(channel(&read, "/motors/ranges")["schema"], "foxglove.LaserScan");
+    let scan = &read["first"]["/motors/ranges"];
+    assert_eq!(scan["frame_id"], "motors");
+    assert_eq!(scan["ranges"].as_array().unwrap().len(), 9, "{scan}");
+    let close = |field: &str, want: f64| {
+        let got = scan[field].as_f64().unwrap();
+        assert!((got - want).abs() < 1e-9, "{field}: {got}, expected {want}: {scan}");
+    };
+    let fov: f64 = "3.14159".parse().unwrap(); // as written in config/demo.xml
+    close("start_angle", -fov / 2.0);
+    close("end_angle", fov / 2.0);
+    close("angle_increment", fov / 8.0);
+    close("range_min", 0.0);
+    close("range_max", 4.0);
+    // The filter (a vector input) received the same readings, as a vector.
+    let filter_in = &read["first"]["/subsume/calls/filter"];
+    assert_eq!(filter_in["value"]["vector"], scan["ranges"], "{filter_in}");
     let pose = &read["first"]["/motors/pose"];
     assert_eq!(pose["frame_id"], "world");
     assert!(pose["pose"]["orientation"]["w"].is_number(), "{pose}");
@@ -129,6 +148,71 @@ fn the_demo_recording_has_every_value_call_status_and_log_line() {
     assert!(input["call"] == "tick" || input["call"] == "input", "{input}");
     assert!(log.contains("recording finished:"), "{log}");
     assert!(log.contains("0 events dropped"), "{log}");
+}
+
+#[test]
+fn a_0_1_0_and_a_0_2_0_component_run_side_by_side_on_the_simulated_robots_scan() {
+    let dir = tempfile::tempdir().unwrap();
+    let world = support::repo_root().join("config/worlds/demo.world");
+    let body = r#"<robot name="scans">
+  <platform name="control">
+    <component name="robot-sim" source="builtin:sim">
+      <param name="world" value="WORLD"/>
+      <param name="rays" value="5"/>
+      <param name="fov" value="2.0"/>
+      <param name="max-range" value="3.5"/>
+    </component>
+    <component name="motors" source="builtin:serial" rate="50">
+      <param name="device" value="sim:robot-sim"/>
+    </component>
+    <component name="new" source="GUEST(test-relay)" rate="0"/>
+    <component name="old" source="GUEST(test-relay-v1)" rate="0"/>
+    <connect from="motors.ranges" to="new.vector-in"/>
+    <connect from="motors.ranges" to="new.scan-in"/>
+    <connect from="motors.ranges" to="old.vector-in"/>
+  </platform>
+</robot>"#;
+    let robot = robot_file(dir.path(), &body.replace("WORLD", world.to_str().unwrap()));
+    let file = dir.path().join("scans.mcap");
+    let report_path = dir.path().join("report.json");
+    let output = run(&[
+        "run",
+        robot.to_str().unwrap(),
+        "--duration",
+        "1",
+        "--record",
+        file.to_str().unwrap(),
+        "--report",
+        report_path.to_str().unwrap(),
+    ]);
+    let log = text(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    let read = read_mcap(&file, false);
+    let scan = &read["first"]["/motors/ranges"];
+    assert_eq!(channel(&read, "/motors/ranges")["schema"], "foxglove.LaserScan");
+    assert_eq!(scan["ranges"].as_array().unwrap().len(), 5, "{scan}");
+    assert_eq!(scan["start_angle"], -1.0);
+    assert_eq!(scan["end_angle"], 1.0);
+    assert_eq!(scan["angle_increment"], 0.5);
+    assert_eq!(scan["range_max"], 3.5);
+    // The 0.2.0 relay's scan input keeps the geometry; both versions' vector
+    // inputs get the same readings.
+    let relayed = &read["first"]["/new/scan-out"];
+    assert_eq!(channel(&read, "/new/scan-out")["schema"], "foxglove.LaserScan");
+    for field in ["ranges", "start_angle", "end_angle", "angle_increment", "range_min", "range_max"] {
+        assert_eq!(relayed[field], scan[field], "{field}");
+    }
+    assert_eq!(read["first"]["/new/vector-out"]["value"]["vector"], scan["ranges"]);
+    assert_eq!(read["first"]["/old/vector-out"]["value"]["vector"], scan["ranges"]);
+    let report: Json = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    let scans = component(&report, "motors")["messages_out"].as_u64().unwrap();
+    assert!(scans > 0);
+    for (relay, inputs) in [("new", 2), ("old", 1)] {
+        let c = component(&report, relay);
+        assert_eq!(c["state"], "running", "{c}");
+        assert_eq!(c["errors"], 0, "{c}");
+        assert!(c["messages_in"].as_u64().unwrap() >= inputs, "{c}");
+    }
 }
 
 #[test]

@@ -177,6 +177,60 @@ enum Command {
         #[arg(long, value_name = "DIR")]
         dir: Option<PathBuf>,
     },
+    /// Run a robot file with the portal and watch it: each change of the
+    /// file or of a component file it names is validated, compiled off the
+    /// control loop and swapped in at a cycle boundary; errors are printed
+    /// and the running set stays (docs/writing-components.md).
+    Dev {
+        /// The robot description.
+        config: PathBuf,
+        /// How often the files are looked at, in seconds (0.02 to 10).
+        #[arg(long, value_name = "SECONDS", default_value = "0.25")]
+        poll: f64,
+        /// Stop after this many seconds (simulated seconds with --speed).
+        #[arg(long, value_name = "SECONDS")]
+        duration: Option<f64>,
+        /// Run on simulated time: N times real time, or `max`.
+        #[arg(long, value_name = "N|max")]
+        speed: Option<String>,
+        /// Write a JSON report here when stopped (see docs/report.md).
+        #[arg(long, value_name = "FILE")]
+        report: Option<PathBuf>,
+        /// Set a component parameter, overriding the robot file (repeatable).
+        #[arg(long = "param", value_name = "COMPONENT.PARAM=VALUE")]
+        params: Vec<ParamOverride>,
+        /// Where the web portal listens (`dev` always runs one).
+        #[arg(long, value_name = "ADDRESS", default_value = "127.0.0.1:8080")]
+        http: String,
+    },
+    /// Upload components and/or a robot file to a running host's portal,
+    /// stage and activate them in one step (docs/portal.md).
+    Deploy {
+        /// The portal's address (HOST:PORT or http://HOST:PORT).
+        host: String,
+        /// A component of the robot and its file: uploaded under NAME
+        /// (repeatable). Without --robot, the active robot file's component
+        /// NAME is pointed at it.
+        #[arg(long = "component", value_name = "NAME=FILE.wasm", value_parser = parse_component_arg)]
+        components: Vec<(String, PathBuf)>,
+        /// A robot file to stage and activate (its sources may name the
+        /// uploaded components as NAME.wasm).
+        #[arg(long, value_name = "FILE.xml")]
+        robot: Option<PathBuf>,
+        /// The platform the uploads belong to.
+        #[arg(long, default_value = "control")]
+        platform: String,
+        /// The portal user to log in as (developer or admin).
+        #[arg(long, env = "SUBSUME_USER")]
+        user: String,
+        /// Their password (or set SUBSUME_PASSWORD).
+        #[arg(long, env = "SUBSUME_PASSWORD", hide_env_values = true)]
+        password: String,
+    },
+}
+
+fn parse_component_arg(text: &str) -> Result<(String, PathBuf), String> {
+    subsume::portal::deploy_client::component_arg(text).map_err(|e| e.to_string())
 }
 
 #[derive(Subcommand)]
@@ -293,6 +347,10 @@ fn main() -> ExitCode {
                 run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record })
             })
         }
+        Command::Dev { config, poll, duration, speed, report, params, http } => {
+            let dev = DevArgs { config, poll, duration, speed, report, params, http };
+            portal_options(&dev.http, store_dir, logs).and_then(|portal| run_dev(dev, portal, cache_dir))
+        }
         Command::User { action } => user(action, store_dir),
         Command::Replay { recording, config, only, params, json } => {
             let options = subsume::record::replay::ReplayOptions {
@@ -317,6 +375,16 @@ fn main() -> ExitCode {
             lock_action(&host, &user, &password, LockAction::Engage)
                 .map(|said| {
                     println!("{said}");
+                    ExitCode::SUCCESS
+                })
+                .map_err(anyhow::Error::from)
+        }
+        Command::Deploy { host, components, robot, platform, user, password } => {
+            use subsume::portal::deploy_client::{DeployRequest, deploy};
+            let request = DeployRequest { host, user, password, platform, components, robot };
+            deploy(&request, &mut |line| eprintln!("deploy: {line}"))
+                .map(|done| {
+                    println!("deployed: set {} is running", done.set);
                     ExitCode::SUCCESS
                 })
                 .map_err(anyhow::Error::from)
@@ -356,6 +424,35 @@ struct RunArgs {
     stall_limit: f64,
     tls: subsume::tls::HostTls,
     record: Option<subsume::record::RecordOptions>,
+}
+
+struct DevArgs {
+    config: PathBuf,
+    poll: f64,
+    duration: Option<f64>,
+    speed: Option<String>,
+    report: Option<PathBuf>,
+    params: Vec<ParamOverride>,
+    http: String,
+}
+
+/// `subsume dev`: `run` with the portal and the file watcher.
+fn run_dev(dev: DevArgs, portal: Option<PortalOptions>, cache_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {
+    use subsume::deploy::dev::{MAX_POLL, MIN_POLL};
+    let DevArgs { config, poll, duration, speed, report, params, http: _ } = dev;
+    let (min, max) = (MIN_POLL.as_secs_f64(), MAX_POLL.as_secs_f64());
+    if !(poll.is_finite() && (min..=max).contains(&poll)) {
+        bail!("--poll must be between {min} and {max} seconds, got {poll}");
+    }
+    let Some(mut portal) = portal else {
+        bail!("subsume dev needs the portal: give --http ADDRESS, not off");
+    };
+    portal.watch = Some(Duration::from_secs_f64(poll));
+    let tls = subsume::tls::HostTls { identity: None, allow_plain_remote: false };
+    let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
+    let stall_limit = subsume::runtime::stall::DEFAULT_STALL_LIMIT.as_secs_f64();
+    let portal = Some(portal);
+    run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record: None })
 }
 
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
@@ -578,7 +675,13 @@ fn portal_options(
     let listen =
         http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
     let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
-    Ok(Some(PortalOptions { listen, store_dir, logs, record_max_file_bytes: subsume::record::DEFAULT_MAX_FILE_BYTES }))
+    Ok(Some(PortalOptions {
+        listen,
+        store_dir,
+        logs,
+        record_max_file_bytes: subsume::record::DEFAULT_MAX_FILE_BYTES,
+        watch: None,
+    }))
 }
 
 fn user(action: UserAction, store_dir: Option<PathBuf>) -> anyhow::Result<ExitCode> {

@@ -124,6 +124,9 @@ pub struct PortalOptions {
     /// Size of one file of a recording started from the portal before it
     /// rotates (`--record-max-mib`, as for `--record`).
     pub record_max_file_bytes: u64,
+    /// `subsume dev`: watch the robot file and its component files at this
+    /// poll interval, and activate each change (`deploy::dev`).
+    pub watch: Option<Duration>,
 }
 
 #[derive(Debug, Error)]
@@ -148,6 +151,8 @@ pub enum RunError {
     },
     #[error("cannot start the portal runtime: {0}")]
     PortalRuntime(#[source] std::io::Error),
+    #[error("cannot start the file watcher (subsume dev): {0}")]
+    Watch(#[source] std::io::Error),
     #[error("the control loop thread failed: {0}")]
     ControlLoop(String),
     #[error(transparent)]
@@ -398,6 +403,9 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         waker: shutdown.waker(),
     })?;
     let deploy::Boot { deployer, graph, hook } = boot;
+    if let Some(poll) = portal.watch {
+        deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
+    }
     let listener = std::net::TcpListener::bind(portal.listen)
         .and_then(|l| l.set_nonblocking(true).map(|()| l))
         .map_err(|source| RunError::Listen { address: portal.listen, source })?;

@@ -11,11 +11,11 @@ mod support;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use subsume::contract::{Param, Scan, Value};
+use subsume::contract::{Param, Scan, Value, ValueKind};
 use subsume::robot::control::ControlCommand;
 use subsume::robot::protocol::Profile;
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator, Translator};
-use subsume::runtime::{CallError, Component, Graph, Outbox, Policy};
+use subsume::runtime::{CallError, Component, Convert, Graph, Outbox, Policy};
 use subsume::sandbox::{Contract, GuestLimits, Sandbox, WasmArtifact};
 
 const MS: u64 = 1_000_000;
@@ -115,6 +115,52 @@ fn a_scan_reaches_vector_inputs_of_both_versions_as_its_ranges() {
         graph.inject(source, 0, scan.clone(), 0);
         assert_eq!(*recorder.0.lock().unwrap(), vec![ranges.clone()], "{relay}");
     }
+}
+
+#[test]
+fn a_graph_connection_from_a_scan_into_a_native_vector_input_hands_over_the_ranges() {
+    let scan = Value::Scan(Scan {
+        angle_min: -0.5,
+        angle_increment: 0.5,
+        range_min: 0.0,
+        range_max: 4.0,
+        ranges: vec![1.0, 4.0, 0.5],
+    });
+    let mut graph = Graph::new();
+    let source = graph.add("source", Box::new(subsume::runtime::Vacant), 1, 0.0, 0);
+    let (ranges, whole) = (Recorder::default(), Recorder::default());
+    let vector_sink = graph.add("vector-sink", Box::new(ranges.clone()), 0, 0.0, 0);
+    let any_sink = graph.add("any-sink", Box::new(whole.clone()), 0, 0.0, 0);
+    let convert = Convert::between(ValueKind::Scan, ValueKind::Vector);
+    assert_eq!(convert, Convert::ScanToRanges);
+    assert_eq!(Convert::between(ValueKind::Scan, ValueKind::Any), Convert::Nothing);
+    graph.connect_converting(source, 0, vector_sink, 0, Policy::Latest, convert);
+    graph.connect(source, 0, any_sink, 0, Policy::Latest);
+    graph.inject(source, 0, scan.clone(), 0);
+    assert_eq!(*ranges.0.lock().unwrap(), vec![Value::Vector(vec![1.0, 4.0, 0.5])]);
+    assert_eq!(*whole.0.lock().unwrap(), vec![scan]);
+}
+
+#[test]
+fn a_scan_input_of_a_0_2_0_component_keeps_the_geometry() {
+    let sandbox = sandbox();
+    let scan = Value::Scan(Scan {
+        angle_min: -1.0,
+        angle_increment: 0.5,
+        range_min: 0.1,
+        range_max: 3.0,
+        ranges: vec![1.0, 2.0, 3.0, 0.5, 0.25],
+    });
+    let mut graph = Graph::new();
+    let source = graph.add("source", Box::new(subsume::runtime::Vacant), 1, 0.0, 0);
+    let node = graph.add("relay", instance(&sandbox, "test-relay"), 3, 0.0, 0);
+    let recorder = Recorder::default();
+    let sink = graph.add("sink", Box::new(recorder.clone()), 0, 0.0, 0);
+    // scan-in is input 2; scan-out is output 2.
+    graph.connect(source, 0, node, 2, Policy::Latest);
+    graph.connect(node, 2, sink, 0, Policy::Latest);
+    graph.inject(source, 0, scan.clone(), 0);
+    assert_eq!(*recorder.0.lock().unwrap(), vec![scan]);
 }
 
 #[test]

@@ -18,7 +18,7 @@ pub use self::loader::{Loader, StartError, Surroundings};
 use crate::builtin::Services;
 use crate::config::{ComponentConfig, ComponentSource, RobotConfig};
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{Component, Graph, Locks, PriorityCell, RunningRobot, Standings, Vacant};
+use crate::runtime::{Component, Convert, Graph, Locks, PriorityCell, RunningRobot, Standings, Vacant};
 
 /// Components a new graph takes over from the running one instead of
 /// building them: their graph slots hold [`Vacant`] until the swap moves
@@ -116,7 +116,17 @@ pub fn build(
         }
     }
     for c in &config.connections {
-        graph.connect(c.from.component, c.from.port, c.to.component, c.to.port, c.policy);
+        let kind = |component: usize, port: u32, outputs: bool| {
+            config.components.get(component).and_then(|comp| {
+                let ports = if outputs { &comp.description.outputs } else { &comp.description.inputs };
+                ports.get(port as usize).map(|p| p.kind)
+            })
+        };
+        let convert = match (kind(c.from.component, c.from.port, true), kind(c.to.component, c.to.port, false)) {
+            (Some(from), Some(to)) => Convert::between(from, to),
+            _ => Convert::Nothing,
+        };
+        graph.connect_converting(c.from.component, c.from.port, c.to.component, c.to.port, c.policy, convert);
     }
     Ok(Built { graph, priorities, sim_ptys: ptys })
 }

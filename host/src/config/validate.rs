@@ -11,7 +11,7 @@ use std::time::Duration;
 use super::diagnostic::{Diagnostic, SourceMap};
 use super::raw::{RawComponent, RawConnect, RawRobot, Spanned};
 use super::{ComponentConfig, ComponentSource, ConnectionConfig, Platform, Policy, PortRef, RobotConfig, limits};
-use crate::contract::{Description, Param, clip, is_valid_name};
+use crate::contract::{Description, Param, ValueKind, clip, is_valid_name};
 
 /// Finds what a component's source declares. The assembler's loader
 /// compiles WASM files (and keeps them for running) and checks built-ins'
@@ -151,10 +151,15 @@ pub(super) fn validate(
         let out_kind = robot.components[from.component].description.outputs[from.port as usize].kind;
         let in_kind = robot.components[to.component].description.inputs[to.port as usize].kind;
         if !out_kind.can_feed(in_kind) {
+            let why = if in_kind == ValueKind::Scan && out_kind == ValueKind::Vector {
+                "a vector carries no ray geometry; a scan input needs a scan output (a serial link on sim:NAME, a 0.2.0 component's scan)"
+            } else {
+                "the kinds differ"
+            };
             errors.push(map.at(
                 connect.to.offset,
                 format!(
-                    "cannot connect '{}' ({out_kind}) to '{}' ({in_kind}): the kinds differ",
+                    "cannot connect '{}' ({out_kind}) to '{}' ({in_kind}): {why}",
                     connect.from.value, connect.to.value
                 ),
             ));

@@ -25,6 +25,7 @@
 //! - on any error the running set is untouched.
 
 mod activate;
+pub mod dev;
 mod estop;
 mod recordings;
 mod stage;
@@ -210,7 +211,7 @@ impl Deployer {
                 );
                 set
             }
-            _ => import(&store, &sandbox, config_path, &text, &overrides)?,
+            _ => import(&store, &sandbox, config_path, &text, &overrides, Import::Boot)?,
         };
         let mut loader = Loader::new(&sandbox);
         let config = stage::validate_set(&store, &set, &mut loader, &overrides)?;
@@ -295,6 +296,7 @@ fn import(
     path: &Path,
     text: &str,
     overrides: &[ParamOverride],
+    how: Import,
 ) -> Result<SetRecord, DeployError> {
     let mut loader = Loader::new(sandbox);
     let config =
@@ -320,7 +322,10 @@ fn import(
     let record = writer.add_set(SetRecord {
         format: STORE_FORMAT,
         id: 0,
-        created_by: "boot".into(),
+        created_by: match how {
+            Import::Boot => "boot".into(),
+            Import::Dev => dev::DEV_USER.into(),
+        },
         created_at: unix_now(),
         platform: None,
         config_name,
@@ -330,12 +335,26 @@ fn import(
         changes: vec![Platform::Control.name().into(), Platform::Network.name().into()],
         graph: stage::wiring_graph(&config),
     })?;
+    if how == Import::Dev {
+        let detail = format!("imported {} (subsume dev)", path.display());
+        writer.record(dev::DEV_USER, "import", &format!("set {}", record.id), Outcome::Ok(&detail));
+        return Ok(record);
+    }
     writer.mark_active(record.id)?;
     writer.set_boot_config(&sha)?;
     let detail = format!("imported {} and activated it", path.display());
     writer.record("boot", "boot", &format!("set {}", record.id), Outcome::Ok(&detail));
     tracing::info!("imported {} as set {} and activated it", path.display(), record.id);
     Ok(record)
+}
+
+/// Why a robot file is imported from disk: at boot (it becomes the active
+/// set at once: nothing runs yet), or by `subsume dev` (a staged set, then
+/// activated like any other).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Import {
+    Boot,
+    Dev,
 }
 
 /// The simulated robot of the active set, for the portal's map.

@@ -80,6 +80,28 @@ pub fn lock_action(host: &str, user: &str, password: &str, action: LockAction) -
 
 /// One request; the JSON answer of a 2xx, else the portal's error.
 fn request(address: &str, method: &str, path: &str, token: Option<&str>, body: &Value) -> Result<Value, ClientError> {
+    let body = if body.is_null() { String::new() } else { body.to_string() };
+    let (status, json, text) =
+        exchange(address, method, path, token, "application/json", body.as_bytes(), CLIENT_TIMEOUT)?;
+    if (200..300).contains(&status) {
+        return Ok(json);
+    }
+    let message = json["error"].as_str().map_or_else(|| text.trim().to_string(), str::to_string);
+    Err(ClientError::Refused { address: address.to_string(), status, message: crate::contract::clip(&message) })
+}
+
+/// One request with `body` as `content_type`, every wait bounded by
+/// `timeout`: the status, the answer as JSON (`Null` when it is not) and as
+/// text.
+pub(crate) fn exchange(
+    address: &str,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    content_type: &str,
+    body: &[u8],
+    timeout: Duration,
+) -> Result<(u16, Value, String), ClientError> {
     let connect = |reason: String| ClientError::Connect { address: address.to_string(), reason };
     let target = address
         .to_socket_addrs()
@@ -87,18 +109,14 @@ fn request(address: &str, method: &str, path: &str, token: Option<&str>, body: &
         .next()
         .ok_or_else(|| ClientError::Host(address.to_string()))?;
     let mut stream = TcpStream::connect_timeout(&target, CLIENT_TIMEOUT).map_err(|e| connect(e.to_string()))?;
-    stream.set_read_timeout(Some(CLIENT_TIMEOUT)).map_err(|e| connect(e.to_string()))?;
-    stream.set_write_timeout(Some(CLIENT_TIMEOUT)).map_err(|e| connect(e.to_string()))?;
-    let body = if body.is_null() { String::new() } else { body.to_string() };
+    stream.set_read_timeout(Some(timeout)).map_err(|e| connect(e.to_string()))?;
+    stream.set_write_timeout(Some(timeout)).map_err(|e| connect(e.to_string()))?;
     let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
     let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Type: {content_type}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
         body.len()
     );
-    stream
-        .write_all(head.as_bytes())
-        .and_then(|()| stream.write_all(body.as_bytes()))
-        .map_err(|e| connect(e.to_string()))?;
+    stream.write_all(head.as_bytes()).and_then(|()| stream.write_all(body)).map_err(|e| connect(e.to_string()))?;
     let mut answer = Vec::new();
     stream.take(MAX_ANSWER_BYTES).read_to_end(&mut answer).map_err(|e| connect(e.to_string()))?;
     let text = String::from_utf8_lossy(&answer);
@@ -111,11 +129,7 @@ fn request(address: &str, method: &str, path: &str, token: Option<&str>, body: &
     let chunked = head.to_ascii_lowercase().contains("transfer-encoding: chunked");
     let body = if chunked { dechunk(body) } else { body.to_string() };
     let json: Value = serde_json::from_str(body.trim()).unwrap_or(Value::Null);
-    if (200..300).contains(&status) {
-        return Ok(json);
-    }
-    let message = json["error"].as_str().map_or_else(|| body.trim().to_string(), str::to_string);
-    Err(ClientError::Refused { address: address.to_string(), status, message: crate::contract::clip(&message) })
+    Ok((status, json, body))
 }
 
 /// The payload of a chunked body.

@@ -24,6 +24,7 @@
 
 pub mod auth;
 pub mod client;
+pub mod deploy_client;
 pub mod error;
 pub mod logs;
 mod routes;

@@ -6,13 +6,14 @@
 use std::path::{Path, PathBuf};
 
 use super::protocol::Profile;
-use super::serial::{LinkError, LinkSettings, SerialLink};
+use super::serial::{LinkError, LinkSettings, ScanGeometry, SerialLink};
 use super::translator::{DriveGeometry, ProfileTranslator, Translator};
 use crate::builtin::{
     self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
     positive_up_to,
 };
 use crate::config::ParamProblem;
+use crate::config::RobotConfig;
 use crate::contract::{ValueKind, clip};
 use crate::runtime::Component;
 
@@ -91,6 +92,26 @@ const PARAMS: &[ParamDecl] = &[
         doc: "fastest wheel speed",
     },
 ];
+
+/// A `device` naming a simulated robot: `sim:NAME`.
+const SIM_DEVICE: &str = "sim:";
+
+/// The geometry of the rays of the simulated robot `sim` (its `fov` and
+/// `max-range` parameters, as checked when the robot file was): the link
+/// emits its ranges as a scan with it.
+fn sim_scan_geometry(robot: &RobotConfig, sim: &str) -> Result<ScanGeometry, BuiltinError> {
+    let component = robot
+        .components
+        .iter()
+        .find(|c| c.name == sim)
+        .ok_or_else(|| BuiltinError::Refused(format!("device 'sim:{sim}' names no builtin:sim component")))?;
+    let number = |name: &str| {
+        component.params.iter().find(|p| p.name == name).and_then(|p| p.value.trim().parse::<f64>().ok()).ok_or_else(
+            || BuiltinError::Refused(format!("device 'sim:{sim}': the simulated robot has no number '{name}'")),
+        )
+    };
+    Ok(ScanGeometry { fov: number("fov")?, max_range: number("max-range")? })
+}
 
 /// The translator a serial link uses.
 #[derive(Clone, Debug, PartialEq)]
@@ -187,12 +208,24 @@ impl Builtin for SerialBuiltin {
         }
     }
 
-    fn ports(&self, _params: &Params) -> Ports {
+    fn ports(&self, params: &Params) -> Ports {
+        let ranges = match params.text("device").map(|d| d.starts_with(SIM_DEVICE)) {
+            Ok(true) => builtin::port(
+                "ranges",
+                ValueKind::Scan,
+                "range scan with its geometry (the simulated robot's rays, fov and max-range); feeds vector inputs as its ranges",
+            ),
+            _ => builtin::port(
+                "ranges",
+                ValueKind::Vector,
+                "range readings in metres, right to left (a scan with its geometry when device is sim:NAME)",
+            ),
+        };
         Ports {
             inputs: vec![builtin::port("cmd", ValueKind::Command, "the command for the motors (from the arbiter)")],
             outputs: vec![
                 builtin::port("pose", ValueKind::Vector, "odometry [x m, y m, heading rad]"),
-                builtin::port("ranges", ValueKind::Vector, "range readings in metres, right to left"),
+                ranges,
                 builtin::port("bumper", ValueKind::Flag, "true while the bumper is pressed"),
                 builtin::port("battery", ValueKind::Scalar, "battery voltage"),
             ],
@@ -201,8 +234,12 @@ impl Builtin for SerialBuiltin {
 
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
         let device = params.text("device")?;
+        let scan = match device.strip_prefix(SIM_DEVICE) {
+            Some(sim) => Some(sim_scan_geometry(ctx.robot, sim)?),
+            None => None,
+        };
         let device =
-            match device.strip_prefix("sim:") {
+            match device.strip_prefix(SIM_DEVICE) {
                 Some(sim) => ctx.ptys.get(sim).cloned().ok_or_else(|| {
                     BuiltinError::Refused(format!("device 'sim:{sim}' names no builtin:sim component"))
                 })?,
@@ -241,6 +278,9 @@ impl Builtin for SerialBuiltin {
         })?;
         if let Some(lockstep) = ctx.clock.lockstep() {
             link.join_lockstep(lockstep);
+        }
+        if let Some(geometry) = scan {
+            link = link.with_scan(geometry);
         }
         Ok(Box::new(link))
     }

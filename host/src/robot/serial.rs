@@ -47,7 +47,7 @@ use serde::Serialize;
 use super::control::{self, ControlCommand};
 use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
-use crate::contract::Value;
+use crate::contract::{Scan, Value};
 use crate::runtime::lockstep::{Lockstep, LockstepLink, wait_until};
 use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
 
@@ -319,6 +319,31 @@ pub struct SerialLink {
     /// Held so a simulated clock's lock-step registry (which keeps a weak
     /// reference) keeps this link.
     lockstep: Option<Arc<dyn LockstepLink>>,
+    /// The rays' geometry when the ranges are a scan (`with_scan`).
+    scan: Option<ScanGeometry>,
+}
+
+/// Where the rays of a link's ranges point, when it is known (a simulated
+/// robot's `fov` and `max-range`): the ranges go out as a `scan`, ray `i`
+/// of `n` at `-fov/2 + i * fov/(n-1)` radians (right to left), as the
+/// simulator casts them.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ScanGeometry {
+    /// Angle covered by the rays, radians.
+    pub fov: f64,
+    /// Longest reading, metres ("nothing seen").
+    pub max_range: f64,
+}
+
+impl ScanGeometry {
+    /// `ranges` as a scan with this geometry (the increment follows the
+    /// number of readings, so it always matches what arrived).
+    pub fn scan(&self, ranges: Vec<f64>) -> Scan {
+        let n = ranges.len();
+        let (angle_min, angle_increment) =
+            if n > 1 { (-self.fov / 2.0, self.fov / (n - 1) as f64) } else { (0.0, 0.0) };
+        Scan { angle_min, angle_increment, range_min: 0.0, range_max: self.max_range, ranges }
+    }
 }
 
 /// Output ports of `builtin:serial`, in order.
@@ -381,7 +406,15 @@ impl SerialLink {
             frame: Vec::new(),
             stats,
             lockstep: None,
+            scan: None,
         })
+    }
+
+    /// Emits the ranges as a `scan` with `geometry` (the `ranges` port is
+    /// then declared `scan`; see `builtin.rs`).
+    pub fn with_scan(mut self, geometry: ScanGeometry) -> SerialLink {
+        self.scan = Some(geometry);
+        self
     }
 
     /// Joins the lock-step of a simulated clock: the control loop then waits
@@ -480,7 +513,10 @@ impl SerialLink {
             self.stats.feedback_messages += 1;
             let item = match feedback {
                 Feedback::Odometry { x, y, heading } => (0, Value::Vector(vec![x, y, heading])),
-                Feedback::Ranges(ranges) => (1, Value::Vector(ranges)),
+                Feedback::Ranges(ranges) => match &self.scan {
+                    Some(geometry) => (1, Value::Scan(geometry.scan(ranges))),
+                    None => (1, Value::Vector(ranges)),
+                },
                 Feedback::Bumper(hit) => (2, Value::Flag(hit)),
                 Feedback::Battery(volts) => (3, Value::Scalar(volts)),
             };

@@ -23,7 +23,7 @@ use super::cpu_wait::CpuWait;
 use super::histogram::Histogram;
 use super::stall::{Activity, Heartbeat};
 use super::tap::{Call, Tap};
-use super::wiring::{MAX_RESTART_BACKOFF_NS, Mailbox, Policy, RestartPolicy};
+use super::wiring::{Convert, MAX_RESTART_BACKOFF_NS, Mailbox, Policy, RestartPolicy};
 use crate::contract::Value;
 
 /// Most `on-input` deliveries in one cycle. A cycle in the wiring (a -> b ->
@@ -88,6 +88,7 @@ struct Connection {
     to_port: u32,
     mailbox: Mailbox,
     stats: ConnectionStats,
+    convert: Convert,
 }
 
 struct Node {
@@ -286,6 +287,20 @@ impl Graph {
     /// Connects output `from_port` of `from` to input `to_port` of `to`.
     /// Indices come from a validated config; out-of-range ones are ignored.
     pub fn connect(&mut self, from: usize, from_port: u32, to: usize, to_port: u32, policy: Policy) {
+        self.connect_converting(from, from_port, to, to_port, policy, Convert::Nothing);
+    }
+
+    /// As `connect`, with `convert` applied to every value on its way (a
+    /// scan into a vector input arrives as its ranges).
+    pub fn connect_converting(
+        &mut self,
+        from: usize,
+        from_port: u32,
+        to: usize,
+        to_port: u32,
+        policy: Policy,
+        convert: Convert,
+    ) {
         if to >= self.nodes.len() {
             return;
         }
@@ -295,7 +310,7 @@ impl Graph {
         let mailbox = Mailbox::new(policy);
         route.push(self.connections.len());
         self.nodes[to].incoming.push(self.connections.len());
-        self.connections.push(Connection { from, to, to_port, mailbox, stats: ConnectionStats::default() });
+        self.connections.push(Connection { from, to, to_port, mailbox, stats: ConnectionStats::default(), convert });
     }
 
     /// One cycle at time `now_ns`: ticks every running component that is due,
@@ -614,6 +629,7 @@ impl Graph {
         if target.state != ComponentState::Running {
             return;
         }
+        let value = connection.convert.apply(value);
         connection.stats.routed += 1;
         match &mut connection.mailbox {
             Mailbox::Latest(slot) => {

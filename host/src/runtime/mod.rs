@@ -31,4 +31,4 @@ pub use histogram::Histogram;
 pub use locks::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
 pub use tap::{Call, Tap};
-pub use wiring::{Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};
+pub use wiring::{Convert, Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};

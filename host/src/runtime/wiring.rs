@@ -17,6 +17,35 @@ pub enum Policy {
     Queue { depth: usize },
 }
 
+/// What a connection does to a value on its way: the kinds of its two ends
+/// decide (`contract::ValueKind::can_feed`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Convert {
+    /// The value arrives as it was emitted.
+    #[default]
+    Nothing,
+    /// A `scan` output into a `vector` input: the input receives the ranges
+    /// (a built-in or a component that knows only vectors keeps working).
+    ScanToRanges,
+}
+
+impl Convert {
+    /// The conversion between an output of kind `from` and an input of
+    /// kind `to`.
+    pub fn between(from: crate::contract::ValueKind, to: crate::contract::ValueKind) -> Convert {
+        use crate::contract::ValueKind;
+        if from == ValueKind::Scan && to == ValueKind::Vector { Convert::ScanToRanges } else { Convert::Nothing }
+    }
+
+    /// `value` as the input receives it.
+    pub fn apply(self, value: Value) -> Value {
+        match (self, value) {
+            (Convert::ScanToRanges, Value::Scan(scan)) => Value::Vector(scan.ranges),
+            (_, value) => value,
+        }
+    }
+}
+
 /// When a faulted component is brought back.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct RestartPolicy {

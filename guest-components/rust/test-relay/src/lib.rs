@@ -11,7 +11,9 @@ impl Component for Relay {
             .input(input("scalar-in", ValueKind::Scalar, "forwarded to scalar-out"))
             .input(input("vector-in", ValueKind::Vector, "forwarded to vector-out"))
             .output(output("scalar-out", ValueKind::Scalar, "what scalar-in received"))
+            .input(input("scan-in", ValueKind::Scan, "forwarded to scan-out, geometry and all"))
             .output(output("vector-out", ValueKind::Vector, "what vector-in received"))
+            .output(output("scan-out", ValueKind::Scan, "what scan-in received"))
     }
     fn init(_params: &Params) -> Result<Self, String> {
         Ok(Relay)

@@ -1,0 +1,376 @@
+//! `subsume deploy`: upload components and/or a robot file to a running
+//! host's portal, stage and activate them in one step, through the same
+//! HTTP API (and so the same checks) as the page: log in, `PUT` each
+//! component, `PUT` the robot file (a staged set), `POST` its activation,
+//! log out.
+//!
+//! Without `--robot`, the robot file of the active set is fetched and each
+//! deployed component's `source` in it is pointed at the uploaded name
+//! (`NAME.wasm`), so "replace component NAME of the running robot" is one
+//! command. Everything local (files, names, the components the robot file
+//! must have) is checked before anything is sent; any refusal after that
+//! leaves the running set as it was (a component that was uploaded stays in
+//! the store under its name, as a page upload would).
+
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+use thiserror::Error;
+
+use super::client::{ClientError, exchange};
+use crate::contract::{clip, is_valid_name};
+
+/// Longest wait for one upload or activation: the portal answers an upload
+/// only after compiling it (a Python component takes 14-19 s on a loaded
+/// 2-core machine), and an activation after instantiating the new set.
+pub const DEPLOY_TIMEOUT: Duration = Duration::from_secs(300);
+/// Largest local file read for an upload: the portal's own limit
+/// (`MAX_UPLOAD_BYTES`), so an oversized file is refused before sending.
+pub const MAX_DEPLOY_FILE_BYTES: u64 = 32 << 20;
+
+/// What to deploy, and where.
+#[derive(Clone, Debug)]
+pub struct DeployRequest {
+    /// The portal's address (HOST:PORT or http://HOST:PORT).
+    pub host: String,
+    pub user: String,
+    pub password: String,
+    /// The platform the uploads belong to (`control`, `network`).
+    pub platform: String,
+    /// (component name in the robot file and in the store, .wasm file).
+    pub components: Vec<(String, PathBuf)>,
+    /// A robot file; none: the active one, with the components replaced.
+    pub robot: Option<PathBuf>,
+}
+
+/// What a deploy did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Deployed {
+    /// The set that now runs.
+    pub set: u64,
+    /// Seconds each component's upload took (sent, compiled, checked).
+    pub uploads: Vec<(String, f64)>,
+}
+
+/// Why a deploy stopped; nothing that runs was changed.
+#[derive(Debug, Error)]
+pub enum DeployClientError {
+    #[error(transparent)]
+    Portal(#[from] ClientError),
+    #[error("'{0}' is not NAME=FILE.wasm with NAME [a-z][a-z0-9_-]*")]
+    BadComponent(String),
+    #[error("nothing to deploy: give --component NAME=FILE.wasm and/or --robot FILE.xml")]
+    Nothing,
+    #[error("{path}: {why}")]
+    File { path: String, why: String },
+    #[error("the running robot file {file} has no component '{name}' (it has: {has})")]
+    NoSuchComponent { file: String, name: String, has: String },
+    #[error("{0} was refused; nothing was changed:\n{1}")]
+    Invalid(String, String),
+    #[error("{what}: the portal answered {status}: {message}")]
+    Refused { what: String, status: u16, message: String },
+}
+
+/// Parses `NAME=FILE` from the command line.
+pub fn component_arg(text: &str) -> Result<(String, PathBuf), DeployClientError> {
+    match text.split_once('=') {
+        Some((name, file)) if is_valid_name(name) && !file.is_empty() => Ok((name.to_string(), PathBuf::from(file))),
+        _ => Err(DeployClientError::BadComponent(clip(text))),
+    }
+}
+
+/// Deploys `request`; `say` gets a line per step (progress for a person).
+pub fn deploy(request: &DeployRequest, say: &mut dyn FnMut(&str)) -> Result<Deployed, DeployClientError> {
+    if request.components.is_empty() && request.robot.is_none() {
+        return Err(DeployClientError::Nothing);
+    }
+    let address = request.host.strip_prefix("http://").unwrap_or(&request.host).trim_end_matches('/').to_string();
+    if address.is_empty() || address.contains('/') || request.host.starts_with("https://") {
+        return Err(ClientError::Host(address).into());
+    }
+    // Everything local first: a missing file changes nothing remotely.
+    let mut components = Vec::new();
+    for (name, path) in &request.components {
+        if !is_valid_name(name) {
+            return Err(DeployClientError::BadComponent(clip(name)));
+        }
+        components.push((name.clone(), read(path)?));
+    }
+    let robot = match &request.robot {
+        Some(path) => Some((path.display().to_string(), file_name(path)?, read(path)?)),
+        None => None,
+    };
+    let portal = Portal::login(&address, &request.user, &request.password)?;
+    let result = portal.deploy(&request.platform, &components, robot, say);
+    portal.logout();
+    result
+}
+
+fn read(path: &Path) -> Result<Vec<u8>, DeployClientError> {
+    let file = |why: String| DeployClientError::File { path: path.display().to_string(), why };
+    let size = std::fs::metadata(path).map_err(|e| file(e.to_string()))?.len();
+    if size > MAX_DEPLOY_FILE_BYTES {
+        return Err(file(format!("{size} bytes; the portal takes at most {MAX_DEPLOY_FILE_BYTES}")));
+    }
+    std::fs::read(path).map_err(|e| file(e.to_string()))
+}
+
+fn file_name(path: &Path) -> Result<String, DeployClientError> {
+    path.file_name()
+        .and_then(|n| n.to_str())
+        .map(str::to_string)
+        .ok_or_else(|| DeployClientError::File { path: path.display().to_string(), why: "has no file name".into() })
+}
+
+/// A logged-in session on one portal.
+struct Portal {
+    address: String,
+    token: String,
+}
+
+impl Portal {
+    fn login(address: &str, user: &str, password: &str) -> Result<Portal, DeployClientError> {
+        let body = json!({ "name": user, "password": password }).to_string();
+        let answer = call(address, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")?;
+        let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(address.to_string()))?.to_string();
+        Ok(Portal { address: address.to_string(), token })
+    }
+
+    fn logout(&self) {
+        let _ = exchange(
+            &self.address,
+            "POST",
+            "/api/v1/logout",
+            Some(&self.token),
+            "application/json",
+            b"",
+            DEPLOY_TIMEOUT,
+        );
+    }
+
+    fn call(
+        &self,
+        method: &str,
+        path: &str,
+        content_type: &str,
+        body: &[u8],
+        what: &str,
+    ) -> Result<Value, DeployClientError> {
+        call(&self.address, Some(&self.token), method, path, content_type, body, what)
+    }
+
+    fn deploy(
+        &self,
+        platform: &str,
+        components: &[(String, Vec<u8>)],
+        robot: Option<(String, String, Vec<u8>)>,
+        say: &mut dyn FnMut(&str),
+    ) -> Result<Deployed, DeployClientError> {
+        // The robot file: the given one, or the active one pointed at the
+        // uploads (checked before anything is uploaded).
+        let (shown, name, text) = match robot {
+            Some(robot) => robot,
+            None => {
+                let status = self.call("GET", "/api/v1/status", "application/json", b"", "reading the status")?;
+                let set = status["set"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()))?;
+                let active = self.call(
+                    "GET",
+                    &format!("/api/v1/sets/{set}"),
+                    "application/json",
+                    b"",
+                    "reading the active set",
+                )?;
+                let name = active["set"]["config_name"].as_str().unwrap_or("robot.xml").to_string();
+                let mut text = active["config"].as_str().unwrap_or_default().to_string();
+                for (component, _) in components {
+                    text = point_source_at(&text, component, &format!("{component}.wasm")).map_err(|has| {
+                        DeployClientError::NoSuchComponent { file: name.clone(), name: component.clone(), has }
+                    })?;
+                }
+                say(&format!("using the active robot file {name} (set {set}) with {}", list(components)));
+                (format!("{name} (the active robot file)"), name, text.into_bytes())
+            }
+        };
+        let mut uploads = Vec::new();
+        for (component, bytes) in components {
+            say(&format!(
+                "uploading {component} ({} KiB): the portal compiles and checks it...",
+                bytes.len().div_ceil(1024)
+            ));
+            let started = Instant::now();
+            let path = format!("/api/v1/platforms/{platform}/components/{component}");
+            self.call("PUT", &path, "application/wasm", bytes, &format!("component {component}"))?;
+            let took = started.elapsed().as_secs_f64();
+            say(&format!("uploaded {component} in {took:.1} s"));
+            uploads.push((component.clone(), took));
+        }
+        let path = format!("/api/v1/platforms/{platform}/configs/{name}");
+        let staged = self.call("PUT", &path, "application/xml", &text, &shown).map_err(|e| locate(e, &shown))?;
+        let set = staged["set"]["id"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()))?;
+        say(&format!("staged {shown} as set {set}; activating..."));
+        self.call(
+            "POST",
+            &format!("/api/v1/sets/{set}/activate"),
+            "application/json",
+            b"",
+            &format!("activating set {set}"),
+        )
+        .map_err(|e| locate(e, &format!("activating set {set}")))?;
+        say(&format!("set {set} is running"));
+        Ok(Deployed { set, uploads })
+    }
+}
+
+fn list(components: &[(String, Vec<u8>)]) -> String {
+    components.iter().map(|(name, _)| format!("{name} -> {name}.wasm")).collect::<Vec<_>>().join(", ")
+}
+
+/// One request whose non-2xx answer becomes `Refused` (diagnostics kept in
+/// the message, one per line, for [`locate`]).
+fn call(
+    address: &str,
+    token: Option<&str>,
+    method: &str,
+    path: &str,
+    content_type: &str,
+    body: &[u8],
+    what: &str,
+) -> Result<Value, DeployClientError> {
+    let (status, answer, text) = exchange(address, method, path, token, content_type, body, DEPLOY_TIMEOUT)?;
+    if (200..300).contains(&status) {
+        return Ok(answer);
+    }
+    // The portal's own answer (bounded by `MAX_ANSWER_BYTES`), whole: its
+    // diagnostics are what the person needs to see.
+    let mut message = answer["error"].as_str().map_or_else(|| text.trim().to_string(), str::to_string);
+    for d in answer["diagnostics"].as_array().into_iter().flatten() {
+        let line = format!(
+            "{}:{}:{}: {}",
+            d["file"].as_str().unwrap_or("?"),
+            d["line"].as_u64().unwrap_or(0),
+            d["column"].as_u64().unwrap_or(0),
+            d["message"].as_str().unwrap_or("?")
+        );
+        message.push('\n');
+        message.push_str(&line);
+    }
+    Err(DeployClientError::Refused { what: what.to_string(), status, message })
+}
+
+/// A robot file's refusal with its diagnostics as `FILE:line:column:
+/// message` lines, `FILE` the local path (the portal names the upload).
+fn locate(error: DeployClientError, shown: &str) -> DeployClientError {
+    match error {
+        DeployClientError::Refused { status: 422, message, .. } if message.contains('\n') => {
+            let mut lines = message.lines();
+            let head = lines.next().unwrap_or_default();
+            let located: Vec<String> = lines
+                .map(|l| match l.split_once(':') {
+                    Some((_, rest)) if rest.split(':').next().is_some_and(|n| n.parse::<u64>().is_ok()) => {
+                        format!("{shown}:{rest}")
+                    }
+                    _ => l.to_string(),
+                })
+                .collect();
+            DeployClientError::Invalid(shown.to_string(), format!("{head}\n{}", located.join("\n")))
+        }
+        other => other,
+    }
+}
+
+/// `xml` with the `source` attribute of `<component name="NAME" ...>` set
+/// to `source`; the rest byte for byte. Err: the names of the components it
+/// has.
+fn point_source_at(xml: &str, name: &str, source: &str) -> Result<String, String> {
+    use quick_xml::events::Event;
+    let mut reader = quick_xml::Reader::from_str(xml);
+    let mut names = Vec::new();
+    loop {
+        let before = reader.buffer_position() as usize;
+        let event = match reader.read_event() {
+            Ok(Event::Eof) | Err(_) => break,
+            Ok(event) => event,
+        };
+        let (Event::Start(e) | Event::Empty(e)) = event else { continue };
+        if e.name().as_ref() != "component" {
+            continue;
+        }
+        let this = e
+            .attributes()
+            .flatten()
+            .find(|a| a.key.as_ref() == "name")
+            .map(|a| a.value.clone().into_owned())
+            .unwrap_or_default();
+        if this != name {
+            names.push(this);
+            continue;
+        }
+        let after = reader.buffer_position() as usize;
+        let element = xml.get(before..after).unwrap_or_default();
+        if let Some((from, to)) = attribute_value(element, "source") {
+            return Ok(format!("{}{source}{}", &xml[..before + from], &xml[before + to..]));
+        }
+        names.push(this);
+    }
+    Err(if names.is_empty() { "no components".into() } else { names.join(", ") })
+}
+
+/// The byte range of attribute `key`'s value inside one start tag.
+fn attribute_value(tag: &str, key: &str) -> Option<(usize, usize)> {
+    let bytes = tag.as_bytes();
+    let mut at = 0;
+    while let Some(found) = tag[at..].find(key) {
+        let start = at + found;
+        at = start + key.len();
+        if start == 0 || !bytes[start - 1].is_ascii_whitespace() {
+            continue;
+        }
+        let rest = tag[at..].trim_start();
+        let Some(rest) = rest.strip_prefix('=') else { continue };
+        let rest = rest.trim_start();
+        let quote = rest.chars().next()?;
+        if quote != '"' && quote != '\'' {
+            continue;
+        }
+        let value_start = tag.len() - rest.len() + 1;
+        let value_end = value_start + tag[value_start..].find(quote)?;
+        return Some((value_start, value_end));
+    }
+    None
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_component_source_is_repointed_and_nothing_else_changes() {
+        let xml = "<robot name=\"r\">\n  <platform name=\"control\">\n    <component name=\"filter\" source=\"a/filter.wasm\"/>\n    <component rate=\"20\" name=\"avoid\"\n      source = 'x/avoider.wasm' budget=\"5ms\">\n      <param name=\"source\" value=\"1\"/>\n    </component>\n  </platform>\n</robot>\n";
+        let out = point_source_at(xml, "avoid", "avoid.wasm").unwrap();
+        assert_eq!(out, xml.replace("x/avoider.wasm", "avoid.wasm"));
+        assert_eq!(point_source_at(xml, "ghost", "g.wasm").unwrap_err(), "filter, avoid");
+    }
+
+    #[test]
+    fn component_arguments_and_hosts_are_checked_before_anything_is_sent() {
+        assert_eq!(component_arg("avoid=build/a.wasm").unwrap(), ("avoid".into(), PathBuf::from("build/a.wasm")));
+        for bad in ["avoid", "=a.wasm", "Avoid=a.wasm", "avoid="] {
+            assert!(matches!(component_arg(bad), Err(DeployClientError::BadComponent(_))), "{bad}");
+        }
+        let request = |host: &str, components: Vec<(String, PathBuf)>| DeployRequest {
+            host: host.into(),
+            user: "u".into(),
+            password: "p".into(),
+            platform: "control".into(),
+            components,
+            robot: None,
+        };
+        assert!(matches!(deploy(&request("x:1", vec![]), &mut |_| {}), Err(DeployClientError::Nothing)));
+        let missing = vec![("avoid".to_string(), PathBuf::from("/nonexistent/a.wasm"))];
+        // A missing file is reported before the (unreachable) host is tried.
+        let error = deploy(&request("127.0.0.1:1", missing.clone()), &mut |_| {}).unwrap_err().to_string();
+        assert!(error.starts_with("/nonexistent/a.wasm: "), "{error}");
+        assert!(matches!(deploy(&request("https://x:1", missing), &mut |_| {}), Err(DeployClientError::Portal(_))));
+    }
+}

@@ -1,0 +1,315 @@
+#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
+//! `subsume deploy` end to end: the built binary against a real `subsume
+//! run` with the portal, over real HTTP. A component replaced in the
+//! running robot in one command; a robot file and its component in one
+//! command; a bad robot file answered with located errors and nothing
+//! changed; a component the running robot does not have refused before
+//! anything is uploaded.
+
+#[path = "../host/tests/support/mod.rs"]
+mod support;
+
+use std::io::{BufRead, BufReader, Read, Write};
+use std::net::TcpStream;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::time::Duration;
+
+use serde_json::Value;
+
+const PASSWORD: &str = "deploy-test-password";
+
+struct Host {
+    child: Child,
+    address: String,
+}
+
+impl Drop for Host {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn subsume() -> Command {
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.current_dir(support::repo_root()).env("NO_COLOR", "1").env_remove("SUBSUME_HTTP");
+    command
+}
+
+fn add_admin(store: &Path) {
+    let mut child = subsume()
+        .args(["user", "add", "admin", "--role", "admin", "--password-stdin", "--store"])
+        .arg(store)
+        .stdin(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .unwrap();
+    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
+    assert!(child.wait().unwrap().success());
+}
+
+/// `subsume run ROBOT` with the portal on a free port.
+fn start(store: &Path, robot: &Path) -> Host {
+    support::guest_dir();
+    let mut child = subsume()
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
+        .arg(robot)
+        .args(["--http", "127.0.0.1:0"])
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            if let Some(rest) = line.split("portal on http://").nth(1) {
+                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
+            }
+        }
+    });
+    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
+    Host { child, address }
+}
+
+/// One HTTP/1.1 request; (status, JSON body).
+fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, Value) {
+    let mut stream = TcpStream::connect(address).unwrap();
+    stream.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
+    let head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    stream.write_all(head.as_bytes()).unwrap();
+    let _ = stream.write_all(body);
+    let mut response = Vec::new();
+    let _ = stream.read_to_end(&mut response);
+    let text = String::from_utf8_lossy(&response);
+    let status = text.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
+    let body = text.split("\r\n\r\n").nth(1).unwrap_or("");
+    (status, serde_json::from_str(body).unwrap_or(Value::Null))
+}
+
+fn token(address: &str) -> String {
+    let body = serde_json::json!({ "name": "admin", "password": PASSWORD }).to_string();
+    let (status, json) = http(address, "POST", "/api/v1/login", None, body.as_bytes());
+    assert_eq!(status, 200, "{json}");
+    json["token"].as_str().unwrap().to_string()
+}
+
+/// The active set: (id, robot name, the sha256 of the component `name` runs).
+fn active(address: &str, name: &str) -> (u64, String, Option<String>) {
+    let token = token(address);
+    let (_, status) = http(address, "GET", "/api/v1/status", Some(&token), b"");
+    let set = status["set"].as_u64().unwrap();
+    let (_, record) = http(address, "GET", &format!("/api/v1/sets/{set}"), Some(&token), b"");
+    let config = record["config"].as_str().unwrap();
+    let source = config.split(&format!("name=\"{name}\" source=\"")).nth(1).map(|s| s.split('"').next().unwrap());
+    let sha = source.and_then(|s| record["set"]["sources"][s].as_str()).map(str::to_string);
+    (set, status["robot"].as_str().unwrap().to_string(), sha)
+}
+
+/// `subsume deploy ARGS... ADDRESS` as admin: (success, stdout, stderr).
+fn deploy(address: &str, args: &[&str]) -> (bool, String, String) {
+    let output = subsume()
+        .arg("deploy")
+        .args(args)
+        .arg(address)
+        .env("SUBSUME_USER", "admin")
+        .env("SUBSUME_PASSWORD", PASSWORD)
+        .output()
+        .unwrap();
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    (output.status.success(), text(&output.stdout), text(&output.stderr))
+}
+
+/// The relay's bytes with a custom section: a component no one uploaded.
+fn unique_relay(dir: &Path, tag: &str) -> std::path::PathBuf {
+    let mut wasm = std::fs::read(support::guest("test-relay")).unwrap();
+    let name = b"test";
+    wasm.extend_from_slice(&[0, (1 + name.len() + tag.len()) as u8, name.len() as u8]);
+    wasm.extend_from_slice(name);
+    wasm.extend_from_slice(tag.as_bytes());
+    let path = dir.join(format!("relay-{tag}.wasm"));
+    std::fs::write(&path, wasm).unwrap();
+    path
+}
+
+fn sha256(path: &Path) -> String {
+    use sha2::Digest;
+    hex::encode(sha2::Sha256::digest(std::fs::read(path).unwrap()))
+}
+
+fn robot(name: &str, relay_source: &str) -> String {
+    format!(
+        r#"<robot name="{name}">
+  <platform name="control">
+    <component name="source" source="builtin:publish" rate="20"><param name="value" value="1"/></component>
+    <component name="relay" source="{relay_source}" rate="0"/>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="source.out" to="relay.scalar-in"/>
+    <connect from="relay.scalar-out" to="sink.in"/>
+  </platform>
+</robot>
+"#
+    )
+}
+
+#[test]
+fn deploy_replaces_a_component_or_a_whole_robot_in_one_step_and_changes_nothing_on_failure() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let boot = dir.path().join("boot.xml");
+    std::fs::write(&boot, robot("boot", &support::guest("test-relay").display().to_string())).unwrap();
+    let host = start(&store, &boot);
+    let (first, name, _) = active(&host.address, "relay");
+    assert_eq!(name, "boot");
+
+    // One component of the running robot, replaced in one command.
+    let v2 = unique_relay(dir.path(), "v2");
+    let (ok, stdout, stderr) = deploy(&host.address, &["--component", &format!("relay={}", v2.display())]);
+    assert!(ok, "{stderr}");
+    let (second, name, sha) = active(&host.address, "relay");
+    assert!(second > first, "{stdout}");
+    assert_eq!(stdout.trim(), format!("deployed: set {second} is running"));
+    assert_eq!((name.as_str(), sha.as_deref()), ("boot", Some(sha256(&v2).as_str())));
+    assert!(stderr.contains("deploy: uploaded relay in "), "{stderr}");
+
+    // A robot file and a component in one command.
+    let v3 = unique_relay(dir.path(), "v3");
+    let next = dir.path().join("next.xml");
+    std::fs::write(&next, robot("next", "relay.wasm")).unwrap();
+    let relay_arg = format!("relay={}", v3.display());
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &relay_arg, "--robot", next.to_str().unwrap()]);
+    assert!(ok, "{stderr}");
+    let (third, name, sha) = active(&host.address, "relay");
+    assert!(third > second);
+    assert_eq!((name.as_str(), sha.as_deref()), ("next", Some(sha256(&v3).as_str())));
+
+    // A bad robot file: located errors (the local path), nothing changed.
+    let bad = dir.path().join("bad.xml");
+    std::fs::write(&bad, robot("bad", "relay.wasm").replace("relay.scalar-in", "relay.nothing")).unwrap();
+    let (ok, _, stderr) = deploy(&host.address, &["--robot", bad.to_str().unwrap()]);
+    assert!(!ok);
+    let located = format!("{}:6:36: unknown input port 'nothing' on component 'relay'", bad.display());
+    assert!(stderr.contains(&located), "{stderr}");
+    assert!(stderr.contains("nothing was changed"), "{stderr}");
+    assert_eq!(active(&host.address, "relay"), (third, "next".to_string(), Some(sha256(&v3))));
+
+    // A component the running robot does not have: refused before any upload.
+    let ghost = unique_relay(dir.path(), "ghost");
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("ghost={}", ghost.display())]);
+    assert!(!ok);
+    assert!(
+        stderr.contains("the running robot file next.xml has no component 'ghost' (it has: source, relay, sink)"),
+        "{stderr}"
+    );
+    let (status, _) = http(&host.address, "GET", "/api/v1/components/ghost", Some(&token(&host.address)), b"");
+    assert_eq!(status, 404);
+    assert_eq!(active(&host.address, "relay").0, third);
+
+    // A file that is not a component: the portal's check, nothing changed.
+    let junk = dir.path().join("junk.wasm");
+    std::fs::write(&junk, b"not wasm").unwrap();
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("relay={}", junk.display())]);
+    assert!(!ok);
+    assert!(stderr.contains("component relay: the portal answered 415"), "{stderr}");
+    assert_eq!(active(&host.address, "relay").0, third);
+}
+
+/// `subsume dev ROBOT` with the portal on a free port; its stderr lines
+/// arrive on the receiver.
+fn start_dev(store: &Path, robot: &Path) -> (Host, std::sync::mpsc::Receiver<String>) {
+    support::guest_dir();
+    let mut child = subsume()
+        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "dev"])
+        .arg(robot)
+        .args(["--http", "127.0.0.1:0", "--poll", "0.05"])
+        .env("RUST_LOG", "info")
+        .stderr(Stdio::piped())
+        .stdout(Stdio::null())
+        .spawn()
+        .unwrap();
+    let stderr = child.stderr.take().unwrap();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    (Host { child, address: String::new() }, rx)
+}
+
+/// Lines until one contains `what` (all of them, that one last).
+fn until(lines: &std::sync::mpsc::Receiver<String>, what: &str) -> Vec<String> {
+    let deadline = std::time::Instant::now() + Duration::from_secs(120);
+    let mut seen = Vec::new();
+    loop {
+        let left = deadline.saturating_duration_since(std::time::Instant::now());
+        match lines.recv_timeout(left) {
+            Ok(line) => {
+                let done = line.contains(what);
+                seen.push(line);
+                if done {
+                    return seen;
+                }
+            }
+            Err(_) => panic!("no line with '{what}' within 120 s:\n{}", seen.join("\n")),
+        }
+    }
+}
+
+fn sim_robot(name: &str, relay_to: &str) -> String {
+    let world = support::repo_root().join("config/worlds/demo.world");
+    format!(
+        r#"<robot name="{name}">
+  <platform name="control">
+    <component name="robot-sim" source="builtin:sim"><param name="world" value="{world}"/></component>
+    <component name="motors" source="builtin:serial" rate="50"><param name="device" value="sim:robot-sim"/></component>
+    <component name="relay" source="relay.wasm" rate="0"/>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="motors.ranges" to="relay.{relay_to}"/>
+    <connect from="relay.vector-out" to="sink.in"/>
+  </platform>
+</robot>
+"#,
+        world = world.display()
+    )
+}
+
+#[test]
+fn dev_swaps_a_changed_component_in_and_keeps_the_running_set_when_the_robot_file_breaks() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let robot = dir.path().join("robot.xml");
+    let relay = dir.path().join("relay.wasm");
+    std::fs::copy(support::guest("test-relay"), &relay).unwrap();
+    std::fs::write(&robot, sim_robot("dev", "vector-in")).unwrap();
+    let (_host, lines) = start_dev(&store, &robot);
+    let watching = until(&lines, "dev: watching 2 file(s) every 50 ms");
+    assert!(watching.last().unwrap().contains(&relay.display().to_string()), "{watching:?}");
+
+    // A new build of the component: swapped in, the simulated robot and
+    // its link carried across.
+    std::fs::copy(unique_relay(dir.path(), "edit1"), &relay).unwrap();
+    let swapped = until(&lines, "dev: set 2 is running");
+    let text = swapped.join("\n");
+    assert!(text.contains(&format!("dev: changed: {}", relay.display())), "{text}");
+    assert!(text.contains("kept running") && text.contains("robot-sim"), "{text}");
+    eprintln!("edit -> running (Rust relay): {}", swapped.last().unwrap());
+
+    // A broken robot file: located errors, the running set stays.
+    std::fs::write(&robot, sim_robot("dev", "nothing")).unwrap();
+    let refused = until(&lines, "the running set is unchanged");
+    let text = refused.join("\n");
+    assert!(text.contains(&format!("dev: {}:7:", robot.display())), "{text}");
+    assert!(text.contains("unknown input port 'nothing' on component 'relay'"), "{text}");
+    assert!(!text.contains("is running"), "{text}");
+
+    // Fixed again: the next set runs.
+    std::fs::write(&robot, sim_robot("dev2", "vector-in")).unwrap();
+    until(&lines, "dev: set 3 is running");
+}
