@@ -344,9 +344,9 @@ fn check_accepts_a_good_file_with_a_summary() {
 fn run_refuses_a_bad_file_and_starts_nothing() {
     let output = run(&["run", "host/tests/config/bad-connections.xml", "--duration", "1"]);
     assert_eq!(output.status.code(), Some(1));
-    assert_eq!(text(&output.stdout).lines().count(), 10);
+    assert_eq!(text(&output.stdout).lines().count(), 11);
     let stderr = text(&output.stderr);
-    assert!(stderr.contains("10 problem(s) in host/tests/config/bad-connections.xml; nothing was started"), "{stderr}");
+    assert!(stderr.contains("11 problem(s) in host/tests/config/bad-connections.xml; nothing was started"), "{stderr}");
     assert!(!stderr.contains("started range-filter"), "{stderr}");
 }
 

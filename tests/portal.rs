@@ -356,6 +356,7 @@ fn the_portal_works_in_a_real_browser() {
     let output = Command::new("node")
         .current_dir(support::repo_root().join("tests/browser"))
         .env("ARTIFACTS", &artifacts)
+        .env("BRIDGED", "1")
         .arg("portal.mjs")
         .arg(format!("http://{}/", host.address))
         .args(["admin", PASSWORD])
