@@ -241,6 +241,28 @@ fn dead_reckon(readings: &[Json], counts_per_metre: f64, wheel_base: f64) -> Vec
 }
 
 #[test]
+fn a_roboclaw_that_answers_late_is_not_flooded_with_reads_and_no_answer_is_taken_for_garbage() {
+    // Every answer leaves 0.4 s after its request: eight 50 ms polls would
+    // be outstanding. The translator keeps at most four reads in flight
+    // (it skips polls meanwhile), so every answer is expected when it comes.
+    // Before, it kept polling and the answers past the fourth were counted
+    // as malformed (seen on a busy machine with a prompt peer, too).
+    let peer = Peer::start("roboclaw_peer.py", &["128".into(), "250".into(), "550".into(), "0.4".into()]);
+    let dir = tempfile::tempdir().unwrap();
+    let robot =
+        driving_robot(&peer.device, "translator-roboclaw", "counts-per-metre=2000 poll-ms=50", "0.3", "VEL 0.2 0.5");
+    let (_output, report) = run_robot(dir.path(), &robot, "3");
+    let summary = peer.finish();
+    let serial = &report["serial"];
+    assert_eq!(serial["malformed_feedback"], 0, "{serial}");
+    // Polling freely would send 60 reads in 3 s; four per 0.4 s round trip
+    // is about 30.
+    let (polls, reads) = (serial["polls_sent"].as_u64().unwrap(), summary["reads"].as_u64().unwrap());
+    assert!(polls <= 40 && reads >= 8, "{polls} reads sent, {reads} received by the controller");
+    assert!(serial["feedback_messages"].as_u64().unwrap() >= 8, "the odometry still flows: {serial}");
+}
+
+#[test]
 fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_and_its_encoders_become_odometry() {
     // VEL 0.2 0.5 on a 0.3 m base at 2000 counts/m: M1 (left) 250, M2 550.
     let peer = Peer::start("roboclaw_peer.py", &["128".into(), "250".into(), "550".into()]);

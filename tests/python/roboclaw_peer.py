@@ -1,7 +1,7 @@
 """Plays a Basicmicro RoboClaw (packet serial) on a pseudo-terminal, checked
 against the basicmicro package.
 
-    roboclaw_peer.py ADDRESS M1_QPPS M2_QPPS
+    roboclaw_peer.py ADDRESS M1_QPPS M2_QPPS [LAG_S]
 
 The host is expected to drive M1/M2 at these encoder speeds (counts/s).
 basicmicro (PyPI, 2.0.10; nobody here wrote it) is the reference: the bytes
@@ -11,7 +11,9 @@ back through its GetEncoders, CRC check included.
 
 The controller side: a write (37) with a good CRC is answered 0xFF (ACK)
 and sets the speeds; a bad CRC gets no answer, as on the RoboClaw. A read
-(78) is answered `enc1 enc2 crc`. The counters follow the speeds.
+(78) is answered `enc1 enc2 crc`. The counters follow the speeds. With
+LAG_S, every answer leaves that many seconds after its request (a slow
+controller or adapter).
 
 Summary (one JSON line): every byte received (hex), the reference frames,
 counts of good writes, bad CRCs, reads and unparsed bytes, and the counters
@@ -91,9 +93,13 @@ def crc16(claw, data):
 
 
 class Controller:
-    def __init__(self, address, claw):
+    def __init__(self, address, claw, lag=0.0):
         self.address = address
         self.claw = claw
+        # A slow controller (or a slow USB adapter): every answer goes out
+        # `lag` seconds after its request, in order.
+        self.lag = lag
+        self.outbox = []
         self.received = bytearray()
         self.pending = bytearray()
         self.speeds = [0, 0]
@@ -128,7 +134,7 @@ class Controller:
             del self.pending[:12]
             self.speeds = list(struct.unpack(">2i", packet[2:10]))
             self.writes += 1
-            self.pty.write(b"\xff")
+            self.send(b"\xff")
 
     def answer_read(self):
         self.advance()
@@ -142,7 +148,13 @@ class Controller:
         assert ok and (enc1, enc2) == tuple(enc), (ok, enc1, enc2, enc)
         self.reads += 1
         self.readings.append(enc)
-        self.pty.write(answer)
+        self.send(answer)
+
+    def send(self, data):
+        if self.lag <= 0:
+            self.pty.write(data)
+        else:
+            self.outbox.append((time.monotonic() + self.lag, data))
 
     def advance(self, now=None):
         now = time.monotonic() if now is None else now
@@ -153,10 +165,13 @@ class Controller:
 
     def on_timer(self, now):
         self.advance(now)
+        while self.outbox and self.outbox[0][0] <= now:
+            self.pty.write(self.outbox.pop(0)[1])
 
 
 def main():
     address, m1, m2 = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
+    lag = float(sys.argv[4]) if len(sys.argv) > 4 else 0.0
     claw = reference()
     references = {
         "drive": take(claw, lambda: claw.SpeedM1M2(address, m1, m2)).hex(),
@@ -164,7 +179,7 @@ def main():
         "read": read_request(claw, address).hex(),
     }
     pty = peer_common.Pty()
-    controller = Controller(address, claw)
+    controller = Controller(address, claw, lag)
     controller.pty = pty
     peer_common.serve(pty, controller.on_bytes, controller.on_timer, TICK)
     peer_common.finish(

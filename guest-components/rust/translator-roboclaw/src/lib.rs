@@ -25,8 +25,16 @@ const READ_ENCODERS: u8 = 78;
 const ACK: u8 = 0xFF;
 /// Encoder answer: two u32 and the CRC.
 const ENCODER_REPLY_BYTES: usize = 10;
-/// Most encoder reads outstanding: older ones are taken as lost.
+/// Most encoder reads outstanding: no new read is sent while this many
+/// await their answers (a slow controller, or a busy host, is not flooded
+/// with reads whose answers would then arrive past what is expected and be
+/// taken for garbage).
 const MAX_PENDING_READS: u32 = 4;
+/// How long the outstanding reads may go unanswered before they are taken
+/// as lost and reading starts afresh (a reply that arrives later counts as
+/// malformed): a controller that lost a request must not stop the odometry
+/// for good.
+const READS_LOST_AFTER_NS: u64 = 1_000_000_000;
 /// Most bytes kept while waiting for the rest of an answer.
 const MAX_BUFFER: usize = 1024;
 /// Shortest and longest poll period a robot file may set, ms.
@@ -53,6 +61,11 @@ struct RoboClaw {
     poll_ms: u32,
     buffer: Vec<u8>,
     pending_reads: u32,
+    /// When the oldest read still awaiting its answer was sent (or the last
+    /// answer came, if later).
+    waiting_since_ns: u64,
+    /// The time of the last poll, for the answers `decode` takes.
+    now_ns: u64,
     counts: Option<(u32, u32)>,
 }
 
@@ -129,6 +142,8 @@ impl Translator for RoboClaw {
             poll_ms,
             buffer: Vec::new(),
             pending_reads: 0,
+            waiting_since_ns: 0,
+            now_ns: 0,
             counts: None,
         })
     }
@@ -154,6 +169,7 @@ impl Translator for RoboClaw {
             if self.pending_reads > 0 && self.encoder_reply_at_start() {
                 let reply: Vec<u8> = self.buffer.drain(..ENCODER_REPLY_BYTES).collect();
                 self.pending_reads -= 1;
+                self.waiting_since_ns = self.now_ns;
                 self.encoders(&reply, &mut decoded.feedback);
                 garbage = false;
                 continue;
@@ -178,8 +194,18 @@ impl Translator for RoboClaw {
         decoded
     }
 
-    fn poll(&mut self, _now_ns: u64) -> Vec<u8> {
-        self.pending_reads = (self.pending_reads + 1).min(MAX_PENDING_READS);
+    fn poll(&mut self, now_ns: u64) -> Vec<u8> {
+        self.now_ns = now_ns;
+        if self.pending_reads >= MAX_PENDING_READS {
+            if now_ns.saturating_sub(self.waiting_since_ns) < READS_LOST_AFTER_NS {
+                return Vec::new();
+            }
+            self.pending_reads = 0;
+        }
+        if self.pending_reads == 0 {
+            self.waiting_since_ns = now_ns;
+        }
+        self.pending_reads += 1;
         // A read is the address and the command alone: the CRC comes back.
         vec![self.address, READ_ENCODERS]
     }
