@@ -665,4 +665,90 @@ fn the_simulator_is_reset_posed_paused_and_stepped_over_http() {
     assert_eq!(status, 200, "{reset}");
     assert!(reset["time_s"].as_f64().unwrap() < 0.1 && reset["distance_travelled_m"] == 0.0, "{reset}");
     assert_ne!((reset["x"].as_f64(), reset["y"].as_f64()), (Some(2.0), Some(1.5)));
+
+    // Each request is in the audit log: who, what, when, and the outcome.
+    let admin = login_as(&host.address, "admin");
+    let (status, audit) = http(&host.address, "GET", "/api/v1/audit", Some(&admin), b"");
+    assert_eq!(status, 200, "{audit}");
+    let sim: Vec<String> = audit["entries"]
+        .as_array()
+        .unwrap_or_else(|| panic!("no entries: {audit}"))
+        .iter()
+        .filter(|e| e["action"].as_str().unwrap_or("").starts_with("sim-"))
+        .map(|e| {
+            assert!(e["time"].as_u64().unwrap_or(0) > 1_700_000_000, "{e}");
+            format!("{} {} {} {}: {}", e["user"], e["action"], e["target"], e["result"], e["detail"]).replace('"', "")
+        })
+        .collect();
+    let expected = [
+        "viewer sim-pause sim refused: viewer may not drive",
+        "op sim-pause sim ok: pause: t = ",
+        "op sim-pause sim ok: pause: t = ",
+        "op sim-step sim ok: step 0.5 s: t = ",
+        "op sim-step sim refused: a step must be more than 0",
+        "op sim-pose sim ok: pose x 2.00 y 1.50 heading 0.50: t = ",
+        "op sim-pose sim refused: ",
+        "op sim-resume sim ok: resume: t = ",
+        "op sim-step sim refused: ",
+        "op sim-reset sim ok: reset: t = 0.0",
+    ];
+    let mut sim_in_order = sim.clone();
+    // The log is listed newest first or oldest first: compare oldest first.
+    if sim.first().is_some_and(|e| e.contains("sim-reset")) {
+        sim_in_order.reverse();
+    }
+    assert_eq!(sim_in_order.len(), expected.len(), "{sim_in_order:#?}");
+    for (entry, start) in sim_in_order.iter().zip(expected) {
+        assert!(entry.starts_with(start), "'{entry}' should start with '{start}':\n{sim_in_order:#?}");
+    }
+}
+
+#[test]
+fn an_uploads_compile_and_the_simulator_buttons_show_in_a_real_browser() {
+    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
+    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let output = Command::new("node")
+        .current_dir(support::repo_root().join("tests/browser"))
+        .env("ARTIFACTS", &artifacts)
+        .arg("loop.mjs")
+        .arg(format!("http://{}/", host.address))
+        .args(["admin", PASSWORD])
+        .arg(support::guest("avoider"))
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
+        artifacts.display()
+    );
+    assert!(stdout.contains("ok: compiled and checked in "), "{stdout}");
+    for shot in ["loop-1-upload-compiled", "loop-2-posed", "loop-3-resumed"] {
+        assert!(artifacts.join(format!("{shot}.png")).is_file(), "{shot}");
+    }
+    // The buttons' requests are in the audit log, by the admin who clicked.
+    let entries = subsume::store::Store::open(&store).unwrap().audit_entries(1000).unwrap();
+    let clicked: Vec<(&str, &str)> = entries
+        .iter()
+        .filter(|e| e.action.starts_with("sim-") && e.user == "admin")
+        .map(|e| (e.action.as_str(), e.result.as_str()))
+        .collect();
+    assert_eq!(
+        clicked,
+        [
+            ("sim-pause", "ok"),
+            ("sim-step", "ok"),
+            ("sim-pose", "ok"),
+            ("sim-pose", "refused"),
+            ("sim-reset", "ok"),
+            ("sim-resume", "ok")
+        ],
+        "{entries:#?}"
+    );
 }

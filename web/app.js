@@ -254,24 +254,55 @@ $('component-upload').addEventListener('click', () => {
   const progress = $('upload-progress');
   progress.hidden = false; progress.value = 0;
   xhr.upload.onprogress = (e) => { if (e.lengthComputable) progress.value = e.loaded / e.total; };
+  const compiling = compileProgress(name);
+  xhr.upload.onload = compiling.start;
   xhr.onload = () => {
     progress.hidden = true;
+    const took = compiling.stop();
     const data = JSON.parse(xhr.responseText || '{}');
     const result = $('upload-result');
     if (xhr.status === 201) {
       result.className = 'ok';
-      result.textContent = `stored '${data.name}' (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)`;
+      result.textContent = `stored '${data.name}' (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)${took}`;
       refreshComponents();
     } else {
       result.className = 'error';
       result.textContent = `refused (${xhr.status}): ${data.error || xhr.statusText}`;
     }
   };
-  xhr.onerror = () => { progress.hidden = true; $('upload-result').textContent = 'upload failed: no answer from the robot'; };
+  xhr.onerror = () => { progress.hidden = true; compiling.stop(); $('upload-result').textContent = 'upload failed: no answer from the robot'; };
   xhr.open('PUT', `/api/v1/platforms/${platform}/components/${encodeURIComponent(name)}`);
   xhr.setRequestHeader('content-type', 'application/wasm');
   xhr.send(chosen);
 });
+
+// Once the bytes are sent, the robot compiles and checks the component
+// before it answers (seconds for a Python or JavaScript one, less when its
+// functions are in the robot's compile cache): say so, with the seconds
+// ticking, and how long it took. stop() returns ', compiled and checked in
+// T s' for the result line (empty if the upload never finished sending).
+function compileProgress(name) {
+  const result = $('upload-result');
+  let started = null;
+  let timer = null;
+  const show = () => {
+    const seconds = ((performance.now() - started) / 1000).toFixed(0);
+    result.className = '';
+    result.dataset.compiling = seconds;
+    result.textContent = `uploaded '${name}'; the robot is compiling and checking it... ${seconds} s`;
+  };
+  return {
+    start() { started = performance.now(); show(); timer = setInterval(show, 500); },
+    stop() {
+      clearInterval(timer);
+      delete result.dataset.compiling;
+      if (started === null) return '';
+      const seconds = (performance.now() - started) / 1000;
+      result.dataset.compileSeconds = seconds.toFixed(2);
+      return `, compiled and checked in ${seconds.toFixed(1)} s`;
+    },
+  };
+}
 
 function portList(title, ports) {
   return el('p', {}, `${title}: `, ports.length ? ports.map((p) => `${p.name} (${p.kind})`).join(', ') : 'none');
@@ -508,6 +539,18 @@ for (const button of document.querySelectorAll('#sim-controls button[data-sim]')
     }
   });
 }
+
+// Set pose: the robot put at (x, y, heading) from the three fields, at rest.
+$('sim-pose').addEventListener('click', async () => {
+  const query = ['x', 'y', 'heading'].map((k) => `${k}=${encodeURIComponent($('sim-pose-' + k).value)}`).join('&');
+  try {
+    const sim = await api('POST', '/sim/pose?' + query);
+    $('sim-result').textContent =
+      `t = ${sim.time_s.toFixed(2)} s at (${sim.x.toFixed(2)}, ${sim.y.toFixed(2)}) heading ${sim.heading.toFixed(2)}`;
+  } catch (err) {
+    $('sim-result').textContent = `refused: ${err.message}`;
+  }
+});
 
 // ---- the portal's own views (docs/portal.md): the Drive tab's map, -------
 // ---- history plots, the robot-file editor ---------------------------------

@@ -397,6 +397,15 @@ impl SimAction {
             SimAction::Step { .. } => "step",
         }
     }
+
+    /// The request as the audit log shows it (`pose x 1.00 y 2.00 heading 0.50`).
+    pub fn detail(&self) -> String {
+        match self {
+            SimAction::Pose { x, y, heading } => format!("pose x {x:.2} y {y:.2} heading {heading:.2}"),
+            SimAction::Step { seconds } => format!("step {seconds} s"),
+            other => other.name().to_owned(),
+        }
+    }
 }
 
 impl Deployer {
@@ -410,29 +419,50 @@ impl Deployer {
     /// robot; for those who may drive (it moves the robot). Returns the
     /// simulation's state after it.
     pub fn sim_control(&self, user: &User, action: SimAction) -> Result<crate::sim::physics::SimStatus, DeployError> {
-        authorise(user, Permission::Drive)?;
-        let (_, config) = self.active()?;
-        let name = config
-            .components
-            .iter()
-            .find(|c| c.source == ComponentSource::Builtin("sim".into()))
-            .map(|c| c.name.clone())
-            .ok_or_else(|| DeployError::NotFound("the active set has no simulated robot".into()))?;
-        let control = self
-            .services
-            .get::<crate::sim::SimRegistry>()
-            .and_then(|registry| registry.get(&name))
-            .ok_or_else(|| DeployError::NotFound(format!("the simulated robot '{name}' is not running")))?;
-        let refused = |e: crate::sim::SimError| DeployError::Conflict(e.to_string());
-        let status = match action {
-            SimAction::Reset => control.reset(),
-            SimAction::Pose { x, y, heading } => control.set_pose(x, y, heading).map_err(refused)?,
-            SimAction::Pause => control.pause(true),
-            SimAction::Resume => control.pause(false),
-            SimAction::Step { seconds } => control.step(seconds).map_err(refused)?,
-        };
-        tracing::info!(user = %user.name, "simulator: {} ({name})", action.name());
-        Ok(status)
+        let prepared = authorise(user, Permission::Drive).and_then(|()| {
+            let (_, config) = self.active()?;
+            let name = config
+                .components
+                .iter()
+                .find(|c| c.source == ComponentSource::Builtin("sim".into()))
+                .map(|c| c.name.clone())
+                .ok_or_else(|| DeployError::NotFound("the active set has no simulated robot".into()))?;
+            let control = self
+                .services
+                .get::<crate::sim::SimRegistry>()
+                .and_then(|registry| registry.get(&name))
+                .ok_or_else(|| DeployError::NotFound(format!("the simulated robot '{name}' is not running")))?;
+            Ok((name, control))
+        });
+        // Audited like every change (who, what, when): action `sim-ACTION`,
+        // target the simulated robot, detail the request and where it left
+        // the robot.
+        let target = prepared.as_ref().map(|(name, _)| name.clone()).unwrap_or_else(|_| "sim".into());
+        let request = action.detail();
+        self.commit(
+            &user.name,
+            &format!("sim-{}", action.name()),
+            &target,
+            prepared,
+            |_, (name, control)| {
+                let refused = |e: crate::sim::SimError| DeployError::Conflict(e.to_string());
+                let status = match action {
+                    SimAction::Reset => control.reset(),
+                    SimAction::Pose { x, y, heading } => control.set_pose(x, y, heading).map_err(refused)?,
+                    SimAction::Pause => control.pause(true),
+                    SimAction::Resume => control.pause(false),
+                    SimAction::Step { seconds } => control.step(seconds).map_err(refused)?,
+                };
+                tracing::info!(user = %user.name, "simulator: {} ({name})", action.name());
+                Ok(status)
+            },
+            |status| {
+                format!(
+                    "{request}: t = {:.2} s at x {:.2} y {:.2} heading {:.2}",
+                    status.time_s, status.x, status.y, status.heading
+                )
+            },
+        )
     }
 
     /// The world and body of the active set's simulated robot.

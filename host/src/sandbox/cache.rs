@@ -5,10 +5,12 @@
 
 use std::hash::{Hash, Hasher};
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 use wasmtime::Engine;
 
 use super::SandboxError;
+use super::function_cache::{FunctionCache, FunctionCacheStats};
 use super::guest::error_text;
 use crate::fsutil::write_atomically;
 
@@ -22,12 +24,15 @@ fn create_private_dir(dir: &Path) -> std::io::Result<()> {
 pub(super) struct CompileCache {
     dir: Option<PathBuf>,
     engine_key: String,
+    /// Cranelift's cache of compiled functions, which the engine was
+    /// configured with: here for its counters and its bound.
+    functions: Option<Arc<FunctionCache>>,
 }
 
 impl CompileCache {
     /// A cache in `dir` (created private when missing; no cache when it
     /// cannot be) for artifacts of `engine`.
-    pub(super) fn new(engine: &Engine, dir: Option<PathBuf>) -> CompileCache {
+    pub(super) fn new(engine: &Engine, dir: Option<PathBuf>, functions: Option<Arc<FunctionCache>>) -> CompileCache {
         let mut hasher = std::collections::hash_map::DefaultHasher::new();
         engine.precompile_compatibility_hash().hash(&mut hasher);
         let engine_key = format!("{:016x}", hasher.finish());
@@ -38,7 +43,11 @@ impl CompileCache {
                 false
             }
         });
-        CompileCache { dir, engine_key }
+        CompileCache { dir, engine_key, functions }
+    }
+
+    pub(super) fn function_stats(&self) -> Option<FunctionCacheStats> {
+        self.functions.as_ref().map(|f| f.stats())
     }
 
     pub(super) fn dir(&self) -> Option<&Path> {
@@ -73,9 +82,25 @@ impl CompileCache {
         let short = sha256.get(..12).unwrap_or(sha256);
         tracing::info!("compiling component {short} ({} KiB; not in the cache yet)...", bytes.len().div_ceil(1024));
         let started = std::time::Instant::now();
+        let before = self.function_stats();
         let component =
-            wasmtime::component::Component::new(engine, bytes).map_err(|e| SandboxError::Compile(error_text(&e)))?;
-        tracing::info!("compiled component {short} in {:.2} s", started.elapsed().as_secs_f64());
+            wasmtime::component::Component::new(engine, bytes).map_err(|e| SandboxError::Compile(error_text(&e)));
+        let seconds = started.elapsed().as_secs_f64();
+        // What the function cache served (counters shared with concurrent
+        // compiles, which the host serialises anyway).
+        let reused = match (before, self.function_stats()) {
+            (Some(before), Some(after)) => {
+                let hits = after.hits.saturating_sub(before.hits);
+                let looked_up = hits + after.misses.saturating_sub(before.misses);
+                format!(" ({hits} of {looked_up} functions from the cache)")
+            }
+            _ => String::new(),
+        };
+        if let Some(functions) = &self.functions {
+            functions.prune();
+        }
+        let component = component?;
+        tracing::info!("compiled component {short} in {seconds:.2} s{reused}");
         if let Some(path) = cached {
             match component.serialize() {
                 Ok(serialized) => {

@@ -17,6 +17,7 @@ use wasmtime::{Config, Engine, InstanceAllocationStrategy, PoolingAllocationConf
 use super::SandboxError;
 use super::cache::CompileCache;
 use super::component::{WasmComponent, instantiate_component};
+use super::function_cache::{FunctionCache, FunctionCacheStats};
 use super::guest::{GuestLimits, GuestState, arm, call_error, error_text, new_store};
 use super::translator::WasmTranslator;
 use crate::config::limits::MAX_COMPONENTS;
@@ -143,12 +144,27 @@ impl Sandbox {
     }
 
     fn with_epochs(cache_dir: Option<PathBuf>, epochs: bool) -> Result<Sandbox, SandboxError> {
-        let (engine, pooling) = match Engine::new(&engine_config(true, epochs)) {
+        let functions = cache_dir.as_ref().and_then(|dir| match FunctionCache::open(dir.join("functions")) {
+            Ok(cache) => Some(Arc::new(cache)),
+            Err(err) => {
+                tracing::warn!("cannot use the function cache in {}: {err}; compiling without it", dir.display());
+                None
+            }
+        });
+        let engine_config = |pooling| {
+            let mut config = engine_config(pooling, epochs);
+            if let Some(functions) = &functions {
+                config
+                    .enable_incremental_compilation(functions.clone())
+                    .map_err(|e| SandboxError::Engine(e.to_string()))?;
+            }
+            Ok::<Config, SandboxError>(config)
+        };
+        let (engine, pooling) = match Engine::new(&engine_config(true)?) {
             Ok(engine) => (engine, true),
             Err(err) => {
                 tracing::warn!("pooling allocator unavailable ({err}); instances are allocated on demand");
-                let engine =
-                    Engine::new(&engine_config(false, epochs)).map_err(|e| SandboxError::Engine(e.to_string()))?;
+                let engine = Engine::new(&engine_config(false)?).map_err(|e| SandboxError::Engine(e.to_string()))?;
                 (engine, false)
             }
         };
@@ -158,9 +174,15 @@ impl Sandbox {
             .map_err(|e| SandboxError::Engine(e.to_string()))?;
         v1::bindings::Component::add_to_linker::<GuestState, HasSelf<GuestState>>(&mut linker, |state| state)
             .map_err(|e| SandboxError::Engine(e.to_string()))?;
-        let cache = CompileCache::new(&engine, cache_dir);
+        let cache = CompileCache::new(&engine, cache_dir, functions);
         let ticker = EpochTicker::start(engine.clone());
         Ok(Sandbox { engine, linker, cache, pooling, _ticker: ticker })
+    }
+
+    /// What the function cache (cranelift's incremental cache) served since
+    /// the process started; `None` without a cache folder.
+    pub fn function_cache_stats(&self) -> Option<FunctionCacheStats> {
+        self.cache.function_stats()
     }
 
     /// Whether instances come from the pooling allocator.

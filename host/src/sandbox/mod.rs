@@ -4,7 +4,9 @@
 //! stdin closed; stdout and stderr go to the log; the cycle's clocks, seeded
 //! generators, and a poll that never waits), a [`Store`] per component with
 //! memory limits, a CPU-time budget and a wall-clock cap on every call, and
-//! an on-disk cache of compiled components.
+//! an on-disk cache of compiled components and of compiled functions
+//! (cranelift's incremental cache: a rebuilt component compiles only the
+//! functions that changed).
 //!
 //! Invariants:
 //! - bytes that came from outside are only ever compiled (`Component::new`),
@@ -20,6 +22,7 @@ mod budget;
 mod cache;
 mod component;
 mod engine;
+mod function_cache;
 mod guest;
 mod guest_output;
 pub mod preamble;
@@ -34,6 +37,9 @@ pub use engine::{
     Contract, DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, INIT_BUDGET, MAX_INSTANCES_PER_STORE,
     MAX_TABLES_PER_STORE, MAX_WASM_STACK_BYTES, POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES, Sandbox,
     TranslatorArtifact, WasmArtifact, check_component_header,
+};
+pub use function_cache::{
+    FUNCTION_CACHE_PRUNE_TO, FunctionCacheStats, MAX_FUNCTION_CACHE_BYTES, MAX_FUNCTION_ENTRY_BYTES,
 };
 pub use guest::{
     GuestLimits, HOSTCALL_FUEL_SLACK, LogBudget, MAX_COMPONENT_HANDLES, MAX_GUEST_MESSAGE_BYTES, MAX_RESOURCE_ENTRIES,
