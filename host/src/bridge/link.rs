@@ -9,13 +9,15 @@
 //!   counted), which puts it on its key. Messages go out in the order they
 //!   were sent either way. Its [`Gate`] lets another thread put a final
 //!   message past the queue (`runtime::halt`), after which nothing goes
-//!   out; the loop never waits for it (`try_lock`).
+//!   out; the loop never waits for it (`try_lock`). [`Gate::stop_now`]
+//!   (the stall watchdog's) puts a message past the queue and drops what
+//!   was queued before it; later messages still go out.
 //! - [`Inlet`]: Zenoh's callback decodes each sample on Zenoh's own
 //!   threads (malformed payloads are counted and dropped there), queues the
 //!   result (bounded; full: dropped and counted) and wakes the loop; the
 //!   component drains the queue in `poll`.
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::mpsc::{self, Receiver, SyncSender, TrySendError};
 use std::sync::{Arc, Mutex, PoisonError, TryLockError};
 use std::thread::JoinHandle;
@@ -52,6 +54,10 @@ pub type Stamp = Box<dyn Fn() -> Vec<u8> + Send + Sync>;
 /// nothing goes out after the final message.
 pub struct Gate {
     inner: Mutex<GateState>,
+    /// Bumped (under the lock) by every [`Gate::stop_now`]: a message the
+    /// loop queued before it carries an older number and is dropped, so no
+    /// stale command follows the stop.
+    generation: AtomicU64,
     stamp: Option<Stamp>,
     stats: Arc<BridgeStats>,
 }
@@ -62,10 +68,11 @@ struct GateState {
 }
 
 impl Gate {
-    /// Puts `payload` unless the gate was halted.
-    fn put(&self, payload: Vec<u8>) {
+    /// Puts `payload`, queued in `generation`, unless the gate was halted
+    /// or stopped since.
+    fn put(&self, generation: u64, payload: Vec<u8>) {
         let state = self.inner.lock().unwrap_or_else(PoisonError::into_inner);
-        if state.halted {
+        if state.halted || generation != self.generation.load(Ordering::Acquire) {
             self.stats.dropped.fetch_add(1, Ordering::Relaxed);
             return;
         }
@@ -103,6 +110,24 @@ impl Gate {
         sent
     }
 
+    /// Puts `payload` now, past the queue, and drops what the loop queued
+    /// before it (the stall watchdog's stop); what is sent afterwards still
+    /// goes out. Waits at most `wait` for a put in progress.
+    pub fn stop_now(&self, payload: Vec<u8>, wait: Duration) -> StopOutcome {
+        let Some(state) = lock_within(&self.inner, Instant::now() + wait) else {
+            return StopOutcome::Failed(format!("the publisher stayed busy for {} ms", wait.as_millis()));
+        };
+        if state.halted {
+            return StopOutcome::Closed;
+        }
+        self.generation.fetch_add(1, Ordering::AcqRel);
+        if self.put_locked(&state, payload) {
+            StopOutcome::Sent
+        } else {
+            StopOutcome::Failed("zenoh refused the put".into())
+        }
+    }
+
     /// Puts `payload` now, past the queue, as the last message of this
     /// publication: nothing queued before or after it goes out. Waits at
     /// most `wait` for a put in progress.
@@ -124,7 +149,8 @@ impl Gate {
 
 /// The loop's side of a publication.
 pub struct Outlet {
-    tx: Option<SyncSender<Vec<u8>>>,
+    /// Payloads with the gate's generation when they were sent.
+    tx: Option<SyncSender<(u64, Vec<u8>)>>,
     thread: Option<JoinHandle<()>>,
     gate: Arc<Gate>,
     /// Messages handed to the sender thread and not yet put: the loop puts
@@ -149,9 +175,13 @@ impl Outlet {
             .declare_publisher(key.clone())
             .wait()
             .map_err(|why| BuiltinError::Refused(format!("zenoh publisher on '{key}': {why}")))?;
-        let gate =
-            Arc::new(Gate { inner: Mutex::new(GateState { publisher, halted: false }), stamp, stats: stats.clone() });
-        let (tx, rx) = mpsc::sync_channel::<Vec<u8>>(QUEUE_DEPTH);
+        let gate = Arc::new(Gate {
+            inner: Mutex::new(GateState { publisher, halted: false }),
+            generation: AtomicU64::new(0),
+            stamp,
+            stats: stats.clone(),
+        });
+        let (tx, rx) = mpsc::sync_channel::<(u64, Vec<u8>)>(QUEUE_DEPTH);
         let thread_gate = gate.clone();
         let queued = Arc::new(AtomicUsize::new(0));
         let thread_queued = queued.clone();
@@ -160,8 +190,8 @@ impl Outlet {
             .name("zenoh-out".into())
             .spawn(move || {
                 let _keep = shared;
-                for payload in rx {
-                    thread_gate.put(payload);
+                for (generation, payload) in rx {
+                    thread_gate.put(generation, payload);
                     thread_queued.fetch_sub(1, Ordering::AcqRel);
                 }
             })
@@ -188,7 +218,8 @@ impl Outlet {
                 payload
             };
         self.queued.fetch_add(1, Ordering::AcqRel);
-        if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) = tx.try_send(payload) {
+        let generation = self.gate.generation.load(Ordering::Acquire);
+        if let Err(TrySendError::Full(_) | TrySendError::Disconnected(_)) = tx.try_send((generation, payload)) {
             self.queued.fetch_sub(1, Ordering::AcqRel);
             self.stats.dropped.fetch_add(1, Ordering::Relaxed);
         }
@@ -206,7 +237,7 @@ impl Outlet {
         if let Some(tx) = self.tx.take() {
             if let Some(payload) = last {
                 self.queued.fetch_add(1, Ordering::AcqRel);
-                let _ = tx.send(payload);
+                let _ = tx.send((self.gate.generation.load(Ordering::Acquire), payload));
             }
             drop(tx);
         }
@@ -314,7 +345,7 @@ mod tests {
         let outlet = Outlet::new(shared, "link-test/halt".into(), stats.clone(), None).unwrap();
         let gate = outlet.gate();
         // Another thread (a halt) holds the gate: `send` must return at once.
-        let held = gate.inner.lock().unwrap();
+        let mut held = gate.inner.lock().unwrap();
         let (done_tx, done_rx) = mpsc::channel();
         let sender = std::thread::spawn(move || {
             outlet.send(vec![1; 64]);
@@ -324,14 +355,56 @@ mod tests {
         let queued = done_rx.recv_timeout(Duration::from_secs(10));
         assert!(!matches!(queued, Err(RecvTimeoutError::Timeout)), "send waited for the gate");
         assert_eq!(queued.unwrap(), 1, "the message waits for the sender thread");
-        // The halt ends the publication: the queued message never goes out.
+        // The halt ends the publication (as `Gate::halt` does under the
+        // lock): the queued message never goes out.
+        held.halted = true;
+        assert!(gate.put_locked(&held, vec![0; 8]));
         drop(held);
-        assert_eq!(gate.halt(vec![0; 8], Duration::from_secs(5)), StopOutcome::Sent);
+        assert_eq!(gate.halt(vec![0; 8], Duration::from_secs(5)), StopOutcome::Closed);
         let mut outlet = sender.join().unwrap();
         outlet.finish(None);
         assert_eq!(outlet.queued(), 0);
         assert_eq!(stats.messages_out.load(Ordering::Relaxed), 1, "only the halt's message went out");
         assert_eq!(stats.dropped.load(Ordering::Relaxed), 1);
+    }
+
+    #[test]
+    fn a_stop_drops_what_was_queued_before_it_and_what_follows_goes_out() {
+        let shared = lone_session();
+        let stats = Arc::new(BridgeStats::default());
+        let mut outlet = Outlet::new(shared, "link-test/stop".into(), stats.clone(), None).unwrap();
+        let gate = outlet.gate();
+        // The sender thread waits on the gate with three queued commands
+        // (large: the loop does not put those itself).
+        let held = gate.inner.lock().unwrap();
+        for n in 0..3u8 {
+            outlet.send(vec![n; MAX_LOOP_PUT_BYTES + 1]);
+        }
+        assert_eq!(outlet.queued(), 3);
+        // The stop, as `stop_now` does it under the lock.
+        gate.generation.fetch_add(1, Ordering::AcqRel);
+        assert!(gate.put_locked(&held, vec![0; 8]));
+        drop(held);
+        let deadline = Instant::now() + Duration::from_secs(10);
+        while outlet.queued() > 0 {
+            assert!(Instant::now() < deadline, "the sender thread never drained");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(stats.messages_out.load(Ordering::Relaxed), 1, "a stale command went out after the stop");
+        assert_eq!(stats.dropped.load(Ordering::Relaxed), 3);
+        // `stop_now` itself: sent, and what follows still goes out (both ways).
+        assert_eq!(gate.stop_now(vec![0; 8], Duration::from_secs(5)), StopOutcome::Sent);
+        outlet.send(vec![1; 64]);
+        outlet.send(vec![2; MAX_LOOP_PUT_BYTES + 1]);
+        while outlet.queued() > 0 {
+            assert!(Instant::now() < deadline, "the sender thread never drained");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        assert_eq!(stats.messages_out.load(Ordering::Relaxed), 4);
+        // After the final message, a stop has nothing left to do.
+        assert_eq!(gate.halt(vec![0; 8], Duration::from_secs(5)), StopOutcome::Sent);
+        assert_eq!(gate.stop_now(vec![0; 8], Duration::from_secs(5)), StopOutcome::Closed);
+        outlet.finish(None);
     }
 
     #[test]
