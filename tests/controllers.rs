@@ -19,7 +19,7 @@
 mod support;
 
 use std::io::{BufRead, BufReader, Read};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::process::{Child, ChildStdout, Command, Output, Stdio};
 use std::time::Duration;
 
@@ -47,12 +47,6 @@ fn text(bytes: &[u8]) -> String {
     String::from_utf8_lossy(bytes).into_owned()
 }
 
-fn python() -> PathBuf {
-    let python = support::repo_root().join("tests/python/.venv/bin/python");
-    assert!(python.exists(), "{} is missing: run scripts/setup", python.display());
-    python
-}
-
 /// A Python peer on its pseudo-terminal: the device path it printed and
 /// its process.
 struct Peer {
@@ -63,7 +57,7 @@ struct Peer {
 
 impl Peer {
     fn start(script: &str, args: &[String]) -> Peer {
-        let mut child = Command::new(python())
+        let mut child = Command::new(support::python())
             .current_dir(support::repo_root().join("tests/python"))
             .arg(script)
             .args(args)

@@ -18,6 +18,7 @@ const TOKEN: &str = "alice-token-0123456789";
 struct Host {
     _process: support::HostProcess,
     teleop: String,
+    websocket: Option<String>,
     _dir: tempfile::TempDir,
 }
 
@@ -25,6 +26,11 @@ struct Host {
 /// 0` for ever, with the motors on `device`; `arbiter_extra` goes inside
 /// the arbiter, `wiring_extra` after the connections.
 fn start(device: &str, arbiter_extra: &str, wiring_extra: &str) -> Host {
+    start_with_teleop(device, arbiter_extra, wiring_extra, "")
+}
+
+/// [`start`], with `teleop_extra` inside the network platform's teleop.
+fn start_with_teleop(device: &str, arbiter_extra: &str, wiring_extra: &str, teleop_extra: &str) -> Host {
     support::guest_dir();
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("operators"), format!("alice {TOKEN}\n")).unwrap();
@@ -33,7 +39,7 @@ fn start(device: &str, arbiter_extra: &str, wiring_extra: &str) -> Host {
   <platform name="network">
     <component name="teleop" source="builtin:teleop" rate="100" timeout="300ms">
       <param name="listen" value="127.0.0.1:0"/>
-      <param name="operators" value="operators"/>
+      <param name="operators" value="operators"/>{teleop_extra}
     </component>
   </platform>
   <platform name="control">
@@ -62,7 +68,10 @@ fn start(device: &str, arbiter_extra: &str, wiring_extra: &str) -> Host {
     command.env("SUBSUME_HTTP", "off").args(["run", robot.to_str().unwrap(), "--duration", "60"]);
     let process = support::HostProcess::spawn(command);
     let teleop = process.word_after("teleoperation on tcp ", Duration::from_secs(60));
-    Host { _process: process, teleop, _dir: dir }
+    // The whole ws:// URL the host announces.
+    let websocket = (!teleop_extra.is_empty())
+        .then(|| format!("ws://{}", process.word_after("teleoperation websocket on ws://", Duration::from_secs(60))));
+    Host { _process: process, teleop, websocket, _dir: dir }
 }
 
 /// An authenticated operator on the line protocol (it never asks for a
@@ -188,6 +197,86 @@ fn a_bumper_hit_from_the_controller_engages_a_lock_that_only_a_release_ends() {
     let reply = alice.say("RELEASE bumper");
     assert!(reply.starts_with("OK released bumper after "), "{reply}");
     assert_drives(&mut motors, "after the release");
+}
+
+/// An operator on the WebSocket JSON protocol, played by the `websockets`
+/// package from PyPI (an implementation no one here wrote): each JSON line
+/// written to it is sent, and the next `ok` or `error` comes back as one
+/// line (pings are answered on the way). It gives up after 120 s, so a
+/// failing test cannot hang on it.
+const WEBSOCKET_OPERATOR: &str = r#"
+import asyncio, json, sys, threading, websockets
+async def main():
+    loop = asyncio.get_running_loop()
+    lines = asyncio.Queue()
+    def feed():
+        for line in sys.stdin:
+            loop.call_soon_threadsafe(lines.put_nowait, line)
+        loop.call_soon_threadsafe(lines.put_nowait, "")
+    threading.Thread(target=feed, daemon=True).start()
+    async with asyncio.timeout(120), websockets.connect(sys.argv[1]) as ws:
+        replies = asyncio.Queue()
+        async def read():
+            async for raw in ws:
+                message = json.loads(raw)
+                if message.get("type") == "ping":
+                    await ws.send(json.dumps({"type": "pong", "nonce": message["nonce"]}))
+                elif message.get("type") in ("hello", "ok", "error"):
+                    await replies.put(message)
+        reading = asyncio.create_task(read())
+        print(json.dumps(await replies.get()), flush=True)
+        while line := await lines.get():
+            await ws.send(line.strip())
+            print(json.dumps(await replies.get()), flush=True)
+        reading.cancel()
+asyncio.run(main())
+"#;
+
+#[test]
+fn estop_and_release_as_websocket_json_stop_a_driving_component_until_released() {
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let host = start_with_teleop(&device, "", "", r#"<param name="websocket" value="127.0.0.1:0"/>"#);
+    assert_drives(&mut motors, "before");
+    let url = host.websocket.clone().unwrap_or_default();
+    let mut operator = Command::new(support::python())
+        .args(["-c", WEBSOCKET_OPERATOR, &url])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut to_operator = operator.stdin.take().unwrap();
+    let mut from_operator = BufReader::new(operator.stdout.take().unwrap()).lines();
+    let mut next = move || -> serde_json::Value {
+        let line = from_operator.next().and_then(Result::ok).unwrap_or_default();
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("the websocket operator said {line:?}: {e}"))
+    };
+    let json = |text: &str| -> serde_json::Value { serde_json::from_str(text).unwrap() };
+    assert_eq!(next()["type"], "hello");
+    let mut say = move |text: &str| -> serde_json::Value {
+        to_operator.write_all(format!("{text}\n").as_bytes()).unwrap();
+        next()
+    };
+    let authenticated = say(r#"{"type": "auth", "name": "alice", "token": "alice-token-0123456789"}"#);
+    assert!(
+        authenticated["message"].as_str().unwrap_or_default().starts_with("authenticated as alice"),
+        "{authenticated}"
+    );
+    let engaged = Instant::now();
+    assert_eq!(
+        say(r#"{"type": "estop"}"#),
+        json(r#"{"type": "ok", "message": "estop engaged: the motors are stopped"}"#)
+    );
+    let lines = watch(&mut motors, 1500);
+    assert_stopped(&lines, engaged, "websocket estop");
+    assert_eq!(
+        say(r#"{"type": "release", "lock": "bumper"}"#),
+        json(r#"{"type": "error", "message": "lock 'bumper' is not engaged"}"#)
+    );
+    let released = say(r#"{"type": "release"}"#);
+    assert!(released["message"].as_str().unwrap_or_default().starts_with("released estop after "), "{released}");
+    assert_drives(&mut motors, "after the websocket release");
+    drop(say);
+    assert!(operator.wait().unwrap().success(), "the websocket operator failed");
 }
 
 const PASSWORD: &str = "estop-test-password";

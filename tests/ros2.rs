@@ -11,7 +11,6 @@
 mod support;
 
 use std::io::{BufRead, BufReader, Write};
-use std::path::PathBuf;
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
 use std::time::{Duration, Instant};
 
@@ -19,15 +18,12 @@ use serde_json::Value as Json;
 use subsume::bridge::cdr::{self, Header, LaserScan, Log, Odometry, Time, Twist};
 use subsume::bridge::ros2::MessageType;
 
-fn python() -> PathBuf {
-    let venv = support::repo_root().join("tests/python/.venv/bin/python");
-    assert!(venv.exists(), "run scripts/setup first: {} is missing", venv.display());
-    venv
-}
-
 fn peer_once(mode: &str) -> Json {
-    let out =
-        Command::new(python()).arg(support::repo_root().join("tests/python/ros2_peer.py")).arg(mode).output().unwrap();
+    let out = Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/ros2_peer.py"))
+        .arg(mode)
+        .output()
+        .unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     serde_json::from_slice(&out.stdout).unwrap()
 }
@@ -95,7 +91,7 @@ struct Peer {
 
 impl Peer {
     fn start(mode: &str, endpoint: &str) -> Peer {
-        let mut child = Command::new(python())
+        let mut child = Command::new(support::python())
             .arg(support::repo_root().join("tests/python/ros2_peer.py"))
             .args([mode, endpoint])
             .stdin(Stdio::piped())
@@ -233,7 +229,7 @@ fn use_a_ros2_tools_drive_the_simulated_robot_and_decode_scan_and_odom() {
 #[test]
 fn a_bool_on_the_estop_topic_stops_the_robot_and_the_lock_holds() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let mut child = Command::new(python())
+    let mut child = Command::new(support::python())
         .arg(support::repo_root().join("tests/python/ros2_peer.py"))
         .args(["robot-estop", &endpoint, "2.5"])
         .stdin(Stdio::piped())

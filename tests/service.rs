@@ -176,15 +176,9 @@ fn start(store: &Path, args: &[&str], wait_for: &[&str]) -> Host {
     host
 }
 
-fn python() -> PathBuf {
-    let python = support::repo_root().join("tests/python/.venv/bin/python");
-    assert!(python.is_file(), "run scripts/setup first: it installs tests/python/.venv");
-    python
-}
-
 /// `tests/python/service_peer.py ARGS`, its JSON answer.
 fn peer(args: &[&str], env: &[(&str, &str)]) -> Value {
-    let output = Command::new(python())
+    let output = Command::new(support::python())
         .arg(support::repo_root().join("tests/python/service_peer.py"))
         .args(args)
         .envs(env.iter().copied())

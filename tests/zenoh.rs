@@ -321,9 +321,7 @@ fn tls_host(dir: &Path, pki: &Path, endpoint: &str, password: &str) -> Child {
 fn a_host_and_an_eclipse_zenoh_peer_talk_over_tls_with_a_password_and_a_wrong_password_is_refused() {
     let pki = make_tls_pki();
     let endpoint = format!("tls/localhost:{}", free_port());
-    let python = support::repo_root().join("tests/python/.venv/bin/python");
-    assert!(python.exists(), "run scripts/setup first: {} is missing", python.display());
-    let mut peer = Command::new(python)
+    let mut peer = Command::new(support::python())
         .arg(support::repo_root().join("tests/python/zenoh_tls_peer.py"))
         .args([&endpoint, pki.path().to_str().unwrap()])
         .stdin(Stdio::piped())

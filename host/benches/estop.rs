@@ -11,8 +11,10 @@
 //!
 //! With `FROM=browser`: the same robot with its portal, an operator in
 //! headless Chromium (`tests/browser/estop-bench.mjs`) clicks STOP; a sample
-//! runs from the page's clock just before the click to the `S` line read
-//! (wall clock on both sides, same machine).
+//! runs from the page's clock when the click event reaches the document to
+//! the `S` line read (wall clock on both sides, same machine). A second
+//! figure starts when the mouse input is sent to Chromium, so it adds the
+//! browser's input pipeline (and the DevTools protocol's hop) in front.
 //!
 //! Run: `taskset -c 1 cargo bench --bench estop` (BENCHMARKS.md records
 //! the figures; `--profile dev` measures the debug binary). `SAMPLES`
@@ -107,6 +109,7 @@ fn from_browser(samples: usize) {
         }
     });
     let mut clicked: Vec<f64> = Vec::new();
+    let mut asked: Vec<f64> = Vec::new();
     let mut stops: Vec<f64> = Vec::new();
     let mut done = false;
     let deadline = Instant::now() + Duration::from_secs(600);
@@ -118,27 +121,38 @@ fn from_browser(samples: usize) {
             stops.push(now);
         }
         while let Ok(line) = clicks.try_recv() {
-            match line.strip_prefix("clicked ") {
-                Some(ms) => clicked.push(ms.parse().unwrap()),
-                None => done = line == "done",
+            if let Some(ms) = line.strip_prefix("clicked ") {
+                clicked.push(ms.parse().unwrap());
+            } else if let Some(ms) = line.strip_prefix("asked ") {
+                asked.push(ms.parse().unwrap());
+            } else {
+                done = line == "done";
             }
         }
     }
     assert!(node.wait().unwrap().success(), "the browser failed");
     drop(host);
-    let mut latencies: Vec<Duration> = clicked
-        .iter()
-        .filter_map(|at| stops.iter().find(|s| *s >= at).map(|s| Duration::from_secs_f64((s - at) / 1e3)))
-        .collect();
-    latencies.sort();
-    println!(
-        "estop: portal STOP click -> S on the PTY, {} samples: p50 {:.1} ms, p90 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
-        latencies.len(),
-        percentile(&latencies, 0.5).as_secs_f64() * 1e3,
-        percentile(&latencies, 0.9).as_secs_f64() * 1e3,
-        percentile(&latencies, 0.99).as_secs_f64() * 1e3,
-        latencies.last().unwrap().as_secs_f64() * 1e3,
-    );
+    let latencies = |starts: &[f64]| {
+        let mut latencies: Vec<Duration> = starts
+            .iter()
+            .filter_map(|at| stops.iter().find(|s| *s >= at).map(|s| Duration::from_secs_f64((s - at) / 1e3)))
+            .collect();
+        latencies.sort();
+        latencies
+    };
+    for (what, latencies) in [
+        ("portal STOP click event -> S on the PTY", latencies(&clicked)),
+        ("mouse input sent to Chromium -> S on the PTY", latencies(&asked)),
+    ] {
+        println!(
+            "estop: {what}, {} samples: p50 {:.1} ms, p90 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+            latencies.len(),
+            percentile(&latencies, 0.5).as_secs_f64() * 1e3,
+            percentile(&latencies, 0.9).as_secs_f64() * 1e3,
+            percentile(&latencies, 0.99).as_secs_f64() * 1e3,
+            latencies.last().unwrap().as_secs_f64() * 1e3,
+        );
+    }
 }
 
 fn main() {

@@ -42,6 +42,14 @@ pub fn guest(name: &str) -> PathBuf {
 }
 
 /// A compile cache shared by the tests of this checkout.
+/// The tests' own Python (the virtualenv scripts/setup installs, with the
+/// independent implementations the tests talk to).
+pub fn python() -> PathBuf {
+    let python = repo_root().join("tests/python/.venv/bin/python");
+    assert!(python.is_file(), "{} is missing: run scripts/setup first", python.display());
+    python
+}
+
 pub fn cache_dir() -> PathBuf {
     repo_root().join("target/test-component-cache")
 }
