@@ -45,16 +45,10 @@ fn login(address: &str, name: &str) -> String {
     json["token"].as_str().unwrap().to_string()
 }
 
-fn python() -> PathBuf {
-    let python = support::repo_root().join("tests/python/.venv/bin/python");
-    assert!(python.is_file(), "run scripts/setup first: it installs tests/python/.venv");
-    python
-}
-
 /// What the `mcap` package reads in `file` (every message of `values`'
 /// topics too).
 fn read_mcap_values(file: &Path, values: &[&str]) -> Json {
-    let mut command = Command::new(python());
+    let mut command = Command::new(support::python());
     command.arg(support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
     for topic in values {
         command.args(["--values", topic]);
@@ -607,4 +601,37 @@ fn a_portal_recording_across_an_activation_holds_both_sets_values() {
     // The host says when it swapped.
     let host_log = portal.host.log();
     assert!(host_log.contains(&format!("set {v2} (planner-v2.xml) is active")), "{host_log}");
+}
+
+#[test]
+fn a_replay_past_its_bounds_is_stopped_with_a_clear_error() {
+    use subsume::record::replay::{ReplayError, ReplayLimits, replay_robot};
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("demo.mcap");
+    let output = support::subsume()
+        .env("SUBSUME_HTTP", "off")
+        .args(["run", "config/demo.xml", "--duration", "1", "--record"])
+        .arg(&file)
+        .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let sandbox = subsume::sandbox::Sandbox::new(Some(support::cache_dir())).unwrap();
+    let mut loader = subsume::assemble::Loader::new(&sandbox);
+    let config = subsume::config::load_with(&support::repo_root().join("config/demo.xml"), &mut loader, &[]).unwrap();
+    let only = ["planner".to_string()];
+    // Within generous bounds: identical.
+    let report = replay_robot(&config, &mut loader, &file, &only, ReplayLimits::default()).unwrap();
+    assert!(report.identical() && report.compared > 5, "{report:?}");
+    // A file larger than the bound is not read.
+    let size = std::fs::metadata(&file).unwrap().len();
+    let small = ReplayLimits { max_recording_bytes: size - 1, max_duration: None };
+    let error = replay_robot(&config, &mut loader, &file, &only, small).unwrap_err();
+    assert!(matches!(error, ReplayError::TooLarge { .. }), "{error}");
+    assert!(error.to_string().ends_with(&format!("{size} bytes, larger than the {} bytes a replay reads", size - 1)));
+    // A replay running past its duration is stopped.
+    let instant = ReplayLimits { max_recording_bytes: size, max_duration: Some(Duration::ZERO) };
+    let error = replay_robot(&config, &mut loader, &file, &only, instant).unwrap_err();
+    assert!(matches!(error, ReplayError::TooLong { done: 0, .. }), "{error}");
+    assert!(error.to_string().contains("the replay took longer than 0 s and was stopped after 0 of "), "{error}");
 }
