@@ -379,6 +379,11 @@ fn use_b_the_zero_twist_goes_out_on_a_second_signal_when_the_loop_is_stuck() {
     std::thread::sleep(Duration::from_millis(500));
     let twists = twists_of(&peer.finish());
     assert_eq!(code, 130, "{log}");
+    // The stall watchdog stopped the base first, within the stall limit of
+    // the hang (issue 12: the Twist publisher is a motor stop), and the
+    // second signal's final zero Twist still went out after it.
+    assert!(log.contains("the control loop is stalled"), "{log}");
+    assert!(log.contains("motors: 'cmd-vel': STOP sent"), "{log}");
     assert!(log.contains("second signal: ros2 publisher 'cmd-vel': STOP sent"), "{log}");
     assert_driven_then_zero(&twists);
 }

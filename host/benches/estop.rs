@@ -35,6 +35,16 @@ fn percentile(sorted: &[Duration], p: f64) -> Duration {
     sorted[((sorted.len() - 1) as f64 * p).round() as usize]
 }
 
+/// "N samples: p50 .., p90 .., p95 .., p99 .., max .." of sorted latencies, in ms.
+fn summary(sorted: &[Duration]) -> String {
+    let ms = |d: Duration| d.as_secs_f64() * 1e3;
+    let mut text = format!("{} samples:", sorted.len());
+    for (name, p) in [("p50", 0.5), ("p90", 0.9), ("p95", 0.95), ("p99", 0.99), ("max", 1.0)] {
+        text += &format!(" {name} {:.2} ms", ms(percentile(sorted, p)));
+    }
+    text
+}
+
 fn robot_xml(device: &str, _extra: &str) -> String {
     format!(
         r#"<robot name="estop-bench">
@@ -144,14 +154,7 @@ fn from_browser(samples: usize) {
         ("portal STOP click event -> S on the PTY", latencies(&clicked)),
         ("mouse input sent to Chromium -> S on the PTY", latencies(&asked)),
     ] {
-        println!(
-            "estop: {what}, {} samples: p50 {:.1} ms, p90 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
-            latencies.len(),
-            percentile(&latencies, 0.5).as_secs_f64() * 1e3,
-            percentile(&latencies, 0.9).as_secs_f64() * 1e3,
-            percentile(&latencies, 0.99).as_secs_f64() * 1e3,
-            latencies.last().unwrap().as_secs_f64() * 1e3,
-        );
+        println!("estop: {what}, {}", summary(&latencies));
     }
 }
 
@@ -217,13 +220,5 @@ fn main() {
     }
     drop(host);
     latencies.sort();
-    println!(
-        "estop: teleop ESTOP line -> S on the PTY, {} samples: p50 {:.2} ms, p90 {:.2} ms, p95 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
-        latencies.len(),
-        percentile(&latencies, 0.5).as_secs_f64() * 1e3,
-        percentile(&latencies, 0.9).as_secs_f64() * 1e3,
-        percentile(&latencies, 0.95).as_secs_f64() * 1e3,
-        percentile(&latencies, 0.99).as_secs_f64() * 1e3,
-        latencies.last().unwrap().as_secs_f64() * 1e3,
-    );
+    println!("estop: teleop ESTOP line -> S on the PTY, {}", summary(&latencies));
 }

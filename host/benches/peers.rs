@@ -9,7 +9,8 @@
 //!   once): wasmtime + wasmtime-wasi directly, the host's `bindgen!` output
 //!   (`contract::bindings`), a trivial `emit` that keeps the value; no
 //!   graph, no budget, no epochs, no pooling, no subsume store: the engine's
-//!   limit;
+//!   limit; (b8) the same bare call to 8 instances in turn, as the chain
+//!   (d) makes them: the engine's floor for a chain;
 //! - (c) the subsume hop (`Graph::inject` -> relay guest -> route -> sink),
 //!   for a scalar and a 100-element vector;
 //! - (d) chain throughput: a chain of 8 relay guests, deliveries per second,
@@ -207,6 +208,19 @@ impl BareRelay {
 fn bare_call(relay: &mut BareRelay, overhead: u64) -> (u64, u64) {
     let value = Value::Scalar(1.5);
     sample(overhead, || relay.call(&value))
+}
+
+/// The bare call to `relays` instances in turn, one call each: what the
+/// engine alone costs a chain, whose calls each enter a different store
+/// (its memory and tables no longer in the cache), unlike (b)'s one hot
+/// instance.
+fn bare_round_robin(relays: &mut [BareRelay], overhead: u64) -> (u64, u64) {
+    let value = Value::Scalar(1.5);
+    let mut next = 0;
+    sample(overhead, || {
+        relays[next].call(&value);
+        next = (next + 1) % relays.len();
+    })
 }
 
 /// The bare call on engines with one wasmtime setting changed: p50 per
@@ -565,6 +579,7 @@ fn main() {
     let sandbox = Sandbox::new(Some(support::cache_dir())).unwrap();
     let overhead = timer_overhead();
     let mut bare = BareRelay::new(&bytes);
+    let mut bare8: Vec<BareRelay> = (0..8).map(|_| BareRelay::new(&bytes)).collect();
     let mut echo = Echo::start();
     let mut zecho = ZenohEcho::start();
     let scalar = Value::Scalar(1.5);
@@ -572,6 +587,7 @@ fn main() {
     let mut a = Row::new("(a) native `Component` call (relay, emits once)");
     let mut a2 = Row::new("(a') native relay, hop through the graph");
     let mut b = Row::new("(b) bare wasmtime `on-input` call (relay guest, emits once)");
+    let mut b8 = Row::new("(b8) bare wasmtime calls to 8 relay instances in turn (the chain's engine floor)");
     let mut c = Row::new("(c) subsume hop, scalar");
     let mut cv = Row::new("(c) subsume hop, vector of 100 f64");
     let mut c1 = Row::new("(c) subsume hop, scalar, a 0.1.0 relay (`on-input` returns a result)");
@@ -585,6 +601,7 @@ fn main() {
         a.push(native_call(overhead));
         a2.push(hop(|| Box::new(NativeRelay), 0, &scalar, overhead));
         b.push(bare_call(&mut bare, overhead));
+        b8.push(bare_round_robin(&mut bare8, overhead));
         c.push(hop(|| relay(&sandbox, &bytes), 0, &scalar, overhead));
         cv.push(hop(|| relay(&sandbox, &bytes), 1, &vector(), overhead));
         c1.push(hop(|| relay(&sandbox, &v1_bytes), 0, &scalar, overhead));
@@ -603,7 +620,7 @@ fn main() {
     println!();
     println!("| row | p50 | p99 | p50 / (b) |");
     println!("|---|---|---|---|");
-    for row in [&a, &a2, &b, &c, &cv, &c1, &d, &e, &ev, &z, &zv] {
+    for row in [&a, &a2, &b, &b8, &c, &cv, &c1, &d, &e, &ev, &z, &zv] {
         let (first, second) = row.median();
         if row.throughput {
             println!(
@@ -631,7 +648,7 @@ fn main() {
     if std::env::var("PEERS_ENGINE_SETTINGS").is_ok_and(|v| v != "0") {
         engine_settings(&bytes, rounds, overhead);
     }
-    for row in [&a, &a2, &b, &c, &cv, &c1, &d, &e, &ev, &z, &zv] {
+    for row in [&a, &a2, &b, &b8, &c, &cv, &c1, &d, &e, &ev, &z, &zv] {
         let firsts: Vec<String> = row.rounds.iter().map(|r| format!("{:.0}", r.0)).collect();
         println!("rounds, {}: {} ns", row.label, firsts.join(" / "));
     }

@@ -14,6 +14,9 @@
 //!
 //! `cargo bench --bench service` (SERVICE_BENCH_SECONDS for the two periods)
 
+#[path = "../tests/support/mod.rs"]
+mod support;
+
 use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
@@ -29,47 +32,6 @@ const PASSWORD: &str = "bench-password-1";
 
 fn repo() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
-}
-
-fn openssl(dir: &Path, args: &[&str]) -> Result<(), String> {
-    let output = Command::new("openssl").current_dir(dir).args(args).output().map_err(|e| e.to_string())?;
-    if output.status.success() { Ok(()) } else { Err(String::from_utf8_lossy(&output.stderr).to_string()) }
-}
-
-/// A CA and a server certificate for 127.0.0.1 (files in `dir`).
-fn make_pki(dir: &Path) -> Result<(), String> {
-    let ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"];
-    let mut ca = vec!["req", "-x509"];
-    ca.extend(ec);
-    ca.extend(["-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=bench CA"]);
-    ca.extend(["-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign"]);
-    openssl(dir, &ca)?;
-    let mut csr = vec!["req"];
-    csr.extend(ec);
-    csr.extend(["-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
-    openssl(dir, &csr)?;
-    std::fs::write(dir.join("server.ext"), "subjectAltName=IP:127.0.0.1\nextendedKeyUsage=serverAuth\n")
-        .map_err(|e| e.to_string())?;
-    openssl(
-        dir,
-        &[
-            "x509",
-            "-req",
-            "-in",
-            "server.csr",
-            "-CA",
-            "ca.pem",
-            "-CAkey",
-            "ca.key",
-            "-CAcreateserial",
-            "-out",
-            "server.pem",
-            "-days",
-            "2",
-            "-extfile",
-            "server.ext",
-        ],
-    )
 }
 
 /// A connection to the host, plain or TLS.
@@ -273,7 +235,7 @@ fn late_percentile(before: &[(f64, f64)], after: &[(f64, f64)], p: f64) -> (f64,
 
 fn main() -> Result<(), String> {
     let dir = tempfile::tempdir().map_err(|e| e.to_string())?;
-    make_pki(dir.path())?;
+    support::make_test_pki(dir.path());
     let store = dir.path().join("store");
     let mut add = Command::new(env!("CARGO_BIN_EXE_subsume"))
         .args(["--store", &store.display().to_string(), "user", "add", "bench", "--role", "admin", "--password-stdin"])

@@ -290,7 +290,10 @@ fn a_graph_swapped_in_by_an_activation_is_watched_too() {
     let waited = stop_at.duration_since(slept_at);
     assert!(waited >= LIMIT && waited < sleep, "STOP came {waited:?} into a {sleep:?} stall");
     assert!(after.iter().all(|l| l == "S"), "{after:?}");
-    assert_eq!(stalls.len(), 1, "{stalls:?}");
-    assert_eq!(stalls[0].component.as_deref(), Some("blocker"));
+    // Exactly one stall in the blocker. A loaded machine can hold the
+    // loop itself off the CPU for longer than LIMIT (the watchdog then
+    // rightly declares that too), so other stalls are not counted here.
+    let in_blocker = stalls.iter().filter(|s| s.component.as_deref() == Some("blocker")).count();
+    assert_eq!(in_blocker, 1, "{stalls:?}");
     assert!(reason.starts_with("tick stalled"), "{reason}");
 }

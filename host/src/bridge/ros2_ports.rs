@@ -30,7 +30,7 @@ use crate::config::ParamProblem;
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::halt::{self, Halt};
-use crate::runtime::{CallError, Component, Outbox, StopOutcome};
+use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
 use zenoh::Wait;
 
 /// Highest ROS 2 domain id (ROS 2's own limit for UDP ports is 232).
@@ -212,8 +212,8 @@ impl Builtin for Ros2Publish {
         let ty = message_type(params);
         // A Twist publisher drives a base: it joins the exits that cannot
         // wait for the loop (the panic hook, a second signal).
+        let name = ctx.robot.components.get(ctx.index).map(|c| c.name.clone()).unwrap_or_default();
         let halt = (ty == MessageType::Twist).then(|| {
-            let name = ctx.robot.components.get(ctx.index).map(|c| c.name.clone()).unwrap_or_default();
             let action: Arc<dyn Halt> = Arc::new(ZeroTwist {
                 label: format!("ros2 publisher '{name}'"),
                 gate: outlet.gate(),
@@ -222,6 +222,10 @@ impl Builtin for Ros2Publish {
             halt::register(&action);
             action
         });
+        // ... and the stall watchdog stops the base with a zero Twist past
+        // the queue (what the loop queued before it is dropped).
+        let stop = (ty == MessageType::Twist)
+            .then(|| Arc::new(TwistStop { name: name.clone(), gate: outlet.gate() }) as Arc<dyn MotorStop>);
         Ok(Box::new(Ros2Publisher {
             ty,
             node: params.text("node")?.to_string(),
@@ -237,6 +241,7 @@ impl Builtin for Ros2Publish {
             entity,
             outlet,
             _halt: halt,
+            stop,
         }))
     }
 }
@@ -277,6 +282,22 @@ impl Halt for ZeroTwist {
     }
 }
 
+/// The stall watchdog's stop of a `cmd_vel` publisher: a zero Twist now.
+struct TwistStop {
+    name: String,
+    gate: Arc<Gate>,
+}
+
+impl MotorStop for TwistStop {
+    fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn stop_now(&self, wait: Duration) -> StopOutcome {
+        self.gate.stop_now(Twist::default().encode(), wait)
+    }
+}
+
 struct Ros2Publisher {
     ty: MessageType,
     node: String,
@@ -288,6 +309,8 @@ struct Ros2Publisher {
     outlet: Outlet,
     /// Registered with `runtime::halt` while this lives (Twist only).
     _halt: Option<Arc<dyn Halt>>,
+    /// The stall watchdog's handle (Twist only).
+    stop: Option<Arc<dyn MotorStop>>,
 }
 
 impl Ros2Publisher {
@@ -371,6 +394,10 @@ impl Component for Ros2Publisher {
             Err(why) => self.outlet.stats.malformed(why),
         }
         Ok(())
+    }
+
+    fn motor_stop(&self) -> Option<Arc<dyn MotorStop>> {
+        self.stop.clone()
     }
 
     fn faulted(&mut self) {

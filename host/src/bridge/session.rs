@@ -10,7 +10,8 @@
 //! `listen`, when given, replace its endpoints.
 //!
 //! Zenoh runs its own tokio runtime; nothing here runs on the control loop
-//! but the open at build time. A watcher thread per session counts its
+//! but the open at build time (and small puts, when a congested put gives
+//! up at once: `link::Outlet`). A watcher thread per session counts its
 //! peers for the status.
 
 use std::collections::HashMap;
@@ -32,6 +33,25 @@ pub const MAX_ENDPOINTS: usize = 16;
 
 /// How often a session's peers are counted for the status.
 const PEER_POLL: Duration = Duration::from_millis(500);
+
+/// Zenoh's setting for how long a droppable put waits for a free batch
+/// before it drops the message (microseconds; Zenoh's default is 1000).
+pub const WAIT_BEFORE_DROP_KEY: &str = "transport/link/tx/queue/congestion_control/drop/wait_before_drop";
+
+/// What this host sets [`WAIT_BEFORE_DROP_KEY`] to when no `zenoh-config`
+/// file is given: a put that finds the network congested gives up within a
+/// microsecond (the message is dropped and counted, as it would be 1 ms
+/// later), so the control loop can put small messages itself
+/// (`link::Outlet`) without ever waiting on the network. Multi-batch
+/// (fragmented) messages still wait up to Zenoh's own fragment limit, on
+/// the sender thread.
+pub const LOOP_WAIT_BEFORE_DROP_US: i64 = 1;
+
+/// Most a session's [`WAIT_BEFORE_DROP_KEY`] may be for the control loop to
+/// put on it directly. The threat: a loop that waits up to Zenoh's default
+/// millisecond for a congested network misses a 1 kHz cycle; a config file
+/// with a larger value keeps every put on the sender thread.
+pub const MAX_LOOP_WAIT_BEFORE_DROP_US: i64 = 10;
 
 /// Why a session did not open.
 #[derive(Debug, Error)]
@@ -146,6 +166,7 @@ impl SessionSettings {
                 let mut config = zenoh::Config::default();
                 set(&mut config, "mode", "\"peer\"".into())?;
                 set(&mut config, "scouting/multicast/enabled", "false".into())?;
+                set(&mut config, WAIT_BEFORE_DROP_KEY, LOOP_WAIT_BEFORE_DROP_US.to_string())?;
                 config
             }
         };
@@ -167,6 +188,10 @@ pub struct Shared {
     pub id: String,
     peers: AtomicUsize,
     next_entity: AtomicU64,
+    /// Whether a droppable put on this session gives up at once on a
+    /// congested network ([`MAX_LOOP_WAIT_BEFORE_DROP_US`]), so the control
+    /// loop may put small messages itself.
+    pub loop_puts: bool,
 }
 
 impl Shared {
@@ -197,7 +222,9 @@ pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> 
     let config = settings.zenoh_config()?;
     let session = zenoh::open(config.clone()).wait().map_err(|why| open_error(settings, &config, &why.to_string()))?;
     let id = session.zid().to_string();
-    let shared = Arc::new(Shared { session, id, peers: AtomicUsize::new(0), next_entity: AtomicU64::new(0) });
+    let loop_puts = loop_puts(&config);
+    let shared =
+        Arc::new(Shared { session, id, peers: AtomicUsize::new(0), next_entity: AtomicU64::new(0), loop_puts });
     sessions.retain(|_, weak| weak.strong_count() > 0);
     sessions.insert(settings.clone(), Arc::downgrade(&shared));
     let watched = Arc::downgrade(&shared);
@@ -211,6 +238,16 @@ pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> 
     });
     tracing::info!(session = %shared.id, connect = ?settings.connect, listen = ?settings.listen, "zenoh session open");
     Ok(shared)
+}
+
+/// Whether `config` lets a droppable put wait at most
+/// [`MAX_LOOP_WAIT_BEFORE_DROP_US`] for a free batch.
+pub fn loop_puts(config: &zenoh::Config) -> bool {
+    config
+        .get_json(WAIT_BEFORE_DROP_KEY)
+        .ok()
+        .and_then(|text| text.trim().parse::<i64>().ok())
+        .is_some_and(|us| us <= MAX_LOOP_WAIT_BEFORE_DROP_US)
 }
 
 /// Why a session did not open, in words an operator can act on. Zenoh's
@@ -304,5 +341,27 @@ mod tests {
         assert_eq!(get("scouting/multicast/enabled"), "false");
         assert_eq!(get("connect/endpoints"), "[\"tcp/127.0.0.1:7447\"]");
         assert_eq!(get("listen/endpoints"), "[]");
+    }
+
+    #[test]
+    fn the_loop_puts_itself_only_when_a_congested_put_gives_up_at_once() {
+        let settings = SessionSettings { connect: vec![], listen: vec![], config: None };
+        let config = settings.zenoh_config().unwrap_or_default();
+        assert_eq!(config.get_json(WAIT_BEFORE_DROP_KEY).unwrap_or_default(), LOOP_WAIT_BEFORE_DROP_US.to_string());
+        assert!(loop_puts(&config));
+        // A config file keeps its own value: Zenoh's default millisecond
+        // keeps every put on the sender thread.
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
+        let file = dir.path().join("zenoh.json5");
+        std::fs::write(&file, "{ mode: \"peer\" }").unwrap_or_else(|e| panic!("write: {e}"));
+        let settings = SessionSettings { connect: vec![], listen: vec![], config: Some(file.clone()) };
+        let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{e}"));
+        assert!(!loop_puts(&config));
+        let quick = format!(
+            "{{ mode: \"peer\", transport: {{ link: {{ tx: {{ queue: {{ congestion_control: {{ drop: {{ wait_before_drop: {MAX_LOOP_WAIT_BEFORE_DROP_US} }} }} }} }} }} }} }}"
+        );
+        std::fs::write(&file, quick).unwrap_or_else(|e| panic!("write: {e}"));
+        let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{e}"));
+        assert!(loop_puts(&config));
     }
 }

@@ -16,8 +16,9 @@
 
 use std::collections::VecDeque;
 use std::sync::Arc;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
+use super::clock;
 use super::component::{CallError, Component, Outbox, RestartError, Restarter, Vacant};
 use super::cpu_wait::CpuWait;
 use super::histogram::Histogram;
@@ -121,9 +122,10 @@ pub struct Graph {
     messages_routed: u64,
     messages_dropped: u64,
     cycles: u64,
-    /// When the last call (and its routing) ended, within this cycle: the
-    /// start of the next call's time, so a call costs one clock read.
-    mark: Option<Instant>,
+    /// When the last call (and its routing) ended, within this cycle
+    /// (`clock::now_ns`): the start of the next call's time, so a call
+    /// costs one clock read.
+    mark: Option<u64>,
     /// The stall watchdog's heartbeat, once the loop attached one.
     heartbeat: Option<Arc<Heartbeat>>,
     /// Numbers the heartbeat's words (wraps).
@@ -157,6 +159,7 @@ impl Default for Graph {
 
 impl Graph {
     pub fn new() -> Graph {
+        clock::init();
         Graph {
             nodes: Vec::new(),
             connections: Vec::new(),
@@ -425,7 +428,7 @@ impl Graph {
     /// what it emitted or records its failure. The component is charged the
     /// time of its call and of routing what it emitted.
     fn call(&mut self, index: usize, now_ns: u64, input: Option<(u32, Value, usize)>) {
-        let started = self.mark.take().unwrap_or_else(Instant::now);
+        let started = self.mark.take().unwrap_or_else(clock::now_ns);
         let activity = if input.is_some() { Activity::OnInput } else { Activity::Tick };
         let word = self.beat(Some(index), activity);
         if let Some(tap) = &mut self.tap {
@@ -446,7 +449,8 @@ impl Graph {
         if stalled {
             // The watchdog stopped the motors past this call: what it
             // emitted is stale, and the component is faulted.
-            result = Err(CallError::Fault(self.stall_reason(activity, Some(started.elapsed()))));
+            let held = Duration::from_nanos(clock::now_ns().saturating_sub(started));
+            result = Err(CallError::Fault(self.stall_reason(activity, Some(held))));
         }
         let node = &mut self.nodes[index];
         match result {
@@ -472,9 +476,9 @@ impl Graph {
         }
         self.route(index, &mut outbox);
         self.scratch = outbox;
-        let ended = Instant::now();
-        let held = ended.duration_since(started);
-        let held_ns = held.as_nanos() as u64;
+        let ended = clock::now_ns();
+        let held_ns = ended.saturating_sub(started);
+        let held = Duration::from_nanos(held_ns);
         let stats = &mut self.nodes[index].stats;
         stats.call_ns += held_ns;
         stats.call_times.record(held_ns);

@@ -1,5 +1,6 @@
 //! The runtime: components behind one trait ([`component`]), how they are
-//! wired ([`wiring`]), the graph that schedules them ([`graph`]), the
+//! wired ([`wiring`]), the graph that schedules them ([`graph`]) and its
+//! stopwatch ([`clock`]), the
 //! control loop that drives it in real time ([`control_loop`]) and how long
 //! it waited for a CPU ([`cpu_wait`]), the host's
 //! emergency-stop locks ([`locks`]), the process's list of final stops for
@@ -13,6 +14,7 @@
 //! file's validator and the assembler feed the graph through the types of
 //! [`wiring`].
 
+pub mod clock;
 pub mod component;
 pub mod control_loop;
 pub mod cpu_wait;

@@ -6,6 +6,7 @@
 
 use std::io;
 use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
 
@@ -26,19 +27,29 @@ pub const MAX_LAST_WORDS_BYTES: usize = 240;
 /// The last meaningful line a guest wrote to stderr in the current call
 /// (a panic's message, an exception), cleared when a call begins.
 #[derive(Clone, Default)]
-pub struct LastWords(Arc<Mutex<String>>);
+pub struct LastWords(Arc<Words>);
+
+#[derive(Default)]
+struct Words {
+    line: Mutex<String>,
+    /// Whether `line` may hold something: a call that said nothing (nearly
+    /// all) is cleared without taking the lock.
+    said: AtomicBool,
+}
 
 impl LastWords {
     /// Forgets what an earlier call said.
     pub fn clear(&self) {
-        if let Ok(mut words) = self.0.lock() {
+        if self.0.said.swap(false, Ordering::AcqRel)
+            && let Ok(mut words) = self.0.line.lock()
+        {
             words.clear();
         }
     }
 
     /// What the guest last said in this call, if anything.
     pub fn take(&self) -> Option<String> {
-        let words = std::mem::take(&mut *self.0.lock().ok()?);
+        let words = std::mem::take(&mut *self.0.line.lock().ok()?);
         (!words.is_empty()).then_some(words)
     }
 
@@ -57,8 +68,9 @@ impl LastWords {
         if noise {
             return;
         }
-        if let Ok(mut words) = self.0.lock() {
+        if let Ok(mut words) = self.0.line.lock() {
             *words = super::guest::truncate(line.to_string(), MAX_LAST_WORDS_BYTES);
+            self.0.said.store(true, Ordering::Release);
         }
     }
 }

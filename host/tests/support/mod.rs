@@ -1,7 +1,7 @@
 //! Shared by the integration tests: where the repository is, and the Rust
 //! guest components, built once per test process from guest-components/rust.
 
-#![allow(dead_code, clippy::panic)]
+#![allow(dead_code, clippy::panic, clippy::unwrap_used, clippy::expect_used)]
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
@@ -212,4 +212,35 @@ pub fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: 
     let status = text.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
     let body = text.split("\r\n\r\n").nth(1).unwrap_or("");
     (status, serde_json::from_str(body).unwrap_or(serde_json::Value::Null))
+}
+
+/// A test CA (`ca.pem`, `ca.key`) and a server certificate it signed for
+/// localhost and 127.0.0.1 (`server.pem`, `server.key`; `chain.pem` holds
+/// both certificates, as a full chain does), made in `dir` with the openssl
+/// CLI (which scripts/setup installs).
+pub fn make_test_pki(dir: &Path) {
+    let openssl = |args: &[&str]| {
+        let output = Command::new("openssl").current_dir(dir).args(args).output();
+        let output = output.unwrap_or_else(|e| panic!("the openssl CLI is needed: {e}"));
+        assert!(output.status.success(), "openssl {args:?}: {}", String::from_utf8_lossy(&output.stderr));
+    };
+    let ec = ["-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes"];
+    let mut ca = vec!["req", "-x509"];
+    ca.extend(ec);
+    ca.extend(["-keyout", "ca.key", "-out", "ca.pem", "-days", "2", "-subj", "/CN=subsume test CA"]);
+    ca.extend(["-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign"]);
+    openssl(&ca);
+    let mut csr = vec!["req"];
+    csr.extend(ec);
+    csr.extend(["-keyout", "server.key", "-out", "server.csr", "-subj", "/CN=localhost"]);
+    openssl(&csr);
+    let extensions = "subjectAltName=DNS:localhost,IP:127.0.0.1\nbasicConstraints=critical,CA:FALSE\n\
+         keyUsage=critical,digitalSignature\nextendedKeyUsage=serverAuth\n\
+         subjectKeyIdentifier=hash\nauthorityKeyIdentifier=keyid,issuer\n";
+    std::fs::write(dir.join("server.ext"), extensions).unwrap_or_else(|e| panic!("cannot write server.ext: {e}"));
+    let sign = ["x509", "-req", "-in", "server.csr", "-CA", "ca.pem", "-CAkey", "ca.key", "-CAcreateserial"];
+    openssl(&[&sign[..], &["-out", "server.pem", "-days", "2", "-extfile", "server.ext"]].concat());
+    let read = |name: &str| std::fs::read(dir.join(name)).unwrap_or_else(|e| panic!("cannot read {name}: {e}"));
+    std::fs::write(dir.join("chain.pem"), [read("server.pem"), read("ca.pem")].concat())
+        .unwrap_or_else(|e| panic!("cannot write chain.pem: {e}"));
 }
