@@ -106,7 +106,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
     for (const b of document.querySelectorAll('#tabs button')) b.classList.toggle('active', b === button);
     for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
     if (button.dataset.tab === 'components') refreshComponents();
-    if (button.dataset.tab === 'sets') refreshSets();
+    if (button.dataset.tab === 'sets') { refreshSets(); refreshReplayRecordings(); }
     if (button.dataset.tab === 'recordings') refreshRecordings();
   });
 }
@@ -362,6 +362,7 @@ async function refreshSets() {
         const activate = el('button', { class: 'activate', 'data-set': s.id }, 'activate');
         activate.addEventListener('click', () => activateSet(s.id));
         actions.append(' ', activate);
+        actions.append(' ', replayButton(s.id));
       }
       return el('tr', { 'data-set': s.id }, ...cells, actions);
     }));
@@ -837,3 +838,62 @@ $('recording-stop').addEventListener('click', async () => {
   $('recording-status').dataset.kept = '1';
   refreshRecordings();
 });
+
+// ---- replay before activation (POST /sets/{id}/replay; developers and admins)
+function replayButton(id) {
+  const button = el('button', { class: 'replay', 'data-set': id, title: 'Replay this set against the chosen recording' }, 'replay');
+  button.addEventListener('click', () => replaySet(id));
+  return button;
+}
+async function refreshReplayRecordings() {
+  const select = $('replay-recording');
+  const kept = select.value;
+  try {
+    const { files } = await api('GET', '/recordings');
+    select.replaceChildren(...files.filter((f) => !f.recording).reverse().map((f) => el('option', { value: f.name }, f.name)));
+    if (files.some((f) => f.name === kept)) select.value = kept;
+  } catch (err) {
+    select.replaceChildren();
+  }
+}
+function showReplayValue(value) {
+  return value === null || value === undefined ? 'nothing' : JSON.stringify(value);
+}
+async function replaySet(id) {
+  const result = $('replay-result');
+  const table = $('replay-divergences');
+  const recording = $('replay-recording').value;
+  table.hidden = true;
+  if (!recording) {
+    result.className = 'error';
+    result.textContent = 'no recording to replay against: record one in the Recordings tab';
+    return;
+  }
+  const only = $('replay-only').value.split(/[\s,]+/).filter((c) => c);
+  result.className = '';
+  result.textContent = `replaying set ${id} against ${recording}...`;
+  for (const b of document.querySelectorAll('button.replay')) b.disabled = true;
+  try {
+    const body = JSON.stringify({ recording, only });
+    const { identical, report } = await api('POST', `/sets/${id}/replay`, body, { 'content-type': 'application/json' });
+    const what = `set ${id} against ${recording} (${report.components.join(', ')}; ${report.compared} outputs compared over ${report.recorded_s.toFixed(1)} recorded s)`;
+    result.dataset.identical = String(identical);
+    if (identical) {
+      result.className = 'ok';
+      result.textContent = `identical: ${what}`;
+    } else {
+      const first = report.divergences[0];
+      result.className = 'error';
+      result.textContent = `diverges: ${what}; first: ${first.component}.${first.port} at ${first.time_s.toFixed(6)} s (output ${first.index}): recorded ${showReplayValue(first.recorded)}, new ${showReplayValue(first.replayed)}`;
+      table.querySelector('tbody').replaceChildren(...report.divergences.map((d) => el('tr', { 'data-port': `${d.component}.${d.port}` },
+        el('td', {}, d.time_s.toFixed(6)), el('td', {}, `${d.component}.${d.port}`), el('td', {}, String(d.index)),
+        el('td', { class: 'recorded' }, showReplayValue(d.recorded)), el('td', { class: 'replayed' }, showReplayValue(d.replayed)))));
+      table.hidden = false;
+    }
+  } catch (err) {
+    delete result.dataset.identical;
+    result.className = 'error';
+    result.textContent = `set ${id} was not replayed: ${err.message}`;
+  }
+  for (const b of document.querySelectorAll('button.replay')) b.disabled = false;
+}

@@ -163,6 +163,7 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("GET", "/api/v1/sets", b"", Allowed::AnyUser),
         ("GET", "/api/v1/sets/1", b"", Allowed::AnyUser),
         ("POST", "/api/v1/sets/999/activate", b"", Allowed::Developer),
+        ("POST", "/api/v1/sets/1/replay", br#"{"recording":"rec-1.mcap"}"#, Allowed::Developer),
         ("POST", "/api/v1/rollback", b"", Allowed::Developer),
         ("GET", "/api/v1/status", b"", Allowed::AnyUser),
         ("GET", "/api/v1/world", b"", Allowed::AnyUser),

@@ -5,11 +5,14 @@ here wrote, and prints what it found as one JSON object on stdout:
      "message_encoding": ..., "count": n}}, "in_order_per_channel": bool,
      "messages": n, "summary": {...} | null, "first": {topic: message}, "last": {...}}
 
-Usage: mcap_reader.py FILE.mcap [--truncated]
+Usage: mcap_reader.py FILE.mcap [--truncated] [--values TOPIC]...
 
 --truncated reads a file a killed host left (no summary, no footer): the
 chunks are read in order with the non-seeking reader until the data stops,
 each chunk's CRC checked.
+
+--values TOPIC also prints every decoded message of TOPIC, in file order,
+under "values": {topic: [message, ...]}.
 """
 
 import json
@@ -22,6 +25,8 @@ from mcap.reader import NonSeekingReader, make_reader
 def main() -> None:
     path = sys.argv[1]
     truncated = "--truncated" in sys.argv[2:]
+    wanted = {sys.argv[i + 1] for i, a in enumerate(sys.argv[:-1]) if a == "--values"}
+    values = {topic: [] for topic in wanted}
     channels = {}
     last_time = {}
     in_order = True
@@ -65,6 +70,8 @@ def main() -> None:
                 if channel.topic not in first:
                     first[channel.topic] = decoded
                 last[channel.topic] = decoded
+                if channel.topic in values:
+                    values[channel.topic].append(decoded)
                 if message.log_time < last_time.get(channel.topic, 0):
                     in_order = False
                 last_time[channel.topic] = message.log_time
@@ -84,6 +91,7 @@ def main() -> None:
                 "summary": summary,
                 "first": first,
                 "last": last,
+                "values": values,
             }
         )
     )

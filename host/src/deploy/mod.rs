@@ -28,6 +28,7 @@ mod activate;
 pub mod dev;
 mod estop;
 mod recordings;
+mod replay;
 mod stage;
 mod swap;
 mod upload;
@@ -40,6 +41,9 @@ use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
 pub use self::recordings::RecordingsView;
+pub use self::replay::{
+    MAX_CONCURRENT_REPLAYS, MAX_REPLAY_COMPONENTS, MAX_REPLAY_DURATION, MAX_REPLAY_RECORDING_BYTES,
+};
 pub use self::stage::{MAX_CONCURRENT_VALIDATIONS, MAX_FILE_NAME_LEN, Validated};
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
@@ -87,6 +91,10 @@ pub enum DeployError {
     /// The host is doing as many of these as it allows; try again soon.
     #[error("{0}")]
     Busy(String),
+    /// The request is well formed but cannot be carried out on what it
+    /// names (a recording of another robot, ...).
+    #[error("{0}")]
+    Unprocessable(String),
     /// The host failed (a thread, the control loop, a file it needs).
     #[error("{0}")]
     Host(String),
@@ -164,6 +172,8 @@ pub struct Deployer {
     compiles: Mutex<()>,
     /// One validation at a time (see [`MAX_CONCURRENT_VALIDATIONS`]).
     validations: Mutex<()>,
+    /// One replay at a time (see [`MAX_CONCURRENT_REPLAYS`]).
+    replays: Mutex<()>,
 }
 
 /// Where a run starts: the deployer, the first graph, and the hook to run
@@ -240,6 +250,7 @@ impl Deployer {
             live,
             compiles: Mutex::new(()),
             validations: Mutex::new(()),
+            replays: Mutex::new(()),
         };
         Ok(Boot { deployer: Arc::new(deployer), graph: built.graph, hook })
     }

@@ -89,6 +89,7 @@ impl From<DeployError> for ApiError {
             }
             e @ DeployError::NotAComponent(_) => ApiError::new(StatusCode::UNSUPPORTED_MEDIA_TYPE, e.to_string()),
             DeployError::WrongWorld(m) => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, m),
+            DeployError::Unprocessable(m) => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, m),
             DeployError::Store(StoreError::NoSet(id)) => ApiError::new(StatusCode::NOT_FOUND, format!("no set {id}")),
             other => ApiError::internal(other.to_string()),
         }

@@ -110,6 +110,7 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/sets", get(list_sets))
         .route("/sets/{id}", get(get_set))
         .route("/sets/{id}/activate", post(activate))
+        .route("/sets/{id}/replay", post(replay_set).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/rollback", post(rollback))
         .route("/status", get(status))
         .route("/events", get(events))

@@ -172,6 +172,40 @@ pub(super) async fn activate(
     Ok(Json(json!({ "active": set })))
 }
 
+/// The body of `POST /sets/{id}/replay`.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct ReplayRequest {
+    /// A file of the recordings folder.
+    recording: String,
+    /// The components to replay; every WASM component when missing or empty.
+    #[serde(default)]
+    only: Vec<String>,
+}
+
+/// Replays stored set `id`'s components against a stored recording before
+/// anyone activates it (`POST /sets/{id}/replay`, body
+/// `{"recording": NAME, "only": [COMPONENT...]}`): 200 with the report
+/// (identical, or the first divergence of each port), on a blocking thread.
+pub(super) async fn replay_set(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(id): Path<u64>,
+    body: Bytes,
+) -> Result<Json<Json_>, ApiError> {
+    authorise(&user, Permission::Record)?;
+    let request: ReplayRequest = serde_json::from_slice(&body).map_err(|e| {
+        ApiError::new(
+            StatusCode::BAD_REQUEST,
+            format!("expected {{\"recording\": NAME, \"only\": [COMPONENT...]}}: {e}"),
+        )
+    })?;
+    let deployer = state.deployer.clone();
+    let report = blocking(move || Ok(deployer.replay_set(&user, id, &request.recording, &request.only)?)).await?;
+    let identical = report.identical();
+    Ok(Json(json!({ "set": id, "identical": identical, "report": report })))
+}
+
 pub(super) async fn rollback(
     State(state): State<Arc<PortalState>>,
     Authed(user): Authed,

@@ -10,7 +10,7 @@
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
 use thiserror::Error;
@@ -61,8 +61,12 @@ pub enum ReplayError {
     },
     #[error("{}: not a recording replay can read: it does not start with the MCAP magic", .0.display())]
     NotMcap(PathBuf),
-    #[error("{}: larger than {MAX_RECORDING_BYTES} bytes", .0.display())]
-    TooLarge(PathBuf),
+    #[error("{}: {size} bytes, larger than the {max} bytes a replay reads", .path.display())]
+    TooLarge { path: PathBuf, size: u64, max: u64 },
+    #[error("{}: the replay took longer than {} s and was stopped after {done} of {calls} calls", .path.display(), .bound.as_secs_f64())]
+    TooLong { path: PathBuf, bound: Duration, done: usize, calls: usize },
+    #[error("{}: '{component}' gets input {port} '{recorded}' in the recording, but its input {port} is {now} (was it recorded with another robot file?)", .path.display())]
+    PortMismatch { path: PathBuf, component: String, port: u32, recorded: String, now: String },
     #[error("{}: no component '{component}' in the robot file", .path.display())]
     UnknownComponent { path: PathBuf, component: String },
     #[error("{}: '{component}' is {source_kind}: replay runs WASM components only (built-ins own devices and sockets)", .path.display())]
@@ -158,32 +162,58 @@ struct RecordedCall {
     input: Option<(u32, Value)>,
 }
 
+/// What bounds one replay: the recording's size (it is read whole into
+/// memory) and the wall-clock time the calls may take.
+#[derive(Clone, Copy, Debug)]
+pub struct ReplayLimits {
+    pub max_recording_bytes: u64,
+    /// `None`: no bound (the command line's replay).
+    pub max_duration: Option<Duration>,
+}
+
+impl Default for ReplayLimits {
+    fn default() -> ReplayLimits {
+        ReplayLimits { max_recording_bytes: MAX_RECORDING_BYTES, max_duration: None }
+    }
+}
+
 /// Replays `options.only` (or every WASM component) against the recording.
 pub fn replay(options: &ReplayOptions) -> Result<ReplayReport, ReplayError> {
     let sandbox = Sandbox::new(options.cache_dir.clone())?;
     let mut loader = Loader::new(&sandbox);
     let config =
         config::load_with(&options.config_path, &mut loader, &options.overrides).map_err(ReplayError::Config)?;
-    let chosen = choose(&config, options)?;
+    replay_robot(&config, &mut loader, &options.recording, &options.only, ReplayLimits::default())
+}
+
+/// Replays components `only` (or every WASM component) of the validated
+/// robot `config` against the recording at `recording`: builds them alone
+/// (no built-in, no connection: nothing here touches a device, a socket or
+/// the running graph), feeds each its recorded calls and compares.
+pub fn replay_robot(
+    config: &RobotConfig,
+    loader: &mut Loader<'_>,
+    recording: &Path,
+    only: &[String],
+    limits: ReplayLimits,
+) -> Result<ReplayReport, ReplayError> {
+    let chosen = choose(config, only)?;
     let sub = RobotConfig {
         name: config.name.clone(),
         path: config.path.clone(),
         components: chosen.iter().map(|&i| config.components[i].clone()).collect(),
         connections: Vec::new(),
     };
-    let (calls, recorded, truncated) = read_recording(&options.recording, &sub)?;
+    let (calls, recorded, truncated) = read_recording(recording, &sub, limits.max_recording_bytes)?;
     for (index, component) in sub.components.iter().enumerate() {
         if !calls.iter().any(|c| c.component == index) {
-            return Err(ReplayError::NotRecorded {
-                path: options.recording.clone(),
-                component: component.name.clone(),
-            });
+            return Err(ReplayError::NotRecorded { path: recording.into(), component: component.name.clone() });
         }
     }
     let shutdown = Shutdown::new();
     let mut graph = assemble::build(
         &sub,
-        &mut loader,
+        loader,
         Clock::new(),
         &shutdown.waker(),
         &Services::default(),
@@ -194,7 +224,13 @@ pub fn replay(options: &ReplayOptions) -> Result<ReplayReport, ReplayError> {
     let outputs = Arc::new(Mutex::new(HashMap::new()));
     graph.set_tap(Box::new(Collect(outputs.clone())));
     let started = Instant::now();
-    for call in &calls {
+    for (n, call) in calls.iter().enumerate() {
+        if let Some(bound) = limits.max_duration
+            && n % 256 == 0
+            && started.elapsed() > bound
+        {
+            return Err(ReplayError::TooLong { path: recording.into(), bound, done: n, calls: calls.len() });
+        }
         // The sender is not replayed: WASM components are not told who sent.
         graph.drive(call.component, call.input.clone().map(|(port, value)| (port, value, usize::MAX)), call.t);
     }
@@ -242,9 +278,9 @@ pub fn replay(options: &ReplayOptions) -> Result<ReplayReport, ReplayError> {
     Ok(report)
 }
 
-fn choose(config: &RobotConfig, options: &ReplayOptions) -> Result<Vec<usize>, ReplayError> {
-    let path = options.config_path.clone();
-    if options.only.is_empty() {
+fn choose(config: &RobotConfig, only: &[String]) -> Result<Vec<usize>, ReplayError> {
+    let path = config.path.clone();
+    if only.is_empty() {
         let all: Vec<usize> = (0..config.components.len())
             .filter(|&i| matches!(config.components[i].source, ComponentSource::Wasm(_)))
             .collect();
@@ -254,7 +290,7 @@ fn choose(config: &RobotConfig, options: &ReplayOptions) -> Result<Vec<usize>, R
         return Ok(all);
     }
     let mut chosen = Vec::new();
-    for name in &options.only {
+    for name in only {
         let Some(index) = config.components.iter().position(|c| &c.name == name) else {
             return Err(ReplayError::UnknownComponent { path, component: name.clone() });
         };
@@ -273,10 +309,14 @@ type Recorded = HashMap<(usize, u32), Vec<Output>>;
 
 /// The calls of `sub`'s components in recorded order, and their recorded
 /// outputs per port; whether the file was cut short.
-fn read_recording(path: &Path, sub: &RobotConfig) -> Result<(Vec<RecordedCall>, Recorded, bool), ReplayError> {
+fn read_recording(
+    path: &Path,
+    sub: &RobotConfig,
+    max_bytes: u64,
+) -> Result<(Vec<RecordedCall>, Recorded, bool), ReplayError> {
     let size = std::fs::metadata(path).map_err(|source| ReplayError::Read { path: path.into(), source })?.len();
-    if size > MAX_RECORDING_BYTES {
-        return Err(ReplayError::TooLarge(path.into()));
+    if size > max_bytes {
+        return Err(ReplayError::TooLarge { path: path.into(), size, max: max_bytes });
     }
     let bytes = std::fs::read(path).map_err(|source| ReplayError::Read { path: path.into(), source })?;
     let mut calls_of: BTreeMap<String, usize> = BTreeMap::new();
@@ -322,6 +362,22 @@ fn read_recording(path: &Path, sub: &RobotConfig) -> Result<(Vec<RecordedCall>, 
                 Some("tick") => None,
                 Some("input") => {
                     let port = json["port"].as_u64().ok_or_else(|| bad("no input port"))? as u32;
+                    let inputs = &sub.components[component].description.inputs;
+                    let now = inputs.get(port as usize).map(|p| p.name.as_str());
+                    if let Some(recorded) = json["port_name"].as_str()
+                        && now != Some(recorded)
+                    {
+                        return Err(ReplayError::PortMismatch {
+                            path: path.into(),
+                            component: sub.components[component].name.clone(),
+                            port,
+                            recorded: recorded.to_string(),
+                            now: now.map_or_else(|| "missing".to_string(), |n| format!("'{n}'")),
+                        });
+                    }
+                    if now.is_none() {
+                        return Err(bad(&format!("input port {port} is not an input of this component")));
+                    }
                     let value = schema::value_from_json(&json["value"]).ok_or_else(|| bad("not a value"))?;
                     Some((port, value))
                 }

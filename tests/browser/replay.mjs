@@ -1,0 +1,93 @@
+// Replay before activation in Debian's headless Chromium: on the Robot
+// files tab, a developer picks a stored recording and clicks a staged set's
+// "replay" button; the page shows "identical" for a set whose components
+// are those recorded, and the first divergence (time, port, recorded value,
+// new value) for a set with a changed component. Values are checked
+// against the API's own answer; screenshots go to $ARTIFACTS.
+// Usage: node replay.mjs URL USER PASSWORD RECORDING SAME_SET CHANGED_SET
+import { chromium } from 'playwright-core';
+import path from 'node:path';
+import fs from 'node:fs';
+
+const [url, user, password, recording, sameSet, changedSet] = process.argv.slice(2);
+const artifacts = process.env.ARTIFACTS || 'browser-artifacts';
+fs.mkdirSync(artifacts, { recursive: true });
+const step = (text) => console.log(`step: ${text}`);
+const check = (ok, text) => { if (!ok) throw new Error(text); };
+
+const browser = await chromium.launch({
+  executablePath: '/usr/bin/chromium',
+  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
+});
+const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
+page.setDefaultTimeout(60000);
+const shot = (name) => page.screenshot({ path: path.join(artifacts, name + '.png'), fullPage: true });
+const postJson = (p, body) => page.evaluate(async ([p, body]) => {
+  const response = await fetch('/api/v1' + p, { method: 'POST', body, headers: { 'content-type': 'application/json' } });
+  return response.json();
+}, [p, body]);
+const resultText = () => page.textContent('#replay-result');
+try {
+  step('log in');
+  await page.goto(url);
+  await page.fill('#login-name', user);
+  await page.fill('#login-password', password);
+  await page.click('#login-button');
+  await page.waitForSelector('#tabs:not([hidden])');
+
+  step('the Robot files tab lists the recording and a replay button per staged set');
+  await page.click('#tabs button[data-tab="sets"]');
+  await page.waitForSelector(`#replay-recording option[value="${recording}"]`, { state: 'attached' });
+  await page.selectOption('#replay-recording', recording);
+  for (const id of [sameSet, changedSet]) await page.waitForSelector(`button.replay[data-set="${id}"]`);
+  const activeId = String((await page.evaluate(async () => (await fetch('/api/v1/sets')).json())).active);
+  check(await page.$(`button.replay[data-set="${activeId}"]`) === null, 'the active set has a replay button');
+
+  step('the set with the recorded components replays identically');
+  await page.click(`button.replay[data-set="${sameSet}"]`);
+  await page.waitForFunction(() => document.querySelector('#replay-result').dataset.identical !== undefined
+    && !document.querySelector('#replay-result').textContent.startsWith('replaying'));
+  const same = await resultText();
+  check(same.startsWith('identical: set ' + sameSet), `expected identical, shown: ${same}`);
+  check(same.includes('filter, avoid, planner'), `the replayed components are not shown: ${same}`);
+  check(await page.isHidden('#replay-divergences'), 'a divergence table is shown for an identical replay');
+  await shot('replay-1-identical');
+
+  step('the set with a changed planner shows where it first diverges');
+  await page.fill('#replay-only', 'planner');
+  await page.click(`button.replay[data-set="${changedSet}"]`);
+  await page.waitForFunction(() => document.querySelector('#replay-result').dataset.identical === 'false');
+  const shown = await resultText();
+  const api = await postJson(`/sets/${changedSet}/replay`, JSON.stringify({ recording, only: ['planner'] }));
+  check(api.identical === false, `the API says identical: ${JSON.stringify(api)}`);
+  const first = api.report.divergences[0];
+  check(first.component === 'planner' && first.port === 'cmd', `unexpected first divergence ${JSON.stringify(first)}`);
+  const expected = `first: planner.cmd at ${first.time_s.toFixed(6)} s (output ${first.index}): recorded ${JSON.stringify(first.recorded)}, new ${JSON.stringify(first.replayed)}`;
+  check(shown.startsWith('diverges: set ' + changedSet), `expected a divergence, shown: ${shown}`);
+  check(shown.includes(expected), `shown: ${shown}\nexpected it to include: ${expected}`);
+  const rows = await page.$$eval('#replay-divergences tbody tr', (trs) => trs.map((tr) => [...tr.children].map((td) => td.textContent)));
+  check(rows.length === api.report.divergences.length, `${rows.length} rows for ${api.report.divergences.length} divergences`);
+  check(rows[0][1] === 'planner.cmd' && rows[0][3] === JSON.stringify(first.recorded) && rows[0][4] === JSON.stringify(first.replayed),
+    `the table's first row is ${JSON.stringify(rows[0])}`);
+  await shot('replay-2-divergence');
+
+  step('a replay the host refuses says why');
+  await page.selectOption('#replay-recording', { index: 0 });
+  await page.evaluate(() => {
+    const select = document.querySelector('#replay-recording');
+    select.append(new Option('rec-1.mcap', 'rec-1.mcap'));
+    select.value = 'rec-1.mcap';
+  });
+  await page.click(`button.replay[data-set="${sameSet}"]`);
+  await page.waitForFunction(() => document.querySelector('#replay-result').textContent.includes('was not replayed'));
+  const refused = await resultText();
+  check(refused.includes('rec-1.mcap'), `the refusal does not name the recording: ${refused}`);
+  await shot('replay-3-refused');
+  console.log(`ok: identical for set ${sameSet}; set ${changedSet}: ${expected}`);
+} catch (err) {
+  await shot('replay-failure').catch(() => {});
+  console.error(err.stack || String(err));
+  process.exitCode = 1;
+} finally {
+  await browser.close();
+}
