@@ -44,8 +44,8 @@ use crate::runtime::lockstep::{Lockstep, LockstepSim};
 /// Why a simulated robot did not start.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
-    #[error("the start ({x}, {y}) is within {radius} m of an obstacle")]
-    StartBlocked { x: f64, y: f64, radius: f64 },
+    #[error("the start ({x}, {y}) {why}")]
+    StartBlocked { x: f64, y: f64, why: String },
     #[error("{0}")]
     BadPose(String),
     #[error("{0}")]

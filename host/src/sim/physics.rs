@@ -80,8 +80,8 @@ impl Simulation {
             bumper: false,
             goal_reached_at: None,
         };
-        if sim.collides(start.x, start.y) {
-            return Err(SimError::StartBlocked { x: start.x, y: start.y, radius: body.radius });
+        if let Some(why) = sim.blocked(start.x, start.y) {
+            return Err(SimError::StartBlocked { x: start.x, y: start.y, why });
         }
         Ok(sim)
     }
@@ -113,8 +113,8 @@ impl Simulation {
         if !(x.is_finite() && y.is_finite() && heading.is_finite()) {
             return Err(SimError::BadPose(format!("({x}, {y}, {heading}) is not a finite pose")));
         }
-        if self.collides(x, y) {
-            return Err(SimError::BadPose(format!("({x}, {y}) is within {} m of an obstacle", self.body.radius)));
+        if let Some(why) = self.blocked(x, y) {
+            return Err(SimError::BadPose(format!("({x}, {y}) {why}")));
         }
         self.x = x;
         self.y = y;
@@ -173,6 +173,23 @@ impl Simulation {
             if self.goal_reached_at.is_none() && (self.x - goal.x).hypot(self.y - goal.y) <= radius {
                 self.goal_reached_at = Some(self.time_s);
             }
+        }
+    }
+
+    /// Why the robot cannot be put at (`x`, `y`): its body would touch an
+    /// obstacle, or it would be inside a box or outside the bounds (where
+    /// no side is near, but it could never get out).
+    fn blocked(&self, x: f64, y: f64) -> Option<String> {
+        let inside = |(a, b): (Point, Point)| a.x < x && x < b.x && a.y < y && y < b.y;
+        let corners = |(a, b): (Point, Point)| format!("{} {} {} {}", a.x, a.y, b.x, b.y);
+        if !inside(self.world.bounds) {
+            Some(format!("is outside the world's bounds {}", corners(self.world.bounds)))
+        } else if let Some(solid) = self.world.boxes.iter().find(|b| inside(**b)) {
+            Some(format!("is inside the box {}", corners(*solid)))
+        } else if self.collides(x, y) {
+            Some(format!("is within {} m of an obstacle", self.body.radius))
+        } else {
+            None
         }
     }
 
@@ -369,5 +386,34 @@ mod tests {
         assert!(
             world.map_err(|e| e.to_string()).and_then(|w| Simulation::new(w, BODY).map_err(|e| e.to_string())).is_err()
         );
+    }
+
+    #[test]
+    fn a_pose_is_refused_where_the_robot_could_never_drive_with_the_reason() {
+        let text = "bounds 0 0 10 8\nstart 1 1 0\ngoal 9 7 0.2\nbox 4 3 6 5\ncircle 8 2 0.5\n";
+        let cases: [(f64, f64, Option<&str>); 7] = [
+            (5.0, 4.0, Some("(5, 4) is inside the box 4 3 6 5")),
+            (4.5, 3.5, Some("(4.5, 3.5) is inside the box 4 3 6 5")),
+            (3.9, 4.0, Some("(3.9, 4) is within 0.2 m of an obstacle")),
+            (8.0, 2.0, Some("(8, 2) is within 0.2 m of an obstacle")),
+            (12.0, 4.0, Some("(12, 4) is outside the world's bounds 0 0 10 8")),
+            (-3.0, -3.0, Some("(-3, -3) is outside the world's bounds 0 0 10 8")),
+            (3.0, 4.0, None),
+        ];
+        for (x, y, refused) in cases {
+            let mut s = sim(text);
+            let before = s.pose();
+            match (s.set_pose(x, y, 0.0), refused) {
+                (Ok(()), None) => assert_eq!(s.pose(), (x, y, 0.0)),
+                (Err(e), Some(why)) => {
+                    assert_eq!(e.to_string(), why);
+                    assert_eq!(s.pose(), before, "a refused pose changes nothing");
+                }
+                (got, want) => panic!("({x}, {y}): got {got:?}, want {want:?}"),
+            }
+        }
+        let inside = world::parse(Path::new("t.world"), "bounds 0 0 10 8\nstart 5 4 0\ngoal 9 7 0.2\nbox 4 3 6 5\n");
+        let refused = inside.map_err(|e| e.to_string()).and_then(|w| Simulation::new(w, BODY).map(drop).map_err(|e| e.to_string()));
+        assert_eq!(refused, Err("the start (5, 4) is inside the box 4 3 6 5".to_string()));
     }
 }

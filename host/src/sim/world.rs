@@ -44,6 +44,10 @@ pub struct World {
     pub goal: (Point, f64),
     /// Walls, box sides, circles and the four sides of the bounds.
     pub obstacles: Vec<Obstacle>,
+    /// The boxes' corners (lower left, upper right): their sides are in
+    /// `obstacles`, and this says where their solid insides are.
+    #[serde(skip)]
+    pub boxes: Vec<(Point, Point)>,
 }
 
 /// Reads and parses the world file at `path`.
@@ -64,6 +68,7 @@ pub fn parse(path: &Path, text: &str) -> Result<World, Diagnostics> {
     let mut errors = Vec::new();
     let (mut bounds, mut start, mut goal) = (None, None, None);
     let mut obstacles = Vec::new();
+    let mut boxes = Vec::new();
     let mut offset = 0;
     for line in text.split_inclusive('\n') {
         let line_start = offset;
@@ -139,6 +144,7 @@ pub fn parse(path: &Path, text: &str) -> Result<World, Diagnostics> {
                     errors.push(map.at(at, "a box needs X1 > X0 and Y1 > Y0"));
                 } else {
                     obstacles.extend(rectangle(p(n[0], n[1]), p(n[2], n[3])));
+                    boxes.push((p(n[0], n[1]), p(n[2], n[3])));
                 }
             }
             _ => {
@@ -163,7 +169,7 @@ pub fn parse(path: &Path, text: &str) -> Result<World, Diagnostics> {
     match (bounds, start, goal) {
         (Some((bounds, _)), Some((start, _)), Some((goal, _))) if errors.is_empty() => {
             obstacles.extend(rectangle(bounds.0, bounds.1));
-            Ok(World { bounds, start, goal, obstacles })
+            Ok(World { bounds, start, goal, obstacles, boxes })
         }
         _ => Err(Diagnostics(errors)),
     }
