@@ -413,7 +413,9 @@ mod tests {
             }
         }
         let inside = world::parse(Path::new("t.world"), "bounds 0 0 10 8\nstart 5 4 0\ngoal 9 7 0.2\nbox 4 3 6 5\n");
-        let refused = inside.map_err(|e| e.to_string()).and_then(|w| Simulation::new(w, BODY).map(drop).map_err(|e| e.to_string()));
+        let refused = inside
+            .map_err(|e| e.to_string())
+            .and_then(|w| Simulation::new(w, BODY).map(drop).map_err(|e| e.to_string()));
         assert_eq!(refused, Err("the start (5, 4) is inside the box 4 3 6 5".to_string()));
     }
 }
