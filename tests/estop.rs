@@ -283,14 +283,8 @@ const PASSWORD: &str = "estop-test-password";
 
 /// `subsume user add NAME --role ROLE` with [`PASSWORD`].
 fn add_user(store: &std::path::Path, name: &str, role: &str) {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
-    if role == "developer" {
-        command.args(["--platform", "control"]);
-    }
-    let mut child = command.stdin(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
-    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
-    assert!(child.wait().unwrap().success());
+    let platforms: &[&str] = if role == "developer" { &["control"] } else { &[] };
+    support::add_user(store, name, role, platforms, PASSWORD);
 }
 
 /// `subsume run` with its portal on the robot of [`start`] (driver,

@@ -11,7 +11,7 @@
 #[path = "../host/tests/support/mod.rs"]
 mod support;
 
-use std::io::{BufRead, BufReader, Write};
+use std::io::{BufRead, BufReader};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -42,14 +42,7 @@ fn add_admin(store: &Path) {
 
 /// `subsume user add NAME --role ROLE [--platform P]...` with [`PASSWORD`].
 fn add_user(store: &Path, name: &str, role: &str, platforms: &[&str]) {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
-    for platform in platforms {
-        command.args(["--platform", platform]);
-    }
-    let mut child = command.stdin(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
-    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
-    assert!(child.wait().unwrap().success());
+    support::add_user(store, name, role, platforms, PASSWORD);
 }
 
 /// Starts `subsume run ROBOT` with the portal on a free port; returns once
@@ -87,10 +80,7 @@ fn login(address: &str) -> String {
 }
 
 fn login_as(address: &str, name: &str) -> String {
-    let body = serde_json::json!({ "name": name, "password": PASSWORD }).to_string();
-    let (status, json) = http(address, "POST", "/api/v1/login", None, body.as_bytes());
-    assert_eq!(status, 200, "{json}");
-    json["token"].as_str().unwrap().to_string()
+    support::login(address, name, PASSWORD)
 }
 
 /// The demo robot, with its avoider taken from the store by name.
@@ -316,8 +306,6 @@ fn a_kill_during_uploads_and_activations_leaves_a_consistent_store_that_restarts
 
 #[test]
 fn the_portal_works_in_a_real_browser() {
-    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
-    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     add_admin(&store);
@@ -335,24 +323,11 @@ fn the_portal_works_in_a_real_browser() {
     let bad = dir.path().join("broken.xml");
     std::fs::write(&bad, demo_using("browser-avoider").replace("arbiter.commands\"/>", "arbiter.command\"/>")).unwrap();
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
-    let output = Command::new("node")
-        .current_dir(support::repo_root().join("tests/browser"))
-        .env("ARTIFACTS", &artifacts)
-        .env("BRIDGED", "1")
-        .arg("portal.mjs")
-        .arg(format!("http://{}/", host.address))
-        .args(["admin", PASSWORD])
-        .arg(support::guest("avoider"))
-        .arg(&robot)
-        .arg(&bad)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
-        artifacts.display()
+    let stdout = support::browser(
+        "portal.mjs",
+        &artifacts,
+        &[("BRIDGED", "1")],
+        &[&format!("http://{}/", host.address), &"admin", &PASSWORD, &support::guest("avoider"), &robot, &bad],
     );
     assert!(stdout.contains("ok: "), "{stdout}");
     for shot in ["1-component", "2-diagnostics", "3-wiring", "4-live", "5-drive", "6-rolled-back"] {
@@ -362,28 +337,13 @@ fn the_portal_works_in_a_real_browser() {
 
 #[test]
 fn the_portals_own_views_work_in_a_real_browser() {
-    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
-    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     add_admin(&store);
     let host = start(&store, &support::repo_root().join("config/demo.xml"));
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
-    let output = Command::new("node")
-        .current_dir(support::repo_root().join("tests/browser"))
-        .env("ARTIFACTS", &artifacts)
-        .arg("views.mjs")
-        .arg(format!("http://{}/", host.address))
-        .args(["admin", PASSWORD])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
-        artifacts.display()
-    );
+    let stdout =
+        support::browser("views.mjs", &artifacts, &[], &[&format!("http://{}/", host.address), &"admin", &PASSWORD]);
     assert!(stdout.contains("ok: "), "{stdout}");
     for (n, shot) in
         ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings"].iter().enumerate()
@@ -705,28 +665,16 @@ fn the_simulator_is_reset_posed_paused_and_stepped_over_http() {
 
 #[test]
 fn an_uploads_compile_and_the_simulator_buttons_show_in_a_real_browser() {
-    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
-    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     add_admin(&store);
     let host = start(&store, &support::repo_root().join("config/demo.xml"));
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
-    let output = Command::new("node")
-        .current_dir(support::repo_root().join("tests/browser"))
-        .env("ARTIFACTS", &artifacts)
-        .arg("loop.mjs")
-        .arg(format!("http://{}/", host.address))
-        .args(["admin", PASSWORD])
-        .arg(support::guest("avoider"))
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
-        artifacts.display()
+    let stdout = support::browser(
+        "loop.mjs",
+        &artifacts,
+        &[],
+        &[&format!("http://{}/", host.address), &"admin", &PASSWORD, &support::guest("avoider")],
     );
     assert!(stdout.contains("ok: compiled and checked in "), "{stdout}");
     for shot in ["loop-1-upload-compiled", "loop-2-posed", "loop-3-resumed"] {

@@ -17,9 +17,8 @@
 #[path = "../host/tests/support/mod.rs"]
 mod support;
 
-use std::io::Write as _;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Stdio};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value as Json, json};
@@ -28,21 +27,11 @@ use support::{HostProcess, http};
 const PASSWORD: &str = "replay-test-password";
 
 fn add_user(store: &Path, name: &str, role: &str, platforms: &[&str]) {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
-    for platform in platforms {
-        command.args(["--platform", platform]);
-    }
-    let mut child = command.stdin(Stdio::piped()).stderr(Stdio::null()).spawn().unwrap();
-    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
-    assert!(child.wait().unwrap().success());
+    support::add_user(store, name, role, platforms, PASSWORD);
 }
 
 fn login(address: &str, name: &str) -> String {
-    let body = json!({ "name": name, "password": PASSWORD }).to_string();
-    let (status, json) = http(address, "POST", "/api/v1/login", None, body.as_bytes());
-    assert_eq!(status, 200, "{json}");
-    json["token"].as_str().unwrap().to_string()
+    support::login(address, name, PASSWORD)
 }
 
 /// What the `mcap` package reads in `file` (every message of `values`'
@@ -113,9 +102,22 @@ impl Portal {
     }
 
     /// Records the running robot from the portal for `seconds`; the name.
+    ///
+    /// A recording started while the robot runs finds its components in
+    /// a state it did not record (the filter's moving average, the
+    /// planner's last pose), and a replay starts them afresh. So the
+    /// simulator is paused first, until every state has settled on the
+    /// still scene (the filter's average converges to the reading, bit for
+    /// bit, in well under 2 s at 20 scans a second), and resumed once the
+    /// recording runs: the fresh components then agree from the first call.
     fn record(&self, seconds: u64) -> String {
+        let (status, json) = self.call(&self.admin, "POST", "/api/v1/sim/pause", b"");
+        assert_eq!(status, 200, "{json}");
+        std::thread::sleep(Duration::from_millis(2500));
         let (status, json) = self.call(&self.admin, "POST", "/api/v1/recordings/start", b"");
         assert_eq!(status, 201, "{json}");
+        let (status, resumed) = self.call(&self.admin, "POST", "/api/v1/sim/resume", b"");
+        assert_eq!(status, 200, "{resumed}");
         std::thread::sleep(Duration::from_secs(seconds));
         let (status, stopped) = self.call(&self.admin, "POST", "/api/v1/recordings/stop", b"");
         assert_eq!(status, 200, "{stopped}");
@@ -346,8 +348,6 @@ fn replays_run_one_at_a_time_and_leave_the_running_robot_alone() {
 
 #[test]
 fn the_portals_replay_button_shows_identical_and_the_first_divergence_in_a_real_browser() {
-    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
-    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
     let portal = Portal::start();
     let name = portal.record(3);
     let same = portal.stage(&portal.admin, "same.xml", &demo_text());
@@ -356,20 +356,11 @@ fn the_portals_replay_button_shows_identical_and_the_first_divergence_in_a_real_
     assert_eq!(status, 201, "{json}");
     let changed = portal.stage(&portal.admin, "planner-v2.xml", &demo_with_planner("planner-v2"));
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
-    let output = Command::new("node")
-        .current_dir(support::repo_root().join("tests/browser"))
-        .env("ARTIFACTS", &artifacts)
-        .arg("replay.mjs")
-        .arg(format!("http://{}/", portal.address))
-        .args(["admin", PASSWORD, &name, &same.to_string(), &changed.to_string()])
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
-        artifacts.display()
+    let stdout = support::browser(
+        "replay.mjs",
+        &artifacts,
+        &[],
+        &[&format!("http://{}/", portal.address), &"admin", &PASSWORD, &name, &same.to_string(), &changed.to_string()],
     );
     assert!(stdout.contains("ok: "), "{stdout}");
     for shot in ["replay-1-identical", "replay-2-divergence", "replay-3-refused"] {

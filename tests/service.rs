@@ -349,8 +349,6 @@ fn the_keyboard_client_speaks_tls() {
 
 #[test]
 fn the_portal_works_in_a_real_browser_over_https() {
-    let node_modules = support::repo_root().join("tests/browser/node_modules/playwright-core");
-    assert!(node_modules.is_dir(), "run scripts/setup first: it installs playwright-core and chromium");
     let pki = make_pki();
     // Chromium trusts chains through the test CA's key, and nothing else
     // (the hash of its SubjectPublicKeyInfo).
@@ -375,24 +373,18 @@ fn the_portal_works_in_a_real_browser_over_https() {
     let bad = dir.path().join("broken.xml");
     std::fs::write(&bad, using.replace("arbiter.commands\"/>", "arbiter.command\"/>")).unwrap();
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts/https");
-    let output = Command::new("node")
-        .current_dir(support::repo_root().join("tests/browser"))
-        .env("ARTIFACTS", &artifacts)
-        .env("CA_SPKI", &spki)
-        .arg("portal.mjs")
-        .arg(format!("https://{}/", host.address("portal on https://")))
-        .args(["admin", PASSWORD])
-        .arg(support::guest("avoider"))
-        .arg(&robot)
-        .arg(&bad)
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&output.stdout);
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(
-        output.status.success(),
-        "browser test failed:\n{stdout}\n{stderr}\n(screenshots in {})",
-        artifacts.display()
+    let stdout = support::browser(
+        "portal.mjs",
+        &artifacts,
+        &[("CA_SPKI", spki.as_str())],
+        &[
+            &format!("https://{}/", host.address("portal on https://")),
+            &"admin",
+            &PASSWORD,
+            &support::guest("avoider"),
+            &robot,
+            &bad,
+        ],
     );
     assert!(stdout.contains("step: over https, the session cookie is Secure"), "{stdout}");
     assert!(stdout.contains("ok: "), "{stdout}");

@@ -244,3 +244,53 @@ pub fn make_test_pki(dir: &Path) {
     std::fs::write(dir.join("chain.pem"), [read("server.pem"), read("ca.pem")].concat())
         .unwrap_or_else(|e| panic!("cannot write chain.pem: {e}"));
 }
+
+/// Runs `tests/browser/SCRIPT ARGS..` (node with playwright-core driving
+/// Debian's Chromium, both installed by scripts/setup) with `envs`, and
+/// ARTIFACTS set to `artifacts`, where it saves its screenshots. Panics with
+/// all it printed unless it succeeds; returns its stdout.
+pub fn browser(script: &str, artifacts: &Path, envs: &[(&str, &str)], args: &[&dyn AsRef<std::ffi::OsStr>]) -> String {
+    let dir = repo_root().join("tests/browser");
+    assert!(
+        dir.join("node_modules/playwright-core").is_dir(),
+        "run scripts/setup first: it installs playwright-core and chromium"
+    );
+    let output = Command::new("node")
+        .current_dir(&dir)
+        .env("ARTIFACTS", artifacts)
+        .envs(envs.iter().copied())
+        .arg(script)
+        .args(args.iter().map(|a| a.as_ref()))
+        .output()
+        .unwrap_or_else(|e| panic!("cannot run node: {e}"));
+    let stdout = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(
+        output.status.success(),
+        "browser test {script} failed:\n{stdout}\n{}\n(screenshots in {})",
+        String::from_utf8_lossy(&output.stderr),
+        artifacts.display()
+    );
+    stdout
+}
+
+/// `subsume user add NAME --role ROLE [--platform P].. --password-stdin`
+/// on the store at `store`.
+pub fn add_user(store: &Path, name: &str, role: &str, platforms: &[&str], password: &str) {
+    use std::io::Write;
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.args(["user", "add", name, "--role", role, "--password-stdin", "--store"]).arg(store);
+    for platform in platforms {
+        command.args(["--platform", platform]);
+    }
+    let mut child = command.stdin(std::process::Stdio::piped()).stderr(std::process::Stdio::null()).spawn().unwrap();
+    child.stdin.take().unwrap().write_all(format!("{password}\n").as_bytes()).unwrap();
+    assert!(child.wait().unwrap().success(), "subsume user add {name} failed");
+}
+
+/// Logs `name` in to the portal at `address`: the session token.
+pub fn login(address: &str, name: &str, password: &str) -> String {
+    let body = serde_json::json!({ "name": name, "password": password }).to_string();
+    let (status, json) = http(address, "POST", "/api/v1/login", None, body.as_bytes());
+    assert_eq!(status, 200, "{json}");
+    json["token"].as_str().unwrap().to_string()
+}
