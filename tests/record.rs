@@ -35,15 +35,9 @@ fn text(bytes: &[u8]) -> String {
 
 const FREE_PORTS: [&str; 4] = ["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"];
 
-fn python() -> PathBuf {
-    let python = support::repo_root().join("tests/python/.venv/bin/python");
-    assert!(python.is_file(), "run scripts/setup first: it installs tests/python/.venv");
-    python
-}
-
 /// What the `mcap` package reads in `file`.
 fn read_mcap(file: &Path, truncated: bool) -> Json {
-    let mut command = Command::new(python());
+    let mut command = Command::new(support::python());
     command.arg(support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
     if truncated {
         command.arg("--truncated");
@@ -371,7 +365,7 @@ fn replay_refuses_built_ins_unknown_names_and_what_is_not_a_recording() {
 }
 
 #[test]
-fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses() {
+fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses_and_scans() {
     use std::io::{BufRead, BufReader};
     let mut args = vec!["run", "config/demo.xml", "--duration", "60", "--foxglove", "127.0.0.1:0"];
     args.extend(FREE_PORTS);
@@ -387,9 +381,9 @@ fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses() {
         }
     });
     let url = address.recv_timeout(Duration::from_secs(60)).expect("the live view never started");
-    let output = Command::new(python())
+    let output = Command::new(support::python())
         .arg(support::repo_root().join("tests/python/foxglove_client.py"))
-        .args([&url, "5", "/motors/pose", "/motors/pose/tf", "/arbiter/cmd", "/subsume/log"])
+        .args([&url, "5", "/motors/pose", "/motors/pose/tf", "/motors/ranges", "/arbiter/cmd", "/subsume/log"])
         .output()
         .unwrap();
     child.kill().unwrap();
@@ -412,6 +406,20 @@ fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses() {
     assert_eq!(tf["parent_frame_id"], "world");
     assert_eq!(tf["child_frame_id"], "base_link");
     assert!(seen["messages"]["/arbiter/cmd"][0]["value"]["command"].is_string(), "{seen}");
+    // The simulated robot's scan, with its geometry (config/demo.xml: 9
+    // rays over fov 3.14159, max-range 4 m), as Foxglove's LaserScan.
+    assert_eq!(seen["channels"]["/motors/ranges"]["schemaName"], "foxglove.LaserScan");
+    let fov: f64 = "3.14159".parse().unwrap();
+    for scan in seen["messages"]["/motors/ranges"].as_array().unwrap() {
+        assert_eq!(scan["frame_id"], "motors", "{scan}");
+        let ranges = scan["ranges"].as_array().unwrap();
+        assert_eq!(ranges.len(), 9, "{scan}");
+        assert!(ranges.iter().all(|r| r.as_f64().is_some_and(|r| (0.0..=4.0).contains(&r))), "{scan}");
+        for (field, want) in [("start_angle", -fov / 2.0), ("end_angle", fov / 2.0), ("range_max", 4.0)] {
+            let got = scan[field].as_f64().unwrap();
+            assert!((got - want).abs() < 1e-9, "{field}: {got}, expected {want}: {scan}");
+        }
+    }
 }
 
 /// One HTTP/1.1 request to the portal; returns (status, body bytes).
