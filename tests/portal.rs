@@ -547,6 +547,79 @@ fn after_an_activation_operators_are_greeted_with_the_robot_that_runs_now() {
     assert!(hello.ends_with(" robot=demo-renamed"), "{hello}");
 }
 
+#[test]
+fn a_world_uploaded_for_a_set_is_checked_pinned_by_the_set_and_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    add_user(&store, "dev", "developer", &["control"]);
+    add_user(&store, "viewer", "viewer", &[]);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let admin = login(&host.address);
+    let dev = login_as(&host.address, "dev");
+    let viewer = login_as(&host.address, "viewer");
+    let put = |token: &str, name: &str, text: &str| {
+        http(&host.address, "PUT", &format!("/api/v1/worlds/{name}"), Some(token), text.as_bytes())
+    };
+    let arena = "bounds 0 0 10 8\nstart 2 6 0\ngoal 8.5 1.5 0.3\nbox 4 2.8 5.5 4.3\n";
+
+    // Refusals change nothing in the store (but the audit log).
+    let before = support::store_snapshot(&["audit.log", "recordings"], &store);
+    let bad = "bounds 0 0 10 8\nstart 2 6 0\ngoal 8.5 1.5 0.3\nbox 6 3 5 4\n";
+    let (status, json) = put(&dev, "arena.world", bad);
+    assert_eq!(status, 422, "{json}");
+    let diagnostic = &json["diagnostics"][0];
+    assert_eq!((diagnostic["file"].as_str(), diagnostic["line"].as_u64()), (Some("arena.world"), Some(4)), "{json}");
+    assert!(diagnostic["message"].as_str().unwrap_or("").contains("a box needs X1 > X0 and Y1 > Y0"), "{json}");
+    for (token, name, text, code, says) in [
+        (&dev, "arena.txt", arena, 400, "must end with '.world'"),
+        (&dev, "..world", arena, 400, "is not a plain name"),
+        (&dev, "arena.world", "fly 1 2\n", 422, "unknown statement 'fly'"),
+        (&viewer, "arena.world", arena, 403, ""),
+    ] {
+        let (status, json) = put(token, name, text);
+        assert_eq!(status, code, "{name}: {json}");
+        assert!(json.to_string().contains(says), "{name}: {json}");
+    }
+    assert_eq!(support::store_snapshot(&["audit.log", "recordings"], &store), before, "a refusal changed the store");
+
+    // Stored, listed, and pinned by the set that names it.
+    let (status, json) = put(&dev, "arena.world", arena);
+    assert_eq!(status, 201, "{json}");
+    let first_sha = json["world"]["sha256"].as_str().unwrap().to_string();
+    let (status, listed) = http(&host.address, "GET", "/api/v1/worlds", Some(&viewer), b"");
+    assert_eq!(status, 200, "{listed}");
+    assert_eq!(listed["worlds"][0]["name"], "arena.world", "{listed}");
+    let robot = std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
+        .unwrap()
+        .replace(r#"value="worlds/demo.world""#, r#"value="arena.world""#);
+    let (status, staged) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/configs/arena.xml", Some(&dev), robot.as_bytes());
+    assert_eq!(status, 201, "{staged}");
+    assert_eq!(staged["set"]["sources"]["arena.world"], first_sha.as_str(), "{staged}");
+    let id = staged["set"]["id"].as_u64().unwrap();
+    // A later upload of the same name does not change the staged set.
+    let (status, json) = put(&dev, "arena.world", &arena.replace("start 2 6 0", "start 3 3 0"));
+    assert_eq!(status, 201, "{json}");
+    assert_ne!(json["world"]["sha256"].as_str().unwrap(), first_sha);
+    let (status, body) = http(&host.address, "POST", &format!("/api/v1/sets/{id}/activate"), Some(&admin), b"");
+    assert_eq!(status, 200, "{body}");
+    let (status, world) = http(&host.address, "GET", "/api/v1/world", Some(&viewer), b"");
+    assert_eq!(status, 200, "{world}");
+    assert_eq!(world["world"]["start"][0], serde_json::json!({ "x": 2.0, "y": 6.0 }), "{world}");
+    let (x, y, _) = live_sim(&host.address, &viewer);
+    assert!((x - 2.0).hypot(y - 6.0) < 1.0, "the robot runs in the pinned world: at ({x}, {y})");
+
+    // A world that is neither uploaded nor beside the robot file: located.
+    let missing = robot.replace(r#"value="arena.world""#, r#"value="nowhere.world""#);
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/configs/missing.xml", Some(&dev), missing.as_bytes());
+    assert_eq!(status, 422, "{json}");
+    let diagnostic = &json["diagnostics"][0];
+    assert_eq!(diagnostic["file"], "missing.xml", "{json}");
+    assert!(diagnostic["message"].as_str().unwrap_or("").contains("world"), "{json}");
+}
+
 /// The simulated robot's state as `/api/v1/status` shows it: (x, y, time_s).
 fn live_sim(address: &str, token: &str) -> (f64, f64, f64) {
     let (status, json) = http(address, "GET", "/api/v1/status", Some(token), b"");
@@ -677,7 +750,7 @@ fn an_uploads_compile_and_the_simulator_buttons_show_in_a_real_browser() {
         &[&format!("http://{}/", host.address), &"admin", &PASSWORD, &support::guest("avoider")],
     );
     assert!(stdout.contains("ok: compiled and checked in "), "{stdout}");
-    for shot in ["loop-1-upload-compiled", "loop-2-posed", "loop-3-resumed"] {
+    for shot in ["loop-1-upload-compiled", "loop-2-posed", "loop-3-resumed", "loop-4-world"] {
         assert!(artifacts.join(format!("{shot}.png")).is_file(), "{shot}");
     }
     // The buttons' requests are in the audit log, by the admin who clicked.

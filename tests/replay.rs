@@ -465,33 +465,13 @@ fn concurrent_recording_starts_and_stops_have_one_winner_and_lose_no_file() {
     assert_eq!(count("stop-recording", "ok"), ROUNDS, "{audit}");
 }
 
-/// Every file of the store but the recordings, with its bytes.
-fn store_snapshot(store: &Path) -> Vec<(PathBuf, Vec<u8>)> {
-    let mut files = Vec::new();
-    let mut dirs = vec![store.to_path_buf()];
-    while let Some(dir) = dirs.pop() {
-        for entry in std::fs::read_dir(&dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                if path.file_name().is_some_and(|n| n != "recordings") {
-                    dirs.push(path);
-                }
-            } else {
-                files.push((path.clone(), std::fs::read(&path).unwrap()));
-            }
-        }
-    }
-    files.sort();
-    files
-}
-
 #[test]
 fn concurrent_validations_answer_each_its_own_text_and_store_nothing() {
     const CLIENTS: usize = 8;
     const ROUNDS: usize = 5;
     let portal = Portal::start();
     let dev = login(&portal.address, "dev");
-    let before = store_snapshot(&portal.store);
+    let before = support::store_snapshot(&["recordings"], &portal.store);
     let demo = demo_text();
     assert!(demo.contains("to=\"filter.ranges\""));
     let base_components = demo.matches("<component ").count();
@@ -555,7 +535,7 @@ fn concurrent_validations_answer_each_its_own_text_and_store_nothing() {
     assert_eq!((ok, invalid), (CLIENTS * ROUNDS / 2, CLIENTS * ROUNDS / 2), "every text is answered");
     assert!(busy > 0, "eight validations at once never met a running one");
     // Nothing stored, nothing audited, no set added.
-    assert_eq!(store_snapshot(&portal.store), before, "validation changed the store");
+    assert_eq!(support::store_snapshot(&["recordings"], &portal.store), before, "validation changed the store");
     let log = portal.host.log();
     assert!(!log.contains("panicked"), "{log}");
 }

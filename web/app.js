@@ -897,3 +897,30 @@ async function replaySet(id) {
   }
   for (const b of document.querySelectorAll('button.replay')) b.disabled = false;
 }
+
+// ---- worlds for the simulated robot (docs/portal.md) ----------------------
+async function refreshWorlds() {
+  try {
+    const { worlds } = await api('GET', '/worlds');
+    $('world-list').textContent = worlds.map((w) => `${w.name} (${w.size} bytes, by ${w.uploaded_by})`).join(', ') || 'none yet';
+  } catch (err) {
+    $('world-list').textContent = err.message;
+  }
+}
+$('world-upload').addEventListener('click', async () => {
+  const file = $('world-file').files[0];
+  $('world-errors').replaceChildren();
+  $('world-result').textContent = '';
+  if (!file) { $('world-result').textContent = 'choose a world file first'; return; }
+  try {
+    const { world } = await api('PUT', `/worlds/${encodeURIComponent(file.name)}`, await file.text(), { 'content-type': 'text/plain' });
+    $('world-result').className = 'ok';
+    $('world-result').textContent = `stored ${world.name} (sha256 ${world.sha256.slice(0, 12)}...)`;
+  } catch (err) {
+    $('world-result').className = 'error';
+    $('world-result').textContent = err.message;
+    for (const d of (err.body && err.body.diagnostics) || []) $('world-errors').append(el('li', {}, d.text));
+  }
+  refreshWorlds();
+});
+for (const button of document.querySelectorAll('#tabs button[data-tab="sets"]')) button.addEventListener('click', refreshWorlds);

@@ -160,6 +160,8 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("PUT", "/api/v1/platforms/network/configs/r.xml", b"<robot", Allowed::Network),
         ("POST", "/api/v1/platforms/control/validate/r.xml", b"<robot", Allowed::Control),
         ("POST", "/api/v1/platforms/network/validate/r.xml", b"<robot", Allowed::Network),
+        ("GET", "/api/v1/worlds", b"", Allowed::AnyUser),
+        ("PUT", "/api/v1/worlds/w.world", b"bounds 0 0", Allowed::Control),
         ("GET", "/api/v1/sets", b"", Allowed::AnyUser),
         ("GET", "/api/v1/sets/1", b"", Allowed::AnyUser),
         ("POST", "/api/v1/sets/999/activate", b"", Allowed::Developer),

@@ -1,7 +1,8 @@
 // The researcher's loop in the portal, in Debian's headless Chromium:
 // an upload says while the robot compiles and checks the component, and
 // how long that took; the Simulator buttons (pause, step, set pose, reset,
-// resume) do what they say, checked against /api/v1/status. Screenshots go
+// resume) do what they say, checked against /api/v1/status; a world file
+// uploaded shows its located error, or is stored and listed. Screenshots go
 // to $ARTIFACTS.
 // Usage: node loop.mjs URL USER PASSWORD COMPONENT.wasm
 import { chromium } from 'playwright-core';
@@ -100,6 +101,21 @@ try {
   const resumed = (await sim()).time_s;
   await page.waitForFunction(async (t) => (await (await fetch('/api/v1/status')).json()).sim.time_s > t + 0.3, resumed);
   await shot('loop-3-resumed');
+
+  step('upload a world: a bad one shows its located error, a good one is stored and listed');
+  await page.click('#tabs button[data-tab="sets"]');
+  const world = (text) => ({ name: 'arena.world', mimeType: 'text/plain', buffer: Buffer.from(text) });
+  await page.setInputFiles('#world-file', world('bounds 0 0 10 8\nstart 2 6 0\ngoal 8 1 0.3\nbox 6 3 5 4\n'));
+  await page.click('#world-upload');
+  await page.waitForSelector('#world-errors li');
+  const located = await page.textContent('#world-errors li');
+  check(located.startsWith('arena.world:4:1: a box needs X1 > X0 and Y1 > Y0'), `the world's error: '${located}'`);
+  await page.setInputFiles('#world-file', world('bounds 0 0 10 8\nstart 2 6 0\ngoal 8 1 0.3\n'));
+  await page.click('#world-upload');
+  await page.waitForSelector('#world-result:has-text("stored arena.world")');
+  await page.waitForSelector('#world-list:has-text("arena.world")');
+  check((await page.$$('#world-errors li')).length === 0, 'the old error stayed up');
+  await shot('loop-4-world');
   console.log(`ok: compiled and checked in ${took[1]} s; paused at ${paused.time_s.toFixed(2)} s, stepped, posed, reset, resumed`);
 } catch (err) {
   await shot('loop-failure').catch(() => {});

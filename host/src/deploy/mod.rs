@@ -32,6 +32,7 @@ mod replay;
 mod stage;
 mod swap;
 mod upload;
+mod worlds;
 
 use std::collections::{BTreeMap, HashMap};
 use std::path::{Path, PathBuf};
@@ -47,6 +48,7 @@ pub use self::replay::{
 pub use self::stage::{MAX_CONCURRENT_VALIDATIONS, MAX_FILE_NAME_LEN, Validated};
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
+pub use self::worlds::WORLD_SUFFIX;
 use crate::assemble::{self, Carry, Loader, StartError};
 use crate::builtin::Services;
 pub use crate::config::limits::MAX_CONFIG_BYTES as MAX_CONFIG_UPLOAD_BYTES;

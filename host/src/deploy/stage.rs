@@ -135,8 +135,13 @@ impl Deployer {
             changes: Vec::new(),
             graph: WiringGraph::default(),
         };
+        let worlds = self.store.worlds()?;
+        let world_lookup = |name: &str| -> Option<String> {
+            worlds.get(name).map(|w| w.sha256.clone()).or_else(|| active_set.sources.get(name).cloned())
+        };
         let mut loader = Loader::confined(&self.sandbox);
-        let (config, sources) = validate_text(&self.store, &record, text, &lookup, &mut loader, &self.overrides)?;
+        let (config, sources) =
+            validate_text(&self.store, &record, text, &lookup, &world_lookup, &mut loader, &self.overrides)?;
         let changes = platform_changes(&active_config, &config);
         if let Some(denied) = changes.iter().find(|p| !user.may_change(**p)) {
             return Err(DeployError::Forbidden(format!(
@@ -164,7 +169,7 @@ impl Deployer {
 }
 
 /// Refuses robot-file names that are not a plain file name.
-fn check_file_name(name: &str) -> Result<(), DeployError> {
+pub(super) fn check_file_name(name: &str) -> Result<(), DeployError> {
     let plain = !name.is_empty()
         && name.len() <= MAX_FILE_NAME_LEN
         && !name.starts_with('.')
@@ -190,21 +195,24 @@ pub(super) fn validate_set(
     let text =
         String::from_utf8(bytes).map_err(|e| DeployError::Host(format!("stored robot file is not utf-8: {e}")))?;
     let lookup = |source: &str| set.sources.get(source).cloned();
-    validate_text(store, set, &text, &lookup, loader, overrides).map(|(config, _)| config)
+    validate_text(store, set, &text, &lookup, &lookup, loader, overrides).map(|(config, _)| config)
 }
 
 /// Validates robot-file `text` for `set`'s folder, resolving WASM sources
-/// through `lookup`; returns the robot and the sources it used.
+/// through `lookup` and uploaded simulator worlds through `worlds`; returns
+/// the robot (sources and pinned worlds as blob paths) and the sources and
+/// worlds it used, by name.
 fn validate_text(
     store: &Store,
     set: &SetRecord,
     text: &str,
     lookup: &dyn Fn(&str) -> Option<String>,
+    worlds: &dyn Fn(&str) -> Option<String>,
     loader: &mut Loader<'_>,
     overrides: &[ParamOverride],
 ) -> Result<(RobotConfig, BTreeMap<String, String>), DeployError> {
     let path = set.base_dir.join(&set.config_name);
-    let mut resolver = SetResolver { store, loader, base_dir: &set.base_dir, lookup, used: BTreeMap::new() };
+    let mut resolver = SetResolver { store, loader, base_dir: &set.base_dir, lookup, worlds, used: BTreeMap::new() };
     let result = crate::config::parse_and_validate_for_run(&path, text, &mut resolver, overrides);
     let used = resolver.used;
     let mut config = result.map_err(|Diagnostics(list)| {
@@ -223,6 +231,13 @@ fn validate_text(
         {
             component.source = ComponentSource::Wasm(store.blob_path(sha));
         }
+        if is_simulator(&component.source) {
+            for param in component.params.iter_mut().filter(|p| p.name == WORLD_PARAM) {
+                if let Some(sha) = used.get(param.value.trim()) {
+                    param.value = store.blob_path(sha).to_string_lossy().into_owned();
+                }
+            }
+        }
     }
     Ok((config, used))
 }
@@ -231,13 +246,23 @@ fn relative_source(base_dir: &Path, file: &Path) -> String {
     file.strip_prefix(base_dir).unwrap_or(file).to_string_lossy().into_owned()
 }
 
-/// Resolves a set's WASM sources to stored blobs; built-ins go to the
-/// loader (confined to the robot's folder when staging uploads).
+/// The simulated robot's parameter naming its world file.
+const WORLD_PARAM: &str = "world";
+
+fn is_simulator(source: &ComponentSource) -> bool {
+    matches!(source, ComponentSource::Builtin(name) if name == "sim")
+}
+
+/// Resolves a set's WASM sources to stored blobs, and a simulated robot's
+/// `world` that names an uploaded world to its stored blob (an uploaded
+/// world wins over a file of that name beside the robot file); built-ins
+/// go to the loader (confined to the robot's folder when staging uploads).
 struct SetResolver<'r, 'l> {
     store: &'r Store,
     loader: &'r mut Loader<'l>,
     base_dir: &'r Path,
     lookup: &'r dyn Fn(&str) -> Option<String>,
+    worlds: &'r dyn Fn(&str) -> Option<String>,
     used: BTreeMap<String, String>,
 }
 
@@ -249,6 +274,23 @@ impl Resolver for SetResolver<'_, '_> {
         base_dir: &Path,
     ) -> Result<Description, ResolveError> {
         match source {
+            ComponentSource::Builtin(_) if is_simulator(source) => {
+                let world = params.get(WORLD_PARAM).map(|w| w.trim().to_string()).unwrap_or_default();
+                match (self.worlds)(&world) {
+                    Some(sha) => {
+                        // Checked as the blob it is, named by its hash inside
+                        // the store's blob folder (so a confined loader accepts it).
+                        let blob = self.store.blob_path(&sha);
+                        let blobs = blob.parent().unwrap_or(base_dir).to_path_buf();
+                        let mut pinned = params.clone();
+                        pinned.insert(WORLD_PARAM.into(), sha.clone());
+                        let description = self.loader.describe(source, &pinned, &blobs)?;
+                        self.used.insert(world, sha);
+                        Ok(description)
+                    }
+                    None => self.loader.describe(source, params, base_dir),
+                }
+            }
             ComponentSource::Builtin(_) => self.loader.describe(source, params, base_dir),
             ComponentSource::Wasm(file) => {
                 let key = relative_source(self.base_dir, file);

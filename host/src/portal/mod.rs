@@ -107,6 +107,11 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
             "/platforms/{platform}/validate/{file}",
             post(validate_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
         )
+        .route("/worlds", get(list_worlds))
+        .route(
+            "/worlds/{file}",
+            put(upload_world).layer(DefaultBodyLimit::max(crate::sim::world::MAX_WORLD_BYTES as usize)),
+        )
         .route("/sets", get(list_sets))
         .route("/sets/{id}", get(get_set))
         .route("/sets/{id}/activate", post(activate))

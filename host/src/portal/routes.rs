@@ -79,6 +79,29 @@ pub(super) async fn upload_config(
     Ok((StatusCode::CREATED, Json(json!({ "set": set }))))
 }
 
+/// Every uploaded simulator world.
+pub(super) async fn list_worlds(
+    State(state): State<Arc<PortalState>>,
+    Authed(_): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let worlds = blocking(move || Ok(deployer.worlds()?)).await?;
+    Ok(Json(json!({ "worlds": worlds })))
+}
+
+/// Uploads a simulator world file (checked like `subsume check` checks
+/// one; a robot file staged later names it in its simulator's `world`).
+pub(super) async fn upload_world(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(file): Path<String>,
+    body: Bytes,
+) -> Result<(StatusCode, Json<Json_>), ApiError> {
+    let deployer = state.deployer.clone();
+    let world = blocking(move || Ok(deployer.upload_world(&user, &file, &body)?)).await?;
+    Ok((StatusCode::CREATED, Json(json!({ "world": world }))))
+}
+
 /// Validates a robot file as staging would and stores nothing (the
 /// editor's validate-as-you-type): 200 with what it would stage, or the
 /// diagnostics of `subsume check`.

@@ -30,7 +30,7 @@ const PARAMS: &[ParamDecl] = &[
         ty: ParamType::File { optional: false },
         default: "",
         unit: "",
-        doc: "world file, relative to the robot file (config/worlds/*.world)",
+        doc: "world file, relative to the robot file (config/worlds/*.world), or a world uploaded to the portal",
     },
     ParamDecl {
         name: "protocol",

@@ -9,6 +9,7 @@
 //! users.json                  portal users (`users`)
 //! blobs/<sha256>              component and robot-file bytes, by content
 //! components.json             upload name -> record (`records::ComponentIndex`)
+//! worlds.json                 uploaded simulator worlds, name -> record (`records::WorldIndex`)
 //! sets/<id>.json              one set (`records::SetRecord`), never rewritten
 //! state.json                  active set, previously active sets, next id
 //! audit.log                   one JSON object per line, appended and fsynced
@@ -43,7 +44,7 @@ use thiserror::Error;
 pub use self::audit::{AuditEntry, MAX_AUDIT_READ, Outcome};
 pub use self::records::{
     ComponentIndex, ComponentRecord, STORE_FORMAT, SetRecord, StoreState, WiringComponent, WiringConnection,
-    WiringGraph, World,
+    WiringGraph, World, WorldIndex, WorldRecord,
 };
 use self::users::{Users, UsersError};
 use crate::contract::clip;
@@ -56,6 +57,9 @@ pub const MAX_SETS: usize = 200;
 pub const MAX_HISTORY: usize = 20;
 /// Most named components in the store.
 pub const MAX_STORED_COMPONENTS: usize = 500;
+/// Most uploaded simulator worlds in the store (bounds its growth from
+/// uploads; each is at most `sim::world::MAX_WORLD_BYTES`).
+pub const MAX_STORED_WORLDS: usize = 200;
 /// Largest index file (components.json, state.json, a set) read.
 pub const MAX_INDEX_BYTES: u64 = 16 << 20;
 
@@ -193,6 +197,15 @@ impl Store {
         }
     }
 
+    /// Every uploaded simulator world, by name.
+    pub fn worlds(&self) -> Result<BTreeMap<String, WorldRecord>, StoreError> {
+        let path = self.root.join("worlds.json");
+        match self.read_index(&path)? {
+            None => Ok(BTreeMap::new()),
+            Some(bytes) => WorldIndex::parse(&bytes).map(|i| i.worlds).map_err(Self::damaged(&path)),
+        }
+    }
+
     pub fn state(&self) -> Result<StoreState, StoreError> {
         let path = self.root.join("state.json");
         match self.read_index(&path)? {
@@ -267,6 +280,9 @@ impl Store {
         for record in self.components()?.values() {
             self.blob(&record.sha256)?;
         }
+        for record in self.worlds()?.values() {
+            self.blob(&record.sha256)?;
+        }
         Ok(())
     }
 }
@@ -301,6 +317,21 @@ impl StoreWriter<'_> {
         components.insert(record.name.clone(), record);
         let index = ComponentIndex { format: STORE_FORMAT, components };
         self.write_json(&self.root.join("components.json"), &index)
+    }
+
+    /// Records the world `record` under its name (its blob must be stored
+    /// already); a later upload of the same name replaces the record, never
+    /// what a staged set pinned.
+    pub fn put_world(&self, record: WorldRecord) -> Result<(), StoreError> {
+        let mut worlds = self.worlds()?;
+        if !worlds.contains_key(&record.name) && worlds.len() >= MAX_STORED_WORLDS {
+            return Err(StoreError::Refused(format!("the store holds {MAX_STORED_WORLDS} worlds already")));
+        }
+        if !self.blob_path(&record.sha256).is_file() {
+            return Err(StoreError::Refused(format!("blob {} is not stored", record.sha256)));
+        }
+        worlds.insert(record.name.clone(), record);
+        self.write_json(&self.root.join("worlds.json"), &WorldIndex { format: STORE_FORMAT, worlds })
     }
 
     fn write_state(&self, state: &StoreState) -> Result<(), StoreError> {

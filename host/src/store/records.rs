@@ -88,6 +88,34 @@ impl ComponentIndex {
     }
 }
 
+/// A simulator world file as uploaded (its bytes are a blob).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct WorldRecord {
+    pub name: String,
+    pub sha256: String,
+    pub size: u64,
+    pub uploaded_by: String,
+    pub uploaded_at: u64,
+}
+
+/// `worlds.json`: every uploaded world file, by name. New in format 2, so
+/// it has no older shape.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct WorldIndex {
+    pub format: u32,
+    pub worlds: BTreeMap<String, WorldRecord>,
+}
+
+impl WorldIndex {
+    pub(super) fn parse(bytes: &[u8]) -> Result<WorldIndex, String> {
+        let index: WorldIndex = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+        if index.format > STORE_FORMAT {
+            return Err(format!("format {} is newer than this host's {STORE_FORMAT}", index.format));
+        }
+        Ok(index)
+    }
+}
+
 /// A robot file with the components it runs, ready to activate. Never
 /// changed once written.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]

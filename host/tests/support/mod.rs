@@ -294,3 +294,25 @@ pub fn login(address: &str, name: &str, password: &str) -> String {
     assert_eq!(status, 200, "{json}");
     json["token"].as_str().unwrap().to_string()
 }
+
+/// Every file under `store` with its bytes, sorted, leaving out the files
+/// and folders named in `except` (e.g. "recordings", "audit.log").
+pub fn store_snapshot(except: &[&str], store: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut files = Vec::new();
+    let mut dirs = vec![store.to_path_buf()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.file_name().is_some_and(|n| except.iter().any(|e| n == *e)) {
+                continue;
+            }
+            if path.is_dir() {
+                dirs.push(path);
+            } else {
+                files.push((path.clone(), std::fs::read(&path).unwrap()));
+            }
+        }
+    }
+    files.sort();
+    files
+}
