@@ -5,23 +5,10 @@
 // uploaded shows its located error, or is stored and listed. Screenshots go
 // to $ARTIFACTS.
 // Usage: node loop.mjs URL USER PASSWORD COMPONENT.wasm
-import { chromium } from 'playwright-core';
-import path from 'node:path';
-import fs from 'node:fs';
+import { check, openPage, step } from './harness.mjs';
 
 const [url, user, password, wasm] = process.argv.slice(2);
-const artifacts = process.env.ARTIFACTS || 'browser-artifacts';
-fs.mkdirSync(artifacts, { recursive: true });
-const step = (text) => console.log(`step: ${text}`);
-const check = (ok, text) => { if (!ok) throw new Error(text); };
-
-const browser = await chromium.launch({
-  executablePath: '/usr/bin/chromium',
-  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
-});
-const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
-page.setDefaultTimeout(30000);
-const shot = (name) => page.screenshot({ path: path.join(artifacts, name + '.png'), fullPage: true });
+const { browser, page, shot } = await openPage(30000);
 const sim = () => page.evaluate(async () => (await (await fetch('/api/v1/status')).json()).sim);
 const near = (a, b, tolerance) => Math.abs(a - b) <= tolerance;
 try {

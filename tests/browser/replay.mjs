@@ -5,23 +5,10 @@
 // new value) for a set with a changed component. Values are checked
 // against the API's own answer; screenshots go to $ARTIFACTS.
 // Usage: node replay.mjs URL USER PASSWORD RECORDING SAME_SET CHANGED_SET
-import { chromium } from 'playwright-core';
-import path from 'node:path';
-import fs from 'node:fs';
+import { check, openPage, step } from './harness.mjs';
 
 const [url, user, password, recording, sameSet, changedSet] = process.argv.slice(2);
-const artifacts = process.env.ARTIFACTS || 'browser-artifacts';
-fs.mkdirSync(artifacts, { recursive: true });
-const step = (text) => console.log(`step: ${text}`);
-const check = (ok, text) => { if (!ok) throw new Error(text); };
-
-const browser = await chromium.launch({
-  executablePath: '/usr/bin/chromium',
-  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
-});
-const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
-page.setDefaultTimeout(60000);
-const shot = (name) => page.screenshot({ path: path.join(artifacts, name + '.png'), fullPage: true });
+const { browser, page, shot } = await openPage(60000);
 const postJson = (p, body) => page.evaluate(async ([p, body]) => {
   const response = await fetch('/api/v1' + p, { method: 'POST', body, headers: { 'content-type': 'application/json' } });
   return response.json();

@@ -6,23 +6,12 @@
 // content (values against /api/v1, pixels of the canvases); screenshots
 // go to $ARTIFACTS.
 // Usage: node views.mjs URL USER PASSWORD
-import { chromium } from 'playwright-core';
 import path from 'node:path';
 import fs from 'node:fs';
+import { check, openPage, step } from './harness.mjs';
 
 const [url, user, password] = process.argv.slice(2);
-const artifacts = process.env.ARTIFACTS || 'browser-artifacts';
-fs.mkdirSync(artifacts, { recursive: true });
-const step = (text) => console.log(`step: ${text}`);
-const check = (ok, text) => { if (!ok) throw new Error(text); };
-
-const browser = await chromium.launch({
-  executablePath: '/usr/bin/chromium',
-  args: ['--headless', '--no-sandbox', '--disable-gpu', '--disable-background-networking'],
-});
-const page = await browser.newPage({ viewport: { width: 1400, height: 1000 } });
-page.setDefaultTimeout(30000);
-const shot = (name) => page.screenshot({ path: path.join(artifacts, name + '.png'), fullPage: true });
+const { browser, page, shot, artifacts } = await openPage(30000);
 const getJson = (p) => page.evaluate(async (p) => (await fetch('/api/v1' + p)).json(), p);
 // Pixels of a canvas that are not background, inside a rectangle.
 const inked = (id, x0, y0, w, h) => page.evaluate(([id, x0, y0, w, h]) => {
