@@ -23,3 +23,13 @@ export async function openPage(timeoutMs = 30000) {
   const shot = (name) => page.screenshot({ path: path.join(artifacts, name + '.png'), fullPage: true });
   return { browser, page, shot, artifacts };
 }
+
+// Logs `user` in at the portal's `url` and waits for the tabs.
+export async function logIn(page, url, user, password) {
+  step('log in');
+  await page.goto(url);
+  await page.fill('#login-name', user);
+  await page.fill('#login-password', password);
+  await page.click('#login-button');
+  await page.waitForSelector('#tabs:not([hidden])');
+}

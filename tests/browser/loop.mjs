@@ -5,19 +5,14 @@
 // uploaded shows its located error, or is stored and listed. Screenshots go
 // to $ARTIFACTS.
 // Usage: node loop.mjs URL USER PASSWORD COMPONENT.wasm
-import { check, openPage, step } from './harness.mjs';
+import { check, logIn, openPage, step } from './harness.mjs';
 
 const [url, user, password, wasm] = process.argv.slice(2);
 const { browser, page, shot } = await openPage(30000);
 const sim = () => page.evaluate(async () => (await (await fetch('/api/v1/status')).json()).sim);
 const near = (a, b, tolerance) => Math.abs(a - b) <= tolerance;
 try {
-  step('log in');
-  await page.goto(url);
-  await page.fill('#login-name', user);
-  await page.fill('#login-password', password);
-  await page.click('#login-button');
-  await page.waitForSelector('#tabs:not([hidden])');
+  await logIn(page, url, user, password);
 
   step('upload a component: progress while the robot compiles, then the time it took');
   await page.click('#tabs button[data-tab="components"]');

@@ -5,7 +5,7 @@
 // new value) for a set with a changed component. Values are checked
 // against the API's own answer; screenshots go to $ARTIFACTS.
 // Usage: node replay.mjs URL USER PASSWORD RECORDING SAME_SET CHANGED_SET
-import { check, openPage, step } from './harness.mjs';
+import { check, logIn, openPage, step } from './harness.mjs';
 
 const [url, user, password, recording, sameSet, changedSet] = process.argv.slice(2);
 const { browser, page, shot } = await openPage(60000);
@@ -15,12 +15,7 @@ const postJson = (p, body) => page.evaluate(async ([p, body]) => {
 }, [p, body]);
 const resultText = () => page.textContent('#replay-result');
 try {
-  step('log in');
-  await page.goto(url);
-  await page.fill('#login-name', user);
-  await page.fill('#login-password', password);
-  await page.click('#login-button');
-  await page.waitForSelector('#tabs:not([hidden])');
+  await logIn(page, url, user, password);
 
   step('the Robot files tab lists the recording and a replay button per staged set');
   await page.click('#tabs button[data-tab="sets"]');

@@ -8,7 +8,7 @@
 // Usage: node views.mjs URL USER PASSWORD
 import path from 'node:path';
 import fs from 'node:fs';
-import { check, openPage, step } from './harness.mjs';
+import { check, logIn, openPage, step } from './harness.mjs';
 
 const [url, user, password] = process.argv.slice(2);
 const { browser, page, shot, artifacts } = await openPage(30000);
@@ -21,12 +21,7 @@ const inked = (id, x0, y0, w, h) => page.evaluate(([id, x0, y0, w, h]) => {
   return n;
 }, [id, x0, y0, w, h]);
 try {
-  step('log in');
-  await page.goto(url);
-  await page.fill('#login-name', user);
-  await page.fill('#login-password', password);
-  await page.click('#login-button');
-  await page.waitForSelector('#tabs:not([hidden])');
+  await logIn(page, url, user, password);
 
   step('history plots: message rates and the holder');
   await page.waitForFunction(() => Number(document.querySelector('#plot-rates').dataset.samples || 0) >= 40);
