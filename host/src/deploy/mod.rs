@@ -58,6 +58,7 @@ use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::wiring::PriorityCell;
 use crate::runtime::{Graph, RunningRobot};
 use crate::sandbox::{Sandbox, read_component_file};
+pub use crate::sim::world::MAX_WORLD_BYTES as MAX_WORLD_UPLOAD_BYTES;
 use crate::store::users::User;
 use crate::store::{Outcome, STORE_FORMAT, SetRecord, Store, StoreError, StoreWriter, sha256_hex, unix_now};
 

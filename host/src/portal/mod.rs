@@ -38,7 +38,7 @@ use axum::routing::{get, post, put};
 use self::auth::{LoginLimiter, Sessions};
 pub use self::error::ApiError;
 use self::logs::LogRing;
-use crate::deploy::{Deployer, MAX_CONFIG_UPLOAD_BYTES, MAX_UPLOAD_BYTES};
+use crate::deploy::{Deployer, MAX_CONFIG_UPLOAD_BYTES, MAX_UPLOAD_BYTES, MAX_WORLD_UPLOAD_BYTES};
 use crate::store::users::Directory;
 
 /// Largest JSON request (login, release): nothing else sends JSON.
@@ -108,10 +108,7 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
             post(validate_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
         )
         .route("/worlds", get(list_worlds))
-        .route(
-            "/worlds/{file}",
-            put(upload_world).layer(DefaultBodyLimit::max(crate::sim::world::MAX_WORLD_BYTES as usize)),
-        )
+        .route("/worlds/{file}", put(upload_world).layer(DefaultBodyLimit::max(MAX_WORLD_UPLOAD_BYTES as usize)))
         .route("/sets", get(list_sets))
         .route("/sets/{id}", get(get_set))
         .route("/sets/{id}/activate", post(activate))
