@@ -307,9 +307,15 @@ fn compiled_components_are_cached_and_a_bad_cache_entry_is_recompiled() {
         let sandbox = Sandbox::new(Some(cache.path().to_path_buf())).unwrap();
         sandbox.load(&bytes).unwrap();
     }
-    let entries: Vec<_> = std::fs::read_dir(cache.path()).unwrap().map(|e| e.unwrap().path()).collect();
+    // One compiled component, beside the folder of the function cache.
+    let entries: Vec<_> = std::fs::read_dir(cache.path())
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.file_name().is_none_or(|n| n != "functions"))
+        .collect();
     assert_eq!(entries.len(), 1, "{entries:?}");
     assert!(entries[0].extension().is_some_and(|x| x == "cwasm"));
+    assert!(cache.path().join("functions").is_dir(), "no function cache beside it");
     // A second engine loads from the cache.
     let sandbox = Sandbox::new(Some(cache.path().to_path_buf())).unwrap();
     assert_eq!(sandbox.load(&bytes).unwrap().description.name, "test-relay");
