@@ -12,7 +12,6 @@ use super::{DeployError, Deployer, Permission, authorise, stage};
 use crate::assemble::Loader;
 use crate::record::control::Recordings;
 use crate::record::replay::{ReplayError, ReplayLimits, ReplayReport, replay_robot};
-use crate::store::StoreError;
 use crate::store::users::User;
 
 /// Replays at once: a replay runs the set's components as fast as the CPU
@@ -80,10 +79,7 @@ impl Deployer {
             .replays
             .try_lock()
             .map_err(|_| DeployError::Busy("another replay is running; try again when it is done".into()))?;
-        let set = self.store.set(id).map_err(|e| match e {
-            StoreError::NoSet(id) => DeployError::Store(StoreError::NoSet(id)),
-            other => other.into(),
-        })?;
+        let set = self.store.set(id)?;
         let mut loader = Loader::confined(&self.sandbox);
         let config = stage::validate_set(&self.store, &set, &mut loader, &self.overrides)?;
         let limits =

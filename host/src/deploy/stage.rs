@@ -276,7 +276,10 @@ impl Resolver for SetResolver<'_, '_> {
         match source {
             ComponentSource::Builtin(_) if is_simulator(source) => {
                 let world = params.get(WORLD_PARAM).map(|w| w.trim().to_string()).unwrap_or_default();
-                match (self.worlds)(&world) {
+                // Only a plain `NAME.world` can be an uploaded world (what
+                // `upload_world` accepts); anything else is a file path.
+                let uploaded = world.ends_with(super::WORLD_SUFFIX) && !world.contains('/');
+                match uploaded.then(|| (self.worlds)(&world)).flatten() {
                     Some(sha) => {
                         // Checked as the blob it is, named by its hash inside
                         // the store's blob folder (so a confined loader accepts it).
