@@ -106,7 +106,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
     for (const b of document.querySelectorAll('#tabs button')) b.classList.toggle('active', b === button);
     for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
     if (button.dataset.tab === 'components') refreshComponents();
-    if (button.dataset.tab === 'sets') { refreshSets(); refreshReplayRecordings(); }
+    if (button.dataset.tab === 'sets') { refreshSets(); refreshReplayRecordings(); refreshWorlds(); }
     if (button.dataset.tab === 'recordings') refreshRecordings();
   });
 }
@@ -329,6 +329,14 @@ async function refreshComponents() {
   }
 }
 
+// An upload's refusal: the message on the result line, and each located
+// diagnostic (file:line:column: message) as an item of the errors list.
+function showRefusal(err, resultId, errorsId) {
+  $(resultId).className = 'error';
+  $(resultId).textContent = err.message;
+  for (const d of (err.body && err.body.diagnostics) || []) $(errorsId).append(el('li', {}, d.text));
+}
+
 // ---- robot files and sets ------------------------------------------------
 $('config-upload').addEventListener('click', async () => {
   const file = $('config-file').files[0];
@@ -343,9 +351,7 @@ $('config-upload').addEventListener('click', async () => {
     await refreshSets();
     showGraph(set.id);
   } catch (err) {
-    $('config-result').className = 'error';
-    $('config-result').textContent = err.message;
-    for (const d of (err.body && err.body.diagnostics) || []) $('config-errors').append(el('li', {}, d.text));
+    showRefusal(err, 'config-result', 'config-errors');
   }
 });
 
@@ -917,10 +923,7 @@ $('world-upload').addEventListener('click', async () => {
     $('world-result').className = 'ok';
     $('world-result').textContent = `stored ${world.name} (sha256 ${world.sha256.slice(0, 12)}...)`;
   } catch (err) {
-    $('world-result').className = 'error';
-    $('world-result').textContent = err.message;
-    for (const d of (err.body && err.body.diagnostics) || []) $('world-errors').append(el('li', {}, d.text));
+    showRefusal(err, 'world-result', 'world-errors');
   }
   refreshWorlds();
 });
-for (const button of document.querySelectorAll('#tabs button[data-tab="sets"]')) button.addEventListener('click', refreshWorlds);
