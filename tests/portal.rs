@@ -158,6 +158,8 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
     // Every staging that answered 2xx: its id and the bytes it sent.
     let mut staged: Vec<(u64, Vec<u8>)> = Vec::new();
     let mut requests_sent = 0;
+    // Every stored world upload: name -> (round, bytes).
+    let mut worlds: std::collections::BTreeMap<String, Vec<(usize, Vec<u8>)>> = Default::default();
     for round in 0..ROUNDS {
         let mut batch: Vec<Request> = Vec::new();
         let component = |user: &'static str, platform: &str, k: usize| Request {
@@ -172,6 +174,17 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
         batch.push(component("net", "network", 3));
         batch.push(component("net", "control", 4)); // refused: not net's platform
         batch.push(component("view", "control", 5)); // refused: a viewer
+        // Worlds: names of their own, one name all of them race on, a viewer refused.
+        let world = |user: &'static str, name: String, k: usize| Request {
+            user,
+            method: "PUT",
+            path: format!("/api/v1/worlds/{name}"),
+            body: format!("bounds 0 0 10 8\nstart {} 1 0\ngoal 9 7 0.3\n", 1 + k % 5).into_bytes(),
+        };
+        for (k, user) in ["ctl", "admin", "ctl", "admin", "view"].into_iter().enumerate() {
+            let name = if k < 2 { format!("r{round}w{k}.world") } else { "shared.world".into() };
+            batch.push(world(user, name, round * 10 + k));
+        }
         for k in 0..16 {
             // Components of the round before are stored by now.
             let uses = (round > 0 && k % 4 == 0).then(|| format!("r{}u{}", round - 1, k % 3));
@@ -223,6 +236,12 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
                 request.method,
                 request.path
             );
+            if let Some(name) = request.path.strip_prefix("/api/v1/worlds/") {
+                assert_eq!(status, if request.user == "view" { 403 } else { 201 }, "{name}: {json}");
+                if status == 201 {
+                    worlds.entry(name.to_string()).or_default().push((round, request.body.clone()));
+                }
+            }
             if request.path.contains("/configs/") && (200..300).contains(&status) {
                 staged.push((json["set"]["id"].as_u64().unwrap(), request.body));
             }
@@ -255,6 +274,15 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
         opened.set(*id).unwrap_or_else(|e| panic!("state names set {id}: {e}"));
     }
     opened.verify().unwrap();
+    // Every world name is stored once, holding bytes one of its uploads
+    // sent (for the raced name: one sent in the last round); none is lost.
+    let stored = opened.worlds().unwrap();
+    assert_eq!(stored.keys().collect::<Vec<_>>(), worlds.keys().collect::<Vec<_>>());
+    for (name, uploads) in &worlds {
+        let bytes = opened.blob(&stored[name].sha256).unwrap();
+        let last_round = uploads.iter().map(|(round, _)| *round).max().unwrap();
+        assert!(uploads.iter().any(|(round, sent)| *round == last_round && *sent == bytes), "{name}");
+    }
     // One audit line per request, refused ones included.
     let entries = opened.audit_entries(usize::MAX).unwrap();
     assert_eq!(entries.len() - audit_before, requests_sent, "audit lines for {requests_sent} requests");
