@@ -532,3 +532,67 @@ fn the_systemd_unit_installs_verifies_and_is_hardened() {
     assert!(security.status.success(), "systemd-analyze security: {said}{}", String::from_utf8_lossy(&security.stderr));
     assert!(said.contains("Overall exposure level for subsume.service"), "{said}");
 }
+
+/// The tasks of process `pid` whose name is `name`.
+fn tasks_named(pid: u32, name: &str) -> Vec<PathBuf> {
+    let Ok(tasks) = std::fs::read_dir(format!("/proc/{pid}/task")) else { return Vec::new() };
+    tasks
+        .filter_map(Result::ok)
+        .map(|t| t.path())
+        .filter(|t| std::fs::read_to_string(t.join("comm")).is_ok_and(|c| c.trim() == name))
+        .collect()
+}
+
+/// A task's CPUs (`Cpus_allowed_list`) and scheduling policy (the 41st
+/// field of `stat`: 0 normal, 1 SCHED_FIFO).
+fn cpus_and_policy(task: &Path) -> (String, u32) {
+    let status = std::fs::read_to_string(task.join("status")).unwrap();
+    let cpus = status.lines().find_map(|l| l.strip_prefix("Cpus_allowed_list:")).unwrap().trim().to_string();
+    let stat = std::fs::read_to_string(task.join("stat")).unwrap();
+    // The fields after the command name (which is in parentheses) start at 3.
+    let after_name = &stat[stat.rfind(')').unwrap() + 2..];
+    let policy = after_name.split_whitespace().nth(41 - 3).unwrap().parse().unwrap();
+    (cpus, policy)
+}
+
+/// `--control-cpu` and `--control-fifo` reach the control thread, and only
+/// it; a setting the kernel refuses is said in the log and the loop runs.
+#[test]
+fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
+    support::guest_dir();
+    let mut command = support::subsume();
+    command.args(["run", "config/demo.xml", "--http", "off", "--duration", "60", "--param", "teleop.listen=127.0.0.1:0"]);
+    command.args(["--param", "teleop.websocket=127.0.0.1:0", "--control-cpu", "0", "--control-fifo", "10"]);
+    let host = support::HostProcess::spawn(command);
+    let said = host.word_after("control thread: ", Duration::from_secs(60));
+    let pid = host.child.id();
+    let control = tasks_named(pid, "subsume-control");
+    assert_eq!(control.len(), 1, "{}", host.log());
+    let (cpus, policy) = cpus_and_policy(&control[0]);
+    assert_eq!(said, "pinned", "{}", host.log());
+    assert_eq!(cpus, "0");
+    let fifo_refused = host.log().contains("cannot run the control thread under SCHED_FIFO at priority 10");
+    if fifo_refused {
+        // Without CAP_SYS_NICE: said, and the loop runs on as a normal thread.
+        assert_eq!(policy, 0);
+    } else {
+        assert!(host.log().contains("pinned to cpu 0, SCHED_FIFO at priority 10"), "{}", host.log());
+        assert_eq!(policy, 1, "the control thread runs under SCHED_FIFO");
+    }
+    // Every other thread keeps the defaults (the settings are not the
+    // process's, and no thread was made from the control thread after).
+    let main = PathBuf::from(format!("/proc/{pid}/task/{pid}"));
+    let (main_cpus, main_policy) = cpus_and_policy(&main);
+    assert_eq!(main_policy, 0);
+    assert_ne!(main_cpus, "0", "only the control thread is pinned");
+    for task in tasks_named(pid, "subsume-compile-0").iter().chain(&tasks_named(pid, "subsume-epoch")) {
+        assert_eq!(cpus_and_policy(task).1, 0);
+    }
+
+    let mut bad = support::subsume();
+    bad.args(["run", "config/demo.xml", "--http", "off", "--duration", "1", "--control-fifo", "100"]);
+    let output = run_to_end(&mut bad);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!output.status.success());
+    assert!(stderr.contains("--control-fifo must be between 1 and 99, got 100"), "{stderr}");
+}

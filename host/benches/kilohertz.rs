@@ -44,6 +44,7 @@ use subsume::arbiter::{ArbiterComponent, Source};
 use subsume::config::Policy;
 use subsume::contract::Param;
 use subsume::runtime::control_loop::{Clock, CycleHook, Shutdown, run_with};
+use subsume::runtime::scheduling::ControlThreadSettings;
 use subsume::runtime::{Component, Graph, PriorityCell, Vacant};
 use subsume::sandbox::{GuestLimits, Sandbox, WasmArtifact, thread_cpu_time};
 
@@ -186,26 +187,14 @@ fn process_cpu() -> Duration {
 fn apply_settings() -> Vec<String> {
     let mut applied = Vec::new();
     let os_error = || std::io::Error::last_os_error().to_string();
-    if let Some(cpu) = std::env::var("KHZ_PIN").ok().and_then(|v| v.parse::<usize>().ok()) {
-        // SAFETY: a zeroed cpu_set_t is a valid empty set; CPU_SET and
-        // sched_setaffinity only touch it.
-        let rc = unsafe {
-            let mut set: libc::cpu_set_t = std::mem::zeroed();
-            libc::CPU_SET(cpu, &mut set);
-            libc::sched_setaffinity(0, std::mem::size_of::<libc::cpu_set_t>(), &set)
-        };
-        applied.push(if rc == 0 { format!("pinned to cpu {cpu}") } else { format!("pin refused: {}", os_error()) });
-    }
-    if let Some(priority) = std::env::var("KHZ_FIFO").ok().and_then(|v| v.parse::<i32>().ok()) {
-        let param = libc::sched_param { sched_priority: priority };
-        // SAFETY: pid 0 is the calling thread; `param` is a valid sched_param.
-        let rc = unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
-        applied.push(if rc == 0 {
-            format!("SCHED_FIFO {priority}")
-        } else {
-            format!("SCHED_FIFO refused: {}", os_error())
-        });
-    }
+    // The host's own settings (`subsume run --control-cpu/--control-fifo`).
+    let control = ControlThreadSettings {
+        cpu: std::env::var("KHZ_PIN").ok().and_then(|v| v.parse::<usize>().ok()),
+        fifo_priority: std::env::var("KHZ_FIFO").ok().and_then(|v| v.parse::<i32>().ok()),
+    };
+    let (done, refused) = control.apply();
+    applied.extend(done);
+    applied.extend(refused.iter().map(|err| format!("refused: {err}")));
     if std::env::var("KHZ_MLOCK").is_ok_and(|v| v == "1") {
         let started = Instant::now();
         // SAFETY: mlockall takes flags only.

@@ -67,6 +67,7 @@ fn main() {
         tls: Default::default(),
         pace: None,
         record: None,
+        control: Default::default(),
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -13,6 +13,7 @@ use subsume::contract::{Description, DescriptionDoc};
 use subsume::fsutil;
 use subsume::run::{FaultInjection, PortalOptions, RunError, RunOptions};
 use subsume::runtime::control_loop::Shutdown;
+use subsume::runtime::scheduling::FIFO_PRIORITIES;
 use subsume::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
 use subsume::sandbox::{Sandbox, read_component_file};
 
@@ -63,6 +64,15 @@ enum Command {
         /// (0.01 to 10).
         #[arg(long, value_name = "SECONDS", default_value = "0.1")]
         stall_limit: f64,
+        /// Run the control thread under SCHED_FIFO at this priority (1 to
+        /// 99; needs CAP_SYS_NICE or an RLIMIT_RTPRIO). Not a default: see
+        /// docs/service.md.
+        #[arg(long, value_name = "PRIORITY")]
+        control_fifo: Option<i32>,
+        /// Pin the control thread to this CPU (keep the CPU free of other
+        /// work). Not a default: see docs/service.md.
+        #[arg(long, value_name = "CPU")]
+        control_cpu: Option<usize>,
         /// The certificate chain (PEM, the host's first) the portal and the
         /// network platforms serve TLS with; needs --tls-key.
         #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_CERT")]
@@ -313,6 +323,8 @@ fn main() -> ExitCode {
             params,
             http,
             stall_limit,
+            control_fifo,
+            control_cpu,
             tls_cert,
             tls_key,
             allow_plain_http,
@@ -344,7 +356,11 @@ fn main() -> ExitCode {
                 let identity = subsume::tls::TlsIdentity::from_options(tls_cert.as_deref(), tls_key.as_deref())?;
                 let tls = subsume::tls::HostTls { identity, allow_plain_remote: allow_plain_http };
                 let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
-                run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record })
+                let control = subsume::runtime::scheduling::ControlThreadSettings {
+                    fifo_priority: control_fifo,
+                    cpu: control_cpu,
+                };
+                run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, control, tls, record })
             })
         }
         Command::Dev { config, poll, duration, speed, report, params, http } => {
@@ -422,6 +438,7 @@ struct RunArgs {
     cache_dir: Option<PathBuf>,
     portal: Option<PortalOptions>,
     stall_limit: f64,
+    control: subsume::runtime::scheduling::ControlThreadSettings,
     tls: subsume::tls::HostTls,
     record: Option<subsume::record::RecordOptions>,
 }
@@ -452,7 +469,8 @@ fn run_dev(dev: DevArgs, portal: Option<PortalOptions>, cache_dir: Option<PathBu
     let pace = speed.map(|s| s.parse::<subsume::runtime::lockstep::Pace>()).transpose()?;
     let stall_limit = subsume::runtime::stall::DEFAULT_STALL_LIMIT.as_secs_f64();
     let portal = Some(portal);
-    run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, tls, record: None })
+    let control = subsume::runtime::scheduling::ControlThreadSettings::default();
+    run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, control, tls, record: None })
 }
 
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
@@ -465,6 +483,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         cache_dir,
         portal,
         stall_limit,
+        control,
         tls,
         record,
     } = args;
@@ -476,6 +495,13 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
     let (min, max) = (MIN_STALL_LIMIT.as_secs_f64(), MAX_STALL_LIMIT.as_secs_f64());
     if !(stall_limit.is_finite() && (min..=max).contains(&stall_limit)) {
         bail!("--stall-limit must be between {min} and {max} seconds, got {stall_limit}");
+    }
+    if let Some(priority) = control.fifo_priority.filter(|p| !FIFO_PRIORITIES.contains(p)) {
+        bail!(
+            "--control-fifo must be between {} and {}, got {priority}",
+            FIFO_PRIORITIES.start(),
+            FIFO_PRIORITIES.end()
+        );
     }
     let fault_injection = match std::env::var("SUBSUME_FAULT_INJECTION") {
         Ok(text) if !text.is_empty() => Some(text.parse::<FaultInjection>()?),
@@ -492,6 +518,7 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         overrides,
         portal,
         stall_limit: Duration::from_secs_f64(stall_limit),
+        control,
         fault_injection,
         tls,
         pace,

@@ -22,6 +22,7 @@ use crate::report::{self, Report};
 use crate::robot::serial::HALT_WAIT;
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
 use crate::runtime::lockstep::Pace;
+use crate::runtime::scheduling::ControlThreadSettings;
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
 use crate::runtime::{Graph, Heartbeat, Locks, RunningRobot, StallWatchdog, Standings, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
@@ -57,6 +58,9 @@ pub struct RunOptions {
     pub pace: Option<Pace>,
     /// Record the run to MCAP (`--record`).
     pub record: Option<RecordOptions>,
+    /// Real-time settings of the control thread (`--control-fifo`,
+    /// `--control-cpu`); none by default.
+    pub control: ControlThreadSettings,
 }
 
 impl RunOptions {
@@ -249,6 +253,7 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
     let watchdog = StallWatchdog::start(heartbeat.clone(), Box::new(|_| {}))
         .map_err(|e| RunError::ControlLoop(format!("cannot start the stall watchdog: {e}")))?;
     let injected = options.fault_injection;
+    let control = options.control;
     if let Some(FaultInjection::PanicThread(after)) = injected {
         inject_thread_panic(after)?;
     }
@@ -264,6 +269,15 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
                 Some(FaultInjection::HangControl(after)) => Some((at(after), true)),
                 _ => None,
             };
+            // Settings the kernel refuses are said loudly; the loop runs
+            // without them (the motors are as safe either way).
+            let (applied, refused) = control.apply();
+            if !applied.is_empty() {
+                tracing::info!("control thread: {}", applied.join(", "));
+            }
+            for err in refused {
+                tracing::error!("{err}; the control loop runs without it");
+            }
             let mut cycle_hook = InjectFault { inner: &mut hook, fault };
             let stopped_by =
                 control_loop::run_watched(&mut graph, &clock, &shutdown, until_ns, &mut cycle_hook, Some(&heartbeat));

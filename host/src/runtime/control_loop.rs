@@ -227,6 +227,10 @@ pub fn run_watched(
     hook: &mut dyn CycleHook,
     heartbeat: Option<&Arc<Heartbeat>>,
 ) -> StopReason {
+    if clock.simulated.is_none() {
+        // Wake-ups on time, not up to 50 µs after (the kernel's default).
+        super::scheduling::tighten_timer_slack();
+    }
     let stopped_by = cycle(graph, clock, shutdown, until_ns, hook, heartbeat);
     // Building the report is not a stall.
     graph.asleep();

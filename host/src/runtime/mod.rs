@@ -2,7 +2,8 @@
 //! wired ([`wiring`]), the graph that schedules them ([`graph`]) and its
 //! stopwatch ([`clock`]), the
 //! control loop that drives it in real time ([`control_loop`]) and how long
-//! it waited for a CPU ([`cpu_wait`]), the host's
+//! it waited for a CPU ([`cpu_wait`]), how threads ask the kernel for the
+//! CPU so the loop wins it ([`scheduling`]), the host's
 //! emergency-stop locks ([`locks`]), the process's list of final stops for
 //! exits that cannot wait for the loop ([`halt`]), the
 //! watchdog outside it that stops the motors when it stalls ([`stall`]),
@@ -23,6 +24,7 @@ pub mod halt;
 pub mod histogram;
 pub mod locks;
 pub mod lockstep;
+pub mod scheduling;
 pub mod stall;
 pub mod tap;
 pub mod wiring;

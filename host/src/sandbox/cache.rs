@@ -13,6 +13,7 @@ use super::SandboxError;
 use super::function_cache::{FunctionCache, FunctionCacheStats};
 use super::guest::error_text;
 use crate::fsutil::write_atomically;
+use crate::runtime::scheduling;
 
 fn create_private_dir(dir: &Path) -> std::io::Result<()> {
     use std::os::unix::fs::DirBuilderExt;
@@ -83,8 +84,11 @@ impl CompileCache {
         tracing::info!("compiling component {short} ({} KiB; not in the cache yet)...", bytes.len().div_ceil(1024));
         let started = std::time::Instant::now();
         let before = self.function_stats();
-        let component =
-            wasmtime::component::Component::new(engine, bytes).map_err(|e| SandboxError::Compile(error_text(&e)));
+        // On a background thread: the compile yields the CPU to the control
+        // loop (its parallel workers are background threads too).
+        let component = scheduling::in_background("subsume-compile", || {
+            wasmtime::component::Component::new(engine, bytes).map_err(|e| SandboxError::Compile(error_text(&e)))
+        });
         let seconds = started.elapsed().as_secs_f64();
         // What the function cache served (counters shared with concurrent
         // compiles, which the host serialises anyway).

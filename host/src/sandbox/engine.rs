@@ -23,7 +23,7 @@ use super::translator::WasmTranslator;
 use crate::config::limits::MAX_COMPONENTS;
 use crate::contract::{Description, Param, ValueKind, check_description};
 use crate::contract::{bindings, translator_bindings, v1};
-use crate::runtime::Component;
+use crate::runtime::{Component, scheduling};
 
 /// How often the ticker thread advances the engine's epoch: the granularity
 /// of the budget checks (`budget.rs`). A runaway call is stopped about one
@@ -144,6 +144,7 @@ impl Sandbox {
     }
 
     fn with_epochs(cache_dir: Option<PathBuf>, epochs: bool) -> Result<Sandbox, SandboxError> {
+        background_compile_workers();
         let functions = cache_dir.as_ref().and_then(|dir| match FunctionCache::open(dir.join("functions")) {
             Ok(cache) => Some(Arc::new(cache)),
             Err(err) => {
@@ -327,6 +328,26 @@ fn engine_config(pooling: bool, epochs: bool) -> Config {
         config.allocation_strategy(InstanceAllocationStrategy::Pooling(pool));
     }
     config
+}
+
+/// Makes the worker pool that compiles functions in parallel (rayon's global
+/// pool, which wasmtime uses) run at the background priority
+/// ([`scheduling::BACKGROUND_NICE`]): a compile must not take the CPU from
+/// the control loop. Once per process, before any compile; if the pool was
+/// made already (by another user of rayon), it is left as it is, and said.
+fn background_compile_workers() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        let built = rayon::ThreadPoolBuilder::new()
+            .thread_name(|i| format!("subsume-compile-{i}"))
+            .start_handler(|_| {
+                scheduling::lower_to_background();
+            })
+            .build_global();
+        if let Err(err) = built {
+            tracing::warn!("compile workers keep their priority: {err}");
+        }
+    });
 }
 
 /// Advances the engine's epoch every [`EPOCH_TICK`] until dropped.
