@@ -561,7 +561,16 @@ fn cpus_and_policy(task: &Path) -> (String, u32) {
 fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
     support::guest_dir();
     let mut command = support::subsume();
-    command.args(["run", "config/demo.xml", "--http", "off", "--duration", "60", "--param", "teleop.listen=127.0.0.1:0"]);
+    command.args([
+        "run",
+        "config/demo.xml",
+        "--http",
+        "off",
+        "--duration",
+        "60",
+        "--param",
+        "teleop.listen=127.0.0.1:0",
+    ]);
     command.args(["--param", "teleop.websocket=127.0.0.1:0", "--control-cpu", "0", "--control-fifo", "10"]);
     let host = support::HostProcess::spawn(command);
     let said = host.word_after("control thread: ", Duration::from_secs(60));

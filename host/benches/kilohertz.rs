@@ -25,7 +25,10 @@
 //!   file from the portal does: build beside, swap at a cycle boundary);
 //! - `KHZ_PIN=N`: pin the control thread to CPU N (`sched_setaffinity`);
 //! - `KHZ_FIFO=P`: run the control thread under `SCHED_FIFO` at priority P;
-//! - `KHZ_MLOCK=1`: `mlockall(MCL_CURRENT | MCL_FUTURE)` before the run.
+//! - `KHZ_MLOCK=1`: `mlockall(MCL_CURRENT | MCL_FUTURE)` before the run;
+//! - `KHZ_FLOOR=1`: native stand-ins instead of the WASM components (same
+//!   emissions, same graph and loop): the machine's and the loop's own
+//!   floor, against which the WASM run's missed cycles are read.
 //!
 //! A setting the kernel refuses is reported, and the run goes on without it.
 //!
@@ -43,9 +46,11 @@ use std::time::{Duration, Instant};
 use subsume::arbiter::{ArbiterComponent, Source};
 use subsume::config::Policy;
 use subsume::contract::Param;
+use subsume::contract::Value;
 use subsume::runtime::control_loop::{Clock, CycleHook, Shutdown, run_with};
+use subsume::runtime::cpu_wait::thread_run_delay_ns;
 use subsume::runtime::scheduling::ControlThreadSettings;
-use subsume::runtime::{Component, Graph, PriorityCell, Vacant};
+use subsume::runtime::{CallError, Component, Graph, Outbox, PriorityCell, Vacant};
 use subsume::sandbox::{GuestLimits, Sandbox, WasmArtifact, thread_cpu_time};
 
 const PERIOD_NS: u64 = 1_000_000;
@@ -66,10 +71,47 @@ fn param(name: &str, value: &str) -> Param {
     Param { name: name.into(), value: value.into() }
 }
 
-/// The 16 components, their first ticks at `start_ns`. Returns the graph
-/// and the index of the 1 kHz source.
+/// A native stand-in for one of the guests (the floor run, `KHZ_FLOOR=1`):
+/// the same emissions without a sandbox.
+enum Native {
+    Counter(f64),
+    Relay,
+    Commander(String),
+}
+
+impl Component for Native {
+    fn on_input(&mut self, port: u32, value: &Value, _: usize, _: u64, out: &mut Outbox) -> Result<(), CallError> {
+        if let Native::Relay = self {
+            out.push((port, value.clone()));
+        }
+        Ok(())
+    }
+
+    fn tick(&mut self, _: u64, out: &mut Outbox) -> Result<(), CallError> {
+        match self {
+            Native::Counter(count) => {
+                *count += 1.0;
+                out.push((0, Value::Scalar(*count)));
+            }
+            Native::Commander(command) => out.push((0, Value::Command(command.clone()))),
+            Native::Relay => {}
+        }
+        Ok(())
+    }
+}
+
+/// The 16 components (native stand-ins when `floor`), their first ticks at
+/// `start_ns`. Returns the graph and the index of the 1 kHz source.
 fn build(sandbox: &Sandbox, artifacts: &Artifacts, start_ns: u64) -> (Graph, usize) {
+    let floor = std::env::var("KHZ_FLOOR").is_ok_and(|v| v == "1");
     let wasm = |artifact: &WasmArtifact, name: &str, params: &[Param]| -> Box<dyn Component> {
+        if floor {
+            return Box::new(match name {
+                "counter" => Native::Counter(0.0),
+                "relay" => Native::Relay,
+                _ => Native::Commander(params[0].value.clone()),
+            });
+        }
         Box::new(sandbox.instantiate(artifact, name, &limits(), params).unwrap())
     };
     let mut graph = Graph::new();
@@ -181,6 +223,15 @@ fn process_cpu() -> Duration {
     }
     let tv = |t: libc::timeval| Duration::new(t.tv_sec as u64, t.tv_usec as u32 * 1000);
     tv(usage.ru_utime) + tv(usage.ru_stime)
+}
+
+/// Steal time of all the machine's CPUs so far (`/proc/stat`, in ms).
+fn steal_ms() -> Option<u64> {
+    let stat = std::fs::read_to_string("/proc/stat").ok()?;
+    let ticks: u64 = stat.lines().next()?.split_whitespace().nth(8)?.parse().ok()?;
+    // SAFETY: sysconf takes a constant only.
+    let hz = unsafe { libc::sysconf(libc::_SC_CLK_TCK) }.max(1) as u64;
+    Some(ticks * 1000 / hz)
 }
 
 /// Applies the real-time settings asked for; returns what was done.
@@ -295,7 +346,9 @@ fn main() {
     let shutdown = Shutdown::new();
     let until = start_ns + (seconds * 1e9) as u64;
     let (cpu_before, process_before) = (thread_cpu_time(), process_cpu());
+    let (waited_before, steal_before) = (thread_run_delay_ns(), steal_ms());
     run_with(&mut graph, &clock, &shutdown, Some(until), &mut recorder);
+    let (waited, steal) = (thread_run_delay_ns(), steal_ms());
     let (cpu, process) = (thread_cpu_time() - cpu_before, process_cpu() - process_before);
     stop.store(true, Ordering::Relaxed);
     recorder.missed += graph.stats(source).map_or(0, |s| s.missed_ticks);
@@ -307,7 +360,8 @@ fn main() {
     let mut jitter: Vec<u64> = recorder.starts.windows(2).map(|w| (w[1] - w[0]).abs_diff(PERIOD_NS)).collect();
     let scenario = if load { "while compiling Python + activating" } else { "alone" };
     let settings = if settings.is_empty() { "none".to_string() } else { settings.join(", ") };
-    println!("1 kHz loop, 16 WASM components, {seconds} s, {scenario}; settings: {settings}");
+    let kind = if std::env::var("KHZ_FLOOR").is_ok_and(|v| v == "1") { "native stand-ins (floor)" } else { "WASM" };
+    println!("1 kHz loop, 16 {kind} components, {seconds} s, {scenario}; settings: {settings}");
     println!(
         "cycles: {cycles}; swaps (activations): {}; compiles: {}",
         recorder.swaps,
@@ -316,6 +370,14 @@ fn main() {
     println!("lateness: {}", summary(&mut recorder.lateness));
     println!("period jitter: {}", summary(&mut jitter));
     println!("missed cycles (1 kHz source): {}; components not running at the end: {faults}", recorder.missed);
+    // Where the late starts came from: the control thread waiting for a CPU
+    // inside this machine (the kernel's run delay), or the machine itself
+    // not running (steal time, counted by the hypervisor for every vCPU).
+    println!(
+        "control thread waited for a CPU: {:.1} ms; steal time of the machine over the run: {} ms",
+        waited.zip(waited_before).map_or(f64::NAN, |(after, before)| (after - before) as f64 / 1e6),
+        steal.zip(steal_before).map_or_else(|| "unknown".to_string(), |(after, before)| (after - before).to_string())
+    );
     println!(
         "CPU per cycle: control thread {:.1} us; whole process {:.1} us",
         cpu.as_secs_f64() * 1e6 / cycles.max(1) as f64,

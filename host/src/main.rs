@@ -360,7 +360,19 @@ fn main() -> ExitCode {
                     fifo_priority: control_fifo,
                     cpu: control_cpu,
                 };
-                run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, control, tls, record })
+                run(RunArgs {
+                    config,
+                    duration,
+                    pace,
+                    report,
+                    params,
+                    cache_dir,
+                    portal,
+                    stall_limit,
+                    control,
+                    tls,
+                    record,
+                })
             })
         }
         Command::Dev { config, poll, duration, speed, report, params, http } => {
