@@ -543,24 +543,36 @@ fn tasks_named(pid: u32, name: &str) -> Vec<PathBuf> {
         .collect()
 }
 
-/// A task's CPUs (`Cpus_allowed_list`) and scheduling policy (the 41st
-/// field of `stat`: 0 normal, 1 SCHED_FIFO).
-fn cpus_and_policy(task: &Path) -> (String, u32) {
-    let status = std::fs::read_to_string(task.join("status")).unwrap();
-    let cpus = status.lines().find_map(|l| l.strip_prefix("Cpus_allowed_list:")).unwrap().trim().to_string();
+/// Field `n` (1-based, as proc(5) numbers them) of a task's `stat`.
+fn stat_field(task: &Path, n: usize) -> i64 {
     let stat = std::fs::read_to_string(task.join("stat")).unwrap();
     // The fields after the command name (which is in parentheses) start at 3.
     let after_name = &stat[stat.rfind(')').unwrap() + 2..];
-    let policy = after_name.split_whitespace().nth(41 - 3).unwrap().parse().unwrap();
-    (cpus, policy)
+    after_name.split_whitespace().nth(n - 3).unwrap().parse().unwrap()
+}
+
+/// A task's CPUs (`Cpus_allowed_list`) and scheduling policy (field 41 of
+/// `stat`: 0 normal, 1 SCHED_FIFO).
+fn cpus_and_policy(task: &Path) -> (String, u32) {
+    let status = std::fs::read_to_string(task.join("status")).unwrap();
+    let cpus = status.lines().find_map(|l| l.strip_prefix("Cpus_allowed_list:")).unwrap().trim().to_string();
+    (cpus, stat_field(task, 41) as u32)
+}
+
+/// A task's nice value (field 19 of `stat`).
+fn nice(task: &Path) -> i64 {
+    stat_field(task, 19)
 }
 
 /// `--control-cpu` and `--control-fifo` reach the control thread, and only
 /// it; a setting the kernel refuses is said in the log and the loop runs.
+/// The compile's threads (here without a cache, so the demo's components
+/// are compiled) run at the background nice value; the loop's at 0.
 #[test]
 fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
     support::guest_dir();
-    let mut command = support::subsume();
+    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    command.current_dir(support::repo_root()).env("RUST_LOG", "info").env("NO_COLOR", "1").arg("--no-cache");
     command.args([
         "run",
         "config/demo.xml",
@@ -594,8 +606,16 @@ fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
     let (main_cpus, main_policy) = cpus_and_policy(&main);
     assert_eq!(main_policy, 0);
     assert_ne!(main_cpus, "0", "only the control thread is pinned");
-    for task in tasks_named(pid, "subsume-compile-0").iter().chain(&tasks_named(pid, "subsume-epoch")) {
-        assert_eq!(cpus_and_policy(task).1, 0);
+    for task in tasks_named(pid, "subsume-epoch") {
+        assert_eq!(cpus_and_policy(&task).1, 0);
+    }
+    assert_eq!(nice(&control[0]), 0, "the control thread keeps nice 0");
+    assert_eq!(nice(&main), 0);
+    // Thread names are cut to 15 bytes in `comm`: the pool's are short.
+    let workers = (0..10).flat_map(|i| tasks_named(pid, &format!("compile-pool-{i}"))).collect::<Vec<_>>();
+    assert!(!workers.is_empty(), "the demo was compiled, so the compile workers exist: {}", host.log());
+    for worker in &workers {
+        assert_eq!(nice(worker), 10, "{} runs at the background nice value", worker.display());
     }
 
     let mut bad = support::subsume();

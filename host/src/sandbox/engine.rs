@@ -339,7 +339,7 @@ fn background_compile_workers() {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
         let built = rayon::ThreadPoolBuilder::new()
-            .thread_name(|i| format!("subsume-compile-{i}"))
+            .thread_name(|i| format!("compile-pool-{i}"))
             .start_handler(|_| {
                 scheduling::lower_to_background();
             })
