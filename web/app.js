@@ -862,8 +862,10 @@ async function refreshReplayRecordings() {
     select.replaceChildren();
   }
 }
-function showReplayValue(value) {
-  return value === null || value === undefined ? 'nothing' : JSON.stringify(value);
+// What one recorded call emitted on a port: nothing, a value, or a list.
+function showReplayValue(values) {
+  if (!values || values.length === 0) return 'nothing';
+  return values.length === 1 ? JSON.stringify(values[0]) : JSON.stringify(values);
 }
 async function replaySet(id) {
   const result = $('replay-result');
@@ -890,10 +892,10 @@ async function replaySet(id) {
     } else {
       const first = report.divergences[0];
       result.className = 'error';
-      result.textContent = `diverges: ${what}; first: ${first.component}.${first.port} at ${first.time_s.toFixed(6)} s (output ${first.index}): recorded ${showReplayValue(first.recorded)}, new ${showReplayValue(first.replayed)}`;
+      result.textContent = `diverges: ${what}; first: ${first.component}.${first.port} at ${first.time_s.toFixed(6)} s (call ${first.call}: ${first.call_kind}): recorded ${showReplayValue(first.recorded)}, new ${showReplayValue(first.replayed)}`;
       table.querySelector('tbody').replaceChildren(...report.divergences.map((d) => el('tr', { 'data-port': `${d.component}.${d.port}` },
-        el('td', {}, d.time_s.toFixed(6)), el('td', {}, `${d.component}.${d.port}`), el('td', {}, String(d.index)),
-        el('td', { class: 'recorded' }, showReplayValue(d.recorded)), el('td', { class: 'replayed' }, showReplayValue(d.replayed)))));
+        el('td', {}, d.time_s.toFixed(6)), el('td', {}, `${d.component}.${d.port}`), el('td', {}, `${d.call}: ${d.call_kind}`),
+        el('td', { class: 'recorded' }, showReplayValue(d.recorded)), el('td', { class: 'replayed' }, showReplayValue(d.replayed)), el('td', {}, String(d.calls_differing)))));
       table.hidden = false;
     }
   } catch (err) {
