@@ -803,7 +803,7 @@ async function refreshRecordings() {
     const { recording, files } = await api('GET', '/recordings');
     $('recording-start').disabled = !!recording;
     $('recording-stop').disabled = !recording;
-    if (recording) recordingStatus(`recording to ${recording.name} since ${new Date(recording.started_unix_ms).toLocaleTimeString()} (by ${recording.by})`);
+    if (recording) recordingStatus(`recording to ${recording.name} since ${new Date(recording.started_unix_ms).toLocaleTimeString()} (by ${recording.by}${recording.fresh_start ? ', from a fresh start' : ''})`);
     else if (!$('recording-status').dataset.kept) recordingStatus('not recording');
     body.replaceChildren(...files.slice().reverse().map((f) => {
       const link = el('a', { href: `/api/v1/recordings/${encodeURIComponent(f.name)}`, download: f.name }, f.name);
@@ -831,7 +831,10 @@ async function refreshRecordings() {
 }
 $('recording-start').addEventListener('click', async () => {
   delete $('recording-status').dataset.kept;
-  try { await api('POST', '/recordings/start'); } catch (err) { recordingStatus(`not started: ${err.message}`, 'error'); $('recording-status').dataset.kept = '1'; }
+  // From a fresh start: the host re-activates the running set and records
+  // from its first call (every component starts inside the recording).
+  const body = JSON.stringify({ fresh_start: $('recording-fresh').checked });
+  try { await api('POST', '/recordings/start', body, { 'content-type': 'application/json' }); } catch (err) { recordingStatus(`not started: ${err.message}`, 'error'); $('recording-status').dataset.kept = '1'; }
   refreshRecordings();
 });
 $('recording-stop').addEventListener('click', async () => {

@@ -160,6 +160,19 @@ try {
   const magic = Buffer.from([0x89, 0x4d, 0x43, 0x41, 0x50, 0x30, 0x0d, 0x0a]);
   check(bytes.subarray(0, 8).equals(magic) && bytes.subarray(bytes.length - 8).equals(magic), 'the download is not a finished MCAP file');
   await shot('views-7-recordings');
+
+  step('record from a fresh start: the box re-activates the set and says so');
+  const auditBefore = (await getJson('/audit?limit=1000')).entries.length;
+  await page.check('#recording-fresh');
+  await page.click('#recording-start');
+  await page.waitForSelector('#recording-status:has-text("from a fresh start")');
+  const fresh = await getJson('/recordings');
+  check(fresh.recording && fresh.recording.fresh_start === true, `not a fresh-start recording: ${JSON.stringify(fresh.recording)}`);
+  const added = (await getJson('/audit?limit=1000')).entries.slice(auditBefore).map((e) => `${e.action} ${e.result}`);
+  check(added.includes('activate ok') && added.includes('start-recording ok'), `audit after a fresh start: ${added}`);
+  await page.click('#recording-stop');
+  await page.waitForSelector(`#recording-status:has-text("stopped ${fresh.recording.name}:")`);
+  await page.uncheck('#recording-fresh');
   console.log(`ok: ${edges.length} edges, ${validations} validation(s) for a burst, staged set ${id}`);
 } catch (err) {
   await shot('views-failure').catch(() => {});

@@ -3,7 +3,7 @@
 //! the carried components in and hands the old graph back; the hook also
 //! publishes the live status while someone watches.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -34,9 +34,16 @@ pub(super) struct SwapRequest {
 pub(super) struct SwapSlot {
     request: Arc<Mutex<Option<SwapRequest>>>,
     waiting: Arc<AtomicBool>,
+    /// Graphs the control thread swapped in so far.
+    swaps: Arc<AtomicU64>,
 }
 
 impl SwapSlot {
+    /// Graphs the control thread swapped in so far.
+    pub(super) fn swaps(&self) -> u64 {
+        self.swaps.load(Ordering::Acquire)
+    }
+
     /// Gives `request` to the control thread and waits for the old graph,
     /// which is dropped here (not on the loop).
     pub(super) fn hand_over(
@@ -111,6 +118,12 @@ impl ControlHook {
     pub fn config(&self) -> &Arc<RobotConfig> {
         &self.config
     }
+
+    /// Graphs this hook swapped in so far (a recording from a fresh start
+    /// attaches to the next).
+    pub fn swaps(&self) -> u64 {
+        self.slot.swaps()
+    }
 }
 
 impl CycleHook for ControlHook {
@@ -128,6 +141,7 @@ impl CycleHook for ControlHook {
                 self.config = request.config;
                 self.set_id = request.set_id;
                 self.next_live_ns = now_ns;
+                self.slot.swaps.fetch_add(1, Ordering::AcqRel);
                 // The activating thread drops the old graph.
                 let _ = request.done.try_send(request.graph);
             }

@@ -124,7 +124,7 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/locks", get(locks))
         .route("/recordings", get(list_recordings))
-        .route("/recordings/start", post(start_recording))
+        .route("/recordings/start", post(start_recording).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/recordings/stop", post(stop_recording))
         .route("/recordings/{name}", get(download_recording).delete(delete_recording))
         .route("/teleop/ticket", post(teleop_ticket))
