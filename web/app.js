@@ -114,6 +114,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
 // ---- live view -----------------------------------------------------------
 async function startLive() {
   try { world = await api('GET', '/world'); } catch (err) { world = null; $('map-note').textContent = err.message; }
+  await loadPlotHistory();
   if (events) events.close();
   events = new EventSource('/api/v1/events');
   events.addEventListener('status', (e) => renderStatus(JSON.parse(e.data)));
@@ -562,9 +563,10 @@ $('sim-pose').addEventListener('click', async () => {
 // ---- the portal's own views (docs/portal.md): the Drive tab's map, -------
 // ---- history plots, the robot-file editor ---------------------------------
 
-// The history plots keep what this page saw of the live status (5 a
-// second) for PLOT_WINDOW_S: a page left open for days holds at most this
-// many samples (MAX_PLOT_SAMPLES) and draws in bounded time.
+// The history plots start with what the host kept (loadPlotHistory), then
+// add what this page sees of the live status (5 a second), for
+// PLOT_WINDOW_S: a page left open for days holds at most this many samples
+// (MAX_PLOT_SAMPLES) and draws in bounded time.
 const PLOT_WINDOW_S = 300;
 const MAX_PLOT_SAMPLES = 2000;
 const plotHistory = [];
@@ -603,6 +605,30 @@ function viewsOnStatus(s) {
   }
 }
 $('plot-window').textContent = String(PLOT_WINDOW_S / 60);
+
+// The history the host kept (GET /history: a sample a second, its last
+// minutes), so a page opened now plots them at once; the live events then
+// go on from there. Host times are graph seconds: placed on this page's
+// clock by the host's "now".
+async function loadPlotHistory() {
+  let history;
+  try { history = await api('GET', '/history'); } catch (err) { return; }
+  const now = Date.now() / 1000;
+  plotHistory.length = 0;
+  plotLast.clear();
+  for (const h of history.samples) {
+    plotHistory.push({ t: now - (history.now_s - h.t_s), rtt: h.rtt_ms, rates: h.rates, holder: h.holder });
+  }
+  while (plotHistory.length > MAX_PLOT_SAMPLES || (plotHistory.length && plotHistory[0].t < now - PLOT_WINDOW_S)) plotHistory.shift();
+  // What came from the host (the browser tests read it).
+  for (const id of ['plot-rtt', 'plot-rates', 'plot-holder']) {
+    $(id).dataset.history = String(plotHistory.length);
+    $(id).dataset.historySpan = plotHistory.length ? String(now - plotHistory[0].t) : '0';
+  }
+  drawLines($('plot-rtt'), 'rtt', now);
+  drawLines($('plot-rates'), 'rates', now);
+  drawHolder($('plot-holder'), now);
+}
 
 // Time axis: what the page saw, at least the last minute and at most
 // PLOT_WINDOW_S seconds, now at the right edge.

@@ -168,6 +168,7 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/sets/1/replay", br#"{"recording":"rec-1.mcap"}"#, Allowed::Developer),
         ("POST", "/api/v1/rollback", b"", Allowed::Developer),
         ("GET", "/api/v1/status", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/history", b"", Allowed::AnyUser),
         ("GET", "/api/v1/world", b"", Allowed::AnyUser),
         ("GET", "/api/v1/logs", b"", Allowed::AnyUser),
         ("GET", "/api/v1/audit", b"", Allowed::Developer),

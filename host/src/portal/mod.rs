@@ -115,6 +115,7 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/sets/{id}/replay", post(replay_set).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/rollback", post(rollback))
         .route("/status", get(status))
+        .route("/history", get(history))
         .route("/events", get(events))
         .route("/world", get(world))
         .route("/sim/{action}", post(sim_control))

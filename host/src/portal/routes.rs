@@ -254,6 +254,20 @@ pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Aut
     Json(serde_json::to_value(&*current).unwrap_or_default())
 }
 
+/// The plots' history kept on the host (`GET /history`): a sample a
+/// second over the last minutes, for whoever may see the status; the page
+/// draws it when it opens, then goes on with the live events.
+pub(super) async fn history(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+    let deployer = state.deployer.clone();
+    let (samples, now_s) = deployer.plot_history();
+    Json(json!({
+        "period_s": crate::deploy::HISTORY_PERIOD_NS as f64 / 1e9,
+        "max_samples": crate::deploy::HISTORY_SAMPLES,
+        "now_s": now_s,
+        "samples": samples,
+    }))
+}
+
 /// Prometheus metrics (OpenMetrics text) of the running set: for peers on
 /// a loopback address (a Prometheus or agent on the robot) and for
 /// logged-in users (a session cookie or `Authorization: Bearer`).
