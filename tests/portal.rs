@@ -373,11 +373,83 @@ fn the_portals_own_views_work_in_a_real_browser() {
     let stdout =
         support::browser("views.mjs", &artifacts, &[], &[&format!("http://{}/", host.address), &"admin", &PASSWORD]);
     assert!(stdout.contains("ok: "), "{stdout}");
-    for (n, shot) in
-        ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings"].iter().enumerate()
+    for (n, shot) in ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings", "history"]
+        .iter()
+        .enumerate()
     {
         assert!(artifacts.join(format!("views-{}-{shot}.png", n + 1)).is_file(), "{shot}");
     }
+}
+
+/// The host keeps the plots' history (`GET /api/v1/history`, for whoever
+/// may see the status): a sample a second, bounded, times increasing, the
+/// values those of the live status.
+#[test]
+fn the_host_keeps_a_sample_a_second_of_the_plots_history() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    add_user(&store, "viewer", "viewer", &[]);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let viewer = login_as(&host.address, "viewer");
+    let status = || {
+        let (status, json) = http(&host.address, "GET", "/api/v1/status", Some(&viewer), b"");
+        assert_eq!(status, 200, "{json}");
+        json
+    };
+    let started = Instant::now();
+    while status()["duration_s"].as_f64().unwrap() < 8.0 {
+        assert!(started.elapsed() < Duration::from_secs(60), "the robot does not run");
+        std::thread::sleep(Duration::from_millis(250));
+    }
+    let before = status();
+    let (code, history) = http(&host.address, "GET", "/api/v1/history", Some(&viewer), b"");
+    let after = status();
+    assert_eq!(code, 200, "{history}");
+    assert_eq!((history["period_s"].as_f64(), history["max_samples"].as_u64()), (Some(1.0), Some(300)));
+    let samples = history["samples"].as_array().unwrap();
+    let ran = after["duration_s"].as_f64().unwrap();
+    // One a second from the start (the first at the first cycle).
+    assert!(samples.len() <= 300 && (samples.len() as f64 - ran).abs() <= 2.0, "{} samples in {ran} s", samples.len());
+    let times: Vec<f64> = samples.iter().map(|s| s["t_s"].as_f64().unwrap()).collect();
+    for pair in times.windows(2) {
+        assert!(pair[1] > pair[0] && pair[1] - pair[0] < 1.5, "{times:?}");
+    }
+    let now_s = history["now_s"].as_f64().unwrap();
+    assert!(now_s >= times[times.len() - 1] && now_s - times[times.len() - 1] < 1.5, "now {now_s}, {times:?}");
+    // The values are the live status's: the set, no operator, each
+    // component's rate (the serial link's near what its counters say),
+    // the holder.
+    let set = after["set"].as_u64().unwrap();
+    let motors_out = |s: &Value| {
+        s["components"].as_array().unwrap().iter().find(|c| c["name"] == "motors").unwrap()["messages_out"]
+            .as_f64()
+            .unwrap()
+    };
+    let rate = (motors_out(&after) - motors_out(&before))
+        / (after["duration_s"].as_f64().unwrap() - before["duration_s"].as_f64().unwrap());
+    let names: Vec<&str> =
+        after["components"].as_array().unwrap().iter().map(|c| c["name"].as_str().unwrap()).collect();
+    for (n, sample) in samples.iter().enumerate() {
+        assert_eq!(sample["set"].as_u64(), Some(set), "{sample}");
+        assert_eq!(sample["rtt_ms"], serde_json::json!({}), "{sample}");
+        let holder = sample["holder"].as_str().unwrap();
+        assert!(holder == "STOP" || names.contains(&holder), "{sample}");
+        if n > 0 {
+            let rates = sample["rates"].as_object().unwrap();
+            assert_eq!(rates.keys().map(String::as_str).collect::<Vec<_>>().len(), names.len(), "{sample}");
+            assert!(names.iter().all(|name| rates.contains_key(*name)), "{sample}");
+        }
+    }
+    let last = &samples[samples.len() - 1];
+    let sampled = last["rates"]["motors"].as_f64().unwrap();
+    assert!((sampled - rate).abs() < 0.25 * rate, "motors: {sampled:.1}/s in the history, {rate:.1}/s from the status");
+    let holder_of = |s: &Value| s["arbiter"]["holder"].as_str().filter(|h| !h.is_empty()).unwrap_or("STOP").to_string();
+    if holder_of(&before) == holder_of(&after) {
+        assert_eq!(last["holder"].as_str(), Some(holder_of(&after).as_str()), "{last}");
+    }
+    let (code, _) = http(&host.address, "GET", "/api/v1/history", None, b"");
+    assert_eq!(code, 401);
 }
 
 /// The owner's robot for the envelope tests: a wall 4 m ahead, the

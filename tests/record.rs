@@ -330,12 +330,14 @@ fn identical_components_replay_bit_for_bit_and_a_changed_one_is_caught_where_it_
     let first = &report["divergences"][0];
     assert_eq!(first["component"], "planner");
     assert_eq!(first["port"], "cmd");
-    assert_eq!(first["index"], 0);
+    // The planner's first tick with a pose: the call that emitted the
+    // first command.
+    assert_eq!(first["call_kind"], "tick", "{first}");
     let recorded = read_mcap(&file, false);
     let first_cmd = &recorded["first"]["/planner/cmd"];
-    assert_eq!(first["recorded"], first_cmd["value"], "the recorded value is the recording's");
+    assert_eq!(first["recorded"], serde_json::json!([first_cmd["value"]]), "the recorded value is the recording's");
     assert_eq!(first["time_s"].as_f64().unwrap(), first_cmd["t"].as_u64().unwrap() as f64 / 1e9);
-    let replayed = first["replayed"]["command"].as_str().unwrap();
+    let replayed = first["replayed"][0]["command"].as_str().unwrap();
     assert!(replayed.starts_with("VEL 0.300 "), "{first}");
     assert_ne!(first["recorded"], first["replayed"]);
     // The text form names time, port and both values.
@@ -343,7 +345,7 @@ fn identical_components_replay_bit_for_bit_and_a_changed_one_is_caught_where_it_
         run(&["replay", recording, "config/demo.xml", "--only", "planner", "--param", "planner.max-speed=0.3"]);
     let stdout = text(&output.stdout);
     assert!(stdout.contains("planner.cmd diverges at "), "{stdout}");
-    assert!(stdout.contains("(output 0): recorded {\"command\":\"VEL 0.450 "), "{stdout}");
+    assert!(stdout.contains(": tick): recorded {\"command\":\"VEL 0.450 "), "{stdout}");
 }
 
 #[test]

@@ -184,13 +184,13 @@ fn a_staged_set_is_replayed_against_a_portal_recording_before_activation() {
     assert_eq!(divergences.len(), 1, "only the command diverges: {json}");
     let first = &divergences[0];
     assert_eq!((first["component"].as_str(), first["port"].as_str()), (Some("planner"), Some("cmd")), "{first}");
-    assert_eq!(first["index"], 0, "{first}");
+    assert_eq!(first["call_kind"], "tick", "{first}");
     let recorded = read_mcap(&file);
     let first_cmd = &recorded["first"]["/planner/cmd"];
-    assert_eq!(first["recorded"], first_cmd["value"], "the recorded value is the file's");
+    assert_eq!(first["recorded"], json!([first_cmd["value"]]), "the recorded value is the file's");
     assert_eq!(first["time_s"].as_f64().unwrap(), first_cmd["t"].as_u64().unwrap() as f64 / 1e9);
-    let old = first["recorded"]["command"].as_str().unwrap();
-    let new = first["replayed"]["command"].as_str().unwrap();
+    let old = first["recorded"][0]["command"].as_str().unwrap();
+    let new = first["replayed"][0]["command"].as_str().unwrap();
     let decimals = |c: &str| c.split(' ').nth(1).and_then(|v| v.split('.').nth(1)).map(str::len);
     assert_eq!((decimals(old), decimals(new)), (Some(3), Some(2)), "recorded {old}, new {new}");
     // Every component of the changed set: the filter and the avoider are
@@ -628,4 +628,140 @@ fn a_replay_past_its_bounds_is_stopped_with_a_clear_error() {
     let error = replay_robot(&config, &mut loader, &file, &only, instant).unwrap_err();
     assert!(matches!(error, ReplayError::TooLong { done: 0, .. }), "{error}");
     assert!(error.to_string().contains("the replay took longer than 0 s and was stopped after 0 of "), "{error}");
+}
+
+/// How a recording of the running demo is started, and what replaying its
+/// stateful components (the filter's moving average, the planner's last
+/// pose) must then show.
+struct FreshCase {
+    fresh_start: bool,
+    /// Identical from the first call; else: the filter diverges at its
+    /// first recorded call, and nothing is shifted.
+    identical: bool,
+}
+
+#[test]
+fn a_fresh_start_recording_replays_identically_and_a_mid_run_one_differs_at_its_first_call() {
+    let portal = Portal::start();
+    let folder = portal.store.join("recordings");
+    let active = portal.status()["set"].as_u64().unwrap();
+    // The filter and the planner get state: the robot drives a few seconds.
+    let started = Instant::now();
+    while portal.status()["duration_s"].as_f64().unwrap() < 4.0 {
+        assert!(started.elapsed() < Duration::from_secs(60), "the robot does not run");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let cases = [FreshCase { fresh_start: true, identical: true }, FreshCase { fresh_start: false, identical: false }];
+    for case in &cases {
+        let what = if case.fresh_start { "fresh start" } else { "mid-run" };
+        let body = json!({ "fresh_start": case.fresh_start }).to_string();
+        let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/recordings/start", body.as_bytes());
+        assert_eq!(status, 201, "{what}: {json}");
+        assert_eq!(json["recording"]["fresh_start"], case.fresh_start, "{json}");
+        let name = json["recording"]["name"].as_str().unwrap().to_string();
+        if case.fresh_start {
+            // While it runs, another fresh start is refused like a start,
+            // before anything is rebuilt, and audited as refused.
+            let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/recordings/start", body.as_bytes());
+            assert_eq!(status, 409, "{json}");
+            assert!(json["error"].as_str().unwrap().contains(&format!("a recording is running already: {name}")));
+        }
+        std::thread::sleep(Duration::from_secs(3));
+        let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/recordings/stop", b"");
+        assert_eq!(status, 200, "{what}: {json}");
+        assert_eq!(json["stopped"]["dropped"], 0, "{json}");
+        // The mcap package reads it as a complete file.
+        let read = read_mcap(&folder.join(&name));
+        assert_eq!(read["complete"], true, "{what}");
+        assert_eq!(read["in_order_per_channel"], true, "{what}");
+        for topic in ["/subsume/calls/filter", "/subsume/calls/planner", "/planner/cmd", "/filter/filtered"] {
+            assert!(read["channels"][topic]["count"].as_u64().unwrap_or(0) > 5, "{what}: {topic}: {read}");
+        }
+
+        // The recorded set replayed against it, its stateful components.
+        let (status, json) =
+            portal.replay(&portal.admin, active, &json!({ "recording": name, "only": ["filter", "planner"] }));
+        assert_eq!(status, 200, "{what}: {json}");
+        let report = &json["report"];
+        eprintln!(
+            "{what}: {} calls, {} outputs compared, divergences: {}",
+            report["calls"], report["compared"], report["divergences"]
+        );
+        assert!(report["compared"].as_u64().unwrap() > 100, "{what}: {json}");
+        assert_eq!(json["identical"], case.identical, "{what}: {json}");
+        if case.identical {
+            assert_eq!(report["divergences"], json!([]), "{what}");
+            continue;
+        }
+        // Mid-run: the filter's first smoothed scan differs (its running
+        // average is not in the recording) at its first recorded call;
+        // the planner, if its first recorded tick came before any recorded
+        // pose, lacks that one command and nothing after it is shifted.
+        let divergences = report["divergences"].as_array().unwrap();
+        let filter = divergences.iter().find(|d| d["component"] == "filter" && d["port"] == "filtered");
+        let filter = filter.unwrap_or_else(|| panic!("no filter divergence: {json}"));
+        assert_eq!(
+            (filter["call"].as_u64(), filter["call_kind"].as_str()),
+            (Some(0), Some("input ranges")),
+            "{filter}"
+        );
+        assert_eq!(filter["recorded"].as_array().unwrap().len(), 1, "{filter}");
+        assert_eq!(filter["replayed"].as_array().unwrap().len(), 1, "{filter}");
+        for d in divergences.iter().filter(|d| d["component"] == "planner") {
+            assert_eq!(d["call_kind"], "tick", "{d}");
+            assert_eq!(d["recorded"].as_array().unwrap().len(), 1, "{d}");
+            assert_eq!(d["replayed"], json!([]), "a fresh planner has no pose yet: {d}");
+            assert_eq!(d["calls_differing"], 1, "one call differs, the rest are not shifted: {d}");
+        }
+    }
+    // The fresh start was an activation of the same set: audited as one and
+    // as a recording start; the set is still the active one.
+    let (_, audit) = portal.call(&portal.admin, "GET", "/api/v1/audit?limit=1000", b"");
+    let entries = audit["entries"].as_array().unwrap();
+    let has = |action: &str, result: &str, detail: &str| {
+        entries
+            .iter()
+            .any(|e| e["action"] == action && e["result"] == result && e["detail"].as_str().unwrap().contains(detail))
+    };
+    assert!(has("activate", "ok", &format!("re-activated set {active} for recording ")), "{audit}");
+    assert!(has("start-recording", "ok", &format!("from a fresh start (set {active} re-activated)")), "{audit}");
+    assert!(has("start-recording", "refused", "a recording is running already"), "{audit}");
+    assert_eq!(portal.status()["set"].as_u64(), Some(active));
+
+    // Refusals: a viewer or operator may not; a body that is not the
+    // object is a 400; nothing was started or re-activated.
+    for user in ["viewer", "operator"] {
+        let token = login(&portal.address, user);
+        let (status, json) = portal.call(&token, "POST", "/api/v1/recordings/start", br#"{"fresh_start": true}"#);
+        assert_eq!(status, 403, "{json}");
+    }
+    for body in [&br#"{"fresh_start": "yes"}"#[..], br#"{"fresh": true}"#, b"[1]"] {
+        let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/recordings/start", body);
+        assert_eq!(status, 400, "{json}");
+        assert!(json["error"].as_str().unwrap().contains("fresh_start"), "{json}");
+    }
+    let (_, listed) = portal.call(&portal.admin, "GET", "/api/v1/recordings", b"");
+    assert!(listed["recording"].is_null(), "{listed}");
+
+    // The motors' rules hold across the swap as for an activation: an
+    // engaged emergency stop stays engaged (the board is the host's) and
+    // the robot does not move through the re-activation.
+    let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/estop", b"");
+    assert_eq!(status, 200, "{json}");
+    std::thread::sleep(Duration::from_secs(1));
+    let pose = |s: &Json| (s["sim"]["x"].as_f64().unwrap(), s["sim"]["y"].as_f64().unwrap());
+    let before = pose(&portal.status());
+    let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/recordings/start", br#"{"fresh_start": true}"#);
+    assert_eq!(status, 201, "{json}");
+    std::thread::sleep(Duration::from_secs(1));
+    let (_, locks) = portal.call(&portal.admin, "GET", "/api/v1/locks", b"");
+    assert_eq!(locks["engaged"].as_array().unwrap().len(), 1, "{locks}");
+    let after = pose(&portal.status());
+    assert!((after.0 - before.0).abs() < 1e-3 && (after.1 - before.1).abs() < 1e-3, "moved: {before:?} -> {after:?}");
+    let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/recordings/stop", b"");
+    assert_eq!(status, 200, "{json}");
+    let (status, json) = portal.call(&portal.admin, "POST", "/api/v1/release", b"");
+    assert_eq!(status, 200, "{json}");
+    let log = portal.host.log();
+    assert!(!log.contains("panicked"), "{log}");
 }

@@ -114,6 +114,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
 // ---- live view -----------------------------------------------------------
 async function startLive() {
   try { world = await api('GET', '/world'); } catch (err) { world = null; $('map-note').textContent = err.message; }
+  await loadPlotHistory();
   if (events) events.close();
   events = new EventSource('/api/v1/events');
   events.addEventListener('status', (e) => renderStatus(JSON.parse(e.data)));
@@ -562,9 +563,10 @@ $('sim-pose').addEventListener('click', async () => {
 // ---- the portal's own views (docs/portal.md): the Drive tab's map, -------
 // ---- history plots, the robot-file editor ---------------------------------
 
-// The history plots keep what this page saw of the live status (5 a
-// second) for PLOT_WINDOW_S: a page left open for days holds at most this
-// many samples (MAX_PLOT_SAMPLES) and draws in bounded time.
+// The history plots start with what the host kept (loadPlotHistory), then
+// add what this page sees of the live status (5 a second), for
+// PLOT_WINDOW_S: a page left open for days holds at most this many samples
+// (MAX_PLOT_SAMPLES) and draws in bounded time.
 const PLOT_WINDOW_S = 300;
 const MAX_PLOT_SAMPLES = 2000;
 const plotHistory = [];
@@ -603,6 +605,30 @@ function viewsOnStatus(s) {
   }
 }
 $('plot-window').textContent = String(PLOT_WINDOW_S / 60);
+
+// The history the host kept (GET /history: a sample a second, its last
+// minutes), so a page opened now plots them at once; the live events then
+// go on from there. Host times are graph seconds: placed on this page's
+// clock by the host's "now".
+async function loadPlotHistory() {
+  let history;
+  try { history = await api('GET', '/history'); } catch (err) { return; }
+  const now = Date.now() / 1000;
+  plotHistory.length = 0;
+  plotLast.clear();
+  for (const h of history.samples) {
+    plotHistory.push({ t: now - (history.now_s - h.t_s), rtt: h.rtt_ms, rates: h.rates, holder: h.holder });
+  }
+  while (plotHistory.length > MAX_PLOT_SAMPLES || (plotHistory.length && plotHistory[0].t < now - PLOT_WINDOW_S)) plotHistory.shift();
+  // What came from the host (the browser tests read it).
+  for (const id of ['plot-rtt', 'plot-rates', 'plot-holder']) {
+    $(id).dataset.history = String(plotHistory.length);
+    $(id).dataset.historySpan = plotHistory.length ? String(now - plotHistory[0].t) : '0';
+  }
+  drawLines($('plot-rtt'), 'rtt', now);
+  drawLines($('plot-rates'), 'rates', now);
+  drawHolder($('plot-holder'), now);
+}
 
 // Time axis: what the page saw, at least the last minute and at most
 // PLOT_WINDOW_S seconds, now at the right edge.
@@ -803,7 +829,7 @@ async function refreshRecordings() {
     const { recording, files } = await api('GET', '/recordings');
     $('recording-start').disabled = !!recording;
     $('recording-stop').disabled = !recording;
-    if (recording) recordingStatus(`recording to ${recording.name} since ${new Date(recording.started_unix_ms).toLocaleTimeString()} (by ${recording.by})`);
+    if (recording) recordingStatus(`recording to ${recording.name} since ${new Date(recording.started_unix_ms).toLocaleTimeString()} (by ${recording.by}${recording.fresh_start ? ', from a fresh start' : ''})`);
     else if (!$('recording-status').dataset.kept) recordingStatus('not recording');
     body.replaceChildren(...files.slice().reverse().map((f) => {
       const link = el('a', { href: `/api/v1/recordings/${encodeURIComponent(f.name)}`, download: f.name }, f.name);
@@ -831,7 +857,10 @@ async function refreshRecordings() {
 }
 $('recording-start').addEventListener('click', async () => {
   delete $('recording-status').dataset.kept;
-  try { await api('POST', '/recordings/start'); } catch (err) { recordingStatus(`not started: ${err.message}`, 'error'); $('recording-status').dataset.kept = '1'; }
+  // From a fresh start: the host re-activates the running set and records
+  // from its first call (every component starts inside the recording).
+  const body = JSON.stringify({ fresh_start: $('recording-fresh').checked });
+  try { await api('POST', '/recordings/start', body, { 'content-type': 'application/json' }); } catch (err) { recordingStatus(`not started: ${err.message}`, 'error'); $('recording-status').dataset.kept = '1'; }
   refreshRecordings();
 });
 $('recording-stop').addEventListener('click', async () => {
@@ -862,8 +891,10 @@ async function refreshReplayRecordings() {
     select.replaceChildren();
   }
 }
-function showReplayValue(value) {
-  return value === null || value === undefined ? 'nothing' : JSON.stringify(value);
+// What one recorded call emitted on a port: nothing, a value, or a list.
+function showReplayValue(values) {
+  if (!values || values.length === 0) return 'nothing';
+  return values.length === 1 ? JSON.stringify(values[0]) : JSON.stringify(values);
 }
 async function replaySet(id) {
   const result = $('replay-result');
@@ -890,10 +921,10 @@ async function replaySet(id) {
     } else {
       const first = report.divergences[0];
       result.className = 'error';
-      result.textContent = `diverges: ${what}; first: ${first.component}.${first.port} at ${first.time_s.toFixed(6)} s (output ${first.index}): recorded ${showReplayValue(first.recorded)}, new ${showReplayValue(first.replayed)}`;
+      result.textContent = `diverges: ${what}; first: ${first.component}.${first.port} at ${first.time_s.toFixed(6)} s (call ${first.call}: ${first.call_kind}): recorded ${showReplayValue(first.recorded)}, new ${showReplayValue(first.replayed)}`;
       table.querySelector('tbody').replaceChildren(...report.divergences.map((d) => el('tr', { 'data-port': `${d.component}.${d.port}` },
-        el('td', {}, d.time_s.toFixed(6)), el('td', {}, `${d.component}.${d.port}`), el('td', {}, String(d.index)),
-        el('td', { class: 'recorded' }, showReplayValue(d.recorded)), el('td', { class: 'replayed' }, showReplayValue(d.replayed)))));
+        el('td', {}, d.time_s.toFixed(6)), el('td', {}, `${d.component}.${d.port}`), el('td', {}, `${d.call}: ${d.call_kind}`),
+        el('td', { class: 'recorded' }, showReplayValue(d.recorded)), el('td', { class: 'replayed' }, showReplayValue(d.replayed)), el('td', {}, String(d.calls_differing)))));
       table.hidden = false;
     }
   } catch (err) {

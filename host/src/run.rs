@@ -453,7 +453,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     });
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let Some(record) = &options.record else {
-        let hook = recordings.hook(hook, |hook| Layout::of(hook.config()));
+        let hook = recordings.hook(hook, |hook| Layout::of(hook.config()), deploy::ControlHook::swaps);
         let (graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
         runtime.shutdown_timeout(Duration::from_secs(1));
         // A recording started from the portal ends cleanly with the run.

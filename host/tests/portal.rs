@@ -168,6 +168,7 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/sets/1/replay", br#"{"recording":"rec-1.mcap"}"#, Allowed::Developer),
         ("POST", "/api/v1/rollback", b"", Allowed::Developer),
         ("GET", "/api/v1/status", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/history", b"", Allowed::AnyUser),
         ("GET", "/api/v1/world", b"", Allowed::AnyUser),
         ("GET", "/api/v1/logs", b"", Allowed::AnyUser),
         ("GET", "/api/v1/audit", b"", Allowed::Developer),
@@ -399,6 +400,38 @@ async fn the_openapi_document_lists_exactly_the_routes() {
         assert_eq!(response.status(), StatusCode::OK, "{path}");
     }
     assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/portal/openapi.json").is_file());
+}
+
+/// A recording from a fresh start re-activates the active set and waits
+/// for the control loop to swap it in; when that never happens (here no
+/// loop runs), it is undone: 500 naming why, no recording runs, no file is
+/// left, the running set is the same, and the audit log has the failed
+/// activation and recording start.
+#[tokio::test]
+async fn a_fresh_start_whose_swap_does_not_happen_leaves_no_recording() {
+    let portal = portal().await;
+    let (status, json) = portal.call("admin", "POST", "/api/v1/recordings/start", r#"{"fresh_start": true}"#).await;
+    assert_eq!(status, StatusCode::INTERNAL_SERVER_ERROR, "{json}");
+    assert!(json["error"].as_str().unwrap().contains("did not reach a cycle boundary"), "{json}");
+    let (_, json) = portal.call("admin", "GET", "/api/v1/recordings", "").await;
+    assert!(json["recording"].is_null(), "{json}");
+    assert_eq!(json["files"], serde_json::json!([]), "{json}");
+    let (_, json) = portal.call("admin", "GET", "/api/v1/sets", "").await;
+    assert_eq!(json["active"], 1, "{json}");
+    let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
+    let results: Vec<(String, String)> = audit["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["action"] == "activate" || e["action"] == "start-recording")
+        .map(|e| (e["action"].as_str().unwrap().to_string(), e["result"].as_str().unwrap().to_string()))
+        .collect();
+    let failed = |action: &str| (action.to_string(), "failed".to_string());
+    assert_eq!(results, [failed("activate"), failed("start-recording")], "{audit}");
+    // Nothing was left half done: a plain start works.
+    let (status, json) = portal.call("admin", "POST", "/api/v1/recordings/start", "").await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+    assert_eq!(json["recording"]["fresh_start"], false, "{json}");
 }
 
 #[tokio::test]

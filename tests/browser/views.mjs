@@ -2,7 +2,8 @@
 // (RTT, message rates, holder), the Drive tab's live map, the wiring as a
 // left-to-right data flow with arrows, and the robot-file editor that
 // validates as you type and stages what validated, and recording from the
-// portal (start, stop, download). Each check reads real
+// portal (start, stop, download), and a page opened after the robot ran a
+// while plotting the history the host kept at once. Each check reads real
 // content (values against /api/v1, pixels of the canvases); screenshots
 // go to $ARTIFACTS.
 // Usage: node views.mjs URL USER PASSWORD
@@ -160,6 +161,36 @@ try {
   const magic = Buffer.from([0x89, 0x4d, 0x43, 0x41, 0x50, 0x30, 0x0d, 0x0a]);
   check(bytes.subarray(0, 8).equals(magic) && bytes.subarray(bytes.length - 8).equals(magic), 'the download is not a finished MCAP file');
   await shot('views-7-recordings');
+
+  step('record from a fresh start: the box re-activates the set and says so');
+  const auditBefore = (await getJson('/audit?limit=1000')).entries.length;
+  await page.check('#recording-fresh');
+  await page.click('#recording-start');
+  await page.waitForSelector('#recording-status:has-text("from a fresh start")');
+  const fresh = await getJson('/recordings');
+  check(fresh.recording && fresh.recording.fresh_start === true, `not a fresh-start recording: ${JSON.stringify(fresh.recording)}`);
+  const added = (await getJson('/audit?limit=1000')).entries.slice(auditBefore).map((e) => `${e.action} ${e.result}`);
+  check(added.includes('activate ok') && added.includes('start-recording ok'), `audit after a fresh start: ${added}`);
+  await page.click('#recording-stop');
+  await page.waitForSelector(`#recording-status:has-text("stopped ${fresh.recording.name}:")`);
+  await page.uncheck('#recording-fresh');
+  step('a page opened now plots the history the host kept, at once');
+  const opened = Date.now();
+  await page.reload();
+  await page.waitForSelector('#tabs:not([hidden])');
+  await page.waitForFunction(() => document.querySelector('#plot-rates').dataset.history !== undefined);
+  const waited = (Date.now() - opened) / 1000;
+  const kept = Number(await page.getAttribute('#plot-rates', 'data-history'));
+  const span = Number(await page.getAttribute('#plot-rates', 'data-history-span'));
+  const hostHistory = await getJson('/history');
+  check(kept >= 20 && Math.abs(kept - hostHistory.samples.length) <= 2, `the page drew ${kept} samples of the host's ${hostHistory.samples.length}`);
+  // It reaches back before the page was opened: the host's, not the page's.
+  check(span > waited + 15, `the plots reach back ${span.toFixed(1)} s, ${waited.toFixed(1)} s after the page opened`);
+  const kept_rates = JSON.parse(await page.getAttribute('#plot-rates', 'data-series'));
+  check(kept_rates.motors > 20, `the motors' rate is not in the history: ${JSON.stringify(kept_rates)}`);
+  check(await inked('plot-rates', 41, 9, 270, 150) > 80, 'the rates plot drew no history');
+  check(await inked('plot-holder', 41, 9, 260, 150) > 200, 'the holder plot drew no history');
+  await shot('views-8-history');
   console.log(`ok: ${edges.length} edges, ${validations} validation(s) for a burst, staged set ${id}`);
 } catch (err) {
   await shot('views-failure').catch(() => {});

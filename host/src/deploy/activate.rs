@@ -15,8 +15,8 @@ use crate::store::{SetRecord, StoreError};
 
 /// A set whose graph is built and waits for the swap.
 pub(super) struct Ready {
-    set: SetRecord,
-    config: Arc<RobotConfig>,
+    pub(super) set: SetRecord,
+    pub(super) config: Arc<RobotConfig>,
     built: Built,
     carry: Vec<(usize, usize)>,
     /// How an admin's switch changes the envelope, for the audit line.
@@ -34,9 +34,15 @@ impl Deployer {
         self.switch(user, None, true)
     }
 
+    /// The active deployment, held through a whole activation (before the
+    /// store's lock, never after it).
+    pub(super) fn lock_active(&self) -> Result<std::sync::MutexGuard<'_, Deployment>, DeployError> {
+        self.active.lock().map_err(|_| DeployError::Host("the active set is unusable".into()))
+    }
+
     /// Activates `id`, or the previous set when rolling back.
     fn switch(&self, user: &User, id: Option<u64>, rollback: bool) -> Result<SetRecord, DeployError> {
-        let mut active = self.active.lock().map_err(|_| DeployError::Host("the active set is unusable".into()))?;
+        let mut active = self.lock_active()?;
         let id = match id {
             Some(id) => Ok(id),
             None => self.store.state().map_err(DeployError::from).and_then(|state| {
@@ -67,35 +73,19 @@ impl Deployer {
                 if rollback && writer.state()?.history.last() != Some(&id) {
                     return Err(DeployError::Conflict(format!("set {id} is no longer the previous active set")));
                 }
-                let (done, old_graph) = std::sync::mpsc::sync_channel(1);
-                let request = SwapRequest {
-                    graph: ready.built.graph,
-                    carry: ready.carry,
-                    config: ready.config.clone(),
-                    set_id: id,
-                    done,
-                };
-                self.slot.hand_over(request, &old_graph, &self.waker)?;
-                if let Some(robot) = self.services.get::<RunningRobot>() {
-                    robot.rename(&ready.config.name);
-                }
+                let (set, envelope) = (ready.set.clone(), ready.envelope.clone());
+                self.swap_in(ready, &mut active)?;
                 let recorded = if rollback { writer.mark_rolled_back(id) } else { writer.mark_active(id) };
                 if let Err(e) = recorded {
                     tracing::error!("set {id} runs, but the store could not record it: {e}");
                 }
                 tracing::info!(
                     "set {id} ({}) is active; {} by {}",
-                    ready.set.config_name,
+                    set.config_name,
                     if rollback { "rolled back" } else { "activated" },
                     user.name
                 );
-                *active = Deployment {
-                    set: ready.set.clone(),
-                    config: ready.config,
-                    priorities: ready.built.priorities,
-                    sim_ptys: ready.built.sim_ptys,
-                };
-                Ok((ready.set, ready.envelope))
+                Ok((set, envelope))
             },
             |(set, envelope)| {
                 let done = format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id);
@@ -108,6 +98,32 @@ impl Deployer {
         .map(|(set, _)| set)
     }
 
+    /// Hands the built graph to the control thread, which swaps it in at
+    /// a cycle boundary (carrying the unchanged built-ins over), and makes
+    /// it the active deployment. Activations, rollbacks and fresh-start
+    /// recordings all swap through here.
+    pub(super) fn swap_in(&self, ready: Ready, active: &mut Deployment) -> Result<(), DeployError> {
+        let (done, old_graph) = std::sync::mpsc::sync_channel(1);
+        let request = SwapRequest {
+            graph: ready.built.graph,
+            carry: ready.carry,
+            config: ready.config.clone(),
+            set_id: ready.set.id,
+            done,
+        };
+        self.slot.hand_over(request, &old_graph, &self.waker)?;
+        if let Some(robot) = self.services.get::<RunningRobot>() {
+            robot.rename(&ready.config.name);
+        }
+        *active = Deployment {
+            set: ready.set,
+            config: ready.config,
+            priorities: ready.built.priorities,
+            sim_ptys: ready.built.sim_ptys,
+        };
+        Ok(())
+    }
+
     fn prepare_switch(&self, user: &User, id: u64, active: &Deployment) -> Result<Ready, DeployError> {
         if active.set.id == id {
             return Err(DeployError::Conflict(format!("set {id} is active already")));
@@ -116,6 +132,16 @@ impl Deployer {
             StoreError::NoSet(id) => DeployError::Store(StoreError::NoSet(id)),
             other => other.into(),
         })?;
+        self.build_beside(user, set, active)
+    }
+
+    /// Validates stored set `set` again and builds its graph beside the
+    /// running one (`active`), with every WASM component a fresh instance
+    /// and the unchanged device and socket built-ins to be carried over:
+    /// what an activation swaps in. Refused when it changes a platform the
+    /// user may not change, or the envelope for anyone but an admin.
+    pub(super) fn build_beside(&self, user: &User, set: SetRecord, active: &Deployment) -> Result<Ready, DeployError> {
+        let id = set.id;
         let mut loader = Loader::new(&self.sandbox);
         let config = stage::validate_set(&self.store, &set, &mut loader, &self.overrides)?;
         let changes = stage::platform_changes(&active.config, &config);

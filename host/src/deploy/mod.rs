@@ -27,6 +27,7 @@
 mod activate;
 pub mod dev;
 mod estop;
+mod history;
 mod recordings;
 mod replay;
 mod stage;
@@ -41,6 +42,7 @@ use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
+pub use self::history::{HISTORY_PERIOD_NS, HISTORY_SAMPLES, HistorySample, MAX_SAMPLE_SERIES, PlotHistory};
 pub use self::recordings::RecordingsView;
 pub use self::replay::{
     MAX_CONCURRENT_REPLAYS, MAX_REPLAY_COMPONENTS, MAX_REPLAY_DURATION, MAX_REPLAY_RECORDING_BYTES,
@@ -171,6 +173,8 @@ pub struct Deployer {
     /// lock, never after it), so two cannot interleave.
     active: Mutex<Deployment>,
     live: LiveStatusCell,
+    /// The plots' history, sampled by the control thread.
+    history: PlotHistory,
     /// One compile at a time (see [`MAX_CONCURRENT_COMPILES`]).
     compiles: Mutex<()>,
     /// One validation at a time (see [`MAX_CONCURRENT_VALIDATIONS`]).
@@ -235,8 +239,9 @@ impl Deployer {
             .map_err(DeployError::Start)?;
         let config = Arc::new(config);
         let live = LiveStatusCell::default();
+        let history = PlotHistory::default();
         let slot = swap::SwapSlot::default();
-        let hook = ControlHook::new(slot.clone(), config.clone(), set.id, live.clone());
+        let hook = ControlHook::new(slot.clone(), config.clone(), set.id, live.clone(), history.clone());
         let deployment = Deployment { set, config, priorities: built.priorities, sim_ptys: built.sim_ptys };
         if let Some(locks) = services.get::<crate::runtime::Locks>() {
             estop::audit_locks(&locks, store.clone())?;
@@ -251,6 +256,7 @@ impl Deployer {
             slot,
             active: Mutex::new(deployment),
             live,
+            history,
             compiles: Mutex::new(()),
             validations: Mutex::new(()),
             replays: Mutex::new(()),
@@ -261,6 +267,13 @@ impl Deployer {
     /// The live status, as the control loop last published it.
     pub fn live(&self) -> &LiveStatusCell {
         &self.live
+    }
+
+    /// The plots' history (a sample a second, the last
+    /// [`HISTORY_SAMPLES`]) and the graph time now, seconds: for whoever
+    /// may see the live status.
+    pub fn plot_history(&self) -> (Vec<HistorySample>, f64) {
+        (self.history.samples(), self.clock.now_ns() as f64 / 1e9)
     }
 
     /// The active set and robot.

@@ -3,13 +3,24 @@
 //! recordings. Developers and admins only ([`Permission::Record`]): a
 //! recording holds every value, log line and operator's round-trip time.
 //! Starting, stopping and deleting write an audit line, refused or not.
+//!
+//! A recording "from a fresh start" re-activates the active set: its graph
+//! is built beside the running one exactly as for an activation (WASM
+//! components fresh, unchanged device and socket built-ins carried over, the
+//! envelope rebuilt from the same settings) and swapped in at a cycle
+//! boundary, and the recording is attached in that same boundary, so the
+//! new graph's first call is its first recorded call and a replay of it is
+//! exact from there. It is audited as an activation (`activate`, done
+//! before the swap is reported) and as a recording start.
 
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use super::activate::Ready;
 use super::{DeployError, Deployer, Permission, authorise};
 use crate::record::Layout;
 use crate::record::control::{RecordingError, RecordingFile, RecordingInfo, Recordings, Stopped};
+use crate::store::Outcome;
 use crate::store::users::User;
 
 impl From<RecordingError> for DeployError {
@@ -43,8 +54,13 @@ impl Deployer {
             .ok_or_else(|| DeployError::NotFound("this host keeps no recordings (run it with the portal)".into()))
     }
 
-    /// Starts recording the running robot into the host's recordings folder.
-    pub fn start_recording(&self, user: &User) -> Result<RecordingInfo, DeployError> {
+    /// Starts recording the running robot into the host's recordings
+    /// folder; `fresh_start`: from a re-activation of the active set (see
+    /// the module's docs).
+    pub fn start_recording(&self, user: &User, fresh_start: bool) -> Result<RecordingInfo, DeployError> {
+        if fresh_start {
+            return self.start_recording_fresh(user);
+        }
         let prepared = authorise(user, Permission::Record).and_then(|()| {
             let recordings = self.recordings()?;
             let (_, config) = self.active()?;
@@ -58,6 +74,41 @@ impl Deployer {
             |_, (recordings, layout)| Ok(recordings.start(&user.name, layout)?),
             |info| format!("recording to {}", info.name),
         )
+    }
+
+    fn start_recording_fresh(&self, user: &User) -> Result<RecordingInfo, DeployError> {
+        // Held through the whole re-activation, as an activation holds it.
+        let mut active = self.lock_active()?;
+        let prepared = authorise(user, Permission::Record).and_then(|()| {
+            let recordings = self.recordings()?;
+            // Refused before anything is built, with a recording's reasons.
+            recordings.check_start()?;
+            let ready: Ready = self.build_beside(user, active.set.clone(), &active)?;
+            Ok((recordings, ready))
+        });
+        self.commit(
+            &user.name,
+            "start-recording",
+            "recordings",
+            prepared,
+            |writer, (recordings, ready)| {
+                let id = ready.set.id;
+                let info = recordings.start_after_swap(&user.name, Layout::of(&ready.config), self.slot.swaps())?;
+                if let Err(e) = self.swap_in(ready, &mut active) {
+                    if let Err(abandoned) = recordings.abandon() {
+                        tracing::error!("the fresh-start recording {} was not removed: {abandoned}", info.name);
+                    }
+                    writer.record(&user.name, "activate", &format!("set {id}"), Outcome::Failed(&e.to_string()));
+                    return Err(e);
+                }
+                let detail = format!("re-activated set {id} for recording {} from a fresh start", info.name);
+                writer.record(&user.name, "activate", &format!("set {id}"), Outcome::Ok(&detail));
+                tracing::info!("set {id} re-activated by {}: recording {} from a fresh start", user.name, info.name);
+                Ok((info, id))
+            },
+            |(info, id)| format!("recording to {} from a fresh start (set {id} re-activated)", info.name),
+        )
+        .map(|(info, _)| info)
     }
 
     /// Stops the running recording; its files are complete (summary and

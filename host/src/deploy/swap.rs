@@ -1,14 +1,16 @@
 //! The control thread's side of an activation: a new graph waits in the
 //! [`SwapSlot`] until [`ControlHook`] takes it between two cycles, moves
 //! the carried components in and hands the old graph back; the hook also
-//! publishes the live status while someone watches.
+//! publishes the live status while someone watches, and samples it into
+//! the plots' history once a second whether or not anyone watches.
 
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{Receiver, SyncSender};
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use super::DeployError;
+use super::history::{Observation, PlotHistory};
 use crate::config::RobotConfig;
 use crate::report::{self, LiveStatus};
 use crate::runtime::Graph;
@@ -34,9 +36,16 @@ pub(super) struct SwapRequest {
 pub(super) struct SwapSlot {
     request: Arc<Mutex<Option<SwapRequest>>>,
     waiting: Arc<AtomicBool>,
+    /// Graphs the control thread swapped in so far.
+    swaps: Arc<AtomicU64>,
 }
 
 impl SwapSlot {
+    /// Graphs the control thread swapped in so far.
+    pub(super) fn swaps(&self) -> u64 {
+        self.swaps.load(Ordering::Acquire)
+    }
+
     /// Gives `request` to the control thread and waits for the old graph,
     /// which is dropped here (not on the loop).
     pub(super) fn hand_over(
@@ -100,16 +109,29 @@ pub struct ControlHook {
     set_id: u64,
     live: LiveStatusCell,
     next_live_ns: u64,
+    history: PlotHistory,
 }
 
 impl ControlHook {
-    pub(super) fn new(slot: SwapSlot, config: Arc<RobotConfig>, set_id: u64, live: LiveStatusCell) -> ControlHook {
-        ControlHook { slot, config, set_id, live, next_live_ns: 0 }
+    pub(super) fn new(
+        slot: SwapSlot,
+        config: Arc<RobotConfig>,
+        set_id: u64,
+        live: LiveStatusCell,
+        history: PlotHistory,
+    ) -> ControlHook {
+        ControlHook { slot, config, set_id, live, next_live_ns: 0, history }
     }
 
     /// The robot running now (for the final report).
     pub fn config(&self) -> &Arc<RobotConfig> {
         &self.config
+    }
+
+    /// Graphs this hook swapped in so far (a recording from a fresh start
+    /// attaches to the next).
+    pub fn swaps(&self) -> u64 {
+        self.slot.swaps()
     }
 }
 
@@ -128,14 +150,22 @@ impl CycleHook for ControlHook {
                 self.config = request.config;
                 self.set_id = request.set_id;
                 self.next_live_ns = now_ns;
+                self.slot.swaps.fetch_add(1, Ordering::AcqRel);
                 // The activating thread drops the old graph.
                 let _ = request.done.try_send(request.graph);
             }
         }
+        let mut published = None;
         if now_ns >= self.next_live_ns && self.live.sender.receiver_count() > 0 {
             self.next_live_ns = now_ns + LIVE_PERIOD.as_nanos() as u64;
-            let status = report::live(&self.config, graph, self.set_id, now_ns as f64 / 1e9);
-            self.live.sender.send_replace(Arc::new(Some(status)));
+            let status = Arc::new(Some(report::live(&self.config, graph, self.set_id, now_ns as f64 / 1e9)));
+            published = Some(status.clone());
+            self.live.sender.send_replace(status);
         }
+        let (config, set_id) = (&self.config, self.set_id);
+        self.history.sample_if_due(now_ns, || match published.as_deref() {
+            Some(Some(status)) => Observation::of(status, now_ns),
+            _ => Observation::of(&report::live(config, graph, set_id, now_ns as f64 / 1e9), now_ns),
+        });
     }
 }

@@ -254,6 +254,20 @@ pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Aut
     Json(serde_json::to_value(&*current).unwrap_or_default())
 }
 
+/// The plots' history kept on the host (`GET /history`): a sample a
+/// second over the last minutes, for whoever may see the status; the page
+/// draws it when it opens, then goes on with the live events.
+pub(super) async fn history(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+    let deployer = state.deployer.clone();
+    let (samples, now_s) = deployer.plot_history();
+    Json(json!({
+        "period_s": crate::deploy::HISTORY_PERIOD_NS as f64 / 1e9,
+        "max_samples": crate::deploy::HISTORY_SAMPLES,
+        "now_s": now_s,
+        "samples": samples,
+    }))
+}
+
 /// Prometheus metrics (OpenMetrics text) of the running set: for peers on
 /// a loopback address (a Prometheus or agent on the robot) and for
 /// logged-in users (a session cookie or `Authorization: Bearer`).
@@ -467,13 +481,33 @@ pub(super) async fn list_recordings(
     Ok(Json(blocking(move || Ok(deployer.list_recordings(&user)?)).await?))
 }
 
-/// Starts recording the running robot (`POST /recordings/start`).
+/// The body of `POST /recordings/start` (optional: an empty body is a
+/// plain start).
+#[derive(serde::Deserialize, Default)]
+#[serde(deny_unknown_fields)]
+struct StartRecording {
+    /// Re-activate the active set and record from its first call.
+    #[serde(default)]
+    fresh_start: bool,
+}
+
+/// Starts recording the running robot (`POST /recordings/start`, body
+/// empty or `{"fresh_start": true}`).
 pub(super) async fn start_recording(
     State(state): State<Arc<PortalState>>,
     Authed(user): Authed,
+    body: Bytes,
 ) -> Result<(StatusCode, Json<Json_>), ApiError> {
+    // Who may not record is refused (and audited) by the use case.
+    let request: StartRecording = if body.iter().all(u8::is_ascii_whitespace) {
+        StartRecording::default()
+    } else {
+        serde_json::from_slice(&body).map_err(|e| {
+            ApiError::new(StatusCode::BAD_REQUEST, format!("expected nothing or {{\"fresh_start\": BOOL}}: {e}"))
+        })?
+    };
     let deployer = state.deployer.clone();
-    let info = blocking(move || Ok(deployer.start_recording(&user)?)).await?;
+    let info = blocking(move || Ok(deployer.start_recording(&user, request.fresh_start)?)).await?;
     Ok((StatusCode::CREATED, Json(json!({ "recording": info }))))
 }
 

@@ -3,7 +3,10 @@
 //! host-owned folder of MCAP files whose names the host makes up, at most
 //! one recording at a time, and the control loop's hook ([`ControlledHook`])
 //! that attaches the recording's tap between two cycles and detaches it
-//! again.
+//! again. A recording "from a fresh start" is attached in the very
+//! `between_cycles` in which an activation swaps a new graph in, so the
+//! new graph's first call is recorded and every component starts inside
+//! the recording.
 //!
 //! Invariants: a file name a user gives is only ever looked up in the
 //! folder (checked against [`is_recording_name`]), never used as a path; the
@@ -65,6 +68,8 @@ pub struct RecordingInfo {
     pub name: String,
     pub by: String,
     pub started_unix_ms: u64,
+    /// Started at a re-activation: every component starts inside it.
+    pub fresh_start: bool,
 }
 
 /// One file of the recordings folder.
@@ -95,6 +100,12 @@ enum Request {
     #[default]
     None,
     Attach(Sink),
+    /// Attach to the first graph swapped in after the hook's swap count
+    /// was `after`, in the `between_cycles` of that swap.
+    AttachAfterSwap {
+        sink: Sink,
+        after: u64,
+    },
     Detach,
 }
 
@@ -196,17 +207,43 @@ impl Recordings {
     /// Starts a recording of the running graph, `layout` its names, for
     /// user `by`; the control thread attaches it before its next cycle.
     pub fn start(&self, by: &str, layout: Layout) -> Result<RecordingInfo, RecordingError> {
+        self.start_when(by, layout, None)
+    }
+
+    /// Starts a recording that the control thread attaches to the next
+    /// graph an activation swaps in (the first swap after the hook counted
+    /// `after` swaps), before that graph's first call; nothing of the graph
+    /// running now is recorded. If that swap does not happen, the caller
+    /// [`Recordings::abandon`]s it.
+    pub fn start_after_swap(&self, by: &str, layout: Layout, after: u64) -> Result<RecordingInfo, RecordingError> {
+        self.start_when(by, layout, Some(after))
+    }
+
+    /// Whether a recording could start now: the refusals of
+    /// [`Recordings::start`] without starting one (a fresh start checks
+    /// before it builds the graph).
+    pub fn check_start(&self) -> Result<(), RecordingError> {
+        let running = self.running.lock().map_err(|_| RecordingError::Poisoned)?;
+        self.refusal(running.as_ref())
+    }
+
+    fn refusal(&self, running: Option<&Running>) -> Result<(), RecordingError> {
         if self.command_line {
             return Err(RecordingError::CommandLine);
         }
-        let mut running = self.running.lock().map_err(|_| RecordingError::Poisoned)?;
-        if let Some(current) = running.as_ref() {
+        if let Some(current) = running {
             return Err(RecordingError::Running(current.info.name.clone()));
         }
         let stored = self.list_files(None)?.len();
         if stored >= MAX_STORED_RECORDINGS {
             return Err(RecordingError::Full(stored));
         }
+        Ok(())
+    }
+
+    fn start_when(&self, by: &str, layout: Layout, after_swap: Option<u64>) -> Result<RecordingInfo, RecordingError> {
+        let mut running = self.running.lock().map_err(|_| RecordingError::Poisoned)?;
+        self.refusal(running.as_ref())?;
         let now = std::time::SystemTime::now();
         let stamp = utc_stamp(unix_ms(now) / 1000);
         let (name, path) = loop {
@@ -219,8 +256,17 @@ impl Recordings {
         };
         let options = RecordOptions { path: Some(path.clone()), max_file_bytes: self.max_file_bytes, live: None };
         let recorder = Recorder::start(&options, layout, self.epoch_unix_ns)?;
-        self.ask(Request::Attach(recorder.sink.clone()))?;
-        let info = RecordingInfo { name, by: by.to_string(), started_unix_ms: unix_ms(now) };
+        let sink = recorder.sink.clone();
+        self.ask(match after_swap {
+            None => Request::Attach(sink),
+            Some(after) => Request::AttachAfterSwap { sink, after },
+        })?;
+        let info = RecordingInfo {
+            name,
+            by: by.to_string(),
+            started_unix_ms: unix_ms(now),
+            fresh_start: after_swap.is_some(),
+        };
         *running = Some(Running { info: info.clone(), path, recorder });
         Ok(info)
     }
@@ -243,6 +289,17 @@ impl Recordings {
             bytes: summary.bytes,
             dropped: summary.dropped,
         })
+    }
+
+    /// Stops the running recording and deletes its files: a fresh start
+    /// whose swap did not happen recorded nothing.
+    pub fn abandon(&self) -> Result<(), RecordingError> {
+        let stopped = self.stop()?;
+        for name in &stopped.files {
+            let path = self.dir.join(name);
+            std::fs::remove_file(&path).map_err(|source| RecordingError::Io { path, source })?;
+        }
+        Ok(())
     }
 
     /// The running recording, if any.
@@ -311,8 +368,15 @@ impl Recordings {
     /// Wraps the control loop's hook: attaches and detaches recordings
     /// between cycles, re-attaches after an activation swapped the graph
     /// (`layout_of` names the new one), and samples the status sections.
-    pub fn hook<H: CycleHook>(&self, inner: H, layout_of: fn(&H) -> Layout) -> ControlledHook<H> {
-        ControlledHook { inner, request: self.request.clone(), layout_of, active: None }
+    /// `swaps_of` counts the graphs the inner hook swapped in (a fresh
+    /// start waits for the next).
+    pub fn hook<H: CycleHook>(
+        &self,
+        inner: H,
+        layout_of: fn(&H) -> Layout,
+        swaps_of: fn(&H) -> u64,
+    ) -> ControlledHook<H> {
+        ControlledHook { inner, request: self.request.clone(), layout_of, swaps_of, active: None, pending: None }
     }
 }
 
@@ -334,7 +398,10 @@ pub struct ControlledHook<H> {
     inner: H,
     request: Arc<Mutex<Request>>,
     layout_of: fn(&H) -> Layout,
+    swaps_of: fn(&H) -> u64,
     active: Option<Attached>,
+    /// A fresh start's recording, waiting for the swap after this count.
+    pending: Option<(Sink, u64)>,
 }
 
 impl<H> ControlledHook<H> {
@@ -345,7 +412,9 @@ impl<H> ControlledHook<H> {
 
 impl<H: CycleHook> CycleHook for ControlledHook<H> {
     fn between_cycles(&mut self, graph: &mut Graph, now_ns: u64) {
+        let swaps_before = (self.swaps_of)(&self.inner);
         self.inner.between_cycles(graph, now_ns);
+        let swaps = (self.swaps_of)(&self.inner);
         // Never wait for the portal: a request taken now or next cycle.
         let request = match self.request.try_lock() {
             Ok(mut slot) => std::mem::take(&mut *slot),
@@ -357,9 +426,31 @@ impl<H: CycleHook> CycleHook for ControlledHook<H> {
                 graph.take_tap();
                 self.active = Some(Attached { sink, next_ns: 0, last: Vec::new() });
             }
+            Request::AttachAfterSwap { sink, after } => {
+                graph.take_tap();
+                self.active = None;
+                self.pending = Some((sink, after));
+            }
             Request::Detach => {
                 graph.take_tap();
                 self.active = None;
+                self.pending = None;
+            }
+        }
+        // The inner hook swapped a new graph in during this very call (it
+        // runs first), and it has made no call yet: a fresh start's
+        // recording begins with it.
+        if self.pending.as_ref().is_some_and(|(_, after)| swaps > *after)
+            && let Some((sink, _)) = self.pending.take()
+        {
+            if swaps > swaps_before {
+                graph.take_tap();
+                self.active = Some(Attached { sink, next_ns: 0, last: Vec::new() });
+            } else {
+                // The request was taken after its swap (it cannot be, as
+                // it is asked for before the swap is handed over): the new
+                // graph has run, so the recording would not be fresh.
+                tracing::error!("a fresh-start recording missed its activation's swap; it records nothing");
             }
         }
         let Some(active) = &mut self.active else { return };

@@ -3,6 +3,13 @@
 //! indices and borrowed values only; an implementation must not block (a
 //! recorder hands events to its writer thread through a bounded channel and
 //! counts what did not fit).
+//!
+//! Order: the graph tells the tap of a call ([`Tap::call`]) before it makes
+//! it and of everything the call emitted ([`Tap::emitted`]) right after it
+//! returns, before it makes any other call; a component emits outside its
+//! calls only from `poll`, `peer_faulted` or an injection (built-ins, never
+//! a WASM component). Replay relies on it: a recorded output belongs to its
+//! component's last call before it.
 
 use crate::contract::Value;
 
