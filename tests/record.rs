@@ -465,8 +465,8 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
     }
     let mut args = vec!["--store", store.to_str().unwrap(), "run", "config/demo.xml", "--http", "127.0.0.1:0"];
     args.extend(FREE_PORTS);
-    let mut child = subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap();
-    let stderr = child.stderr.take().unwrap();
+    let mut child = KillOnDrop(subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap());
+    let stderr = child.0.stderr.take().unwrap();
     let (tx, rx) = std::sync::mpsc::channel();
     let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
     let kept = log.clone();
@@ -568,10 +568,10 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
     std::thread::sleep(Duration::from_secs(1));
     let (_, listed) = http_json(&address, "GET", "/api/v1/recordings", Some(&admin));
     assert_eq!(listed["files"].as_array().unwrap().len(), 1, "{listed}");
-    let terminated = Command::new("kill").args(["-TERM", &child.id().to_string()]).status().unwrap();
+    let terminated = Command::new("kill").args(["-TERM", &child.0.id().to_string()]).status().unwrap();
     assert!(terminated.success());
     let started = Instant::now();
-    while child.try_wait().unwrap().is_none() {
+    while child.0.try_wait().unwrap().is_none() {
         assert!(started.elapsed() < Duration::from_secs(30), "the host did not stop on SIGTERM");
         std::thread::sleep(Duration::from_millis(100));
     }
@@ -579,4 +579,15 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
     assert_eq!(read["complete"], true, "{}", log.lock().unwrap());
     assert!(read["messages"].as_u64().unwrap() > 100, "{read}");
     assert!(log.lock().unwrap().contains(&format!("recording {second} stopped with the run")));
+}
+
+/// Kills the host if the test ends early (a failed assertion), so no host
+/// outlives the test and holds its output pipe open.
+struct KillOnDrop(std::process::Child);
+
+impl Drop for KillOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
 }
