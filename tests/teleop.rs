@@ -356,6 +356,70 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
     assert!(report["arbiter"]["held_s"][0][1].as_f64().unwrap() > 1.5, "{}", report["arbiter"]);
 }
 
+/// Operators connecting over and over, several at once, each taking
+/// control in turn for one command: the report lists every session still
+/// open and only the newest ended ones (a peer connecting in a loop must
+/// not grow the host without bound), counts the others, and loses none of
+/// their commands from the totals.
+#[test]
+fn sessions_past_the_listing_bound_are_counted_and_their_commands_kept() {
+    use subsume::teleop::MAX_ENDED_SESSIONS_LISTED;
+    let (threads, each) = (4, MAX_ENDED_SESSIONS_LISTED / 4 + 3);
+    let total = threads * each;
+    let run_s = 25;
+    let host = start(r#"<param name="max-operators" value="8"/>"#, SINK, run_s);
+    let started = Instant::now();
+    let workers: Vec<_> = (0..threads)
+        .map(|t| {
+            let address = host.address.clone();
+            std::thread::spawn(move || {
+                for i in 0..each {
+                    let (mut operator, hello) = Operator::connect_to(&address);
+                    assert!(hello.starts_with("HELLO "), "{hello}");
+                    let (name, token) = if (t + i) % 2 == 0 { ("alice", TOKEN) } else { ("bob", BOB_TOKEN) };
+                    operator.login(name, token);
+                    // Control is held by one session at a time: wait a turn.
+                    loop {
+                        operator.send("MODE supervisory");
+                        let reply = operator.reply();
+                        if reply.starts_with("MODE supervisory") {
+                            break;
+                        }
+                        assert!(reply.starts_with("ERR control is held by"), "{reply}");
+                        std::thread::sleep(Duration::from_millis(5));
+                    }
+                    operator.command("VEL 0.1 0");
+                    operator.send("QUIT");
+                    assert_eq!(operator.reply(), "OK bye");
+                    // The host closes the connection after it closed the session.
+                    let mut rest = String::new();
+                    let _ = operator.reader.read_to_string(&mut rest);
+                }
+            })
+        })
+        .collect();
+    for worker in workers {
+        worker.join().unwrap();
+    }
+    // The report is written at the end of the run: the last session must
+    // have ended well before it.
+    assert!(
+        started.elapsed() < Duration::from_secs(run_s as u64 - 5),
+        "{total} sessions took {:?} of a {run_s} s run",
+        started.elapsed()
+    );
+    let mut host = host;
+    wait_for_exit(&mut host.process.child, Duration::from_secs(run_s as u64 + 20));
+    let report = read_report(&host.report);
+    let network = &report["network"];
+    let sessions = network["sessions"].as_array().unwrap();
+    assert_eq!(sessions.len(), MAX_ENDED_SESSIONS_LISTED, "{network}");
+    assert!(sessions.iter().all(|s| s["disconnected_at_s"].is_number()), "{network}");
+    assert!(sessions.iter().all(|s| s["commands"]["received"] == 1), "{network}");
+    assert_eq!(network["earlier_sessions"], (total - MAX_ENDED_SESSIONS_LISTED) as u64, "{network}");
+    assert_eq!(network["commands"]["received"], total as u64, "{network}");
+}
+
 #[test]
 fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
     let (mut motors, _slave, device) = support::MotorRecorder::new();

@@ -94,6 +94,19 @@ pub struct DelayStats {
     pub superseded: u64,
 }
 
+impl DelayStats {
+    /// Adds `other`'s counts to these (the totals of the sessions no
+    /// longer listed one by one).
+    pub fn absorb(&mut self, other: &DelayStats) {
+        self.received += other.received;
+        self.released += other.released;
+        self.dropped_stale += other.dropped_stale;
+        self.dropped_duplicate += other.dropped_duplicate;
+        self.dropped_full += other.dropped_full;
+        self.superseded += other.superseded;
+    }
+}
+
 #[derive(Clone, Debug)]
 pub struct DelayBuffer<T> {
     settings: DelaySettings,
@@ -299,5 +312,28 @@ mod tests {
         let release = buffer.push(1, 1_000, 7, 1_003 * MS);
         assert_eq!(release, Ok(1_003 * MS));
         assert_eq!(buffer.pop_ready(1_003 * MS), Some(7));
+    }
+
+    #[test]
+    fn absorbing_counts_adds_every_field() {
+        let one = DelayStats {
+            received: 1,
+            released: 2,
+            dropped_stale: 3,
+            dropped_duplicate: 4,
+            dropped_full: 5,
+            superseded: 6,
+        };
+        let mut total = one.clone();
+        total.absorb(&one);
+        let doubled = DelayStats {
+            received: 2,
+            released: 4,
+            dropped_stale: 6,
+            dropped_duplicate: 8,
+            dropped_full: 10,
+            superseded: 12,
+        };
+        assert_eq!(total, doubled);
     }
 }

@@ -23,7 +23,7 @@ pub mod mode;
 pub mod protocol;
 pub mod session;
 
-use std::collections::HashMap;
+use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
 use std::path::Path;
 use std::sync::mpsc::{Receiver, SyncSender, TrySendError};
@@ -51,6 +51,12 @@ pub const EVENT_QUEUE: usize = 1024;
 pub const MIN_TOKEN_LEN: usize = 12;
 /// Most operators in the operators file.
 pub const MAX_OPERATORS_IN_FILE: usize = 1000;
+/// Most ended sessions the status and the run report list one by one (the
+/// newest; the older ones are counted in `earlier_sessions` and their
+/// commands stay in the totals). A peer connecting in a loop, even one that
+/// never logs in, would otherwise grow the host's memory, and the status the
+/// control thread builds every second, without bound.
+pub const MAX_ENDED_SESSIONS_LISTED: usize = 32;
 
 /// Settings of the network platform.
 #[derive(Clone, Debug)]
@@ -163,8 +169,46 @@ pub struct ServerContext {
     /// through the control loop's queue, which a flood could fill).
     pub locks: Locks,
     controller: Mutex<Option<(u64, String)>>,
-    reports: Mutex<Vec<SessionReport>>,
+    reports: Mutex<SessionReports>,
     connections: std::sync::atomic::AtomicUsize,
+}
+
+/// The sessions the status lists: every open one, in the order they
+/// connected, and the newest [`MAX_ENDED_SESSIONS_LISTED`] ended ones, in
+/// the order they ended (the order the control loop hears of it, so its
+/// command counts are dropped for the same sessions).
+#[derive(Clone, Default)]
+struct SessionReports {
+    open: Vec<SessionReport>,
+    ended: VecDeque<SessionReport>,
+    /// Ended sessions no longer listed.
+    earlier: u64,
+}
+
+impl SessionReports {
+    fn find(&mut self, session: u64) -> Option<&mut SessionReport> {
+        self.open.iter_mut().find(|r| r.session == session)
+    }
+
+    /// Moves `session` to the ended ones at `at_s`, dropping the oldest
+    /// ended past the bound.
+    fn end(&mut self, session: u64, at_s: f64) {
+        if let Some(index) = self.open.iter().position(|r| r.session == session) {
+            let mut report = self.open.remove(index);
+            report.disconnected_at_s = Some(at_s);
+            self.ended.push_back(report);
+        }
+        while self.ended.len() > MAX_ENDED_SESSIONS_LISTED {
+            self.ended.pop_front();
+            self.earlier += 1;
+        }
+    }
+
+    /// Ended sessions first (oldest first), then the open ones.
+    fn listed(self) -> (Vec<SessionReport>, u64) {
+        let SessionReports { open, ended, earlier } = self;
+        (ended.into_iter().chain(open).collect(), earlier)
+    }
 }
 
 impl ServerContext {
@@ -177,7 +221,7 @@ impl ServerContext {
 
     fn report<F: FnOnce(&mut SessionReport)>(&self, session: u64, update: F) {
         if let Ok(mut reports) = self.reports.lock()
-            && let Some(report) = reports.iter_mut().find(|r| r.session == session)
+            && let Some(report) = reports.find(session)
         {
             update(report);
         }
@@ -185,7 +229,7 @@ impl ServerContext {
 
     fn open_session(&self, session: u64, address: &str, notices: tokio::sync::mpsc::Sender<ServerMessage>) {
         if let Ok(mut reports) = self.reports.lock() {
-            reports.push(SessionReport {
+            reports.open.push(SessionReport {
                 session,
                 address: address.to_string(),
                 connected_at_s: self.clock.now_ns() as f64 / 1e9,
@@ -236,12 +280,18 @@ impl ServerContext {
         {
             *controller = None;
         }
-        self.report(session, |r| r.disconnected_at_s = Some(self.clock.now_ns() as f64 / 1e9));
         self.connections.fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
         if let Some(name) = operator {
             tracing::info!(operator = %name, session, "operator disconnected");
         }
+        // The event is sent under the lock, so the control loop hears of
+        // sessions ending in the order they were listed as ended.
+        let mut reports = self.reports.lock().ok();
+        if let Some(reports) = reports.as_mut() {
+            reports.end(session, self.clock.now_ns() as f64 / 1e9);
+        }
         let _ = self.send(NetEvent::Disconnected { session });
+        drop(reports);
     }
 }
 
@@ -258,7 +308,11 @@ pub struct TeleopComponent {
     ctx: Arc<ServerContext>,
     events: Receiver<NetEvent>,
     sessions: HashMap<u64, SessionControl>,
-    finished: HashMap<u64, DelayStats>,
+    /// The command counts of the newest ended sessions, oldest first (at
+    /// most [`MAX_ENDED_SESSIONS_LISTED`]).
+    finished: VecDeque<(u64, DelayStats)>,
+    /// The command counts of the ended sessions no longer kept one by one.
+    earlier: DelayStats,
     priority: PriorityCell,
     base_priority: i32,
     runtime: Option<tokio::runtime::Runtime>,
@@ -318,7 +372,7 @@ impl TeleopComponent {
             waker,
             locks,
             controller: Mutex::new(None),
-            reports: Mutex::new(Vec::new()),
+            reports: Mutex::new(SessionReports::default()),
             connections: Default::default(),
         });
         let tcp_ctx = ctx.clone();
@@ -362,7 +416,8 @@ impl TeleopComponent {
             ctx,
             events,
             sessions: HashMap::new(),
-            finished: HashMap::new(),
+            finished: VecDeque::new(),
+            earlier: DelayStats::default(),
             priority,
             base_priority,
             runtime: Some(runtime),
@@ -572,7 +627,12 @@ impl Component for TeleopComponent {
                 NetEvent::Disconnected { session } => {
                     if let Some(mut control) = self.sessions.remove(&session) {
                         control.buffer.clear();
-                        self.finished.insert(session, control.buffer.stats().clone());
+                        self.finished.push_back((session, control.buffer.stats().clone()));
+                        while self.finished.len() > MAX_ENDED_SESSIONS_LISTED {
+                            if let Some((_, stats)) = self.finished.pop_front() {
+                                self.earlier.absorb(&stats);
+                            }
+                        }
                     }
                 }
             }
@@ -590,25 +650,30 @@ impl Component for TeleopComponent {
     }
 
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        let mut sessions = self.ctx.reports.lock().ok()?.clone();
-        let mut totals = DelayStats::default();
+        let (mut sessions, earlier) = self.ctx.reports.lock().ok()?.clone().listed();
+        // The totals count every session, listed or not.
+        let mut totals = self.earlier.clone();
+        for control in self.sessions.values() {
+            totals.absorb(control.buffer.stats());
+        }
+        for (_, stats) in &self.finished {
+            totals.absorb(stats);
+        }
         for report in &mut sessions {
             let (stats, delay) = match self.sessions.get(&report.session) {
                 Some(control) => (control.buffer.stats().clone(), Some(control.buffer.playout_delay())),
-                None => (self.finished.get(&report.session).cloned().unwrap_or_default(), None),
+                None => {
+                    let ended = self.finished.iter().find(|(session, _)| *session == report.session);
+                    (ended.map(|(_, stats)| stats.clone()).unwrap_or_default(), None)
+                }
             };
-            totals.received += stats.received;
-            totals.released += stats.released;
-            totals.dropped_stale += stats.dropped_stale;
-            totals.dropped_duplicate += stats.dropped_duplicate;
-            totals.dropped_full += stats.dropped_full;
-            totals.superseded += stats.superseded;
             report.commands = stats;
             report.playout_delay_ms = delay.map(|d| d.as_secs_f64() * 1e3);
         }
         let value = serde_json::json!({
             "listen": self.listen.to_string(),
             "sessions": sessions,
+            "earlier_sessions": earlier,
             "commands": totals,
             "priority": self.priority.get(),
             "robot": self.ctx.robot.name(),
@@ -664,5 +729,42 @@ mod tests {
         assert!(!settings.check_token("alice", "0123456789abcdeF"));
         assert!(!settings.check_token("bob", "0123456789abcdef"));
         assert!(!settings.check_token("alice", "0123456789abcde"));
+    }
+
+    /// Ended sessions past the bound are dropped in the order they ended;
+    /// open ones are never dropped, however early they connected.
+    #[test]
+    fn the_status_lists_every_open_session_and_the_newest_ended_ones() {
+        let open = |reports: &mut SessionReports, session: u64| {
+            reports.open.push(SessionReport { session, ..SessionReport::default() })
+        };
+        let extra = 5u64;
+        let bound = MAX_ENDED_SESSIONS_LISTED as u64;
+        let mut reports = SessionReports::default();
+        // Session 0 stays open throughout; 1.. connect two at a time and
+        // end in the opposite order.
+        open(&mut reports, 0);
+        for pair in 0..(bound + extra) / 2 {
+            let (first, second) = (2 * pair + 1, 2 * pair + 2);
+            open(&mut reports, first);
+            open(&mut reports, second);
+            reports.end(second, second as f64);
+            reports.end(first, second as f64 + 0.5);
+            assert!(reports.ended.len() <= MAX_ENDED_SESSIONS_LISTED);
+        }
+        reports.end(12345, 1.0);
+        let ended = 2 * ((bound + extra) / 2);
+        let (listed, earlier) = reports.listed();
+        let sessions: Vec<u64> = listed.iter().map(|r| r.session).collect();
+        let mut expected: Vec<u64> = (ended - bound + 1..=ended)
+            .collect::<Vec<_>>()
+            .chunks(2)
+            .flat_map(|pair| pair.iter().rev().copied().collect::<Vec<_>>())
+            .collect();
+        expected.push(0);
+        assert_eq!(sessions, expected);
+        assert_eq!(earlier, ended - bound);
+        assert!(listed[..MAX_ENDED_SESSIONS_LISTED].iter().all(|r| r.disconnected_at_s.is_some()));
+        assert!(listed[MAX_ENDED_SESSIONS_LISTED].disconnected_at_s.is_none());
     }
 }
