@@ -587,6 +587,38 @@ impl TeleopComponent {
     }
 }
 
+impl TeleopComponent {
+    /// Forgets `session`'s delay buffer (nothing it queued is released any
+    /// more) and keeps its command counts.
+    fn end_session(&mut self, session: u64) {
+        let Some(mut control) = self.sessions.remove(&session) else { return };
+        control.buffer.clear();
+        self.finished.push_back((session, control.buffer.stats().clone()));
+        while self.finished.len() > MAX_ENDED_SESSIONS_LISTED {
+            if let Some((_, stats)) = self.finished.pop_front() {
+                self.earlier.absorb(&stats);
+            }
+        }
+    }
+
+    /// Ends the sessions whose connection closed but whose `Disconnected`
+    /// event was lost to a full event queue (a flood of commands can fill
+    /// it): without this their buffers would stay, and release what they
+    /// held, for the rest of the run. One atomic load when no event is
+    /// missing.
+    fn end_sessions_heard_of_no_more(&mut self) {
+        if self.sessions.len() <= self.ctx.connections.load(std::sync::atomic::Ordering::Relaxed) {
+            return;
+        }
+        let closed: Vec<u64> =
+            self.sessions.iter().filter(|(_, control)| control.notices.is_closed()).map(|(id, _)| *id).collect();
+        for session in closed {
+            tracing::warn!(component = %self.name, session, "a session ended without telling the control loop: ended now");
+            self.end_session(session);
+        }
+    }
+}
+
 impl Component for TeleopComponent {
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
         self.poll(now_ns, out);
@@ -624,19 +656,10 @@ impl Component for TeleopComponent {
                         }
                     }
                 },
-                NetEvent::Disconnected { session } => {
-                    if let Some(mut control) = self.sessions.remove(&session) {
-                        control.buffer.clear();
-                        self.finished.push_back((session, control.buffer.stats().clone()));
-                        while self.finished.len() > MAX_ENDED_SESSIONS_LISTED {
-                            if let Some((_, stats)) = self.finished.pop_front() {
-                                self.earlier.absorb(&stats);
-                            }
-                        }
-                    }
-                }
+                NetEvent::Disconnected { session } => self.end_session(session),
             }
         }
+        self.end_sessions_heard_of_no_more();
         for control in self.sessions.values_mut() {
             if let Some(command) = control.buffer.pop_ready(now_ns) {
                 out.push((0, Value::Command(command.to_string())));
@@ -766,5 +789,58 @@ mod tests {
         assert_eq!(earlier, ended - bound);
         assert!(listed[..MAX_ENDED_SESSIONS_LISTED].iter().all(|r| r.disconnected_at_s.is_some()));
         assert!(listed[MAX_ENDED_SESSIONS_LISTED].disconnected_at_s.is_none());
+    }
+
+    /// A session whose `Disconnected` event is lost to a full queue is
+    /// ended all the same once its connection is gone: its buffered command
+    /// is never released, and its counts are kept.
+    #[test]
+    fn a_session_whose_end_was_lost_in_a_full_queue_is_ended_anyway() {
+        let settings = TeleopSettings {
+            listen: SocketAddr::from(([127, 0, 0, 1], 0)),
+            websocket: None,
+            operators: vec![("alice".into(), "0123456789abcdef".into())],
+            directory: None,
+            probe_period: Duration::from_secs(1),
+            policy: ModePolicy::default(),
+            max_connections: 4,
+            delay: DelaySettings { fixed: Some(Duration::from_millis(100)), ..DelaySettings::default() },
+            tls: None,
+        };
+        let clock = Clock::new();
+        let around = Surroundings {
+            robot: Arc::new(RunningRobot::new("test")),
+            standings: Standings::default(),
+            clock: clock.clone(),
+            waker: Waker::default(),
+            priority: PriorityCell::default(),
+            locks: Locks::default(),
+        };
+        let started = TeleopComponent::start("teleop", around, settings);
+        assert!(started.is_ok(), "the network platform did not start");
+        let Ok(mut teleop) = started else { return };
+        let ctx = teleop.context().clone();
+        let mut out = Vec::new();
+        assert!(admit(&ctx));
+        let (notices, notice_rx) = tokio::sync::mpsc::channel(session::NOTICE_QUEUE);
+        ctx.open_session(7, "127.0.0.1:1", notices);
+        let command = ControlCommand::Vel { linear: 0.2, angular: 0.0 };
+        let now = clock.now_ns();
+        ctx.send(NetEvent::Command { session: 7, seq: 1, time_ms: 0, command, arrival_ns: now }).ok();
+        teleop.poll(now, &mut out);
+        assert_eq!(teleop.sessions.len(), 1);
+        // A flood fills the queue; the session's end is then lost.
+        for seq in 0..EVENT_QUEUE as u64 {
+            let flood = NetEvent::Command { session: 99, seq, time_ms: 0, command, arrival_ns: now };
+            assert!(ctx.send(flood).is_ok());
+        }
+        ctx.close_session(7, &None);
+        drop(notice_rx);
+        teleop.poll(now, &mut out);
+        assert!(teleop.sessions.is_empty(), "the session is still open");
+        // Its command, due 100 ms after it came, is never released.
+        teleop.poll(now + 1_000_000_000, &mut out);
+        assert!(out.is_empty(), "{out:?}");
+        assert_eq!(teleop.finished.iter().map(|(id, s)| (*id, s.received)).collect::<Vec<_>>(), vec![(7, 1)]);
     }
 }
