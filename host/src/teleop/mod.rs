@@ -57,6 +57,10 @@ pub const MAX_OPERATORS_IN_FILE: usize = 1000;
 /// never logs in, would otherwise grow the host's memory, and the status the
 /// control thread builds every second, without bound.
 pub const MAX_ENDED_SESSIONS_LISTED: usize = 32;
+/// Most mode changes listed per session (the newest; the older ones are
+/// counted): an operator asking for modes in a loop would otherwise grow
+/// its session's report without bound.
+pub const MAX_MODE_CHANGES_LISTED: usize = 32;
 
 /// Settings of the network platform.
 #[derive(Clone, Debug)]
@@ -151,7 +155,10 @@ pub struct SessionReport {
     pub jitter_ms: Option<f64>,
     pub measurements: u64,
     pub mode: Option<Mode>,
+    /// The newest [`MAX_MODE_CHANGES_LISTED`] changes, oldest first.
     pub mode_changes: Vec<ModeChange>,
+    /// Changes no longer listed.
+    pub earlier_mode_changes: u64,
     pub malformed_lines: u64,
     pub commands: DelayStats,
     pub playout_delay_ms: Option<f64>,
@@ -254,6 +261,10 @@ impl ServerContext {
     fn mode_changed(&self, session: u64, change: ModeChange) {
         self.report(session, |r| {
             r.mode = change.to;
+            if r.mode_changes.len() >= MAX_MODE_CHANGES_LISTED {
+                r.mode_changes.remove(0);
+                r.earlier_mode_changes += 1;
+            }
             r.mode_changes.push(change);
         });
     }
@@ -791,11 +802,9 @@ mod tests {
         assert!(listed[MAX_ENDED_SESSIONS_LISTED].disconnected_at_s.is_none());
     }
 
-    /// A session whose `Disconnected` event is lost to a full queue is
-    /// ended all the same once its connection is gone: its buffered command
-    /// is never released, and its counts are kept.
-    #[test]
-    fn a_session_whose_end_was_lost_in_a_full_queue_is_ended_anyway() {
+    /// A network platform on a free loopback port, with a 100 ms fixed
+    /// delay, and its clock.
+    fn platform() -> Option<(TeleopComponent, Clock)> {
         let settings = TeleopSettings {
             listen: SocketAddr::from(([127, 0, 0, 1], 0)),
             websocket: None,
@@ -818,7 +827,15 @@ mod tests {
         };
         let started = TeleopComponent::start("teleop", around, settings);
         assert!(started.is_ok(), "the network platform did not start");
-        let Ok(mut teleop) = started else { return };
+        Some((started.ok()?, clock))
+    }
+
+    /// A session whose `Disconnected` event is lost to a full queue is
+    /// ended all the same once its connection is gone: its buffered command
+    /// is never released, and its counts are kept.
+    #[test]
+    fn a_session_whose_end_was_lost_in_a_full_queue_is_ended_anyway() {
+        let Some((mut teleop, clock)) = platform() else { return };
         let ctx = teleop.context().clone();
         let mut out = Vec::new();
         assert!(admit(&ctx));
@@ -842,5 +859,34 @@ mod tests {
         teleop.poll(now + 1_000_000_000, &mut out);
         assert!(out.is_empty(), "{out:?}");
         assert_eq!(teleop.finished.iter().map(|(id, s)| (*id, s.received)).collect::<Vec<_>>(), vec![(7, 1)]);
+    }
+
+    /// An operator changing modes over and over: the report keeps the
+    /// newest changes, in order, and counts the rest.
+    #[test]
+    fn a_session_lists_only_its_newest_mode_changes() {
+        let Some((teleop, _clock)) = platform() else { return };
+        let ctx = teleop.context().clone();
+        let (notices, _notice_rx) = tokio::sync::mpsc::channel(session::NOTICE_QUEUE);
+        ctx.open_session(3, "127.0.0.1:1", notices);
+        let extra = 7;
+        let modes = [Mode::Direct, Mode::Shared];
+        for i in 0..MAX_MODE_CHANGES_LISTED + extra {
+            let change = ModeChange {
+                at_s: i as f64,
+                from: Some(modes[(i + 1) % 2]),
+                to: Some(modes[i % 2]),
+                reason: "requested".into(),
+            };
+            ctx.mode_changed(3, change);
+        }
+        let status = teleop.status().map(|(_, value)| value).unwrap_or_default();
+        let session = &status["sessions"][0];
+        let times: Vec<f64> =
+            session["mode_changes"].as_array().into_iter().flatten().filter_map(|c| c["at_s"].as_f64()).collect();
+        let newest: Vec<f64> = (extra..MAX_MODE_CHANGES_LISTED + extra).map(|i| i as f64).collect();
+        assert_eq!(times, newest);
+        assert_eq!(session["earlier_mode_changes"], extra as u64);
+        assert_eq!(session["mode"], serde_json::json!(modes[(MAX_MODE_CHANGES_LISTED + extra - 1) % 2]));
     }
 }
