@@ -184,7 +184,7 @@ pub struct ServerContext {
 /// connected, and the newest [`MAX_ENDED_SESSIONS_LISTED`] ended ones, in
 /// the order they ended (the order the control loop hears of it, so its
 /// command counts are dropped for the same sessions).
-#[derive(Clone, Default)]
+#[derive(Default)]
 struct SessionReports {
     open: Vec<SessionReport>,
     ended: VecDeque<SessionReport>,
@@ -211,10 +211,10 @@ impl SessionReports {
         }
     }
 
-    /// Ended sessions first (oldest first), then the open ones.
-    fn listed(self) -> (Vec<SessionReport>, u64) {
-        let SessionReports { open, ended, earlier } = self;
-        (ended.into_iter().chain(open).collect(), earlier)
+    /// Ended sessions first (oldest first), then the open ones, and how
+    /// many ended ones are no longer listed.
+    fn listed(&self) -> (Vec<SessionReport>, u64) {
+        (self.ended.iter().chain(&self.open).cloned().collect(), self.earlier)
     }
 }
 
@@ -596,9 +596,7 @@ impl TeleopComponent {
         }
         self.told = standing;
     }
-}
 
-impl TeleopComponent {
     /// Forgets `session`'s delay buffer (nothing it queued is released any
     /// more) and keeps its command counts.
     fn end_session(&mut self, session: u64) {
@@ -684,7 +682,7 @@ impl Component for TeleopComponent {
     }
 
     fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        let (mut sessions, earlier) = self.ctx.reports.lock().ok()?.clone().listed();
+        let (mut sessions, earlier) = self.ctx.reports.lock().ok()?.listed();
         // The totals count every session, listed or not.
         let mut totals = self.earlier.clone();
         for control in self.sessions.values() {
