@@ -802,7 +802,7 @@ mod tests {
 
     /// A network platform on a free loopback port, with a 100 ms fixed
     /// delay, and its clock.
-    fn platform() -> Option<(TeleopComponent, Clock)> {
+    fn platform() -> (TeleopComponent, Clock) {
         let settings = TeleopSettings {
             listen: SocketAddr::from(([127, 0, 0, 1], 0)),
             websocket: None,
@@ -823,9 +823,8 @@ mod tests {
             priority: PriorityCell::default(),
             locks: Locks::default(),
         };
-        let started = TeleopComponent::start("teleop", around, settings);
-        assert!(started.is_ok(), "the network platform did not start");
-        Some((started.ok()?, clock))
+        let teleop = TeleopComponent::start("teleop", around, settings).expect("the network platform starts");
+        (teleop, clock)
     }
 
     /// A session whose `Disconnected` event is lost to a full queue is
@@ -833,7 +832,7 @@ mod tests {
     /// is never released, and its counts are kept.
     #[test]
     fn a_session_whose_end_was_lost_in_a_full_queue_is_ended_anyway() {
-        let Some((mut teleop, clock)) = platform() else { return };
+        let (mut teleop, clock) = platform();
         let ctx = teleop.context().clone();
         let mut out = Vec::new();
         assert!(admit(&ctx));
@@ -863,7 +862,7 @@ mod tests {
     /// newest changes, in order, and counts the rest.
     #[test]
     fn a_session_lists_only_its_newest_mode_changes() {
-        let Some((teleop, _clock)) = platform() else { return };
+        let (teleop, _clock) = platform();
         let ctx = teleop.context().clone();
         let (notices, _notice_rx) = tokio::sync::mpsc::channel(session::NOTICE_QUEUE);
         ctx.open_session(3, "127.0.0.1:1", notices);
