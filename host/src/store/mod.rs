@@ -13,6 +13,7 @@
 //! sets/<id>.json              one set (`records::SetRecord`), never rewritten
 //! state.json                  active set, previously active sets, next id
 //! audit.log                   one JSON object per line, appended and fsynced
+//! lab.json, experiments/      the remote lab (`experiments`)
 //! ```
 //!
 //! Invariants:
@@ -30,6 +31,7 @@
 //!   before they store.
 
 pub mod audit;
+pub mod experiments;
 pub mod records;
 pub mod users;
 
@@ -42,6 +44,7 @@ use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 pub use self::audit::{AuditEntry, MAX_AUDIT_READ, Outcome};
+use self::experiments::{ExperimentRecord, Experiments, LabState, experiment_dir};
 pub use self::records::{
     ComponentIndex, ComponentRecord, STORE_FORMAT, SetRecord, StoreState, WiringComponent, WiringConnection,
     WiringGraph, World, WorldIndex, WorldRecord,
@@ -251,6 +254,48 @@ impl Store {
         Ok(sets)
     }
 
+    /// The remote lab's state (defaults before the first change).
+    pub fn lab_state(&self) -> Result<LabState, StoreError> {
+        let path = self.root.join("lab.json");
+        match self.read_index(&path)? {
+            None => Ok(LabState::default()),
+            Some(bytes) => LabState::parse(&bytes).map_err(Self::damaged(&path)),
+        }
+    }
+
+    /// The folder of experiment `id` (its record and results).
+    pub fn experiment_dir(&self, id: u64) -> PathBuf {
+        experiment_dir(&self.root, id)
+    }
+
+    /// Experiment `id`, or `None` when there is none.
+    pub fn experiment(&self, id: u64) -> Result<Option<ExperimentRecord>, StoreError> {
+        let path = self.experiment_dir(id).join("experiment.json");
+        match self.read_index(&path)? {
+            None => Ok(None),
+            Some(bytes) => ExperimentRecord::parse(&bytes).map(Some).map_err(Self::damaged(&path)),
+        }
+    }
+
+    /// Every experiment, by id. A folder without a record (a crash before
+    /// its first write) is left out.
+    pub fn experiments(&self) -> Result<Experiments, StoreError> {
+        let dir = self.root.join("experiments");
+        let entries = match std::fs::read_dir(&dir) {
+            Ok(entries) => entries,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Experiments::new()),
+            Err(e) => return Err(io(&dir)(e)),
+        };
+        let mut all = Experiments::new();
+        for entry in entries.filter_map(|e| e.ok()) {
+            let Some(id) = entry.file_name().to_str().and_then(|n| n.parse::<u64>().ok()) else { continue };
+            if let Some(record) = self.experiment(id)? {
+                all.insert(id, record);
+            }
+        }
+        Ok(all)
+    }
+
     /// The newest `limit` audit entries (at most [`MAX_AUDIT_READ`]), oldest
     /// first. Lines that do not parse (a torn last write) are skipped.
     pub fn audit_entries(&self, limit: usize) -> Result<Vec<AuditEntry>, StoreError> {
@@ -405,6 +450,42 @@ impl StoreWriter<'_> {
         let mut state = self.state()?;
         state.boot_config_sha256 = Some(sha256.to_string());
         self.write_state(&state)
+    }
+
+    /// Replaces the lab's state.
+    pub fn put_lab_state(&self, state: &LabState) -> Result<(), StoreError> {
+        self.write_json(&self.root.join("lab.json"), state)
+    }
+
+    /// Stores a new experiment (id assigned here, the counter written
+    /// first, so a crash skips an id and never reuses one) and returns it.
+    pub fn add_experiment(&self, mut record: ExperimentRecord) -> Result<ExperimentRecord, StoreError> {
+        let mut lab = self.lab_state()?;
+        record.id = lab.next_experiment;
+        lab.next_experiment += 1;
+        self.put_lab_state(&lab)?;
+        let dir = self.experiment_dir(record.id);
+        std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+        self.put_experiment(&record)?;
+        Ok(record)
+    }
+
+    /// Replaces experiment `record.id`'s record.
+    pub fn put_experiment(&self, record: &ExperimentRecord) -> Result<(), StoreError> {
+        let dir = self.experiment_dir(record.id);
+        std::fs::create_dir_all(&dir).map_err(io(&dir))?;
+        self.write_json(&dir.join("experiment.json"), record)
+    }
+
+    /// Forgets experiment `id`: its record and results (the lab keeps at
+    /// most [`experiments::MAX_EXPERIMENT_RECORDS`]).
+    pub fn forget_experiment(&self, id: u64) -> Result<(), StoreError> {
+        let dir = self.experiment_dir(id);
+        match std::fs::remove_dir_all(&dir) {
+            Ok(()) => Ok(()),
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+            Err(e) => Err(io(&dir)(e)),
+        }
     }
 
     /// Records one request in the audit log: now, by `user`. A log that

@@ -4,6 +4,10 @@
 //! Roles, as the paper's per-platform logins:
 //! - `viewer`: may watch the robot;
 //! - `operator`: may also drive it (portal pad, teleoperation);
+//! - `researcher`: may upload components and stage robot files for the
+//!   platforms it lists (which changes nothing that runs), submit
+//!   experiments, watch, and see, download and cancel its own experiments;
+//!   it drives only inside its own reservation (docs/lab.md);
 //! - `developer`: may upload and activate components and robot files for the
 //!   platforms it lists (`network` and/or `control`);
 //! - `admin`: everything, on every platform.
@@ -44,6 +48,7 @@ pub const GENERATED_PASSWORD_LEN: usize = 20;
 pub enum Role {
     Viewer,
     Operator,
+    Researcher,
     Developer,
     Admin,
 }
@@ -53,6 +58,7 @@ impl Role {
         match self {
             Role::Viewer => "viewer",
             Role::Operator => "operator",
+            Role::Researcher => "researcher",
             Role::Developer => "developer",
             Role::Admin => "admin",
         }
@@ -65,9 +71,10 @@ impl std::str::FromStr for Role {
         match text {
             "viewer" => Ok(Role::Viewer),
             "operator" => Ok(Role::Operator),
+            "researcher" => Ok(Role::Researcher),
             "developer" => Ok(Role::Developer),
             "admin" => Ok(Role::Admin),
-            other => Err(format!("unknown role '{other}' (expected viewer, operator, developer or admin)")),
+            other => Err(format!("unknown role '{other}' (expected viewer, operator, researcher, developer or admin)")),
         }
     }
 }
@@ -94,14 +101,21 @@ impl User {
     pub fn may_change(&self, platform: Platform) -> bool {
         match self.role {
             Role::Admin => true,
-            Role::Developer => self.platforms.iter().any(|p| p == platform.name()),
+            Role::Developer | Role::Researcher => self.platforms.iter().any(|p| p == platform.name()),
             _ => false,
         }
     }
 
-    /// Whether this user may change anything at all.
+    /// Whether this user may activate sets, record and read the audit log:
+    /// a developer of some platform, or an admin (a researcher's changes
+    /// reach the robot only as experiments).
     pub fn is_developer(&self) -> bool {
-        self.may_change(Platform::Control) || self.may_change(Platform::Network)
+        self.role != Role::Researcher && (self.may_change(Platform::Control) || self.may_change(Platform::Network))
+    }
+
+    /// Whether this user may submit experiments (docs/lab.md).
+    pub fn may_submit(&self) -> bool {
+        matches!(self.role, Role::Researcher | Role::Developer | Role::Admin)
     }
 
     /// Whether `password` is this user's (constant time in the hash).
@@ -225,9 +239,10 @@ impl<'a> UsersWriter<'a> {
             return Err(UsersError::Refused(format!("user name '{name}' is not [a-z][a-z0-9_-]* (at most 64)")));
         }
         check_password_strength(password)?;
-        if role == Role::Developer && platforms.is_empty() {
+        if matches!(role, Role::Developer | Role::Researcher) && platforms.is_empty() {
             return Err(UsersError::Refused(format!(
-                "developer '{name}' needs at least one --platform (network or control)"
+                "{} '{name}' needs at least one --platform (network or control)",
+                role.name()
             )));
         }
         let mut users = read_users(&self.users.path)?;
@@ -411,19 +426,47 @@ impl Tickets {
 pub struct Directory {
     pub users: std::sync::Arc<Users>,
     pub tickets: Tickets,
+    /// Who may drive beyond their role now (a researcher in their
+    /// reservation).
+    pub grants: DriveGrants,
 }
 
 impl Directory {
     pub fn new(users: std::sync::Arc<Users>) -> Directory {
-        Directory { users, tickets: Tickets::default() }
+        Directory { users, tickets: Tickets::default(), grants: DriveGrants::default() }
+    }
+
+    /// Whether `user` may drive now: by role, or by a grant.
+    pub fn may_drive(&self, user: &User) -> bool {
+        user.may_drive() || self.grants.allows(&user.name, crate::runtime::locks::unix_now_ms())
     }
 
     /// Whether `name` may drive with `token` (a pad ticket or their password).
     pub fn check_operator(&self, name: &str, token: &str) -> bool {
         if self.tickets.redeem(name, token) {
-            return self.users.get(name).is_some_and(|u| u.may_drive());
+            return self.users.get(name).is_some_and(|u| self.may_drive(&u));
         }
-        self.users.authenticate(name, token).is_some_and(|u| u.may_drive())
+        self.users.authenticate(name, token).is_some_and(|u| self.may_drive(&u))
+    }
+}
+
+/// The one user who may drive beyond their role, until when (ms since the
+/// Unix epoch): the holder of the reservation in effect (docs/lab.md). The
+/// lab sets it as windows open and close.
+#[derive(Debug, Default)]
+pub struct DriveGrants(std::sync::Mutex<Option<(String, u64)>>);
+
+impl DriveGrants {
+    /// `user` may drive until `until_ms`; `None`: nobody beyond their role.
+    pub fn set(&self, grant: Option<(String, u64)>) {
+        if let Ok(mut slot) = self.0.lock() {
+            *slot = grant;
+        }
+    }
+
+    /// Whether `user` holds a grant at `now_ms`.
+    pub fn allows(&self, user: &str, now_ms: u64) -> bool {
+        self.0.lock().ok().is_some_and(|g| g.as_ref().is_some_and(|(u, until)| u == user && now_ms < *until))
     }
 }
 

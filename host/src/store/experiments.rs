@@ -1,0 +1,463 @@
+//! What the store keeps of the remote lab (docs/lab.md): each experiment's
+//! record and results folder, and the lab's own state (the owner's
+//! settings, the baseline, whether the queue is paused, the reservations,
+//! the id counters).
+//!
+//! Layout under the store's root:
+//! ```text
+//! lab.json                        the lab's state (`LabState`)
+//! experiments/<id>/experiment.json  one experiment (`ExperimentRecord`), rewritten at every change
+//! experiments/<id>/...            its results (recordings, reports, log, robot file)
+//! ```
+//!
+//! Invariants: experiment ids are never reused (the counter is written
+//! before the record); every file is replaced atomically, so a kill -9
+//! leaves each record as it was before or after a change; a record of a
+//! newer format than this host knows is refused, never guessed at.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+/// Format of `lab.json` and `experiment.json`.
+pub const LAB_FORMAT: u32 = 1;
+
+/// Experiments the store keeps records of; the oldest finished ones are
+/// forgotten beyond this (their results went first, by the retention cap):
+/// a lab running for years must not grow the store's folder without bound.
+pub const MAX_EXPERIMENT_RECORDS: usize = 5000;
+
+/// Reservations kept (past ones are dropped first): a user booking in a
+/// loop cannot grow `lab.json` without bound.
+pub const MAX_RESERVATIONS: usize = 500;
+
+/// Longest label an experiment keeps (it is shown to every admin).
+pub const MAX_LABEL_LEN: usize = 120;
+
+/// Reasons kept per experiment (a preflight can find many collisions).
+pub const MAX_REASONS: usize = 32;
+
+/// Where an experiment is in its life.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ExperimentState {
+    /// Submitted; its set is being validated again.
+    Checking,
+    /// Running in the simulator first.
+    Preflight,
+    /// Passed; waiting for its turn.
+    Queued,
+    /// On the robot.
+    Running,
+    /// Its time is up (or it was stopped): the baseline comes back and the
+    /// results are written.
+    Finishing,
+    Done,
+    /// A check or the preflight failed (the reasons say which).
+    Refused,
+    /// Its submitter or an admin cancelled it.
+    Cancelled,
+    /// An emergency stop, or the host stopping while it ran.
+    Aborted,
+    /// Something of the host's went wrong (the reasons say what).
+    Failed,
+}
+
+impl ExperimentState {
+    pub const ALL: [ExperimentState; 10] = [
+        ExperimentState::Checking,
+        ExperimentState::Preflight,
+        ExperimentState::Queued,
+        ExperimentState::Running,
+        ExperimentState::Finishing,
+        ExperimentState::Done,
+        ExperimentState::Refused,
+        ExperimentState::Cancelled,
+        ExperimentState::Aborted,
+        ExperimentState::Failed,
+    ];
+
+    pub fn name(self) -> &'static str {
+        match self {
+            ExperimentState::Checking => "checking",
+            ExperimentState::Preflight => "preflight",
+            ExperimentState::Queued => "queued",
+            ExperimentState::Running => "running",
+            ExperimentState::Finishing => "finishing",
+            ExperimentState::Done => "done",
+            ExperimentState::Refused => "refused",
+            ExperimentState::Cancelled => "cancelled",
+            ExperimentState::Aborted => "aborted",
+            ExperimentState::Failed => "failed",
+        }
+    }
+
+    /// Whether it has ended (no state follows).
+    pub fn is_final(self) -> bool {
+        matches!(
+            self,
+            ExperimentState::Done
+                | ExperimentState::Refused
+                | ExperimentState::Cancelled
+                | ExperimentState::Aborted
+                | ExperimentState::Failed
+        )
+    }
+
+    /// Whether it waits to run (checked, in preflight or queued): what the
+    /// per-user queued limit counts.
+    pub fn is_waiting(self) -> bool {
+        matches!(self, ExperimentState::Checking | ExperimentState::Preflight | ExperimentState::Queued)
+    }
+}
+
+impl std::fmt::Display for ExperimentState {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// One state change: when (ms since the Unix epoch) and why.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct StateChange {
+    pub state: ExperimentState,
+    pub at_ms: u64,
+    pub cause: String,
+}
+
+/// A component of the experiment's set, as it ran.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ComponentHash {
+    pub name: String,
+    /// `builtin:KIND`, or the source as the robot file writes it.
+    pub source: String,
+    /// The WASM file's sha256; `None` for built-ins.
+    pub sha256: Option<String>,
+}
+
+/// What the preflight found.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct PreflightResult {
+    pub passed: bool,
+    /// Every reason it did not pass, in the order they happened.
+    pub reasons: Vec<String>,
+    /// Simulated seconds it ran.
+    pub simulated_s: f64,
+    /// Wall-clock seconds it took.
+    pub wall_s: f64,
+    /// The replay against the owner's reference recording, when one is
+    /// named: information, never a refusal.
+    #[serde(default)]
+    pub replay: Option<serde_json::Value>,
+}
+
+/// What the run on the robot left.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RunResult {
+    pub started_ms: u64,
+    pub ended_ms: u64,
+    /// Seconds of graph time it ran.
+    pub ran_s: f64,
+    /// Control-loop cycles that started later than the serial link's
+    /// watchdog margin (the host's own lateness, not the algorithm's).
+    pub late_cycles: u64,
+    /// The worst lateness of a cycle, ms.
+    pub worst_lateness_ms: f64,
+}
+
+/// A file of an experiment's results.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ResultFile {
+    /// Its name inside the experiment's folder (and the bundle).
+    pub name: String,
+    pub bytes: u64,
+}
+
+/// The settings an experiment ran under, copied when it was submitted.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AppliedSettings {
+    pub max_duration_s: f64,
+    pub limits: Limits,
+    pub criteria: Criteria,
+    pub reset: ResetPolicy,
+    /// The preflight's world (an uploaded world's name); `None`: the
+    /// set's own.
+    pub preflight_world: Option<String>,
+    pub baseline: Option<u64>,
+}
+
+/// One experiment.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ExperimentRecord {
+    pub format: u32,
+    pub id: u64,
+    pub submitter: String,
+    /// The staged set it runs.
+    pub set: u64,
+    pub label: String,
+    pub duration_s: f64,
+    pub submitted_ms: u64,
+    pub state: ExperimentState,
+    /// Every state it was in, oldest first (the first is `checking`).
+    pub history: Vec<StateChange>,
+    /// Why it was refused, aborted, cancelled or failed (at most
+    /// [`MAX_REASONS`]).
+    pub reasons: Vec<String>,
+    pub settings: AppliedSettings,
+    /// The set's components with their hashes, once checked.
+    #[serde(default)]
+    pub components: Vec<ComponentHash>,
+    #[serde(default)]
+    pub preflight: Option<PreflightResult>,
+    #[serde(default)]
+    pub run: Option<RunResult>,
+    /// Files in its results folder.
+    #[serde(default)]
+    pub results: Vec<ResultFile>,
+    /// Its recordings were removed by the retention cap; the record stays.
+    #[serde(default)]
+    pub recording_expired: bool,
+}
+
+impl ExperimentRecord {
+    pub(super) fn parse(bytes: &[u8]) -> Result<ExperimentRecord, String> {
+        let record: ExperimentRecord = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+        if record.format > LAB_FORMAT {
+            return Err(format!("format {} is newer than this host's {LAB_FORMAT}", record.format));
+        }
+        Ok(record)
+    }
+
+    /// Moves it to `state`, now, for `cause`.
+    pub fn enter(&mut self, state: ExperimentState, at_ms: u64, cause: &str) {
+        self.state = state;
+        self.history.push(StateChange { state, at_ms, cause: cause.to_string() });
+    }
+
+    /// Adds a reason (at most [`MAX_REASONS`]; the rest are counted).
+    pub fn add_reason(&mut self, reason: String) {
+        if self.reasons.len() + 1 < MAX_REASONS {
+            self.reasons.push(reason);
+        } else if self.reasons.len() + 1 == MAX_REASONS {
+            self.reasons.push("... and more (the report lists every one)".into());
+        }
+    }
+
+    /// When it entered `state` last, if it did.
+    pub fn entered(&self, state: ExperimentState) -> Option<u64> {
+        self.history.iter().rev().find(|c| c.state == state).map(|c| c.at_ms)
+    }
+
+    /// The robot time it holds, ms: its duration while it waits or runs,
+    /// what it ran once it ended, 0 when it never ran.
+    pub fn robot_ms(&self) -> u64 {
+        let duration_ms = (self.duration_s * 1000.0) as u64;
+        match self.state {
+            s if s.is_waiting() => duration_ms,
+            ExperimentState::Running | ExperimentState::Finishing => duration_ms,
+            _ => match (self.entered(ExperimentState::Running), &self.run) {
+                (_, Some(run)) => (run.ran_s * 1000.0) as u64,
+                (Some(started), None) => {
+                    let ended = self.history.last().map_or(started, |c| c.at_ms);
+                    ended.saturating_sub(started).min(duration_ms)
+                }
+                (None, None) => 0,
+            },
+        }
+    }
+}
+
+/// A booked window: only `user`'s experiments run in it, and `user` may
+/// drive.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Reservation {
+    pub id: u64,
+    pub user: String,
+    pub start_ms: u64,
+    pub end_ms: u64,
+}
+
+impl Reservation {
+    pub fn contains(&self, at_ms: u64) -> bool {
+        self.start_ms <= at_ms && at_ms < self.end_ms
+    }
+
+    pub fn overlaps(&self, start_ms: u64, end_ms: u64) -> bool {
+        self.start_ms < end_ms && start_ms < self.end_ms
+    }
+}
+
+/// The owner's limits on what one user may ask of the robot.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Limits {
+    /// Experiments a user may have waiting (checked, in preflight or
+    /// queued): one user cannot fill the queue.
+    pub max_queued: u32,
+    /// Robot minutes a user may use in any 24 hours: one user cannot hold
+    /// the robot all day.
+    pub robot_minutes_per_day: f64,
+    /// Longest reservation, seconds: one booking cannot take the robot for
+    /// a day.
+    pub max_reservation_s: u64,
+    /// Reserved seconds a user may book per UTC day.
+    pub reservation_per_day_s: u64,
+}
+
+impl Default for Limits {
+    fn default() -> Limits {
+        Limits {
+            max_queued: 3,
+            robot_minutes_per_day: 30.0,
+            max_reservation_s: 30 * 60,
+            reservation_per_day_s: 60 * 60,
+        }
+    }
+}
+
+/// What the preflight must see to pass (the owner's; by default nothing
+/// of the kind may happen).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Criteria {
+    /// Collisions with obstacles allowed.
+    pub max_collisions: u32,
+    /// Whether a component may fault.
+    pub allow_faults: bool,
+    /// Whether the robot may reach or leave the geofence (the envelope
+    /// holding it there counts).
+    pub allow_geofence: bool,
+    /// Whether the envelope's collision (stop) zone may stop it.
+    pub allow_stop_zone: bool,
+}
+
+impl Default for Criteria {
+    fn default() -> Criteria {
+        Criteria { max_collisions: 0, allow_faults: false, allow_geofence: false, allow_stop_zone: false }
+    }
+}
+
+/// How the robot gets back to its start before each experiment.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum ResetPolicy {
+    /// The simulated world is reset.
+    #[default]
+    Sim,
+    /// A person puts the robot back; an admin confirms in the portal.
+    Manual,
+}
+
+/// The owner's settings of the lab.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LabSettings {
+    /// Longest experiment, seconds.
+    pub max_duration_s: f64,
+    pub limits: Limits,
+    pub criteria: Criteria,
+    pub reset: ResetPolicy,
+    /// The uploaded world the preflight runs in; `None`: each set's own.
+    pub preflight_world: Option<String>,
+    /// A recording in the host's recordings folder that each experiment's
+    /// components are also replayed against (information only).
+    pub reference_recording: Option<String>,
+    /// Total bytes of experiments' results kept; the oldest finished
+    /// experiments' recordings go first beyond it.
+    pub retention_bytes: u64,
+    /// Whether researchers may download the lab kit (the baseline's robot
+    /// file and components).
+    pub kit: bool,
+}
+
+impl Default for LabSettings {
+    fn default() -> LabSettings {
+        LabSettings {
+            max_duration_s: 120.0,
+            limits: Limits::default(),
+            criteria: Criteria::default(),
+            reset: ResetPolicy::Sim,
+            preflight_world: None,
+            reference_recording: None,
+            retention_bytes: 10 << 30,
+            kit: true,
+        }
+    }
+}
+
+/// `lab.json`: the lab's own state.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LabState {
+    pub format: u32,
+    pub next_experiment: u64,
+    pub next_reservation: u64,
+    pub settings: LabSettings,
+    /// The set the robot runs between experiments; `None`: the set the
+    /// host started with.
+    pub baseline: Option<u64>,
+    pub paused: bool,
+    pub reservations: Vec<Reservation>,
+}
+
+impl Default for LabState {
+    fn default() -> LabState {
+        LabState {
+            format: LAB_FORMAT,
+            next_experiment: 1,
+            next_reservation: 1,
+            settings: LabSettings::default(),
+            baseline: None,
+            paused: false,
+            reservations: Vec::new(),
+        }
+    }
+}
+
+impl LabState {
+    pub(super) fn parse(bytes: &[u8]) -> Result<LabState, String> {
+        let mut state: LabState = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+        if state.format > LAB_FORMAT {
+            return Err(format!("format {} is newer than this host's {LAB_FORMAT}", state.format));
+        }
+        state.next_experiment = state.next_experiment.max(1);
+        state.next_reservation = state.next_reservation.max(1);
+        Ok(state)
+    }
+}
+
+/// The folder of experiment `id` under the store's root.
+pub fn experiment_dir(root: &std::path::Path, id: u64) -> PathBuf {
+    root.join("experiments").join(id.to_string())
+}
+
+/// Experiments by id.
+pub type Experiments = BTreeMap<u64, ExperimentRecord>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn states_say_whether_they_wait_or_ended() {
+        let waiting: Vec<&str> = ExperimentState::ALL.iter().filter(|s| s.is_waiting()).map(|s| s.name()).collect();
+        let ended: Vec<&str> = ExperimentState::ALL.iter().filter(|s| s.is_final()).map(|s| s.name()).collect();
+        assert_eq!(waiting, ["checking", "preflight", "queued"]);
+        assert_eq!(ended, ["done", "refused", "cancelled", "aborted", "failed"]);
+        for state in ExperimentState::ALL {
+            let json = serde_json::to_string(&state).unwrap_or_default();
+            assert_eq!(json, format!("\"{}\"", state.name()));
+        }
+    }
+
+    #[test]
+    fn newer_formats_are_refused_and_counters_start_at_one() {
+        let newer = br#"{"format": 2, "next_experiment": 1}"#;
+        assert!(LabState::parse(newer).is_err_and(|e| e.contains("format 2 is newer")));
+        let mut state = LabState { next_experiment: 0, ..LabState::default() };
+        state.next_reservation = 0;
+        let bytes = serde_json::to_vec(&state).unwrap_or_default();
+        let read = LabState::parse(&bytes).unwrap_or_default();
+        assert_eq!((read.next_experiment, read.next_reservation), (1, 1));
+    }
+}
