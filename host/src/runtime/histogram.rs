@@ -54,6 +54,13 @@ impl Histogram {
         self.max_ns
     }
 
+    /// How many durations were surely longer than `ns`: the counts of the
+    /// buckets that lie wholly above it (a bucket holding `ns` is not
+    /// counted, so this is a lower bound, exact at a bucket's bound).
+    pub fn count_above(&self, ns: u64) -> u64 {
+        (1..BUCKETS).filter(|&i| bound_ns(i - 1).is_some_and(|lower| lower >= ns)).map(|i| self.counts[i]).sum()
+    }
+
     /// (upper bound in seconds, count in that bucket alone) for every
     /// bucket; the last bound is infinity, which `prometheus-client`
     /// writes as `+Inf` (it adds the counts up itself).
@@ -78,6 +85,10 @@ mod tests {
         }
         let buckets = h.buckets_seconds();
         assert_eq!(buckets.len(), 22);
+        // Above 2^30 ns: (1 << 30) + 1 and u64::MAX; above 1024 ns: all but
+        // 0, 1 and 1024.
+        assert_eq!(h.count_above(1 << 30), 2);
+        assert_eq!(h.count_above(1_024), 7);
         // <= 1.024 µs: 0, 1 and 1024; <= 2.048 µs: 1025 and 2048; then 2049.
         assert_eq!(buckets[0], (1.024e-6, 3));
         assert_eq!(buckets[1], (2.048e-6, 2));
