@@ -13,7 +13,8 @@ use super::link::{Inlet, Outlet};
 use super::session::{self, BridgeStats, SESSION_PARAMS, SessionSettings};
 use super::wire;
 use crate::builtin::{
-    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, check_values, port,
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
+    PreflightForm, check_values, port,
 };
 use crate::config::{ComponentSource, ParamProblem};
 use crate::contract::{Value, ValueKind, clip};
@@ -88,6 +89,17 @@ impl Builtin for ZenohSession {
 
     fn check(&self, params: &Params, ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
         SessionSettings::check(params, ctx.base_dir)
+    }
+
+    /// A preflight's session talks to nobody: no endpoints, no config
+    /// file (multicast scouting is off for every session), so nothing it
+    /// publishes reaches the robot's peers and nothing of theirs reaches it.
+    fn preflight(&self, _params: &Params, _ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+        Ok(PreflightForm {
+            set: vec![("connect", String::new()), ("listen", String::new()), ("zenoh-config", String::new())],
+            files: Vec::new(),
+            simulated_by: None,
+        })
     }
 
     fn ports(&self, _params: &Params) -> Ports {

@@ -88,10 +88,44 @@ pub trait Builtin: Sync {
         let _ = (params, ctx);
         Vec::new()
     }
+    /// What this component becomes in a preflight: the robot file run in
+    /// the simulator, in a process of its own beside the robot
+    /// (docs/lab.md), which must reach none of the robot's devices,
+    /// sockets or networks. Unchanged by default; an `Err` says why this
+    /// component cannot take part in one.
+    fn preflight(&self, params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+        let _ = (params, ctx);
+        Ok(PreflightForm::default())
+    }
     /// Inputs and outputs; they may depend on parameters (`publish`'s kind).
     fn ports(&self, params: &Params) -> Ports;
     /// A running instance, from checked parameters.
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError>;
+}
+
+/// What a preflight knows when it asks a built-in for its preflight form.
+#[derive(Clone, Debug)]
+pub struct PreflightContext<'a> {
+    /// The component's name in the robot file.
+    pub component: &'a str,
+    /// The world file the preflight's simulated robots use (relative to
+    /// the robot file it writes); `None`: each simulated robot keeps its
+    /// own.
+    pub world: Option<&'a str>,
+    /// The name a simulated controller added for this component gets.
+    pub sim_name: String,
+}
+
+/// A built-in's preflight form: the parameters it runs with instead, and a
+/// simulated controller to put behind it (a serial link to a real
+/// device), with that controller's parameters.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct PreflightForm {
+    pub set: Vec<(&'static str, String)>,
+    /// Files to write beside the robot file, each named by a parameter
+    /// (parameter, contents).
+    pub files: Vec<(&'static str, Vec<u8>)>,
+    pub simulated_by: Option<Vec<(&'static str, String)>>,
 }
 
 /// A built-in's inputs and outputs.

@@ -278,6 +278,9 @@ pub struct EnvelopeStatus {
     pub stopped: u64,
     /// Interventions by cause.
     pub causes: BTreeMap<&'static str, u64>,
+    /// The first intervention of each cause over the run (a preflight names
+    /// when the robot first met the fence or the stop zone).
+    pub first: BTreeMap<&'static str, Intervention>,
     pub last: Option<Intervention>,
     pub recent: VecDeque<Intervention>,
     /// Smallest clearance between the footprint and a range point, now
@@ -314,6 +317,7 @@ impl EnvelopeComponent {
                 scaled: 0,
                 stopped: 0,
                 causes: BTreeMap::new(),
+                first: BTreeMap::new(),
                 last: None,
                 recent: VecDeque::new(),
                 closest_m: None,
@@ -369,6 +373,7 @@ impl EnvelopeComponent {
         if self.status.recent.len() >= RECENT_INTERVENTIONS {
             self.status.recent.pop_front();
         }
+        self.status.first.entry(cause.kind()).or_insert_with(|| intervention.clone());
         self.status.recent.push_back(intervention.clone());
         self.status.last = Some(intervention);
     }

@@ -9,8 +9,8 @@ use super::protocol::Profile;
 use super::serial::{LinkError, LinkSettings, ScanGeometry, SerialLink};
 use super::translator::{DriveGeometry, ProfileTranslator, Translator};
 use crate::builtin::{
-    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
-    positive_up_to,
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
+    PreflightForm, number_in, positive_up_to,
 };
 use crate::config::ParamProblem;
 use crate::config::RobotConfig;
@@ -90,6 +90,13 @@ const PARAMS: &[ParamDecl] = &[
         default: "0.5",
         unit: "m/s",
         doc: "fastest wheel speed",
+    },
+    ParamDecl {
+        name: "preflight-protocol",
+        ty: ParamType::Choice(&["auto", "ascii", "binary", "create2"]),
+        default: "auto",
+        unit: "",
+        doc: "the protocol of the simulated controller that stands in for a real device in a preflight (docs/lab.md); auto: the translator's profile (a WASM translator needs one named)",
     },
 ];
 
@@ -189,6 +196,48 @@ impl Builtin for SerialBuiltin {
 
     fn carried(&self) -> bool {
         true
+    }
+
+    /// A link to a real device gets a simulated controller of the same
+    /// protocol in the preflight's world; a link to a simulated robot
+    /// stays as it is.
+    fn preflight(&self, params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+        let device = params.text("device").unwrap_or_default().trim();
+        if device.starts_with(SIM_DEVICE) {
+            return Ok(PreflightForm::default());
+        }
+        let named = params.text("preflight-protocol").unwrap_or_default().trim();
+        let translator = params.text("translator").unwrap_or_default().trim();
+        let protocol = match (named, Profile::parse(translator)) {
+            ("auto", Some(_)) => translator,
+            ("auto", None) => {
+                return Err(format!(
+                    "the preflight cannot simulate the controller behind '{}' on {}: its translator is a WASM \
+                     component; set its preflight-protocol (ascii, binary or create2)",
+                    ctx.component,
+                    clip(device)
+                ));
+            }
+            (named, _) => named,
+        };
+        let Some(world) = ctx.world else {
+            return Err(format!(
+                "the preflight needs a world for the simulated controller behind '{}' (the robot has none of its own): \
+                 the lab's owner sets the preflight world",
+                ctx.component
+            ));
+        };
+        let copy = |name: &'static str| (name, params.text(name).unwrap_or_default().to_string());
+        Ok(PreflightForm {
+            set: vec![("device", format!("{SIM_DEVICE}{}", ctx.sim_name))],
+            files: Vec::new(),
+            simulated_by: Some(vec![
+                ("world", world.to_string()),
+                ("protocol", protocol.to_string()),
+                copy("wheel-base"),
+                copy("max-wheel-speed"),
+            ]),
+        })
     }
 
     fn check(&self, params: &Params, ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {

@@ -9,7 +9,8 @@ use super::physics::{Body, Simulation};
 use super::world::{self, World};
 use super::{SimComponent, SimProtocol, SimSettings, SimulatedRobot};
 use crate::builtin::{
-    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, positive_up_to,
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
+    PreflightForm, positive_up_to,
 };
 use crate::config::ParamProblem;
 use crate::robot::protocol::MAX_RANGES;
@@ -164,6 +165,12 @@ impl Builtin for SimBuiltin {
             Err(BuiltinError::Param { name, why }) => vec![ParamProblem::new(&name, why)],
             Err(e) => vec![ParamProblem::new("world", e.to_string())],
         }
+    }
+
+    /// The preflight's world, when the lab's owner set one.
+    fn preflight(&self, _params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+        let set = ctx.world.map(|world| vec![("world", world.to_string())]).unwrap_or_default();
+        Ok(PreflightForm { set, files: Vec::new(), simulated_by: None })
     }
 
     fn ports(&self, _params: &Params) -> Ports {

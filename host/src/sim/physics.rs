@@ -12,6 +12,20 @@ use crate::robot::translator::DriveGeometry;
 /// 5 mm, far less than any robot radius, so nothing is tunnelled through.
 pub const MAX_STEP_S: f64 = 0.005;
 
+/// Contacts kept with their time and place (the count goes on): a robot
+/// pushing into a wall for an hour must not grow the status.
+pub const MAX_CONTACTS_KEPT: usize = 16;
+
+/// Where and when the robot ran into something.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct Contact {
+    /// Simulated seconds since start.
+    pub time_s: f64,
+    /// Where the robot's centre was (m).
+    pub x: f64,
+    pub y: f64,
+}
+
 /// The robot's body and sensors.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Body {
@@ -40,6 +54,8 @@ pub struct SimStatus {
     pub distance_travelled_m: f64,
     /// Times the robot ran into something (each contact counts once).
     pub collisions: u64,
+    /// The first [`MAX_CONTACTS_KEPT`] of them.
+    pub contacts: Vec<Contact>,
     pub bumper: bool,
     pub ranges: Vec<f64>,
 }
@@ -57,6 +73,7 @@ pub struct Simulation {
     time_s: f64,
     distance: f64,
     collisions: u64,
+    contacts: Vec<Contact>,
     bumper: bool,
     goal_reached_at: Option<f64>,
 }
@@ -77,6 +94,7 @@ impl Simulation {
             time_s: 0.0,
             distance: 0.0,
             collisions: 0,
+            contacts: Vec::new(),
             bumper: false,
             goal_reached_at: None,
         };
@@ -101,6 +119,7 @@ impl Simulation {
             time_s: 0.0,
             distance: 0.0,
             collisions: 0,
+            contacts: Vec::new(),
             bumper: false,
             goal_reached_at: None,
         };
@@ -159,6 +178,9 @@ impl Simulation {
                 // Blocked: the wheels slip, the body may still turn in place.
                 if !self.bumper {
                     self.collisions += 1;
+                    if self.contacts.len() < MAX_CONTACTS_KEPT {
+                        self.contacts.push(Contact { time_s: self.time_s, x: self.x, y: self.y });
+                    }
                     self.bumper = true;
                 }
                 self.heading = wrap(heading);
@@ -241,6 +263,7 @@ impl Simulation {
             goal_reached_at_s: self.goal_reached_at,
             distance_travelled_m: self.distance,
             collisions: self.collisions,
+            contacts: self.contacts.clone(),
             bumper: self.bumper,
             ranges: self.ranges(),
         }

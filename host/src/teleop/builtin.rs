@@ -12,8 +12,8 @@ use super::delay::DelaySettings;
 use super::mode::ModePolicy;
 use super::{TeleopComponent, TeleopServers, TeleopSettings, load_operators};
 use crate::builtin::{
-    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in, port,
-    positive_up_to,
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
+    PreflightForm, number_in, port, positive_up_to,
 };
 use crate::config::ParamProblem;
 use crate::contract::{ValueKind, clip};
@@ -248,6 +248,23 @@ impl Builtin for TeleopBuiltin {
             ));
         }
         problems
+    }
+
+    /// Nobody drives a preflight: the line protocol listens on a port of
+    /// the system's choosing on loopback (the robot's own stays the
+    /// robot's), without the WebSocket or TLS, and the operators file is
+    /// one of its own whose token nobody was told.
+    fn preflight(&self, _params: &Params, _ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+        let mut secret = [0u8; 24];
+        getrandom::fill(&mut secret).map_err(|e| format!("no randomness for a one-time token: {e}"))?;
+        Ok(PreflightForm {
+            set: vec![("listen", "127.0.0.1:0".into()), ("websocket", String::new()), ("tls", "off".into())],
+            files: vec![(
+                "operators",
+                format!("# nobody drives a preflight\npreflight {}\n", hex::encode(secret)).into_bytes(),
+            )],
+            simulated_by: None,
+        })
     }
 
     fn ports(&self, _params: &Params) -> Ports {
