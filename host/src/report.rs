@@ -141,6 +141,12 @@ pub fn build(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, durati
     report(config, graph, stopped_by.name(), duration_s)
 }
 
+/// [`build`] with the reason it stopped in words (`cancelled by ana`,
+/// `duration`): an experiment's report, taken as it is swapped out.
+pub fn build_named(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64) -> Report {
+    report(config, graph, stopped_by, duration_s)
+}
+
 fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64) -> Report {
     let components = config
         .components

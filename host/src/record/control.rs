@@ -207,7 +207,7 @@ impl Recordings {
     /// Starts a recording of the running graph, `layout` its names, for
     /// user `by`; the control thread attaches it before its next cycle.
     pub fn start(&self, by: &str, layout: Layout) -> Result<RecordingInfo, RecordingError> {
-        self.start_when(by, layout, None)
+        self.start_when(by, layout, None, None)
     }
 
     /// Starts a recording that the control thread attaches to the next
@@ -216,7 +216,20 @@ impl Recordings {
     /// running now is recorded. If that swap does not happen, the caller
     /// [`Recordings::abandon`]s it.
     pub fn start_after_swap(&self, by: &str, layout: Layout, after: u64) -> Result<RecordingInfo, RecordingError> {
-        self.start_when(by, layout, Some(after))
+        self.start_when(by, layout, Some(after), None)
+    }
+
+    /// Like [`Recordings::start_after_swap`], into the file `path` (an
+    /// `.mcap` path the host made, outside this folder: an experiment's
+    /// results); it is not listed with this folder's recordings.
+    pub fn start_after_swap_to(
+        &self,
+        by: &str,
+        layout: Layout,
+        after: u64,
+        path: PathBuf,
+    ) -> Result<RecordingInfo, RecordingError> {
+        self.start_when(by, layout, Some(after), Some(path))
     }
 
     /// Whether a recording could start now: the refusals of
@@ -241,18 +254,27 @@ impl Recordings {
         Ok(())
     }
 
-    fn start_when(&self, by: &str, layout: Layout, after_swap: Option<u64>) -> Result<RecordingInfo, RecordingError> {
+    fn start_when(
+        &self,
+        by: &str,
+        layout: Layout,
+        after_swap: Option<u64>,
+        to: Option<PathBuf>,
+    ) -> Result<RecordingInfo, RecordingError> {
         let mut running = self.running.lock().map_err(|_| RecordingError::Poisoned)?;
         self.refusal(running.as_ref())?;
         let now = std::time::SystemTime::now();
         let stamp = utc_stamp(unix_ms(now) / 1000);
-        let (name, path) = loop {
-            let serial = self.serial.fetch_add(1, Ordering::Relaxed) + 1;
-            let name = format!("rec-{stamp}-{serial}.mcap");
-            let path = self.dir.join(&name);
-            if !path.exists() {
-                break (name, path);
-            }
+        let (name, path) = match to {
+            Some(path) => (path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned()), path),
+            None => loop {
+                let serial = self.serial.fetch_add(1, Ordering::Relaxed) + 1;
+                let name = format!("rec-{stamp}-{serial}.mcap");
+                let path = self.dir.join(&name);
+                if !path.exists() {
+                    break (name, path);
+                }
+            },
         };
         let options = RecordOptions { path: Some(path.clone()), max_file_bytes: self.max_file_bytes, live: None };
         let recorder = Recorder::start(&options, layout, self.epoch_unix_ns)?;
@@ -294,9 +316,13 @@ impl Recordings {
     /// Stops the running recording and deletes its files: a fresh start
     /// whose swap did not happen recorded nothing.
     pub fn abandon(&self) -> Result<(), RecordingError> {
+        let dir = match self.running.lock().map_err(|_| RecordingError::Poisoned)?.as_ref() {
+            Some(running) => running.path.parent().map_or_else(|| self.dir.clone(), Path::to_path_buf),
+            None => self.dir.clone(),
+        };
         let stopped = self.stop()?;
         for name in &stopped.files {
-            let path = self.dir.join(name);
+            let path = dir.join(name);
             std::fs::remove_file(&path).map_err(|source| RecordingError::Io { path, source })?;
         }
         Ok(())

@@ -24,6 +24,7 @@ pub mod replay;
 pub mod schema;
 mod writer;
 
+use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -42,6 +43,8 @@ use crate::runtime::{Call, Graph, Tap};
 /// hold the control loop or grow memory without bound: past this, events
 /// are dropped and counted.
 pub const QUEUE_DEPTH: usize = 65_536;
+/// The topic of the host's log in a recording (`foxglove.Log`).
+pub const LOG_TOPIC: &str = "/subsume/log";
 /// Longest time a finished chunk waits in memory: what a killed host can
 /// lose at most (plus the chunk being filled).
 pub const FLUSH_INTERVAL: Duration = Duration::from_millis(500);
@@ -145,6 +148,10 @@ pub struct ComponentLayout {
 pub struct Layout {
     pub robot: String,
     pub components: Vec<ComponentLayout>,
+    /// More of what the recording is (the experiment, its submitter, each
+    /// component's sha256), written into its `subsume.recording`
+    /// metadata.
+    pub about: BTreeMap<String, String>,
 }
 
 impl Layout {
@@ -163,7 +170,7 @@ impl Layout {
                     .collect(),
             })
             .collect();
-        Layout { robot: config.name.clone(), components }
+        Layout { robot: config.name.clone(), components, about: BTreeMap::new() }
     }
 }
 

@@ -560,7 +560,7 @@ mod tests {
         graph.connect(counter, 0, echo, 0, Policy::Queue { depth: 8 });
         let recorder = Recorder::start(
             &RecordOptions::new(path.clone()),
-            Layout { robot: "pairs".into(), components: layouts() },
+            Layout { robot: "pairs".into(), components: layouts(), about: Default::default() },
             0,
         )
         .unwrap();

@@ -115,15 +115,14 @@ impl Writer {
             .create(counted)
             .map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
         let mut open = OpenFile { mcap, channels: HashMap::new(), schemas: HashMap::new(), sequence: 0, size };
-        let metadata = mcap::records::Metadata {
-            name: "subsume.recording".into(),
-            metadata: BTreeMap::from([
-                ("robot".to_string(), self.layout.robot.clone()),
-                ("epoch_unix_ns".to_string(), self.epoch_unix_ns.to_string()),
-                ("file_index".to_string(), self.index.to_string()),
-                ("format".to_string(), "1".to_string()),
-            ]),
-        };
+        let mut about = self.layout.about.clone();
+        about.extend([
+            ("robot".to_string(), self.layout.robot.clone()),
+            ("epoch_unix_ns".to_string(), self.epoch_unix_ns.to_string()),
+            ("file_index".to_string(), self.index.to_string()),
+            ("format".to_string(), "1".to_string()),
+        ]);
+        let metadata = mcap::records::Metadata { name: "subsume.recording".into(), metadata: about };
         open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
         self.summary.files.push(path);
         self.file = Some(open);
@@ -238,9 +237,12 @@ impl Writer {
                 epoch + t,
                 &json!({ "t": t, "component": name(index), "kind": kind, "status": section }),
             ),
-            Event::Log { unix_ns, level, name, message } => {
-                self.message("/subsume/log", schema::LOG, unix_ns, &schema::log(level, &name, clip(&message), unix_ns))
-            }
+            Event::Log { unix_ns, level, name, message } => self.message(
+                super::LOG_TOPIC,
+                schema::LOG,
+                unix_ns,
+                &schema::log(level, &name, clip(&message), unix_ns),
+            ),
             Event::Layout(layout) => {
                 self.layout = layout;
                 Ok(())
