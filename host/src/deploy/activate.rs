@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use super::swap::SwapRequest;
+use super::swap::{ReportRequest, SwapRequest};
 use super::{DeployError, Deployer, Deployment, Permission, authorise, stage};
 use crate::assemble::{self, Built, Carry, Loader};
 use crate::config::RobotConfig;
@@ -42,6 +42,13 @@ impl Deployer {
 
     /// Activates `id`, or the previous set when rolling back.
     fn switch(&self, user: &User, id: Option<u64>, rollback: bool) -> Result<SetRecord, DeployError> {
+        // An experiment that runs refuses the change, or, for an admin, is
+        // ended first (before the active set's lock, which ending it takes).
+        let what = match id {
+            Some(id) => format!("activate set {id}"),
+            None => "roll back".to_string(),
+        };
+        let preempted = authorise(user, Permission::Activate).and_then(|()| self.experiments.admit(user, &what));
         let mut active = self.lock_active()?;
         let id = match id {
             Some(id) => Ok(id),
@@ -58,14 +65,15 @@ impl Deployer {
             (Ok(id), true) => ("rollback", format!("set {id}")),
             (Err(_), _) => ("rollback", "none".to_string()),
         };
-        let prepared =
-            authorise(user, Permission::Activate).and(id).and_then(|id| self.prepare_switch(user, id, &active));
+        let prepared = preempted.and_then(|preempted| {
+            id.and_then(|id| self.prepare_switch(user, id, &active)).map(|ready| (ready, preempted))
+        });
         self.commit(
             &user.name,
             action,
             &target,
             prepared,
-            |writer, ready: Ready| {
+            |writer, (ready, preempted): (Ready, Option<String>)| {
                 let id = ready.set.id;
                 // Under the lock: the set is still stored and, for a
                 // rollback, still the previous one; only then does it run.
@@ -85,17 +93,20 @@ impl Deployer {
                     if rollback { "rolled back" } else { "activated" },
                     user.name
                 );
-                Ok((set, envelope))
+                Ok((set, envelope, preempted))
             },
-            |(set, envelope)| {
-                let done = format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id);
-                match envelope {
-                    Some(change) => format!("{done}; it {change}"),
-                    None => done,
+            |(set, envelope, preempted)| {
+                let mut done = format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id);
+                if let Some(change) = envelope {
+                    done = format!("{done}; it {change}");
                 }
+                if let Some(preempted) = preempted {
+                    done = format!("{done}; {preempted}");
+                }
+                done
             },
         )
-        .map(|(set, _)| set)
+        .map(|(set, _, _)| set)
     }
 
     /// Hands the built graph to the control thread, which swaps it in at
@@ -103,6 +114,17 @@ impl Deployer {
     /// it the active deployment. Activations, rollbacks and fresh-start
     /// recordings all swap through here.
     pub(super) fn swap_in(&self, ready: Ready, active: &mut Deployment) -> Result<(), DeployError> {
+        self.swap_in_reporting(ready, active, None)
+    }
+
+    /// [`Deployer::swap_in`], and with `report` the control thread sends
+    /// the old graph's report (stopped by, ran ns) before it swaps.
+    pub(super) fn swap_in_reporting(
+        &self,
+        ready: Ready,
+        active: &mut Deployment,
+        report: Option<ReportRequest>,
+    ) -> Result<(), DeployError> {
         let (done, old_graph) = std::sync::mpsc::sync_channel(1);
         let request = SwapRequest {
             graph: ready.built.graph,
@@ -110,6 +132,7 @@ impl Deployer {
             config: ready.config.clone(),
             set_id: ready.set.id,
             done,
+            report,
         };
         self.slot.hand_over(request, &old_graph, &self.waker)?;
         if let Some(robot) = self.services.get::<RunningRobot>() {

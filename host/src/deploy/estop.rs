@@ -14,7 +14,7 @@ use std::sync::mpsc::{Receiver, sync_channel};
 
 use serde::Serialize;
 
-use super::{DeployError, Deployer, Permission, authorise};
+use super::{DeployError, Deployer};
 use crate::runtime::locks::unix_now_ms;
 use crate::runtime::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 use crate::store::users::User;
@@ -69,7 +69,7 @@ impl Deployer {
     /// allowed to drive.
     pub fn release_lock(&self, user: &User, lock: Option<&str>, how: &str) -> Result<Vec<Released>, DeployError> {
         let target = lock.unwrap_or("every lock");
-        if let Err(refused) = authorise(user, Permission::Drive) {
+        if let Err(refused) = self.authorise_drive(user) {
             let detail = format!("over {how}: {refused}");
             if let Ok(writer) = self.store.lock() {
                 writer.record(&user.name, "release-lock", target, Outcome::Refused(&detail));

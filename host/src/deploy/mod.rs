@@ -27,6 +27,7 @@
 mod activate;
 pub mod dev;
 mod estop;
+mod experiment;
 mod history;
 mod recordings;
 mod replay;
@@ -42,6 +43,9 @@ use std::sync::{Arc, Mutex};
 use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
+pub use self::experiment::{
+    CheckedSet, Ended, ExperimentGate, LAB_LOCK, LAB_USER, Preempt, RunningExperiment, utc_time,
+};
 pub use self::history::{HISTORY_PERIOD_NS, HISTORY_SAMPLES, HistorySample, MAX_SAMPLE_SERIES, PlotHistory};
 pub use self::recordings::RecordingsView;
 pub use self::replay::{
@@ -181,6 +185,10 @@ pub struct Deployer {
     validations: Mutex<()>,
     /// One replay at a time (see [`MAX_CONCURRENT_REPLAYS`]).
     replays: Mutex<()>,
+    /// The experiment that runs, if any (docs/lab.md).
+    experiments: ExperimentGate,
+    /// The set the host started with.
+    boot_set: u64,
 }
 
 /// Where a run starts: the deployer, the first graph, and the hook to run
@@ -242,6 +250,7 @@ impl Deployer {
         let history = PlotHistory::default();
         let slot = swap::SwapSlot::default();
         let hook = ControlHook::new(slot.clone(), config.clone(), set.id, live.clone(), history.clone());
+        let boot_set = set.id;
         let deployment = Deployment { set, config, priorities: built.priorities, sim_ptys: built.sim_ptys };
         if let Some(locks) = services.get::<crate::runtime::Locks>() {
             estop::audit_locks(&locks, store.clone())?;
@@ -260,8 +269,24 @@ impl Deployer {
             compiles: Mutex::new(()),
             validations: Mutex::new(()),
             replays: Mutex::new(()),
+            experiments: ExperimentGate::default(),
+            boot_set,
         };
         Ok(Boot { deployer: Arc::new(deployer), graph: built.graph, hook })
+    }
+
+    /// [`authorise`] for [`Permission::Drive`], with the grants of the
+    /// portal's directory: a researcher drives inside their reservation
+    /// (docs/lab.md) with an operator's rights.
+    pub fn authorise_drive(&self, user: &User) -> Result<(), DeployError> {
+        let granted = self.services.get::<crate::store::users::Directory>().is_some_and(|d| d.may_drive(user));
+        if granted { Ok(()) } else { authorise(user, Permission::Drive) }
+    }
+
+    /// The graph's time now (ns): what durations on the robot are measured
+    /// in (simulated time on a simulated clock).
+    pub fn graph_now_ns(&self) -> u64 {
+        self.clock.now_ns()
     }
 
     /// The live status, as the control loop last published it.
@@ -446,7 +471,7 @@ impl Deployer {
     /// robot; for those who may drive (it moves the robot). Returns the
     /// simulation's state after it.
     pub fn sim_control(&self, user: &User, action: SimAction) -> Result<crate::sim::physics::SimStatus, DeployError> {
-        let prepared = authorise(user, Permission::Drive).and_then(|()| {
+        let prepared = self.authorise_drive(user).and_then(|()| {
             let (_, config) = self.active()?;
             let name = config
                 .components

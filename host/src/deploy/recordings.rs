@@ -77,9 +77,10 @@ impl Deployer {
     }
 
     fn start_recording_fresh(&self, user: &User) -> Result<RecordingInfo, DeployError> {
+        let admitted = self.experiments.admit(user, "start a recording from a fresh start");
         // Held through the whole re-activation, as an activation holds it.
         let mut active = self.lock_active()?;
-        let prepared = authorise(user, Permission::Record).and_then(|()| {
+        let prepared = authorise(user, Permission::Record).and(admitted).and_then(|_| {
             let recordings = self.recordings()?;
             // Refused before anything is built, with a recording's reasons.
             recordings.check_start()?;

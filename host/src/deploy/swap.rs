@@ -30,7 +30,12 @@ pub(super) struct SwapRequest {
     pub config: Arc<RobotConfig>,
     pub set_id: u64,
     pub done: SyncSender<Graph>,
+    /// Report the old graph (as stopped by, having run ns) before the swap.
+    pub report: Option<ReportRequest>,
 }
+
+/// Why the old graph stopped, how long it ran (ns), and where its report goes.
+pub(super) type ReportRequest = (String, u64, SyncSender<report::Report>);
 
 #[derive(Clone, Default)]
 pub(super) struct SwapSlot {
@@ -141,6 +146,9 @@ impl CycleHook for ControlHook {
             self.slot.waiting.store(false, Ordering::Release);
             let request = self.slot.request.lock().ok().and_then(|mut slot| slot.take());
             if let Some(mut request) = request {
+                if let Some((stopped_by, ran_ns, to)) = request.report.take() {
+                    let _ = to.try_send(report::build_named(&self.config, graph, &stopped_by, ran_ns as f64 / 1e9));
+                }
                 for &(old, new) in &request.carry {
                     if let Some(component) = graph.take_component(old) {
                         request.graph.replace_component(new, component);
