@@ -126,7 +126,17 @@ fn main() -> Result<(), String> {
     let control =
         std::thread::spawn(move || control_loop::run_with(&mut graph, &clock, &loop_shutdown, None, &mut hook));
     let mut live = deployer.live().subscribe();
-    let app = portal::app(PortalState::new(deployer, directory, portal::logs::LogRing::new()));
+    let lab = subsume::lab::Lab::start(
+        deployer.clone(),
+        subsume::lab::LabOptions {
+            preflight: subsume::lab::preflight::PreflightCommand {
+                exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
+                cache_dir: None,
+            },
+        },
+    )
+    .map_err(|e| e.to_string())?;
+    let app = portal::app(PortalState::new(deployer, lab, directory, portal::logs::LogRing::new()));
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
         .enable_all()

@@ -68,6 +68,8 @@ fn main() {
         pace: None,
         record: None,
         control: Default::default(),
+        verdict: None,
+        criteria: None,
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -23,6 +23,7 @@
 //! - [`report`]: the run report and the live status;
 //! - [`metrics`]: the live status as Prometheus (OpenMetrics) text;
 //! - [`deploy`]: the use cases (boot, upload, stage, activate, rollback);
+//! - [`lab`]: the remote lab: experiments, the queue, preflight, results;
 //! - [`portal`]: HTTP in front of `deploy`;
 //! - [`run`], [`scaffold`]: `subsume run` and `subsume new`.
 
@@ -35,6 +36,7 @@ pub mod contract;
 pub mod deploy;
 pub mod envelope;
 pub mod fsutil;
+pub mod lab;
 pub mod logfields;
 pub mod metrics;
 pub mod portal;

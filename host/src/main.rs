@@ -96,6 +96,15 @@ enum Command {
         /// WebSocket, subprotocol foxglove.sdk.v1) on this address, or `off`.
         #[arg(long, value_name = "ADDRESS|off", env = "SUBSUME_FOXGLOVE", default_value = "off")]
         foxglove: String,
+        /// Write the preflight's verdict here (JSON; docs/lab.md): what the
+        /// run saw (collisions, faults, the envelope's interventions)
+        /// judged by --criteria. A run on simulated time prints it anyway.
+        #[arg(long, value_name = "FILE.json")]
+        verdict: Option<PathBuf>,
+        /// The lab's preflight criteria (JSON, as the lab kit's
+        /// criteria.json); the lab's defaults when not given.
+        #[arg(long, value_name = "FILE.json")]
+        criteria: Option<PathBuf>,
     },
     /// Feed components of a robot file the inputs they got in a recording
     /// (subsume run --record) and compare their outputs with the recorded
@@ -248,11 +257,12 @@ enum UserAction {
     /// Add a user; prints a generated password unless --password-stdin.
     Add {
         name: String,
-        /// viewer, operator (may drive), developer (may upload and activate
-        /// on its platforms) or admin.
+        /// viewer, operator (may drive), researcher (may upload, stage and
+        /// submit experiments on its platforms), developer (may upload and
+        /// activate on its platforms) or admin.
         #[arg(long)]
         role: String,
-        /// network or control (repeatable; developers need at least one).
+        /// network or control (repeatable; developers and researchers need at least one).
         #[arg(long = "platform")]
         platforms: Vec<String>,
         /// Read the password from the first line of standard input.
@@ -331,6 +341,8 @@ fn main() -> ExitCode {
             record,
             record_max_mib,
             foxglove,
+            verdict,
+            criteria,
         } => {
             let live = match foxglove.as_str() {
                 "off" => Ok(None),
@@ -372,6 +384,8 @@ fn main() -> ExitCode {
                     control,
                     tls,
                     record,
+                    verdict,
+                    criteria,
                 })
             })
         }
@@ -453,6 +467,8 @@ struct RunArgs {
     control: subsume::runtime::scheduling::ControlThreadSettings,
     tls: subsume::tls::HostTls,
     record: Option<subsume::record::RecordOptions>,
+    verdict: Option<PathBuf>,
+    criteria: Option<PathBuf>,
 }
 
 struct DevArgs {
@@ -482,7 +498,21 @@ fn run_dev(dev: DevArgs, portal: Option<PortalOptions>, cache_dir: Option<PathBu
     let stall_limit = subsume::runtime::stall::DEFAULT_STALL_LIMIT.as_secs_f64();
     let portal = Some(portal);
     let control = subsume::runtime::scheduling::ControlThreadSettings::default();
-    run(RunArgs { config, duration, pace, report, params, cache_dir, portal, stall_limit, control, tls, record: None })
+    run(RunArgs {
+        config,
+        duration,
+        pace,
+        report,
+        params,
+        cache_dir,
+        portal,
+        stall_limit,
+        control,
+        tls,
+        record: None,
+        verdict: None,
+        criteria: None,
+    })
 }
 
 fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
@@ -498,6 +528,8 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         control,
         tls,
         record,
+        verdict,
+        criteria,
     } = args;
     let duration = match duration {
         None => None,
@@ -535,6 +567,8 @@ fn run(args: RunArgs) -> anyhow::Result<ExitCode> {
         tls,
         pace,
         record,
+        verdict,
+        criteria,
     };
     let result = subsume::run::run(&options, shutdown);
     signals.close();

@@ -15,6 +15,9 @@ use crate::assemble::{self, Loader, StartError};
 use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
+use crate::lab::preflight::{HolderWatch, PreflightCommand};
+use crate::lab::verdict::Criteria;
+use crate::lab::{Lab, LabOptions};
 use crate::portal::{self, logs::LogRing};
 use crate::record::control::{RecordingError, Recordings};
 use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder};
@@ -61,6 +64,12 @@ pub struct RunOptions {
     /// Real-time settings of the control thread (`--control-fifo`,
     /// `--control-cpu`); none by default.
     pub control: ControlThreadSettings,
+    /// Write the preflight's verdict here (`--verdict`, docs/lab.md); a
+    /// run on simulated time prints it either way.
+    pub verdict: Option<PathBuf>,
+    /// The criteria the verdict applies (`--criteria FILE`, JSON); the
+    /// lab's defaults when `None`.
+    pub criteria: Option<PathBuf>,
 }
 
 impl RunOptions {
@@ -163,6 +172,10 @@ pub enum RunError {
     Record(#[from] RecordError),
     #[error(transparent)]
     Recording(#[from] RecordingError),
+    #[error("{path}: {reason}")]
+    Verdict { path: PathBuf, reason: String },
+    #[error(transparent)]
+    Lab(#[from] crate::lab::LabError),
     #[error(
         "the stall limit must be between {} and {} ms, got {} ms",
         MIN_STALL_LIMIT.as_millis(),
@@ -203,28 +216,87 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         config.connections.len()
     );
     let clock = options.clock();
-    let services = Services::default().with(Arc::new(options.tls.clone()));
+    let criteria = read_criteria(options)?;
+    let judge = options.verdict.is_some() || options.pace.is_some();
+    let (standings, sims) = (Standings::default(), Arc::new(crate::sim::SimRegistry::default()));
+    let mut services = Services::default().with(Arc::new(options.tls.clone()));
+    if judge {
+        services = services.with(Arc::new(standings.clone())).with(sims.clone());
+    }
     let mut graph =
         assemble::build(&config, &mut loader, clock.clone(), &shutdown.waker(), &services, &assemble::Carry::default())
             .map(|built| built.graph)
             .map_err(RunError::Start)?;
+    let watch = Judge(judge.then(|| HolderWatch::new(&config, standings)));
     let Some(record) = &options.record else {
-        let (graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, control_loop::NoHook)?;
-        return Ok(final_report(&config, &graph, stopped_by, ran_ns));
+        let (graph, watch, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, watch)?;
+        let report = final_report(&config, &graph, stopped_by, ran_ns);
+        judge_run(options, &criteria, &config, &graph, &sims, &report, &watch)?;
+        return Ok(report);
     };
     if let Some(address) = record.live {
         options.tls.check_plain("foxglove live view", address)?;
     }
     let recorder = Recorder::start(record, Layout::of(&config), epoch_unix_ns(&clock))?;
     graph.set_tap(recorder.tap());
-    let hook = recorder.hook(control_loop::NoHook);
-    let (mut graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
+    let hook = recorder.hook(watch);
+    let (mut graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
     graph.take_tap();
     let summary = recorder.finish()?;
     let report = final_report(&config, &graph, stopped_by, ran_ns);
+    judge_run(options, &criteria, &config, &graph, &sims, &report, hook.inner())?;
     drop(graph);
     log_recording(&summary);
     Ok(report)
+}
+
+/// Who held control when, watched in runs that are judged (`--verdict`,
+/// or any run on simulated time).
+struct Judge(Option<HolderWatch>);
+
+impl CycleHook for Judge {
+    fn between_cycles(&mut self, graph: &mut Graph, now_ns: u64) {
+        if let Some(watch) = &mut self.0 {
+            watch.between_cycles(graph, now_ns);
+        }
+    }
+}
+
+/// The criteria of `--criteria`, else the lab's defaults.
+fn read_criteria(options: &RunOptions) -> Result<Criteria, RunError> {
+    let Some(path) = &options.criteria else { return Ok(Criteria::default()) };
+    let bad = |reason: String| RunError::Verdict { path: path.clone(), reason };
+    let text = std::fs::read(path).map_err(|e| bad(format!("cannot read the criteria: {e}")))?;
+    serde_json::from_slice(&text).map_err(|e| bad(format!("not the lab's criteria: {e}")))
+}
+
+/// Judges a run that is judged (see [`Judge`]): prints the verdict, and
+/// writes it to `--verdict`.
+fn judge_run(
+    options: &RunOptions,
+    criteria: &Criteria,
+    config: &RobotConfig,
+    graph: &Graph,
+    sims: &crate::sim::SimRegistry,
+    report: &Report,
+    watch: &Judge,
+) -> Result<(), RunError> {
+    let Some(watch) = &watch.0 else { return Ok(()) };
+    let path = options.verdict.clone().unwrap_or_default();
+    let verdict = crate::lab::preflight::verdict(criteria, config, graph, sims, report, watch.timeline().clone())
+        .map_err(|e| RunError::Verdict { path: path.clone(), reason: e.to_string() })?;
+    if verdict.passed {
+        tracing::info!("preflight verdict: passed ({:.1} s simulated)", verdict.observed.simulated_s);
+    } else {
+        tracing::warn!("preflight verdict: refused\n  {}", verdict.reasons.join("\n  "));
+    }
+    if let Some(path) = &options.verdict {
+        let bytes = serde_json::to_vec_pretty(&verdict)
+            .map_err(|e| RunError::Verdict { path: path.clone(), reason: e.to_string() })?;
+        crate::fsutil::write_atomically(path, &bytes)
+            .map_err(|e| RunError::Verdict { path: path.clone(), reason: e.to_string() })?;
+    }
+    Ok(())
 }
 
 /// The wall-clock time of the clock's zero, in ns since the Unix epoch.
@@ -417,6 +489,11 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         waker: shutdown.waker(),
     })?;
     let deploy::Boot { deployer, graph, hook } = boot;
+    let exe = std::env::current_exe().map_err(|e| RunError::ControlLoop(format!("cannot find this program: {e}")))?;
+    let lab = Lab::start(
+        deployer.clone(),
+        LabOptions { preflight: PreflightCommand { exe, cache_dir: options.cache_dir.clone() } },
+    )?;
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
@@ -432,8 +509,8 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .map_err(RunError::PortalRuntime)?;
     let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
     let state = match acceptor {
-        Some(_) => portal::PortalState::over_tls(deployer, directory, portal.logs.clone()),
-        None => portal::PortalState::new(deployer, directory, portal.logs.clone()),
+        Some(_) => portal::PortalState::over_tls(deployer, lab.clone(), directory, portal.logs.clone()),
+        None => portal::PortalState::new(deployer, lab.clone(), directory, portal.logs.clone()),
     };
     let scheme = if acceptor.is_some() { "https" } else { "http" };
     runtime.spawn(async move {
@@ -467,7 +544,9 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
             Some(Err(e)) => tracing::error!("the portal's recording did not finish cleanly: {e}"),
             None => {}
         }
-        return Ok(final_report(hook.inner().config(), &graph, stopped_by, ran_ns));
+        let report = final_report(hook.inner().config(), &graph, stopped_by, ran_ns);
+        lab.shut_down(Some(&report));
+        return Ok(report);
     };
     let mut graph = graph;
     if let Some(address) = record.live {
@@ -481,6 +560,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     graph.take_tap();
     let summary = recorder.finish()?;
     let report = final_report(hook.inner().config(), &graph, stopped_by, ran_ns);
+    lab.shut_down(Some(&report));
     log_recording(&summary);
     Ok(report)
 }

@@ -83,10 +83,20 @@ async fn portal_over(over_tls: bool) -> Portal {
     })
     .map_err(|e| e.to_string())
     .unwrap();
+    let lab = subsume::lab::Lab::start(
+        boot.deployer.clone(),
+        subsume::lab::LabOptions {
+            preflight: subsume::lab::preflight::PreflightCommand {
+                exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
+                cache_dir: Some(support::cache_dir()),
+            },
+        },
+    )
+    .unwrap();
     let state = if over_tls {
-        PortalState::over_tls(boot.deployer, directory, portal::logs::LogRing::new())
+        PortalState::over_tls(boot.deployer, lab, directory, portal::logs::LogRing::new())
     } else {
-        PortalState::new(boot.deployer, directory, portal::logs::LogRing::new())
+        PortalState::new(boot.deployer, lab, directory, portal::logs::LogRing::new())
     };
     let app = portal::app(state);
     let mut tokens = std::collections::HashMap::new();

@@ -26,6 +26,7 @@ pub mod auth;
 pub mod client;
 pub mod deploy_client;
 pub mod error;
+mod lab;
 pub mod logs;
 mod routes;
 
@@ -39,6 +40,7 @@ use self::auth::{LoginLimiter, Sessions};
 pub use self::error::ApiError;
 use self::logs::LogRing;
 use crate::deploy::{Deployer, MAX_CONFIG_UPLOAD_BYTES, MAX_UPLOAD_BYTES, MAX_WORLD_UPLOAD_BYTES};
+use crate::lab::Lab;
 use crate::store::users::Directory;
 
 /// Largest JSON request (login, release): nothing else sends JSON.
@@ -52,6 +54,7 @@ const STYLE_CSS: &str = include_str!("../../../web/style.css");
 /// What the portal's handlers share.
 pub struct PortalState {
     pub deployer: Arc<Deployer>,
+    pub lab: Arc<Lab>,
     pub directory: Arc<Directory>,
     pub logs: Arc<LogRing>,
     sessions: Sessions,
@@ -61,9 +64,15 @@ pub struct PortalState {
 }
 
 impl PortalState {
-    pub fn new(deployer: Arc<Deployer>, directory: Arc<Directory>, logs: Arc<LogRing>) -> Arc<PortalState> {
+    pub fn new(
+        deployer: Arc<Deployer>,
+        lab: Arc<Lab>,
+        directory: Arc<Directory>,
+        logs: Arc<LogRing>,
+    ) -> Arc<PortalState> {
         Arc::new(PortalState {
             deployer,
+            lab,
             directory,
             logs,
             sessions: Sessions::default(),
@@ -74,9 +83,15 @@ impl PortalState {
 
     /// The state of a portal served over TLS: its cookies carry `Secure`,
     /// so a browser never sends them over plain HTTP.
-    pub fn over_tls(deployer: Arc<Deployer>, directory: Arc<Directory>, logs: Arc<LogRing>) -> Arc<PortalState> {
+    pub fn over_tls(
+        deployer: Arc<Deployer>,
+        lab: Arc<Lab>,
+        directory: Arc<Directory>,
+        logs: Arc<LogRing>,
+    ) -> Arc<PortalState> {
         Arc::new(PortalState {
             deployer,
+            lab,
             directory,
             logs,
             sessions: Sessions::default(),
@@ -128,6 +143,23 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/recordings/start", post(start_recording).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/recordings/stop", post(stop_recording))
         .route("/recordings/{name}", get(download_recording).delete(delete_recording))
+        .route(
+            "/experiments",
+            get(lab::list_experiments).post(lab::submit_experiment).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
+        )
+        .route("/experiments/{id}", get(lab::get_experiment))
+        .route("/experiments/{id}/cancel", post(lab::cancel_experiment))
+        .route("/experiments/{id}/results", get(lab::experiment_results))
+        .route("/lab", get(lab::overview))
+        .route("/lab/events", get(lab::events))
+        .route("/lab/settings", put(lab::put_settings).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/lab/baseline", put(lab::put_baseline).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/lab/pause", post(lab::pause))
+        .route("/lab/resume", post(lab::resume))
+        .route("/lab/reset", post(lab::confirm_reset))
+        .route("/lab/reservations", post(lab::book).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/lab/reservations/{id}", axum::routing::delete(lab::unbook))
+        .route("/lab/kit", get(lab::kit))
         .route("/teleop/ticket", post(teleop_ticket))
         .route("/teleop", get(teleop_socket))
         .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))

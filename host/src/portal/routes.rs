@@ -407,7 +407,7 @@ pub(super) async fn teleop_ticket(
     State(state): State<Arc<PortalState>>,
     Authed(user): Authed,
 ) -> Result<Json<Json_>, ApiError> {
-    authorise(&user, Permission::Drive)?;
+    state.deployer.authorise_drive(&user)?;
     teleop_servers(&state)?;
     let ticket = state.directory.tickets.issue(&user.name).map_err(|e| ApiError::internal(e.to_string()))?;
     Ok(Json(json!({ "name": user.name, "ticket": ticket, "websocket": "/api/v1/teleop" })))

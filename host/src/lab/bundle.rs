@@ -1,0 +1,332 @@
+//! An experiment's results (docs/lab.md, Results): the files kept in its
+//! folder of the store, and the one archive they are given back as
+//! (`GET /api/v1/experiments/{id}/results`, a tar file):
+//!
+//! ```text
+//! experiment.json          the record: states with times, submitter, settings that applied
+//! robot.xml                the set's robot file in its preflight form (sources under components/)
+//! components/NAME.wasm     each WASM component's bytes as it ran
+//! files/...                the files robot.xml names (the preflight's world)
+//! run.mcap (.1.mcap ...)   the recording of the run on the robot
+//! report.json              the run's report (envelope interventions, collisions, goal, faults, call times)
+//! log.txt                  the host's log while it ran (from the recording)
+//! preflight.mcap, preflight-report.json, preflight-verdict.json, preflight.log
+//! SHA256SUMS               every other file's sha256 (`sha256sum -c SHA256SUMS`)
+//! ```
+//!
+//! `subsume replay run.mcap robot.xml` on an unpacked bundle reproduces the
+//! experiment's WASM components' outputs bit for bit.
+//!
+//! Retention: the results of finished experiments count against the
+//! owner's cap (`retention_bytes`); beyond it the oldest finished
+//! experiments' recordings go first, and their records stay, marked
+//! `recording_expired`.
+
+use std::io::{Read, Write};
+use std::path::{Path, PathBuf};
+
+use serde_json::Value as Json;
+use sha2::{Digest, Sha256};
+
+use crate::deploy::Ended;
+use crate::store::experiments::{ExperimentRecord, ResultFile, RunResult};
+use crate::store::{Store, StoreError};
+
+pub const RUN_RECORDING: &str = "run.mcap";
+pub const REPORT: &str = "report.json";
+pub const LOG: &str = "log.txt";
+pub const ROBOT: &str = "robot.xml";
+pub const RECORD: &str = "experiment.json";
+pub const SUMS: &str = "SHA256SUMS";
+
+/// Largest recording the log is read from (the whole file is read into
+/// memory): past it the log says so instead.
+pub const MAX_LOG_SOURCE_BYTES: u64 = 1 << 30;
+
+/// Lines of the log kept: a component logging in a loop for two minutes
+/// must not make a giant text file.
+pub const MAX_LOG_LINES: usize = 200_000;
+
+/// One file of the archive and where its bytes come from.
+#[derive(Clone, Debug)]
+pub enum Source {
+    /// A file of the experiment's folder.
+    File(PathBuf),
+    /// A blob of the store (a component's bytes).
+    Blob(String),
+    /// Made for the archive (the record, the sums).
+    Bytes(Vec<u8>),
+}
+
+/// The archive's files, in order.
+#[derive(Clone, Debug)]
+pub struct Contents {
+    /// The folder the archive unpacks into (`experiment-12`, `lab-kit`).
+    pub folder: String,
+    pub entries: Vec<(String, Source)>,
+}
+
+/// Whether `name` is a file the results keep: the known names, and the
+/// rotations of the run's recording (`run.1.mcap`, ...).
+fn is_result_file(name: &str) -> bool {
+    const KEPT: [&str; 8] = [
+        REPORT,
+        LOG,
+        ROBOT,
+        RUN_RECORDING,
+        "preflight.mcap",
+        "preflight-report.json",
+        "preflight-verdict.json",
+        "preflight.log",
+    ];
+    KEPT.contains(&name)
+        || name.strip_prefix("run.").and_then(|r| r.strip_suffix(".mcap")).is_some_and(|n| n.parse::<u32>().is_ok())
+        || name.strip_prefix("files/").is_some_and(|f| !f.contains('/') && !f.starts_with('.'))
+}
+
+/// The result files in experiment `id`'s folder, with their sizes, sorted.
+pub fn scan(store: &Store, id: u64) -> Vec<ResultFile> {
+    let dir = store.experiment_dir(id);
+    let mut files = Vec::new();
+    let mut look = |relative: String, path: PathBuf| {
+        if is_result_file(&relative)
+            && let Ok(meta) = std::fs::symlink_metadata(&path)
+            && meta.is_file()
+        {
+            files.push(ResultFile { name: relative, bytes: meta.len() });
+        }
+    };
+    for folder in ["", "files"] {
+        let Ok(entries) = std::fs::read_dir(dir.join(folder)) else { continue };
+        for entry in entries.flatten() {
+            let name = entry.file_name().to_string_lossy().into_owned();
+            let relative = if folder.is_empty() { name } else { format!("{folder}/{name}") };
+            look(relative, entry.path());
+        }
+    }
+    files.sort_by(|a, b| a.name.cmp(&b.name));
+    files
+}
+
+/// The host's log lines in the recording at `path` (`/subsume/log`),
+/// one per line: `SECONDS LEVEL NAME: MESSAGE`.
+pub fn log_of(path: &Path) -> String {
+    let size = std::fs::metadata(path).map(|m| m.len()).unwrap_or(0);
+    if size > MAX_LOG_SOURCE_BYTES {
+        return format!("(the recording is {size} bytes, more than the {MAX_LOG_SOURCE_BYTES} read for the log)\n");
+    }
+    let Ok(bytes) = std::fs::read(path) else { return String::new() };
+    let Ok(stream) = mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into()) else {
+        return String::new();
+    };
+    let mut out = String::new();
+    let mut lines = 0;
+    for message in stream {
+        // A killed host's recording ends without a footer: what came
+        // before the cut is all there is.
+        let Ok(message) = message else { break };
+        if message.channel.topic != crate::record::LOG_TOPIC {
+            continue;
+        }
+        let Ok(json) = serde_json::from_slice::<Json>(&message.data) else { continue };
+        let level = match json["level"].as_u64() {
+            Some(4) => "ERROR",
+            Some(3) => "WARN",
+            Some(2) => "INFO",
+            _ => "DEBUG",
+        };
+        let seconds = json["timestamp"]["sec"].as_u64().unwrap_or(0);
+        let nanos = json["timestamp"]["nsec"].as_u64().unwrap_or(0);
+        out.push_str(&format!(
+            "{seconds}.{:03} {level} {}: {}\n",
+            nanos / 1_000_000,
+            json["name"].as_str().unwrap_or(""),
+            json["message"].as_str().unwrap_or("")
+        ));
+        lines += 1;
+        if lines >= MAX_LOG_LINES {
+            out.push_str(&format!("(the log stops here: at most {MAX_LOG_LINES} lines are kept)\n"));
+            break;
+        }
+    }
+    out
+}
+
+/// Writes what experiment `record`'s run on the robot left (the report,
+/// the log from its recording) into its folder, and fills in its run
+/// summary and result files. `watchdog_margin_ms`: how late a cycle may
+/// start before the serial link's watchdog could stop the robot for it.
+pub fn write_run_results(
+    store: &Store,
+    record: &mut ExperimentRecord,
+    ended: &Ended,
+    started_ms: u64,
+    watchdog_margin_ms: f64,
+) {
+    let dir = store.experiment_dir(record.id);
+    let mut run = RunResult { started_ms, ended_ms: crate::runtime::locks::unix_now_ms(), ..RunResult::default() };
+    if let Some(report) = &ended.report {
+        run.ran_s = report.duration_s;
+        run.worst_lateness_ms = report.loop_lateness.max_ms;
+        run.late_cycles = report.loop_lateness.histogram.count_above((watchdog_margin_ms * 1e6) as u64);
+        match serde_json::to_vec_pretty(report) {
+            Ok(bytes) => {
+                if let Err(e) = crate::fsutil::write_atomically(&dir.join(REPORT), &bytes) {
+                    tracing::error!("experiment {}: cannot write its report: {e}", record.id);
+                }
+            }
+            Err(e) => tracing::error!("experiment {}: cannot encode its report: {e}", record.id),
+        }
+    }
+    write_log(&dir, record.id);
+    record.run = Some(run);
+    record.results = scan(store, record.id);
+}
+
+fn write_log(dir: &Path, id: u64) {
+    let log = log_of(&dir.join(RUN_RECORDING));
+    if let Err(e) = crate::fsutil::write_atomically(&dir.join(LOG), log.as_bytes()) {
+        tracing::error!("experiment {id}: cannot write its log: {e}");
+    }
+}
+
+/// What a host that stopped during experiment `record` left of it (found
+/// at the next start): its recording as it was cut, and the log in it.
+pub fn salvage(store: &Store, record: &mut ExperimentRecord) {
+    let dir = store.experiment_dir(record.id);
+    write_log(&dir, record.id);
+    record.results = scan(store, record.id);
+}
+
+/// The archive of experiment `record`'s results.
+pub fn contents(store: &Store, record: &ExperimentRecord) -> Result<Contents, StoreError> {
+    let dir = store.experiment_dir(record.id);
+    let record_json = serde_json::to_vec_pretty(record)
+        .map_err(|e| StoreError::Io { path: dir.join(RECORD), reason: e.to_string() })?;
+    let mut entries = vec![(RECORD.to_string(), Source::Bytes(record_json))];
+    for file in scan(store, record.id) {
+        let path = dir.join(&file.name);
+        entries.push((file.name, Source::File(path)));
+    }
+    for component in &record.components {
+        if let Some(sha) = &component.sha256 {
+            entries.push((format!("components/{}.wasm", component.name), Source::Blob(sha.clone())));
+        }
+    }
+    Ok(Contents { folder: format!("experiment-{}", record.id), entries })
+}
+
+/// The bytes of one source, read whole (components and reports are small
+/// next to recordings, which are streamed by [`write_tar`]).
+fn open(store: &Store, source: &Source) -> std::io::Result<(Box<dyn Read>, u64)> {
+    match source {
+        Source::File(path) => {
+            let file = std::fs::File::open(path)?;
+            let size = file.metadata()?.len();
+            Ok((Box::new(file), size))
+        }
+        Source::Blob(sha) => {
+            let bytes = store.blob(sha).map_err(std::io::Error::other)?;
+            let size = bytes.len() as u64;
+            Ok((Box::new(std::io::Cursor::new(bytes)), size))
+        }
+        Source::Bytes(bytes) => Ok((Box::new(std::io::Cursor::new(bytes.clone())), bytes.len() as u64)),
+    }
+}
+
+/// Hashes what `reader` gives while it is read.
+struct Hashing<R> {
+    inner: R,
+    hash: Sha256,
+}
+
+impl<R: Read> Read for Hashing<R> {
+    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
+        let n = self.inner.read(buf)?;
+        self.hash.update(&buf[..n]);
+        Ok(n)
+    }
+}
+
+/// Writes `contents` as a tar archive (in its folder) to `out`, ending
+/// with `SHA256SUMS` of every file before it. Files are streamed, never
+/// held whole.
+pub fn write_tar(store: &Store, contents: &Contents, out: impl Write) -> std::io::Result<()> {
+    let folder = &contents.folder;
+    let mut builder = tar::Builder::new(out);
+    let mut sums = String::new();
+    for (name, source) in &contents.entries {
+        let (reader, size) = open(store, source)?;
+        let mut header = tar::Header::new_gnu();
+        header.set_size(size);
+        header.set_mode(0o644);
+        header.set_mtime(crate::store::unix_now());
+        header.set_entry_type(tar::EntryType::Regular);
+        let mut hashing = Hashing { inner: reader.take(size), hash: Sha256::new() };
+        builder.append_data(&mut header, format!("{folder}/{name}"), &mut hashing)?;
+        sums.push_str(&format!("{}  {name}\n", hex::encode(hashing.hash.finalize())));
+    }
+    let mut header = tar::Header::new_gnu();
+    header.set_size(sums.len() as u64);
+    header.set_mode(0o644);
+    header.set_mtime(crate::store::unix_now());
+    header.set_entry_type(tar::EntryType::Regular);
+    builder.append_data(&mut header, format!("{folder}/{SUMS}"), sums.as_bytes())?;
+    builder.into_inner()?.flush()
+}
+
+/// The recordings of an experiment (what retention removes first).
+fn recordings(record: &ExperimentRecord) -> impl Iterator<Item = &ResultFile> {
+    record.results.iter().filter(|f| f.name.ends_with(".mcap"))
+}
+
+/// Removes the recordings of the oldest finished experiments until the
+/// results of all of them fit in `cap` bytes; returns the experiments
+/// changed (their records must be stored).
+pub fn enforce_retention<'r>(
+    store: &Store,
+    experiments: impl Iterator<Item = &'r mut ExperimentRecord>,
+    cap: u64,
+) -> Vec<u64> {
+    let mut finished: Vec<&mut ExperimentRecord> = experiments.filter(|r| r.state.is_final()).collect();
+    let mut total: u64 = finished.iter().flat_map(|r| r.results.iter()).map(|f| f.bytes).sum();
+    let mut changed = Vec::new();
+    finished.sort_by_key(|r| r.id);
+    for record in finished {
+        if total <= cap {
+            break;
+        }
+        let dir = store.experiment_dir(record.id);
+        let freed: u64 = recordings(record).map(|f| f.bytes).sum();
+        if freed == 0 {
+            continue;
+        }
+        for file in recordings(record) {
+            if let Err(e) = std::fs::remove_file(dir.join(&file.name)) {
+                tracing::warn!("experiment {}: cannot remove {}: {e}", record.id, file.name);
+            }
+        }
+        record.results.retain(|f| !f.name.ends_with(".mcap"));
+        record.recording_expired = true;
+        total = total.saturating_sub(freed);
+        tracing::info!("experiment {}: its recordings expired ({freed} bytes; the retention cap is {cap})", record.id);
+        changed.push(record.id);
+    }
+    changed
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn only_known_result_files_are_kept() {
+        for name in [REPORT, LOG, ROBOT, RUN_RECORDING, "run.1.mcap", "run.12.mcap", "preflight.mcap", "files/a.world"]
+        {
+            assert!(is_result_file(name), "{name}");
+        }
+        for name in ["experiment.json", "run.x.mcap", "../x", "files/../x", "files/.hidden", "preflight-run", "other"] {
+            assert!(!is_result_file(name), "{name}");
+        }
+    }
+}

@@ -1,0 +1,255 @@
+//! A stored set written out as a folder that `subsume run` and `subsume
+//! replay` read on their own: `robot.xml` in its preflight form,
+//! `components/NAME.wasm` (each WASM component's stored bytes), `files/`
+//! (the files built-ins name, the preflight's world among them).
+//!
+//! The preflight form is the set with every built-in asked how it takes
+//! part in a preflight (`Builtin::preflight`): a serial link to a real
+//! device gets a simulated controller of the same protocol, simulated
+//! robots run in the owner's preflight world, the network platform listens
+//! on a port of the system's choosing, Zenoh sessions talk to nobody;
+//! everything else stays as the set has it. The preflight runs this
+//! folder; the lab kit and the results bundle carry it (the operators file
+//! and Zenoh's config file, which hold secrets, are never written).
+//!
+//! Invariants: every path written is made here (component names and
+//! host-made file names), never taken from the robot file; every byte
+//! written comes from the store (blobs by sha256) or from the set's own
+//! folder, bounded by [`MAX_NAMED_FILE_BYTES`].
+
+use std::collections::BTreeMap;
+use std::io::Read;
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+use crate::assemble::registry;
+use crate::builtin::{PreflightContext, check_values};
+use crate::config::SourceMap;
+use crate::config::raw::{self, RawComponent, RawParam, Spanned};
+use crate::store::{SetRecord, Store, StoreError};
+
+/// Largest file a built-in names that is copied (a world, a translator):
+/// a robot file cannot make the lab copy a disk's worth.
+pub const MAX_NAMED_FILE_BYTES: u64 = 64 << 20;
+
+/// The robot file's name in a written folder.
+pub const ROBOT_FILE: &str = "robot.xml";
+
+/// Why a set could not be written out.
+#[derive(Debug, Error)]
+pub enum MaterializeError {
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// The set cannot take part in a preflight (a built-in said why).
+    #[error("{0}")]
+    NotSimulable(String),
+    #[error("set {set}: {reason}")]
+    Damaged { set: u64, reason: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+}
+
+/// The world the preflight's simulated robots use.
+#[derive(Clone, Debug)]
+pub struct PreflightWorld {
+    /// Its name (an uploaded world's), for the comment.
+    pub name: String,
+    /// The world file's stored bytes.
+    pub sha256: String,
+}
+
+/// A written folder.
+#[derive(Clone, Debug)]
+pub struct Written {
+    /// `DIR/robot.xml`.
+    pub robot: PathBuf,
+    /// Every file written, relative to the folder, with its size.
+    pub files: Vec<(String, u64)>,
+    /// Each component's name, source as the stored robot file writes it,
+    /// and the sha256 of the WASM bytes it ran (`None`: a built-in).
+    pub components: Vec<(String, String, Option<String>)>,
+}
+
+fn io(path: &Path) -> impl Fn(std::io::Error) -> MaterializeError + '_ {
+    move |source| MaterializeError::Io { path: path.to_path_buf(), source }
+}
+
+/// Writes set `set` into `dir` (which must exist) in its preflight form,
+/// its simulated robots in `world` when given; `comment` heads the robot
+/// file.
+pub fn write_preflight_form(
+    store: &Store,
+    set: &SetRecord,
+    world: Option<&PreflightWorld>,
+    dir: &Path,
+    comment: &str,
+) -> Result<Written, MaterializeError> {
+    let damaged = |reason: String| MaterializeError::Damaged { set: set.id, reason };
+    let text = String::from_utf8(store.blob(&set.config_sha256)?)
+        .map_err(|e| damaged(format!("the robot file is not utf-8: {e}")))?;
+    let name = PathBuf::from(&set.config_name);
+    let map = SourceMap::new(&name, &text);
+    let mut errors = Vec::new();
+    let mut robot = raw::parse(&map, &text, &mut errors);
+    if !errors.is_empty() || !robot.complete {
+        let first = errors.first().map_or_else(|| "incomplete".to_string(), ToString::to_string);
+        return Err(damaged(format!("the stored robot file does not read: {first}")));
+    }
+    let mut out = Folder { dir, files: Vec::new() };
+    let world_file = match world {
+        Some(world) => {
+            let bytes = store.blob(&world.sha256)?;
+            Some(out.write("files/preflight.world", &bytes)?)
+        }
+        None => None,
+    };
+    let mut components = Vec::new();
+    for platform in &mut robot.platforms {
+        let mut added = Vec::new();
+        for component in &mut platform.components {
+            let name = component.name.value.clone();
+            let source = component.source.value.clone();
+            let Some(kind) = source.strip_prefix("builtin:") else {
+                let sha = set.sources.get(&source).ok_or_else(|| damaged(format!("no stored bytes for '{source}'")))?;
+                let bytes = store.blob(sha)?;
+                let file = out.write(&format!("components/{name}.wasm"), &bytes)?;
+                component.source.value = file;
+                components.push((name, source, Some(sha.clone())));
+                continue;
+            };
+            components.push((name.clone(), source.clone(), None));
+            let builtin = registry::find(kind).ok_or_else(|| damaged(format!("unknown built-in '{kind}'")))?;
+            let given: BTreeMap<String, String> =
+                component.params.iter().map(|p| (p.name.value.clone(), p.value.value.clone())).collect();
+            let params = check_values(builtin.params(), &given)
+                .map_err(|problems| damaged(format!("'{name}': {}", problem_text(&problems))))?;
+            let ctx = PreflightContext {
+                component: &name,
+                world: world_file.as_deref(),
+                sim_name: format!("preflight-sim-{name}"),
+            };
+            let form = builtin.preflight(&params, &ctx).map_err(MaterializeError::NotSimulable)?;
+            for (param, value) in &form.set {
+                set_param(component, param, value);
+            }
+            for (param, contents) in &form.files {
+                let written = out.write(&format!("files/{name}-{param}"), contents)?;
+                set_param(component, param, &written);
+            }
+            // Files the built-in names (that its form did not replace) are
+            // copied beside the robot file.
+            for decl in builtin.params() {
+                if form.set.iter().any(|(p, _)| *p == decl.name) || form.files.iter().any(|(p, _)| *p == decl.name) {
+                    continue;
+                }
+                let Some(file) =
+                    component.params.iter().find(|p| p.name.value == decl.name).map(|p| p.value.value.clone())
+                else {
+                    continue;
+                };
+                let Some(file) = decl.file(&file) else { continue };
+                let bytes = named_file(store, set, file)?;
+                let base =
+                    Path::new(file).file_name().map_or_else(|| "file".into(), |n| n.to_string_lossy().into_owned());
+                let written = out.write(&format!("files/{name}-{}-{}", decl.name, safe_name(&base)), &bytes)?;
+                set_param(component, decl.name, &written);
+            }
+            if let Some(sim_params) = form.simulated_by {
+                let mut sim = RawComponent {
+                    offset: component.offset,
+                    name: spanned(&ctx.sim_name),
+                    source: spanned("builtin:sim"),
+                    priority: None,
+                    rate: None,
+                    budget: None,
+                    timeout: None,
+                    memory: None,
+                    max_emits: None,
+                    max_message: None,
+                    max_logs: None,
+                    restart: None,
+                    max_restarts: None,
+                    params: Vec::new(),
+                };
+                for (param, value) in sim_params {
+                    set_param(&mut sim, param, &value);
+                }
+                components.push((ctx.sim_name.clone(), "builtin:sim".into(), None));
+                added.push(sim);
+            }
+        }
+        // Simulated controllers go first (they own the PTYs the links open).
+        added.append(&mut platform.components);
+        platform.components = added;
+    }
+    let text = raw::write(&robot, comment);
+    let robot_file = out.write(ROBOT_FILE, text.as_bytes())?;
+    Ok(Written { robot: dir.join(robot_file), files: out.files, components })
+}
+
+fn spanned(value: &str) -> Spanned<String> {
+    Spanned { value: value.to_string(), offset: 0 }
+}
+
+fn set_param(component: &mut RawComponent, name: &str, value: &str) {
+    match component.params.iter_mut().find(|p| p.name.value == name) {
+        Some(param) => param.value.value = value.to_string(),
+        None => {
+            component.params.push(RawParam { offset: component.offset, name: spanned(name), value: spanned(value) })
+        }
+    }
+}
+
+fn problem_text(problems: &[crate::config::ParamProblem]) -> String {
+    problems.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ")
+}
+
+/// Letters, digits, `.`, `-` and `_` of `name`, the rest as `_`.
+fn safe_name(name: &str) -> String {
+    name.chars().map(|c| if c.is_ascii_alphanumeric() || matches!(c, '.' | '-' | '_') { c } else { '_' }).collect()
+}
+
+/// The bytes of file `file` a built-in of `set` names: an uploaded world
+/// pinned to a blob, else the file in the set's folder.
+fn named_file(store: &Store, set: &SetRecord, file: &str) -> Result<Vec<u8>, MaterializeError> {
+    if let Some(sha) = set.sources.get(file) {
+        return Ok(store.blob(sha)?);
+    }
+    let path = set.base_dir.join(file);
+    let opened = std::fs::File::open(&path).map_err(io(&path))?;
+    let mut bytes = Vec::new();
+    opened.take(MAX_NAMED_FILE_BYTES + 1).read_to_end(&mut bytes).map_err(io(&path))?;
+    if bytes.len() as u64 > MAX_NAMED_FILE_BYTES {
+        return Err(MaterializeError::Damaged {
+            set: set.id,
+            reason: format!("{} is larger than {MAX_NAMED_FILE_BYTES} bytes", path.display()),
+        });
+    }
+    Ok(bytes)
+}
+
+/// The folder being written, and what was written.
+struct Folder<'a> {
+    dir: &'a Path,
+    files: Vec<(String, u64)>,
+}
+
+impl Folder<'_> {
+    /// Writes `bytes` at `relative` (a host-made path) atomically; returns
+    /// `relative`.
+    fn write(&mut self, relative: &str, bytes: &[u8]) -> Result<String, MaterializeError> {
+        let path = self.dir.join(relative);
+        if let Some(parent) = path.parent() {
+            std::fs::create_dir_all(parent).map_err(io(parent))?;
+        }
+        crate::fsutil::write_atomically(&path, bytes).map_err(io(&path))?;
+        self.files.retain(|(name, _)| name != relative);
+        self.files.push((relative.to_string(), bytes.len() as u64));
+        Ok(relative.to_string())
+    }
+}

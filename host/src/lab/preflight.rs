@@ -1,0 +1,337 @@
+//! The preflight: every experiment first runs headless in the simulator,
+//! for its whole duration, before it may drive the robot (docs/lab.md).
+//!
+//! It is `subsume run` on the set's robot file in its preflight form
+//! ([`super::materialize`]), in a process of its own at background priority
+//! (`nice` 19 and `SCHED_IDLE`): its own sandbox instances, its own memory,
+//! and a crash or a runaway guest of its own never reaches the robot's
+//! control loop. It runs on simulated time as fast as the machine allows,
+//! records to MCAP, writes the run report, and judges what it saw
+//! ([`super::verdict`]) with the owner's criteria: `subsume run --verdict`.
+//!
+//! Child side: [`HolderWatch`] (who held control when, from the arbiter's
+//! standings, one atomic load a cycle) and [`observe`] (what the run saw, read
+//! from the graph, the simulated robots and the report when it ends).
+//! Parent side: [`run`] starts the child, bounds its wall-clock time, and
+//! reads its verdict.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+
+use thiserror::Error;
+
+use super::verdict::{ContactAt, Criteria, Fault, HolderTimeline, Interventions, Observations, Verdict, judge};
+use crate::config::{ComponentSource, RobotConfig};
+use crate::report::Report;
+use crate::runtime::Graph;
+use crate::runtime::control_loop::CycleHook;
+use crate::runtime::graph::ComponentState;
+use crate::runtime::wiring::{Standing, Standings};
+use crate::sim::SimRegistry;
+
+/// Longest wall-clock time a preflight may take, beyond its simulated
+/// duration: a preflight whose components use their whole budgets on every
+/// call runs slower than real time, and must not hold the lab's checks
+/// forever.
+pub const PREFLIGHT_WALL_GRACE: Duration = Duration::from_secs(60);
+
+/// The `nice` value of a preflight process: it only gets the CPU the robot
+/// does not use.
+pub const PREFLIGHT_NICE: i32 = 19;
+
+/// Notes who holds control, on the control thread, between cycles: one
+/// atomic load a cycle, a look at each source's standing only when an
+/// arbiter changed one.
+pub struct HolderWatch {
+    standings: Standings,
+    sources: Vec<String>,
+    seen: u64,
+    timeline: HolderTimeline,
+}
+
+impl HolderWatch {
+    /// Watches the sources of `config` through `standings` (the one the
+    /// run's arbiters write).
+    pub fn new(config: &RobotConfig, standings: Standings) -> HolderWatch {
+        let sources = config.components.iter().filter(|c| c.priority.is_some()).map(|c| c.name.clone()).collect();
+        HolderWatch { standings, sources, seen: u64::MAX, timeline: HolderTimeline::default() }
+    }
+
+    pub fn timeline(&self) -> &HolderTimeline {
+        &self.timeline
+    }
+}
+
+impl CycleHook for HolderWatch {
+    fn between_cycles(&mut self, _graph: &mut Graph, now_ns: u64) {
+        let generation = self.standings.generation();
+        if generation == self.seen {
+            return;
+        }
+        self.seen = generation;
+        let holder = self.sources.iter().find(|s| self.standings.get(s) == Standing::Holds);
+        self.timeline.note(now_ns as f64 / 1e9, holder.map(String::as_str));
+    }
+}
+
+/// The envelope's section of the run report, as the verdict reads it: the
+/// counts by cause and the first intervention of each.
+#[derive(serde::Deserialize)]
+struct EnvelopeSection {
+    causes: BTreeMap<String, u64>,
+    first: BTreeMap<String, FirstIntervention>,
+}
+
+#[derive(serde::Deserialize)]
+struct FirstIntervention {
+    at_s: f64,
+    text: String,
+}
+
+/// Why what a run saw could not be read.
+#[derive(Debug, Error)]
+#[error("the run's report cannot be judged: {0}")]
+pub struct ObserveError(String);
+
+/// What the run of `config` saw, once it stopped: its faults from `graph`,
+/// the collisions of its simulated robots from `sims`, the envelope's
+/// interventions from `report`, who held control when from `holders`.
+pub fn observe(
+    config: &RobotConfig,
+    graph: &Graph,
+    sims: &SimRegistry,
+    report: &Report,
+    holders: HolderTimeline,
+) -> Result<Observations, ObserveError> {
+    let mut observed = Observations { simulated_s: report.duration_s, holders, ..Observations::default() };
+    for (index, component) in config.components.iter().enumerate() {
+        if let Some(ComponentState::Faulted { reason, at_ns }) = graph.state(index) {
+            observed.faults.push(Fault {
+                component: component.name.clone(),
+                at_s: *at_ns as f64 / 1e9,
+                reason: reason.clone(),
+            });
+        }
+        if component.source == ComponentSource::Builtin("sim".into()) {
+            let Some(sim) = sims.get(&component.name) else {
+                return Err(ObserveError(format!("the simulated robot '{}' did not register", component.name)));
+            };
+            let status = sim.status();
+            observed.collisions += status.collisions;
+            observed.contacts.extend(status.contacts.iter().map(|c| ContactAt::of(&component.name, c)));
+            observed.goal_reached = Some(observed.goal_reached.unwrap_or(true) && status.goal_reached);
+        }
+    }
+    observed.faults.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    observed.contacts.sort_by(|a, b| a.time_s.total_cmp(&b.time_s));
+    // The report's sections are by kind: `envelope`, or `envelope:NAME`
+    // when a robot has two.
+    for (key, section) in &report.sections {
+        if key != "envelope" && !key.starts_with("envelope:") {
+            continue;
+        }
+        let envelope: EnvelopeSection =
+            serde_json::from_value(section.clone()).map_err(|e| ObserveError(format!("section '{key}': {e}")))?;
+        for (cause, count) in envelope.causes {
+            let first = envelope.first.get(&cause);
+            let seen =
+                observed.envelope.entry(cause).or_insert(Interventions { count: 0, first_at_s: None, first: None });
+            seen.count += count;
+            if let Some(first) = first
+                && seen.first_at_s.is_none_or(|at| first.at_s < at)
+            {
+                seen.first_at_s = Some(first.at_s);
+                seen.first = Some(first.text.clone());
+            }
+        }
+    }
+    Ok(observed)
+}
+
+/// The verdict of the run of `config` (see [`observe`]).
+pub fn verdict(
+    criteria: &Criteria,
+    config: &RobotConfig,
+    graph: &Graph,
+    sims: &SimRegistry,
+    report: &Report,
+    holders: HolderTimeline,
+) -> Result<Verdict, ObserveError> {
+    Ok(judge(criteria, observe(config, graph, sims, report, holders)?))
+}
+
+/// Where a preflight writes what it leaves.
+#[derive(Clone, Debug)]
+pub struct PreflightFiles {
+    pub recording: PathBuf,
+    pub report: PathBuf,
+    pub verdict: PathBuf,
+    pub criteria: PathBuf,
+    /// The child's standard output and error.
+    pub log: PathBuf,
+}
+
+impl PreflightFiles {
+    /// The files of a preflight in `dir`.
+    pub fn in_dir(dir: &Path) -> PreflightFiles {
+        PreflightFiles {
+            recording: dir.join("preflight.mcap"),
+            report: dir.join("preflight-report.json"),
+            verdict: dir.join("preflight-verdict.json"),
+            criteria: dir.join("preflight-criteria.json"),
+            log: dir.join("preflight.log"),
+        }
+    }
+}
+
+/// How a preflight run ended.
+#[derive(Debug)]
+pub enum Outcome {
+    /// It ran its whole duration and was judged.
+    Judged { verdict: Verdict, wall_s: f64 },
+    /// The robot file did not start in the simulator: the submitter's
+    /// problem, with what `subsume run` said.
+    DidNotStart(Vec<String>),
+    /// It took longer than its wall-clock bound and was killed.
+    TooSlow { limit: Duration },
+}
+
+/// Why a preflight could not be carried out (the host's problem).
+#[derive(Debug, Error)]
+pub enum PreflightError {
+    #[error("cannot start the preflight process {exe}: {source}")]
+    Spawn {
+        exe: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("preflight file {path}: {reason}")]
+    File { path: PathBuf, reason: String },
+    #[error("the preflight process ended without a verdict ({status}); its last words: {last}")]
+    Crashed { status: String, last: String },
+    #[error("the preflight was cancelled")]
+    Cancelled,
+}
+
+/// What starting a preflight needs.
+#[derive(Clone, Debug)]
+pub struct PreflightCommand {
+    /// The `subsume` binary.
+    pub exe: PathBuf,
+    /// The compile cache to share with the host (no cache when `None`).
+    pub cache_dir: Option<PathBuf>,
+}
+
+/// Lines of the child's output kept as a reason when the robot did not start.
+const LAST_WORDS: usize = 12;
+
+/// Runs the preflight of the robot file `robot` for `duration` in a
+/// process of its own at background priority, writing `files`; `cancelled`
+/// is polled to stop it early.
+pub fn run(
+    command: &PreflightCommand,
+    robot: &Path,
+    duration: Duration,
+    criteria: &Criteria,
+    files: &PreflightFiles,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Outcome, PreflightError> {
+    let file_error = |path: &Path| {
+        let path = path.to_path_buf();
+        move |e: std::io::Error| PreflightError::File { path: path.clone(), reason: e.to_string() }
+    };
+    let criteria_json = serde_json::to_vec_pretty(criteria)
+        .map_err(|e| PreflightError::File { path: files.criteria.clone(), reason: e.to_string() })?;
+    crate::fsutil::write_atomically(&files.criteria, &criteria_json).map_err(file_error(&files.criteria))?;
+    let log = std::fs::File::create(&files.log).map_err(file_error(&files.log))?;
+    let log_err = log.try_clone().map_err(file_error(&files.log))?;
+    let mut child = Command::new(&command.exe);
+    child
+        .arg("run")
+        .arg(robot)
+        .args(["--http", "off", "--speed", "max", "--foxglove", "off"])
+        .arg("--duration")
+        .arg(format!("{}", duration.as_secs_f64()))
+        .arg("--record")
+        .arg(&files.recording)
+        .arg("--report")
+        .arg(&files.report)
+        .arg("--verdict")
+        .arg(&files.verdict)
+        .arg("--criteria")
+        .arg(&files.criteria)
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .env_remove("SUBSUME_FAULT_INJECTION")
+        .env_remove("SUBSUME_HTTP")
+        .env_remove("SUBSUME_FOXGLOVE")
+        .stdin(Stdio::null())
+        .stdout(Stdio::from(log))
+        .stderr(Stdio::from(log_err));
+    match &command.cache_dir {
+        Some(dir) => child.arg("--cache-dir").arg(dir),
+        None => child.arg("--no-cache"),
+    };
+    background(&mut child);
+    let started = Instant::now();
+    let limit = duration + PREFLIGHT_WALL_GRACE;
+    let mut process = child.spawn().map_err(|source| PreflightError::Spawn { exe: command.exe.clone(), source })?;
+    let status = loop {
+        match process.try_wait() {
+            Ok(Some(status)) => break status,
+            Ok(None) => {}
+            Err(e) => return Err(PreflightError::Crashed { status: e.to_string(), last: String::new() }),
+        }
+        if cancelled() || started.elapsed() > limit {
+            let _ = process.kill();
+            let _ = process.wait();
+            if cancelled() {
+                return Err(PreflightError::Cancelled);
+            }
+            return Ok(Outcome::TooSlow { limit });
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let wall_s = started.elapsed().as_secs_f64();
+    let output = std::fs::read_to_string(&files.log).unwrap_or_default();
+    if status.success() {
+        let bytes = std::fs::read(&files.verdict).map_err(file_error(&files.verdict))?;
+        let verdict: Verdict = serde_json::from_slice(&bytes)
+            .map_err(|e| PreflightError::File { path: files.verdict.clone(), reason: e.to_string() })?;
+        return Ok(Outcome::Judged { verdict, wall_s });
+    }
+    let errors: Vec<String> = output
+        .lines()
+        .filter_map(|l| l.strip_prefix("error: "))
+        .map(|l| format!("preflight: {l}"))
+        .take(LAST_WORDS)
+        .collect();
+    // Exit code 1 with errors: the robot file did not start (a config or
+    // start error, the submitter's). Anything else (a panic, a signal) is
+    // the host's.
+    if status.code() == Some(1) && !errors.is_empty() {
+        return Ok(Outcome::DidNotStart(errors));
+    }
+    let last = output.lines().rev().take(3).collect::<Vec<_>>().join(" | ");
+    Err(PreflightError::Crashed { status: status.to_string(), last: crate::contract::clip(&last) })
+}
+
+/// The child runs at `nice` [`PREFLIGHT_NICE`] under `SCHED_IDLE`: it gets
+/// only what the robot's threads leave.
+fn background(command: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: between fork and exec only async-signal-safe calls are made
+    // (setpriority and sched_setscheduler are system calls), nothing
+    // allocates, and the results are ignored: a refused setting leaves the
+    // child at normal priority, which is still a separate process.
+    unsafe {
+        command.pre_exec(|| {
+            libc::setpriority(libc::PRIO_PROCESS, 0, PREFLIGHT_NICE);
+            let param = libc::sched_param { sched_priority: 0 };
+            libc::sched_setscheduler(0, libc::SCHED_IDLE, &param);
+            Ok(())
+        });
+    }
+}

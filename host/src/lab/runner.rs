@@ -1,0 +1,551 @@
+//! The lab's two threads. The checker takes submitted experiments one at a
+//! time, oldest first: it checks the set again against the baseline, writes
+//! it in its preflight form and runs the preflight (a process of its own at
+//! background priority), then queues or refuses it. The runner decides,
+//! every [`POLL`] or when woken, whether the experiment on the robot must
+//! end (its time is up, a cancel, an emergency stop, an admin's activation)
+//! or the next one may start (the queue's rules, no lock engaged, the
+//! robot reset), and carries that out through `deploy`.
+//!
+//! Neither thread holds the lab's lock while it builds a graph or runs a
+//! preflight: requests keep being answered.
+
+use std::collections::BTreeMap;
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::materialize::{self, MaterializeError, PreflightWorld};
+use super::preflight::{self, Outcome, PreflightError, PreflightFiles};
+use super::queue::{self, QueueView};
+use super::{Book, Lab, LabError, TURNAROUND, bundle, run_recording};
+use crate::deploy::{DeployError, RunningExperiment};
+use crate::runtime::Locks;
+use crate::runtime::locks::unix_now_ms;
+use crate::store::experiments::{ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy};
+use crate::store::users::User;
+
+/// How often the runner looks at the robot and the queue when nothing
+/// wakes it.
+pub const POLL: Duration = Duration::from_millis(50);
+
+/// A cycle that started this late is the host's lateness, not the
+/// algorithm's: a third of the serial link's default watchdog (0.3 s).
+pub const LATE_CYCLE_MS: f64 = 100.0;
+
+/// The experiment on the robot.
+#[derive(Clone, Debug)]
+pub(super) struct OnRobot {
+    pub id: u64,
+    pub baseline: u64,
+    /// Graph time it started and ends at (ns).
+    pub started_ns: u64,
+    pub ends_ns: u64,
+    pub started_unix_ms: u64,
+    pub ends_unix_ms: u64,
+}
+
+/// How an experiment on the robot ends.
+#[derive(Clone, Debug)]
+struct Ending {
+    id: u64,
+    state: ExperimentState,
+    cause: String,
+    /// The queue pauses after it (an admin's activation takes the robot).
+    pause: bool,
+}
+
+enum Next {
+    Wait,
+    Start(u64),
+    End(Ending),
+}
+
+pub(super) fn spawn(lab: &Arc<Lab>) -> Result<(), LabError> {
+    let mut threads = lab.threads.lock().map_err(|_| LabError::Host("the lab's threads are unusable".into()))?;
+    for (name, work) in [("lab-checks", checks as fn(&Lab)), ("lab-runner", robot as fn(&Lab))] {
+        let lab = lab.clone();
+        let thread = std::thread::Builder::new()
+            .name(name.into())
+            .spawn(move || work(&lab))
+            .map_err(|e| LabError::Host(format!("cannot start the lab's thread {name}: {e}")))?;
+        threads.push(thread);
+    }
+    Ok(())
+}
+
+fn checks(lab: &Lab) {
+    while !lab.is_stopping() {
+        let next = {
+            let Ok(book) = lab.book.lock() else { return };
+            let next = book.experiments.values().find(|r| r.state == ExperimentState::Checking).map(|r| r.id);
+            if next.is_none() {
+                let _ = lab.changed.wait_timeout(book, Duration::from_secs(1));
+                continue;
+            }
+            next
+        };
+        if let Some(id) = next
+            && let Err(e) = check(lab, id)
+        {
+            tracing::error!("experiment {id}: the lab could not check it: {e}");
+            fail(lab, id, &format!("failed: {e}"));
+        }
+    }
+}
+
+/// Ends experiment `id` as `failed` (the host's problem), naming `reason`.
+fn fail(lab: &Lab, id: u64, reason: &str) {
+    if let Ok(mut book) = lab.lock()
+        && book.experiments.get(&id).is_some_and(|r| !r.state.is_final())
+    {
+        let _ = lab.transition(&mut book, id, ExperimentState::Failed, reason, vec![reason.to_string()]);
+    }
+}
+
+/// Ends experiment `id` as `refused`, with every reason.
+fn refuse(lab: &Lab, id: u64, cause: &str, reasons: Vec<String>) -> Result<(), LabError> {
+    let mut book = lab.lock()?;
+    if book.experiments.get(&id).is_some_and(|r| !r.state.is_final()) {
+        lab.transition(&mut book, id, ExperimentState::Refused, cause, reasons)?;
+    }
+    Ok(())
+}
+
+fn user(lab: &Lab, name: &str) -> Option<User> {
+    lab.store().users().get(name)
+}
+
+/// Checks experiment `id` again and runs its preflight.
+fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
+    let (record, baseline) = {
+        let book = lab.lock()?;
+        let record = book.experiments.get(&id).cloned().ok_or_else(|| super::not_found(id))?;
+        (record, lab.baseline(&book.lab))
+    };
+    let Some(submitter) = user(lab, &record.submitter) else {
+        let reason = format!("refused: the submitter '{}' is no longer a user", record.submitter);
+        return refuse(lab, id, &reason, vec![reason.clone()]);
+    };
+    if let Err(e) = lab.deployer.check_experiment_set(&submitter, record.set, baseline) {
+        return match LabError::from(e) {
+            LabError::Invalid(diagnostics) => refuse(
+                lab,
+                id,
+                "refused: the set no longer validates",
+                diagnostics.0.iter().map(|d| format!("check: {d}")).collect(),
+            ),
+            e @ (LabError::Forbidden(_) | LabError::NotFound(_) | LabError::BadRequest(_)) => {
+                let reason = format!("check: {e}");
+                refuse(lab, id, "refused: the set cannot run as an experiment", vec![reason])
+            }
+            e => Err(e),
+        };
+    }
+    let settings = {
+        let mut book = lab.lock()?;
+        if book.experiments.get(&id).is_none_or(|r| r.state != ExperimentState::Checking) {
+            return Ok(());
+        }
+        lab.transition(&mut book, id, ExperimentState::Preflight, "checked; it runs in the simulator first", vec![])?;
+        book.lab.settings.clone()
+    };
+    let dir = lab.store().experiment_dir(id);
+    let run_dir = dir.join("preflight-run");
+    let _ = std::fs::remove_dir_all(&run_dir);
+    std::fs::create_dir_all(&run_dir).map_err(|e| LabError::Host(format!("cannot make {}: {e}", run_dir.display())))?;
+    let world = match &settings.preflight_world {
+        Some(name) => {
+            let worlds = lab.store().worlds()?;
+            let stored = worlds
+                .get(name)
+                .ok_or_else(|| LabError::Host(format!("the preflight world '{name}' is not stored")))?;
+            Some(PreflightWorld { name: name.clone(), sha256: stored.sha256.clone() })
+        }
+        None => None,
+    };
+    let set = lab.store().set(record.set)?;
+    let comment = format!(
+        "set {} of {}, in its preflight form (docs/lab.md), written by subsume for experiment {id}",
+        set.id, set.created_by
+    );
+    let written = match materialize::write_preflight_form(lab.store(), &set, world.as_ref(), &run_dir, &comment) {
+        Ok(written) => written,
+        Err(MaterializeError::NotSimulable(why)) => {
+            let reason = format!("preflight: {why}");
+            return refuse(lab, id, "refused: it cannot run in the simulator", vec![reason]);
+        }
+        Err(e) => return Err(LabError::Host(e.to_string())),
+    };
+    let files = PreflightFiles::in_dir(&dir);
+    let duration = Duration::from_secs_f64(record.duration_s);
+    let cancelled = || lab.is_stopping() || lab.book.lock().map(|b| b.cancels.contains_key(&id)).unwrap_or(true);
+    let outcome =
+        preflight::run(&lab.options.preflight, &written.robot, duration, &settings.criteria, &files, &cancelled);
+    // The robot file in its preflight form stays with the results; what it
+    // named is in the store already.
+    if let Err(e) = std::fs::rename(&written.robot, dir.join(bundle::ROBOT)) {
+        tracing::warn!("experiment {id}: cannot keep its robot file: {e}");
+    }
+    for (name, _) in written.files.iter().filter(|(n, _)| n.starts_with("files/")) {
+        let to = dir.join(name);
+        if let Some(parent) = to.parent() {
+            let _ = std::fs::create_dir_all(parent);
+        }
+        let _ = std::fs::rename(run_dir.join(name), to);
+    }
+    let _ = std::fs::remove_dir_all(&run_dir);
+    let mut book = lab.lock()?;
+    if let Some(record) = book.experiments.get_mut(&id) {
+        record.results = bundle::scan(lab.store(), id);
+    }
+    match outcome {
+        Ok(Outcome::Judged { verdict, wall_s }) => {
+            if let Some(record) = book.experiments.get_mut(&id) {
+                record.preflight = Some(PreflightResult {
+                    passed: verdict.passed,
+                    reasons: verdict.reasons.clone(),
+                    simulated_s: verdict.observed.simulated_s,
+                    wall_s,
+                    replay: None,
+                });
+            }
+            if verdict.passed {
+                let cause = format!(
+                    "passed its preflight ({:.0} s simulated in {wall_s:.1} s); queued",
+                    verdict.observed.simulated_s
+                );
+                lab.transition(&mut book, id, ExperimentState::Queued, &cause, vec![])?;
+            } else {
+                lab.transition(&mut book, id, ExperimentState::Refused, "refused by its preflight", verdict.reasons)?;
+            }
+        }
+        Ok(Outcome::DidNotStart(errors)) => {
+            lab.transition(
+                &mut book,
+                id,
+                ExperimentState::Refused,
+                "refused: it did not start in the simulator",
+                errors,
+            )?;
+        }
+        Ok(Outcome::TooSlow { limit }) => {
+            let reason = format!(
+                "preflight: it did not finish within {} s of wall-clock time (its components use most of their budgets)",
+                limit.as_secs()
+            );
+            lab.transition(
+                &mut book,
+                id,
+                ExperimentState::Refused,
+                "refused: its preflight was too slow",
+                vec![reason],
+            )?;
+        }
+        Err(PreflightError::Cancelled) if lab.is_stopping() => {}
+        Err(PreflightError::Cancelled) => {
+            let by = book.cancels.remove(&id).unwrap_or_default();
+            let cause = format!("cancelled by {by} during its preflight");
+            lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])?;
+        }
+        Err(e) => {
+            let reason = format!("failed: {e}");
+            lab.transition(&mut book, id, ExperimentState::Failed, &reason, vec![reason.clone()])?;
+        }
+    }
+    book.cancels.remove(&id);
+    Ok(())
+}
+
+fn robot(lab: &Lab) {
+    while !lab.is_stopping() {
+        let next = match lab.lock() {
+            Ok(mut book) => {
+                let next = decide(lab, &mut book);
+                if matches!(next, Next::Wait) {
+                    let _ = lab.changed.wait_timeout(book, POLL);
+                    continue;
+                }
+                next
+            }
+            Err(_) => return,
+        };
+        match next {
+            Next::Wait => {}
+            Next::Start(id) => start(lab, id),
+            Next::End(ending) => end(lab, &ending),
+        }
+    }
+}
+
+/// The holder of the reservation in effect may drive until it ends.
+fn grant(lab: &Lab, book: &mut Book) {
+    let now = unix_now_ms();
+    let granted = queue::reservation_at(&book.lab.reservations, now).map(|r| (r.user.clone(), r.end_ms));
+    if granted != book.granted {
+        if let Some(directory) = lab.deployer.services.get::<crate::store::users::Directory>() {
+            directory.grants.set(granted.clone());
+        }
+        match &granted {
+            Some((user, until)) => {
+                tracing::info!("{user}'s reservation begins: they may drive until {}", crate::deploy::utc_time(*until))
+            }
+            None => tracing::info!("no reservation is in effect"),
+        }
+        book.granted = granted;
+        lab.notify();
+    }
+}
+
+/// What the runner does now.
+fn decide(lab: &Lab, book: &mut Book) -> Next {
+    grant(lab, book);
+    let locks = lab.deployer.services.get::<Locks>();
+    let engaged = locks.as_ref().and_then(|l| l.engaged().into_iter().next());
+    if let Some(running) = book.running.clone() {
+        let id = running.id;
+        if let Some((_, by, what)) = book.preempt.clone().filter(|(p, _, _)| *p == id) {
+            return Next::End(Ending {
+                id,
+                state: ExperimentState::Cancelled,
+                cause: format!("cancelled: admin {by} is about to {what}"),
+                pause: true,
+            });
+        }
+        if let Some(by) = book.cancels.get(&id) {
+            return Next::End(Ending {
+                id,
+                state: ExperimentState::Cancelled,
+                cause: format!("cancelled by {by}"),
+                pause: false,
+            });
+        }
+        if let Some(lock) = engaged {
+            return Next::End(Ending {
+                id,
+                state: ExperimentState::Aborted,
+                cause: format!("aborted: emergency stop by {} ({})", lock.by, lock.how),
+                pause: false,
+            });
+        }
+        if lab.deployer.graph_now_ns() >= running.ends_ns {
+            return Next::End(Ending {
+                id,
+                state: ExperimentState::Done,
+                cause: "its time is up".into(),
+                pause: false,
+            });
+        }
+        return Next::Wait;
+    }
+    let now = unix_now_ms();
+    let waiting = Lab::waiting(book);
+    let view = QueueView {
+        now_ms: now,
+        running_until_ms: None,
+        waiting: &waiting,
+        reservations: &book.lab.reservations,
+        paused: book.lab.paused,
+        turnaround_ms: TURNAROUND.as_millis() as u64,
+    };
+    let next = queue::next_to_start(&view);
+    let held = match (next, &engaged) {
+        (Some(_), Some(lock)) => {
+            Some(format!("the emergency stop is engaged (by {}): the queue waits for its release", lock.by))
+        }
+        _ => None,
+    };
+    if held != book.held {
+        book.held = held;
+        lab.notify();
+    }
+    let Some(id) = next else { return Next::Wait };
+    if engaged.is_some() {
+        return Next::Wait;
+    }
+    if book.lab.settings.reset == ResetPolicy::Manual && book.reset_confirmed != Some(id) {
+        if book.awaiting_reset != Some(id) {
+            book.awaiting_reset = Some(id);
+            book.held = Some(format!("experiment {id} waits for the robot to be reset (an admin confirms)"));
+            lab.notify();
+        }
+        return Next::Wait;
+    }
+    Next::Start(id)
+}
+
+/// Starts experiment `id` on the robot.
+fn start(lab: &Lab, id: u64) {
+    let prepared = (|| {
+        let mut book = lab.lock()?;
+        let record = book.experiments.get(&id).cloned().ok_or_else(|| super::not_found(id))?;
+        if record.state != ExperimentState::Queued {
+            return Ok(None);
+        }
+        book.starting = Some(id);
+        let baseline = lab.baseline(&book.lab);
+        Ok::<_, LabError>(Some((record, baseline, book.lab.settings.reset)))
+    })();
+    let (record, baseline, reset) = match prepared {
+        Ok(Some(prepared)) => prepared,
+        Ok(None) => return,
+        Err(e) => return fail(lab, id, &format!("failed: {e}")),
+    };
+    let outcome = start_on_robot(lab, &record, baseline, reset);
+    let Ok(mut book) = lab.lock() else { return };
+    book.starting = None;
+    match outcome {
+        Ok(on_robot) => {
+            book.running = Some(on_robot);
+            book.awaiting_reset = None;
+            book.reset_confirmed = None;
+            book.held = None;
+            let cause = "started on the robot from a fresh start, recording";
+            if let Err(e) = lab.transition(&mut book, id, ExperimentState::Running, cause, vec![]) {
+                tracing::error!("experiment {id} runs but its record was not stored: {e}");
+            }
+        }
+        Err((state, reason)) => {
+            let cause = format!("{}: {reason}", state.name());
+            let _ = lab.transition(&mut book, id, state, &cause, vec![reason]);
+        }
+    }
+}
+
+fn start_on_robot(
+    lab: &Lab,
+    record: &ExperimentRecord,
+    baseline: u64,
+    reset: ResetPolicy,
+) -> Result<OnRobot, (ExperimentState, String)> {
+    let refused = |why: String| (ExperimentState::Refused, why);
+    let failed = |why: String| (ExperimentState::Failed, why);
+    let submitter = user(lab, &record.submitter)
+        .ok_or_else(|| refused(format!("the submitter '{}' is no longer a user", record.submitter)))?;
+    let reset_sim = reset == ResetPolicy::Sim;
+    if reset_sim && !lab.deployer.has_simulated_robot().map_err(|e| failed(e.to_string()))? {
+        return Err(failed("the reset policy is sim, but the robot has no simulated robot to reset".into()));
+    }
+    let started_unix_ms = unix_now_ms();
+    let duration_ms = (record.duration_s * 1000.0) as u64;
+    let tag = RunningExperiment {
+        id: record.id,
+        submitter: record.submitter.clone(),
+        set: record.set,
+        label: record.label.clone(),
+        started_unix_ms,
+        ends_unix_ms: started_unix_ms + duration_ms,
+    };
+    let mut about = BTreeMap::from([
+        ("experiment".to_string(), record.id.to_string()),
+        ("submitter".to_string(), record.submitter.clone()),
+        ("set".to_string(), record.set.to_string()),
+        ("label".to_string(), record.label.clone()),
+    ]);
+    for component in &record.components {
+        if let Some(sha) = &component.sha256 {
+            about.insert(format!("sha256.{}", component.name), sha.clone());
+        }
+    }
+    let path = run_recording(lab.store(), record.id);
+    let started_ns = lab.deployer.graph_now_ns();
+    lab.deployer.start_experiment(&submitter, tag, path, about, reset_sim).map_err(|e| match e {
+        DeployError::Invalid(d) => refused(format!("at its turn the set no longer validates: {d}")),
+        DeployError::Forbidden(m) | DeployError::Conflict(m) => refused(format!("at its turn: {m}")),
+        DeployError::Start(errors) => refused(format!(
+            "at its turn the set did not start: {}",
+            errors.iter().map(ToString::to_string).collect::<Vec<_>>().join("; ")
+        )),
+        other => failed(other.to_string()),
+    })?;
+    Ok(OnRobot {
+        id: record.id,
+        baseline,
+        started_ns,
+        ends_ns: started_ns + duration_ms * 1_000_000,
+        started_unix_ms,
+        ends_unix_ms: started_unix_ms + duration_ms,
+    })
+}
+
+/// Ends the experiment on the robot: the baseline comes back, the results
+/// are written, the record gets its final state.
+fn end(lab: &Lab, ending: &Ending) {
+    let id = ending.id;
+    let running = {
+        let Ok(mut book) = lab.lock() else { return };
+        let Some(running) = book.running.clone().filter(|r| r.id == id) else { return };
+        if let Err(e) = lab.transition(&mut book, id, ExperimentState::Finishing, &ending.cause, vec![]) {
+            tracing::error!("experiment {id}: {e}");
+        }
+        running
+    };
+    let ran_ns = lab.deployer.graph_now_ns().saturating_sub(running.started_ns);
+    let ended = lab.deployer.end_experiment(id, running.baseline, &ending.cause, ran_ns);
+    let Ok(mut book) = lab.lock() else { return };
+    let (state, cause, mut reasons) = match &ended {
+        Ok(_) => (ending.state, ending.cause.clone(), Vec::new()),
+        Err(e) => {
+            let reason = format!("failed: the baseline did not come back ({e}); the emergency stop is engaged");
+            (ExperimentState::Failed, reason.clone(), vec![ending.cause.clone(), reason])
+        }
+    };
+    if state != ExperimentState::Done && reasons.is_empty() {
+        reasons.push(ending.cause.clone());
+    }
+    let ended = ended.unwrap_or_default();
+    if let Some(record) = book.experiments.get_mut(&id) {
+        bundle::write_run_results(lab.store(), record, &ended, running.started_unix_ms, LATE_CYCLE_MS);
+    }
+    book.running = None;
+    book.cancels.remove(&id);
+    if book.preempt.as_ref().is_some_and(|(p, _, _)| *p == id) {
+        book.preempt = None;
+    }
+    if ending.pause && !book.lab.paused {
+        let mut paused = book.lab.clone();
+        paused.paused = true;
+        match lab.store().lock().and_then(|w| w.put_lab_state(&paused)) {
+            Ok(()) => book.lab = paused,
+            Err(e) => tracing::error!("the queue could not be paused: {e}"),
+        }
+    }
+    if let Err(e) = lab.transition(&mut book, id, state, &cause, reasons) {
+        tracing::error!("experiment {id} ended but its record was not stored: {e}");
+    }
+    retain(lab, &mut book);
+}
+
+/// Applies the owner's retention cap to the finished experiments.
+fn retain(lab: &Lab, book: &mut Book) {
+    let cap = book.lab.settings.retention_bytes;
+    let changed = bundle::enforce_retention(lab.store(), book.experiments.values_mut(), cap);
+    if changed.is_empty() {
+        return;
+    }
+    if let Ok(writer) = lab.store().lock() {
+        for id in changed {
+            if let Some(record) = book.experiments.get(&id)
+                && let Err(e) = writer.put_experiment(record)
+            {
+                tracing::error!("experiment {id}: {e}");
+            }
+        }
+    }
+}
+
+/// The host stops: the experiment on the robot, if any, is aborted with
+/// what it recorded and `report`.
+pub(super) fn host_stopped(lab: &Lab, report: Option<&crate::report::Report>) {
+    let Ok(mut book) = lab.lock() else { return };
+    let Some(running) = book.running.take() else { return };
+    let id = running.id;
+    lab.deployer.forget_experiment();
+    let ended = crate::deploy::Ended { report: report.cloned(), recording: None };
+    if let Some(record) = book.experiments.get_mut(&id) {
+        bundle::write_run_results(lab.store(), record, &ended, running.started_unix_ms, LATE_CYCLE_MS);
+    }
+    let cause = "aborted: host stopped";
+    if let Err(e) = lab.transition(&mut book, id, ExperimentState::Aborted, cause, vec![cause.into()]) {
+        tracing::error!("experiment {id}: {e}");
+    }
+}
