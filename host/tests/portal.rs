@@ -39,6 +39,7 @@ const USERS: &[(&str, Role, &[Platform])] = &[
     ("operator", Role::Operator, &[]),
     ("control-dev", Role::Developer, &[Platform::Control]),
     ("network-dev", Role::Developer, &[Platform::Network]),
+    ("researcher", Role::Researcher, &[Platform::Control]),
     ("admin", Role::Admin, &[]),
 ];
 
@@ -144,19 +145,31 @@ enum Allowed {
     Network,
     Developer,
     Drive,
+    /// Researchers, developers and admins (the lab).
+    Submit,
+    Admin,
 }
 
 impl Allowed {
     fn admits(self, user: &str) -> bool {
         match self {
             Allowed::AnyUser => true,
-            Allowed::Control => matches!(user, "control-dev" | "admin"),
+            Allowed::Control => matches!(user, "control-dev" | "researcher" | "admin"),
             Allowed::Network => matches!(user, "network-dev" | "admin"),
             Allowed::Developer => matches!(user, "control-dev" | "network-dev" | "admin"),
             Allowed::Drive => matches!(user, "operator" | "admin"),
+            Allowed::Submit => matches!(user, "control-dev" | "network-dev" | "researcher" | "admin"),
+            Allowed::Admin => user == "admin",
         }
     }
 }
+
+/// The lab's default settings as a body (changes nothing when an admin
+/// sends it).
+const LAB_SETTINGS: &[u8] = br#"{"max_duration_s": 120.0, "limits": {"max_queued": 3, "robot_minutes_per_day": 30.0,
+  "max_reservation_s": 1800, "reservation_per_day_s": 3600}, "criteria": {"max_collisions": 0, "allow_faults": false,
+  "allow_geofence": false, "allow_stop_zone": false}, "reset": "sim", "preflight_world": null,
+  "reference_recording": null, "retention_bytes": 10737418240, "kit": true}"#;
 
 /// Every authenticated endpoint with a request that does no lasting harm.
 fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
@@ -193,6 +206,19 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/estop", b"", Allowed::AnyUser),
         ("POST", "/api/v1/release", b"", Allowed::Drive),
         ("GET", "/api/v1/locks", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/experiments", b"", Allowed::AnyUser),
+        ("POST", "/api/v1/experiments", br#"{"set": 999, "duration_s": 5}"#, Allowed::Submit),
+        ("GET", "/api/v1/experiments/999", b"", Allowed::AnyUser),
+        ("POST", "/api/v1/experiments/999/cancel", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/experiments/999/results", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/lab", b"", Allowed::AnyUser),
+        ("PUT", "/api/v1/lab/settings", LAB_SETTINGS, Allowed::Admin),
+        ("PUT", "/api/v1/lab/baseline", br#"{"set": 999}"#, Allowed::Admin),
+        ("POST", "/api/v1/lab/resume", b"", Allowed::Admin),
+        ("POST", "/api/v1/lab/reset", b"", Allowed::Admin),
+        ("POST", "/api/v1/lab/reservations", br#"{"start_unix_ms": 0, "end_unix_ms": 1}"#, Allowed::Submit),
+        ("DELETE", "/api/v1/lab/reservations/999", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/lab/kit", b"", Allowed::Submit),
         ("POST", "/api/v1/logout", b"", Allowed::AnyUser),
     ]
 }
