@@ -28,6 +28,13 @@ pub enum Sample {
     Counter(u64),
     Gauge(f64),
     Histogram(Histogram),
+    /// A histogram with buckets of its own: (upper bound in seconds, count
+    /// in that bucket alone; the last bound infinity), sum, count.
+    Buckets {
+        buckets: Vec<(f64, u64)>,
+        sum: f64,
+        count: u64,
+    },
 }
 
 /// A metric family: its name (counters without `_total`, which the encoder
@@ -41,11 +48,11 @@ pub struct Family {
 }
 
 impl Family {
-    fn new(name: &'static str, help: &'static str, kind: MetricType) -> Family {
+    pub fn new(name: &'static str, help: &'static str, kind: MetricType) -> Family {
         Family { name, help, kind, samples: Vec::new() }
     }
 
-    fn counter(&mut self, labels: Vec<(&'static str, String)>, value: u64) {
+    pub fn counter(&mut self, labels: Vec<(&'static str, String)>, value: u64) {
         self.samples.push((labels, Sample::Counter(value)));
     }
 }
@@ -230,13 +237,21 @@ fn encode_sample(encoder: &mut MetricEncoder<'_>, sample: &Sample) -> Result<(),
         Sample::Histogram(h) => {
             encoder.encode_histogram::<NoLabelSet>(h.sum_ns() as f64 / 1e9, h.count(), &h.buckets_seconds(), None)
         }
+        Sample::Buckets { buckets, sum, count } => encoder.encode_histogram::<NoLabelSet>(*sum, *count, buckets, None),
     }
 }
 
 /// The OpenMetrics text of `status` (ends with `# EOF`).
 pub fn encode(status: &LiveStatus) -> String {
+    encode_with(status, Vec::new())
+}
+
+/// [`encode`], with `more` families after the live status's (the lab's).
+pub fn encode_with(status: &LiveStatus, more: Vec<Family>) -> String {
     let mut registry = Registry::default();
-    registry.register_collector(Box::new(Scrape(families(status))));
+    let mut all = families(status);
+    all.extend(more);
+    registry.register_collector(Box::new(Scrape(all)));
     let mut text = String::new();
     // Writing to a String cannot fail; an encoder error would leave a
     // truncated text, which a scraper refuses as a whole.

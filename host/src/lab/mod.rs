@@ -933,6 +933,42 @@ pub struct LabMetrics {
     pub preflight_wall_s: Vec<f64>,
 }
 
+/// The bounds (seconds) of the preflight-duration histogram's buckets.
+pub const PREFLIGHT_BUCKETS_S: [f64; 10] = [0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 30.0, 60.0, 120.0, 300.0];
+
+impl LabMetrics {
+    /// The lab's metric families: experiments by state, the queue's
+    /// length, the preflights' wall-clock durations.
+    pub fn families(&self) -> Vec<crate::metrics::Family> {
+        use crate::metrics::{Family, Sample};
+        use prometheus_client::metrics::MetricType;
+        let mut states =
+            Family::new("subsume_experiments", "experiments the lab keeps, by state (docs/lab.md)", MetricType::Gauge);
+        for (state, count) in &self.by_state {
+            states.samples.push((vec![("state", (*state).to_string())], Sample::Gauge(*count as f64)));
+        }
+        let mut queue =
+            Family::new("subsume_experiment_queue_length", "experiments queued for the robot", MetricType::Gauge);
+        queue.samples.push((vec![], Sample::Gauge(self.queued as f64)));
+        let mut preflight = Family::new(
+            "subsume_preflight_seconds",
+            "wall-clock time of each preflight (the experiment in the simulator)",
+            MetricType::Histogram,
+        );
+        let mut buckets: Vec<(f64, u64)> = PREFLIGHT_BUCKETS_S.iter().map(|b| (*b, 0)).collect();
+        buckets.push((f64::INFINITY, 0));
+        for seconds in &self.preflight_wall_s {
+            if let Some(bucket) = buckets.iter_mut().find(|(bound, _)| seconds <= bound) {
+                bucket.1 += 1;
+            }
+        }
+        let sum = self.preflight_wall_s.iter().sum();
+        let count = self.preflight_wall_s.len() as u64;
+        preflight.samples.push((vec![], Sample::Buckets { buckets, sum, count }));
+        vec![states, queue, preflight]
+    }
+}
+
 /// The user the lab's own state changes are audited as.
 pub const LAB_AUDIT_USER: &str = crate::deploy::LAB_USER;
 

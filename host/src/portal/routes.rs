@@ -289,7 +289,7 @@ pub(super) async fn metrics(
         return ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "the control loop has not published a status yet")
             .into_response();
     };
-    let text = crate::metrics::encode(status);
+    let text = crate::metrics::encode_with(status, state.lab.metrics().families());
     ([(axum::http::header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE)], text).into_response()
 }
 
