@@ -126,9 +126,14 @@ impl Lab {
         http(&self.address, method, path, Some(token), body.as_bytes())
     }
 
-    /// Stages `xml` as `user`'s robot file: the set's id.
+    /// Stages `xml` as `user`'s robot file for the control platform: the
+    /// set's id.
     fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
-        let (status, json) = self.call(token, "PUT", &format!("/api/v1/platforms/control/configs/{file}"), xml);
+        self.stage_for(token, "control", file, xml)
+    }
+
+    fn stage_for(&self, token: &str, platform: &str, file: &str, xml: &str) -> u64 {
+        let (status, json) = self.call(token, "PUT", &format!("/api/v1/platforms/{platform}/configs/{file}"), xml);
         assert_eq!(status, 201, "{json}");
         json["set"]["id"].as_u64().unwrap()
     }
@@ -443,5 +448,303 @@ fn a_host_killed_during_an_experiment_starts_again_on_the_baseline_and_the_queue
     assert_eq!((status, &json["paused"]), (200, &Json::Bool(false)), "{json}");
     let done = lab.wait_for(&ana, next, "done", Duration::from_secs(120));
     assert_eq!(done["reasons"].as_array().map(Vec::len), Some(0), "{done:#}");
+    assert_eq!(lab.active_set(&boss), baseline);
+}
+
+/// `subsume run` for the refusal cases: the baseline, a researcher of each
+/// platform, a developer and an admin.
+fn start_with_users(dir: &Path) -> Lab {
+    setup(dir);
+    let store = dir.join("store");
+    support::add_user(&store, "nora", "researcher", &["network"], PASSWORD);
+    support::add_user(&store, "dev", "developer", &["control"], PASSWORD);
+    start(dir)
+}
+
+/// Uploads `guest` as `user`'s component `name`.
+fn upload(lab: &Lab, token: &str, name: &str, guest: &str) {
+    let bytes = std::fs::read(support::guest(guest)).unwrap();
+    let (status, json) =
+        http(&lab.address, "PUT", &format!("/api/v1/platforms/control/components/{name}"), Some(token), &bytes);
+    assert_eq!(status, 201, "{json}");
+}
+
+/// A component that misbehaves in the preflight: test-faulty in `mode`
+/// after a few good ticks, unconnected.
+fn faulty(mode: &str) -> String {
+    format!(
+        r#"<component name="bad" source="faulty.wasm" rate="10" budget="5ms" memory="16MiB">
+      <param name="mode" value="{mode}"/>
+      <param name="after" value="5"/>
+    </component>"#
+    )
+}
+
+/// Each bad submission is refused with the status and words it should
+/// have, at once or by its preflight, and nothing runs.
+#[test]
+fn bad_submissions_are_refused_with_their_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let ana = lab.token("ana");
+    let nora = lab.token("nora");
+    let good = lab.stage(&ana, "good.xml", &robot(7.0, ""));
+    // Nora's set changes the network platform, which ana does not hold.
+    let network = lab.stage_for(&nora, "network", "net.xml", &robot(8.0, "").replace("rate=\"50\"", "rate=\"40\""));
+    // A set whose world file goes away after it was staged.
+    std::fs::write(dir.path().join("gone.world"), WORLD).unwrap();
+    let gone = lab.stage(&ana, "gone.xml", &robot(7.0, "").replace("lab.world", "gone.world"));
+    std::fs::remove_file(dir.path().join("gone.world")).unwrap();
+    upload(&lab, &ana, "faulty", "test-faulty");
+    let mut faults = Vec::new();
+    for (mode, words) in [
+        ("loop-on-tick", "exceeded its cpu-time budget"),
+        ("trap-on-tick", "trapped"),
+        ("sleep-on-tick", "blocking calls are not allowed"),
+    ] {
+        let set = lab.stage(&ana, &format!("{mode}.xml"), &robot(7.0, &faulty(mode)));
+        faults.push((mode, set, words));
+    }
+    let body = |set: u64, duration: f64| serde_json::json!({ "set": set, "duration_s": duration }).to_string();
+    // (case, body, status, words of the error)
+    let at_once: Vec<(&str, String, u16, &str)> = vec![
+        ("over the max duration", body(good, 121.0), 400, "max-duration of 120 s"),
+        ("no duration", body(good, 0.0), 400, "duration_s must be from 1"),
+        ("not json", "{set: 1".into(), 400, "expected {\"set\": ID"),
+        ("an unknown field", r#"{"set": 1, "duration_s": 5, "robot": "x"}"#.into(), 400, "unknown field"),
+        (
+            "a label too long",
+            serde_json::json!({"set": good, "duration_s": 5, "label": "x".repeat(200)}).to_string(),
+            400,
+            "at most 120 characters",
+        ),
+        ("no such set", body(9999, 5.0), 404, "no set 9999"),
+        ("another platform's set", body(network, 5.0), 403, "staged for platform network, which ana does not hold"),
+        ("a set that no longer validates", body(gone, 5.0), 422, "problem(s) in the set's robot file"),
+    ];
+    for (case, body, status, words) in &at_once {
+        let (got, json) = lab.call(&ana, "POST", "/api/v1/experiments", body);
+        assert_eq!(got, *status, "{case}: {json}");
+        assert!(json["error"].as_str().unwrap().contains(words), "{case}: {json}");
+        if *status == 422 {
+            let diagnostic = json["diagnostics"][0]["text"].as_str().unwrap();
+            assert!(diagnostic.starts_with("gone.xml:") && diagnostic.contains("gone.world"), "{case}: {json}");
+        }
+    }
+    let (_, listed) = lab.call(&ana, "GET", "/api/v1/experiments", "");
+    assert_eq!(listed["experiments"].as_array().unwrap().len(), 0, "a refused submission leaves nothing: {listed}");
+    // Guests that loop, trap or sleep are refused by their preflight,
+    // naming the fault.
+    for (mode, set, words) in faults {
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body(set, 5.0));
+        assert_eq!(status, 201, "{mode}: {json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(120));
+        let reasons = refused["reasons"].to_string();
+        assert!(reasons.contains("component 'bad' faulted at") && reasons.contains(words), "{mode}: {refused:#}");
+        assert!(entered(&refused, "running").is_none(), "{mode}: {refused:#}");
+    }
+}
+
+/// While an experiment runs, a developer's activation is refused naming
+/// it; an admin's ends it first, says so, and pauses the queue.
+#[test]
+fn nobody_else_changes_what_runs_during_an_experiment_but_an_admin_who_ends_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let (ana, dev, boss) = (lab.token("ana"), lab.token("dev"), lab.token("boss"));
+    let baseline = lab.active_set(&boss);
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let other = lab.stage(&dev, "dev.xml", &robot(6.5, ""));
+    let (status, json) =
+        lab.call(&ana, "POST", "/api/v1/experiments", &serde_json::json!({"set": set, "duration_s": 60}).to_string());
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "running", Duration::from_secs(120));
+    for (what, path) in
+        [("activate", format!("/api/v1/sets/{other}/activate")), ("roll back", "/api/v1/rollback".into())]
+    {
+        let (status, json) = lab.call(&dev, "POST", &path, "");
+        let error = json["error"].as_str().unwrap_or_default();
+        assert_eq!(status, 409, "{what}: {json}");
+        assert!(
+            error.starts_with(&format!("experiment {id} by ana runs until ")) && error.contains(" s from now"),
+            "{what}: {json}"
+        );
+    }
+    let (status, json) = lab.call(&ana, "POST", &format!("/api/v1/sets/{other}/activate"), "");
+    assert_eq!(status, 403, "a researcher never activates: {json}");
+    assert_eq!(lab.experiment(&ana, id)["state"], "running");
+    let (status, json) = lab.call(&boss, "POST", &format!("/api/v1/sets/{other}/activate"), "");
+    assert_eq!(status, 200, "{json}");
+    let note = json["note"].as_str().unwrap();
+    assert_eq!(note, format!("it cancelled experiment {id} (by ana) first; the queue is paused"), "{json}");
+    let cancelled = lab.experiment(&ana, id);
+    assert_eq!(cancelled["state"], "cancelled", "{cancelled:#}");
+    assert!(
+        cancelled["reasons"][0]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("cancelled: admin boss is about to activate set {other}"))
+    );
+    assert_eq!(lab.active_set(&boss), other);
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert_eq!(overview["lab"]["paused"], true, "{overview}");
+    assert_eq!(overview["lab"]["baseline"].as_u64(), Some(baseline));
+}
+
+/// Four users submit 20 experiments each at once, many times: the limits
+/// hold exactly (experiments waiting, then robot-minutes), and no
+/// experiment is lost or duplicated.
+#[test]
+fn concurrent_submissions_never_pass_the_limits_nor_lose_an_experiment() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let store = dir.path().join("store");
+    let users = ["ana", "ben", "cy", "dev"];
+    let tokens: Vec<String> = users.iter().map(|u| lab.token(u)).collect();
+    let boss = lab.token("boss");
+    let sets: Vec<u64> =
+        tokens.iter().enumerate().map(|(i, t)| lab.stage(t, &format!("s{i}.xml"), &robot(7.0, ""))).collect();
+    // Paused, nothing starts: an experiment waits until it is cancelled.
+    let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200);
+    let settings = |max_queued: u32, minutes: f64| {
+        serde_json::json!({
+            "max_duration_s": 120.0,
+            "limits": {"max_queued": max_queued, "robot_minutes_per_day": minutes, "max_reservation_s": 1800, "reservation_per_day_s": 3600},
+            "criteria": {"max_collisions": 0, "allow_faults": false, "allow_geofence": false, "allow_stop_zone": false},
+            "reset": "sim", "preflight_world": null, "reference_recording": null, "retention_bytes": 10737418240_u64, "kit": true
+        })
+        .to_string()
+    };
+    let mut seen = std::collections::BTreeSet::new();
+    // (max queued, robot minutes a day, each experiment's seconds, accepted per user)
+    let rounds = [(3, 30.0, 5.0, 3), (100, 1.0, 10.0, 6), (2, 30.0, 5.0, 2), (100, 0.5, 10.0, 3)];
+    for (round, (max_queued, minutes, duration, expected)) in rounds.iter().enumerate() {
+        let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings(*max_queued, *minutes));
+        assert_eq!(status, 200, "{json}");
+        let outcomes: Vec<Vec<(u16, Json)>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..users.len())
+                .map(|u| {
+                    let (lab, token, set) = (&lab, &tokens[u], sets[u]);
+                    scope.spawn(move || {
+                        let inner: Vec<_> = (0..20)
+                            .map(|_| {
+                                scope.spawn(move || {
+                                    let body = serde_json::json!({ "set": set, "duration_s": duration }).to_string();
+                                    lab.call(token, "POST", "/api/v1/experiments", &body)
+                                })
+                            })
+                            .collect();
+                        inner.into_iter().map(|h| h.join().unwrap()).collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        for (u, results) in outcomes.iter().enumerate() {
+            let accepted: Vec<u64> = results
+                .iter()
+                .filter(|(s, _)| *s == 201)
+                .map(|(_, j)| j["experiment"]["id"].as_u64().unwrap())
+                .collect();
+            let refused = results.iter().filter(|(s, _)| *s == 429).count();
+            assert_eq!(
+                (accepted.len(), refused),
+                (*expected, 20 - expected),
+                "round {round}, {}: {results:?}",
+                users[u]
+            );
+            for (_, json) in results.iter().filter(|(s, _)| *s == 429) {
+                let error = json["error"].as_str().unwrap();
+                assert!(
+                    error.contains(users[u]) && (error.contains("waiting") || error.contains("robot-minutes")),
+                    "{error}"
+                );
+            }
+            for id in accepted {
+                assert!(seen.insert(id), "experiment {id} was handed out twice");
+            }
+        }
+        // Everything accepted is listed, once, and on disk; then it is
+        // cancelled, which frees the limits for the next round.
+        let (_, all) = lab.call(&boss, "GET", "/api/v1/experiments", "");
+        let listed: Vec<u64> =
+            all["experiments"].as_array().unwrap().iter().map(|e| e["id"].as_u64().unwrap()).collect();
+        assert_eq!(listed.iter().copied().collect::<std::collections::BTreeSet<_>>(), seen, "round {round}");
+        assert_eq!(listed.len(), seen.len(), "round {round}: a duplicate in the list");
+        for id in &listed {
+            assert!(store.join(format!("experiments/{id}/experiment.json")).is_file(), "experiment {id}");
+        }
+        for experiment in all["experiments"].as_array().unwrap() {
+            let id = experiment["id"].as_u64().unwrap();
+            if !["cancelled", "refused"].contains(&experiment["state"].as_str().unwrap()) {
+                let (status, json) = lab.call(&boss, "POST", &format!("/api/v1/experiments/{id}/cancel"), "");
+                assert_eq!(status, 200, "{json}");
+            }
+        }
+    }
+    // Ids were handed out in order, none skipped: nothing refused left a record.
+    let max = *seen.iter().max().unwrap();
+    assert_eq!(seen.len() as u64, max, "ids 1..={max}");
+}
+
+/// A cancel that races the start of the experiment: one outcome, recorded
+/// once, and the baseline runs after it.
+#[test]
+fn a_cancel_racing_the_start_has_one_outcome() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let baseline = lab.active_set(&boss);
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let mut ran = 0;
+    for round in 0..8 {
+        let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+        assert_eq!(status, 200);
+        let (status, json) = lab.call(
+            &ana,
+            "POST",
+            "/api/v1/experiments",
+            &serde_json::json!({"set": set, "duration_s": 30}).to_string(),
+        );
+        assert_eq!(status, 201, "{json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        lab.wait_for(&ana, id, "queued", Duration::from_secs(120));
+        // Resume and cancel at once, the cancel a little later each round.
+        let (resumed, cancelled) = std::thread::scope(|scope| {
+            let resume = scope.spawn(|| lab.call(&boss, "POST", "/api/v1/lab/resume", ""));
+            let cancel = scope.spawn(|| {
+                std::thread::sleep(Duration::from_millis(round * 15));
+                lab.call(&ana, "POST", &format!("/api/v1/experiments/{id}/cancel"), "")
+            });
+            (resume.join().unwrap(), cancel.join().unwrap())
+        });
+        assert_eq!(resumed.0, 200);
+        assert_eq!(cancelled.0, 200, "{}", cancelled.1);
+        let experiment = lab.experiment(&ana, id);
+        let history = states(&experiment);
+        assert_eq!(experiment["state"], "cancelled", "round {round}: {experiment:#}");
+        let finals = history
+            .iter()
+            .filter(|s| ["done", "cancelled", "aborted", "failed", "refused"].contains(&s.as_str()))
+            .count();
+        assert_eq!(finals, 1, "round {round}: {history:?}");
+        if history.contains(&"running".to_string()) {
+            ran += 1;
+            assert_eq!(&history[history.len() - 3..], ["running", "finishing", "cancelled"], "round {round}");
+        } else {
+            assert_eq!(&history[history.len() - 2..], ["queued", "cancelled"], "round {round}");
+        }
+    }
+    let (_, audit) = lab.call(&boss, "GET", "/api/v1/audit", "");
+    let entries = audit["entries"].as_array().unwrap();
+    let cancels = entries.iter().filter(|e| e["action"] == "cancel-experiment").count();
+    let starts = entries.iter().filter(|e| e["action"] == "experiment-start").count();
+    let ends = entries.iter().filter(|e| e["action"] == "experiment-end").count();
+    assert_eq!((cancels, starts, ends), (8, ran, ran), "each cancel and each run recorded once");
+    let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200);
     assert_eq!(lab.active_set(&boss), baseline);
 }

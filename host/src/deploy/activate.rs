@@ -26,11 +26,23 @@ pub(super) struct Ready {
 impl Deployer {
     /// Activates set `id`: see the module's invariants.
     pub fn activate(&self, user: &User, id: u64) -> Result<SetRecord, DeployError> {
+        self.switch(user, Some(id), false).map(|(set, _)| set)
+    }
+
+    /// [`Deployer::activate`], and what an admin's activation did first
+    /// (it ends a running experiment: docs/lab.md), for the answer.
+    pub fn activate_noting(&self, user: &User, id: u64) -> Result<(SetRecord, Option<String>), DeployError> {
         self.switch(user, Some(id), false)
     }
 
     /// Activates the set that was active before the current one.
     pub fn rollback(&self, user: &User) -> Result<SetRecord, DeployError> {
+        self.switch(user, None, true).map(|(set, _)| set)
+    }
+
+    /// [`Deployer::rollback`], and what it did first (see
+    /// [`Deployer::activate_noting`]).
+    pub fn rollback_noting(&self, user: &User) -> Result<(SetRecord, Option<String>), DeployError> {
         self.switch(user, None, true)
     }
 
@@ -41,7 +53,7 @@ impl Deployer {
     }
 
     /// Activates `id`, or the previous set when rolling back.
-    fn switch(&self, user: &User, id: Option<u64>, rollback: bool) -> Result<SetRecord, DeployError> {
+    fn switch(&self, user: &User, id: Option<u64>, rollback: bool) -> Result<(SetRecord, Option<String>), DeployError> {
         // An experiment that runs refuses the change, or, for an admin, is
         // ended first (before the active set's lock, which ending it takes).
         let what = match id {
@@ -106,7 +118,7 @@ impl Deployer {
                 done
             },
         )
-        .map(|(set, _, _)| set)
+        .map(|(set, _, preempted)| (set, preempted.filter(|p| !p.is_empty())))
     }
 
     /// Hands the built graph to the control thread, which swaps it in at

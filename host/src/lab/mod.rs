@@ -362,7 +362,7 @@ impl Lab {
                 recording_expired: false,
             };
             let writer = self.store().lock()?;
-            let mut record = writer.add_experiment(record)?;
+            let mut record = writer.add_experiment(&mut book.lab, record)?;
             record.enter(ExperimentState::Checking, now, &format!("submitted by {}", user.name));
             writer.put_experiment(&record)?;
             writer.record(

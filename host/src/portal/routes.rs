@@ -191,8 +191,8 @@ pub(super) async fn activate(
     Path(id): Path<u64>,
 ) -> Result<Json<Json_>, ApiError> {
     let deployer = state.deployer.clone();
-    let set = blocking(move || Ok(deployer.activate(&user, id)?)).await?;
-    Ok(Json(json!({ "active": set })))
+    let (set, note) = blocking(move || Ok(deployer.activate_noting(&user, id)?)).await?;
+    Ok(Json(json!({ "active": set, "note": note })))
 }
 
 /// The body of `POST /sets/{id}/replay`.
@@ -234,8 +234,8 @@ pub(super) async fn rollback(
     Authed(user): Authed,
 ) -> Result<Json<Json_>, ApiError> {
     let deployer = state.deployer.clone();
-    let set = blocking(move || Ok(deployer.rollback(&user)?)).await?;
-    Ok(Json(json!({ "active": set })))
+    let (set, note) = blocking(move || Ok(deployer.rollback_noting(&user)?)).await?;
+    Ok(Json(json!({ "active": set, "note": note })))
 }
 
 /// The next live status the control loop publishes (the last one may be

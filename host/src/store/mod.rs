@@ -457,13 +457,20 @@ impl StoreWriter<'_> {
         self.write_json(&self.root.join("lab.json"), state)
     }
 
-    /// Stores a new experiment (id assigned here, the counter written
-    /// first, so a crash skips an id and never reuses one) and returns it.
-    pub fn add_experiment(&self, mut record: ExperimentRecord) -> Result<ExperimentRecord, StoreError> {
-        let mut lab = self.lab_state()?;
-        record.id = lab.next_experiment;
-        lab.next_experiment += 1;
-        self.put_lab_state(&lab)?;
+    /// Stores a new experiment with the next id of `lab` (the lab's state,
+    /// which its owner keeps in memory: the counter goes up in it and is
+    /// written first, so a crash skips an id and never reuses one) and
+    /// returns it.
+    pub fn add_experiment(
+        &self,
+        lab: &mut LabState,
+        mut record: ExperimentRecord,
+    ) -> Result<ExperimentRecord, StoreError> {
+        let mut next = lab.clone();
+        record.id = next.next_experiment;
+        next.next_experiment += 1;
+        self.put_lab_state(&next)?;
+        *lab = next;
         let dir = self.experiment_dir(record.id);
         std::fs::create_dir_all(&dir).map_err(io(&dir))?;
         self.put_experiment(&record)?;
