@@ -94,7 +94,11 @@ impl Builtin for ZenohSession {
     /// A preflight's session talks to nobody: no endpoints, no config
     /// file (multicast scouting is off for every session), so nothing it
     /// publishes reaches the robot's peers and nothing of theirs reaches it.
-    fn preflight(&self, _params: &Params, _ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+    fn preflight(
+        &self,
+        _params: &Params,
+        _ctx: &PreflightContext<'_>,
+    ) -> Result<PreflightForm, crate::builtin::NotSimulable> {
         Ok(PreflightForm {
             set: vec![("connect", String::new()), ("listen", String::new()), ("zenoh-config", String::new())],
             files: Vec::new(),

@@ -93,7 +93,7 @@ pub trait Builtin: Sync {
     /// (docs/lab.md), which must reach none of the robot's devices,
     /// sockets or networks. Unchanged by default; an `Err` says why this
     /// component cannot take part in one.
-    fn preflight(&self, params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+    fn preflight(&self, params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, NotSimulable> {
         let _ = (params, ctx);
         Ok(PreflightForm::default())
     }
@@ -115,6 +115,12 @@ pub struct PreflightContext<'a> {
     /// The name a simulated controller added for this component gets.
     pub sim_name: String,
 }
+
+/// Why a component cannot take part in a preflight (it names the
+/// component and what the owner can do).
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+#[error("{0}")]
+pub struct NotSimulable(pub String);
 
 /// A built-in's preflight form: the parameters it runs with instead, and a
 /// simulated controller to put behind it (a serial link to a real

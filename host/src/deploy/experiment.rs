@@ -56,8 +56,13 @@ pub trait Preempt: Send + Sync {
     /// Ends experiment `id` now (the baseline comes back, the results are
     /// written) because `by` is about to `what`; returns what it did, for
     /// the admin's answer.
-    fn preempt(&self, id: u64, by: &str, what: &str) -> Result<String, String>;
+    fn preempt(&self, id: u64, by: &str, what: &str) -> Result<String, PreemptError>;
 }
+
+/// Why the running experiment could not be ended for an admin.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct PreemptError(pub String);
 
 /// Whether an experiment runs, and who ends it for an admin.
 #[derive(Default)]
@@ -104,7 +109,7 @@ impl ExperimentGate {
         let Some(preempt) = preempt else {
             return Err(DeployError::Host(format!("experiment {} runs and nothing can end it", running.id)));
         };
-        preempt.preempt(running.id, &user.name, what).map(Some).map_err(DeployError::Host)
+        preempt.preempt(running.id, &user.name, what).map(Some).map_err(|e| DeployError::Host(e.0))
     }
 }
 

@@ -44,7 +44,7 @@ use thiserror::Error;
 
 pub use self::estop::{AUDIT_QUEUE, Engaged, LocksView, Released};
 pub use self::experiment::{
-    CheckedSet, Ended, ExperimentGate, LAB_LOCK, LAB_USER, Preempt, RunningExperiment, utc_time,
+    CheckedSet, Ended, ExperimentGate, LAB_LOCK, LAB_USER, Preempt, PreemptError, RunningExperiment, utc_time,
 };
 pub use self::history::{HISTORY_PERIOD_NS, HISTORY_SAMPLES, HistorySample, MAX_SAMPLE_SERIES, PlotHistory};
 pub use self::recordings::RecordingsView;

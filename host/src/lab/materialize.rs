@@ -133,7 +133,7 @@ pub fn write_preflight_form(
                 world: world_file.as_deref(),
                 sim_name: format!("preflight-sim-{name}"),
             };
-            let form = builtin.preflight(&params, &ctx).map_err(MaterializeError::NotSimulable)?;
+            let form = builtin.preflight(&params, &ctx).map_err(|e| MaterializeError::NotSimulable(e.0))?;
             for (param, value) in &form.set {
                 set_param(component, param, value);
             }

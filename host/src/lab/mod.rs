@@ -906,8 +906,9 @@ impl Lab {
 }
 
 impl crate::deploy::Preempt for Lab {
-    fn preempt(&self, id: u64, by: &str, what: &str) -> Result<String, String> {
-        let mut book = self.book.lock().map_err(|_| "the lab's state is unusable".to_string())?;
+    fn preempt(&self, id: u64, by: &str, what: &str) -> Result<String, crate::deploy::PreemptError> {
+        use crate::deploy::PreemptError;
+        let mut book = self.book.lock().map_err(|_| PreemptError("the lab's state is unusable".into()))?;
         if book.running.as_ref().is_none_or(|r| r.id != id) {
             return Ok(String::new());
         }
@@ -916,9 +917,9 @@ impl crate::deploy::Preempt for Lab {
         let (book, timeout) = self
             .changed
             .wait_timeout_while(book, END_WAIT, |b| b.running.as_ref().is_some_and(|r| r.id == id))
-            .map_err(|_| "the lab's state is unusable".to_string())?;
+            .map_err(|_| PreemptError("the lab's state is unusable".into()))?;
         if timeout.timed_out() {
-            return Err(format!("experiment {id} did not end within {} s", END_WAIT.as_secs()));
+            return Err(PreemptError(format!("experiment {id} did not end within {} s", END_WAIT.as_secs())));
         }
         let submitter = book.experiments.get(&id).map(|r| r.submitter.clone()).unwrap_or_default();
         Ok(format!("it cancelled experiment {id} (by {submitter}) first; the queue is paused"))

@@ -178,6 +178,20 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
     };
     let files = PreflightFiles::in_dir(&dir);
     let duration = Duration::from_secs_f64(record.duration_s);
+    // The replay against the owner's reference recording is information,
+    // never a refusal.
+    let replay = settings.reference_recording.as_deref().map(|reference| {
+        let admin = User {
+            name: crate::deploy::LAB_USER.into(),
+            role: crate::store::users::Role::Admin,
+            platforms: vec![],
+            hash: String::new(),
+        };
+        match lab.deployer.replay_set(&admin, record.set, reference, &[]) {
+            Ok(report) => serde_json::json!({ "reference": reference, "report": report }),
+            Err(e) => serde_json::json!({ "reference": reference, "error": e.to_string() }),
+        }
+    });
     let cancelled = || lab.is_stopping() || lab.book.lock().map(|b| b.cancels.contains_key(&id)).unwrap_or(true);
     let outcome =
         preflight::run(&lab.options.preflight, &written.robot, duration, &settings.criteria, &files, &cancelled);
@@ -206,7 +220,7 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
                     reasons: verdict.reasons.clone(),
                     simulated_s: verdict.observed.simulated_s,
                     wall_s,
-                    replay: None,
+                    replay,
                 });
             }
             if verdict.passed {

@@ -201,7 +201,11 @@ impl Builtin for SerialBuiltin {
     /// A link to a real device gets a simulated controller of the same
     /// protocol in the preflight's world; a link to a simulated robot
     /// stays as it is.
-    fn preflight(&self, params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+    fn preflight(
+        &self,
+        params: &Params,
+        ctx: &PreflightContext<'_>,
+    ) -> Result<PreflightForm, crate::builtin::NotSimulable> {
         let device = params.text("device").unwrap_or_default().trim();
         if device.starts_with(SIM_DEVICE) {
             return Ok(PreflightForm::default());
@@ -211,21 +215,21 @@ impl Builtin for SerialBuiltin {
         let protocol = match (named, Profile::parse(translator)) {
             ("auto", Some(_)) => translator,
             ("auto", None) => {
-                return Err(format!(
+                return Err(crate::builtin::NotSimulable(format!(
                     "the preflight cannot simulate the controller behind '{}' on {}: its translator is a WASM \
                      component; set its preflight-protocol (ascii, binary or create2)",
                     ctx.component,
                     clip(device)
-                ));
+                )));
             }
             (named, _) => named,
         };
         let Some(world) = ctx.world else {
-            return Err(format!(
+            return Err(crate::builtin::NotSimulable(format!(
                 "the preflight needs a world for the simulated controller behind '{}' (the robot has none of its own): \
                  the lab's owner sets the preflight world",
                 ctx.component
-            ));
+            )));
         };
         let copy = |name: &'static str| (name, params.text(name).unwrap_or_default().to_string());
         Ok(PreflightForm {

@@ -168,7 +168,11 @@ impl Builtin for SimBuiltin {
     }
 
     /// The preflight's world, when the lab's owner set one.
-    fn preflight(&self, _params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+    fn preflight(
+        &self,
+        _params: &Params,
+        ctx: &PreflightContext<'_>,
+    ) -> Result<PreflightForm, crate::builtin::NotSimulable> {
         let set = ctx.world.map(|world| vec![("world", world.to_string())]).unwrap_or_default();
         Ok(PreflightForm { set, files: Vec::new(), simulated_by: None })
     }

@@ -254,9 +254,14 @@ impl Builtin for TeleopBuiltin {
     /// the system's choosing on loopback (the robot's own stays the
     /// robot's), without the WebSocket or TLS, and the operators file is
     /// one of its own whose token nobody was told.
-    fn preflight(&self, _params: &Params, _ctx: &PreflightContext<'_>) -> Result<PreflightForm, String> {
+    fn preflight(
+        &self,
+        _params: &Params,
+        _ctx: &PreflightContext<'_>,
+    ) -> Result<PreflightForm, crate::builtin::NotSimulable> {
         let mut secret = [0u8; 24];
-        getrandom::fill(&mut secret).map_err(|e| format!("no randomness for a one-time token: {e}"))?;
+        getrandom::fill(&mut secret)
+            .map_err(|e| crate::builtin::NotSimulable(format!("no randomness for a one-time token: {e}")))?;
         Ok(PreflightForm {
             set: vec![("listen", "127.0.0.1:0".into()), ("websocket", String::new()), ("tls", "off".into())],
             files: vec![(
