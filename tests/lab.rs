@@ -748,3 +748,115 @@ fn a_cancel_racing_the_start_has_one_outcome() {
     assert_eq!(status, 200);
     assert_eq!(lab.active_set(&boss), baseline);
 }
+
+/// A robot with a real motor controller (here the far end of a PTY): its
+/// experiments' preflight runs against a simulated controller of the same
+/// protocol in the owner's preflight world, the manual reset waits for an
+/// admin, the run drives the real device, and the lab kit runs the same
+/// preflight form on a researcher's machine with the same verdict.
+#[test]
+fn a_real_robot_is_preflighted_against_a_simulated_controller() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut motors, _slave, device) = support::MotorRecorder::new();
+    let real = |goal_x: f64| {
+        robot(goal_x, "")
+            .replace(
+                r#"<component name="robot-sim" source="builtin:sim">
+      <param name="world" value="lab.world"/>
+      <param name="rays" value="9"/>
+      <param name="fov" value="3.14159"/>
+    </component>"#,
+                "",
+            )
+            .replace("sim:robot-sim", &device)
+    };
+    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
+    let store = dir.path().join("store");
+    support::add_user(&store, "boss", "admin", &[], PASSWORD);
+    support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
+    let reading = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let keep_reading = reading.clone();
+    let recorder = std::thread::spawn(move || {
+        motors.read_while(|| keep_reading.load(std::sync::atomic::Ordering::Relaxed));
+        motors
+    });
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    // The owner's preflight world, and a manual reset (nothing simulated
+    // on the robot to reset).
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
+    assert_eq!(status, 201, "{json}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["preflight_world"] = Json::String("arena.world".into());
+    settings["reset"] = Json::String("manual".into());
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &real(7.0));
+    let body = serde_json::json!({ "set": set, "duration_s": 3 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(120));
+    // The preflight drove a simulated robot: the planner moved it.
+    let preflight = queued["preflight"].clone();
+    assert_eq!(preflight["passed"], true, "{queued:#}");
+    // The manual reset: it waits for an admin.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !lab.experiment(&ana, id)["awaiting_reset"].as_bool().unwrap() {
+        assert!(Instant::now() < deadline, "never waited for the reset");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let (_, overview) = lab.call(&ana, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["held"].as_str().unwrap().contains("waits for the robot to be reset"), "{overview}");
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/lab/reset", "");
+    assert_eq!(status, 403, "only an admin confirms: {json}");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
+    assert_eq!((status, json["confirmed_for"].as_u64()), (200, Some(id)), "{json}");
+    lab.wait_for(&ana, id, "done", Duration::from_secs(60));
+    reading.store(false, std::sync::atomic::Ordering::Relaxed);
+    let motors = recorder.join().unwrap();
+    // No feedback comes from this controller, so the envelope holds the
+    // robot (stale sensors): the frames on the wire are the ascii STOP.
+    assert!(motors.lines.iter().any(|(_, l)| l == "S"), "the real device got frames: {:?}", motors.lines);
+    // The bundle's robot file is the preflight form: a simulated controller
+    // stands in for the device, in the owner's world.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, id, &out);
+    let written = std::fs::read_to_string(bundle.join("robot.xml")).unwrap();
+    assert!(
+        written.contains(r#"<component name="preflight-sim-motors" source="builtin:sim">"#)
+            && written.contains(r#"<param name="device" value="sim:preflight-sim-motors"/>"#)
+            && !written.contains(&device),
+        "{written}"
+    );
+    // The kit: the baseline in its preflight form, which `subsume run`
+    // judges as the lab does.
+    let kit = out.join("kit.tar");
+    let fetched = Command::new("curl")
+        .args(["-s", "-f", "-o"])
+        .arg(&kit)
+        .args(["-H", &format!("Authorization: Bearer {ana}")])
+        .arg(format!("http://{}/api/v1/lab/kit", lab.address))
+        .status()
+        .unwrap();
+    assert!(fetched.success());
+    let unpacked = Command::new("tar").arg("-xf").arg(&kit).arg("-C").arg(&out).status().unwrap();
+    assert!(unpacked.success());
+    let verdict = out.join("kit-verdict.json");
+    let run = support::subsume()
+        .arg("run")
+        .arg(out.join("lab-kit/robot.xml"))
+        .args(["--http", "off", "--speed", "max", "--duration", "3", "--criteria"])
+        .arg(out.join("lab-kit/criteria.json"))
+        .arg("--verdict")
+        .arg(&verdict)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(stderr.contains("preflight verdict: passed"), "{stderr}");
+    let verdict: Json = serde_json::from_slice(&std::fs::read(&verdict).unwrap()).unwrap();
+    assert_eq!(verdict["passed"], preflight["passed"], "{verdict:#}");
+}

@@ -312,6 +312,7 @@ mod tests {
         );
         sections.insert("network:teleop2".into(), serde_json::json!({ "sessions": [], "commands": {} }));
         LiveStatus {
+            experiment: None,
             live_format: 1,
             set: 4,
             report: Report {

@@ -126,13 +126,38 @@ pub struct LiveStatus {
     pub live_format: u32,
     /// The active set's id.
     pub set: u64,
+    /// The experiment the set runs as, if it does (docs/lab.md).
+    pub experiment: Option<ExperimentTag>,
     #[serde(flatten)]
     pub report: Report,
 }
 
-/// The live status of `graph` (running `config`, set `set`) at `now_s`.
-pub fn live(config: &RobotConfig, graph: &Graph, set: u64, now_s: f64) -> LiveStatus {
-    LiveStatus { live_format: LIVE_STATUS_FORMAT, set, report: report(config, graph, "running", now_s) }
+/// Whose code drives: the experiment a set runs as, its submitter and
+/// each WASM component's sha256.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct ExperimentTag {
+    pub id: u64,
+    pub submitter: String,
+    pub label: String,
+    /// Component name -> the sha256 of the WASM it runs.
+    pub sha256: std::collections::BTreeMap<String, String>,
+}
+
+/// The live status of `graph` (running `config`, set `set`, as
+/// `experiment` if any) at `now_s`.
+pub fn live(
+    config: &RobotConfig,
+    graph: &Graph,
+    set: u64,
+    experiment: Option<&std::sync::Arc<ExperimentTag>>,
+    now_s: f64,
+) -> LiveStatus {
+    LiveStatus {
+        live_format: LIVE_STATUS_FORMAT,
+        set,
+        experiment: experiment.map(|e| (**e).clone()),
+        report: report(config, graph, "running", now_s),
+    }
 }
 
 /// The report of `graph`, built from `config` (component and connection

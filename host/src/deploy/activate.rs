@@ -126,7 +126,7 @@ impl Deployer {
     /// it the active deployment. Activations, rollbacks and fresh-start
     /// recordings all swap through here.
     pub(super) fn swap_in(&self, ready: Ready, active: &mut Deployment) -> Result<(), DeployError> {
-        self.swap_in_reporting(ready, active, None)
+        self.swap_in_reporting(ready, active, None, None)
     }
 
     /// [`Deployer::swap_in`], and with `report` the control thread sends
@@ -136,6 +136,7 @@ impl Deployer {
         ready: Ready,
         active: &mut Deployment,
         report: Option<ReportRequest>,
+        experiment: Option<std::sync::Arc<crate::report::ExperimentTag>>,
     ) -> Result<(), DeployError> {
         let (done, old_graph) = std::sync::mpsc::sync_channel(1);
         let request = SwapRequest {
@@ -143,6 +144,7 @@ impl Deployer {
             carry: ready.carry,
             config: ready.config.clone(),
             set_id: ready.set.id,
+            experiment,
             done,
             report,
         };

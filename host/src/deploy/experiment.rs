@@ -27,7 +27,7 @@ use crate::assemble::Loader;
 use crate::config::{ComponentSource, RobotConfig};
 use crate::record::Layout;
 use crate::record::control::{Recordings, Stopped};
-use crate::report::Report;
+use crate::report::{ExperimentTag, Report};
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::users::{Role, User};
@@ -234,6 +234,7 @@ impl Deployer {
         let recordings = self.recordings_service()?;
         let mut active = self.lock_active()?;
         let target = format!("set {} (experiment {})", tag.set, tag.id);
+        let tag_id = tag.id;
         let prepared = (|| {
             if let Some(other) = self.experiments.running() {
                 return Err(DeployError::Conflict(format!("experiment {} runs already", other.id)));
@@ -274,7 +275,23 @@ impl Deployer {
                 if reset_sim {
                     self.reset_simulated_robots(&active.config);
                 }
-                if let Err(e) = self.swap_in(ready, &mut active) {
+                let shown = ExperimentTag {
+                    id: tag_id,
+                    submitter: tag.submitter.clone(),
+                    label: tag.label.clone(),
+                    sha256: ready
+                        .config
+                        .components
+                        .iter()
+                        .filter_map(|c| match &c.source {
+                            ComponentSource::Wasm(path) => {
+                                Some((c.name.clone(), path.file_name()?.to_string_lossy().into_owned()))
+                            }
+                            ComponentSource::Builtin(_) => None,
+                        })
+                        .collect(),
+                };
+                if let Err(e) = self.swap_in_reporting(ready, &mut active, None, Some(Arc::new(shown))) {
                     if let Err(abandoned) = recordings.abandon() {
                         tracing::error!("experiment {}'s recording was not removed: {abandoned}", tag.id);
                     }
@@ -346,7 +363,7 @@ impl Deployer {
                     None => None,
                 };
                 let (sender, receiver) = std::sync::mpsc::sync_channel(1);
-                self.swap_in_reporting(ready, &mut active, Some((stopped_by.to_string(), ran_ns, sender)))?;
+                self.swap_in_reporting(ready, &mut active, Some((stopped_by.to_string(), ran_ns, sender)), None)?;
                 self.experiments.set(None);
                 if writer.state()?.active != Some(baseline) {
                     writer.mark_active(baseline)?;

@@ -36,6 +36,8 @@ pub struct HistorySample {
     pub t_s: f64,
     /// The active set.
     pub set: u64,
+    /// The experiment it runs as, and its submitter, if any.
+    pub experiment: Option<(u64, String)>,
     /// Round-trip time of each connected operator, milliseconds.
     pub rtt_ms: BTreeMap<String, f64>,
     /// Messages each component emitted per second since the sample before
@@ -51,6 +53,7 @@ pub struct HistorySample {
 pub struct Observation {
     pub t_ns: u64,
     pub set: u64,
+    pub experiment: Option<(u64, String)>,
     pub rtt_ms: Vec<(String, f64)>,
     /// Messages out so far, per component.
     pub messages_out: Vec<(String, u64)>,
@@ -79,7 +82,8 @@ impl Observation {
                 _ => "STOP".to_string(),
             },
         };
-        Observation { t_ns, set: status.set, rtt_ms, messages_out, holder }
+        let experiment = status.experiment.as_ref().map(|e| (e.id, e.submitter.clone()));
+        Observation { t_ns, set: status.set, experiment, rtt_ms, messages_out, holder }
     }
 }
 
@@ -129,6 +133,7 @@ impl PlotHistory {
         let sample = HistorySample {
             t_s: seen.t_ns as f64 / 1e9,
             set: seen.set,
+            experiment: seen.experiment,
             rtt_ms: seen.rtt_ms.into_iter().collect(),
             rates,
             holder: seen.holder,
@@ -156,6 +161,7 @@ mod tests {
         Observation {
             t_ns: t_s * 1_000_000_000 + 3_000_000,
             set,
+            experiment: None,
             rtt_ms: vec![("ada".into(), 12.5)],
             messages_out: vec![("motors".into(), motors), ("planner".into(), motors / 10)],
             holder: holder.into(),

@@ -12,7 +12,7 @@ use std::time::Duration;
 use super::DeployError;
 use super::history::{Observation, PlotHistory};
 use crate::config::RobotConfig;
-use crate::report::{self, LiveStatus};
+use crate::report::{self, ExperimentTag, LiveStatus};
 use crate::runtime::Graph;
 use crate::runtime::control_loop::{CycleHook, Waker};
 
@@ -29,6 +29,8 @@ pub(super) struct SwapRequest {
     pub carry: Vec<(usize, usize)>,
     pub config: Arc<RobotConfig>,
     pub set_id: u64,
+    /// The experiment the new graph runs as, if any.
+    pub experiment: Option<Arc<ExperimentTag>>,
     pub done: SyncSender<Graph>,
     /// Report the old graph (as stopped by, having run ns) before the swap.
     pub report: Option<ReportRequest>,
@@ -112,6 +114,7 @@ pub struct ControlHook {
     slot: SwapSlot,
     config: Arc<RobotConfig>,
     set_id: u64,
+    experiment: Option<Arc<ExperimentTag>>,
     live: LiveStatusCell,
     next_live_ns: u64,
     history: PlotHistory,
@@ -125,7 +128,7 @@ impl ControlHook {
         live: LiveStatusCell,
         history: PlotHistory,
     ) -> ControlHook {
-        ControlHook { slot, config, set_id, live, next_live_ns: 0, history }
+        ControlHook { slot, config, set_id, experiment: None, live, next_live_ns: 0, history }
     }
 
     /// The robot running now (for the final report).
@@ -157,6 +160,7 @@ impl CycleHook for ControlHook {
                 std::mem::swap(graph, &mut request.graph);
                 self.config = request.config;
                 self.set_id = request.set_id;
+                self.experiment = request.experiment;
                 self.next_live_ns = now_ns;
                 self.slot.swaps.fetch_add(1, Ordering::AcqRel);
                 // The activating thread drops the old graph.
@@ -166,14 +170,20 @@ impl CycleHook for ControlHook {
         let mut published = None;
         if now_ns >= self.next_live_ns && self.live.sender.receiver_count() > 0 {
             self.next_live_ns = now_ns + LIVE_PERIOD.as_nanos() as u64;
-            let status = Arc::new(Some(report::live(&self.config, graph, self.set_id, now_ns as f64 / 1e9)));
+            let status = Arc::new(Some(report::live(
+                &self.config,
+                graph,
+                self.set_id,
+                self.experiment.as_ref(),
+                now_ns as f64 / 1e9,
+            )));
             published = Some(status.clone());
             self.live.sender.send_replace(status);
         }
-        let (config, set_id) = (&self.config, self.set_id);
+        let (config, set_id, experiment) = (&self.config, self.set_id, self.experiment.as_ref());
         self.history.sample_if_due(now_ns, || match published.as_deref() {
             Some(Some(status)) => Observation::of(status, now_ns),
-            _ => Observation::of(&report::live(config, graph, set_id, now_ns as f64 / 1e9), now_ns),
+            _ => Observation::of(&report::live(config, graph, set_id, experiment, now_ns as f64 / 1e9), now_ns),
         });
     }
 }
