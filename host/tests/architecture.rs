@@ -3,7 +3,9 @@
 //! every `crate::MODULE` a file names (in `use` lines and in paths) is an
 //! edge from the file's top-level module to MODULE.
 //!
-//! - the top-level modules form no cycle;
+//! - the top-level modules form no cycle, and neither do the files inside
+//!   each folder (a file names a sibling through `super::x`, `crate::m::x`,
+//!   or a name its folder's `mod.rs` re-exports from `x`);
 //! - `runtime` imports only the contract; `config` imports no `sandbox` and
 //!   of `runtime` only `runtime::wiring`;
 //! - `builtin` (the framework) imports no built-in module;
@@ -213,6 +215,144 @@ fn the_top_level_modules_form_no_cycle() {
             panic!("import cycle: {cycle}");
         }
     }
+}
+
+/// The first cycle in a graph of names, as `a -> b -> a`.
+fn find_cycle(edges: &BTreeMap<String, BTreeSet<String>>) -> Option<String> {
+    fn visit(
+        node: &str,
+        edges: &BTreeMap<String, BTreeSet<String>>,
+        path: &mut Vec<String>,
+        done: &mut BTreeSet<String>,
+    ) -> Option<String> {
+        if let Some(at) = path.iter().position(|n| n == node) {
+            let mut cycle = path[at..].to_vec();
+            cycle.push(node.to_string());
+            return Some(cycle.join(" -> "));
+        }
+        if !done.insert(node.to_string()) {
+            return None;
+        }
+        path.push(node.to_string());
+        for next in edges.get(node).into_iter().flatten() {
+            if let Some(cycle) = visit(next, edges, path, done) {
+                return Some(cycle);
+            }
+        }
+        path.pop();
+        None
+    }
+    let mut done = BTreeSet::new();
+    edges.keys().find_map(|node| visit(node, edges, &mut Vec::new(), &mut done))
+}
+
+/// Inside one folder (`dir`, relative to host/src, with a `mod.rs`): each
+/// file -> the sibling files it names.
+fn sibling_edges(krate: &Crate, dir: &str) -> BTreeMap<String, BTreeSet<String>> {
+    let prefix = format!("{dir}/");
+    let siblings: BTreeSet<String> = krate
+        .code
+        .keys()
+        .filter_map(|f| f.strip_prefix(&prefix))
+        .map(|rest| rest.split('/').next().unwrap().trim_end_matches(".rs").to_string())
+        .filter(|name| name != "mod")
+        .collect();
+    // Names `mod.rs` takes from a sibling (`pub use x::{A, B}`, `use x::A`).
+    let mut reexported: BTreeMap<String, String> = BTreeMap::new();
+    for line in krate.code[&format!("{prefix}mod.rs")].split(';') {
+        let line = line.trim();
+        let Some(at) = line.find("use ") else { continue };
+        if !line[..at].trim().is_empty() && !line[..at].trim().starts_with("pub") {
+            continue;
+        }
+        let path = line[at + 4..].trim();
+        let Some((from, items)) = path.split_once("::") else { continue };
+        if !siblings.contains(from) {
+            continue;
+        }
+        for item in items.trim_matches(|c| c == '{' || c == '}' || char::is_whitespace(c)).split(',') {
+            let item = item.trim();
+            let name = item.rsplit(" as ").next().unwrap_or(item).rsplit("::").next().unwrap_or(item).trim();
+            if !name.is_empty() {
+                reexported.insert(name.to_string(), from.to_string());
+            }
+        }
+    }
+    let module_path = format!("crate::{}::", dir.replace('/', "::"));
+    let mut edges: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for (file, code) in &krate.code {
+        let Some(rest) = file.strip_prefix(&prefix) else { continue };
+        let me = rest.split('/').next().unwrap().trim_end_matches(".rs").to_string();
+        if me == "mod" {
+            continue;
+        }
+        // A file of a sub-folder counts as the sub-folder; its `super::` is
+        // this folder from the sub-folder's mod.rs, `super::super::` below it.
+        let up = match rest.matches('/').count() {
+            0 => "super::",
+            _ if rest.ends_with("/mod.rs") => "super::",
+            _ => "super::super::",
+        };
+        let mut named = BTreeSet::new();
+        for marker in [up, module_path.as_str()] {
+            for (at, _) in code.match_indices(marker) {
+                let after = &code[at + marker.len()..];
+                let items: Vec<&str> = match after.strip_prefix('{') {
+                    Some(group) => group[..group.find('}').unwrap_or(group.len())].split(',').collect(),
+                    None => vec![after],
+                };
+                for item in items {
+                    let first: String = item.trim().chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+                    if siblings.contains(&first) {
+                        named.insert(first);
+                    } else if let Some(from) = reexported.get(&first) {
+                        named.insert(from.clone());
+                    }
+                }
+            }
+        }
+        named.remove(&me);
+        edges.entry(me).or_default().extend(named);
+    }
+    edges
+}
+
+#[test]
+fn the_files_inside_each_folder_form_no_cycle() {
+    let krate = read_crate();
+    let folders: BTreeSet<String> = krate
+        .code
+        .keys()
+        .filter(|f| !in_binary(f))
+        .filter_map(|f| f.strip_suffix("/mod.rs"))
+        .map(str::to_string)
+        .collect();
+    assert!(folders.contains("sandbox") && folders.contains("runtime"), "{folders:?}");
+    let cycles: Vec<String> = folders
+        .iter()
+        .filter_map(|dir| find_cycle(&sibling_edges(&krate, dir)).map(|cycle| format!("{dir}/: {cycle}")))
+        .collect();
+    assert!(
+        cycles.is_empty(),
+        "import cycles inside folders (each file imports only files below it):\n{}",
+        cycles.join("\n")
+    );
+}
+
+#[test]
+fn the_folder_checker_sees_siblings_and_reexports() {
+    let mut code = BTreeMap::new();
+    code.insert("f/mod.rs".to_string(), code_of("mod a;\nmod b;\nmod c;\npub use b::{Thing, other as renamed};"));
+    code.insert("f/a.rs".to_string(), code_of("use super::Thing;\n// super::c\nfn x() { super::c::y(); }"));
+    code.insert("f/b.rs".to_string(), code_of("use crate::f::{c::Z};"));
+    code.insert("f/c.rs".to_string(), code_of("use super::a::W;"));
+    let krate = Crate { files: BTreeMap::new(), code, modules: BTreeSet::new() };
+    let edges = sibling_edges(&krate, "f");
+    let show = |k: &str| edges[k].iter().cloned().collect::<Vec<_>>();
+    assert_eq!(show("a"), ["b", "c"]);
+    assert_eq!(show("b"), ["c"]);
+    assert_eq!(show("c"), ["a"]);
+    assert_eq!(find_cycle(&edges).as_deref(), Some("a -> b -> c -> a"));
 }
 
 #[test]

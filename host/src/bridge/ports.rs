@@ -284,16 +284,4 @@ mod tests {
         assert!(check_key("@ros2_lv/x", false).is_err());
         assert!(check_key("a/b?c", false).is_err());
     }
-
-    /// The config layer checks each bridge's session by kind: every
-    /// built-in with a `session` parameter is on its list.
-    #[test]
-    fn every_bridge_with_a_session_is_checked_by_the_config_layer() {
-        use super::super::ros2_ports::{Ros2Publish, Ros2Subscribe};
-        let bridges: [&dyn Builtin; 4] = [&ZenohPublish, &ZenohSubscribe, &Ros2Publish, &Ros2Subscribe];
-        for bridge in bridges {
-            assert!(bridge.params().iter().any(|p| p.name == SESSION_PARAM.name), "{}", bridge.kind());
-            assert!(crate::config::validate::ZENOH_BRIDGES.contains(&bridge.kind()), "{}", bridge.kind());
-        }
-    }
 }

@@ -516,6 +516,18 @@ impl Component for Ros2Subscriber {
 mod tests {
     use super::*;
 
+    /// The config layer checks each bridge's session by kind: every
+    /// built-in with a `session` parameter is on its list.
+    #[test]
+    fn every_bridge_with_a_session_is_checked_by_the_config_layer() {
+        use crate::bridge::ports::{ZenohPublish, ZenohSubscribe};
+        let bridges: [&dyn Builtin; 4] = [&ZenohPublish, &ZenohSubscribe, &Ros2Publish, &Ros2Subscribe];
+        for bridge in bridges {
+            assert!(bridge.params().iter().any(|p| p.name == SESSION_PARAM.name), "{}", bridge.kind());
+            assert!(crate::config::validate::ZENOH_BRIDGES.contains(&bridge.kind()), "{}", bridge.kind());
+        }
+    }
+
     #[test]
     fn twists_become_control_strings_and_bad_bytes_are_reasons() {
         let t = Twist { linear: [0.3, 0.0, 0.0], angular: [0.0, 0.0, -0.5] }.encode();
