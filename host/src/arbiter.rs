@@ -31,16 +31,13 @@
 use serde::Serialize;
 
 use crate::builtin::{
-    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, number_in,
 };
-use crate::config::{ComponentSource, ParamProblem};
+use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::locks::unix_now_ms;
 use crate::runtime::{CallError, Component, Engagement, LockEvent, Locks, Outbox, PriorityCell, Standing, Standings};
-
-/// The built-in kind whose sources answer to a person (they win ties).
-const OPERATOR_KIND: &str = "teleop";
 
 /// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
@@ -553,6 +550,8 @@ impl Component for ArbiterComponent {
     }
 }
 
+/// The `commands` input's index: motion sources.
+const COMMANDS_PORT: u32 = 0;
 /// The `lock` input's index.
 const LOCK_PORT: u32 = 1;
 
@@ -629,6 +628,30 @@ impl Builtin for ArbiterBuiltin {
         PARAMS
     }
 
+    fn arbitrates(&self) -> bool {
+        true
+    }
+
+    /// Every motion source (a connection into `commands`; `lock` takes
+    /// emergency stops) needs a priority.
+    fn check_robot(&self, me: usize, _: &Params, view: &RobotView<'_>, _: Registry) -> Vec<RobotProblem> {
+        let robot = view.robot;
+        let into_commands = robot.connections.iter().filter(|c| c.to.component == me && c.to.port == COMMANDS_PORT);
+        into_commands
+            .filter_map(|c| {
+                let source = robot.components.get(c.from.component)?;
+                source.priority.is_none().then(|| RobotProblem {
+                    offset: c.offset,
+                    message: format!(
+                        "'{}' feeds the arbiter, but component '{}' has no priority (set priority=\"N\" on it)",
+                        robot.output_name(c.from),
+                        source.name
+                    ),
+                })
+            })
+            .collect()
+    }
+
     fn check(&self, params: &Params, _ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
         match parse_locks(params.text("locks").unwrap_or_default()) {
             Ok(_) => Vec::new(),
@@ -677,7 +700,8 @@ impl Builtin for ArbiterBuiltin {
                 name: from.name.clone(),
                 priority,
                 timeout_ns: from.timeout.as_nanos() as u64,
-                operator: from.source == ComponentSource::Builtin(OPERATOR_KIND.into()),
+                operator: builtin::builtin_of(ctx.robot, connection.from.component, ctx.registry)
+                    .is_some_and(|b| b.answers_to_a_person()),
             });
         }
         if sources.len() > MAX_SOURCES {

@@ -178,13 +178,6 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
             }
         })
         .collect();
-    let port_name = |component: usize, port: u32, output: bool| {
-        config.components.get(component).map_or_else(String::new, |c| {
-            let ports = if output { &c.description.outputs } else { &c.description.inputs };
-            let port = ports.get(port as usize).map_or("?", |p| p.name.as_str());
-            format!("{}.{port}", c.name)
-        })
-    };
     let mut delivered = 0;
     let connections = config
         .connections
@@ -198,8 +191,8 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
                 Policy::Queue { depth } => ("queue", Some(depth)),
             };
             ConnectionReport {
-                from: port_name(c.from.component, c.from.port, true),
-                to: port_name(c.to.component, c.to.port, false),
+                from: config.output_name(c.from),
+                to: config.input_name(c.to),
                 policy: policy.to_string(),
                 depth,
                 routed: stats.routed,

@@ -22,11 +22,13 @@ use std::time::Duration;
 
 use super::cdr::{self, Header, LaserScan, Log, Odometry, Time, Twist};
 use super::link::{Gate, Inlet, Outlet, Stamp};
-use super::ports::{SESSION_PARAM, session_for};
+use super::ports::{SESSION_PARAM, check_session, session_for};
 use super::ros2::{self, Attachment, Distro, EntityKind, MessageType};
 use super::session::{BridgeStats, Shared, unix_ns};
-use crate::builtin::{BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, port};
-use crate::config::ParamProblem;
+use crate::builtin::{
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, port,
+};
+use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::halt::{self, Halt};
@@ -174,6 +176,10 @@ pub struct Ros2Publish;
 impl Builtin for Ros2Publish {
     fn kind(&self) -> &'static str {
         "ros2-publish"
+    }
+
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        check_session(self, me, params, view, registry)
     }
 
     fn summary(&self) -> &'static str {
@@ -425,6 +431,10 @@ impl Builtin for Ros2Subscribe {
         "ros2-subscribe"
     }
 
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        check_session(self, me, params, view, registry)
+    }
+
     fn summary(&self) -> &'static str {
         "Emits the messages of a ROS 2 topic (rmw_zenoh wire format)"
     }
@@ -515,18 +525,6 @@ impl Component for Ros2Subscriber {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// The config layer checks each bridge's session by kind: every
-    /// built-in with a `session` parameter is on its list.
-    #[test]
-    fn every_bridge_with_a_session_is_checked_by_the_config_layer() {
-        use crate::bridge::ports::{ZenohPublish, ZenohSubscribe};
-        let bridges: [&dyn Builtin; 4] = [&ZenohPublish, &ZenohSubscribe, &Ros2Publish, &Ros2Subscribe];
-        for bridge in bridges {
-            assert!(bridge.params().iter().any(|p| p.name == SESSION_PARAM.name), "{}", bridge.kind());
-            assert!(crate::config::validate::ZENOH_BRIDGES.contains(&bridge.kind()), "{}", bridge.kind());
-        }
-    }
 
     #[test]
     fn twists_become_control_strings_and_bad_bytes_are_reasons() {
