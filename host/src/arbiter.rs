@@ -37,7 +37,11 @@ use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::locks::unix_now_ms;
-use crate::runtime::{CallError, Component, Engagement, LockEvent, Locks, Outbox, PriorityCell, Standing, Standings};
+use crate::runtime::status::json_of;
+use crate::runtime::{
+    CallError, Component, Engagement, Family, LockEvent, Locks, Outbox, PriorityCell, Standing, Standings,
+    StatusSection,
+};
 
 /// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
@@ -82,7 +86,7 @@ pub struct Decision {
 }
 
 /// What the rest of the host sees of the arbiter.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct ArbiterStatus {
     /// The source holding control, if any.
     pub holder: Option<String>,
@@ -105,6 +109,34 @@ pub struct ArbiterStatus {
     /// and how many there were.
     pub lock_events: Vec<LockEvent>,
     pub lock_events_total: u64,
+}
+
+impl StatusSection for ArbiterStatus {
+    fn section(&self) -> &'static str {
+        "arbiter"
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        json_of(self)
+    }
+
+    fn metric_families(&self, component: &str) -> Vec<Family> {
+        let labels = || vec![("arbiter", component.to_string())];
+        vec![
+            Family::one_counter(
+                "subsume_arbiter_switches",
+                "changes of the source holding control (to and from none)",
+                labels(),
+                self.switches,
+            ),
+            Family::one_counter(
+                "subsume_arbiter_stops",
+                "STOP commands sent because no source was active",
+                labels(),
+                self.stops_sent,
+            ),
+        ]
+    }
 }
 
 /// The lock that bounds the arbiter's sources now.
@@ -545,8 +577,8 @@ impl Component for ArbiterComponent {
         self.arbiter.restore(component);
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        serde_json::to_value(self.arbiter.status(self.now_ns)).ok().map(|v| ("arbiter", v))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.arbiter.status(self.now_ns)))
     }
 }
 

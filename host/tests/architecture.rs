@@ -14,6 +14,9 @@
 //! - nothing but the binary (`main.rs` and its `commands/`) imports `run`,
 //!   and nothing imports the crate root (every `crate::X` names a module);
 //! - `anyhow` appears only in the binary;
+//! - a built-in's kind is a `BuiltinKind` only the registry makes: no
+//!   kind string (`"sim"`, `"builtin:sim"`) outside the registry and the
+//!   built-ins, no `ComponentSource::Builtin("...")`;
 //! - no public function or trait method returns `Result<_, String>`: errors
 //!   that cross a module seam are typed.
 
@@ -408,6 +411,79 @@ fn anyhow_lives_only_in_main_and_no_public_function_returns_a_string_error() {
         }
     }
     assert!(broken.is_empty(), "{}", broken.join("\n"));
+}
+
+/// The string literals of `text` before its tests (`#[cfg(test)]`).
+fn string_literals(text: &str) -> Vec<String> {
+    let text = text.split("#[cfg(test)]").next().unwrap_or("");
+    let chars: Vec<char> = text.chars().collect();
+    let mut found = Vec::new();
+    let mut i = 0;
+    while i < chars.len() {
+        if chars[i] == '/' && chars.get(i + 1) == Some(&'/') {
+            while i < chars.len() && chars[i] != '\n' {
+                i += 1;
+            }
+            continue;
+        }
+        if chars[i] == '\'' && chars.get(i + 2) == Some(&'\'') {
+            i += 3;
+            continue;
+        }
+        if chars[i] == '"' {
+            let mut literal = String::new();
+            i += 1;
+            while i < chars.len() && chars[i] != '"' {
+                if chars[i] == '\\' {
+                    i += 1;
+                }
+                literal.extend(chars.get(i));
+                i += 1;
+            }
+            found.push(literal);
+        }
+        i += 1;
+    }
+    found
+}
+
+/// Files that may name kinds: the registry and the built-ins themselves.
+fn may_name_kinds(file: &str) -> bool {
+    let top = file.split('/').next().unwrap_or("").trim_end_matches(".rs");
+    file == "assemble/registry.rs" || BUILTIN_MODULES.contains(&top) || file.starts_with("builtin/")
+}
+
+#[test]
+fn kinds_are_made_by_the_registry_alone_and_named_by_no_one_else() {
+    let krate = read_crate();
+    let kinds = subsume::assemble::registry::kinds();
+    let src = support::repo_root().join("host/src");
+    let mut broken = Vec::new();
+    for (file, code) in &krate.code {
+        if in_binary(file) || may_name_kinds(file) {
+            continue;
+        }
+        let code = code.split("#[cfg(test)]").next().unwrap_or("");
+        if code.contains("BuiltinKind::registered") && file != "config/mod.rs" {
+            broken.push(format!("{file} makes a BuiltinKind"));
+        }
+        let text = std::fs::read_to_string(src.join(file)).unwrap();
+        for literal in string_literals(&text) {
+            let kind = literal.strip_prefix("builtin:").unwrap_or(&literal);
+            // Names that are also words of other meaning (a log event, a
+            // report section) are allowed where listed here.
+            let allowed = [("portal/routes.rs", "log")];
+            if kinds.contains(&kind) && !allowed.contains(&(file.as_str(), kind)) {
+                broken.push(format!("{file} names kind \"{literal}\""));
+            }
+        }
+    }
+    for (file, code) in &krate.code {
+        if file != "assemble/registry.rs" && code.replace(' ', "").contains("ComponentSource::Builtin(\"") {
+            broken.push(format!("{file} writes ComponentSource::Builtin(\"...\")"));
+        }
+    }
+    assert!(broken.is_empty(), "kinds named outside the registry and the built-ins:\n{}", broken.join("\n"));
 }
 
 #[test]

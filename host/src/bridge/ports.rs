@@ -18,7 +18,7 @@ use crate::builtin::{
 };
 use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::{CallError, Component, Outbox, StatusSection};
 
 /// The kinds a subscriber may declare.
 pub const KINDS: &[&str] = &["flag", "scalar", "vector", "text", "command", "bytes", "scan"];
@@ -154,16 +154,13 @@ struct SessionComponent {
 }
 
 impl Component for SessionComponent {
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some((
-            "zenoh-session",
-            serde_json::json!({
-                "session": self.shared.id,
-                "peers": self.shared.peers(),
-                "connect": self.settings.connect,
-                "listen": self.settings.listen,
-            }),
-        ))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(session::SessionStatus {
+            session: self.shared.id.clone(),
+            peers: self.shared.peers(),
+            connect: self.settings.connect.clone(),
+            listen: self.settings.listen.clone(),
+        }))
     }
 }
 
@@ -258,8 +255,8 @@ impl Component for Publisher {
         Ok(())
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("zenoh", self.outlet.stats.status(&self.key, &self.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.outlet.stats.status("zenoh", &self.key, &self.shared)))
     }
 }
 
@@ -320,8 +317,8 @@ impl Component for Subscriber {
         }
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("zenoh", self.inlet.stats.status(&self.key, &self.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.inlet.stats.status("zenoh", &self.key, &self.shared)))
     }
 }
 

@@ -32,7 +32,7 @@ use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::halt::{self, Halt};
-use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
+use crate::runtime::{CallError, Component, MotorStop, Outbox, StatusSection, StopOutcome};
 use zenoh::Wait;
 
 /// Highest ROS 2 domain id (ROS 2's own limit for UDP ports is 232).
@@ -411,8 +411,8 @@ impl Component for Ros2Publisher {
         self.outlet.finish(last);
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("ros2", self.outlet.stats.status(&self.entity.key, &self.entity.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.outlet.stats.status("ros2", &self.entity.key, &self.entity.shared)))
     }
 }
 
@@ -517,8 +517,8 @@ impl Component for Ros2Subscriber {
         }
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("ros2", self.inlet.stats.status(&self.entity.key, &self.entity.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.inlet.stats.status("ros2", &self.entity.key, &self.entity.shared)))
     }
 }
 

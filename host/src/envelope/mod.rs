@@ -32,7 +32,8 @@ use crate::builtin::{
 use crate::config::{ComponentSource, ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::status::json_of;
+use crate::runtime::{CallError, Component, Outbox, StatusSection};
 
 /// Fastest speed (m/s) and turn (rad/s) an envelope may allow.
 pub const MAX_SPEED_M_S: f64 = 10.0;
@@ -314,6 +315,16 @@ pub struct Intervention {
     pub text: String,
 }
 
+impl StatusSection for EnvelopeStatus {
+    fn section(&self) -> &'static str {
+        "envelope"
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        json_of(self)
+    }
+}
+
 /// The envelope's section of the report and the live status.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct EnvelopeStatus {
@@ -484,8 +495,8 @@ impl Component for EnvelopeComponent {
         Ok(())
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        serde_json::to_value(&self.status).ok().map(|v| ("envelope", v))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.status.clone()))
     }
 }
 

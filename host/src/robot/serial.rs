@@ -49,7 +49,8 @@ use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
 use crate::contract::{Scan, Value};
 use crate::runtime::lockstep::{Lockstep, LockstepLink, wait_until};
-use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
+use crate::runtime::status::json_of;
+use crate::runtime::{CallError, Component, Family, MotorStop, Outbox, StatusSection, StopOutcome};
 
 /// Frames waiting for the I/O thread; more means the device is stuck, and
 /// further frames are dropped (and counted) rather than queued.
@@ -287,6 +288,52 @@ pub struct SerialStatus {
     pub openings_written: u64,
     /// Polls that gave bytes to send (sensor requests, keep-alives).
     pub polls_sent: u64,
+}
+
+impl StatusSection for SerialStatus {
+    fn section(&self) -> &'static str {
+        "serial"
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        json_of(self)
+    }
+
+    fn metric_families(&self, component: &str) -> Vec<Family> {
+        let labels = || vec![("link", component.to_string())];
+        vec![
+            Family::one_counter(
+                "subsume_serial_frames",
+                "frames written to the motor controller",
+                labels(),
+                self.frames_written,
+            ),
+            Family::one_counter(
+                "subsume_serial_malformed_feedback",
+                "feedback from the controller that did not parse",
+                labels(),
+                self.malformed_feedback,
+            ),
+            Family::one_counter(
+                "subsume_serial_reconnects",
+                "times the serial device was opened again",
+                labels(),
+                self.reconnects,
+            ),
+            Family::one_gauge(
+                "subsume_serial_connected",
+                "1 while the serial device is open",
+                labels(),
+                if self.connected { 1.0 } else { 0.0 },
+            ),
+            Family::one_counter(
+                "subsume_serial_watchdog_stops",
+                "STOPs sent because commands stopped coming",
+                labels(),
+                self.watchdog_stops,
+            ),
+        ]
+    }
 }
 
 /// The `builtin:serial` component.
@@ -604,8 +651,8 @@ impl Component for SerialLink {
         self.poll(now_ns)
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        serde_json::to_value(SerialLink::status(self)).ok().map(|v| ("serial", v))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(SerialLink::status(self)))
     }
 
     fn faulted(&mut self) {
