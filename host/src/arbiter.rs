@@ -37,10 +37,9 @@ use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::locks::unix_now_ms;
-use crate::runtime::status::json_of;
 use crate::runtime::{
-    CallError, Component, Engagement, Family, LockEvent, Locks, Outbox, PriorityCell, Standing, Standings,
-    StatusSection,
+    CallError, Component, Engagement, Family, LockEvent, Locks, NamedSection, Outbox, PriorityCell, Sample, Standing,
+    Standings, StatusSection,
 };
 
 /// Most sources one arbiter may have.
@@ -111,31 +110,25 @@ pub struct ArbiterStatus {
     pub lock_events_total: u64,
 }
 
-impl StatusSection for ArbiterStatus {
-    fn section(&self) -> &'static str {
-        "arbiter"
-    }
+impl NamedSection for ArbiterStatus {
+    const SECTION: &'static str = "arbiter";
 
-    fn to_json(&self) -> serde_json::Value {
-        json_of(self)
-    }
-
-    fn metric_families(&self, component: &str) -> Vec<Family> {
-        let labels = || vec![("arbiter", component.to_string())];
-        vec![
-            Family::one_counter(
-                "subsume_arbiter_switches",
-                "changes of the source holding control (to and from none)",
-                labels(),
-                self.switches,
-            ),
-            Family::one_counter(
-                "subsume_arbiter_stops",
-                "STOP commands sent because no source was active",
-                labels(),
-                self.stops_sent,
-            ),
-        ]
+    fn families(&self, component: &str) -> Vec<Family> {
+        Family::each(
+            ("arbiter", component),
+            &[
+                (
+                    "subsume_arbiter_switches",
+                    "changes of the source holding control (to and from none)",
+                    Sample::Counter(self.switches),
+                ),
+                (
+                    "subsume_arbiter_stops",
+                    "STOP commands sent because no source was active",
+                    Sample::Counter(self.stops_sent),
+                ),
+            ],
+        )
     }
 }
 

@@ -25,18 +25,14 @@ pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; cha
 pub fn families(status: &LiveStatus) -> Vec<Family> {
     let report = &status.report;
     let mut out = Vec::new();
-    out.push(Family::one_gauge(
-        "subsume_active_set",
-        "the id of the running set",
-        vec![("robot", report.robot.clone())],
-        status.set as f64,
-    ));
-    out.push(Family::one_counter(
-        "subsume_loop_cycles",
-        "control-loop cycles run by the running set",
-        vec![],
-        report.cycles,
-    ));
+    out.push(
+        Family::new("subsume_active_set", "the id of the running set", MetricKind::Gauge)
+            .gauge(vec![("robot", report.robot.clone())], status.set as f64),
+    );
+    out.push(
+        Family::new("subsume_loop_cycles", "control-loop cycles run by the running set", MetricKind::Counter)
+            .counter(vec![], report.cycles),
+    );
     let mut lateness = Family::new(
         "subsume_loop_lateness_seconds",
         "how long after its time the control loop ran each scheduled cycle",
@@ -248,7 +244,9 @@ mod tests {
             ..SerialStatus::default()
         };
         let arbiter = ArbiterStatus { switches: 21, stops_sent: 22, ..ArbiterStatus::default() };
-        let cases: Vec<(Box<dyn StatusSection>, &[(&str, &str)])> = vec![
+        // (a section, [(its metric family, the JSON field it shows)]).
+        type Case = (Box<dyn StatusSection>, &'static [(&'static str, &'static str)]);
+        let cases: Vec<Case> = vec![
             (Box::new(arbiter), &[("subsume_arbiter_switches", "/switches"), ("subsume_arbiter_stops", "/stops_sent")]),
             (
                 Box::new(serial),

@@ -27,8 +27,8 @@ use zenoh::Wait;
 use crate::builtin::{BuiltinError, ParamDecl, ParamType, Params};
 use crate::config::ParamProblem;
 use crate::contract::clip;
-use crate::runtime::StatusSection;
 use crate::runtime::status::json_of;
+use crate::runtime::{NamedSection, StatusSection};
 
 /// Most endpoints one setting may list: each is a connection attempt.
 pub const MAX_ENDPOINTS: usize = 16;
@@ -360,14 +360,8 @@ pub struct SessionStatus {
     pub listen: Vec<String>,
 }
 
-impl StatusSection for SessionStatus {
-    fn section(&self) -> &'static str {
-        "zenoh-session"
-    }
-
-    fn to_json(&self) -> serde_json::Value {
-        json_of(self)
-    }
+impl NamedSection for SessionStatus {
+    const SECTION: &'static str = "zenoh-session";
 }
 
 #[cfg(test)]

@@ -2,7 +2,7 @@
 
 use std::process::ExitCode;
 
-use subsume::portal::client::{LockAction, lock_action};
+use subsume::portal::client::LockAction;
 
 use super::Context;
 use super::flags::LoginFlags;
@@ -17,8 +17,6 @@ pub struct EstopCommand {
 
 impl EstopCommand {
     pub fn execute(self, _: &Context) -> anyhow::Result<ExitCode> {
-        let LoginFlags { host, user, password } = self.login;
-        println!("{}", lock_action(&host, &user, &password, LockAction::Engage)?);
-        Ok(ExitCode::SUCCESS)
+        self.login.lock_action(LockAction::Engage)
     }
 }

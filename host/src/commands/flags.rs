@@ -48,6 +48,15 @@ pub struct LoginFlags {
     pub password: String,
 }
 
+impl LoginFlags {
+    /// Logs in to the portal and engages or releases its locks, printing
+    /// what the host said.
+    pub fn lock_action(self, action: subsume::portal::client::LockAction) -> anyhow::Result<std::process::ExitCode> {
+        println!("{}", subsume::portal::client::lock_action(&self.host, &self.user, &self.password, action)?);
+        Ok(std::process::ExitCode::SUCCESS)
+    }
+}
+
 /// A listening address, or `off`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Listen {

@@ -134,7 +134,7 @@ pub fn run_options(
     };
     let live = host.foxglove.address();
     let record =
-        (host.record.is_some() || live.is_some()).then(|| RecordOptions { path: host.record, max_file_bytes, live });
+        (host.record.is_some() || live.is_some()).then_some(RecordOptions { path: host.record, max_file_bytes, live });
     let identity = TlsIdentity::from_options(host.tls_cert.as_deref(), host.tls_key.as_deref())?;
     let fault_injection = match std::env::var("SUBSUME_FAULT_INJECTION") {
         Ok(text) if !text.is_empty() => Some(text.parse::<FaultInjection>()?),

@@ -32,8 +32,7 @@ use crate::builtin::{
 use crate::config::{ComponentSource, ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::status::json_of;
-use crate::runtime::{CallError, Component, Outbox, StatusSection};
+use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
 
 /// Fastest speed (m/s) and turn (rad/s) an envelope may allow.
 pub const MAX_SPEED_M_S: f64 = 10.0;
@@ -315,14 +314,8 @@ pub struct Intervention {
     pub text: String,
 }
 
-impl StatusSection for EnvelopeStatus {
-    fn section(&self) -> &'static str {
-        "envelope"
-    }
-
-    fn to_json(&self) -> serde_json::Value {
-        json_of(self)
-    }
+impl NamedSection for EnvelopeStatus {
+    const SECTION: &'static str = "envelope";
 }
 
 /// The envelope's section of the report and the live status.

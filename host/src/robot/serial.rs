@@ -49,8 +49,9 @@ use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
 use crate::contract::{Scan, Value};
 use crate::runtime::lockstep::{Lockstep, LockstepLink, wait_until};
-use crate::runtime::status::json_of;
-use crate::runtime::{CallError, Component, Family, MotorStop, Outbox, StatusSection, StopOutcome};
+use crate::runtime::{
+    CallError, Component, Family, MotorStop, NamedSection, Outbox, Sample, StatusSection, StopOutcome,
+};
 
 /// Frames waiting for the I/O thread; more means the device is stuck, and
 /// further frames are dropped (and counted) rather than queued.
@@ -290,49 +291,40 @@ pub struct SerialStatus {
     pub polls_sent: u64,
 }
 
-impl StatusSection for SerialStatus {
-    fn section(&self) -> &'static str {
-        "serial"
-    }
+impl NamedSection for SerialStatus {
+    const SECTION: &'static str = "serial";
 
-    fn to_json(&self) -> serde_json::Value {
-        json_of(self)
-    }
-
-    fn metric_families(&self, component: &str) -> Vec<Family> {
-        let labels = || vec![("link", component.to_string())];
-        vec![
-            Family::one_counter(
-                "subsume_serial_frames",
-                "frames written to the motor controller",
-                labels(),
-                self.frames_written,
-            ),
-            Family::one_counter(
-                "subsume_serial_malformed_feedback",
-                "feedback from the controller that did not parse",
-                labels(),
-                self.malformed_feedback,
-            ),
-            Family::one_counter(
-                "subsume_serial_reconnects",
-                "times the serial device was opened again",
-                labels(),
-                self.reconnects,
-            ),
-            Family::one_gauge(
-                "subsume_serial_connected",
-                "1 while the serial device is open",
-                labels(),
-                if self.connected { 1.0 } else { 0.0 },
-            ),
-            Family::one_counter(
-                "subsume_serial_watchdog_stops",
-                "STOPs sent because commands stopped coming",
-                labels(),
-                self.watchdog_stops,
-            ),
-        ]
+    fn families(&self, component: &str) -> Vec<Family> {
+        Family::each(
+            ("link", component),
+            &[
+                (
+                    "subsume_serial_frames",
+                    "frames written to the motor controller",
+                    Sample::Counter(self.frames_written),
+                ),
+                (
+                    "subsume_serial_malformed_feedback",
+                    "feedback from the controller that did not parse",
+                    Sample::Counter(self.malformed_feedback),
+                ),
+                (
+                    "subsume_serial_reconnects",
+                    "times the serial device was opened again",
+                    Sample::Counter(self.reconnects),
+                ),
+                (
+                    "subsume_serial_connected",
+                    "1 while the serial device is open",
+                    Sample::Gauge(if self.connected { 1.0 } else { 0.0 }),
+                ),
+                (
+                    "subsume_serial_watchdog_stops",
+                    "STOPs sent because commands stopped coming",
+                    Sample::Counter(self.watchdog_stops),
+                ),
+            ],
+        )
     }
 }
 

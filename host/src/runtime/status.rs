@@ -24,6 +24,33 @@ pub trait StatusSection: Any + Debug + Send + Sync {
     }
 }
 
+/// A section that serializes itself under a fixed name: implementing this
+/// (with `metric_families` when it feeds metrics) makes it a
+/// [`StatusSection`].
+pub trait NamedSection: serde::Serialize + Debug + Send + Sync + 'static {
+    /// The section's name in the report.
+    const SECTION: &'static str;
+    /// As [`StatusSection::metric_families`].
+    fn families(&self, component: &str) -> Vec<Family> {
+        let _ = component;
+        Vec::new()
+    }
+}
+
+impl<T: NamedSection> StatusSection for T {
+    fn section(&self) -> &'static str {
+        T::SECTION
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        json_of(self)
+    }
+
+    fn metric_families(&self, component: &str) -> Vec<Family> {
+        self.families(component)
+    }
+}
+
 impl dyn StatusSection {
     /// The section as its own type, if it is a `T`.
     pub fn downcast_ref<T: StatusSection>(&self) -> Option<&T> {
@@ -62,36 +89,35 @@ impl Family {
         Family { name, help, kind, samples: Vec::new() }
     }
 
-    /// This family with one counter sample.
-    pub fn counter(mut self, labels: Vec<(&'static str, String)>, value: u64) -> Family {
-        self.samples.push((labels, Sample::Counter(value)));
+    /// This family with one more sample.
+    pub fn with(mut self, labels: Vec<(&'static str, String)>, sample: Sample) -> Family {
+        self.samples.push((labels, sample));
         self
+    }
+
+    /// This family with one counter sample.
+    pub fn counter(self, labels: Vec<(&'static str, String)>, value: u64) -> Family {
+        self.with(labels, Sample::Counter(value))
     }
 
     /// This family with one gauge sample.
-    pub fn gauge(mut self, labels: Vec<(&'static str, String)>, value: f64) -> Family {
-        self.samples.push((labels, Sample::Gauge(value)));
-        self
+    pub fn gauge(self, labels: Vec<(&'static str, String)>, value: f64) -> Family {
+        self.with(labels, Sample::Gauge(value))
     }
 
-    /// A counter family with one sample.
-    pub fn one_counter(
-        name: &'static str,
-        help: &'static str,
-        labels: Vec<(&'static str, String)>,
-        value: u64,
-    ) -> Family {
-        Family::new(name, help, MetricKind::Counter).counter(labels, value)
-    }
-
-    /// A gauge family with one sample.
-    pub fn one_gauge(
-        name: &'static str,
-        help: &'static str,
-        labels: Vec<(&'static str, String)>,
-        value: f64,
-    ) -> Family {
-        Family::new(name, help, MetricKind::Gauge).gauge(labels, value)
+    /// One family per row (name, help, sample), each with one sample
+    /// labelled `label`.
+    pub fn each(label: (&'static str, &str), rows: &[(&'static str, &'static str, Sample)]) -> Vec<Family> {
+        rows.iter()
+            .map(|(name, help, sample)| {
+                let kind = match sample {
+                    Sample::Counter(_) => MetricKind::Counter,
+                    Sample::Gauge(_) => MetricKind::Gauge,
+                    Sample::Histogram(_) => MetricKind::Histogram,
+                };
+                Family::new(name, help, kind).with(vec![(label.0, label.1.to_string())], sample.clone())
+            })
+            .collect()
     }
 }
 

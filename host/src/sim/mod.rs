@@ -39,8 +39,7 @@ use self::physics::{Body, SimStatus, Simulation};
 use self::world::World;
 use crate::robot::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
 use crate::runtime::lockstep::{Lockstep, LockstepSim};
-use crate::runtime::status::json_of;
-use crate::runtime::{Component, StatusSection};
+use crate::runtime::{Component, NamedSection, StatusSection};
 
 /// Why a simulated robot did not start.
 #[derive(Debug, thiserror::Error)]
@@ -577,14 +576,8 @@ pub struct SimSection {
     pub pty: String,
 }
 
-impl StatusSection for SimSection {
-    fn section(&self) -> &'static str {
-        "sim"
-    }
-
-    fn to_json(&self) -> serde_json::Value {
-        json_of(self)
-    }
+impl NamedSection for SimSection {
+    const SECTION: &'static str = "sim";
 }
 
 #[cfg(test)]

@@ -40,10 +40,9 @@ use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
 use crate::robot::control::ControlCommand;
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::status::json_of;
 use crate::runtime::{
-    CallError, Component, Family, Locks, MetricKind, Outbox, PriorityCell, RunningRobot, Standing, Standings,
-    StatusSection,
+    CallError, Component, Family, Locks, MetricKind, NamedSection, Outbox, PriorityCell, RunningRobot, Sample,
+    Standing, Standings, StatusSection,
 };
 use crate::store::users::Directory;
 
@@ -192,16 +191,10 @@ impl TeleopStatus {
     }
 }
 
-impl StatusSection for TeleopStatus {
-    fn section(&self) -> &'static str {
-        "teleop"
-    }
+impl NamedSection for TeleopStatus {
+    const SECTION: &'static str = "teleop";
 
-    fn to_json(&self) -> serde_json::Value {
-        json_of(self)
-    }
-
-    fn metric_families(&self, component: &str) -> Vec<Family> {
+    fn families(&self, component: &str) -> Vec<Family> {
         let network = || ("network", component.to_string());
         let mut rtt = Family::new(
             "subsume_teleop_rtt_seconds",
@@ -230,17 +223,20 @@ impl StatusSection for TeleopStatus {
         ] {
             dropped = dropped.counter(vec![network(), ("reason", reason.to_string())], count);
         }
-        vec![
-            rtt,
-            Family::one_gauge("subsume_teleop_sessions", "operator connections open now", vec![network()], open as f64),
-            Family::one_counter(
-                "subsume_teleop_commands_released",
-                "operator commands released by the delay buffer",
-                vec![network()],
-                c.released,
-            ),
-            dropped,
-        ]
+        let mut families = vec![rtt];
+        families.extend(Family::each(
+            ("network", component),
+            &[
+                ("subsume_teleop_sessions", "operator connections open now", Sample::Gauge(open as f64)),
+                (
+                    "subsume_teleop_commands_released",
+                    "operator commands released by the delay buffer",
+                    Sample::Counter(c.released),
+                ),
+            ],
+        ));
+        families.push(dropped);
+        families
     }
 }
 
