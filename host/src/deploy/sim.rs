@@ -4,7 +4,7 @@
 
 use super::{DeployError, Deployer, Permission, authorise};
 use crate::assemble::registry;
-use crate::builtin;
+use crate::builtin::{self, Builtin as _};
 use crate::config::{ComponentConfig, ComponentSource, RobotConfig};
 use crate::sim::builtin::{SimBuiltin, WORLD_PARAM};
 use crate::sim::physics::SimStatus;
@@ -91,7 +91,7 @@ impl Deployer {
         // Audited like every change (who, what, when): action `sim-ACTION`,
         // target the simulated robot, detail the request and where it left
         // the robot.
-        let target = prepared.as_ref().map(|(name, _)| name.clone()).unwrap_or_else(|_| "simulator".into());
+        let target = prepared.as_ref().map(|(name, _)| name.clone()).unwrap_or_else(|_| SimBuiltin.kind().to_string());
         let request = action.detail();
         self.commit(
             &user.name,
