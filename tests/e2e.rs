@@ -82,7 +82,7 @@ fn the_demo_robot_reaches_its_goal_without_collisions() {
     let report = read_report(&report_path);
     assert_eq!(
         (report["format"].as_u64(), report["robot"].as_str(), report["stopped_by"].as_str()),
-        (Some(1), Some("demo"), Some("duration"))
+        (Some(2), Some("demo"), Some("duration"))
     );
     for c in report["components"].as_array().unwrap() {
         assert_eq!(c["state"], "running", "{c}");

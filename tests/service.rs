@@ -623,5 +623,8 @@ fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
     let output = run_to_end(&mut bad);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success());
-    assert!(stderr.contains("--control-fifo must be between 1 and 99, got 100"), "{stderr}");
+    assert!(
+        stderr.contains("invalid value '100' for '--control-fifo <PRIORITY>': must be between 1 and 99, got 100"),
+        "{stderr}"
+    );
 }

@@ -344,12 +344,12 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
     let report = read_report(&host.report);
     let travelled = report["sim"]["distance_travelled_m"].as_f64().unwrap();
     assert!((0.4..0.9).contains(&travelled), "{}", report["sim"]);
-    let session = &report["network"]["sessions"][0];
+    let session = &report["teleop"]["sessions"][0];
     assert_eq!(session["operator"], "alice");
     assert_eq!(session["mode_changes"][0]["to"], "direct");
     assert!(session["rtt_ms"].as_f64().unwrap() < 50.0);
     assert!(session["disconnected_at_s"].is_number());
-    let commands = &report["network"]["commands"];
+    let commands = &report["teleop"]["commands"];
     assert_eq!(commands["received"], 40, "{commands}");
     assert!(commands["released"].as_u64().unwrap() >= 35, "{commands}");
     assert_eq!((commands["dropped_stale"].as_u64(), commands["dropped_duplicate"].as_u64()), (Some(0), Some(0)));
@@ -411,7 +411,7 @@ fn sessions_past_the_listing_bound_are_counted_and_their_commands_kept() {
     let mut host = host;
     wait_for_exit(&mut host.process.child, Duration::from_secs(run_s as u64 + 20));
     let report = read_report(&host.report);
-    let network = &report["network"];
+    let network = &report["teleop"];
     let sessions = network["sessions"].as_array().unwrap();
     assert_eq!(sessions.len(), MAX_ENDED_SESSIONS_LISTED, "{network}");
     assert!(sessions.iter().all(|s| s["disconnected_at_s"].is_number()), "{network}");
@@ -550,7 +550,7 @@ fn the_keyboard_client_drives_from_a_real_terminal() {
     }
     wait_for_exit(&mut host.process.child, Duration::from_secs(20));
     let report = read_report(&host.report);
-    let session = &report["network"]["sessions"][0];
+    let session = &report["teleop"]["sessions"][0];
     assert_eq!(session["operator"], "alice", "{session}");
     assert_eq!(session["mode_changes"][0]["to"], "direct", "{session}");
     assert!(session["commands"]["released"].as_u64().unwrap() >= 10, "{session}");

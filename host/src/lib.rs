@@ -3,8 +3,8 @@
 //!
 //! # Layout
 //!
-//! The binary (`main.rs`) parses the command line and calls [`run::run`],
-//! the composition root. `ARCHITECTURE.md` maps the modules below, the
+//! The binary (`main.rs`, one file per subcommand in `commands/`) parses
+//! the command line and calls [`run::run`], the composition root. `ARCHITECTURE.md` maps the modules below, the
 //! invariants each keeps, and the import rules between them (checked by
 //! `host/tests/architecture.rs`). From the bottom up:
 //!

@@ -441,7 +441,8 @@ fn sample_status(
     *next_ns = now_ns + STATUS_PERIOD_NS;
     last.resize(graph.len(), None);
     for (index, sent) in last.iter_mut().enumerate() {
-        let Some((_, kind, section)) = graph.component_status(index) else { continue };
+        let Some((_, status)) = graph.component_status(index) else { continue };
+        let (kind, section) = (status.section(), status.to_json());
         if sent.as_ref() != Some(&section) {
             *sent = Some(section.clone());
             sink.send(Event::Status { index, t: now_ns, kind, section });

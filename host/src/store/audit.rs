@@ -10,18 +10,15 @@ use super::StoreError;
 
 /// Audit entries returned by one read (the file itself keeps everything).
 pub const MAX_AUDIT_READ: usize = 1000;
-/// Most characters of an entry's detail: enough to name what was refused
+/// Most bytes of an entry's detail: enough to name what was refused
 /// and why (an envelope setting and its values), while one request cannot
 /// grow the log without bound.
 pub const MAX_AUDIT_DETAIL: usize = 300;
 
-/// At most [`MAX_AUDIT_DETAIL`] characters of `detail`.
+/// At most [`MAX_AUDIT_DETAIL`] bytes of `detail`, without control
+/// characters.
 pub fn clip_detail(detail: &str) -> String {
-    let mut clipped: String = detail.chars().take(MAX_AUDIT_DETAIL).collect();
-    if clipped.len() < detail.len() {
-        clipped.push_str("...");
-    }
-    clipped
+    crate::contract::clip_to(detail, MAX_AUDIT_DETAIL)
 }
 
 /// One line of the audit log.

@@ -206,6 +206,10 @@ impl Builtin for TeleopBuiltin {
         "teleop"
     }
 
+    fn answers_to_a_person(&self) -> bool {
+        true
+    }
+
     fn summary(&self) -> &'static str {
         "Remote operators over TCP and WebSocket: latency probe, control modes, constant-delay buffer"
     }

@@ -40,7 +40,10 @@ use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
 use crate::robot::control::ControlCommand;
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{CallError, Component, Locks, Outbox, PriorityCell, RunningRobot, Standing, Standings};
+use crate::runtime::{
+    CallError, Component, Family, Locks, MetricKind, NamedSection, Outbox, PriorityCell, RunningRobot, Sample,
+    Standing, Standings, StatusSection,
+};
 use crate::store::users::Directory;
 
 /// Events from sessions waiting for the control loop; more are dropped and
@@ -162,6 +165,79 @@ pub struct SessionReport {
     pub malformed_lines: u64,
     pub commands: DelayStats,
     pub playout_delay_ms: Option<f64>,
+}
+
+/// The network platform's section of the report and the live status.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct TeleopStatus {
+    /// Where it listens.
+    pub listen: String,
+    /// Every open session and the newest ended ones.
+    pub sessions: Vec<SessionReport>,
+    /// Ended sessions no longer listed.
+    pub earlier_sessions: u64,
+    /// The commands of every session, listed or not.
+    pub commands: DelayStats,
+    /// The network source's priority now.
+    pub priority: i32,
+    /// The robot it belongs to (renamed by activations).
+    pub robot: String,
+}
+
+impl TeleopStatus {
+    /// The sessions still connected.
+    pub fn open_sessions(&self) -> impl Iterator<Item = &SessionReport> {
+        self.sessions.iter().filter(|s| s.disconnected_at_s.is_none())
+    }
+}
+
+impl NamedSection for TeleopStatus {
+    const SECTION: &'static str = "teleop";
+
+    fn families(&self, component: &str) -> Vec<Family> {
+        let network = || ("network", component.to_string());
+        let mut rtt = Family::new(
+            "subsume_teleop_rtt_seconds",
+            "the last measured round-trip time of each connected operator session",
+            MetricKind::Gauge,
+        );
+        for session in self.open_sessions() {
+            if let Some(ms) = session.rtt_ms {
+                let operator = session.operator.clone().unwrap_or_default();
+                let labels = vec![network(), ("session", session.session.to_string()), ("operator", operator)];
+                rtt = rtt.gauge(labels, ms / 1e3);
+            }
+        }
+        let open = self.open_sessions().count();
+        let c = &self.commands;
+        let mut dropped = Family::new(
+            "subsume_teleop_commands_dropped",
+            "operator commands never released, by reason (stale, duplicate, full, superseded)",
+            MetricKind::Counter,
+        );
+        for (reason, count) in [
+            ("stale", c.dropped_stale),
+            ("duplicate", c.dropped_duplicate),
+            ("full", c.dropped_full),
+            ("superseded", c.superseded),
+        ] {
+            dropped = dropped.counter(vec![network(), ("reason", reason.to_string())], count);
+        }
+        let mut families = vec![rtt];
+        families.extend(Family::each(
+            ("network", component),
+            &[
+                ("subsume_teleop_sessions", "operator connections open now", Sample::Gauge(open as f64)),
+                (
+                    "subsume_teleop_commands_released",
+                    "operator commands released by the delay buffer",
+                    Sample::Counter(c.released),
+                ),
+            ],
+        ));
+        families.push(dropped);
+        families
+    }
 }
 
 /// State shared by the sessions (network runtime) and the component.
@@ -681,7 +757,7 @@ impl Component for TeleopComponent {
         self.sessions.values().filter_map(|c| c.buffer.next_release()).min()
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
         let (mut sessions, earlier) = self.ctx.reports.lock().ok()?.listed();
         // The totals count every session, listed or not.
         let mut totals = self.earlier.clone();
@@ -702,15 +778,14 @@ impl Component for TeleopComponent {
             report.commands = stats;
             report.playout_delay_ms = delay.map(|d| d.as_secs_f64() * 1e3);
         }
-        let value = serde_json::json!({
-            "listen": self.listen.to_string(),
-            "sessions": sessions,
-            "earlier_sessions": earlier,
-            "commands": totals,
-            "priority": self.priority.get(),
-            "robot": self.ctx.robot.name(),
-        });
-        Some(("network", value))
+        Some(Box::new(TeleopStatus {
+            listen: self.listen.to_string(),
+            sessions,
+            earlier_sessions: earlier,
+            commands: totals,
+            priority: self.priority.get(),
+            robot: self.ctx.robot.name(),
+        }))
     }
 }
 
@@ -877,7 +952,7 @@ mod tests {
             };
             ctx.mode_changed(3, change);
         }
-        let status = teleop.status().map(|(_, value)| value).unwrap_or_default();
+        let status = teleop.status().map(|status| status.to_json()).unwrap_or_default();
         let session = &status["sessions"][0];
         let times: Vec<f64> =
             session["mode_changes"].as_array().into_iter().flatten().filter_map(|c| c["at_s"].as_f64()).collect();
