@@ -1,6 +1,7 @@
 //! The `subsume` command line: parses arguments, sets up logging and signals,
 //! and calls into the library. Errors become messages and exit codes here.
 
+use std::io::IsTerminal as _;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
@@ -293,6 +294,14 @@ fn return_large_blocks() {
     }
 }
 
+/// Whether the log may be coloured: only on a terminal (a redirected log or
+/// the journal gets plain text), and never when `NO_COLOR` is set to
+/// anything but empty (no-color.org).
+fn colour_on_stderr() -> bool {
+    let no_color = std::env::var_os("NO_COLOR").is_some_and(|v| !v.is_empty());
+    !no_color && std::io::stderr().is_terminal()
+}
+
 fn main() -> ExitCode {
     use tracing_subscriber::Layer as _;
     return_large_blocks();
@@ -302,7 +311,7 @@ fn main() -> ExitCode {
     let logs = subsume::portal::logs::LogRing::new();
     tracing_subscriber::registry()
         .with(
-            tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_filter(
+            tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_ansi(colour_on_stderr()).with_filter(
                 tracing_subscriber::EnvFilter::try_from_default_env()
                     .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,wasmtime=warn,cranelift=warn")),
             ),
