@@ -722,12 +722,21 @@ fn portal_options(
     let listen =
         http.parse().with_context(|| format!("--http must be an address like 127.0.0.1:8080 or off, got '{http}'"))?;
     let store_dir = store_dir.context("no store folder: pass --store DIR or set SUBSUME_STORE")?;
+    // A person at a terminal gets a first admin and its password; a
+    // service unit or a pipe gets a hint instead (the password would end
+    // up in a log file).
+    let first_user = if std::io::stdout().is_terminal() {
+        subsume::run::FirstUser::MakeAdmin
+    } else {
+        subsume::run::FirstUser::Hint
+    };
     Ok(Some(PortalOptions {
         listen,
         store_dir,
         logs,
         record_max_file_bytes: subsume::record::DEFAULT_MAX_FILE_BYTES,
         watch: None,
+        first_user,
     }))
 }
 

@@ -183,10 +183,15 @@ pub struct HostProcess {
 
 impl HostProcess {
     /// Spawns `command` (stdout discarded, stderr read).
-    pub fn spawn(mut command: Command) -> HostProcess {
+    pub fn spawn(command: Command) -> HostProcess {
+        HostProcess::spawn_with_stdout(command, std::process::Stdio::null())
+    }
+
+    /// Spawns `command` with this stdout (a pipe, a terminal), stderr read.
+    pub fn spawn_with_stdout(mut command: Command, stdout: std::process::Stdio) -> HostProcess {
         use std::io::BufRead;
         let mut child = command
-            .stdout(std::process::Stdio::null())
+            .stdout(stdout)
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap_or_else(|e| panic!("cannot start the host: {e}"));
