@@ -514,7 +514,7 @@ mod tests {
                     scope.spawn(move || Store::open(&root).and_then(|store| store.add_first_admin()))
                 })
                 .collect();
-            handles.into_iter().map(|h| h.join().unwrap_or_else(|_| Ok(None))).collect::<Result<_, _>>()
+            handles.into_iter().map(|h| h.join().unwrap_or(Ok(None))).collect::<Result<_, _>>()
         })?;
         let made: Vec<&String> = passwords.iter().flatten().collect();
         assert_eq!(made.len(), 1, "{passwords:?}");
