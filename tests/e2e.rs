@@ -316,6 +316,44 @@ fn sigint_and_sigterm_stop_the_host_cleanly() {
     }
 }
 
+/// The log is coloured only on a terminal: a redirected log (a pipe, a
+/// file, the journal) gets plain text, and `NO_COLOR` turns colour off on
+/// a terminal too.
+#[test]
+fn the_log_is_coloured_only_on_a_terminal_without_no_color() {
+    let dir = tempfile::tempdir().unwrap();
+    let robot = robot_file(
+        dir.path(),
+        r#"<robot name="colours"><platform name="control">
+  <component name="source" source="builtin:publish" rate="20"><param name="value" value="1"/></component>
+  <component name="sink" source="builtin:log" rate="0"/>
+  <connect from="source.out" to="sink.in"/>
+</platform></robot>"#,
+    );
+    let host = |no_color: Option<&str>| {
+        let mut command = subsume();
+        command.env_remove("NO_COLOR").args(["run", robot.to_str().unwrap(), "--duration", "0.3"]);
+        if let Some(value) = no_color {
+            command.env("NO_COLOR", value);
+        }
+        command
+    };
+    const ESCAPE: char = '\u{1b}';
+    let piped = host(None).output().unwrap();
+    let log = text(&piped.stderr);
+    assert!(piped.status.success() && log.contains("robot 'colours'"), "{log}");
+    assert!(!log.contains(ESCAPE), "colour in a redirected log: {log:?}");
+    // On a terminal: colour, unless NO_COLOR is set (and not empty).
+    for (no_color, coloured) in [(None, true), (Some(""), true), (Some("1"), false)] {
+        let mut terminal = support::Terminal::new();
+        let mut child = host(no_color).stderr(terminal.stdio()).stdout(Stdio::null()).spawn().unwrap();
+        let stopped = terminal.read_until(Duration::from_secs(30), |t| t.contains("messages routed"));
+        assert!(child.wait().unwrap().success() && stopped, "{}", terminal.text);
+        assert!(terminal.text.contains("robot 'colours'"), "{}", terminal.text);
+        assert_eq!(terminal.text.contains(ESCAPE), coloured, "NO_COLOR {no_color:?}: {:?}", terminal.text);
+    }
+}
+
 #[test]
 fn check_prints_every_error_one_per_line_and_exits_1() {
     let output = run(&["check", "host/tests/config/many-errors.xml"]);

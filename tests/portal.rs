@@ -332,6 +332,86 @@ fn a_kill_during_uploads_and_activations_leaves_a_consistent_store_that_restarts
     assert!(entries.iter().any(|e| e.action == "upload-component" && e.user == "admin" && e.result == "ok"));
 }
 
+/// The first run of a store with no users, with standard output at a
+/// terminal (a real pseudo-terminal): it makes `admin` and prints the
+/// portal's address and a password once; that password logs in over HTTP,
+/// and neither the store nor the log holds it. The next start prints none.
+/// With standard output a pipe (a service unit, a log file) no user is
+/// made and the log says how to add one.
+#[test]
+fn a_first_run_at_a_terminal_prints_a_login_that_works_and_a_pipe_gets_a_hint() {
+    let dir = tempfile::tempdir().unwrap();
+    let robot = dir.path().join("first.xml");
+    std::fs::write(&robot, light_robot("first", 1, 2, None)).unwrap();
+    let run = |store: &Path| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+        command
+            .current_dir(support::repo_root())
+            .env("NO_COLOR", "1")
+            .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
+            .arg(&robot)
+            .args(["--http", "127.0.0.1:0"]);
+        command
+    };
+    let portal = |host: &support::HostProcess| {
+        let address = host.word_after("portal on http://", Duration::from_secs(60));
+        address.trim_end_matches('/').to_string()
+    };
+
+    let store = dir.path().join("store");
+    let mut terminal = support::Terminal::new();
+    let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
+    let address = portal(&host);
+    // Printed before the portal's line: all there by now.
+    assert!(terminal.read_until(Duration::from_secs(10), |t| t.contains("shown this once")), "{}", terminal.text);
+    let shown = terminal.text.clone();
+    assert!(shown.contains(&format!("http://{address}/")), "{shown}");
+    let password = shown.split("user admin  password ").nth(1).and_then(|rest| rest.split_whitespace().next());
+    let password = password.unwrap_or_else(|| panic!("no password in:\n{shown}")).to_string();
+    assert!(password.len() >= 16, "{password}");
+    let body = serde_json::json!({ "name": "admin", "password": password }).to_string();
+    let (status, json) = http(&address, "POST", "/api/v1/login", None, body.as_bytes());
+    assert_eq!((status, json["user"]["role"].as_str()), (200, Some("admin")), "{json}");
+    let (status, _) = http(&address, "GET", "/api/v1/audit", json["token"].as_str(), b"");
+    assert_eq!(status, 200, "the first admin may read what only admins may");
+    for (path, bytes) in support::store_snapshot(&[], &store) {
+        assert!(
+            !bytes.windows(password.len()).any(|w| w == password.as_bytes()),
+            "{} holds the password",
+            path.display()
+        );
+    }
+    assert!(!host.log().contains(&password), "the log holds the password");
+    drop(host);
+
+    // The next start, at a terminal too: the admin stays, no new password.
+    let mut terminal = support::Terminal::new();
+    let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
+    let address = portal(&host);
+    terminal.read_until(Duration::from_millis(200), |_| false);
+    assert!(!terminal.text.contains("password"), "{}", terminal.text);
+    assert!(!host.log().contains("no users yet"), "{}", host.log());
+    support::login(&address, "admin", &password);
+    drop(host);
+
+    // Standard output a pipe: no user, a hint in the log, nothing printed.
+    let piped = dir.path().join("piped");
+    let mut host = support::HostProcess::spawn_with_stdout(run(&piped), Stdio::piped());
+    portal(&host);
+    let hint = format!(
+        "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+        piped.display()
+    );
+    assert!(host.log().contains(&hint), "{}", host.log());
+    let mut stdout = host.child.stdout.take().unwrap();
+    let _ = host.child.kill();
+    let _ = host.child.wait();
+    let mut printed = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut printed).unwrap();
+    assert!(!printed.contains("password"), "{printed}");
+    assert!(!piped.join("users.json").exists(), "a user was made with stdout a pipe");
+}
+
 #[test]
 fn the_portal_works_in_a_real_browser() {
     let dir = tempfile::tempdir().unwrap();
@@ -373,9 +453,10 @@ fn the_portals_own_views_work_in_a_real_browser() {
     let stdout =
         support::browser("views.mjs", &artifacts, &[], &[&format!("http://{}/", host.address), &"admin", &PASSWORD]);
     assert!(stdout.contains("ok: "), "{stdout}");
-    for (n, shot) in ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings", "history"]
-        .iter()
-        .enumerate()
+    for (n, shot) in
+        ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings", "history", "locked-log"]
+            .iter()
+            .enumerate()
     {
         assert!(artifacts.join(format!("views-{}-{shot}.png", n + 1)).is_file(), "{shot}");
     }

@@ -498,6 +498,27 @@ fn the_systemd_unit_installs_verifies_and_is_hardened() {
     ] {
         assert!(dir.path().join(file).is_file(), "{file} not installed: {stdout}");
     }
+    // The robot's copy has no debug info (the test binary has line tables).
+    let sections = |binary: &Path| {
+        let output = Command::new("readelf").args(["-S", "-W"]).arg(binary).output().unwrap();
+        assert!(output.status.success(), "readelf: {}", String::from_utf8_lossy(&output.stderr));
+        String::from_utf8_lossy(&output.stdout).into_owned()
+    };
+    let installed = dir.path().join("usr/local/bin/subsume");
+    assert!(
+        sections(Path::new(env!("CARGO_BIN_EXE_subsume"))).contains(".debug_line"),
+        "the test binary has no line tables"
+    );
+    let installed_sections = sections(&installed);
+    assert!(
+        !installed_sections.contains(".debug_line") && !installed_sections.contains(".debug_info"),
+        "installed with debug info: {stdout}"
+    );
+    let size = std::fs::metadata(&installed).unwrap().len();
+    assert!(
+        stdout.contains(&format!("binary -> {} ({} MB, debug info stripped)", installed.display(), size / 1_000_000)),
+        "{stdout}"
+    );
     assert!(stdout.contains("would run: useradd --system"), "{stdout}");
     assert!(stdout.contains("would run: systemctl enable subsume.service"), "{stdout}");
     let unit = std::fs::read_to_string(dir.path().join("etc/systemd/system/subsume.service")).unwrap();

@@ -4,6 +4,7 @@
 
 mod commands;
 
+use std::io::IsTerminal as _;
 use std::process::ExitCode;
 
 use anyhow::Context as _;
@@ -54,13 +55,21 @@ fn install_logging() -> std::sync::Arc<LogRing> {
     let filter =
         EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info,wasmtime=warn,cranelift=warn"));
     tracing_subscriber::registry()
-        .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_filter(filter))
+        .with(tracing_subscriber::fmt::layer().with_writer(std::io::stderr).with_ansi(colour_on_stderr()).with_filter(filter))
         // A filter per layer: an unfiltered layer would turn on every trace
         // event in the process (cranelift traces slow compiles down 4x).
         .with(logs.layer().with_filter(LevelFilter::INFO))
         .with(subsume::record::log::layer().with_filter(LevelFilter::INFO))
         .init();
     logs
+}
+
+/// Whether the log may be coloured: only on a terminal (a redirected log or
+/// the journal gets plain text), and never when `NO_COLOR` is set to
+/// anything but empty (no-color.org).
+fn colour_on_stderr() -> bool {
+    let no_color = std::env::var_os("NO_COLOR").is_some_and(|v| !v.is_empty());
+    !no_color && std::io::stderr().is_terminal()
 }
 
 /// SIGINT and SIGTERM request a clean shutdown; a second one sends the

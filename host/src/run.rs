@@ -131,6 +131,20 @@ pub struct PortalOptions {
     /// `subsume dev`: watch the robot file and its component files at this
     /// poll interval, and activate each change (`deploy::dev`).
     pub watch: Option<Duration>,
+    /// What a store with no users gets at start.
+    pub first_user: FirstUser,
+}
+
+/// What the portal does when its store has no users yet.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FirstUser {
+    /// Someone reads standard output (a terminal): make `admin` with a
+    /// generated password and print it once there, with the portal's
+    /// address, so the first run ends with a working login.
+    MakeAdmin,
+    /// Nobody may read it (a service unit, a pipe into a log): make no user;
+    /// the log says how to add one.
+    Hint,
 }
 
 #[derive(Debug, Error)]
@@ -369,6 +383,33 @@ fn final_report(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, ran
     report::build(config, graph, stopped_by, ran_ns as f64 / 1e9)
 }
 
+/// A store with no users at start: makes the first admin and prints its
+/// login on standard output, once (never into the log, which the portal
+/// and recordings show), or says how to add a user.
+fn first_user(store: &Store, first: FirstUser, url: &str) {
+    let hint = || {
+        tracing::warn!(
+            "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+            store.root().display()
+        );
+    };
+    if first == FirstUser::Hint {
+        return hint();
+    }
+    match store.add_first_admin() {
+        Ok(Some(password)) => println!(
+            "\nfirst run: the store had no users, so subsume made one. Log in at\n\n    {url}\n    user {}  password {password}\n\n\
+             The password is shown this once (the store keeps only a hash); `subsume user` adds users and sets passwords.\n",
+            crate::store::FIRST_ADMIN
+        ),
+        Ok(None) => {}
+        Err(e) => {
+            tracing::error!("cannot make the first admin: {e}");
+            hint();
+        }
+    }
+}
+
 /// [`run`] with the portal: starts from the store (see
 /// [`Deployer::boot`]), serves the portal on its own runtime, and lets it
 /// activate sets while the control loop runs.
@@ -376,14 +417,8 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let sandbox = Arc::new(Sandbox::new(options.cache_dir.clone())?);
     let store = Arc::new(Store::open(&portal.store_dir)?);
     let directory = Arc::new(Directory::new(store.users().clone()));
-    match directory.users.all() {
-        Ok(users) if users.is_empty() => tracing::warn!(
-            "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
-            store.root().display()
-        ),
-        Ok(_) => {}
-        Err(e) => return Err(StoreError::from(e).into()),
-    }
+    let no_users = directory.users.all().map_err(StoreError::from)?.is_empty();
+    let first_store = store.clone();
     if options.tls.identity.is_none() {
         options.tls.check_plain("portal", portal.listen)?;
     }
@@ -451,6 +486,10 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
             }
         }
     });
+    // Before the portal's line: whoever waits for that line has the login.
+    if no_users {
+        first_user(&first_store, portal.first_user, &format!("{scheme}://{address}/"));
+    }
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let Some(record) = &options.record else {
         let hook = recordings.hook(hook, |hook| Layout::of(hook.config()), deploy::ControlHook::swaps);

@@ -78,7 +78,7 @@ fn describe_builtin(kind: &str, as_json: bool) -> anyhow::Result<ExitCode> {
         let _ = writeln!(s, "  (none)");
     }
     for p in builtin.params() {
-        let default = if p.default.is_empty() { "required".to_string() } else { format!("default '{}'", p.default) };
+        let default = p.default_in_words();
         let _ = writeln!(s, "  {} ({default}): {}; {}", p.name, p.expected(), p.doc);
     }
     print!("{s}");

@@ -3,6 +3,7 @@
 //! [`RunOptions`] and the launch (panic policy, signals, report) that `dev`
 //! shares.
 
+use std::io::IsTerminal as _;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -130,6 +131,14 @@ pub fn run_options(
             logs: context.logs.clone(),
             record_max_file_bytes: max_file_bytes,
             watch,
+            // A person at a terminal gets a first admin and its password; a
+            // service unit or a pipe gets a hint instead (the password
+            // would end up in a log file).
+            first_user: if std::io::stdout().is_terminal() {
+                subsume::run::FirstUser::MakeAdmin
+            } else {
+                subsume::run::FirstUser::Hint
+            },
         }),
     };
     let live = host.foxglove.address();

@@ -62,6 +62,9 @@ pub const MAX_STORED_COMPONENTS: usize = 500;
 pub const MAX_STORED_WORLDS: usize = 200;
 /// Largest index file (components.json, state.json, a set) read.
 pub const MAX_INDEX_BYTES: u64 = 16 << 20;
+/// The user the first run of a store with no users makes
+/// ([`Store::add_first_admin`]).
+pub const FIRST_ADMIN: &str = "admin";
 
 #[derive(Debug, Error)]
 pub enum StoreError {
@@ -152,6 +155,28 @@ impl Store {
     /// The portal's users (read them here; change them through a writer).
     pub fn users(&self) -> &std::sync::Arc<Users> {
         &self.users
+    }
+
+    /// On a store with no users: adds [`FIRST_ADMIN`], an admin with a
+    /// generated password, records it in the audit log (by `first-run`)
+    /// and returns the password, for the caller to show once; it is
+    /// stored only as its hash. On a store with users: nothing, `None`.
+    /// Under the store's lock, so hosts starting at once on one store make
+    /// one admin between them.
+    pub fn add_first_admin(&self) -> Result<Option<String>, StoreError> {
+        let writer = self.lock()?;
+        if !writer.users().all()?.is_empty() {
+            return Ok(None);
+        }
+        let password = users::generate_password().map_err(|e| StoreError::Refused(e.to_string()))?;
+        let added = writer.users_mut().add(FIRST_ADMIN, users::Role::Admin, &[], &password, false);
+        let target = format!("user '{FIRST_ADMIN}'");
+        match &added {
+            Ok(()) => writer.record("first-run", "user-add", &target, Outcome::Ok("")),
+            Err(e) => writer.record("first-run", "user-add", &target, Outcome::Refused(&e.to_string())),
+        }
+        added?;
+        Ok(Some(password))
     }
 
     pub fn blob_path(&self, sha256: &str) -> PathBuf {
@@ -473,6 +498,40 @@ mod tests {
         assert_eq!(reopened.state()?.active, Some(1));
         assert_eq!(reopened.sets()?.len(), 2);
         reopened.verify()
+    }
+
+    /// Hosts starting at once on one empty store (threads with a handle
+    /// each, as processes would): one admin is made, its password (the one
+    /// returned to exactly one of them) logs in, and a later start makes none.
+    #[test]
+    fn hosts_starting_at_once_on_an_empty_store_make_one_admin() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        Store::open(dir.path())?;
+        let passwords: Vec<Option<String>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..6)
+                .map(|_| {
+                    let root = dir.path().to_path_buf();
+                    scope.spawn(move || Store::open(&root).and_then(|store| store.add_first_admin()))
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap_or(Ok(None))).collect::<Result<_, _>>()
+        })?;
+        let made: Vec<&String> = passwords.iter().flatten().collect();
+        assert_eq!(made.len(), 1, "{passwords:?}");
+        let store = Store::open(dir.path())?;
+        let users = store.users().all()?;
+        assert_eq!(
+            users.iter().map(|u| (u.name.as_str(), u.role)).collect::<Vec<_>>(),
+            [(FIRST_ADMIN, users::Role::Admin)]
+        );
+        assert!(store.users().authenticate(FIRST_ADMIN, made[0]).is_some());
+        assert_eq!(store.add_first_admin()?, None);
+        let audit = store.audit_entries(100)?;
+        assert_eq!(
+            audit.iter().map(|e| (e.user.as_str(), e.action.as_str())).collect::<Vec<_>>(),
+            [("first-run", "user-add")]
+        );
+        Ok(())
     }
 
     /// Many threads staging at once, each with its own store handle (as two

@@ -123,6 +123,48 @@ impl MotorRecorder {
     }
 }
 
+/// A pseudo-terminal to hand a child as its standard output or error (a
+/// person's terminal, as `isatty` sees it): what the child writes there
+/// is read from the other end.
+pub struct Terminal {
+    master: serialport::TTYPort,
+    slave: std::fs::File,
+    /// Everything read so far.
+    pub text: String,
+}
+
+impl Terminal {
+    pub fn new() -> Terminal {
+        use serialport::SerialPort;
+        let (mut master, slave) = serialport::TTYPort::pair().unwrap_or_else(|e| panic!("no pseudo-terminal: {e}"));
+        let _ = master.set_timeout(std::time::Duration::from_millis(50));
+        let name = slave.name().unwrap_or_default();
+        let slave = std::fs::OpenOptions::new().read(true).write(true).open(&name).unwrap();
+        Terminal { master, slave, text: String::new() }
+    }
+
+    /// The terminal's end for the child (stdout or stderr).
+    pub fn stdio(&self) -> std::process::Stdio {
+        std::process::Stdio::from(self.slave.try_clone().unwrap())
+    }
+
+    /// Reads until `done` holds for the text read so far, for at most
+    /// `timeout`; whether it held.
+    pub fn read_until(&mut self, timeout: std::time::Duration, done: impl Fn(&str) -> bool) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut buffer = [0u8; 4096];
+        while !done(&self.text) {
+            if std::time::Instant::now() >= deadline {
+                return false;
+            }
+            if let Ok(n) = std::io::Read::read(&mut self.master, &mut buffer) {
+                self.text.push_str(&String::from_utf8_lossy(&buffer[..n]));
+            }
+        }
+        true
+    }
+}
+
 /// `subsume` run from the repository root with the tests' compile cache,
 /// `RUST_LOG=info` and `NO_COLOR=1`; the caller adds the subcommand.
 pub fn subsume() -> Command {
@@ -141,10 +183,15 @@ pub struct HostProcess {
 
 impl HostProcess {
     /// Spawns `command` (stdout discarded, stderr read).
-    pub fn spawn(mut command: Command) -> HostProcess {
+    pub fn spawn(command: Command) -> HostProcess {
+        HostProcess::spawn_with_stdout(command, std::process::Stdio::null())
+    }
+
+    /// Spawns `command` with this stdout (a pipe, a terminal), stderr read.
+    pub fn spawn_with_stdout(mut command: Command, stdout: std::process::Stdio) -> HostProcess {
         use std::io::BufRead;
         let mut child = command
-            .stdout(std::process::Stdio::null())
+            .stdout(stdout)
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap_or_else(|e| panic!("cannot start the host: {e}"));
