@@ -441,15 +441,8 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
             Ok(listener) => listener,
             Err(e) => return tracing::error!("the portal cannot serve: {e}"),
         };
-        match acceptor {
-            Some(acceptor) => crate::tls::serve_https(listener, acceptor, portal::app(state)).await,
-            None => {
-                let app = portal::app(state).into_make_service_with_connect_info::<std::net::SocketAddr>();
-                if let Err(e) = axum::serve(listener, app).await {
-                    tracing::error!("the portal stopped: {e}");
-                }
-            }
-        }
+        crate::admission::serve_http(listener, acceptor, portal::app(state), crate::admission::HttpLimits::default())
+            .await;
     });
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let Some(record) = &options.record else {
