@@ -538,6 +538,44 @@ fn start_plain(store: &Path, robot: &Path) -> Host {
     Host { child, address, teleop }
 }
 
+/// Issue 34, the portal: from 127.0.0.2 a slow-loris holds 200
+/// connections, each trickling a request's headers a byte a second (and
+/// reopened when the portal closes it), beside a loop reconnecting as fast
+/// as it can; from 127.0.0.3 a user logs in once a second, and every login
+/// works, promptly.
+#[test]
+fn a_login_from_another_address_works_while_a_slow_loris_holds_connections() {
+    use std::net::{IpAddr, SocketAddr};
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let target: SocketAddr = host.address.parse().unwrap();
+    let attacker: IpAddr = "127.0.0.2".parse().unwrap();
+    let user: IpAddr = "127.0.0.3".parse().unwrap();
+    let prefix = b"GET /api/v1/session HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ";
+    let flood = support::flood::Flood::start(attacker, target, 200, prefix, Some(b'x'));
+    std::thread::sleep(Duration::from_secs(1));
+    let body = serde_json::json!({ "name": "admin", "password": PASSWORD }).to_string();
+    let mut slowest = Duration::ZERO;
+    for attempt in 0..20 {
+        let started = Instant::now();
+        let stream = support::flood::connect_from(user, target).unwrap();
+        let (status, json) = support::http_on(stream, &host.address, "POST", "/api/v1/login", None, body.as_bytes());
+        let took = started.elapsed();
+        assert_eq!(status, 200, "login {attempt}: {json}");
+        assert!(json["token"].is_string(), "login {attempt}: {json}");
+        // An argon2id hash, on a machine the flood keeps busy.
+        assert!(took < Duration::from_secs(2), "login {attempt} took {took:?}");
+        slowest = slowest.max(took);
+        std::thread::sleep(Duration::from_secs(1).saturating_sub(took));
+    }
+    let flood = flood.stop();
+    eprintln!("20 logins, the slowest in {slowest:?}; the flood: {flood:?}");
+    assert!(flood.connects > 10_000, "the flood never flooded: {flood:?}");
+    assert!(flood.heard.contains("HTTP/1.1 503 Service Unavailable"), "{flood:?}");
+}
+
 #[test]
 fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope() {
     let dir = tempfile::tempdir().unwrap();

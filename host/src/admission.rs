@@ -33,6 +33,26 @@ pub const MAX_HTTP_CONNECTIONS_PER_ADDRESS: usize = 32;
 /// descriptor) and a task.
 pub const MAX_HTTP_CONNECTIONS: usize = 512;
 
+/// Connections the kernel completes and queues for a listener before it
+/// accepts them (`listen`'s backlog; std's is 128). A peer reconnecting in
+/// a loop can fill a short queue between two accepts, and then the kernel
+/// drops everyone's connection attempts, the operator's too, who retries
+/// only a second later. The kernel caps it at `net.core.somaxconn`.
+pub const LISTEN_BACKLOG: i32 = 4096;
+
+/// Binds a non-blocking TCP listener on `address` with [`LISTEN_BACKLOG`].
+pub fn listen(address: SocketAddr) -> std::io::Result<std::net::TcpListener> {
+    use std::os::fd::AsRawFd as _;
+    let listener = std::net::TcpListener::bind(address)?;
+    // Listening again on a listening socket only sets its backlog.
+    // SAFETY: the descriptor is the listener's own, open for this call.
+    if unsafe { libc::listen(listener.as_raw_fd(), LISTEN_BACKLOG) } != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    listener.set_nonblocking(true)?;
+    Ok(listener)
+}
+
 /// Where a connection comes from, as pools count it: an IPv4 address, or
 /// the /64 prefix of an IPv6 address (one machine usually has a whole /64,
 /// so counting single IPv6 addresses would be no bound at all).
@@ -355,5 +375,75 @@ mod tests {
         assert!(!over.load(std::sync::atomic::Ordering::Relaxed), "a bound was exceeded");
         assert_eq!(pool.open(), 0);
         assert!(pool.counts.lock().map(|c| c.per_peer.is_empty()).unwrap_or(false));
+    }
+    /// A portal-like app on a loopback port under `limits`, on paused
+    /// tokio time: its address.
+    async fn serving(limits: HttpLimits) -> SocketAddr {
+        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.expect("a loopback port");
+        let address = listener.local_addr().expect("its address");
+        let app = axum::Router::new().route("/", axum::routing::get(|| async { "hello" }));
+        tokio::spawn(serve_http(listener, None, app, limits));
+        address
+    }
+
+    async fn read_all(stream: &mut tokio::net::TcpStream) -> String {
+        use tokio::io::AsyncReadExt as _;
+        let mut text = Vec::new();
+        let _ = stream.read_to_end(&mut text).await;
+        String::from_utf8_lossy(&text).into_owned()
+    }
+
+    /// A request whose headers are still incomplete after the header
+    /// deadline (a byte a second, slow-loris) is closed; a connection that
+    /// sends nothing at all too; one that sends its request in time is
+    /// answered. Time is tokio's paused clock.
+    #[tokio::test(start_paused = true)]
+    async fn headers_must_arrive_within_the_deadline() {
+        use tokio::io::AsyncWriteExt as _;
+        let limits = HttpLimits { header_read: Duration::from_secs(5), per_address: 8, max: 16 };
+        let address = serving(limits).await;
+        let mut slow = tokio::net::TcpStream::connect(address).await.expect("connects");
+        let mut silent = tokio::net::TcpStream::connect(address).await.expect("connects");
+        let _ = slow.write_all(b"GET / HTTP/1.1\r\nHost: x\r\nX-Slow: ").await;
+        let started = tokio::time::Instant::now();
+        let mut closed_at = None;
+        for _ in 0..20 {
+            tokio::time::sleep(Duration::from_secs(1)).await;
+            if slow.write_all(b"x").await.is_err() {
+                closed_at = Some(started.elapsed());
+                break;
+            }
+        }
+        let closed_at = closed_at.expect("the slow request is never cut off");
+        assert!(closed_at >= Duration::from_secs(5) && closed_at <= Duration::from_secs(7), "{closed_at:?}");
+        assert!(read_all(&mut silent).await.is_empty());
+        let mut prompt = tokio::net::TcpStream::connect(address).await.expect("connects");
+        let _ = prompt.write_all(b"GET / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").await;
+        let answer = read_all(&mut prompt).await;
+        assert!(answer.starts_with("HTTP/1.1 200 OK") && answer.ends_with("hello"), "{answer}");
+    }
+
+    /// One address holding its share of connections gets a 503 for the
+    /// next one, which says why; the share comes back when one closes.
+    #[tokio::test(start_paused = true)]
+    async fn an_address_past_its_share_is_refused_with_a_reason() {
+        use tokio::io::AsyncWriteExt as _;
+        let limits = HttpLimits { header_read: Duration::from_secs(60), per_address: 3, max: 16 };
+        let address = serving(limits).await;
+        let mut held = Vec::new();
+        for _ in 0..3 {
+            held.push(tokio::net::TcpStream::connect(address).await.expect("connects"));
+        }
+        // The server has taken them in before the next one arrives.
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        let mut refused = tokio::net::TcpStream::connect(address).await.expect("connects");
+        let answer = read_all(&mut refused).await;
+        assert!(answer.starts_with("HTTP/1.1 503 Service Unavailable\r\n"), "{answer}");
+        assert!(answer.ends_with("HTTP connections: 3 are open from 127.0.0.1 already\n"), "{answer}");
+        drop(held.pop());
+        tokio::time::sleep(Duration::from_millis(10)).await;
+        let mut next = tokio::net::TcpStream::connect(address).await.expect("connects");
+        let _ = next.write_all(b"GET / HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n").await;
+        assert!(read_all(&mut next).await.starts_with("HTTP/1.1 200 OK"));
     }
 }

@@ -420,8 +420,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
-    let listener = std::net::TcpListener::bind(portal.listen)
-        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+    let listener = crate::admission::listen(portal.listen)
         .map_err(|source| RunError::Listen { address: portal.listen, source })?;
     let address = listener.local_addr().map_err(|source| RunError::Listen { address: portal.listen, source })?;
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -515,10 +515,7 @@ impl TeleopComponent {
             ));
         }
         let bind = |address: SocketAddr| -> Result<std::net::TcpListener, BuiltinError> {
-            let listener = std::net::TcpListener::bind(address)
-                .map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))?;
-            listener.set_nonblocking(true).map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))?;
-            Ok(listener)
+            crate::admission::listen(address).map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))
         };
         let tcp = bind(settings.listen)?;
         let listen = tcp.local_addr().map_err(|e| BuiltinError::io("cannot read the teleoperation address", e))?;

@@ -199,7 +199,19 @@ impl Drop for HostProcess {
 /// One HTTP/1.1 request to the portal at `address`: (status, JSON body,
 /// or null when the body is not JSON).
 pub fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, serde_json::Value) {
-    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    http_on(std::net::TcpStream::connect(address).unwrap(), address, method, path, token, body)
+}
+
+/// [`http`] on a connection the caller opened (e.g. from a chosen source
+/// address).
+pub fn http_on(
+    mut stream: std::net::TcpStream,
+    address: &str,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: &[u8],
+) -> (u16, serde_json::Value) {
     stream.set_read_timeout(Some(std::time::Duration::from_secs(30))).unwrap();
     let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
     let head = format!(
