@@ -5,7 +5,7 @@
 //! exits that cannot wait for the loop (the panic policy, halting every
 //! motor). Nothing but `main.rs`, tests and benches imports this.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -430,10 +430,22 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .build()
         .map_err(RunError::PortalRuntime)?;
     let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
+    let cache = deployer.sandbox.cache_dir().map(Path::to_path_buf);
+    let robot_dir = options.config_path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let working_dir = std::env::current_dir().unwrap_or_default();
+    let mut hidden: Vec<(&Path, &'static str)> = vec![
+        (portal.store_dir.as_path(), "<store>"),
+        (robot_dir.as_path(), "<robot file folder>"),
+        (working_dir.as_path(), "<working folder>"),
+    ];
+    if let Some(cache) = &cache {
+        hidden.push((cache.as_path(), "<cache>"));
+    }
     let state = match acceptor {
         Some(_) => portal::PortalState::over_tls(deployer, directory, portal.logs.clone()),
         None => portal::PortalState::new(deployer, directory, portal.logs.clone()),
-    };
+    }
+    .hiding(&hidden);
     let scheme = if acceptor.is_some() { "https" } else { "http" };
     runtime.spawn(async move {
         let listener = match tokio::net::TcpListener::from_std(listener) {

@@ -67,6 +67,10 @@ pub const MAX_INDEX_BYTES: u64 = 16 << 20;
 pub enum StoreError {
     #[error("store {path}: {reason}")]
     Io { path: PathBuf, reason: String },
+    /// The store's file system has no room (or the owner's quota is used
+    /// up): nothing of the change was kept.
+    #[error("store {path}: the disk is full: {reason}")]
+    Full { path: PathBuf, reason: String },
     #[error("store {path}: damaged: {reason}")]
     Damaged { path: PathBuf, reason: String },
     #[error("no set {0} in the store")]
@@ -78,7 +82,11 @@ pub enum StoreError {
 }
 
 fn io(path: &Path) -> impl Fn(std::io::Error) -> StoreError + '_ {
-    move |e| StoreError::Io { path: path.to_path_buf(), reason: e.to_string() }
+    move |e| {
+        let full = matches!(e.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded);
+        let (path, reason) = (path.to_path_buf(), e.to_string());
+        if full { StoreError::Full { path, reason } } else { StoreError::Io { path, reason } }
+    }
 }
 
 /// Seconds since the Unix epoch.
