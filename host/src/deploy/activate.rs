@@ -73,10 +73,13 @@ impl Deployer {
                 if rollback && writer.state()?.history.last() != Some(&id) {
                     return Err(DeployError::Conflict(format!("set {id} is no longer the previous active set")));
                 }
+                // The new state is on disk before the swap (a full disk
+                // refuses the activation here, with nothing changed), and
+                // in place after it.
+                let pending = writer.prepare_switch(id, rollback)?;
                 let (set, envelope) = (ready.set.clone(), ready.envelope.clone());
                 self.swap_in(ready, &mut active)?;
-                let recorded = if rollback { writer.mark_rolled_back(id) } else { writer.mark_active(id) };
-                if let Err(e) = recorded {
+                if let Err(e) = pending.commit() {
                     tracing::error!("set {id} runs, but the store could not record it: {e}");
                 }
                 tracing::info!(

@@ -400,9 +400,8 @@ pub(super) async fn audit_log(
 /// A set's id from the path: a whole number, else 400 saying so (JSON, as
 /// every refusal).
 fn set_id(text: &str) -> Result<u64, ApiError> {
-    text.parse().map_err(|_| {
-        ApiError::new(StatusCode::BAD_REQUEST, format!("set id '{}' is not a whole number", clip(text)))
-    })
+    text.parse()
+        .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, format!("set id '{}' is not a whole number", clip(text))))
 }
 
 fn teleop_servers(state: &PortalState) -> Result<Arc<crate::teleop::ServerContext>, ApiError> {

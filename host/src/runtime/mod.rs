@@ -26,6 +26,7 @@ pub mod locks;
 pub mod lockstep;
 pub mod scheduling;
 pub mod stall;
+pub mod standing;
 pub mod tap;
 pub mod wiring;
 
@@ -35,4 +36,5 @@ pub use histogram::Histogram;
 pub use locks::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
 pub use tap::{Call, Tap};
-pub use wiring::{Convert, Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};
+pub use standing::{Standing, Standings};
+pub use wiring::{Convert, Policy, PriorityCell, RestartPolicy, RunningRobot};
