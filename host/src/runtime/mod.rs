@@ -35,6 +35,6 @@ pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use histogram::Histogram;
 pub use locks::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
-pub use tap::{Call, Tap};
 pub use standing::{Standing, Standings};
+pub use tap::{Call, Tap};
 pub use wiring::{Convert, Policy, PriorityCell, RestartPolicy, RunningRobot};
