@@ -12,13 +12,13 @@ mod protocol;
 mod standing;
 
 mod robot {
-    pub use crate::control_impl as control;
+    pub(crate) use crate::control_impl as control;
 }
 mod teleop {
-    pub use crate::mode_impl as mode;
+    pub(crate) use crate::mode_impl as mode;
 }
 mod runtime {
-    pub use crate::standing::Standing;
+    pub(crate) use crate::standing::Standing;
 }
 
 use protocol::ClientMessage;
