@@ -87,7 +87,11 @@ impl Operator {
     /// Connects to the platform at `address`: returns the operator and the
     /// HELLO line.
     fn connect_to(address: &str) -> (Operator, String) {
-        let stream = TcpStream::connect(address).unwrap();
+        Operator::over(TcpStream::connect(address).unwrap())
+    }
+
+    /// The operator on `stream`, and the HELLO line.
+    fn over(stream: TcpStream) -> (Operator, String) {
         stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
         let mut operator = Operator {
             reader: BufReader::new(stream.try_clone().unwrap()),
@@ -418,6 +422,64 @@ fn sessions_past_the_listing_bound_are_counted_and_their_commands_kept() {
     assert!(sessions.iter().all(|s| s["commands"]["received"] == 1), "{network}");
     assert_eq!(network["earlier_sessions"], (total - MAX_ENDED_SESSIONS_LISTED) as u64, "{network}");
     assert_eq!(network["commands"]["received"], total as u64, "{network}");
+}
+
+/// Issue 34: from 127.0.0.2, 200 idle connections (each reopened when the
+/// host closes it) and a loop reconnecting as fast as it can, for 30 s;
+/// from 127.0.0.3 an operator connects, logs in and drives once a second.
+/// Every attempt gets in within 1 s, every command is counted, and the
+/// control loop keeps its rate.
+#[test]
+fn idle_connections_and_a_reconnect_loop_never_keep_an_operator_out() {
+    use std::net::{IpAddr, SocketAddr};
+    use subsume::teleop::MAX_UNAUTHENTICATED_PER_ADDRESS;
+    let attack = Duration::from_secs(30);
+    let run_s = 40;
+    let host = start(r#"<param name="auth-timeout" value="5"/>"#, SINK, run_s);
+    let target: SocketAddr = host.address.parse().unwrap();
+    let attacker: IpAddr = "127.0.0.2".parse().unwrap();
+    let operator_address: IpAddr = "127.0.0.3".parse().unwrap();
+    let flood = support::flood::Flood::start(attacker, target, 200, b"", None);
+    std::thread::sleep(Duration::from_secs(1));
+    let started = Instant::now();
+    let mut attempts = 0u32;
+    let mut slowest = Duration::ZERO;
+    while started.elapsed() + Duration::from_secs(1) < attack {
+        let due = started + Duration::from_secs(u64::from(attempts));
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        let attempt = Instant::now();
+        let stream = support::flood::connect_from(operator_address, target).unwrap();
+        let (mut operator, hello) = Operator::over(stream);
+        assert!(hello.starts_with("HELLO subsume "), "attempt {attempts}: {hello}");
+        operator.send(&format!("AUTH alice {TOKEN}"));
+        assert_eq!(operator.reply(), "OK authenticated as alice; measuring the round-trip time");
+        let took = attempt.elapsed();
+        assert!(took < Duration::from_secs(1), "attempt {attempts} took {took:?} to get in");
+        slowest = slowest.max(took);
+        assert!(operator.reply().starts_with("RTT "));
+        operator.send("MODE direct");
+        let granted = operator.reply();
+        assert!(granted.starts_with("MODE direct granted"), "attempt {attempts}: {granted}");
+        operator.command("VEL 0.1 0");
+        operator.send("QUIT");
+        assert_eq!(operator.reply(), "OK bye");
+        attempts += 1;
+    }
+    let flood = flood.stop();
+    eprintln!("{attempts} attempts, the slowest in {slowest:?}; the flood: {flood:?}");
+    assert!(attempts >= 25, "{attempts} attempts");
+    assert!(flood.connects > 10_000, "the flood never flooded: {flood:?}");
+    let per_address = format!(
+        "ERR busy: unauthenticated connections: {MAX_UNAUTHENTICATED_PER_ADDRESS} are open from 127.0.0.2 already"
+    );
+    assert!(flood.heard.contains(&per_address), "{flood:?}");
+    assert!(flood.heard.contains("ERR no authentication in time: closing"), "{flood:?}");
+    let mut host = host;
+    wait_for_exit(&mut host.process.child, Duration::from_secs(run_s as u64 + 20));
+    let report = read_report(&host.report);
+    assert_eq!(report["network"]["commands"]["received"], u64::from(attempts), "{}", report["network"]);
+    let teleop = report["components"].as_array().unwrap().iter().find(|c| c["name"] == "teleop").unwrap();
+    support::kept_its_rate(&report, teleop, 100.0, 0.05, 0.0, "the network platform under the flood");
 }
 
 #[test]

@@ -8,8 +8,10 @@
 //! invariants each keeps, and the import rules between them (checked by
 //! `host/tests/architecture.rs`). From the bottom up:
 //!
-//! - [`contract`], [`fsutil`], [`tls`]: the WIT contract's host side;
-//!   atomic writes; TLS identities and the plain-text rule for listeners;
+//! - [`contract`], [`fsutil`], [`tls`], [`admission`]: the WIT contract's
+//!   host side; atomic writes; TLS identities and the plain-text rule for
+//!   listeners; bounded connection pools per client address and serving
+//!   HTTP under them;
 //! - [`runtime`]: the component trait, wiring, the graph and control loop;
 //! - [`config`]: the robot file, as written and as validated;
 //! - [`sandbox`]: wasmtime: engine, compile cache, guests and translators;
@@ -26,6 +28,7 @@
 //! - [`portal`]: HTTP in front of `deploy`;
 //! - [`run`], [`scaffold`]: `subsume run` and `subsume new`.
 
+pub mod admission;
 pub mod arbiter;
 pub mod assemble;
 pub mod bridge;

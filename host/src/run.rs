@@ -5,7 +5,7 @@
 //! exits that cannot wait for the loop (the panic policy, halting every
 //! motor). Nothing but `main.rs`, tests and benches imports this.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -455,8 +455,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
-    let listener = std::net::TcpListener::bind(portal.listen)
-        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+    let listener = crate::admission::listen(portal.listen)
         .map_err(|source| RunError::Listen { address: portal.listen, source })?;
     let address = listener.local_addr().map_err(|source| RunError::Listen { address: portal.listen, source })?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -466,25 +465,30 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .build()
         .map_err(RunError::PortalRuntime)?;
     let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
+    let cache = deployer.sandbox.cache_dir().map(Path::to_path_buf);
+    let robot_dir = options.config_path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let working_dir = std::env::current_dir().unwrap_or_default();
+    let mut hidden: Vec<(&Path, &'static str)> = vec![
+        (portal.store_dir.as_path(), "<store>"),
+        (robot_dir.as_path(), "<robot file folder>"),
+        (working_dir.as_path(), "<working folder>"),
+    ];
+    if let Some(cache) = &cache {
+        hidden.push((cache.as_path(), "<cache>"));
+    }
     let state = match acceptor {
         Some(_) => portal::PortalState::over_tls(deployer, directory, portal.logs.clone()),
         None => portal::PortalState::new(deployer, directory, portal.logs.clone()),
-    };
+    }
+    .hiding(&hidden);
     let scheme = if acceptor.is_some() { "https" } else { "http" };
     runtime.spawn(async move {
         let listener = match tokio::net::TcpListener::from_std(listener) {
             Ok(listener) => listener,
             Err(e) => return tracing::error!("the portal cannot serve: {e}"),
         };
-        match acceptor {
-            Some(acceptor) => crate::tls::serve_https(listener, acceptor, portal::app(state)).await,
-            None => {
-                let app = portal::app(state).into_make_service_with_connect_info::<std::net::SocketAddr>();
-                if let Err(e) = axum::serve(listener, app).await {
-                    tracing::error!("the portal stopped: {e}");
-                }
-            }
-        }
+        crate::admission::serve_http(listener, acceptor, portal::app(state), crate::admission::HttpLimits::default())
+            .await;
     });
     // Before the portal's line: whoever waits for that line has the login.
     if no_users {

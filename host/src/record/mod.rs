@@ -282,11 +282,13 @@ impl Recorder {
                 result.and(finished)
             })
             .map_err(|e| RecordError::Thread(e.to_string()))?;
-        let sink = Sink { sender, dropped };
-        log::install(sink.clone());
+        // Said before the recording hears the log: a recording downloaded
+        // from the portal shows no server path.
         if let Some(path) = &options.path {
             tracing::info!("recording to {}", path.display());
         }
+        let sink = Sink { sender, dropped };
+        log::install(sink.clone());
         Ok(Recorder { sink, writer: Some(handle) })
     }
 

@@ -102,6 +102,11 @@ impl Sandbox {
         self.cache.function_stats()
     }
 
+    /// The folder of the compile cache, if there is one.
+    pub fn cache_dir(&self) -> Option<&std::path::Path> {
+        self.cache.dir()
+    }
+
     /// Whether instances come from the pooling allocator.
     pub fn is_pooling(&self) -> bool {
         self.pooling

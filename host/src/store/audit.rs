@@ -64,13 +64,13 @@ impl Outcome<'_> {
 
 /// Appends `entry` to the log at `path` in one write, and fsyncs it.
 pub(super) fn append(path: &Path, entry: &AuditEntry) -> Result<(), StoreError> {
-    let io = |e: std::io::Error| StoreError::Io { path: path.to_path_buf(), reason: e.to_string() };
+    let io = super::io(path);
     let mut line =
         serde_json::to_vec(entry).map_err(|e| StoreError::Io { path: path.into(), reason: e.to_string() })?;
     line.push(b'\n');
-    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io)?;
-    file.write_all(&line).map_err(io)?;
-    file.sync_data().map_err(io)
+    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(&io)?;
+    file.write_all(&line).map_err(&io)?;
+    file.sync_data().map_err(&io)
 }
 
 /// The newest `limit` entries of the log at `path` (at most

@@ -70,6 +70,10 @@ pub const FIRST_ADMIN: &str = "admin";
 pub enum StoreError {
     #[error("store {path}: {reason}")]
     Io { path: PathBuf, reason: String },
+    /// The store's file system has no room (or the owner's quota is used
+    /// up): nothing of the change was kept.
+    #[error("store {path}: the disk is full: {reason}")]
+    Full { path: PathBuf, reason: String },
     #[error("store {path}: damaged: {reason}")]
     Damaged { path: PathBuf, reason: String },
     #[error("no set {0} in the store")]
@@ -81,7 +85,11 @@ pub enum StoreError {
 }
 
 fn io(path: &Path) -> impl Fn(std::io::Error) -> StoreError + '_ {
-    move |e| StoreError::Io { path: path.to_path_buf(), reason: e.to_string() }
+    move |e| {
+        let full = matches!(e.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded);
+        let (path, reason) = (path.to_path_buf(), e.to_string());
+        if full { StoreError::Full { path, reason } } else { StoreError::Io { path, reason } }
+    }
 }
 
 /// Seconds since the Unix epoch.
@@ -312,6 +320,23 @@ impl Store {
     }
 }
 
+/// A new store state written beside `state.json`, not yet in its place
+/// ([`StoreWriter::prepare_switch`]); dropped, it changes nothing.
+#[derive(Debug)]
+pub struct PendingState {
+    write: crate::fsutil::PreparedWrite,
+    state: StoreState,
+    path: PathBuf,
+}
+
+impl PendingState {
+    /// Puts the new state in place.
+    pub fn commit(self) -> Result<StoreState, StoreError> {
+        self.write.commit().map_err(io(&self.path))?;
+        Ok(self.state)
+    }
+}
+
 impl StoreWriter<'_> {
     fn write_json<T: serde::Serialize>(&self, path: &Path, value: &T) -> Result<(), StoreError> {
         let bytes = serde_json::to_vec_pretty(value)
@@ -400,6 +425,12 @@ impl StoreWriter<'_> {
     /// Records that set `id` is now the active one (the previous active set
     /// goes onto the rollback history).
     pub fn mark_active(&self, id: u64) -> Result<StoreState, StoreError> {
+        self.prepare_state(self.active_state(id)?)?.commit()
+    }
+
+    /// The state with `id` active (the active one before it goes to the
+    /// history).
+    fn active_state(&self, id: u64) -> Result<StoreState, StoreError> {
         self.set(id)?;
         let mut state = self.state()?;
         if let Some(previous) = state.active
@@ -410,20 +441,40 @@ impl StoreWriter<'_> {
             state.history.drain(..excess);
         }
         state.active = Some(id);
-        self.write_state(&state)?;
         Ok(state)
     }
 
     /// Records a rollback: `id` (the last of the history) is active again.
     pub fn mark_rolled_back(&self, id: u64) -> Result<StoreState, StoreError> {
+        self.prepare_state(self.rolled_back_state(id)?)?.commit()
+    }
+
+    fn rolled_back_state(&self, id: u64) -> Result<StoreState, StoreError> {
         let mut state = self.state()?;
         if state.history.last() != Some(&id) {
             return Err(StoreError::Refused(format!("set {id} is not the previous active set")));
         }
         state.history.pop();
         state.active = Some(id);
-        self.write_state(&state)?;
         Ok(state)
+    }
+
+    /// [`mark_active`](Self::mark_active) (or, with `rollback`,
+    /// [`mark_rolled_back`](Self::mark_rolled_back)) in two halves: the new
+    /// state is written beside the old one now (a full disk fails here,
+    /// before anything changed), and takes its place when the returned
+    /// [`PendingState`] is committed.
+    pub fn prepare_switch(&self, id: u64, rollback: bool) -> Result<PendingState, StoreError> {
+        let state = if rollback { self.rolled_back_state(id)? } else { self.active_state(id)? };
+        self.prepare_state(state)
+    }
+
+    fn prepare_state(&self, state: StoreState) -> Result<PendingState, StoreError> {
+        let path = self.root.join("state.json");
+        let bytes = serde_json::to_vec_pretty(&state)
+            .map_err(|e| StoreError::Io { path: path.clone(), reason: e.to_string() })?;
+        let write = crate::fsutil::prepare_atomically(&path, &bytes).map_err(io(&path))?;
+        Ok(PendingState { write, state, path })
     }
 
     pub fn set_boot_config(&self, sha256: &str) -> Result<(), StoreError> {

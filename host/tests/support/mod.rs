@@ -7,6 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
+pub mod flood;
+
 /// The repository root.
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().map_or_else(|| PathBuf::from(".."), Path::to_path_buf)
@@ -244,7 +246,19 @@ impl Drop for HostProcess {
 /// One HTTP/1.1 request to the portal at `address`: (status, JSON body,
 /// or null when the body is not JSON).
 pub fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, serde_json::Value) {
-    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    http_on(std::net::TcpStream::connect(address).unwrap(), address, method, path, token, body)
+}
+
+/// [`http`] on a connection the caller opened (e.g. from a chosen source
+/// address).
+pub fn http_on(
+    mut stream: std::net::TcpStream,
+    address: &str,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: &[u8],
+) -> (u16, serde_json::Value) {
     stream.set_read_timeout(Some(std::time::Duration::from_secs(30))).unwrap();
     let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
     let head = format!(
@@ -362,4 +376,40 @@ pub fn store_snapshot(except: &[&str], store: &Path) -> Vec<(PathBuf, Vec<u8>)> 
     }
     files.sort();
     files
+}
+
+/// `component` (ticking at `hz`) kept its rate beside an offender that spent
+/// `offender_ms` in its calls: it stayed on its schedule's grid (ticks the
+/// loop could not run are counted as missed, not lost), and missed no more
+/// ticks than the machine and the offender explain. The machine's share is
+/// the time the control thread waited for a CPU (`loop_lateness.
+/// waited_for_cpu_ms`, the kernel's run delay): near zero on an idle machine,
+/// large while other processes keep the cores busy. Ticks missed beyond
+/// both (and beyond `tolerance`, the share allowed on an idle machine)
+/// would mean the host held the loop itself, e.g. while faulting the
+/// offender.
+pub fn kept_its_rate(
+    report: &serde_json::Value,
+    component: &serde_json::Value,
+    hz: f64,
+    tolerance: f64,
+    offender_ms: f64,
+    what: &str,
+) {
+    let expected = report["duration_s"].as_f64().unwrap() * hz;
+    let ticks = component["ticks"].as_f64().unwrap();
+    let missed = component["missed_ticks"].as_f64().unwrap();
+    assert!(
+        (ticks + missed - expected).abs() <= 2.0,
+        "{what}: {ticks} ticks and {missed} missed, expected {expected} on the schedule"
+    );
+    let waited_ms = report["loop_lateness"]["waited_for_cpu_ms"].as_f64().unwrap();
+    let explained = (waited_ms + offender_ms) * hz / 1e3 + 2.0;
+    let allowed = explained.max(expected * tolerance);
+    assert!(
+        missed <= allowed,
+        "{what}: the healthy component missed {missed} of {expected} ticks; the loop waited {waited_ms} ms \
+         for a cpu and the offender held it {offender_ms} ms, which explain {explained:.0}: {}",
+        report["loop_lateness"]
+    );
 }
