@@ -82,7 +82,7 @@ fn the_demo_robot_reaches_its_goal_without_collisions() {
     let report = read_report(&report_path);
     assert_eq!(
         (report["format"].as_u64(), report["robot"].as_str(), report["stopped_by"].as_str()),
-        (Some(1), Some("demo"), Some("duration"))
+        (Some(2), Some("demo"), Some("duration"))
     );
     for c in report["components"].as_array().unwrap() {
         assert_eq!(c["state"], "running", "{c}");
@@ -313,6 +313,44 @@ fn sigint_and_sigterm_stop_the_host_cleanly() {
         let report = read_report(&report_path);
         assert_eq!(report["stopped_by"], "shutdown", "SIG{signal}");
         assert!(report["messages"]["routed"].as_u64().unwrap() > 0);
+    }
+}
+
+/// The log is coloured only on a terminal: a redirected log (a pipe, a
+/// file, the journal) gets plain text, and `NO_COLOR` turns colour off on
+/// a terminal too.
+#[test]
+fn the_log_is_coloured_only_on_a_terminal_without_no_color() {
+    let dir = tempfile::tempdir().unwrap();
+    let robot = robot_file(
+        dir.path(),
+        r#"<robot name="colours"><platform name="control">
+  <component name="source" source="builtin:publish" rate="20"><param name="value" value="1"/></component>
+  <component name="sink" source="builtin:log" rate="0"/>
+  <connect from="source.out" to="sink.in"/>
+</platform></robot>"#,
+    );
+    let host = |no_color: Option<&str>| {
+        let mut command = subsume();
+        command.env_remove("NO_COLOR").args(["run", robot.to_str().unwrap(), "--duration", "0.3"]);
+        if let Some(value) = no_color {
+            command.env("NO_COLOR", value);
+        }
+        command
+    };
+    const ESCAPE: char = '\u{1b}';
+    let piped = host(None).output().unwrap();
+    let log = text(&piped.stderr);
+    assert!(piped.status.success() && log.contains("robot 'colours'"), "{log}");
+    assert!(!log.contains(ESCAPE), "colour in a redirected log: {log:?}");
+    // On a terminal: colour, unless NO_COLOR is set (and not empty).
+    for (no_color, coloured) in [(None, true), (Some(""), true), (Some("1"), false)] {
+        let mut terminal = support::Terminal::new();
+        let mut child = host(no_color).stderr(terminal.stdio()).stdout(Stdio::null()).spawn().unwrap();
+        let stopped = terminal.read_until(Duration::from_secs(30), |t| t.contains("messages routed"));
+        assert!(child.wait().unwrap().success() && stopped, "{}", terminal.text);
+        assert!(terminal.text.contains("robot 'colours'"), "{}", terminal.text);
+        assert_eq!(terminal.text.contains(ESCAPE), coloured, "NO_COLOR {no_color:?}: {:?}", terminal.text);
     }
 }
 

@@ -90,36 +90,7 @@ fn hostile(mode: &str, reason: &str) {
     assert!(log.contains(&format!("component faulted and is stopped: {fault}")), "{mode}: the log says why:\n{log}");
     let good = component(&report, "good");
     assert_eq!(good["state"], "running", "{mode}");
-    kept_its_rate(&report, good, 100.0, 0.05, bad["call_time_ms"].as_f64().unwrap(), mode);
-}
-
-/// `component` (ticking at `hz`) kept its rate beside an offender that spent
-/// `offender_ms` in its calls: it stayed on its schedule's grid (ticks the
-/// loop could not run are counted as missed, not lost), and missed no more
-/// ticks than the machine and the offender explain. The machine's share is
-/// the time the control thread waited for a CPU (`loop_lateness.
-/// waited_for_cpu_ms`, the kernel's run delay): near zero on an idle machine,
-/// large while other processes keep the cores busy. Ticks missed beyond
-/// both (and beyond `tolerance`, the share allowed on an idle machine)
-/// would mean the host held the loop itself, e.g. while faulting the
-/// offender.
-fn kept_its_rate(report: &Json, component: &Json, hz: f64, tolerance: f64, offender_ms: f64, what: &str) {
-    let expected = report["duration_s"].as_f64().unwrap() * hz;
-    let ticks = component["ticks"].as_f64().unwrap();
-    let missed = component["missed_ticks"].as_f64().unwrap();
-    assert!(
-        (ticks + missed - expected).abs() <= 2.0,
-        "{what}: {ticks} ticks and {missed} missed, expected {expected} on the schedule"
-    );
-    let waited_ms = report["loop_lateness"]["waited_for_cpu_ms"].as_f64().unwrap();
-    let explained = (waited_ms + offender_ms) * hz / 1e3 + 2.0;
-    let allowed = explained.max(expected * tolerance);
-    assert!(
-        missed <= allowed,
-        "{what}: the healthy component missed {missed} of {expected} ticks; the loop waited {waited_ms} ms \
-         for a cpu and the offender held it {offender_ms} ms, which explain {explained:.0}: {}",
-        report["loop_lateness"]
-    );
+    support::kept_its_rate(&report, good, 100.0, 0.05, bad["call_time_ms"].as_f64().unwrap(), mode);
 }
 
 /// Whether `text` starts with `pattern`, where each `*` in it stands for
@@ -289,7 +260,7 @@ fn held_control_then(source: &str, params: &str, budget: Duration, reason: &str)
     assert!(duration < 2.5, "{source}: the run lasted {duration} s instead of 2");
     let good = component(&report, "good");
     assert_eq!(good["state"], "running");
-    kept_its_rate(&report, good, 100.0, 0.05, call_time.as_secs_f64() * 1e3, source);
+    support::kept_its_rate(&report, good, 100.0, 0.05, call_time.as_secs_f64() * 1e3, source);
     let last_motion = lines.iter().rposition(|(_, l)| l == "M 300 300").expect("the source drove");
     let stop = lines[last_motion..].iter().find(|(_, l)| l == "S").expect("STOP reached the motors");
     let stop_gap = stop.0.duration_since(lines[last_motion].0);
@@ -597,5 +568,5 @@ fn a_javascript_timer_does_not_hold_the_loop() {
     let timer = component(&report, "timer");
     assert_eq!(timer["state"], "running", "{timer}");
     assert_eq!(timer["messages_out"], 3, "three commands before the timers, none from them: {timer}");
-    kept_its_rate(&report, timer, 20.0, 0.1, 0.0, "timer");
+    support::kept_its_rate(&report, timer, 20.0, 0.1, 0.0, "timer");
 }

@@ -317,6 +317,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         let output = new();
         assert!(output.status.success(), "{lang}: {}", text(&output.stderr));
         assert!(text(&output.stdout).starts_with(&format!("created {}", dir.display())), "{}", text(&output.stdout));
+        let trial = suggested_trial(&text(&output.stdout));
         let again = new();
         assert_eq!(again.status.code(), Some(1));
         assert!(text(&again.stderr).contains("already exists; subsume new never writes into an existing directory"));
@@ -351,7 +352,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
             (description["outputs"][0]["name"].as_str(), description["outputs"][0]["kind"].as_str()),
             (Some("cmd"), Some("command"))
         );
-        built.push((lang, name, dir, wasm));
+        built.push((lang, name, dir, wasm, trial));
     }
 
     // Every project drives its own trial robot, and takes the avoider's
@@ -360,13 +361,15 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
     let rust_avoider = "../guest-components/rust/target/wasm32-wasip2/release/avoider.wasm";
     assert!(demo.contains(rust_avoider), "the demo's avoider moved");
     let mut runs = Vec::new();
-    for (lang, name, dir, wasm) in &built {
+    for (lang, name, dir, wasm, trial) in &built {
+        // The trial exactly as `subsume new` suggests it (shorter), in the
+        // project's folder and without the tests' SUBSUME_HTTP=off: it
+        // must start no portal, so it runs beside a demo holding the port.
         let report = dir.join("report.json");
         let trial = subsume()
-            .arg("run")
-            .arg(dir.join("robot.xml"))
-            .args(["--duration", "12", "--report"])
-            .arg(&report)
+            .current_dir(dir)
+            .env_remove("SUBSUME_HTTP")
+            .args(trial)
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap();
@@ -394,6 +397,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         let output = run.wait_with_output().unwrap();
         drop(demo_copy);
         assert!(output.status.success(), "{what}: {}", text(&output.stderr));
+        assert!(!text(&output.stderr).contains("portal on "), "{what} started a portal: {}", text(&output.stderr));
         let report: Json = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
         assert_all_running(&report);
         let held = report["arbiter"]["held_s"].as_array().unwrap();
@@ -408,6 +412,19 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
             assert!(calls.unwrap_or_default() > 50, "{what}: {}", report["components"]);
         }
     }
+}
+
+/// The arguments of the `subsume run` line `subsume new` printed, with a
+/// 12 s duration instead of the suggested one.
+fn suggested_trial(next_steps: &str) -> Vec<String> {
+    let line = next_steps.lines().find(|l| l.trim_start().starts_with("subsume run ")).unwrap_or_else(|| {
+        panic!("subsume new suggests no run command:\n{next_steps}");
+    });
+    let command = line.split('#').next().unwrap_or_default();
+    let mut args: Vec<String> = command.split_whitespace().skip(1).map(str::to_string).collect();
+    let at = args.iter().position(|a| a == "--duration").unwrap_or_else(|| panic!("no --duration in {line}"));
+    args[at + 1] = "12".into();
+    args
 }
 
 /// `(hits, looked up)` from the line "compiled component SHA in T s

@@ -332,6 +332,86 @@ fn a_kill_during_uploads_and_activations_leaves_a_consistent_store_that_restarts
     assert!(entries.iter().any(|e| e.action == "upload-component" && e.user == "admin" && e.result == "ok"));
 }
 
+/// The first run of a store with no users, with standard output at a
+/// terminal (a real pseudo-terminal): it makes `admin` and prints the
+/// portal's address and a password once; that password logs in over HTTP,
+/// and neither the store nor the log holds it. The next start prints none.
+/// With standard output a pipe (a service unit, a log file) no user is
+/// made and the log says how to add one.
+#[test]
+fn a_first_run_at_a_terminal_prints_a_login_that_works_and_a_pipe_gets_a_hint() {
+    let dir = tempfile::tempdir().unwrap();
+    let robot = dir.path().join("first.xml");
+    std::fs::write(&robot, light_robot("first", 1, 2, None)).unwrap();
+    let run = |store: &Path| {
+        let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+        command
+            .current_dir(support::repo_root())
+            .env("NO_COLOR", "1")
+            .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
+            .arg(&robot)
+            .args(["--http", "127.0.0.1:0"]);
+        command
+    };
+    let portal = |host: &support::HostProcess| {
+        let address = host.word_after("portal on http://", Duration::from_secs(60));
+        address.trim_end_matches('/').to_string()
+    };
+
+    let store = dir.path().join("store");
+    let mut terminal = support::Terminal::new();
+    let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
+    let address = portal(&host);
+    // Printed before the portal's line: all there by now.
+    assert!(terminal.read_until(Duration::from_secs(10), |t| t.contains("shown this once")), "{}", terminal.text);
+    let shown = terminal.text.clone();
+    assert!(shown.contains(&format!("http://{address}/")), "{shown}");
+    let password = shown.split("user admin  password ").nth(1).and_then(|rest| rest.split_whitespace().next());
+    let password = password.unwrap_or_else(|| panic!("no password in:\n{shown}")).to_string();
+    assert!(password.len() >= 16, "{password}");
+    let body = serde_json::json!({ "name": "admin", "password": password }).to_string();
+    let (status, json) = http(&address, "POST", "/api/v1/login", None, body.as_bytes());
+    assert_eq!((status, json["user"]["role"].as_str()), (200, Some("admin")), "{json}");
+    let (status, _) = http(&address, "GET", "/api/v1/audit", json["token"].as_str(), b"");
+    assert_eq!(status, 200, "the first admin may read what only admins may");
+    for (path, bytes) in support::store_snapshot(&[], &store) {
+        assert!(
+            !bytes.windows(password.len()).any(|w| w == password.as_bytes()),
+            "{} holds the password",
+            path.display()
+        );
+    }
+    assert!(!host.log().contains(&password), "the log holds the password");
+    drop(host);
+
+    // The next start, at a terminal too: the admin stays, no new password.
+    let mut terminal = support::Terminal::new();
+    let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
+    let address = portal(&host);
+    terminal.read_until(Duration::from_millis(200), |_| false);
+    assert!(!terminal.text.contains("password"), "{}", terminal.text);
+    assert!(!host.log().contains("no users yet"), "{}", host.log());
+    support::login(&address, "admin", &password);
+    drop(host);
+
+    // Standard output a pipe: no user, a hint in the log, nothing printed.
+    let piped = dir.path().join("piped");
+    let mut host = support::HostProcess::spawn_with_stdout(run(&piped), Stdio::piped());
+    portal(&host);
+    let hint = format!(
+        "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+        piped.display()
+    );
+    assert!(host.log().contains(&hint), "{}", host.log());
+    let mut stdout = host.child.stdout.take().unwrap();
+    let _ = host.child.kill();
+    let _ = host.child.wait();
+    let mut printed = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut printed).unwrap();
+    assert!(!printed.contains("password"), "{printed}");
+    assert!(!piped.join("users.json").exists(), "a user was made with stdout a pipe");
+}
+
 #[test]
 fn the_portal_works_in_a_real_browser() {
     let dir = tempfile::tempdir().unwrap();
@@ -373,9 +453,10 @@ fn the_portals_own_views_work_in_a_real_browser() {
     let stdout =
         support::browser("views.mjs", &artifacts, &[], &[&format!("http://{}/", host.address), &"admin", &PASSWORD]);
     assert!(stdout.contains("ok: "), "{stdout}");
-    for (n, shot) in ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings", "history"]
-        .iter()
-        .enumerate()
+    for (n, shot) in
+        ["plots", "drive-map", "rtt", "wiring", "editor-error", "editor-staged", "recordings", "history", "locked-log"]
+            .iter()
+            .enumerate()
     {
         assert!(artifacts.join(format!("views-{}-{shot}.png", n + 1)).is_file(), "{shot}");
     }
@@ -536,6 +617,174 @@ fn start_plain(store: &Path, robot: &Path) -> Host {
     let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
     let (_, teleop) = std::sync::mpsc::channel();
     Host { child, address, teleop }
+}
+
+/// A tmpfs of `size` mounted at `at` for the test, unmounted when dropped.
+struct SmallDisk(PathBuf);
+
+impl SmallDisk {
+    fn mount(at: &Path, size: &str) -> SmallDisk {
+        std::fs::create_dir_all(at).unwrap();
+        let out = Command::new("mount").args(["-t", "tmpfs", "-o", &format!("size={size}"), "tmpfs"]).arg(at).output();
+        let out = out.expect("mount(8) runs");
+        assert!(
+            out.status.success(),
+            "this test mounts a small tmpfs to fill it (the test command runs as root): {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        SmallDisk(at.to_path_buf())
+    }
+
+    /// Writes a file until the disk has no room left.
+    fn fill(&self) -> PathBuf {
+        use std::io::Write as _;
+        let filler = self.0.join("filler");
+        let mut file = std::fs::File::create(&filler).unwrap();
+        let chunk = vec![0xA5u8; 64 << 10];
+        loop {
+            if let Err(e) = file.write_all(&chunk) {
+                assert_eq!(e.kind(), std::io::ErrorKind::StorageFull, "{e}");
+                break;
+            }
+        }
+        // The last partial chunk: down to the byte.
+        while file.write_all(&[0]).is_ok() {}
+        filler
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg("-l").arg(&self.0).status();
+    }
+}
+
+/// Issue 34: a full disk answers 507 Insufficient Storage, without the
+/// store's path, for an upload of each kind and an activation; nothing is
+/// kept; once there is room again the same upload works. The store is on
+/// a 16 MiB tmpfs the test mounts and fills.
+#[test]
+fn a_full_disk_answers_507_without_the_stores_path_and_keeps_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let disk = SmallDisk::mount(&dir.path().join("disk"), "16m");
+    let store = disk.0.join("store");
+    add_admin(&store);
+    let robot = dir.path().join("robot.xml");
+    std::fs::write(&robot, light_robot("full", 1, 2, None)).unwrap();
+    let host = start_plain(&store, &robot);
+    let token = login(&host.address);
+    let wasm = unique_component(&std::fs::read(support::guest("avoider")).unwrap(), "full-disk");
+    // A set to activate once the disk is full.
+    let (status, json) = http(
+        &host.address,
+        "PUT",
+        "/api/v1/platforms/control/configs/two.xml",
+        Some(&token),
+        light_robot("two", 3, 2, None).as_bytes(),
+    );
+    assert_eq!(status, 201, "{json}");
+    let staged = json["set"]["id"].as_u64().unwrap();
+    let filler = disk.fill();
+    let before = support::store_snapshot(&["audit.log"], &store);
+    let mount = disk.0.display().to_string();
+    let requests: [(&str, String, Vec<u8>); 4] = [
+        ("PUT", "/api/v1/platforms/control/components/relay".into(), wasm.clone()),
+        ("PUT", "/api/v1/platforms/control/configs/three.xml".into(), light_robot("three", 4, 2, None).into_bytes()),
+        ("PUT", "/api/v1/worlds/full.world".into(), b"bounds 0 0 4 4\nstart 1 1 0\ngoal 3 3 0.3\n".to_vec()),
+        ("POST", format!("/api/v1/sets/{staged}/activate"), Vec::new()),
+    ];
+    for (method, path, body) in &requests {
+        let (status, json) = http(&host.address, method, path, Some(&token), body);
+        let text = json.to_string();
+        assert_eq!(status, 507, "{method} {path}: {text}");
+        assert!(json["error"].as_str().unwrap().starts_with("the robot's disk is full"), "{text}");
+        assert!(!text.contains(&mount), "{method} {path} shows the store's folder: {text}");
+    }
+    assert_eq!(support::store_snapshot(&["audit.log"], &store), before, "a refused request changed the store");
+    std::fs::remove_file(filler).unwrap();
+    let (status, json) = http(&host.address, "PUT", &requests[0].1, Some(&token), &wasm);
+    assert_eq!(status, 201, "with room again: {json}");
+}
+
+/// Issue 34: the API against schemathesis (PyPI), generating requests from
+/// openapi.json, logged in as each role and as nobody, over every
+/// operation (tests/python/api_fuzz.py says which two it calls itself):
+/// no 5xx, every status code, content type and response schema as
+/// documented, and no answer showing a server path. A short run here;
+/// `scripts/fuzz api` runs it long (docs/fuzzing.md).
+#[test]
+fn the_api_holds_against_schemathesis_for_every_role() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let users = [
+        ("admin", "admin", &[][..]),
+        ("viewer", "viewer", &[]),
+        ("operator", "operator", &[]),
+        ("developer", "developer", &["control"]),
+    ];
+    for (name, role, platforms) in users {
+        add_user(&store, name, role, platforms);
+    }
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let examples = std::env::var("API_FUZZ_EXAMPLES").unwrap_or_else(|_| "5".into());
+    let mut command = Command::new(support::python());
+    command.arg(support::repo_root().join("tests/python/api_fuzz.py")).arg(&host.address);
+    command.args(["--max-examples", &examples, "--seed", "34"]);
+    for (name, role, _) in users {
+        command.args(["--user", &format!("{role}:{name}:{PASSWORD}")]);
+    }
+    for forbidden in [dir.path().to_path_buf(), support::repo_root(), support::cache_dir()] {
+        command.arg("--forbid").arg(forbidden);
+    }
+    let output = command.output().unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success(),
+        "schemathesis found problems: {stdout}\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let summary: Value = serde_json::from_str(stdout.trim()).unwrap();
+    let runs = summary["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 1 + 2 * users.len(), "{summary}");
+    assert!(runs.iter().all(|r| r["generated"].as_u64().unwrap() > 0), "a run generated nothing: {summary}");
+}
+
+/// Issue 34, the portal: from 127.0.0.2 a slow-loris holds 200
+/// connections, each trickling a request's headers a byte a second (and
+/// reopened when the portal closes it), beside a loop reconnecting as fast
+/// as it can; from 127.0.0.3 a user logs in once a second, and every login
+/// works, promptly.
+#[test]
+fn a_login_from_another_address_works_while_a_slow_loris_holds_connections() {
+    use std::net::{IpAddr, SocketAddr};
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let target: SocketAddr = host.address.parse().unwrap();
+    let attacker: IpAddr = "127.0.0.2".parse().unwrap();
+    let user: IpAddr = "127.0.0.3".parse().unwrap();
+    let prefix = b"GET /api/v1/session HTTP/1.1\r\nHost: 127.0.0.1\r\nX-Slow: ";
+    let flood = support::flood::Flood::start(attacker, target, 200, prefix, Some(b'x'));
+    std::thread::sleep(Duration::from_secs(1));
+    let body = serde_json::json!({ "name": "admin", "password": PASSWORD }).to_string();
+    let mut slowest = Duration::ZERO;
+    for attempt in 0..20 {
+        let started = Instant::now();
+        let stream = support::flood::connect_from(user, target).unwrap();
+        let (status, json) = support::http_on(stream, &host.address, "POST", "/api/v1/login", None, body.as_bytes());
+        let took = started.elapsed();
+        assert_eq!(status, 200, "login {attempt}: {json}");
+        assert!(json["token"].is_string(), "login {attempt}: {json}");
+        // An argon2id hash, on a machine the flood keeps busy.
+        assert!(took < Duration::from_secs(2), "login {attempt} took {took:?}");
+        slowest = slowest.max(took);
+        std::thread::sleep(Duration::from_secs(1).saturating_sub(took));
+    }
+    let flood = flood.stop();
+    eprintln!("20 logins, the slowest in {slowest:?}; the flood: {flood:?}");
+    assert!(flood.connects > 10_000, "the flood never flooded: {flood:?}");
+    assert!(flood.heard.contains("HTTP/1.1 503 Service Unavailable"), "{flood:?}");
 }
 
 #[test]

@@ -277,6 +277,87 @@ fn the_portal_teleoperation_and_metrics_speak_tls() {
     }
 }
 
+/// A TLS client connection to `address` from the source address `from`,
+/// trusting `ca` only.
+fn tls_from(
+    from: std::net::IpAddr,
+    address: &str,
+    ca: &Path,
+) -> tokio_rustls::rustls::StreamOwned<tokio_rustls::rustls::ClientConnection, std::net::TcpStream> {
+    let tcp = support::flood::connect_from(from, address.parse().unwrap()).unwrap();
+    tcp.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let config = subsume::tls::client_config(ca).unwrap();
+    let name = rustls_pki_types::ServerName::try_from("127.0.0.1".to_string()).unwrap();
+    let connection = tokio_rustls::rustls::ClientConnection::new(config, name).unwrap();
+    tokio_rustls::rustls::StreamOwned::new(connection, tcp)
+}
+
+/// Issue 34 over TLS and WebSocket: while 127.0.0.2 holds 200 connections
+/// that never finish a TLS handshake (or an upgrade) on the line protocol's
+/// and the WebSocket's listeners, and reconnects in a loop beside them, an
+/// operator from 127.0.0.3 logs in over each within 1 s, every time.
+#[test]
+fn no_flood_keeps_an_operator_out_over_tls_or_websocket() {
+    use support::flood::Flood;
+    let pki = make_pki();
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let (cert, key) = (pki.cert.to_str().unwrap(), pki.key.to_str().unwrap());
+    let host = start(
+        &store,
+        &["--http", "off", "--tls-cert", cert, "--tls-key", key],
+        &["teleoperation on tls ", "teleoperation websocket on wss://"],
+    );
+    let lines = host.address("teleoperation on tls ");
+    let websocket = host.address("teleoperation websocket on wss://");
+    let (attacker, operator) = ("127.0.0.2".parse().unwrap(), "127.0.0.3".parse().unwrap());
+    let floods = [
+        Flood::start(attacker, lines.parse().unwrap(), 200, b"", None),
+        Flood::start(attacker, websocket.parse().unwrap(), 200, b"", None),
+    ];
+    std::thread::sleep(Duration::from_secs(1));
+    let (name, token) = OPERATOR;
+    let mut slowest = Duration::ZERO;
+    for attempt in 0..10 {
+        let started = std::time::Instant::now();
+        // The line protocol over TLS.
+        let mut stream = tls_from(operator, &lines, &pki.ca);
+        let mut reader = BufReader::new(&mut stream);
+        let mut line = String::new();
+        reader.read_line(&mut line).unwrap();
+        assert!(line.starts_with("HELLO subsume "), "attempt {attempt}: {line}");
+        drop(reader);
+        stream.write_all(format!("AUTH {name} {token}\n").as_bytes()).unwrap();
+        let mut reader = BufReader::new(&mut stream);
+        line.clear();
+        reader.read_line(&mut line).unwrap();
+        assert!(line.starts_with("OK authenticated as demo"), "attempt {attempt}: {line}");
+        let took = started.elapsed();
+        assert!(took < Duration::from_secs(1), "attempt {attempt} over tls took {took:?} to get in");
+        slowest = slowest.max(took);
+        // The WebSocket over TLS.
+        let started = std::time::Instant::now();
+        let stream = tls_from(operator, &websocket, &pki.ca);
+        let (mut socket, _) = tungstenite::client(format!("wss://{websocket}/teleop"), stream).unwrap();
+        let hello = socket.read().unwrap();
+        assert!(hello.to_text().unwrap().contains("\"hello\""), "attempt {attempt}: {hello}");
+        let auth = serde_json::json!({"type": "auth", "name": name, "token": token}).to_string();
+        socket.send(tungstenite::Message::Text(auth.into())).unwrap();
+        let ok: Value = serde_json::from_str(socket.read().unwrap().to_text().unwrap()).unwrap();
+        assert_eq!(ok["type"], "ok", "attempt {attempt}: {ok}");
+        let took = started.elapsed();
+        assert!(took < Duration::from_secs(1), "attempt {attempt} over wss took {took:?} to get in");
+        slowest = slowest.max(took);
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    for flood in floods {
+        let flood = flood.stop();
+        eprintln!("slowest login {slowest:?}; a flood: {flood:?}");
+        assert!(flood.connects > 1_000, "the flood never flooded: {flood:?}");
+    }
+}
+
 #[test]
 fn the_keyboard_client_speaks_tls() {
     let pki = make_pki();
@@ -498,6 +579,27 @@ fn the_systemd_unit_installs_verifies_and_is_hardened() {
     ] {
         assert!(dir.path().join(file).is_file(), "{file} not installed: {stdout}");
     }
+    // The robot's copy has no debug info (the test binary has line tables).
+    let sections = |binary: &Path| {
+        let output = Command::new("readelf").args(["-S", "-W"]).arg(binary).output().unwrap();
+        assert!(output.status.success(), "readelf: {}", String::from_utf8_lossy(&output.stderr));
+        String::from_utf8_lossy(&output.stdout).into_owned()
+    };
+    let installed = dir.path().join("usr/local/bin/subsume");
+    assert!(
+        sections(Path::new(env!("CARGO_BIN_EXE_subsume"))).contains(".debug_line"),
+        "the test binary has no line tables"
+    );
+    let installed_sections = sections(&installed);
+    assert!(
+        !installed_sections.contains(".debug_line") && !installed_sections.contains(".debug_info"),
+        "installed with debug info: {stdout}"
+    );
+    let size = std::fs::metadata(&installed).unwrap().len();
+    assert!(
+        stdout.contains(&format!("binary -> {} ({} MB, debug info stripped)", installed.display(), size / 1_000_000)),
+        "{stdout}"
+    );
     assert!(stdout.contains("would run: useradd --system"), "{stdout}");
     assert!(stdout.contains("would run: systemctl enable subsume.service"), "{stdout}");
     let unit = std::fs::read_to_string(dir.path().join("etc/systemd/system/subsume.service")).unwrap();
@@ -623,5 +725,8 @@ fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
     let output = run_to_end(&mut bad);
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(!output.status.success());
-    assert!(stderr.contains("--control-fifo must be between 1 and 99, got 100"), "{stderr}");
+    assert!(
+        stderr.contains("invalid value '100' for '--control-fifo <PRIORITY>': must be between 1 and 99, got 100"),
+        "{stderr}"
+    );
 }

@@ -102,7 +102,7 @@ fn a_bad_speed_is_refused_and_nothing_runs() {
         assert!(!output.status.success());
         assert!(
             stderr.contains(&format!(
-                "error: --speed must be a number of times real time (more than 0, at most 10000) or 'max', got '{bad}'"
+                "error: invalid value '{bad}' for '--speed <N|max>': --speed must be a number of times real time (more than 0, at most 10000) or 'max', got '{bad}'"
             )),
             "{stderr}"
         );

@@ -87,7 +87,11 @@ impl Operator {
     /// Connects to the platform at `address`: returns the operator and the
     /// HELLO line.
     fn connect_to(address: &str) -> (Operator, String) {
-        let stream = TcpStream::connect(address).unwrap();
+        Operator::over(TcpStream::connect(address).unwrap())
+    }
+
+    /// The operator on `stream`, and the HELLO line.
+    fn over(stream: TcpStream) -> (Operator, String) {
         stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
         let mut operator = Operator {
             reader: BufReader::new(stream.try_clone().unwrap()),
@@ -344,12 +348,12 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
     let report = read_report(&host.report);
     let travelled = report["sim"]["distance_travelled_m"].as_f64().unwrap();
     assert!((0.4..0.9).contains(&travelled), "{}", report["sim"]);
-    let session = &report["network"]["sessions"][0];
+    let session = &report["teleop"]["sessions"][0];
     assert_eq!(session["operator"], "alice");
     assert_eq!(session["mode_changes"][0]["to"], "direct");
     assert!(session["rtt_ms"].as_f64().unwrap() < 50.0);
     assert!(session["disconnected_at_s"].is_number());
-    let commands = &report["network"]["commands"];
+    let commands = &report["teleop"]["commands"];
     assert_eq!(commands["received"], 40, "{commands}");
     assert!(commands["released"].as_u64().unwrap() >= 35, "{commands}");
     assert_eq!((commands["dropped_stale"].as_u64(), commands["dropped_duplicate"].as_u64()), (Some(0), Some(0)));
@@ -411,13 +415,71 @@ fn sessions_past_the_listing_bound_are_counted_and_their_commands_kept() {
     let mut host = host;
     wait_for_exit(&mut host.process.child, Duration::from_secs(run_s as u64 + 20));
     let report = read_report(&host.report);
-    let network = &report["network"];
+    let network = &report["teleop"];
     let sessions = network["sessions"].as_array().unwrap();
     assert_eq!(sessions.len(), MAX_ENDED_SESSIONS_LISTED, "{network}");
     assert!(sessions.iter().all(|s| s["disconnected_at_s"].is_number()), "{network}");
     assert!(sessions.iter().all(|s| s["commands"]["received"] == 1), "{network}");
     assert_eq!(network["earlier_sessions"], (total - MAX_ENDED_SESSIONS_LISTED) as u64, "{network}");
     assert_eq!(network["commands"]["received"], total as u64, "{network}");
+}
+
+/// Issue 34: from 127.0.0.2, 200 idle connections (each reopened when the
+/// host closes it) and a loop reconnecting as fast as it can, for 30 s;
+/// from 127.0.0.3 an operator connects, logs in and drives once a second.
+/// Every attempt gets in within 1 s, every command is counted, and the
+/// control loop keeps its rate.
+#[test]
+fn idle_connections_and_a_reconnect_loop_never_keep_an_operator_out() {
+    use std::net::{IpAddr, SocketAddr};
+    use subsume::teleop::MAX_UNAUTHENTICATED_PER_ADDRESS;
+    let attack = Duration::from_secs(30);
+    let run_s = 40;
+    let host = start(r#"<param name="auth-timeout" value="5"/>"#, SINK, run_s);
+    let target: SocketAddr = host.address.parse().unwrap();
+    let attacker: IpAddr = "127.0.0.2".parse().unwrap();
+    let operator_address: IpAddr = "127.0.0.3".parse().unwrap();
+    let flood = support::flood::Flood::start(attacker, target, 200, b"", None);
+    std::thread::sleep(Duration::from_secs(1));
+    let started = Instant::now();
+    let mut attempts = 0u32;
+    let mut slowest = Duration::ZERO;
+    while started.elapsed() + Duration::from_secs(1) < attack {
+        let due = started + Duration::from_secs(u64::from(attempts));
+        std::thread::sleep(due.saturating_duration_since(Instant::now()));
+        let attempt = Instant::now();
+        let stream = support::flood::connect_from(operator_address, target).unwrap();
+        let (mut operator, hello) = Operator::over(stream);
+        assert!(hello.starts_with("HELLO subsume "), "attempt {attempts}: {hello}");
+        operator.send(&format!("AUTH alice {TOKEN}"));
+        assert_eq!(operator.reply(), "OK authenticated as alice; measuring the round-trip time");
+        let took = attempt.elapsed();
+        assert!(took < Duration::from_secs(1), "attempt {attempts} took {took:?} to get in");
+        slowest = slowest.max(took);
+        assert!(operator.reply().starts_with("RTT "));
+        operator.send("MODE direct");
+        let granted = operator.reply();
+        assert!(granted.starts_with("MODE direct granted"), "attempt {attempts}: {granted}");
+        operator.command("VEL 0.1 0");
+        operator.send("QUIT");
+        assert_eq!(operator.reply(), "OK bye");
+        attempts += 1;
+    }
+    let flood = flood.stop();
+    eprintln!("{attempts} attempts, the slowest in {slowest:?}; the flood: {flood:?}");
+    assert!(attempts >= 25, "{attempts} attempts");
+    assert!(flood.connects > 10_000, "the flood never flooded: {flood:?}");
+    let per_address = format!(
+        "ERR busy: unauthenticated connections: {MAX_UNAUTHENTICATED_PER_ADDRESS} are open from 127.0.0.2 already"
+    );
+    assert!(flood.heard.contains(&per_address), "{flood:?}");
+    assert!(flood.heard.contains("ERR no authentication in time: closing"), "{flood:?}");
+    let mut host = host;
+    wait_for_exit(&mut host.process.child, Duration::from_secs(run_s as u64 + 20));
+    let report = read_report(&host.report);
+    assert_eq!(report["network"]["commands"]["received"], u64::from(attempts), "{}", report["network"]);
+    let teleop = report["components"].as_array().unwrap().iter().find(|c| c["name"] == "teleop").unwrap();
+    support::kept_its_rate(&report, teleop, 100.0, 0.05, 0.0, "the network platform under the flood");
 }
 
 #[test]
@@ -550,7 +612,7 @@ fn the_keyboard_client_drives_from_a_real_terminal() {
     }
     wait_for_exit(&mut host.process.child, Duration::from_secs(20));
     let report = read_report(&host.report);
-    let session = &report["network"]["sessions"][0];
+    let session = &report["teleop"]["sessions"][0];
     assert_eq!(session["operator"], "alice", "{session}");
     assert_eq!(session["mode_changes"][0]["to"], "direct", "{session}");
     assert!(session["commands"]["released"].as_u64().unwrap() >= 10, "{session}");

@@ -139,7 +139,7 @@ function renderStatus(s) {
   if (arbiter.engaged) renderLocks(arbiter.engaged);
   $('holder').textContent = arbiter.holder || 'nobody (STOP)';
   $('suppressed').textContent = (arbiter.suppressed || []).join(', ') || '-';
-  const sessions = (s.network && s.network.sessions || []).filter((x) => x.disconnected_at_s == null && x.operator);
+  const sessions = (s.teleop && s.teleop.sessions || []).filter((x) => x.disconnected_at_s == null && x.operator);
   $('mode').textContent = sessions.map((x) => `${x.operator}: ${x.mode || 'none'}`).join(', ') || 'no operator';
   $('rtt').textContent = sessions.map((x) => x.rtt_ms == null ? 'measuring' : `${x.rtt_ms.toFixed(1)} ms`).join(', ') || '-';
   const sim = s.sim;
@@ -576,7 +576,7 @@ const PLOT_COLOURS = ['#0b5cad', '#c62828', '#11772b', '#b36b00', '#6a1b9a', '#0
 function viewsOnStatus(s) {
   const now = Date.now() / 1000;
   const rtt = {};
-  for (const x of (s.network && s.network.sessions) || []) {
+  for (const x of (s.teleop && s.teleop.sessions) || []) {
     if (x.disconnected_at_s == null && x.operator && x.rtt_ms != null) rtt[x.operator] = x.rtt_ms;
   }
   const rates = {};

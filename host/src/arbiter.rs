@@ -31,16 +31,16 @@
 use serde::Serialize;
 
 use crate::builtin::{
-    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, number_in,
 };
-use crate::config::{ComponentSource, ParamProblem};
+use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::locks::unix_now_ms;
-use crate::runtime::{CallError, Component, Engagement, LockEvent, Locks, Outbox, PriorityCell, Standing, Standings};
-
-/// The built-in kind whose sources answer to a person (they win ties).
-const OPERATOR_KIND: &str = "teleop";
+use crate::runtime::{
+    CallError, Component, Engagement, Family, LockEvent, Locks, NamedSection, Outbox, PriorityCell, Sample, Standing,
+    Standings, StatusSection,
+};
 
 /// Most sources one arbiter may have.
 pub const MAX_SOURCES: usize = 64;
@@ -85,7 +85,7 @@ pub struct Decision {
 }
 
 /// What the rest of the host sees of the arbiter.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
 pub struct ArbiterStatus {
     /// The source holding control, if any.
     pub holder: Option<String>,
@@ -108,6 +108,28 @@ pub struct ArbiterStatus {
     /// and how many there were.
     pub lock_events: Vec<LockEvent>,
     pub lock_events_total: u64,
+}
+
+impl NamedSection for ArbiterStatus {
+    const SECTION: &'static str = "arbiter";
+
+    fn families(&self, component: &str) -> Vec<Family> {
+        Family::each(
+            ("arbiter", component),
+            &[
+                (
+                    "subsume_arbiter_switches",
+                    "changes of the source holding control (to and from none)",
+                    Sample::Counter(self.switches),
+                ),
+                (
+                    "subsume_arbiter_stops",
+                    "STOP commands sent because no source was active",
+                    Sample::Counter(self.stops_sent),
+                ),
+            ],
+        )
+    }
 }
 
 /// The lock that bounds the arbiter's sources now.
@@ -548,11 +570,13 @@ impl Component for ArbiterComponent {
         self.arbiter.restore(component);
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        serde_json::to_value(self.arbiter.status(self.now_ns)).ok().map(|v| ("arbiter", v))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.arbiter.status(self.now_ns)))
     }
 }
 
+/// The `commands` input's index: motion sources.
+const COMMANDS_PORT: u32 = 0;
 /// The `lock` input's index.
 const LOCK_PORT: u32 = 1;
 
@@ -629,6 +653,30 @@ impl Builtin for ArbiterBuiltin {
         PARAMS
     }
 
+    fn arbitrates(&self) -> bool {
+        true
+    }
+
+    /// Every motion source (a connection into `commands`; `lock` takes
+    /// emergency stops) needs a priority.
+    fn check_robot(&self, me: usize, _: &Params, view: &RobotView<'_>, _: Registry) -> Vec<RobotProblem> {
+        let robot = view.robot;
+        let into_commands = robot.connections.iter().filter(|c| c.to.component == me && c.to.port == COMMANDS_PORT);
+        into_commands
+            .filter_map(|c| {
+                let source = robot.components.get(c.from.component)?;
+                source.priority.is_none().then(|| RobotProblem {
+                    offset: c.offset,
+                    message: format!(
+                        "'{}' feeds the arbiter, but component '{}' has no priority (set priority=\"N\" on it)",
+                        robot.output_name(c.from),
+                        source.name
+                    ),
+                })
+            })
+            .collect()
+    }
+
     fn check(&self, params: &Params, _ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
         match parse_locks(params.text("locks").unwrap_or_default()) {
             Ok(_) => Vec::new(),
@@ -677,7 +725,8 @@ impl Builtin for ArbiterBuiltin {
                 name: from.name.clone(),
                 priority,
                 timeout_ns: from.timeout.as_nanos() as u64,
-                operator: from.source == ComponentSource::Builtin(OPERATOR_KIND.into()),
+                operator: builtin::builtin_of(ctx.robot, connection.from.component, ctx.registry)
+                    .is_some_and(|b| b.answers_to_a_person()),
             });
         }
         if sources.len() > MAX_SOURCES {

@@ -347,10 +347,33 @@ pub fn check_description(d: &Description) -> Result<(), Vec<String>> {
     if problems.is_empty() { Ok(()) } else { Err(problems) }
 }
 
-/// At most 40 characters of `text`, for messages about guest-provided text.
+/// Most bytes of a guest's or a remote user's text a message quotes: enough
+/// to recognise a name, while a long one cannot flood a message or a log.
+pub const MAX_QUOTED_BYTES: usize = 40;
+
+/// `text` as a message quotes it: at most [`MAX_QUOTED_BYTES`], see
+/// [`clip_to`].
 pub fn clip(text: &str) -> String {
-    let mut clipped: String = text.chars().take(40).collect();
-    if clipped.len() < text.len() {
+    clip_to(text, MAX_QUOTED_BYTES)
+}
+
+/// The one shortener for text a guest or a remote user controls, before it
+/// goes into a message or the log: at most `max_bytes` of it (cut at a
+/// character boundary, then `...`), a tab replaced by a space and every
+/// other control character by `?`, so the text can neither forge a log line
+/// nor move a terminal's cursor.
+pub fn clip_to(text: &str, max_bytes: usize) -> String {
+    let mut end = text.len().min(max_bytes);
+    while !text.is_char_boundary(end) {
+        end -= 1;
+    }
+    let shown = |c: char| match c {
+        '\t' => ' ',
+        c if c.is_control() => '?',
+        c => c,
+    };
+    let mut clipped: String = text[..end].chars().map(shown).collect();
+    if end < text.len() {
         clipped.push_str("...");
     }
     clipped
@@ -430,6 +453,22 @@ mod tests {
 
     fn port(name: &str, kind: ValueKind) -> PortSpec {
         PortSpec { name: name.into(), kind, doc: String::new() }
+    }
+
+    #[test]
+    fn text_is_cut_at_a_character_boundary_and_cleaned() {
+        let cases: &[(&str, usize, &str)] = &[
+            ("abcdef", 3, "abc..."),
+            ("abc", 3, "abc"),
+            ("a\nb\tc", 10, "a?b c"),
+            ("\u{1b}[2Kx", 10, "?[2Kx"),
+            ("ééé", 3, "é..."),
+            ("", 0, ""),
+        ];
+        for (text, max, clipped) in cases {
+            assert_eq!(clip_to(text, *max), *clipped, "{text:?} at {max}");
+        }
+        assert_eq!(clip(&"x".repeat(100)), format!("{}...", "x".repeat(MAX_QUOTED_BYTES)));
     }
 
     #[test]

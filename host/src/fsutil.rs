@@ -7,6 +7,15 @@ use std::path::Path;
 /// old file or the new one: a temporary file in the same directory is
 /// written, fsynced and renamed over `path`, then the directory is fsynced.
 pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    prepare_atomically(path, bytes)?.commit()
+}
+
+/// The first half of [`write_atomically`]: the bytes are written to a
+/// temporary file beside `path` and fsynced, so whatever could fail for
+/// want of room has failed by now; [`PreparedWrite::commit`] renames it
+/// into place. Dropped uncommitted, the temporary file is removed and
+/// `path` is untouched.
+pub fn prepare_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<PreparedWrite> {
     let dir = match path.parent() {
         Some(dir) if !dir.as_os_str().is_empty() => dir,
         _ => Path::new("."),
@@ -14,8 +23,23 @@ pub fn write_atomically(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
     let mut file = tempfile::NamedTempFile::new_in(dir)?;
     file.write_all(bytes)?;
     file.as_file().sync_all()?;
-    file.persist(path).map_err(|e| e.error)?;
-    std::fs::File::open(dir)?.sync_all()
+    Ok(PreparedWrite { file, path: path.to_path_buf(), dir: dir.to_path_buf() })
+}
+
+/// A file written beside its place and fsynced, waiting to be renamed in.
+#[derive(Debug)]
+pub struct PreparedWrite {
+    file: tempfile::NamedTempFile,
+    path: std::path::PathBuf,
+    dir: std::path::PathBuf,
+}
+
+impl PreparedWrite {
+    /// Renames the file into place and fsyncs the directory.
+    pub fn commit(self) -> std::io::Result<()> {
+        self.file.persist(&self.path).map_err(|e| e.error)?;
+        std::fs::File::open(&self.dir)?.sync_all()
+    }
 }
 
 #[cfg(test)]
@@ -28,6 +52,22 @@ mod tests {
         let path = dir.path().join("report.json");
         write_atomically(&path, b"old")?;
         write_atomically(&path, b"new")?;
+        assert_eq!(std::fs::read(&path)?, b"new");
+        assert_eq!(std::fs::read_dir(dir.path())?.count(), 1);
+        Ok(())
+    }
+
+    #[test]
+    fn a_prepared_write_changes_nothing_until_committed() -> std::io::Result<()> {
+        let dir = tempfile::tempdir()?;
+        let path = dir.path().join("state.json");
+        write_atomically(&path, b"old")?;
+        drop(prepare_atomically(&path, b"dropped")?);
+        assert_eq!(std::fs::read(&path)?, b"old");
+        assert_eq!(std::fs::read_dir(dir.path())?.count(), 1);
+        let prepared = prepare_atomically(&path, b"new")?;
+        assert_eq!(std::fs::read(&path)?, b"old");
+        prepared.commit()?;
         assert_eq!(std::fs::read(&path)?, b"new");
         assert_eq!(std::fs::read_dir(dir.path())?.count(), 1);
         Ok(())

@@ -3,13 +3,15 @@
 //!
 //! # Layout
 //!
-//! The binary (`main.rs`) parses the command line and calls [`run::run`],
-//! the composition root. `ARCHITECTURE.md` maps the modules below, the
+//! The binary (`main.rs`, one file per subcommand in `commands/`) parses
+//! the command line and calls [`run::run`], the composition root. `ARCHITECTURE.md` maps the modules below, the
 //! invariants each keeps, and the import rules between them (checked by
 //! `host/tests/architecture.rs`). From the bottom up:
 //!
-//! - [`contract`], [`fsutil`], [`tls`]: the WIT contract's host side;
-//!   atomic writes; TLS identities and the plain-text rule for listeners;
+//! - [`contract`], [`fsutil`], [`tls`], [`admission`]: the WIT contract's
+//!   host side; atomic writes; TLS identities and the plain-text rule for
+//!   listeners; bounded connection pools per client address and serving
+//!   HTTP under them;
 //! - [`runtime`]: the component trait, wiring, the graph and control loop;
 //! - [`config`]: the robot file, as written and as validated;
 //! - [`sandbox`]: wasmtime: engine, compile cache, guests and translators;
@@ -27,6 +29,7 @@
 //! - [`portal`]: HTTP in front of `deploy`;
 //! - [`run`], [`scaffold`]: `subsume run` and `subsume new`.
 
+pub mod admission;
 pub mod arbiter;
 pub mod assemble;
 pub mod bridge;

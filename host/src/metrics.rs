@@ -14,64 +14,29 @@ use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, MetricEncoder, NoLabelSet};
 use prometheus_client::metrics::MetricType;
 use prometheus_client::registry::Registry;
-use serde_json::Value as Json;
 
-use crate::report::{LiveStatus, Report};
-use crate::runtime::Histogram;
+use crate::report::{ComponentRunState, LiveStatus, Report};
+use crate::runtime::{Family, MetricKind, Sample};
 
 /// The content type of [`encode`]'s text.
 pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
-
-/// One sample's value.
-#[derive(Clone, Debug)]
-pub enum Sample {
-    Counter(u64),
-    Gauge(f64),
-    Histogram(Histogram),
-    /// A histogram with buckets of its own: (upper bound in seconds, count
-    /// in that bucket alone; the last bound infinity), sum, count.
-    Buckets {
-        buckets: Vec<(f64, u64)>,
-        sum: f64,
-        count: u64,
-    },
-}
-
-/// A metric family: its name (counters without `_total`, which the encoder
-/// adds), help, type and labelled samples.
-#[derive(Clone, Debug)]
-pub struct Family {
-    pub name: &'static str,
-    pub help: &'static str,
-    pub kind: MetricType,
-    pub samples: Vec<(Vec<(&'static str, String)>, Sample)>,
-}
-
-impl Family {
-    pub fn new(name: &'static str, help: &'static str, kind: MetricType) -> Family {
-        Family { name, help, kind, samples: Vec::new() }
-    }
-
-    pub fn counter(&mut self, labels: Vec<(&'static str, String)>, value: u64) {
-        self.samples.push((labels, Sample::Counter(value)));
-    }
-}
 
 /// The metric families of a live status.
 pub fn families(status: &LiveStatus) -> Vec<Family> {
     let report = &status.report;
     let mut out = Vec::new();
-    let mut set = Family::new("subsume_active_set", "the id of the running set", MetricType::Gauge);
-    set.samples.push((vec![("robot", report.robot.clone())], Sample::Gauge(status.set as f64)));
-    out.push(set);
-    let mut cycles =
-        Family::new("subsume_loop_cycles", "control-loop cycles run by the running set", MetricType::Counter);
-    cycles.counter(vec![], report.cycles);
-    out.push(cycles);
+    out.push(
+        Family::new("subsume_active_set", "the id of the running set", MetricKind::Gauge)
+            .gauge(vec![("robot", report.robot.clone())], status.set as f64),
+    );
+    out.push(
+        Family::new("subsume_loop_cycles", "control-loop cycles run by the running set", MetricKind::Counter)
+            .counter(vec![], report.cycles),
+    );
     let mut lateness = Family::new(
         "subsume_loop_lateness_seconds",
         "how long after its time the control loop ran each scheduled cycle",
-        MetricType::Histogram,
+        MetricKind::Histogram,
     );
     lateness.samples.push((vec![], Sample::Histogram(report.loop_lateness.histogram.clone())));
     out.push(lateness);
@@ -81,7 +46,7 @@ pub fn families(status: &LiveStatus) -> Vec<Family> {
 }
 
 fn component_families(report: &Report) -> Vec<Family> {
-    use MetricType::{Counter, Gauge, Histogram};
+    use MetricKind::{Counter, Gauge, Histogram};
     let mut calls = Family::new("subsume_component_calls", "calls of tick and on-input", Counter);
     let mut call_time = Family::new(
         "subsume_component_call_seconds",
@@ -99,114 +64,33 @@ fn component_families(report: &Report) -> Vec<Family> {
         Family::new("subsume_component_missed_ticks", "ticks skipped because the loop fell behind", Counter);
     for c in &report.components {
         let labels = || vec![("component", c.name.clone()), ("platform", c.platform.clone())];
-        calls.counter(labels(), c.calls);
+        calls = calls.counter(labels(), c.calls);
         call_time.samples.push((labels(), Sample::Histogram(c.call_times.clone())));
-        faults.counter(labels(), c.faults);
-        restarts.counter(labels(), c.restarts);
-        running.samples.push((labels(), Sample::Gauge(if c.state == "running" { 1.0 } else { 0.0 })));
-        messages_in.counter(labels(), c.messages_in);
-        messages_out.counter(labels(), c.messages_out);
-        dropped.counter(labels(), c.messages_dropped);
-        missed.counter(labels(), c.missed_ticks);
+        faults = faults.counter(labels(), c.faults);
+        restarts = restarts.counter(labels(), c.restarts);
+        let up = if c.state == ComponentRunState::Running { 1.0 } else { 0.0 };
+        running = running.gauge(labels(), up);
+        messages_in = messages_in.counter(labels(), c.messages_in);
+        messages_out = messages_out.counter(labels(), c.messages_out);
+        dropped = dropped.counter(labels(), c.messages_dropped);
+        missed = missed.counter(labels(), c.missed_ticks);
     }
     vec![calls, call_time, faults, restarts, running, messages_in, messages_out, dropped, missed]
 }
 
-/// The sections `builtin:KIND` components add to the report
-/// (docs/report.md) under `section` (`section:NAME` when the kind appears
-/// twice), with the name of the component each belongs to.
-fn sections<'a>(report: &'a Report, section: &str, kind: &str) -> Vec<(String, &'a Json)> {
-    report
-        .sections
-        .iter()
-        .filter_map(|(key, value)| {
-            let (section_kind, name) = match key.split_once(':') {
-                Some((k, name)) => (k, Some(name.to_string())),
-                None => (key.as_str(), None),
-            };
-            (section_kind == section).then(|| {
-                let name = name.or_else(|| {
-                    let source = format!("builtin:{kind}");
-                    report.components.iter().find(|c| c.source == source).map(|c| c.name.clone())
-                });
-                (name.unwrap_or_else(|| kind.to_string()), value)
-            })
-        })
-        .collect()
-}
-
-fn count(value: &Json, field: &str) -> u64 {
-    value.get(field).and_then(Json::as_u64).unwrap_or(0)
-}
-
+/// The families each built-in's section names, those of the same name
+/// (two serial links) merged into one.
 fn section_families(report: &Report) -> Vec<Family> {
-    use MetricType::{Counter, Gauge};
-    let mut switches =
-        Family::new("subsume_arbiter_switches", "changes of the source holding control (to and from none)", Counter);
-    let mut stops = Family::new("subsume_arbiter_stops", "STOP commands sent because no source was active", Counter);
-    for (name, value) in sections(report, "arbiter", "arbiter") {
-        switches.counter(vec![("arbiter", name.clone())], count(value, "switches"));
-        stops.counter(vec![("arbiter", name)], count(value, "stops_sent"));
-    }
-    let mut frames = Family::new("subsume_serial_frames", "frames written to the motor controller", Counter);
-    let mut malformed =
-        Family::new("subsume_serial_malformed_feedback", "feedback from the controller that did not parse", Counter);
-    let mut reconnects = Family::new("subsume_serial_reconnects", "times the serial device was opened again", Counter);
-    let mut connected = Family::new("subsume_serial_connected", "1 while the serial device is open", Gauge);
-    let mut watchdog =
-        Family::new("subsume_serial_watchdog_stops", "STOPs sent because commands stopped coming", Counter);
-    for (name, value) in sections(report, "serial", "serial") {
-        let labels = || vec![("link", name.clone())];
-        frames.counter(labels(), count(value, "frames_written"));
-        malformed.counter(labels(), count(value, "malformed_feedback"));
-        reconnects.counter(labels(), count(value, "reconnects"));
-        watchdog.counter(labels(), count(value, "watchdog_stops"));
-        let open = value.get("connected").and_then(Json::as_bool).unwrap_or(false);
-        connected.samples.push((labels(), Sample::Gauge(if open { 1.0 } else { 0.0 })));
-    }
-    let mut rtt = Family::new(
-        "subsume_teleop_rtt_seconds",
-        "the last measured round-trip time of each connected operator session",
-        Gauge,
-    );
-    let mut sessions = Family::new("subsume_teleop_sessions", "operator connections open now", Gauge);
-    let mut released =
-        Family::new("subsume_teleop_commands_released", "operator commands released by the delay buffer", Counter);
-    let mut dropped = Family::new(
-        "subsume_teleop_commands_dropped",
-        "operator commands never released, by reason (stale, duplicate, full, superseded)",
-        Counter,
-    );
-    for (name, value) in sections(report, "network", "teleop") {
-        let mut open = 0u64;
-        for session in value.get("sessions").and_then(Json::as_array).into_iter().flatten() {
-            if !session.get("disconnected_at_s").is_none_or(Json::is_null) {
-                continue;
-            }
-            open += 1;
-            if let Some(ms) = session.get("rtt_ms").and_then(Json::as_f64) {
-                let operator = session.get("operator").and_then(Json::as_str).unwrap_or("").to_string();
-                let labels = vec![
-                    ("network", name.clone()),
-                    ("session", count(session, "session").to_string()),
-                    ("operator", operator),
-                ];
-                rtt.samples.push((labels, Sample::Gauge(ms / 1e3)));
+    let mut merged: Vec<Family> = Vec::new();
+    for section in &report.sections.0 {
+        for family in section.status.metric_families(&section.component) {
+            match merged.iter_mut().find(|f| f.name == family.name) {
+                Some(known) => known.samples.extend(family.samples),
+                None => merged.push(family),
             }
         }
-        sessions.samples.push((vec![("network", name.clone())], Sample::Gauge(open as f64)));
-        let commands = value.get("commands").unwrap_or(&Json::Null);
-        released.counter(vec![("network", name.clone())], count(commands, "released"));
-        for (reason, field) in [
-            ("stale", "dropped_stale"),
-            ("duplicate", "dropped_duplicate"),
-            ("full", "dropped_full"),
-            ("superseded", "superseded"),
-        ] {
-            dropped.counter(vec![("network", name.clone()), ("reason", reason.to_string())], count(commands, field));
-        }
     }
-    vec![switches, stops, frames, malformed, reconnects, connected, watchdog, rtt, sessions, released, dropped]
+    merged
 }
 
 /// Encodes the families of one scrape.
@@ -216,7 +100,12 @@ struct Scrape(Vec<Family>);
 impl Collector for Scrape {
     fn encode(&self, mut encoder: DescriptorEncoder<'_>) -> Result<(), std::fmt::Error> {
         for family in &self.0 {
-            let mut metric = encoder.encode_descriptor(family.name, family.help, None, family.kind)?;
+            let kind = match family.kind {
+                MetricKind::Counter => MetricType::Counter,
+                MetricKind::Gauge => MetricType::Gauge,
+                MetricKind::Histogram => MetricType::Histogram,
+            };
+            let mut metric = encoder.encode_descriptor(family.name, family.help, None, kind)?;
             for (labels, sample) in &family.samples {
                 // No labels: the sample alone (`name 1`, not `name{} 1`).
                 if labels.is_empty() {
@@ -261,8 +150,34 @@ pub fn encode_with(status: &LiveStatus, more: Vec<Family>) -> String {
 
 #[cfg(test)]
 mod tests {
+    use std::sync::Arc;
+
     use super::*;
-    use crate::report::{ComponentReport, LoopLateness, MessageTotals};
+    use crate::arbiter::ArbiterStatus;
+    use crate::report::{ComponentReport, LoopLateness, MessageTotals, Section, Sections, StoppedBy};
+    use crate::robot::serial::SerialStatus;
+    use crate::runtime::{Histogram, StatusSection};
+    use crate::teleop::delay::DelayStats;
+    use crate::teleop::{SessionReport, TeleopStatus};
+
+    fn section(key: &str, component: &str, status: impl StatusSection) -> Section {
+        Section { key: key.into(), component: component.into(), status: Arc::new(status) }
+    }
+
+    fn teleop() -> TeleopStatus {
+        let session = |session: u64, operator: &str, rtt_ms: f64, disconnected_at_s: Option<f64>| SessionReport {
+            session,
+            operator: Some(operator.into()),
+            rtt_ms: Some(rtt_ms),
+            disconnected_at_s,
+            ..SessionReport::default()
+        };
+        TeleopStatus {
+            sessions: vec![session(1, "alice", 12.5, None), session(2, "bob", 80.0, Some(3.0))],
+            commands: DelayStats { released: 9, dropped_stale: 2, superseded: 1, ..DelayStats::default() },
+            ..TeleopStatus::default()
+        }
+    }
 
     fn status() -> LiveStatus {
         let mut call_times = Histogram::default();
@@ -276,7 +191,7 @@ mod tests {
             source: "avoider.wasm".into(),
             rate_hz: 10.0,
             priority: Some(3),
-            state: "faulted".into(),
+            state: ComponentRunState::Faulted,
             fault: Some("trap".into()),
             faulted_at_s: Some(1.0),
             calls: 2,
@@ -292,37 +207,24 @@ mod tests {
             faults: 1,
             call_times,
         };
-        let mut arbiter = component.clone();
-        arbiter.name = "arb".into();
-        arbiter.source = "builtin:arbiter".into();
-        let mut teleop = component.clone();
-        teleop.name = "teleop".into();
-        teleop.source = "builtin:teleop".into();
-        let mut sections = serde_json::Map::new();
-        sections.insert("arbiter".into(), serde_json::json!({ "switches": 3, "stops_sent": 7 }));
-        sections.insert(
-            "network".into(),
-            serde_json::json!({
-                "sessions": [
-                    { "session": 1, "operator": "alice", "rtt_ms": 12.5, "disconnected_at_s": null },
-                    { "session": 2, "operator": "bob", "rtt_ms": 80.0, "disconnected_at_s": 3.0 },
-                ],
-                "commands": { "released": 9, "dropped_stale": 2, "dropped_duplicate": 0, "dropped_full": 0, "superseded": 1 },
-            }),
-        );
-        sections.insert("network:teleop2".into(), serde_json::json!({ "sessions": [], "commands": {} }));
+        let arbiter = ArbiterStatus { switches: 3, stops_sent: 7, ..ArbiterStatus::default() };
+        let sections = Sections(vec![
+            section("arbiter", "arb", arbiter),
+            section("teleop", "teleop", teleop()),
+            section("teleop:teleop2", "teleop2", TeleopStatus::default()),
+        ]);
         LiveStatus {
             experiment: None,
             live_format: 1,
             set: 4,
             report: Report {
-                format: 1,
+                format: crate::report::REPORT_FORMAT,
                 robot: "demo".into(),
                 config: "robot.xml".into(),
-                stopped_by: "running".into(),
+                stopped_by: StoppedBy::Running,
                 duration_s: 1.0,
                 cycles: 10,
-                components: vec![component, arbiter, teleop],
+                components: vec![component],
                 connections: vec![],
                 messages: MessageTotals { routed: 0, delivered: 0, dropped: 0 },
                 loop_lateness: LoopLateness {
@@ -334,6 +236,60 @@ mod tests {
                 },
                 sections,
             },
+        }
+    }
+
+    /// Each section's metric reads a field the report's JSON shows under
+    /// this name: renaming or dropping the field (or feeding the metric
+    /// from another) fails here.
+    #[test]
+    fn every_section_metric_is_the_field_the_report_shows() {
+        let serial = SerialStatus {
+            frames_written: 11,
+            malformed_feedback: 12,
+            reconnects: 13,
+            watchdog_stops: 14,
+            connected: true,
+            ..SerialStatus::default()
+        };
+        let arbiter = ArbiterStatus { switches: 21, stops_sent: 22, ..ArbiterStatus::default() };
+        // (a section, [(its metric family, the JSON field it shows)]).
+        type Case = (Box<dyn StatusSection>, &'static [(&'static str, &'static str)]);
+        let cases: Vec<Case> = vec![
+            (Box::new(arbiter), &[("subsume_arbiter_switches", "/switches"), ("subsume_arbiter_stops", "/stops_sent")]),
+            (
+                Box::new(serial),
+                &[
+                    ("subsume_serial_frames", "/frames_written"),
+                    ("subsume_serial_malformed_feedback", "/malformed_feedback"),
+                    ("subsume_serial_reconnects", "/reconnects"),
+                    ("subsume_serial_watchdog_stops", "/watchdog_stops"),
+                    ("subsume_serial_connected", "/connected"),
+                ],
+            ),
+            (
+                Box::new(teleop()),
+                &[
+                    ("subsume_teleop_commands_released", "/commands/released"),
+                    ("subsume_teleop_rtt_seconds", "/sessions/0/rtt_ms"),
+                ],
+            ),
+        ];
+        for (status, fields) in cases {
+            let json = status.to_json();
+            let families = status.metric_families("c");
+            for (family, pointer) in fields {
+                let shown = json.pointer(pointer).unwrap_or_else(|| panic!("{} has no {pointer}", status.section()));
+                let shown = shown.as_f64().or_else(|| shown.as_bool().map(|b| f64::from(u8::from(b)))).unwrap();
+                let family = families.iter().find(|f| f.name == *family).unwrap_or_else(|| panic!("no {family}"));
+                let value = match &family.samples[0].1 {
+                    Sample::Counter(v) => *v as f64,
+                    Sample::Gauge(v) => *v,
+                    Sample::Histogram(_) | Sample::Buckets { .. } => panic!("{}", family.name),
+                };
+                let value = if family.name.ends_with("_seconds") { value * 1e3 } else { value };
+                assert_eq!(value, shown, "{} against {pointer}", family.name);
+            }
         }
     }
 

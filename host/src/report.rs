@@ -3,22 +3,95 @@
 //! (the same layout, `stopped_by: "running"`, with the active set's id).
 //! Built-ins add their own sections (`Component::status`).
 
+use std::sync::Arc;
+
 use serde::Serialize;
+use serde::ser::SerializeMap as _;
 
 use crate::config::{Policy, RobotConfig};
 use crate::runtime::control_loop::StopReason;
-use crate::runtime::{ComponentState, Graph, Histogram};
+use crate::runtime::{ComponentState, Graph, Histogram, StatusSection};
 
 /// Version of the report's layout; bumped when a field changes meaning.
-pub const REPORT_FORMAT: u32 = 1;
+/// 2: the network platform's section is `teleop` (was `network`); states
+/// are closed sets (`stopped_by`, a component's `state`, a connection's
+/// `policy`).
+pub const REPORT_FORMAT: u32 = 2;
+
+/// Why the report was written: what stopped the run, or `running` in the
+/// live status.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StoppedBy {
+    /// `--duration` passed.
+    Duration,
+    /// A signal or the portal asked to stop.
+    Shutdown,
+    /// Not stopped: the live status.
+    Running,
+    /// An experiment's run ended (its record says why: docs/lab.md).
+    Experiment,
+}
+
+/// A component's state.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ComponentRunState {
+    Running,
+    Faulted,
+}
+
+/// A connection's delivery policy.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PolicyName {
+    Latest,
+    Queue,
+}
+
+/// One built-in's section, with the component it belongs to.
+#[derive(Clone, Debug)]
+pub struct Section {
+    /// Its key in the JSON: the section's name, or `NAME:COMPONENT` when
+    /// two components have a section of that name.
+    pub key: String,
+    pub component: String,
+    pub status: Arc<dyn StatusSection>,
+}
+
+/// The built-ins' sections, typed; in the JSON each is a field of the
+/// report under its key.
+#[derive(Clone, Debug, Default)]
+pub struct Sections(pub Vec<Section>);
+
+impl Sections {
+    /// Every section of type `T`, with its component's name.
+    pub fn of<T: StatusSection>(&self) -> impl Iterator<Item = (&str, &T)> {
+        self.0.iter().filter_map(|s| s.status.downcast_ref::<T>().map(|t| (s.component.as_str(), t)))
+    }
+
+    /// The section under `key` in the JSON.
+    pub fn get(&self, key: &str) -> Option<&Section> {
+        self.0.iter().find(|s| s.key == key)
+    }
+}
+
+impl Serialize for Sections {
+    fn serialize<S: serde::Serializer>(&self, serializer: S) -> Result<S::Ok, S::Error> {
+        let mut map = serializer.serialize_map(Some(self.0.len()))?;
+        for section in &self.0 {
+            map.serialize_entry(&section.key, &section.status.to_json())?;
+        }
+        map.end()
+    }
+}
 
 #[derive(Clone, Debug, Serialize)]
 pub struct Report {
     pub format: u32,
     pub robot: String,
     pub config: String,
-    /// "duration", "shutdown", or "running" in the live status.
-    pub stopped_by: String,
+    pub stopped_by: StoppedBy,
     pub duration_s: f64,
     /// Control-loop cycles run.
     pub cycles: u64,
@@ -28,10 +101,10 @@ pub struct Report {
     /// How late the control loop ran its scheduled cycles, and how long it
     /// waited for a CPU: a reader can tell a busy machine from a slow host.
     pub loop_lateness: LoopLateness,
-    /// Sections of built-in components, by kind: `arbiter`, `serial`, `sim`
-    /// (`kind:component` when a kind appears twice).
+    /// Sections of built-in components, by name: `arbiter`, `serial`, `sim`
+    /// (`name:component` when a name appears twice).
     #[serde(flatten)]
-    pub sections: serde_json::Map<String, serde_json::Value>,
+    pub sections: Sections,
 }
 
 /// `loop_lateness` in the JSON (docs/report.md).
@@ -72,8 +145,7 @@ pub struct ComponentReport {
     pub source: String,
     pub rate_hz: f64,
     pub priority: Option<i32>,
-    /// "running" or "faulted".
-    pub state: String,
+    pub state: ComponentRunState,
     pub fault: Option<String>,
     pub faulted_at_s: Option<f64>,
     pub calls: u64,
@@ -98,8 +170,7 @@ pub struct ComponentReport {
 pub struct ConnectionReport {
     pub from: String,
     pub to: String,
-    /// "latest" or "queue".
-    pub policy: String,
+    pub policy: PolicyName,
     pub depth: Option<usize>,
     pub routed: u64,
     pub delivered: u64,
@@ -156,23 +227,27 @@ pub fn live(
         live_format: LIVE_STATUS_FORMAT,
         set,
         experiment: experiment.map(|e| (**e).clone()),
-        report: report(config, graph, "running", now_s),
+        report: report(config, graph, StoppedBy::Running, now_s),
     }
 }
 
 /// The report of `graph`, built from `config` (component and connection
 /// indices in the graph are those of the config).
 pub fn build(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, duration_s: f64) -> Report {
-    report(config, graph, stopped_by.name(), duration_s)
-}
-
-/// [`build`] with the reason it stopped in words (`cancelled by ana`,
-/// `duration`): an experiment's report, taken as it is swapped out.
-pub fn build_named(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64) -> Report {
+    let stopped_by = match stopped_by {
+        StopReason::Duration => StoppedBy::Duration,
+        StopReason::Requested => StoppedBy::Shutdown,
+    };
     report(config, graph, stopped_by, duration_s)
 }
 
-fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64) -> Report {
+/// An experiment's report, taken as its graph is swapped out after
+/// `duration_s` (docs/lab.md: its record says why it ended).
+pub fn build_experiment(config: &RobotConfig, graph: &Graph, duration_s: f64) -> Report {
+    report(config, graph, StoppedBy::Experiment, duration_s)
+}
+
+fn report(config: &RobotConfig, graph: &Graph, stopped_by: StoppedBy, duration_s: f64) -> Report {
     let components = config
         .components
         .iter()
@@ -181,9 +256,9 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
             let stats = graph.stats(i).cloned().unwrap_or_default();
             let (state, fault, faulted_at_s) = match graph.state(i) {
                 Some(ComponentState::Faulted { reason, at_ns }) => {
-                    ("faulted", Some(reason.clone()), Some(*at_ns as f64 / 1e9))
+                    (ComponentRunState::Faulted, Some(reason.clone()), Some(*at_ns as f64 / 1e9))
                 }
-                _ => ("running", None, None),
+                _ => (ComponentRunState::Running, None, None),
             };
             ComponentReport {
                 name: c.name.clone(),
@@ -191,7 +266,7 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
                 source: c.source.to_string(),
                 rate_hz: c.rate_hz,
                 priority: c.priority,
-                state: state.to_string(),
+                state,
                 fault,
                 faulted_at_s,
                 calls: stats.calls,
@@ -209,13 +284,6 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
             }
         })
         .collect();
-    let port_name = |component: usize, port: u32, output: bool| {
-        config.components.get(component).map_or_else(String::new, |c| {
-            let ports = if output { &c.description.outputs } else { &c.description.inputs };
-            let port = ports.get(port as usize).map_or("?", |p| p.name.as_str());
-            format!("{}.{port}", c.name)
-        })
-    };
     let mut delivered = 0;
     let connections = config
         .connections
@@ -225,13 +293,13 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
             let stats = graph.connection_stats(i).cloned().unwrap_or_default();
             delivered += stats.delivered;
             let (policy, depth) = match c.policy {
-                Policy::Latest => ("latest", None),
-                Policy::Queue { depth } => ("queue", Some(depth)),
+                Policy::Latest => (PolicyName::Latest, None),
+                Policy::Queue { depth } => (PolicyName::Queue, Some(depth)),
             };
             ConnectionReport {
-                from: port_name(c.from.component, c.from.port, true),
-                to: port_name(c.to.component, c.to.port, false),
-                policy: policy.to_string(),
+                from: config.output_name(c.from),
+                to: config.input_name(c.to),
+                policy,
                 depth,
                 routed: stats.routed,
                 delivered: stats.delivered,
@@ -240,17 +308,18 @@ fn report(config: &RobotConfig, graph: &Graph, stopped_by: &str, duration_s: f64
             }
         })
         .collect();
-    let mut sections = serde_json::Map::new();
-    for (name, kind, value) in graph.statuses() {
-        let key = if sections.contains_key(kind) { format!("{kind}:{name}") } else { kind.to_string() };
-        sections.insert(key, value);
+    let mut sections = Sections::default();
+    for (name, status) in graph.statuses() {
+        let kind = status.section();
+        let key = if sections.get(kind).is_some() { format!("{kind}:{name}") } else { kind.to_string() };
+        sections.0.push(Section { key, component: name.to_string(), status: Arc::from(status) });
     }
     Report {
         sections,
         format: REPORT_FORMAT,
         robot: config.name.clone(),
         config: config.path.display().to_string(),
-        stopped_by: stopped_by.to_string(),
+        stopped_by,
         duration_s,
         cycles: graph.cycles(),
         loop_lateness: LoopLateness::of(graph),

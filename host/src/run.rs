@@ -5,7 +5,7 @@
 //! exits that cannot wait for the loop (the panic policy, halting every
 //! motor). Nothing but `main.rs`, tests and benches imports this.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -140,6 +140,20 @@ pub struct PortalOptions {
     /// `subsume dev`: watch the robot file and its component files at this
     /// poll interval, and activate each change (`deploy::dev`).
     pub watch: Option<Duration>,
+    /// What a store with no users gets at start.
+    pub first_user: FirstUser,
+}
+
+/// What the portal does when its store has no users yet.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FirstUser {
+    /// Someone reads standard output (a terminal): make `admin` with a
+    /// generated password and print it once there, with the portal's
+    /// address, so the first run ends with a working login.
+    MakeAdmin,
+    /// Nobody may read it (a service unit, a pipe into a log): make no user;
+    /// the log says how to add one.
+    Hint,
 }
 
 #[derive(Debug, Error)]
@@ -218,10 +232,10 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     let clock = options.clock();
     let criteria = read_criteria(options)?;
     let judge = options.verdict.is_some() || options.pace.is_some();
-    let (standings, sims) = (Standings::default(), Arc::new(crate::sim::SimRegistry::default()));
+    let standings = Standings::default();
     let mut services = Services::default().with(Arc::new(options.tls.clone()));
     if judge {
-        services = services.with(Arc::new(standings.clone())).with(sims.clone());
+        services = services.with(Arc::new(standings.clone()));
     }
     let mut graph =
         assemble::build(&config, &mut loader, clock.clone(), &shutdown.waker(), &services, &assemble::Carry::default())
@@ -231,7 +245,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     let Some(record) = &options.record else {
         let (graph, watch, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, watch)?;
         let report = final_report(&config, &graph, stopped_by, ran_ns);
-        judge_run(options, &criteria, &config, &graph, &sims, &report, &watch)?;
+        judge_run(options, &criteria, &config, &graph, &report, &watch)?;
         return Ok(report);
     };
     if let Some(address) = record.live {
@@ -244,7 +258,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     graph.take_tap();
     let summary = recorder.finish()?;
     let report = final_report(&config, &graph, stopped_by, ran_ns);
-    judge_run(options, &criteria, &config, &graph, &sims, &report, hook.inner())?;
+    judge_run(options, &criteria, &config, &graph, &report, hook.inner())?;
     drop(graph);
     log_recording(&summary);
     Ok(report)
@@ -277,13 +291,12 @@ fn judge_run(
     criteria: &Criteria,
     config: &RobotConfig,
     graph: &Graph,
-    sims: &crate::sim::SimRegistry,
     report: &Report,
     watch: &Judge,
 ) -> Result<(), RunError> {
     let Some(watch) = &watch.0 else { return Ok(()) };
     let path = options.verdict.clone().unwrap_or_default();
-    let verdict = crate::lab::preflight::verdict(criteria, config, graph, sims, report, watch.timeline().clone())
+    let verdict = crate::lab::preflight::verdict(criteria, config, graph, report, watch.timeline().clone())
         .map_err(|e| RunError::Verdict { path: path.clone(), reason: e.to_string() })?;
     if verdict.passed {
         tracing::info!("preflight verdict: passed ({:.1} s simulated)", verdict.observed.simulated_s);
@@ -441,6 +454,33 @@ fn final_report(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, ran
     report::build(config, graph, stopped_by, ran_ns as f64 / 1e9)
 }
 
+/// A store with no users at start: makes the first admin and prints its
+/// login on standard output, once (never into the log, which the portal
+/// and recordings show), or says how to add a user.
+fn first_user(store: &Store, first: FirstUser, url: &str) {
+    let hint = || {
+        tracing::warn!(
+            "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+            store.root().display()
+        );
+    };
+    if first == FirstUser::Hint {
+        return hint();
+    }
+    match store.add_first_admin() {
+        Ok(Some(password)) => println!(
+            "\nfirst run: the store had no users, so subsume made one. Log in at\n\n    {url}\n    user {}  password {password}\n\n\
+             The password is shown this once (the store keeps only a hash); `subsume user` adds users and sets passwords.\n",
+            crate::store::FIRST_ADMIN
+        ),
+        Ok(None) => {}
+        Err(e) => {
+            tracing::error!("cannot make the first admin: {e}");
+            hint();
+        }
+    }
+}
+
 /// [`run`] with the portal: starts from the store (see
 /// [`Deployer::boot`]), serves the portal on its own runtime, and lets it
 /// activate sets while the control loop runs.
@@ -448,14 +488,8 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let sandbox = Arc::new(Sandbox::new(options.cache_dir.clone())?);
     let store = Arc::new(Store::open(&portal.store_dir)?);
     let directory = Arc::new(Directory::new(store.users().clone()));
-    match directory.users.all() {
-        Ok(users) if users.is_empty() => tracing::warn!(
-            "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
-            store.root().display()
-        ),
-        Ok(_) => {}
-        Err(e) => return Err(StoreError::from(e).into()),
-    }
+    let no_users = directory.users.all().map_err(StoreError::from)?.is_empty();
+    let first_store = store.clone();
     if options.tls.identity.is_none() {
         options.tls.check_plain("portal", portal.listen)?;
     }
@@ -497,8 +531,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
-    let listener = std::net::TcpListener::bind(portal.listen)
-        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+    let listener = crate::admission::listen(portal.listen)
         .map_err(|source| RunError::Listen { address: portal.listen, source })?;
     let address = listener.local_addr().map_err(|source| RunError::Listen { address: portal.listen, source })?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -508,26 +541,35 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .build()
         .map_err(RunError::PortalRuntime)?;
     let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
+    let cache = deployer.sandbox.cache_dir().map(Path::to_path_buf);
+    let robot_dir = options.config_path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let working_dir = std::env::current_dir().unwrap_or_default();
+    let mut hidden: Vec<(&Path, &'static str)> = vec![
+        (portal.store_dir.as_path(), "<store>"),
+        (robot_dir.as_path(), "<robot file folder>"),
+        (working_dir.as_path(), "<working folder>"),
+    ];
+    if let Some(cache) = &cache {
+        hidden.push((cache.as_path(), "<cache>"));
+    }
     let state = match acceptor {
         Some(_) => portal::PortalState::over_tls(deployer, lab.clone(), directory, portal.logs.clone()),
         None => portal::PortalState::new(deployer, lab.clone(), directory, portal.logs.clone()),
-    };
+    }
+    .hiding(&hidden);
     let scheme = if acceptor.is_some() { "https" } else { "http" };
     runtime.spawn(async move {
         let listener = match tokio::net::TcpListener::from_std(listener) {
             Ok(listener) => listener,
             Err(e) => return tracing::error!("the portal cannot serve: {e}"),
         };
-        match acceptor {
-            Some(acceptor) => crate::tls::serve_https(listener, acceptor, portal::app(state)).await,
-            None => {
-                let app = portal::app(state).into_make_service_with_connect_info::<std::net::SocketAddr>();
-                if let Err(e) = axum::serve(listener, app).await {
-                    tracing::error!("the portal stopped: {e}");
-                }
-            }
-        }
+        crate::admission::serve_http(listener, acceptor, portal::app(state), crate::admission::HttpLimits::default())
+            .await;
     });
+    // Before the portal's line: whoever waits for that line has the login.
+    if no_users {
+        first_user(&first_store, portal.first_user, &format!("{scheme}://{address}/"));
+    }
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let Some(record) = &options.record else {
         let hook = recordings.hook(hook, |hook| Layout::of(hook.config()), deploy::ControlHook::swaps);

@@ -273,6 +273,11 @@ pub enum ScaffoldError {
     },
 }
 
+/// The trial run `subsume new` suggests and the project's README shows:
+/// without the portal (`--http off`), so it runs beside a host whose portal
+/// holds the default port (the demo's, say) instead of failing to listen.
+pub const TRIAL_COMMAND: &str = "subsume run robot.xml --http off --duration 30 --report report.json";
+
 /// A project `create` made.
 #[derive(Clone, Debug)]
 pub struct Project {
@@ -304,7 +309,7 @@ impl Project {
         let _ =
             writeln!(text, "  {}    # builds {}", self.language.build_command(), self.language.wasm_path(&self.name));
         let _ = writeln!(text, "  subsume describe {}", self.language.wasm_path(&self.name));
-        let _ = writeln!(text, "  subsume run robot.xml --duration 30 --report report.json");
+        let _ = writeln!(text, "  {TRIAL_COMMAND}    # no portal: the demo's may hold 127.0.0.1:8080");
         let _ = writeln!(text, "{} is yours to change; README.md says more.", self.language.source());
         text
     }
@@ -334,6 +339,7 @@ pub fn render(name: &str, language: Language) -> Vec<(String, String)> {
         ("{{source}}", language.source()),
         ("{{needs}}", language.needs()),
         ("{{budget}}", language.budget()),
+        ("{{trial}}", TRIAL_COMMAND),
     ];
     let fill = |text: &str| vars.iter().fold(text.to_string(), |text, (key, value)| text.replace(key, value));
     let mut files: Vec<(String, String)> =

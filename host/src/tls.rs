@@ -2,7 +2,8 @@
 //! network platform (its line protocol and its WebSocket). Owns the server
 //! identity read from PEM files (`--tls-cert`, `--tls-key`), the rule that
 //! plain text is served on loopback addresses only unless the robot's owner
-//! opts in (`--allow-plain-http`), and serving an axum router over TLS.
+//! opts in (`--allow-plain-http`), and the handshake with its deadline
+//! (`admission::serve_http` serves HTTP over it).
 //!
 //! Invariants: a listener that is not on a loopback address speaks TLS
 //! unless the owner allowed plain text explicitly; a peer that opens
@@ -26,7 +27,8 @@ use tokio_rustls::rustls;
 /// a socket this long at most.
 pub const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
 /// Handshakes in progress at once on one listener (each costs public-key
-/// operations): more connections wait in the kernel's backlog.
+/// operations): more connections wait for one to end, within their own
+/// deadlines.
 pub const MAX_HANDSHAKES: usize = 64;
 /// Largest certificate chain or key file read: these are kilobytes; a
 /// mistaken path to a large file must not be read whole.
@@ -183,44 +185,6 @@ impl HostTls {
         } else {
             Err(TlsError::PlainRemote { what: what.to_string(), address })
         }
-    }
-}
-
-/// Serves `app` over TLS on `listener` until the runtime stops: each
-/// connection is handshaken on its own task (at most [`MAX_HANDSHAKES`]
-/// at once, each within [`HANDSHAKE_TIMEOUT`]), then served by hyper's
-/// HTTP/1.1 with upgrades (WebSockets), with the peer's address as axum's
-/// `ConnectInfo<SocketAddr>`.
-pub async fn serve_https(listener: tokio::net::TcpListener, acceptor: TlsAcceptor, app: axum::Router) {
-    let handshakes = Arc::new(tokio::sync::Semaphore::new(MAX_HANDSHAKES));
-    loop {
-        let Ok(permit) = handshakes.clone().acquire_owned().await else { return };
-        let (tcp, peer) = match listener.accept().await {
-            Ok(accepted) => accepted,
-            Err(e) => {
-                tracing::warn!("accepting a TLS connection failed: {e}");
-                tokio::time::sleep(Duration::from_millis(50)).await;
-                continue;
-            }
-        };
-        let _ = tcp.set_nodelay(true);
-        let acceptor = acceptor.clone();
-        let app = app.clone();
-        tokio::spawn(async move {
-            let Some(stream) = handshake(&acceptor, tcp, peer).await else { return };
-            drop(permit);
-            let service = hyper::service::service_fn(move |mut request: hyper::Request<hyper::body::Incoming>| {
-                use tower::ServiceExt as _;
-                request.extensions_mut().insert(axum::extract::ConnectInfo(peer));
-                app.clone().oneshot(request)
-            });
-            let io = hyper_util::rt::TokioIo::new(stream);
-            if let Err(e) =
-                hyper::server::conn::http1::Builder::new().serve_connection(io, service).with_upgrades().await
-            {
-                tracing::debug!("https connection from {peer} ended: {e}");
-            }
-        });
     }
 }
 

@@ -3,15 +3,20 @@
 //! every `crate::MODULE` a file names (in `use` lines and in paths) is an
 //! edge from the file's top-level module to MODULE.
 //!
-//! - the top-level modules form no cycle;
+//! - the top-level modules form no cycle, and neither do the files inside
+//!   each folder (a file names a sibling through `super::x`, `crate::m::x`,
+//!   or a name its folder's `mod.rs` re-exports from `x`);
 //! - `runtime` imports only the contract; `config` imports no `sandbox` and
 //!   of `runtime` only `runtime::wiring`;
 //! - `builtin` (the framework) imports no built-in module;
 //! - `portal` talks to `deploy`, `store`, `report`, `metrics`, `teleop`
 //!   and the contract only;
-//! - nothing but `main.rs` imports `run`, and nothing imports the crate
-//!   root (every `crate::X` names a module);
-//! - `anyhow` appears only in `main.rs`;
+//! - nothing but the binary (`main.rs` and its `commands/`) imports `run`,
+//!   and nothing imports the crate root (every `crate::X` names a module);
+//! - `anyhow` appears only in the binary;
+//! - a built-in's kind is a `BuiltinKind` only the registry makes: no
+//!   kind string (`"sim"`, `"builtin:sim"`) outside the registry and the
+//!   built-ins, no `ComponentSource::Builtin("...")`;
 //! - no public function or trait method returns `Result<_, String>`: errors
 //!   that cross a module seam are typed.
 
@@ -118,9 +123,15 @@ fn crate_paths(code: &str) -> BTreeSet<String> {
     found
 }
 
+/// A file of the binary (`main.rs` and the commands it dispatches to),
+/// not of the library: its `crate::` is the binary's root.
+fn in_binary(file: &str) -> bool {
+    file == "main.rs" || file.starts_with("commands/")
+}
+
 struct Crate {
-    /// File (relative to host/src) -> its top-level module and the modules
-    /// it names.
+    /// File of the library (relative to host/src) -> its top-level module
+    /// and the modules it names.
     files: BTreeMap<String, (String, BTreeSet<String>)>,
     /// File -> its code without comments or strings.
     code: BTreeMap<String, String>,
@@ -143,7 +154,9 @@ fn read_crate() -> Crate {
         let relative = path.strip_prefix(&src).unwrap().to_string_lossy().into_owned();
         let top = relative.split('/').next().unwrap().trim_end_matches(".rs").to_string();
         let text = code_of(&std::fs::read_to_string(&path).unwrap());
-        files.insert(relative.clone(), (top, crate_paths(&text)));
+        if !in_binary(&relative) {
+            files.insert(relative.clone(), (top, crate_paths(&text)));
+        }
         code.insert(relative, text);
     }
     Crate { files, code, modules }
@@ -207,6 +220,144 @@ fn the_top_level_modules_form_no_cycle() {
     }
 }
 
+/// The first cycle in a graph of names, as `a -> b -> a`.
+fn find_cycle(edges: &BTreeMap<String, BTreeSet<String>>) -> Option<String> {
+    fn visit(
+        node: &str,
+        edges: &BTreeMap<String, BTreeSet<String>>,
+        path: &mut Vec<String>,
+        done: &mut BTreeSet<String>,
+    ) -> Option<String> {
+        if let Some(at) = path.iter().position(|n| n == node) {
+            let mut cycle = path[at..].to_vec();
+            cycle.push(node.to_string());
+            return Some(cycle.join(" -> "));
+        }
+        if !done.insert(node.to_string()) {
+            return None;
+        }
+        path.push(node.to_string());
+        for next in edges.get(node).into_iter().flatten() {
+            if let Some(cycle) = visit(next, edges, path, done) {
+                return Some(cycle);
+            }
+        }
+        path.pop();
+        None
+    }
+    let mut done = BTreeSet::new();
+    edges.keys().find_map(|node| visit(node, edges, &mut Vec::new(), &mut done))
+}
+
+/// Inside one folder (`dir`, relative to host/src, with a `mod.rs`): each
+/// file -> the sibling files it names.
+fn sibling_edges(krate: &Crate, dir: &str) -> BTreeMap<String, BTreeSet<String>> {
+    let prefix = format!("{dir}/");
+    let siblings: BTreeSet<String> = krate
+        .code
+        .keys()
+        .filter_map(|f| f.strip_prefix(&prefix))
+        .map(|rest| rest.split('/').next().unwrap().trim_end_matches(".rs").to_string())
+        .filter(|name| name != "mod")
+        .collect();
+    // Names `mod.rs` takes from a sibling (`pub use x::{A, B}`, `use x::A`).
+    let mut reexported: BTreeMap<String, String> = BTreeMap::new();
+    for line in krate.code[&format!("{prefix}mod.rs")].split(';') {
+        let line = line.trim();
+        let Some(at) = line.find("use ") else { continue };
+        if !line[..at].trim().is_empty() && !line[..at].trim().starts_with("pub") {
+            continue;
+        }
+        let path = line[at + 4..].trim();
+        let Some((from, items)) = path.split_once("::") else { continue };
+        if !siblings.contains(from) {
+            continue;
+        }
+        for item in items.trim_matches(|c| c == '{' || c == '}' || char::is_whitespace(c)).split(',') {
+            let item = item.trim();
+            let name = item.rsplit(" as ").next().unwrap_or(item).rsplit("::").next().unwrap_or(item).trim();
+            if !name.is_empty() {
+                reexported.insert(name.to_string(), from.to_string());
+            }
+        }
+    }
+    let module_path = format!("crate::{}::", dir.replace('/', "::"));
+    let mut edges: BTreeMap<String, BTreeSet<String>> = BTreeMap::new();
+    for (file, code) in &krate.code {
+        let Some(rest) = file.strip_prefix(&prefix) else { continue };
+        let me = rest.split('/').next().unwrap().trim_end_matches(".rs").to_string();
+        if me == "mod" {
+            continue;
+        }
+        // A file of a sub-folder counts as the sub-folder; its `super::` is
+        // this folder from the sub-folder's mod.rs, `super::super::` below it.
+        let up = match rest.matches('/').count() {
+            0 => "super::",
+            _ if rest.ends_with("/mod.rs") => "super::",
+            _ => "super::super::",
+        };
+        let mut named = BTreeSet::new();
+        for marker in [up, module_path.as_str()] {
+            for (at, _) in code.match_indices(marker) {
+                let after = &code[at + marker.len()..];
+                let items: Vec<&str> = match after.strip_prefix('{') {
+                    Some(group) => group[..group.find('}').unwrap_or(group.len())].split(',').collect(),
+                    None => vec![after],
+                };
+                for item in items {
+                    let first: String = item.trim().chars().take_while(|c| c.is_alphanumeric() || *c == '_').collect();
+                    if siblings.contains(&first) {
+                        named.insert(first);
+                    } else if let Some(from) = reexported.get(&first) {
+                        named.insert(from.clone());
+                    }
+                }
+            }
+        }
+        named.remove(&me);
+        edges.entry(me).or_default().extend(named);
+    }
+    edges
+}
+
+#[test]
+fn the_files_inside_each_folder_form_no_cycle() {
+    let krate = read_crate();
+    let folders: BTreeSet<String> = krate
+        .code
+        .keys()
+        .filter(|f| !in_binary(f))
+        .filter_map(|f| f.strip_suffix("/mod.rs"))
+        .map(str::to_string)
+        .collect();
+    assert!(folders.contains("sandbox") && folders.contains("runtime"), "{folders:?}");
+    let cycles: Vec<String> = folders
+        .iter()
+        .filter_map(|dir| find_cycle(&sibling_edges(&krate, dir)).map(|cycle| format!("{dir}/: {cycle}")))
+        .collect();
+    assert!(
+        cycles.is_empty(),
+        "import cycles inside folders (each file imports only files below it):\n{}",
+        cycles.join("\n")
+    );
+}
+
+#[test]
+fn the_folder_checker_sees_siblings_and_reexports() {
+    let mut code = BTreeMap::new();
+    code.insert("f/mod.rs".to_string(), code_of("mod a;\nmod b;\nmod c;\npub use b::{Thing, other as renamed};"));
+    code.insert("f/a.rs".to_string(), code_of("use super::Thing;\n// super::c\nfn x() { super::c::y(); }"));
+    code.insert("f/b.rs".to_string(), code_of("use crate::f::{c::Z};"));
+    code.insert("f/c.rs".to_string(), code_of("use super::a::W;"));
+    let krate = Crate { files: BTreeMap::new(), code, modules: BTreeSet::new() };
+    let edges = sibling_edges(&krate, "f");
+    let show = |k: &str| edges[k].iter().cloned().collect::<Vec<_>>();
+    assert_eq!(show("a"), ["b", "c"]);
+    assert_eq!(show("b"), ["c"]);
+    assert_eq!(show("c"), ["a"]);
+    assert_eq!(find_cycle(&edges).as_deref(), Some("a -> b -> c -> a"));
+}
+
 #[test]
 fn every_import_rule_holds() {
     let krate = read_crate();
@@ -224,7 +375,7 @@ fn every_import_rule_holds() {
         top == "portal"
             && !["deploy", "lab", "store", "report", "teleop", "contract", "metrics", "logfields"].contains(&m)
     }));
-    broken.extend(violations(&krate, |file, _, m| m == "run" && file != "main.rs"));
+    broken.extend(violations(&krate, |_, _, m| m == "run"));
     broken.extend(violations(&krate, |_, _, m| !krate.modules.contains(m)));
     assert!(broken.is_empty(), "import rules broken (ARCHITECTURE.md, \"Import rules\"):\n{}", broken.join("\n"));
 }
@@ -234,7 +385,7 @@ fn anyhow_lives_only_in_main_and_no_public_function_returns_a_string_error() {
     let krate = read_crate();
     let mut broken = Vec::new();
     for (file, code) in &krate.code {
-        if file != "main.rs" && code.contains("anyhow") {
+        if !in_binary(file) && code.contains("anyhow") {
             broken.push(format!("{file} uses anyhow"));
         }
         // Public functions, and methods of public traits (their `fn`s carry
@@ -261,6 +412,79 @@ fn anyhow_lives_only_in_main_and_no_public_function_returns_a_string_error() {
         }
     }
     assert!(broken.is_empty(), "{}", broken.join("\n"));
+}
+
+/// The string literals of `text` before its tests (`#[cfg(test)]`).
+fn string_literals(text: &str) -> Vec<String> {
+    let text = text.split("#[cfg(test)]").next().unwrap_or("");
+    let chars: Vec<char> = text.chars().collect();
+    let mut found = Vec::new();
+    let mut i = 0;
+    while i < chars.len() {
+        if chars[i] == '/' && chars.get(i + 1) == Some(&'/') {
+            while i < chars.len() && chars[i] != '\n' {
+                i += 1;
+            }
+            continue;
+        }
+        if chars[i] == '\'' && chars.get(i + 2) == Some(&'\'') {
+            i += 3;
+            continue;
+        }
+        if chars[i] == '"' {
+            let mut literal = String::new();
+            i += 1;
+            while i < chars.len() && chars[i] != '"' {
+                if chars[i] == '\\' {
+                    i += 1;
+                }
+                literal.extend(chars.get(i));
+                i += 1;
+            }
+            found.push(literal);
+        }
+        i += 1;
+    }
+    found
+}
+
+/// Files that may name kinds: the registry and the built-ins themselves.
+fn may_name_kinds(file: &str) -> bool {
+    let top = file.split('/').next().unwrap_or("").trim_end_matches(".rs");
+    file == "assemble/registry.rs" || BUILTIN_MODULES.contains(&top) || file.starts_with("builtin/")
+}
+
+#[test]
+fn kinds_are_made_by_the_registry_alone_and_named_by_no_one_else() {
+    let krate = read_crate();
+    let kinds = subsume::assemble::registry::kinds();
+    let src = support::repo_root().join("host/src");
+    let mut broken = Vec::new();
+    for (file, code) in &krate.code {
+        if in_binary(file) || may_name_kinds(file) {
+            continue;
+        }
+        let code = code.split("#[cfg(test)]").next().unwrap_or("");
+        if code.contains("BuiltinKind::registered") && file != "config/mod.rs" {
+            broken.push(format!("{file} makes a BuiltinKind"));
+        }
+        let text = std::fs::read_to_string(src.join(file)).unwrap();
+        for literal in string_literals(&text) {
+            let kind = literal.strip_prefix("builtin:").unwrap_or(&literal);
+            // Names that are also words of other meaning (a log event, a
+            // report section) are allowed where listed here.
+            let allowed = [("portal/routes.rs", "log")];
+            if kinds.contains(&kind) && !allowed.contains(&(file.as_str(), kind)) {
+                broken.push(format!("{file} names kind \"{literal}\""));
+            }
+        }
+    }
+    for (file, code) in &krate.code {
+        if file != "assemble/registry.rs" && code.replace(' ', "").contains("ComponentSource::Builtin(\"") {
+            broken.push(format!("{file} writes ComponentSource::Builtin(\"...\")"));
+        }
+    }
+    assert!(broken.is_empty(), "kinds named outside the registry and the built-ins:\n{}", broken.join("\n"));
 }
 
 #[test]

@@ -150,10 +150,10 @@ fn table(builtin: &dyn Builtin) -> String {
     }
     let _ = writeln!(s, "\n| parameter | default | allowed | meaning |\n|---|---|---|---|");
     for p in params {
-        let default = match (p.default.is_empty(), p.check(p.default).is_ok()) {
-            (true, true) => "(empty)".to_string(),
-            (true, false) => "(required)".to_string(),
-            _ => format!("`{}`", p.default),
+        let default = match (p.is_required(), p.default.is_empty()) {
+            (true, _) => "(required)".to_string(),
+            (false, true) => "(empty)".to_string(),
+            (false, false) => format!("`{}`", p.default),
         };
         let _ = writeln!(s, "| `{}` | {default} | {} | {} |", p.name, p.expected(), p.doc);
     }
@@ -216,8 +216,24 @@ fn describe_builtin_prints_every_declared_parameter_with_its_bounds() {
                 builtin.kind(),
                 decl.name
             );
+            // "(required)" exactly when a robot file that leaves the
+            // parameter out is refused; an allowed empty default reads "none".
+            let refused_without = subsume::builtin::check_values(&[*decl], &Default::default()).is_err();
+            let line = line.unwrap_or_default().trim_start();
+            let says = |what: &str| line.starts_with(&format!("{} ({what}):", decl.name));
+            assert_eq!(says("required"), refused_without, "builtin:{}: {line}", builtin.kind());
+            if !refused_without && decl.default.is_empty() {
+                assert!(says("default: none"), "builtin:{}: {line}", builtin.kind());
+            }
         }
     }
+    // The newcomer's case: the envelope's geofence defaults to no fence.
+    let output = std::process::Command::new(env!("CARGO_BIN_EXE_subsume"))
+        .args(["describe", "builtin:envelope"])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&output.stdout);
+    assert!(text.contains("  geofence (default: none): any text;"), "{text}");
     let output =
         std::process::Command::new(env!("CARGO_BIN_EXE_subsume")).args(["describe", "builtin:nope"]).output().unwrap();
     assert!(!output.status.success());

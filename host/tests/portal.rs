@@ -99,6 +99,7 @@ async fn portal_over(over_tls: bool) -> Portal {
     } else {
         PortalState::new(boot.deployer, lab, directory, portal::logs::LogRing::new())
     };
+    let state = state.hiding(&[(dir.path(), "<robot file folder>"), (&dir.path().join("store"), "<store>")]);
     let app = portal::app(state);
     let mut tokens = std::collections::HashMap::new();
     for (name, _, _) in USERS {
@@ -436,6 +437,52 @@ async fn the_openapi_document_lists_exactly_the_routes() {
         assert_eq!(response.status(), StatusCode::OK, "{path}");
     }
     assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/portal/openapi.json").is_file());
+}
+
+/// What the API fuzzer (schemathesis, tests/python/api_fuzz.py) found, one
+/// case each: refusals axum made itself answered plain text, or statuses
+/// the document did not list. Each is now JSON `{"error", "diagnostics"}`
+/// saying why, with a status openapi.json lists for the operation.
+#[tokio::test]
+async fn what_the_api_fuzzer_found_is_refused_in_json_with_a_documented_status() {
+    let portal = portal().await;
+    let (_, doc) = send(&portal.app, "GET", "/api/v1/openapi.json", None, Body::empty()).await;
+    #[rustfmt::skip]
+    let cases: &[(&str, &str, &str, StatusCode, &str)] = &[
+        ("GET", "/api/v1/teleop", "/api/v1/teleop", StatusCode::BAD_REQUEST, "this is the teleoperation WebSocket: connect with a WebSocket client"),
+        ("GET", "/api/v1/sets/null,null", "/api/v1/sets/{id}", StatusCode::BAD_REQUEST, "set id 'null,null' is not a whole number"),
+        ("POST", "/api/v1/sets/-1/activate", "/api/v1/sets/{id}/activate", StatusCode::BAD_REQUEST, "set id '-1' is not a whole number"),
+        ("POST", "/api/v1/sets/x/replay", "/api/v1/sets/{id}/replay", StatusCode::BAD_REQUEST, "set id 'x' is not a whole number"),
+        // Not UTF-8 once decoded: axum's own path rejection, now in JSON.
+        ("GET", "/api/v1/components/%FF", "/api/v1/components/{name}", StatusCode::BAD_REQUEST, "invalid url"),
+    ];
+    for (method, uri, documented_as, status, error) in cases {
+        let (got, json) = portal.call("admin", method, uri, "").await;
+        assert_eq!(got, *status, "{method} {uri}: {json}");
+        let message = json["error"].as_str().unwrap_or_default().to_lowercase();
+        assert!(message.starts_with(&error.to_lowercase()), "{method} {uri}: {json}");
+        assert!(json["diagnostics"].is_array(), "{method} {uri}: {json}");
+        let listed = &doc["paths"][documented_as][method.to_lowercase()]["responses"][status.as_str()];
+        assert!(listed["content"]["application/json"].is_object(), "{method} {documented_as} does not list {status}");
+    }
+}
+
+/// No answer shows where the server keeps its files: the sets' folder and
+/// the store's paths are named, not shown (the fuzzer's `no_server_path`
+/// check found both in `GET /sets` and `GET /status`).
+#[tokio::test]
+async fn answers_name_the_servers_folders_instead_of_showing_them() {
+    let portal = portal().await;
+    let root = portal.store.root().parent().unwrap().display().to_string();
+    for uri in ["/api/v1/sets", "/api/v1/sets/1", "/api/v1/components", "/api/v1/audit"] {
+        let (status, json) = portal.call("admin", "GET", uri, "").await;
+        assert_eq!(status, StatusCode::OK, "{uri}: {json}");
+        let text = json.to_string();
+        assert!(!text.contains(&root), "{uri} shows {root}: {text}");
+        if uri == "/api/v1/sets" {
+            assert_eq!(json["sets"][0]["base_dir"], "<robot file folder>", "{json}");
+        }
+    }
 }
 
 /// A recording from a fresh start re-activates the active set and waits

@@ -3,7 +3,8 @@
 // left-to-right data flow with arrows, and the robot-file editor that
 // validates as you type and stages what validated, and recording from the
 // portal (start, stop, download), and a page opened after the robot ran a
-// while plotting the history the host kept at once. Each check reads real
+// while plotting the history the host kept at once, the log's line numbers
+// past 99, and the header's text while a lock is engaged. Each check reads real
 // content (values against /api/v1, pixels of the canvases); screenshots
 // go to $ARTIFACTS.
 // Usage: node views.mjs URL USER PASSWORD
@@ -191,6 +192,52 @@ try {
   check(await inked('plot-rates', 41, 9, 270, 150) > 80, 'the rates plot drew no history');
   check(await inked('plot-holder', 41, 9, 260, 150) > 200, 'the holder plot drew no history');
   await shot('views-8-history');
+
+  step('the log numbers lines past 99 in full, and the header reads while a lock is engaged');
+  // 150 lines as the log shows them (the host's own are fewer by now): the
+  // number of the last must fit in the room left of its line.
+  const numbers = await page.evaluate(() => {
+    const log = document.getElementById('log');
+    for (let i = log.children.length; i < 150; i += 1) {
+      const li = document.createElement('li');
+      li.textContent = `12:00:00 INFO filler line ${i + 1}`;
+      log.append(li);
+    }
+    const last = log.lastElementChild;
+    const probe = document.createElement('span');
+    probe.style.font = getComputedStyle(last).font;
+    probe.style.whiteSpace = 'pre';
+    probe.textContent = `${log.children.length}. `;
+    document.body.append(probe);
+    const needed = probe.getBoundingClientRect().width;
+    probe.remove();
+    return { count: log.children.length, needed, room: last.getBoundingClientRect().left - log.getBoundingClientRect().left };
+  });
+  check(numbers.room >= numbers.needed, `line ${numbers.count}'s number needs ${numbers.needed.toFixed(1)} px, has ${numbers.room.toFixed(1)}`);
+  // WCAG's contrast ratio of each header text against the header.
+  const contrasts = () => page.evaluate(() => {
+    const rgb = (c) => c.match(/[\d.]+/g).slice(0, 3).map(Number);
+    const luminance = (c) => {
+      const [r, g, b] = rgb(c).map((v) => { v /= 255; return v <= 0.03928 ? v / 12.92 : ((v + 0.055) / 1.055) ** 2.4; });
+      return 0.2126 * r + 0.7152 * g + 0.0722 * b;
+    };
+    const background = luminance(getComputedStyle(document.querySelector('header')).backgroundColor);
+    const texts = [...document.querySelectorAll('header h1, #tabs button, #whoami, #lock-banner')].filter((e) => e.textContent.trim());
+    return texts.map((e) => {
+      const [a, b] = [luminance(getComputedStyle(e).color), background].sort((x, y) => y - x);
+      return { text: e.textContent.trim().slice(0, 20), ratio: (a + 0.05) / (b + 0.05) };
+    });
+  });
+  const readable = (when, list) => {
+    const poor = list.filter((c) => c.ratio < 4.5);
+    check(list.length >= 6 && poor.length === 0, `${when}, header text below 4.5:1: ${JSON.stringify(poor)}`);
+  };
+  readable('unlocked', await contrasts());
+  await page.click('#estop');
+  await page.waitForSelector(`#lock-banner:has-text("estop by ${user} over portal")`);
+  readable('locked', await contrasts());
+  await shot('views-9-locked-log');
+  await page.evaluate(async () => { await fetch('/api/v1/release', { method: 'POST' }); });
   console.log(`ok: ${edges.length} edges, ${validations} validation(s) for a burst, staged set ${id}`);
 } catch (err) {
   await shot('views-failure').catch(() => {});

@@ -11,7 +11,10 @@ use std::sync::Arc;
 
 use super::registry;
 use crate::builtin::{self, BuildContext, BuiltinError, CheckContext, Params, Services, WasmTranslators};
-use crate::config::{ComponentConfig, ComponentSource, ParamProblem, ResolveError, Resolver, RobotConfig};
+use crate::config::{
+    BuiltinKind, ComponentConfig, ComponentSource, ParamProblem, ResolveError, Resolver, RobotConfig, RobotProblem,
+    RobotView,
+};
 use crate::contract::{Description, Param, clip};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::{Component, PriorityCell, Restarter};
@@ -114,12 +117,10 @@ impl<'a> Loader<'a> {
         let name = config.name.clone();
         match &config.source {
             ComponentSource::Builtin(kind) => {
-                let builtin = registry::find(kind)
-                    .ok_or_else(|| StartError::Unknown { name: name.clone(), why: unknown_builtin(kind) })?;
-                let given: BTreeMap<String, String> =
-                    config.params.iter().map(|p| (p.name.clone(), p.value.clone())).collect();
-                let params = builtin::check_values(builtin.params(), &given).map_err(|problems| {
-                    StartError::Unknown { name: name.clone(), why: ResolveError::Params(problems).to_string() }
+                let builtin = registry::builtin(*kind);
+                let params = builtin::checked_params(builtin, config).map_err(|problems| StartError::Unknown {
+                    name: name.clone(),
+                    why: ResolveError::Params(problems).to_string(),
                 })?;
                 let base_dir = around.robot.path.parent().unwrap_or(Path::new("")).to_path_buf();
                 let mut ctx = BuildContext {
@@ -132,6 +133,7 @@ impl<'a> Loader<'a> {
                     waker: around.waker,
                     services: around.services,
                     translators: self,
+                    registry: registry::builtin,
                 };
                 builtin.build(&params, &mut ctx).map_err(|source| StartError::Builtin { name, source })
             }
@@ -180,6 +182,14 @@ fn unknown_builtin(kind: &str) -> String {
 }
 
 impl Resolver for Loader<'_> {
+    fn builtin_kind(&self, kind: &str) -> Result<BuiltinKind, ResolveError> {
+        registry::kind(kind).ok_or_else(|| ResolveError::Source(unknown_builtin(kind)))
+    }
+
+    fn check_robot(&self, view: &RobotView<'_>) -> Vec<RobotProblem> {
+        check_robot(view)
+    }
+
     fn describe(
         &mut self,
         source: &ComponentSource,
@@ -188,7 +198,7 @@ impl Resolver for Loader<'_> {
     ) -> Result<Description, ResolveError> {
         match source {
             ComponentSource::Builtin(kind) => {
-                let builtin = registry::find(kind).ok_or_else(|| ResolveError::Source(unknown_builtin(kind)))?;
+                let builtin = registry::builtin(*kind);
                 let outside = self.confinement(builtin, params);
                 if !outside.is_empty() {
                     return Err(ResolveError::Params(outside));
@@ -210,14 +220,14 @@ impl WasmTranslators for Loader<'_> {
         self.load_translator(path)
     }
 
-    fn start(&mut self, artifact: &TranslatorArtifact, link: &ComponentConfig) -> Result<WasmTranslator, SandboxError> {
-        // The link's `options` reach the translator as parameters of their own.
+    fn start(
+        &mut self,
+        artifact: &TranslatorArtifact,
+        link: &ComponentConfig,
+        extra: Vec<Param>,
+    ) -> Result<WasmTranslator, SandboxError> {
         let mut params = link.params.clone();
-        if let Some(options) = link.params.iter().find(|p| p.name == "options") {
-            let pairs = crate::robot::builtin::translator_options(&options.value)
-                .map_err(|why| SandboxError::Call { call: "init()", reason: format!("options: {why}") })?;
-            params.extend(pairs.into_iter().map(|(name, value)| Param { name, value }));
-        }
+        params.extend(extra);
         self.sandbox.instantiate_translator(artifact, &link.name, &GuestLimits::of(link), &params)
     }
 }
@@ -226,7 +236,18 @@ impl WasmTranslators for Loader<'_> {
 /// is not a built-in.
 pub fn builtin_params(config: &ComponentConfig) -> Option<Params> {
     let ComponentSource::Builtin(kind) = &config.source else { return None };
-    let builtin = registry::find(kind)?;
-    let given: BTreeMap<String, String> = config.params.iter().map(|p| (p.name.clone(), p.value.clone())).collect();
-    builtin::check_values(builtin.params(), &given).ok()
+    builtin::checked_params(registry::builtin(*kind), config).ok()
+}
+
+/// Every built-in's robot-wide rules (`Builtin::check_robot`).
+pub fn check_robot(view: &RobotView<'_>) -> Vec<RobotProblem> {
+    let mut problems = Vec::new();
+    for (index, component) in view.robot.components.iter().enumerate() {
+        let ComponentSource::Builtin(kind) = &component.source else { continue };
+        let builtin = registry::builtin(*kind);
+        // Its own checks passed, so its parameters do.
+        let Ok(params) = builtin::checked_params(builtin, component) else { continue };
+        problems.extend(builtin.check_robot(index, &params, view, registry::builtin));
+    }
+    problems
 }

@@ -69,10 +69,11 @@ pub fn build(
         .collect();
     let mut built: Vec<Option<Box<dyn Component>>> = (0..config.components.len()).map(|_| None).collect();
     let mut errors = Vec::new();
-    let is_sim = |c: &ComponentConfig| c.source == ComponentSource::Builtin("sim".into());
+    let first =
+        |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if registry::builtin(*k).built_first());
     let order = (0..config.components.len())
-        .filter(|&i| is_sim(&config.components[i]))
-        .chain((0..config.components.len()).filter(|&i| !is_sim(&config.components[i])));
+        .filter(|&i| first(&config.components[i]))
+        .chain((0..config.components.len()).filter(|&i| !first(&config.components[i])));
     for index in order {
         if carry.priorities.contains_key(&index) {
             built[index] = Some(Box::new(Vacant));
@@ -172,7 +173,8 @@ pub fn instance_key(c: &ComponentConfig) -> String {
 /// (old index, new index) of the built-ins `new` takes over from `old`:
 /// the unchanged ones that own something outside the host.
 pub fn carry_plan(old: &RobotConfig, new: &RobotConfig) -> Vec<(usize, usize)> {
-    let carried_kind = |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if registry::find(k).is_some_and(|b| b.carried()));
+    let carried_kind =
+        |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if registry::builtin(*k).carried());
     let mut pairs: Vec<(usize, usize)> = new
         .components
         .iter()

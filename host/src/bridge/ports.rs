@@ -13,12 +13,12 @@ use super::link::{Inlet, Outlet};
 use super::session::{self, BridgeStats, SESSION_PARAMS, SessionSettings};
 use super::wire;
 use crate::builtin::{
-    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
-    PreflightForm, check_values, port,
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
+    PreflightForm, Registry, check_values, port,
 };
-use crate::config::{ComponentSource, ParamProblem};
+use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::{CallError, Component, Outbox, StatusSection};
 
 /// The kinds a subscriber may declare.
 pub const KINDS: &[&str] = &["flag", "scalar", "vector", "text", "command", "bytes", "scan"];
@@ -42,12 +42,53 @@ fn check_key(key: &str, publish: bool) -> Result<(), String> {
     Ok(())
 }
 
+/// The session a bridge uses when its robot file names none.
+pub const DEFAULT_SESSION: &str = "zenoh";
+
+/// A bridge's robot-wide rule: the session it names is a `builtin:zenoh`
+/// component of this robot (one that failed its own checks was reported
+/// already).
+pub fn check_session(
+    bridge: &dyn Builtin,
+    me: usize,
+    params: &Params,
+    view: &RobotView<'_>,
+    registry: Registry,
+) -> Vec<RobotProblem> {
+    let robot = view.robot;
+    let Some(component) = robot.components.get(me) else { return Vec::new() };
+    let session = params.text(SESSION_PARAM.name).unwrap_or_default();
+    if view.failed(session) {
+        return Vec::new();
+    }
+    let why = match robot.components.iter().position(|c| c.name == session) {
+        Some(index) => match builtin::builtin_of(robot, index, registry) {
+            Some(b) if b.kind() == ZenohSession.kind() => return Vec::new(),
+            _ => format!("'{}' comes from {}, not builtin:zenoh", clip(session), robot.components[index].source),
+        },
+        None => format!(
+            "this robot has no component '{}' (add <component name=\"{}\" source=\"builtin:zenoh\"/>)",
+            clip(session),
+            clip(session)
+        ),
+    };
+    vec![RobotProblem {
+        offset: component.offset,
+        message: format!(
+            "builtin:{} '{}' names zenoh session '{}', but {why}",
+            bridge.kind(),
+            component.name,
+            clip(session)
+        ),
+    }]
+}
+
 /// The parameter naming the session component, which every Zenoh and
 /// ROS 2 built-in declares.
 pub const SESSION_PARAM: ParamDecl = ParamDecl {
     name: "session",
     ty: ParamType::Required,
-    default: crate::config::validate::DEFAULT_ZENOH_SESSION,
+    default: DEFAULT_SESSION,
     unit: "",
     doc: "the builtin:zenoh component (in this robot file) whose session this uses",
 };
@@ -59,7 +100,12 @@ pub fn session_for(params: &Params, ctx: &BuildContext<'_>) -> Result<Arc<sessio
         .robot
         .components
         .iter()
-        .find(|c| c.name == name && c.source == ComponentSource::Builtin(ZenohSession.kind().into()))
+        .enumerate()
+        .find(|(i, c)| {
+            c.name == name
+                && builtin::builtin_of(ctx.robot, *i, ctx.registry).is_some_and(|b| b.kind() == ZenohSession.kind())
+        })
+        .map(|(_, c)| c)
         .ok_or_else(|| {
             BuiltinError::Refused(format!("session '{}' is not a builtin:zenoh component of this robot", clip(name)))
         })?;
@@ -123,16 +169,13 @@ struct SessionComponent {
 }
 
 impl Component for SessionComponent {
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some((
-            "zenoh-session",
-            serde_json::json!({
-                "session": self.shared.id,
-                "peers": self.shared.peers(),
-                "connect": self.settings.connect,
-                "listen": self.settings.listen,
-            }),
-        ))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(session::SessionStatus {
+            session: self.shared.id.clone(),
+            peers: self.shared.peers(),
+            connect: self.settings.connect.clone(),
+            listen: self.settings.listen.clone(),
+        }))
     }
 }
 
@@ -180,6 +223,10 @@ impl Builtin for ZenohPublish {
         "zenoh-publish"
     }
 
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        check_session(self, me, params, view, registry)
+    }
+
     fn summary(&self) -> &'static str {
         "Puts every value on its input on a Zenoh key expression"
     }
@@ -223,8 +270,8 @@ impl Component for Publisher {
         Ok(())
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("zenoh", self.outlet.stats.status(&self.key, &self.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.outlet.stats.status("zenoh", &self.key, &self.shared)))
     }
 }
 
@@ -234,6 +281,10 @@ pub struct ZenohSubscribe;
 impl Builtin for ZenohSubscribe {
     fn kind(&self) -> &'static str {
         "zenoh-subscribe"
+    }
+
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        check_session(self, me, params, view, registry)
     }
 
     fn summary(&self) -> &'static str {
@@ -281,8 +332,8 @@ impl Component for Subscriber {
         }
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("zenoh", self.inlet.stats.status(&self.key, &self.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.inlet.stats.status("zenoh", &self.key, &self.shared)))
     }
 }
 
@@ -299,17 +350,5 @@ mod tests {
         assert!(check_key("/ranges", false).is_err());
         assert!(check_key("@ros2_lv/x", false).is_err());
         assert!(check_key("a/b?c", false).is_err());
-    }
-
-    /// The config layer checks each bridge's session by kind: every
-    /// built-in with a `session` parameter is on its list.
-    #[test]
-    fn every_bridge_with_a_session_is_checked_by_the_config_layer() {
-        use super::super::ros2_ports::{Ros2Publish, Ros2Subscribe};
-        let bridges: [&dyn Builtin; 4] = [&ZenohPublish, &ZenohSubscribe, &Ros2Publish, &Ros2Subscribe];
-        for bridge in bridges {
-            assert!(bridge.params().iter().any(|p| p.name == SESSION_PARAM.name), "{}", bridge.kind());
-            assert!(crate::config::validate::ZENOH_BRIDGES.contains(&bridge.kind()), "{}", bridge.kind());
-        }
     }
 }

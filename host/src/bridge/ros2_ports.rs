@@ -22,15 +22,17 @@ use std::time::Duration;
 
 use super::cdr::{self, Header, LaserScan, Log, Odometry, Time, Twist};
 use super::link::{Gate, Inlet, Outlet, Stamp};
-use super::ports::{SESSION_PARAM, session_for};
+use super::ports::{SESSION_PARAM, check_session, session_for};
 use super::ros2::{self, Attachment, Distro, EntityKind, MessageType};
 use super::session::{BridgeStats, Shared, unix_ns};
-use crate::builtin::{BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, port};
-use crate::config::ParamProblem;
+use crate::builtin::{
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, port,
+};
+use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::halt::{self, Halt};
-use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
+use crate::runtime::{CallError, Component, MotorStop, Outbox, StatusSection, StopOutcome};
 use zenoh::Wait;
 
 /// Highest ROS 2 domain id (ROS 2's own limit for UDP ports is 232).
@@ -174,6 +176,10 @@ pub struct Ros2Publish;
 impl Builtin for Ros2Publish {
     fn kind(&self) -> &'static str {
         "ros2-publish"
+    }
+
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        check_session(self, me, params, view, registry)
     }
 
     fn summary(&self) -> &'static str {
@@ -405,8 +411,8 @@ impl Component for Ros2Publisher {
         self.outlet.finish(last);
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("ros2", self.outlet.stats.status(&self.entity.key, &self.entity.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.outlet.stats.status("ros2", &self.entity.key, &self.entity.shared)))
     }
 }
 
@@ -423,6 +429,10 @@ pub struct Ros2Subscribe;
 impl Builtin for Ros2Subscribe {
     fn kind(&self) -> &'static str {
         "ros2-subscribe"
+    }
+
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        check_session(self, me, params, view, registry)
     }
 
     fn summary(&self) -> &'static str {
@@ -507,8 +517,8 @@ impl Component for Ros2Subscriber {
         }
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        Some(("ros2", self.inlet.stats.status(&self.entity.key, &self.entity.shared)))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.inlet.stats.status("ros2", &self.entity.key, &self.entity.shared)))
     }
 }
 

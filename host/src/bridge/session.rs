@@ -27,6 +27,8 @@ use zenoh::Wait;
 use crate::builtin::{BuiltinError, ParamDecl, ParamType, Params};
 use crate::config::ParamProblem;
 use crate::contract::clip;
+use crate::runtime::status::json_of;
+use crate::runtime::{NamedSection, StatusSection};
 
 /// Most endpoints one setting may list: each is a connection attempt.
 pub const MAX_ENDPOINTS: usize = 16;
@@ -301,22 +303,65 @@ impl BridgeStats {
         }
     }
 
-    /// The status section: key, peers, counters, last seen.
-    pub fn status(&self, key: &str, shared: &Shared) -> serde_json::Value {
+    /// The status section of a bridge on `key`: `section` is `zenoh` or
+    /// `ros2`.
+    pub fn status(&self, section: &'static str, key: &str, shared: &Shared) -> BridgeStatus {
         let last = self.last_seen_ns.load(Ordering::Relaxed);
         let age = (last > 0).then(|| unix_ns().saturating_sub(last) as f64 / 1e9);
-        serde_json::json!({
-            "key": key,
-            "session": shared.id,
-            "peers": shared.peers(),
-            "in": self.messages_in.load(Ordering::Relaxed),
-            "out": self.messages_out.load(Ordering::Relaxed),
-            "malformed": self.malformed.load(Ordering::Relaxed),
-            "dropped": self.dropped.load(Ordering::Relaxed),
-            "last_seen_s_ago": age,
-            "last_error": self.last_error.lock().ok().and_then(|e| e.clone()),
-        })
+        BridgeStatus {
+            section,
+            key: key.to_string(),
+            session: shared.id.clone(),
+            peers: shared.peers(),
+            messages_in: self.messages_in.load(Ordering::Relaxed),
+            messages_out: self.messages_out.load(Ordering::Relaxed),
+            malformed: self.malformed.load(Ordering::Relaxed),
+            dropped: self.dropped.load(Ordering::Relaxed),
+            last_seen_s_ago: age,
+            last_error: self.last_error.lock().ok().and_then(|e| e.clone()),
+        }
     }
+}
+
+/// A Zenoh or ROS 2 bridge's section of the report and the live status.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct BridgeStatus {
+    #[serde(skip)]
+    pub section: &'static str,
+    pub key: String,
+    pub session: String,
+    pub peers: usize,
+    #[serde(rename = "in")]
+    pub messages_in: u64,
+    #[serde(rename = "out")]
+    pub messages_out: u64,
+    pub malformed: u64,
+    pub dropped: u64,
+    pub last_seen_s_ago: Option<f64>,
+    pub last_error: Option<String>,
+}
+
+impl StatusSection for BridgeStatus {
+    fn section(&self) -> &'static str {
+        self.section
+    }
+
+    fn to_json(&self) -> serde_json::Value {
+        json_of(self)
+    }
+}
+
+/// A `builtin:zenoh` session's section of the report and the live status.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct SessionStatus {
+    pub session: String,
+    pub peers: usize,
+    pub connect: Vec<String>,
+    pub listen: Vec<String>,
+}
+
+impl NamedSection for SessionStatus {
+    const SECTION: &'static str = "zenoh-session";
 }
 
 #[cfg(test)]

@@ -25,7 +25,9 @@ use std::sync::Arc;
 use thiserror::Error;
 
 pub use self::params::{Bound, ParamDecl, ParamType, Params, check_values, number_in, positive_up_to};
-use crate::config::{ComponentConfig, ParamProblem, RobotConfig};
+use crate::config::{
+    BuiltinKind, ComponentConfig, ComponentSource, ParamProblem, RobotConfig, RobotProblem, RobotView,
+};
 use crate::contract::{Description, PortSpec, ValueKind};
 use crate::runtime::Component;
 use crate::runtime::control_loop::{Clock, Waker};
@@ -82,6 +84,31 @@ pub trait Builtin: Sync {
     fn carried(&self) -> bool {
         false
     }
+    /// Whether it is built before the others, because it owns something
+    /// they open (the simulated robot's pseudo-terminal).
+    fn built_first(&self) -> bool {
+        false
+    }
+    /// Whether its motion commands come from a person (a remote operator):
+    /// such a source wins ties in an arbiter.
+    fn answers_to_a_person(&self) -> bool {
+        false
+    }
+    /// Whether it arbitrates between motion sources (its inputs are
+    /// sources with priorities).
+    fn arbitrates(&self) -> bool {
+        false
+    }
+    /// Whether it guards the motors: the one kind that may feed a serial
+    /// link's commands.
+    fn guards_motors(&self) -> bool {
+        false
+    }
+    /// The parameter naming a world file an upload may replace (the
+    /// simulated robot's `world`).
+    fn world_param(&self) -> Option<&'static str> {
+        None
+    }
     /// Checks between parameters and of the files they name, after each
     /// value passed its declaration. Every problem names its parameter.
     fn check(&self, params: &Params, ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
@@ -96,6 +123,14 @@ pub trait Builtin: Sync {
     fn preflight(&self, params: &Params, ctx: &PreflightContext<'_>) -> Result<PreflightForm, NotSimulable> {
         let _ = (params, ctx);
         Ok(PreflightForm::default())
+    }
+    /// Rules about the robot around component `me` (this built-in, with its
+    /// checked `params`): what feeds it, what it feeds, which components it
+    /// names. Asked once every component and connection is known; each
+    /// problem points into the robot file.
+    fn check_robot(&self, me: usize, params: &Params, robot: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        let _ = (me, params, robot, registry);
+        Vec::new()
     }
     /// Inputs and outputs; they may depend on parameters (`publish`'s kind).
     fn ports(&self, params: &Params) -> Ports;
@@ -132,6 +167,26 @@ pub struct PreflightForm {
     /// (parameter, contents).
     pub files: Vec<(&'static str, Vec<u8>)>,
     pub simulated_by: Option<Vec<(&'static str, String)>>,
+}
+
+/// The registry's answer to "which built-in is this kind"
+/// (`assemble::registry::builtin`): a built-in asks it what another
+/// component is, without naming the other's kind.
+pub type Registry = fn(BuiltinKind) -> &'static dyn Builtin;
+
+/// The built-in component `index` of `robot` is, or `None` for a WASM
+/// component (or no such component).
+pub fn builtin_of(robot: &RobotConfig, index: usize, registry: Registry) -> Option<&'static dyn Builtin> {
+    match robot.components.get(index).map(|c| &c.source) {
+        Some(ComponentSource::Builtin(kind)) => Some(registry(*kind)),
+        _ => None,
+    }
+}
+
+/// The checked parameters of component `config`, a `builtin`.
+pub fn checked_params(builtin: &dyn Builtin, config: &ComponentConfig) -> Result<Params, Vec<ParamProblem>> {
+    let given: BTreeMap<String, String> = config.params.iter().map(|p| (p.name.clone(), p.value.clone())).collect();
+    check_values(builtin.params(), &given)
 }
 
 /// A built-in's inputs and outputs.
@@ -183,8 +238,13 @@ pub trait WasmTranslators {
     /// Reads, compiles and links the translator component at `path`.
     fn load(&mut self, path: &Path) -> Result<Arc<TranslatorArtifact>, LoadError>;
     /// A running translator of `artifact` for serial link `link`, under the
-    /// link's limits, initialised with its parameters.
-    fn start(&mut self, artifact: &TranslatorArtifact, link: &ComponentConfig) -> Result<WasmTranslator, SandboxError>;
+    /// link's limits, initialised with its parameters and `extra` ones.
+    fn start(
+        &mut self,
+        artifact: &TranslatorArtifact,
+        link: &ComponentConfig,
+        extra: Vec<crate::contract::Param>,
+    ) -> Result<WasmTranslator, SandboxError>;
 }
 
 /// What a built-in's check may use.
@@ -212,6 +272,7 @@ pub struct BuildContext<'a> {
     pub waker: Waker,
     pub services: &'a Services,
     pub translators: &'a mut dyn WasmTranslators,
+    pub registry: Registry,
 }
 
 impl BuildContext<'_> {

@@ -106,6 +106,25 @@ impl ParamDecl {
         }
     }
 
+    /// Whether the robot file must give a value: the default fails the
+    /// parameter's own check (an empty default of a required type).
+    pub fn is_required(&self) -> bool {
+        self.check(self.default).is_err()
+    }
+
+    /// The default as a person reads it: `required`, `default: none` (an
+    /// empty default that is allowed, such as no geofence) or
+    /// `default 'VALUE'`.
+    pub fn default_in_words(&self) -> String {
+        if self.is_required() {
+            "required".into()
+        } else if self.default.is_empty() {
+            "default: none".into()
+        } else {
+            format!("default '{}'", self.default)
+        }
+    }
+
     /// The parameter as a description lists it.
     pub fn spec(&self) -> ParamSpec {
         ParamSpec {
@@ -186,8 +205,7 @@ pub fn check_values(decls: &[ParamDecl], given: &BTreeMap<String, String>) -> Re
                 text.clone()
             }
             None => {
-                // A default that fails its own check marks a required parameter.
-                if decl.check(decl.default).is_err() {
+                if decl.is_required() {
                     problems.push(ParamProblem::new(decl.name, format!("is required ({})", decl.doc)));
                 }
                 decl.default.to_string()

@@ -17,7 +17,7 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 pub use diagnostic::{Diagnostic, Diagnostics, SourceMap};
-pub use validate::{ParamProblem, ResolveError, Resolver, parse_duration, parse_size};
+pub use validate::{ParamProblem, ResolveError, Resolver, RobotProblem, RobotView, parse_duration, parse_size};
 
 use crate::contract::{Description, Param};
 pub use crate::runtime::wiring::{Policy, RestartPolicy};
@@ -53,11 +53,46 @@ impl Platform {
     }
 }
 
+/// The kind of a built-in (`KIND` of `builtin:KIND`). Only the registry
+/// (`assemble::registry`) makes one, so a kind always names a built-in that
+/// exists, and questions about it are asked of the registry's built-in, not
+/// of its name (the architecture test checks both).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub struct BuiltinKind {
+    /// The built-in's place in the registry's list.
+    index: usize,
+    name: &'static str,
+}
+
+impl BuiltinKind {
+    /// The registry's kind number `index`, named `name`. For the registry
+    /// alone.
+    #[doc(hidden)]
+    pub const fn registered(index: usize, name: &'static str) -> BuiltinKind {
+        BuiltinKind { index, name }
+    }
+
+    /// Its place in the registry's list.
+    pub fn index(self) -> usize {
+        self.index
+    }
+
+    pub fn name(self) -> &'static str {
+        self.name
+    }
+}
+
+impl std::fmt::Display for BuiltinKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name)
+    }
+}
+
 /// Where a component's code comes from.
 #[derive(Clone, Debug, PartialEq, Eq, Hash)]
 pub enum ComponentSource {
     /// A native component compiled into the host (`builtin:log`).
-    Builtin(String),
+    Builtin(BuiltinKind),
     /// A WASM component file; relative paths are resolved against the
     /// directory of the robot file.
     Wasm(PathBuf),
@@ -81,6 +116,25 @@ pub struct RobotConfig {
     pub path: PathBuf,
     pub components: Vec<ComponentConfig>,
     pub connections: Vec<ConnectionConfig>,
+}
+
+impl RobotConfig {
+    /// `COMPONENT.PORT` of an output, as the robot file writes it.
+    pub fn output_name(&self, port: PortRef) -> String {
+        self.port_name(port, true)
+    }
+
+    /// `COMPONENT.PORT` of an input, as the robot file writes it.
+    pub fn input_name(&self, port: PortRef) -> String {
+        self.port_name(port, false)
+    }
+
+    fn port_name(&self, port: PortRef, output: bool) -> String {
+        self.components.get(port.component).map_or_else(String::new, |c| {
+            let ports = if output { &c.description.outputs } else { &c.description.inputs };
+            format!("{}.{}", c.name, ports.get(port.port as usize).map_or("?", |p| p.name.as_str()))
+        })
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -121,6 +175,9 @@ pub struct PortRef {
 
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ConnectionConfig {
+    /// Byte offset of the `<connect>`'s `from` attribute in the robot file
+    /// (where a robot-wide rule about the connection points).
+    pub offset: usize,
     /// An output port.
     pub from: PortRef,
     /// An input port.

@@ -10,13 +10,18 @@ use std::time::Duration;
 
 use super::diagnostic::{Diagnostic, SourceMap};
 use super::raw::{RawComponent, RawConnect, RawRobot, Spanned};
-use super::{ComponentConfig, ComponentSource, ConnectionConfig, Platform, Policy, PortRef, RobotConfig, limits};
+use super::{
+    BuiltinKind, ComponentConfig, ComponentSource, ConnectionConfig, Platform, Policy, PortRef, RobotConfig, limits,
+};
 use crate::contract::{Description, Param, ValueKind, clip, is_valid_name};
 
 /// Finds what a component's source declares. The assembler's loader
 /// compiles WASM files (and keeps them for running) and checks built-ins'
 /// parameters against their declarations; tests may describe from tables.
 pub trait Resolver {
+    /// The built-in `builtin:KIND` names (reported at the `source` attribute
+    /// when there is none).
+    fn builtin_kind(&self, kind: &str) -> Result<BuiltinKind, ResolveError>;
     /// The description of the component at `source`. Built-ins check their
     /// XML `params` and may shape their ports from them. `base_dir` is the
     /// robot file's folder (for relative paths in params).
@@ -26,6 +31,44 @@ pub trait Resolver {
         params: &BTreeMap<String, String>,
         base_dir: &Path,
     ) -> Result<Description, ResolveError>;
+    /// Each built-in's rules about the robot around it (what feeds it, what
+    /// it feeds, which other components it names), asked once every
+    /// component and connection is known.
+    fn check_robot(&self, robot: &RobotView<'_>) -> Vec<RobotProblem>;
+}
+
+/// The robot as the robot-wide rules see it: the components that passed
+/// their own checks and the connections between them.
+pub struct RobotView<'a> {
+    pub robot: &'a RobotConfig,
+    /// Components that lost a connection because its other end failed its
+    /// own checks (by index): a rule about their wiring would only repeat
+    /// that error, so it skips them.
+    pub lost_wiring: &'a [bool],
+    /// Components the file names that failed their own checks.
+    pub failed: &'a [String],
+}
+
+impl RobotView<'_> {
+    /// Whether component `index`'s wiring is all there to check.
+    pub fn wiring_known(&self, index: usize) -> bool {
+        !self.lost_wiring.get(index).copied().unwrap_or(false)
+    }
+
+    /// Whether the file names a component `name` that failed its own checks
+    /// (a rule about it would only repeat that error).
+    pub fn failed(&self, name: &str) -> bool {
+        self.failed.iter().any(|f| f == name)
+    }
+}
+
+/// A robot-wide rule broken, at a place in the robot file.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct RobotProblem {
+    /// Byte offset of what it is about (a component, a connection).
+    pub offset: usize,
+    /// Lowercase, complete.
+    pub message: String,
 }
 
 /// Why a component's source gave no description.
@@ -141,6 +184,7 @@ pub(super) fn validate(
     }
 
     let mut seen_connections: HashMap<(PortRef, PortRef), usize> = HashMap::new();
+    let raw_connects = connects.clone();
     for (platform, connect) in connects {
         let from = endpoint(map, &connect.from, "from", &known, &robot.components, errors);
         let to = endpoint(map, &connect.to, "to", &known, &robot.components, errors);
@@ -176,126 +220,24 @@ pub(super) fn validate(
             ));
             continue;
         }
-        let source = &robot.components[from.component];
-        // Motion sources (the arbiter's `commands`) need a priority; its
-        // `lock` input (emergency stops) does not.
-        let feeds_arbiter = robot.components[to.component].source == ComponentSource::Builtin("arbiter".into())
-            && robot.components[to.component]
-                .description
-                .inputs
-                .get(to.port as usize)
-                .is_some_and(|p| p.name == "commands");
-        if feeds_arbiter && source.priority.is_none() {
-            errors.push(map.at(
-                connect.from.offset,
-                format!(
-                    "'{}' feeds the arbiter, but component '{}' has no priority (set priority=\"N\" on it)",
-                    connect.from.value, source.name
-                ),
-            ));
-            continue;
-        }
-        let target = &robot.components[to.component];
-        let into_motors = target.source == ComponentSource::Builtin("serial".into())
-            && target.description.inputs.get(to.port as usize).is_some_and(|p| p.name == "cmd");
-        if into_motors && source.source != ComponentSource::Builtin("envelope".into()) {
-            errors.push(map.at(
-                connect.from.offset,
-                format!(
-                    "'{}' feeds serial link '{}' directly: motion commands must pass a builtin:envelope \
-                     (connect '{}' to an envelope's 'cmd' input and the envelope's 'cmd' to '{}')",
-                    connect.from.value, target.name, connect.from.value, connect.to.value
-                ),
-            ));
-            continue;
-        }
-        robot.connections.push(ConnectionConfig { from, to, policy, platform });
+        robot.connections.push(ConnectionConfig { offset: connect.from.offset, from, to, policy, platform });
     }
-    for (index, component) in robot.components.iter().enumerate() {
-        if component.source != ComponentSource::Builtin("envelope".into()) {
-            continue;
-        }
-        let fenced = component.params.iter().any(|p| p.name == "geofence" && !p.value.trim().is_empty());
-        let pose = component.description.inputs.iter().position(|p| p.name == "pose");
-        let wired = robot.connections.iter().any(|c| c.to.component == index && Some(c.to.port as usize) == pose);
-        let cap =
-            component.params.iter().find(|p| p.name == "max-priority").and_then(|p| p.value.trim().parse::<i32>().ok());
-        if let Some(cap) = cap {
-            for source in robot.components.iter().enumerate().filter(|(i, c)| {
-                matches!(c.source, ComponentSource::Wasm(_))
-                    && c.priority.is_some_and(|p| p > cap)
-                    && robot.connections.iter().any(|k| {
-                        k.from.component == *i
-                            && robot.components[k.to.component].source == ComponentSource::Builtin("arbiter".into())
-                    })
-            }) {
-                let (_, source) = source;
-                errors.push(map.at(
-                    source.offset,
-                    format!(
-                        "component '{}' claims priority {}, but envelope '{}' allows WASM motion sources at most {cap}",
-                        source.name,
-                        source.priority.unwrap_or_default(),
-                        component.name
-                    ),
-                ));
-            }
-        }
-        if fenced && !wired {
-            errors.push(map.at(
-                component.offset,
-                format!(
-                    "envelope '{}' has a geofence but no pose: connect the odometry to '{}.pose'",
-                    component.name, component.name
-                ),
-            ));
+    // Robot-wide rules, each the built-in's own (through the resolver).
+    let mut lost_wiring = vec![false; robot.components.len()];
+    for (_, connect) in &raw_connects {
+        let index_of = |text: &Spanned<String>| text.value.split_once('.').and_then(|(c, _)| known.get(c).copied());
+        if let (Some((_, Some(i))), Some((_, None))) | (Some((_, None)), Some((_, Some(i)))) =
+            (index_of(&connect.from), index_of(&connect.to))
+        {
+            lost_wiring[i] = true;
         }
     }
-    zenoh_sessions(map, &robot, &known, errors);
+    let failed: Vec<String> = known.iter().filter(|(_, (_, index))| index.is_none()).map(|(n, _)| n.clone()).collect();
+    let view = RobotView { robot: &robot, lost_wiring: &lost_wiring, failed: &failed };
+    for problem in resolver.check_robot(&view) {
+        errors.push(map.at(problem.offset, problem.message));
+    }
     robot
-}
-
-/// The built-ins that name a Zenoh session with their `session` parameter
-/// (a unit test in `bridge::ports` keeps the list whole).
-pub const ZENOH_BRIDGES: [&str; 4] = ["zenoh-publish", "zenoh-subscribe", "ros2-publish", "ros2-subscribe"];
-
-/// The session a Zenoh bridge uses when its file names none (the
-/// `session` parameter's default in `bridge::ports`).
-pub const DEFAULT_ZENOH_SESSION: &str = "zenoh";
-
-/// Each Zenoh or ROS 2 bridge names a `builtin:zenoh` component of this
-/// robot as its session. A session that failed to load was reported
-/// already.
-fn zenoh_sessions(
-    map: &SourceMap<'_>,
-    robot: &RobotConfig,
-    known: &HashMap<String, (usize, Option<usize>)>,
-    errors: &mut Vec<Diagnostic>,
-) {
-    for component in &robot.components {
-        let ComponentSource::Builtin(kind) = &component.source else { continue };
-        if !ZENOH_BRIDGES.contains(&kind.as_str()) {
-            continue;
-        }
-        let session =
-            component.params.iter().find(|p| p.name == "session").map_or(DEFAULT_ZENOH_SESSION, |p| p.value.as_str());
-        let why = match known.get(session) {
-            Some((_, None)) => continue,
-            Some((_, Some(index))) => match &robot.components[*index].source {
-                ComponentSource::Builtin(k) if k == "zenoh" => continue,
-                other => format!("'{}' comes from {other}, not builtin:zenoh", clip(session)),
-            },
-            None => format!(
-                "this robot has no component '{}' (add <component name=\"{}\" source=\"builtin:zenoh\"/>)",
-                clip(session),
-                clip(session)
-            ),
-        };
-        errors.push(map.at(
-            component.offset,
-            format!("builtin:{kind} '{}' names zenoh session '{}', but {why}", component.name, clip(session)),
-        ));
-    }
 }
 
 fn component_config(
@@ -308,7 +250,7 @@ fn component_config(
 ) -> Option<ComponentConfig> {
     let name = raw.name.value.clone();
     let errors_before = errors.len();
-    let source = source(map, base_dir, &raw.source, errors);
+    let source = source(map, base_dir, &raw.source, &name, &*resolver, errors);
     let priority = raw.priority.as_ref().and_then(|p| {
         let value = p.value.trim().parse::<i32>().ok().filter(|v| limits::PRIORITY_RANGE.contains(v));
         if value.is_none() {
@@ -569,11 +511,19 @@ fn source(
     map: &SourceMap<'_>,
     base_dir: &Path,
     source: &Spanned<String>,
+    component: &str,
+    resolver: &dyn Resolver,
     errors: &mut Vec<Diagnostic>,
 ) -> Option<ComponentSource> {
     let text = source.value.trim();
     if let Some(kind) = text.strip_prefix("builtin:") {
-        return Some(ComponentSource::Builtin(kind.to_string()));
+        return match resolver.builtin_kind(kind) {
+            Ok(kind) => Some(ComponentSource::Builtin(kind)),
+            Err(why) => {
+                errors.push(map.at(source.offset, format!("component '{component}': {why}")));
+                None
+            }
+        };
     }
     if text.is_empty() || !text.ends_with(".wasm") {
         errors.push(map.at(

@@ -80,45 +80,53 @@ impl Deployer {
         let prepared = preempted.and_then(|preempted| {
             id.and_then(|id| self.prepare_switch(user, id, &active)).map(|ready| (ready, preempted))
         });
-        self.commit(
-            &user.name,
-            action,
-            &target,
-            prepared,
-            |writer, (ready, preempted): (Ready, Option<String>)| {
-                let id = ready.set.id;
-                // Under the lock: the set is still stored and, for a
-                // rollback, still the previous one; only then does it run.
-                writer.set(id)?;
-                if rollback && writer.state()?.history.last() != Some(&id) {
-                    return Err(DeployError::Conflict(format!("set {id} is no longer the previous active set")));
-                }
-                let (set, envelope) = (ready.set.clone(), ready.envelope.clone());
-                self.swap_in(ready, &mut active)?;
-                let recorded = if rollback { writer.mark_rolled_back(id) } else { writer.mark_active(id) };
-                if let Err(e) = recorded {
-                    tracing::error!("set {id} runs, but the store could not record it: {e}");
-                }
-                tracing::info!(
-                    "set {id} ({}) is active; {} by {}",
-                    set.config_name,
-                    if rollback { "rolled back" } else { "activated" },
-                    user.name
-                );
-                Ok((set, envelope, preempted))
-            },
-            |(set, envelope, preempted)| {
-                let mut done = format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id);
-                if let Some(change) = envelope {
-                    done = format!("{done}; it {change}");
-                }
-                if let Some(preempted) = preempted {
-                    done = format!("{done}; {preempted}");
-                }
-                done
-            },
-        )
-        .map(|(set, _, preempted)| (set, preempted.filter(|p| !p.is_empty())))
+        let switched = self
+            .commit(
+                &user.name,
+                action,
+                &target,
+                prepared,
+                |writer, (ready, preempted): (Ready, Option<String>)| {
+                    let id = ready.set.id;
+                    // Under the lock: the set is still stored and, for a
+                    // rollback, still the previous one; only then does it run.
+                    writer.set(id)?;
+                    if rollback && writer.state()?.history.last() != Some(&id) {
+                        return Err(DeployError::Conflict(format!("set {id} is no longer the previous active set")));
+                    }
+                    // The new state is on disk before the swap (a full disk
+                    // refuses the activation here, with nothing changed), and
+                    // in place after it.
+                    let pending = writer.prepare_switch(id, rollback)?;
+                    let (set, envelope) = (ready.set.clone(), ready.envelope.clone());
+                    self.swap_in(ready, &mut active)?;
+                    if let Err(e) = pending.commit() {
+                        tracing::error!("set {id} runs, but the store could not record it: {e}");
+                    }
+                    tracing::info!(
+                        "set {id} ({}) is active; {} by {}",
+                        set.config_name,
+                        if rollback { "rolled back" } else { "activated" },
+                        user.name
+                    );
+                    Ok((set, envelope, preempted))
+                },
+                |(set, envelope, preempted)| {
+                    let mut done = format!("{} set {}", if rollback { "rolled back to" } else { "activated" }, set.id);
+                    if let Some(change) = envelope {
+                        done = format!("{done}; it {change}");
+                    }
+                    if let Some(preempted) = preempted {
+                        done = format!("{done}; {preempted}");
+                    }
+                    done
+                },
+            )
+            .map(|(set, _, preempted)| (set, preempted.filter(|p| !p.is_empty())));
+        drop(active);
+        // The old graph (or the one that did not start) is gone by now.
+        super::give_back_freed_memory();
+        switched
     }
 
     /// Hands the built graph to the control thread, which swaps it in at

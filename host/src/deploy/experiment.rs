@@ -138,6 +138,12 @@ pub struct Ended {
     pub recording: Option<Stopped>,
 }
 
+/// The simulated robots of `config`.
+fn simulated_robots(config: &RobotConfig) -> impl Iterator<Item = &crate::config::ComponentConfig> {
+    let sim = crate::assemble::registry::kind_of(&crate::sim::builtin::SimBuiltin);
+    config.components.iter().filter(move |c| matches!(c.source, ComponentSource::Builtin(k) if Some(k) == sim))
+}
+
 fn lab_user() -> User {
     User { name: LAB_USER.into(), role: Role::Admin, platforms: Vec::new(), hash: String::new() }
 }
@@ -309,10 +315,8 @@ impl Deployer {
     /// world's start, at rest, time 0.
     fn reset_simulated_robots(&self, config: &RobotConfig) {
         let Some(registry) = self.services.get::<crate::sim::SimRegistry>() else { return };
-        for component in &config.components {
-            if component.source == ComponentSource::Builtin("sim".into())
-                && let Some(control) = registry.get(&component.name)
-            {
+        for component in simulated_robots(config) {
+            if let Some(control) = registry.get(&component.name) {
                 control.reset();
             }
         }
@@ -322,7 +326,7 @@ impl Deployer {
     /// policy needs one).
     pub fn has_simulated_robot(&self) -> Result<bool, DeployError> {
         let (_, config) = self.active()?;
-        Ok(config.components.iter().any(|c| c.source == ComponentSource::Builtin("sim".into())))
+        Ok(simulated_robots(&config).next().is_some())
     }
 
     /// Ends the running experiment: its recording stops, the baseline (set
@@ -363,7 +367,7 @@ impl Deployer {
                     None => None,
                 };
                 let (sender, receiver) = std::sync::mpsc::sync_channel(1);
-                self.swap_in_reporting(ready, &mut active, Some((stopped_by.to_string(), ran_ns, sender)), None)?;
+                self.swap_in_reporting(ready, &mut active, Some((ran_ns, sender)), None)?;
                 self.experiments.set(None);
                 if writer.state()?.active != Some(baseline) {
                     writer.mark_active(baseline)?;

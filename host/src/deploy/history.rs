@@ -16,7 +16,9 @@ use std::sync::{Arc, Mutex};
 
 use serde::Serialize;
 
+use crate::arbiter::ArbiterStatus;
 use crate::report::LiveStatus;
+use crate::teleop::TeleopStatus;
 
 /// Graph time between two samples. The plots need no finer grain, and
 /// each sample costs the control thread one live status.
@@ -65,20 +67,17 @@ impl Observation {
     pub fn of(status: &LiveStatus, t_ns: u64) -> Observation {
         let sections = &status.report.sections;
         let rtt_ms = sections
-            .get("network")
-            .and_then(|n| n["sessions"].as_array())
-            .into_iter()
-            .flatten()
-            .filter(|s| s["disconnected_at_s"].is_null())
-            .filter_map(|s| Some((s["operator"].as_str()?.to_string(), s["rtt_ms"].as_f64()?)))
+            .of::<TeleopStatus>()
+            .flat_map(|(_, teleop)| teleop.open_sessions())
+            .filter_map(|s| Some((s.operator.clone()?, s.rtt_ms?)))
             .take(MAX_SAMPLE_SERIES)
             .collect();
         let messages_out =
             status.report.components.iter().take(MAX_SAMPLE_SERIES).map(|c| (c.name.clone(), c.messages_out)).collect();
-        let holder = match sections.get("arbiter") {
+        let holder = match sections.of::<ArbiterStatus>().next() {
             None => "no arbiter".to_string(),
-            Some(arbiter) => match arbiter["holder"].as_str() {
-                Some(holder) if !holder.is_empty() => holder.to_string(),
+            Some((_, arbiter)) => match &arbiter.holder {
+                Some(holder) if !holder.is_empty() => holder.clone(),
                 _ => "STOP".to_string(),
             },
         };

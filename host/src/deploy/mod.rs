@@ -31,6 +31,7 @@ mod experiment;
 mod history;
 mod recordings;
 mod replay;
+mod sim;
 mod stage;
 mod swap;
 mod upload;
@@ -51,6 +52,7 @@ pub use self::recordings::RecordingsView;
 pub use self::replay::{
     MAX_CONCURRENT_REPLAYS, MAX_REPLAY_COMPONENTS, MAX_REPLAY_DURATION, MAX_REPLAY_RECORDING_BYTES,
 };
+pub use self::sim::{SimAction, SimView};
 pub use self::stage::{MAX_CONCURRENT_VALIDATIONS, MAX_FILE_NAME_LEN, Validated};
 pub use self::swap::{ControlHook, LIVE_PERIOD, LiveStatusCell, SWAP_TIMEOUT};
 pub use self::upload::{MAX_CONCURRENT_COMPILES, MAX_UPLOAD_BYTES};
@@ -339,6 +341,23 @@ impl Deployer {
     }
 }
 
+/// Gives the memory that an activation's or a compile's short-lived
+/// allocations freed back to the system. glibc keeps it in the thread
+/// arenas of the threads that did the work, where a later, differently
+/// shaped activation rarely fits it again: the hour soak grew about 10 KiB
+/// per activation that way with no allocation held (BENCHMARKS.md,
+/// 2026-11-27: heaptrack finds nothing held; with a trim after every
+/// activation the RSS levels off). Costs a walk of the arenas, off the
+/// control loop (uploads and activations run on blocking threads).
+fn give_back_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only returns free pages to the system; it takes
+    // each arena's own lock, like any allocation.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}
+
 /// Imports the robot file at `path` and the components it names into the
 /// store as a new active set (boot's own use case: the robot's owner, on
 /// the command line).
@@ -409,134 +428,10 @@ enum Import {
     Dev,
 }
 
-/// The simulated robot of the active set, for the portal's map.
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct SimView {
-    pub component: String,
-    pub world: crate::sim::world::World,
-    pub rays: Option<f64>,
-    pub fov: Option<f64>,
-    pub max_range: Option<f64>,
-    pub radius: Option<f64>,
-}
-
-/// What the portal may do to the active set's simulated robot.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum SimAction {
-    /// Back to the world's start, at rest, time 0.
-    Reset,
-    /// Put the robot here (m, m, rad), at rest.
-    Pose {
-        x: f64,
-        y: f64,
-        heading: f64,
-    },
-    Pause,
-    Resume,
-    /// While paused: run the world this many seconds forward.
-    Step {
-        seconds: f64,
-    },
-}
-
-impl SimAction {
-    pub fn name(&self) -> &'static str {
-        match self {
-            SimAction::Reset => "reset",
-            SimAction::Pose { .. } => "pose",
-            SimAction::Pause => "pause",
-            SimAction::Resume => "resume",
-            SimAction::Step { .. } => "step",
-        }
-    }
-
-    /// The request as the audit log shows it (`pose x 1.00 y 2.00 heading 0.50`).
-    pub fn detail(&self) -> String {
-        match self {
-            SimAction::Pose { x, y, heading } => format!("pose x {x:.2} y {y:.2} heading {heading:.2}"),
-            SimAction::Step { seconds } => format!("step {seconds} s"),
-            other => other.name().to_owned(),
-        }
-    }
-}
-
 impl Deployer {
     /// The parameters this host sets on every set it validates (`subsume
     /// run --param`): what the set view shows as in effect beyond the file.
     pub fn overrides(&self) -> &[ParamOverride] {
         &self.overrides
-    }
-
-    /// Resets, poses, pauses, resumes or steps the active set's simulated
-    /// robot; for those who may drive (it moves the robot). Returns the
-    /// simulation's state after it.
-    pub fn sim_control(&self, user: &User, action: SimAction) -> Result<crate::sim::physics::SimStatus, DeployError> {
-        let prepared = self.authorise_drive(user).and_then(|()| {
-            let (_, config) = self.active()?;
-            let name = config
-                .components
-                .iter()
-                .find(|c| c.source == ComponentSource::Builtin("sim".into()))
-                .map(|c| c.name.clone())
-                .ok_or_else(|| DeployError::NotFound("the active set has no simulated robot".into()))?;
-            let control = self
-                .services
-                .get::<crate::sim::SimRegistry>()
-                .and_then(|registry| registry.get(&name))
-                .ok_or_else(|| DeployError::NotFound(format!("the simulated robot '{name}' is not running")))?;
-            Ok((name, control))
-        });
-        // Audited like every change (who, what, when): action `sim-ACTION`,
-        // target the simulated robot, detail the request and where it left
-        // the robot.
-        let target = prepared.as_ref().map(|(name, _)| name.clone()).unwrap_or_else(|_| "sim".into());
-        let request = action.detail();
-        self.commit(
-            &user.name,
-            &format!("sim-{}", action.name()),
-            &target,
-            prepared,
-            |_, (name, control)| {
-                let refused = |e: crate::sim::SimError| DeployError::Conflict(e.to_string());
-                let status = match action {
-                    SimAction::Reset => control.reset(),
-                    SimAction::Pose { x, y, heading } => control.set_pose(x, y, heading).map_err(refused)?,
-                    SimAction::Pause => control.pause(true),
-                    SimAction::Resume => control.pause(false),
-                    SimAction::Step { seconds } => control.step(seconds).map_err(refused)?,
-                };
-                tracing::info!(user = %user.name, "simulator: {} ({name})", action.name());
-                Ok(status)
-            },
-            |status| {
-                format!(
-                    "{request}: t = {:.2} s at x {:.2} y {:.2} heading {:.2}",
-                    status.time_s, status.x, status.y, status.heading
-                )
-            },
-        )
-    }
-
-    /// The world and body of the active set's simulated robot.
-    pub fn sim_view(&self) -> Result<SimView, DeployError> {
-        let (set, config) = self.active()?;
-        let sim = config
-            .components
-            .iter()
-            .find(|c| c.source == ComponentSource::Builtin("sim".into()))
-            .ok_or_else(|| DeployError::NotFound("the active set has no simulated robot".into()))?;
-        let param = |key: &str| sim.params.iter().find(|p| p.name == key).map(|p| p.value.trim().to_string());
-        let path = set.base_dir.join(param("world").unwrap_or_default());
-        let world =
-            crate::sim::world::load(&path).map_err(|e| DeployError::Host(format!("cannot read the world: {e}")))?;
-        let number = |key: &str| param(key).and_then(|v| v.parse::<f64>().ok());
-        Ok(SimView {
-            component: sim.name.clone(),
-            world,
-            rays: number("rays"),
-            fov: number("fov"),
-            max_range: number("max-range"),
-            radius: number("radius"),
-        })
     }
 }

@@ -7,10 +7,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use super::{DeployError, Deployer, Permission, authorise};
-use crate::assemble::Loader;
+use crate::assemble::{Loader, registry};
 use crate::config::{
-    ComponentConfig, ComponentSource, Diagnostic, Diagnostics, ParamOverride, Platform, ResolveError, Resolver,
-    RobotConfig, limits,
+    BuiltinKind, ComponentConfig, ComponentSource, Diagnostic, Diagnostics, ParamOverride, Platform, ResolveError,
+    Resolver, RobotConfig, RobotProblem, RobotView, limits,
 };
 use crate::contract::{Description, clip};
 use crate::store::users::{Role, User};
@@ -231,8 +231,12 @@ fn validate_text(
         {
             component.source = ComponentSource::Wasm(store.blob_path(sha));
         }
-        if is_simulator(&component.source) {
-            for param in component.params.iter_mut().filter(|p| p.name == WORLD_PARAM) {
+        let world_param = match component.source {
+            ComponentSource::Builtin(kind) => registry::builtin(kind).world_param(),
+            ComponentSource::Wasm(_) => None,
+        };
+        if let Some(world_param) = world_param {
+            for param in component.params.iter_mut().filter(|p| p.name == world_param) {
                 if let Some(sha) = used.get(param.value.trim()) {
                     param.value = store.blob_path(sha).to_string_lossy().into_owned();
                 }
@@ -244,13 +248,6 @@ fn validate_text(
 
 fn relative_source(base_dir: &Path, file: &Path) -> String {
     file.strip_prefix(base_dir).unwrap_or(file).to_string_lossy().into_owned()
-}
-
-/// The simulated robot's parameter naming its world file.
-const WORLD_PARAM: &str = "world";
-
-fn is_simulator(source: &ComponentSource) -> bool {
-    matches!(source, ComponentSource::Builtin(name) if name == "sim")
 }
 
 /// Resolves a set's WASM sources to stored blobs, and a simulated robot's
@@ -267,6 +264,14 @@ struct SetResolver<'r, 'l> {
 }
 
 impl Resolver for SetResolver<'_, '_> {
+    fn builtin_kind(&self, kind: &str) -> Result<BuiltinKind, ResolveError> {
+        self.loader.builtin_kind(kind)
+    }
+
+    fn check_robot(&self, view: &RobotView<'_>) -> Vec<RobotProblem> {
+        self.loader.check_robot(view)
+    }
+
     fn describe(
         &mut self,
         source: &ComponentSource,
@@ -274,8 +279,9 @@ impl Resolver for SetResolver<'_, '_> {
         base_dir: &Path,
     ) -> Result<Description, ResolveError> {
         match source {
-            ComponentSource::Builtin(_) if is_simulator(source) => {
-                let world = params.get(WORLD_PARAM).map(|w| w.trim().to_string()).unwrap_or_default();
+            ComponentSource::Builtin(kind) if registry::builtin(*kind).world_param().is_some() => {
+                let world_param = registry::builtin(*kind).world_param().unwrap_or_default();
+                let world = params.get(world_param).map(|w| w.trim().to_string()).unwrap_or_default();
                 // Only a plain `NAME.world` can be an uploaded world (what
                 // `upload_world` accepts); anything else is a file path.
                 let uploaded = world.ends_with(super::WORLD_SUFFIX) && !world.contains('/');
@@ -286,7 +292,7 @@ impl Resolver for SetResolver<'_, '_> {
                         let blob = self.store.blob_path(&sha);
                         let blobs = blob.parent().unwrap_or(base_dir).to_path_buf();
                         let mut pinned = params.clone();
-                        pinned.insert(WORLD_PARAM.into(), sha.clone());
+                        pinned.insert(world_param.into(), sha.clone());
                         let description = self.loader.describe(source, &pinned, &blobs)?;
                         self.used.insert(world, sha);
                         Ok(description)
@@ -360,17 +366,12 @@ pub fn wiring_graph(config: &RobotConfig) -> WiringGraph {
             outputs: names(&c.description.outputs),
         })
         .collect();
-    let port = |index: usize, port: u32, output: bool| -> String {
-        let Some(c) = config.components.get(index) else { return "?".into() };
-        let ports = if output { &c.description.outputs } else { &c.description.inputs };
-        format!("{}.{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
-    };
     let connections = config
         .connections
         .iter()
         .map(|c| WiringConnection {
-            from: port(c.from.component, c.from.port, true),
-            to: port(c.to.component, c.to.port, false),
+            from: config.output_name(c.from),
+            to: config.input_name(c.to),
             platform: c.platform.name().into(),
         })
         .collect();
@@ -387,7 +388,7 @@ pub fn envelope_change(old: &RobotConfig, new: &RobotConfig) -> Option<String> {
             .components
             .iter()
             .enumerate()
-            .filter(|(_, c)| c.source == ComponentSource::Builtin("envelope".into()))
+            .filter(|(_, c)| matches!(c.source, ComponentSource::Builtin(k) if registry::builtin(k).guards_motors()))
             .map(|(i, c)| (c.name.clone(), (i, c)))
             .collect()
     }

@@ -36,8 +36,8 @@ pub(super) struct SwapRequest {
     pub report: Option<ReportRequest>,
 }
 
-/// Why the old graph stopped, how long it ran (ns), and where its report goes.
-pub(super) type ReportRequest = (String, u64, SyncSender<report::Report>);
+/// How long the old graph ran (ns), and where its report goes.
+pub(super) type ReportRequest = (u64, SyncSender<report::Report>);
 
 #[derive(Clone, Default)]
 pub(super) struct SwapSlot {
@@ -149,8 +149,8 @@ impl CycleHook for ControlHook {
             self.slot.waiting.store(false, Ordering::Release);
             let request = self.slot.request.lock().ok().and_then(|mut slot| slot.take());
             if let Some(mut request) = request {
-                if let Some((stopped_by, ran_ns, to)) = request.report.take() {
-                    let _ = to.try_send(report::build_named(&self.config, graph, &stopped_by, ran_ns as f64 / 1e9));
+                if let Some((ran_ns, to)) = request.report.take() {
+                    let _ = to.try_send(report::build_experiment(&self.config, graph, ran_ns as f64 / 1e9));
                 }
                 for &(old, new) in &request.carry {
                     if let Some(component) = graph.take_component(old) {

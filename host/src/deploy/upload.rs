@@ -27,6 +27,8 @@ impl Deployer {
         let target = format!("component '{}' for platform {}", clip(name), platform.name());
         let prepared = authorise(user, Permission::Change(platform))
             .and_then(|()| self.prepare_upload(user, platform, name, bytes));
+        // The compile's working memory is freed by now.
+        super::give_back_freed_memory();
         self.commit(
             &user.name,
             "upload-component",

@@ -26,13 +26,13 @@ use serde::Serialize;
 
 use self::logic::{Action, Envelope, MAX_FENCE_POINTS, Settings, Verdict};
 use crate::builtin::{
-    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, number_in,
+    self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, number_in,
     positive_up_to,
 };
-use crate::config::ParamProblem;
+use crate::config::{ComponentSource, ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
 use crate::robot::control::{self, ControlCommand};
-use crate::runtime::{CallError, Component, Outbox};
+use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
 
 /// Fastest speed (m/s) and turn (rad/s) an envelope may allow.
 pub const MAX_SPEED_M_S: f64 = 10.0;
@@ -212,6 +212,52 @@ impl Builtin for EnvelopeBuiltin {
         PARAMS
     }
 
+    fn guards_motors(&self) -> bool {
+        true
+    }
+
+    /// `max-priority` caps the WASM sources feeding an arbiter; a geofence
+    /// needs the pose wired.
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        let robot = view.robot;
+        let Some(envelope) = robot.components.get(me) else { return Vec::new() };
+        let mut problems = Vec::new();
+        if let Ok(cap) = params.integer("max-priority") {
+            let feeds_an_arbiter = |i: usize| {
+                robot.connections.iter().any(|k| {
+                    k.from.component == i
+                        && builtin::builtin_of(robot, k.to.component, registry).is_some_and(|b| b.arbitrates())
+                })
+            };
+            for (i, source) in robot.components.iter().enumerate() {
+                let over = source.priority.filter(|p| i64::from(*p) > cap);
+                if let (ComponentSource::Wasm(_), Some(priority)) = (&source.source, over)
+                    && feeds_an_arbiter(i)
+                {
+                    problems.push(RobotProblem {
+                        offset: source.offset,
+                        message: format!(
+                            "component '{}' claims priority {priority}, but envelope '{}' allows WASM motion sources at most {cap}",
+                            source.name, envelope.name
+                        ),
+                    });
+                }
+            }
+        }
+        let fenced = !params.text("geofence").unwrap_or_default().is_empty();
+        let pose_wired = robot.connections.iter().any(|c| c.to.component == me && c.to.port == INPUT_POSE);
+        if fenced && !pose_wired && view.wiring_known(me) {
+            problems.push(RobotProblem {
+                offset: envelope.offset,
+                message: format!(
+                    "envelope '{}' has a geofence but no pose: connect the odometry to '{}.pose'",
+                    envelope.name, envelope.name
+                ),
+            });
+        }
+        problems
+    }
+
     fn check(&self, params: &Params, _ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
         let mut problems = Vec::new();
         if let Err(why) = parse_geofence(params.text("geofence").unwrap_or_default()) {
@@ -266,6 +312,10 @@ pub struct Intervention {
     pub cause: String,
     /// "stopped VEL 0.45 0.0: obstacle 0.18 m ahead, stop zone 0.25 m".
     pub text: String,
+}
+
+impl NamedSection for EnvelopeStatus {
+    const SECTION: &'static str = "envelope";
 }
 
 /// The envelope's section of the report and the live status.
@@ -443,8 +493,8 @@ impl Component for EnvelopeComponent {
         Ok(())
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        serde_json::to_value(&self.status).ok().map(|v| ("envelope", v))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(self.status.clone()))
     }
 }
 

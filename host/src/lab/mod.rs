@@ -940,21 +940,20 @@ pub const PREFLIGHT_BUCKETS_S: [f64; 10] = [0.5, 1.0, 2.0, 5.0, 10.0, 20.0, 30.0
 impl LabMetrics {
     /// The lab's metric families: experiments by state, the queue's
     /// length, the preflights' wall-clock durations.
-    pub fn families(&self) -> Vec<crate::metrics::Family> {
-        use crate::metrics::{Family, Sample};
-        use prometheus_client::metrics::MetricType;
+    pub fn families(&self) -> Vec<crate::runtime::Family> {
+        use crate::runtime::{Family, MetricKind, Sample};
         let mut states =
-            Family::new("subsume_experiments", "experiments the lab keeps, by state (docs/lab.md)", MetricType::Gauge);
+            Family::new("subsume_experiments", "experiments the lab keeps, by state (docs/lab.md)", MetricKind::Gauge);
         for (state, count) in &self.by_state {
             states.samples.push((vec![("state", (*state).to_string())], Sample::Gauge(*count as f64)));
         }
         let mut queue =
-            Family::new("subsume_experiment_queue_length", "experiments queued for the robot", MetricType::Gauge);
+            Family::new("subsume_experiment_queue_length", "experiments queued for the robot", MetricKind::Gauge);
         queue.samples.push((vec![], Sample::Gauge(self.queued as f64)));
         let mut preflight = Family::new(
             "subsume_preflight_seconds",
             "wall-clock time of each preflight (the experiment in the simulator)",
-            MetricType::Histogram,
+            MetricKind::Histogram,
         );
         let mut buckets: Vec<(f64, u64)> = PREFLIGHT_BUCKETS_S.iter().map(|b| (*b, 0)).collect();
         buckets.push((f64::INFINITY, 0));

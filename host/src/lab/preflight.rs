@@ -15,7 +15,6 @@
 //! Parent side: [`run`] starts the child, bounds its wall-clock time, and
 //! reads its verdict.
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -23,13 +22,14 @@ use std::time::{Duration, Instant};
 use thiserror::Error;
 
 use super::verdict::{ContactAt, Criteria, Fault, HolderTimeline, Interventions, Observations, Verdict, judge};
-use crate::config::{ComponentSource, RobotConfig};
+use crate::config::RobotConfig;
+use crate::envelope::EnvelopeStatus;
 use crate::report::Report;
 use crate::runtime::Graph;
 use crate::runtime::control_loop::CycleHook;
 use crate::runtime::graph::ComponentState;
-use crate::runtime::wiring::{Standing, Standings};
-use crate::sim::SimRegistry;
+use crate::runtime::{Standing, Standings};
+use crate::sim::SimSection;
 
 /// Longest wall-clock time a preflight may take, beyond its simulated
 /// duration: a preflight whose components use their whole budgets on every
@@ -76,32 +76,17 @@ impl CycleHook for HolderWatch {
     }
 }
 
-/// The envelope's section of the run report, as the verdict reads it: the
-/// counts by cause and the first intervention of each.
-#[derive(serde::Deserialize)]
-struct EnvelopeSection {
-    causes: BTreeMap<String, u64>,
-    first: BTreeMap<String, FirstIntervention>,
-}
-
-#[derive(serde::Deserialize)]
-struct FirstIntervention {
-    at_s: f64,
-    text: String,
-}
-
 /// Why what a run saw could not be read.
 #[derive(Debug, Error)]
 #[error("the run's report cannot be judged: {0}")]
 pub struct ObserveError(String);
 
 /// What the run of `config` saw, once it stopped: its faults from `graph`,
-/// the collisions of its simulated robots from `sims`, the envelope's
-/// interventions from `report`, who held control when from `holders`.
+/// the collisions of its simulated robots and the envelope's interventions
+/// from `report`'s sections, who held control when from `holders`.
 pub fn observe(
     config: &RobotConfig,
     graph: &Graph,
-    sims: &SimRegistry,
     report: &Report,
     holders: HolderTimeline,
 ) -> Result<Observations, ObserveError> {
@@ -114,30 +99,23 @@ pub fn observe(
                 reason: reason.clone(),
             });
         }
-        if component.source == ComponentSource::Builtin("sim".into()) {
-            let Some(sim) = sims.get(&component.name) else {
-                return Err(ObserveError(format!("the simulated robot '{}' did not register", component.name)));
-            };
-            let status = sim.status();
-            observed.collisions += status.collisions;
-            observed.contacts.extend(status.contacts.iter().map(|c| ContactAt::of(&component.name, c)));
-            observed.goal_reached = Some(observed.goal_reached.unwrap_or(true) && status.goal_reached);
-        }
+    }
+    for (name, sim) in report.sections.of::<SimSection>() {
+        let status = &sim.simulation;
+        observed.collisions += status.collisions;
+        observed.contacts.extend(status.contacts.iter().map(|c| ContactAt::of(name, c)));
+        observed.goal_reached = Some(observed.goal_reached.unwrap_or(true) && status.goal_reached);
     }
     observed.faults.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
     observed.contacts.sort_by(|a, b| a.time_s.total_cmp(&b.time_s));
-    // The report's sections are by kind: `envelope`, or `envelope:NAME`
-    // when a robot has two.
-    for (key, section) in &report.sections {
-        if key != "envelope" && !key.starts_with("envelope:") {
-            continue;
-        }
-        let envelope: EnvelopeSection =
-            serde_json::from_value(section.clone()).map_err(|e| ObserveError(format!("section '{key}': {e}")))?;
-        for (cause, count) in envelope.causes {
-            let first = envelope.first.get(&cause);
-            let seen =
-                observed.envelope.entry(cause).or_insert(Interventions { count: 0, first_at_s: None, first: None });
+    for (_, envelope) in report.sections.of::<EnvelopeStatus>() {
+        for (cause, count) in &envelope.causes {
+            let first = envelope.first.get(cause);
+            let seen = observed.envelope.entry((*cause).to_string()).or_insert(Interventions {
+                count: 0,
+                first_at_s: None,
+                first: None,
+            });
             seen.count += count;
             if let Some(first) = first
                 && seen.first_at_s.is_none_or(|at| first.at_s < at)
@@ -155,11 +133,10 @@ pub fn verdict(
     criteria: &Criteria,
     config: &RobotConfig,
     graph: &Graph,
-    sims: &SimRegistry,
     report: &Report,
     holders: HolderTimeline,
 ) -> Result<Verdict, ObserveError> {
-    Ok(judge(criteria, observe(config, graph, sims, report, holders)?))
+    Ok(judge(criteria, observe(config, graph, report, holders)?))
 }
 
 /// Where a preflight writes what it leaves.

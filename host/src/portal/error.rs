@@ -91,6 +91,14 @@ impl From<DeployError> for ApiError {
             DeployError::WrongWorld(m) => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, m),
             DeployError::Unprocessable(m) => ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, m),
             DeployError::Store(StoreError::NoSet(id)) => ApiError::new(StatusCode::NOT_FOUND, format!("no set {id}")),
+            DeployError::Store(StoreError::Full { .. }) => {
+                tracing::error!("{e}");
+                ApiError::new(
+                    StatusCode::INSUFFICIENT_STORAGE,
+                    "the robot's disk is full: nothing of this request was kept; \
+                     free some space (delete recordings or old sets) and try again",
+                )
+            }
             other => ApiError::internal(other.to_string()),
         }
     }

@@ -20,7 +20,10 @@
 //!   the portal speaks TLS), and the pad authenticates with a one-time
 //!   ticket;
 //! - `/metrics` answers peers on a loopback address and logged-in users
-//!   only.
+//!   only;
+//! - every answer of the API that refuses is JSON, and no answer shows a
+//!   server folder (the store, the cache, the robot file's folder: each is
+//!   replaced by a name on the way out, `api_answers`).
 
 pub mod auth;
 pub mod client;
@@ -51,6 +54,10 @@ const INDEX_HTML: &str = include_str!("../../../web/index.html");
 const APP_JS: &str = include_str!("../../../web/app.js");
 const STYLE_CSS: &str = include_str!("../../../web/style.css");
 
+/// Largest JSON answer the API rewrites to hide server paths (a set's view
+/// with its robot file is at most about `MAX_CONFIG_UPLOAD_BYTES` twice).
+const MAX_REWRITTEN_BYTES: usize = 64 << 20;
+
 /// What the portal's handlers share.
 pub struct PortalState {
     pub deployer: Arc<Deployer>,
@@ -61,6 +68,10 @@ pub struct PortalState {
     limiter: LoginLimiter,
     /// The portal speaks TLS: cookies carry `Secure`.
     secure_cookies: bool,
+    /// Server folders no answer shows, each with what it shows instead
+    /// (longest first): the store, the compile cache, the robot file's
+    /// folder, the working directory.
+    hidden_paths: Vec<(String, &'static str)>,
 }
 
 impl PortalState {
@@ -78,6 +89,7 @@ impl PortalState {
             sessions: Sessions::default(),
             limiter: LoginLimiter::default(),
             secure_cookies: false,
+            hidden_paths: Vec::new(),
         })
     }
 
@@ -97,8 +109,75 @@ impl PortalState {
             sessions: Sessions::default(),
             limiter: LoginLimiter::default(),
             secure_cookies: true,
+            hidden_paths: Vec::new(),
         })
     }
+
+    /// The same state, hiding `paths` (folder, what to show instead) in
+    /// every answer of the API. Folders shorter than two components are
+    /// left alone: hiding `/` would rewrite every path-like text.
+    pub fn hiding(mut self: Arc<Self>, paths: &[(&std::path::Path, &'static str)]) -> Arc<PortalState> {
+        let mut hidden: Vec<(String, &'static str)> = paths
+            .iter()
+            .flat_map(|(path, shown)| {
+                let canonical = std::fs::canonicalize(path).ok();
+                [Some(path.to_path_buf()), canonical].into_iter().flatten().map(move |p| (p, *shown))
+            })
+            .filter(|(p, _)| p.is_absolute() && p.components().count() > 2)
+            .map(|(p, shown)| (p.display().to_string().trim_end_matches('/').to_string(), shown))
+            .collect();
+        hidden.sort_by(|a, b| b.0.len().cmp(&a.0.len()).then_with(|| a.0.cmp(&b.0)));
+        hidden.dedup();
+        if let Some(state) = Arc::get_mut(&mut self) {
+            state.hidden_paths = hidden;
+        }
+        self
+    }
+}
+
+/// Every answer of the API, on its way out: JSON whatever refused it (a
+/// handler's `ApiError`, or one of axum's own rejections, which answer
+/// plain text), and no server folder in it (`PortalState::hiding`).
+async fn api_answers(
+    axum::extract::State(state): axum::extract::State<Arc<PortalState>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> axum::response::Response {
+    use axum::response::IntoResponse as _;
+    let response = next.run(request).await;
+    let content_type = response.headers().get(header::CONTENT_TYPE).map(|v| v.as_bytes().to_vec());
+    let json = content_type.as_deref().is_some_and(|t| t.starts_with(b"application/json"));
+    let refused_in_text = !json && response.status().as_u16() >= 400;
+    if !json && !refused_in_text {
+        return response;
+    }
+    let (parts, body) = response.into_parts();
+    let Ok(bytes) = axum::body::to_bytes(body, MAX_REWRITTEN_BYTES).await else {
+        return ApiError::internal("an answer too large to send").into_response();
+    };
+    let mut text = String::from_utf8_lossy(&bytes).into_owned();
+    for (path, shown) in &state.hidden_paths {
+        if text.contains(path.as_str()) {
+            text = text.replace(path.as_str(), shown);
+        }
+    }
+    if refused_in_text {
+        let why = if text.trim().is_empty() {
+            parts.status.canonical_reason().unwrap_or("refused").to_lowercase()
+        } else {
+            text.trim().to_string()
+        };
+        let mut refusal = ApiError::new(parts.status, why).into_response();
+        for name in [header::ALLOW, header::RETRY_AFTER] {
+            if let Some(value) = parts.headers.get(&name) {
+                refusal.headers_mut().insert(name, value.clone());
+            }
+        }
+        return refusal;
+    }
+    let mut parts = parts;
+    parts.headers.remove(header::CONTENT_LENGTH);
+    axum::response::Response::from_parts(parts, axum::body::Body::from(text))
 }
 
 /// The portal: API routes, the teleoperation WebSocket and the web files.
@@ -163,7 +242,8 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/teleop/ticket", post(teleop_ticket))
         .route("/teleop", get(teleop_socket))
         .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
-        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such API route (see /api/v1/openapi.json)") });
+        .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such API route (see /api/v1/openapi.json)") })
+        .layer(axum::middleware::from_fn_with_state(state.clone(), api_answers));
     axum::Router::new()
         .nest("/api/v1", api)
         .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], INDEX_HTML) }))

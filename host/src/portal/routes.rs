@@ -159,8 +159,9 @@ pub(super) async fn list_sets(
 pub(super) async fn get_set(
     State(state): State<Arc<PortalState>>,
     Authed(_): Authed,
-    Path(id): Path<u64>,
+    Path(id): Path<String>,
 ) -> Result<Json<Json_>, ApiError> {
+    let id = set_id(&id)?;
     let store = state.deployer.store.clone();
     // Parameters set with `subsume run --param`: a set runs with those that
     // name one of its components (the others are skipped for it).
@@ -188,8 +189,9 @@ pub(super) async fn get_set(
 pub(super) async fn activate(
     State(state): State<Arc<PortalState>>,
     Authed(user): Authed,
-    Path(id): Path<u64>,
+    Path(id): Path<String>,
 ) -> Result<Json<Json_>, ApiError> {
+    let id = set_id(&id)?;
     let deployer = state.deployer.clone();
     let (set, note) = blocking(move || Ok(deployer.activate_noting(&user, id)?)).await?;
     Ok(Json(json!({ "active": set, "note": note })))
@@ -213,9 +215,10 @@ struct ReplayRequest {
 pub(super) async fn replay_set(
     State(state): State<Arc<PortalState>>,
     Authed(user): Authed,
-    Path(id): Path<u64>,
+    Path(id): Path<String>,
     body: Bytes,
 ) -> Result<Json<Json_>, ApiError> {
+    let id = set_id(&id)?;
     authorise(&user, Permission::Record)?;
     let request: ReplayRequest = serde_json::from_slice(&body).map_err(|e| {
         ApiError::new(
@@ -394,6 +397,13 @@ pub(super) async fn audit_log(
     Ok(Json(json!({ "entries": entries })))
 }
 
+/// A set's id from the path: a whole number, else 400 saying so (JSON, as
+/// every refusal).
+fn set_id(text: &str) -> Result<u64, ApiError> {
+    text.parse()
+        .map_err(|_| ApiError::new(StatusCode::BAD_REQUEST, format!("set id '{}' is not a whole number", clip(text))))
+}
+
 fn teleop_servers(state: &PortalState) -> Result<Arc<crate::teleop::ServerContext>, ApiError> {
     state
         .deployer
@@ -418,8 +428,15 @@ pub(super) async fn teleop_ticket(
 pub(super) async fn teleop_socket(
     State(state): State<Arc<PortalState>>,
     ClientAddress(address): ClientAddress,
-    ws: WebSocketUpgrade,
+    ws: Result<WebSocketUpgrade, axum::extract::ws::rejection::WebSocketUpgradeRejection>,
 ) -> Response {
+    let ws = match ws {
+        Ok(ws) => ws,
+        Err(rejection) => {
+            let why = format!("this is the teleoperation WebSocket: connect with a WebSocket client ({rejection})");
+            return ApiError::new(StatusCode::BAD_REQUEST, why).into_response();
+        }
+    };
     match teleop_servers(&state) {
         Ok(ctx) => {
             crate::teleop::upgrade_websocket(ws, ctx, address.unwrap_or_else(|| SocketAddr::from(([0, 0, 0, 0], 0))))

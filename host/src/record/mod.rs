@@ -289,11 +289,13 @@ impl Recorder {
                 result.and(finished)
             })
             .map_err(|e| RecordError::Thread(e.to_string()))?;
-        let sink = Sink { sender, dropped };
-        log::install(sink.clone());
+        // Said before the recording hears the log: a recording downloaded
+        // from the portal shows no server path.
         if let Some(path) = &options.path {
             tracing::info!("recording to {}", path.display());
         }
+        let sink = Sink { sender, dropped };
+        log::install(sink.clone());
         Ok(Recorder { sink, writer: Some(handle) })
     }
 
@@ -448,7 +450,8 @@ fn sample_status(
     *next_ns = now_ns + STATUS_PERIOD_NS;
     last.resize(graph.len(), None);
     for (index, sent) in last.iter_mut().enumerate() {
-        let Some((_, kind, section)) = graph.component_status(index) else { continue };
+        let Some((_, status)) = graph.component_status(index) else { continue };
+        let (kind, section) = (status.section(), status.to_json());
         if sent.as_ref() != Some(&section) {
             *sent = Some(section.clone());
             sink.send(Event::Status { index, t: now_ns, kind, section });

@@ -367,7 +367,7 @@ fn choose(config: &RobotConfig, only: &[String]) -> Result<Vec<usize>, ReplayErr
             return Err(ReplayError::UnknownComponent { path, component: name.clone() });
         };
         if let ComponentSource::Builtin(kind) = &config.components[index].source {
-            return Err(ReplayError::NotWasm { path, component: name.clone(), source_kind: kind.clone() });
+            return Err(ReplayError::NotWasm { path, component: name.clone(), source_kind: kind.name().to_string() });
         }
         if !chosen.contains(&index) {
             chosen.push(index);

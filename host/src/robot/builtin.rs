@@ -10,11 +10,10 @@ use super::serial::{LinkError, LinkSettings, ScanGeometry, SerialLink};
 use super::translator::{DriveGeometry, ProfileTranslator, Translator};
 use crate::builtin::{
     self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, PreflightContext,
-    PreflightForm, number_in, positive_up_to,
+    PreflightForm, Registry, number_in, positive_up_to,
 };
-use crate::config::ParamProblem;
-use crate::config::RobotConfig;
-use crate::contract::{ValueKind, clip};
+use crate::config::{ParamProblem, RobotConfig, RobotProblem, RobotView};
+use crate::contract::{Param, ValueKind, clip};
 use crate::runtime::Component;
 
 /// Slowest and fastest baud rates: the range of standard UART rates; a
@@ -178,6 +177,9 @@ fn parse_options(text: &str) -> Result<Vec<(String, String)>, String> {
     Ok(pairs)
 }
 
+/// The link's one input: the command for the motors.
+const INPUT_CMD: u32 = 0;
+
 /// The `serial` kind.
 pub struct SerialBuiltin;
 
@@ -242,6 +244,28 @@ impl Builtin for SerialBuiltin {
                 copy("max-wheel-speed"),
             ]),
         })
+    }
+
+    /// Only a motor guard (an envelope) may feed the link's commands.
+    fn check_robot(&self, me: usize, _: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        let robot = view.robot;
+        let Some(link) = robot.components.get(me) else { return Vec::new() };
+        let mut problems = Vec::new();
+        for c in robot.connections.iter().filter(|c| c.to.component == me && c.to.port == INPUT_CMD) {
+            if builtin::builtin_of(robot, c.from.component, registry).is_some_and(|b| b.guards_motors()) {
+                continue;
+            }
+            let (from, to) = (robot.output_name(c.from), robot.input_name(c.to));
+            problems.push(RobotProblem {
+                offset: c.offset,
+                message: format!(
+                    "'{from}' feeds serial link '{}' directly: motion commands must pass a builtin:envelope \
+                     (connect '{from}' to an envelope's 'cmd' input and the envelope's 'cmd' to '{to}')",
+                    link.name
+                ),
+            });
+        }
+        problems
     }
 
     fn check(&self, params: &Params, ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
@@ -321,7 +345,11 @@ impl Builtin for SerialBuiltin {
                 let robot = ctx.robot;
                 let link =
                     robot.components.get(ctx.index).ok_or_else(|| BuiltinError::Refused("no such component".into()))?;
-                Box::new(ctx.translators.start(&artifact, link)?)
+                // The link's `options` reach the translator as parameters of their own.
+                let options = translator_options(params.text("options")?)
+                    .map_err(|why| BuiltinError::Param { name: "options".into(), why: why.to_string() })?;
+                let extra = options.into_iter().map(|(name, value)| Param { name, value }).collect();
+                Box::new(ctx.translators.start(&artifact, link, extra)?)
             }
         };
         let name = ctx.component()?.name.clone();

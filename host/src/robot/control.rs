@@ -16,6 +16,8 @@
 
 use std::fmt;
 
+use crate::contract::clip;
+
 /// Longest control string accepted: a command is a keyword and two numbers;
 /// anything longer is garbage or an attack on the parser.
 pub const MAX_CONTROL_STRING_LEN: usize = 128;
@@ -92,7 +94,7 @@ pub fn parse(text: &str) -> Result<ControlCommand, ControlParseError> {
         _ => {
             return Err(error(
                 keyword_column,
-                format!("unknown command '{}': expected STOP, VEL or GOTO", shown(keyword)),
+                format!("unknown command '{}': expected STOP, VEL or GOTO", clip(keyword)),
             ));
         }
     };
@@ -103,10 +105,10 @@ pub fn parse(text: &str) -> Result<ControlCommand, ControlParseError> {
             return Err(error(end, format!("missing the {what}")));
         };
         values[i] = parse_number(word)
-            .ok_or_else(|| error(column, format!("expected the {what} as a finite number, found '{}'", shown(word))))?;
+            .ok_or_else(|| error(column, format!("expected the {what} as a finite number, found '{}'", clip(word))))?;
     }
     if let Some(&(column, word)) = words.get(arguments.len() + 1) {
-        return Err(error(column, format!("unexpected '{}' after the command", shown(word))));
+        return Err(error(column, format!("unexpected '{}' after the command", clip(word))));
     }
     Ok(command(values[0], values[1]))
 }
@@ -135,14 +137,6 @@ fn words(text: &str) -> Vec<(usize, &str)> {
 fn parse_number(word: &str) -> Option<f64> {
     let valid = word.chars().all(|c| c.is_ascii_digit() || matches!(c, '+' | '-' | '.' | 'e' | 'E'));
     word.parse::<f64>().ok().filter(|x| valid && x.is_finite())
-}
-
-fn shown(word: &str) -> String {
-    let mut s: String = word.chars().take(20).map(|c| if c.is_control() { '?' } else { c }).collect();
-    if word.chars().count() > 20 {
-        s.push_str("...");
-    }
-    s
 }
 
 fn error(column: usize, message: String) -> ControlParseError {

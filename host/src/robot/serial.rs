@@ -49,7 +49,9 @@ use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
 use crate::contract::{Scan, Value};
 use crate::runtime::lockstep::{Lockstep, LockstepLink, wait_until};
-use crate::runtime::{CallError, Component, MotorStop, Outbox, StopOutcome};
+use crate::runtime::{
+    CallError, Component, Family, MotorStop, NamedSection, Outbox, Sample, StatusSection, StopOutcome,
+};
 
 /// Frames waiting for the I/O thread; more means the device is stuck, and
 /// further frames are dropped (and counted) rather than queued.
@@ -287,6 +289,43 @@ pub struct SerialStatus {
     pub openings_written: u64,
     /// Polls that gave bytes to send (sensor requests, keep-alives).
     pub polls_sent: u64,
+}
+
+impl NamedSection for SerialStatus {
+    const SECTION: &'static str = "serial";
+
+    fn families(&self, component: &str) -> Vec<Family> {
+        Family::each(
+            ("link", component),
+            &[
+                (
+                    "subsume_serial_frames",
+                    "frames written to the motor controller",
+                    Sample::Counter(self.frames_written),
+                ),
+                (
+                    "subsume_serial_malformed_feedback",
+                    "feedback from the controller that did not parse",
+                    Sample::Counter(self.malformed_feedback),
+                ),
+                (
+                    "subsume_serial_reconnects",
+                    "times the serial device was opened again",
+                    Sample::Counter(self.reconnects),
+                ),
+                (
+                    "subsume_serial_connected",
+                    "1 while the serial device is open",
+                    Sample::Gauge(if self.connected { 1.0 } else { 0.0 }),
+                ),
+                (
+                    "subsume_serial_watchdog_stops",
+                    "STOPs sent because commands stopped coming",
+                    Sample::Counter(self.watchdog_stops),
+                ),
+            ],
+        )
+    }
 }
 
 /// The `builtin:serial` component.
@@ -604,8 +643,8 @@ impl Component for SerialLink {
         self.poll(now_ns)
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        serde_json::to_value(SerialLink::status(self)).ok().map(|v| ("serial", v))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        Some(Box::new(SerialLink::status(self)))
     }
 
     fn faulted(&mut self) {

@@ -72,8 +72,8 @@ pub trait Component: Send {
     fn peer_restarted(&mut self, component: usize, now_ns: u64) {
         let _ = (component, now_ns);
     }
-    /// A section for the run report and the live status, as (name, value).
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+    /// Its section of the run report and the live status.
+    fn status(&self) -> Option<Box<dyn super::StatusSection>> {
         None
     }
 }

@@ -23,6 +23,7 @@ use super::component::{CallError, Component, Outbox, RestartError, Restarter, Va
 use super::cpu_wait::CpuWait;
 use super::histogram::Histogram;
 use super::stall::{Activity, Heartbeat};
+use super::status::StatusSection;
 use super::tap::{Call, Tap};
 use super::wiring::{Convert, MAX_RESTART_BACKOFF_NS, Mailbox, Policy, RestartPolicy};
 use crate::contract::Value;
@@ -678,17 +679,16 @@ impl Graph {
         self.nodes.get(index).map(|n| &n.stats)
     }
 
-    /// (component name, section kind, section) of the components that have
-    /// a report section, in graph order.
-    pub fn statuses(&self) -> Vec<(&str, &'static str, serde_json::Value)> {
-        self.nodes.iter().filter_map(|n| n.component.status().map(|(kind, value)| (&*n.name, kind, value))).collect()
+    /// (component name, section) of the components that have a report
+    /// section, in graph order.
+    pub fn statuses(&self) -> Vec<(&str, Box<dyn StatusSection>)> {
+        self.nodes.iter().filter_map(|n| n.component.status().map(|status| (&*n.name, status))).collect()
     }
 
-    /// Component `index`'s (name, section kind, section), if it has a report
-    /// section.
-    pub fn component_status(&self, index: usize) -> Option<(&str, &'static str, serde_json::Value)> {
+    /// Component `index`'s (name, section), if it has a report section.
+    pub fn component_status(&self, index: usize) -> Option<(&str, Box<dyn StatusSection>)> {
         let node = self.nodes.get(index)?;
-        node.component.status().map(|(kind, value)| (&*node.name, kind, value))
+        node.component.status().map(|status| (&*node.name, status))
     }
 
     /// Calls component `index` as a cycle would (`tick` without `input`,

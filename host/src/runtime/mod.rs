@@ -26,6 +26,8 @@ pub mod locks;
 pub mod lockstep;
 pub mod scheduling;
 pub mod stall;
+pub mod standing;
+pub mod status;
 pub mod tap;
 pub mod wiring;
 
@@ -34,5 +36,7 @@ pub use graph::{ComponentState, ComponentStats, ConnectionStats, Graph};
 pub use histogram::Histogram;
 pub use locks::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
 pub use stall::{Heartbeat, MotorStop, StallWatchdog, StopOutcome};
+pub use standing::{Standing, Standings};
+pub use status::{Family, MetricKind, NamedSection, Sample, StatusSection};
 pub use tap::{Call, Tap};
-pub use wiring::{Convert, Policy, PriorityCell, RestartPolicy, RunningRobot, Standing, Standings};
+pub use wiring::{Convert, Policy, PriorityCell, RestartPolicy, RunningRobot};

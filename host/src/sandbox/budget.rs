@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use thiserror::Error;
 use wasmtime::UpdateDeadline;
 
-use super::engine::EPOCH_TICK;
+use super::limits::EPOCH_TICK;
 
 /// The wall-clock cap of a call, as a multiple of its budget. The threat: a
 /// call that makes no progress on the CPU (preempted for good, or spinning

@@ -9,9 +9,8 @@ use std::sync::Arc;
 
 use wasmtime::Engine;
 
-use super::SandboxError;
 use super::function_cache::{FunctionCache, FunctionCacheStats};
-use super::guest::error_text;
+use super::{SandboxError, error_text};
 use crate::fsutil::write_atomically;
 use crate::runtime::scheduling;
 

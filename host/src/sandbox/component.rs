@@ -7,9 +7,10 @@ use std::time::Duration;
 use wasmtime::{Engine, Store};
 
 use super::SandboxError;
-use super::engine::{ComponentPre, INIT_BUDGET, WasmArtifact};
-use super::guest::{GuestLimits, GuestState, MAX_GUEST_MESSAGE_BYTES, arm, call_error, new_store, truncate};
-use crate::contract::{Param, Value, ValueKind};
+use super::artifact::{ComponentPre, WasmArtifact};
+use super::guest::{GuestLimits, GuestState, arm, call_error, new_store};
+use super::limits::{INIT_BUDGET, MAX_GUEST_MESSAGE_BYTES};
+use crate::contract::{Param, Value, ValueKind, clip_to};
 use crate::contract::{bindings, v1};
 use crate::runtime::{CallError, Component, Outbox};
 
@@ -42,7 +43,7 @@ pub(super) fn instantiate_component(
     match init {
         Ok(Ok(())) => {}
         Ok(Err(message)) => {
-            return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
+            return Err(SandboxError::Call { call: "init()", reason: clip_to(&message, MAX_GUEST_MESSAGE_BYTES) });
         }
         Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
     }
@@ -94,7 +95,7 @@ impl WasmComponent {
                 out.append(&mut state.outbox);
                 let reported = result.err().or_else(|| state.reported.take());
                 match reported {
-                    Some(message) => Err(CallError::Reported(truncate(message, MAX_GUEST_MESSAGE_BYTES))),
+                    Some(message) => Err(CallError::Reported(clip_to(&message, MAX_GUEST_MESSAGE_BYTES))),
                     None => Ok(()),
                 }
             }

@@ -8,110 +8,26 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
-use std::time::Duration;
 
 use sha2::{Digest, Sha256};
 use wasmtime::component::{HasSelf, Linker};
 use wasmtime::{Config, Engine, InstanceAllocationStrategy, PoolingAllocationConfig, Store};
 
-use super::SandboxError;
+use super::artifact::{ComponentPre, Contract, TranslatorArtifact, TranslatorPre, WasmArtifact};
 use super::cache::CompileCache;
 use super::component::{WasmComponent, instantiate_component};
 use super::function_cache::{FunctionCache, FunctionCacheStats};
-use super::guest::{GuestLimits, GuestState, arm, call_error, error_text, new_store};
+use super::guest::{GuestLimits, GuestState, arm, call_error, new_store};
+use super::limits::{
+    DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE,
+    MAX_TABLES_PER_STORE, MAX_WASM_STACK_BYTES, POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES,
+};
 use super::translator::WasmTranslator;
+use super::{SandboxError, error_text};
 use crate::config::limits::MAX_COMPONENTS;
 use crate::contract::{Description, Param, ValueKind, check_description};
 use crate::contract::{bindings, translator_bindings, v1};
 use crate::runtime::{Component, scheduling};
-
-/// How often the ticker thread advances the engine's epoch: the granularity
-/// of the budget checks (`budget.rs`). A runaway call is stopped about one
-/// tick after its CPU time reaches its budget (plus the ticker thread's
-/// wake-up latency).
-pub const EPOCH_TICK: Duration = Duration::from_millis(1);
-/// Budget (CPU time) of `describe`: a component that loops there must not hang loading.
-pub const DESCRIBE_BUDGET: Duration = Duration::from_millis(500);
-/// Budget (CPU time) of instantiation plus `init`: a component that loops
-/// while starting must not hang startup or activation.
-pub const INIT_BUDGET: Duration = Duration::from_secs(1);
-/// Memory given to the throwaway instance that answers `describe`.
-pub const DESCRIBE_MEMORY_BYTES: u64 = 64 << 20;
-/// Native stack a guest may use; deep recursion traps instead of crashing
-/// the host.
-pub const MAX_WASM_STACK_BYTES: usize = 512 << 10;
-/// Core instances one component may create (componentize-py components
-/// create about 38): bounds what one component takes from the pool.
-pub const MAX_INSTANCES_PER_STORE: usize = 64;
-/// Tables and memories one component may create.
-pub const MAX_TABLES_PER_STORE: usize = 64;
-pub const MAX_MEMORIES_PER_STORE: usize = 64;
-/// Largest linear memory the instance pool reserves a slot for; per-component
-/// limits from the robot file are at most this.
-pub const POOL_MAX_MEMORY_BYTES: u64 = 1 << 30;
-/// Core instances (and memories) the whole pool holds: enough for
-/// [`MAX_COMPONENTS`] components plus throwaway `describe` instances.
-pub const POOL_TOTAL_CORE_INSTANCES: u32 = 1000;
-
-/// A compiled, linked component and what it says about itself.
-pub struct WasmArtifact {
-    /// Hex sha256 of the `.wasm` bytes.
-    pub sha256: String,
-    pub description: Description,
-    /// The contract version the component was built against.
-    pub contract: Contract,
-    pub(super) pre: ComponentPre,
-}
-
-/// A version of the WIT contract `subsume:robot`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Contract {
-    /// `subsume:robot@0.1.0` (`wit/0.1.0/robot.wit`).
-    V0_1,
-    /// `subsume:robot@0.2.0` (`wit/robot.wit`).
-    V0_2,
-}
-
-impl Contract {
-    pub fn name(self) -> &'static str {
-        match self {
-            Contract::V0_1 => "0.1.0",
-            Contract::V0_2 => "0.2.0",
-        }
-    }
-}
-
-/// A component pre-linked against the world of its contract version.
-pub(super) enum ComponentPre {
-    V2(bindings::ComponentPre<GuestState>),
-    V1(v1::bindings::ComponentPre<GuestState>),
-}
-
-/// A translator pre-linked against the world of its contract version.
-pub(super) enum TranslatorPre {
-    V2(translator_bindings::TranslatorPre<GuestState>),
-    V1(v1::translator_bindings::TranslatorPre<GuestState>),
-}
-
-impl std::fmt::Debug for WasmArtifact {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("WasmArtifact").field("sha256", &self.sha256).field("name", &self.description.name).finish()
-    }
-}
-
-/// A compiled, linked translator component.
-pub struct TranslatorArtifact {
-    pub sha256: String,
-    /// The contract version the translator was built against.
-    pub contract: Contract,
-    pub(super) pre: TranslatorPre,
-}
-
-impl std::fmt::Debug for TranslatorArtifact {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("TranslatorArtifact").field("sha256", &self.sha256).finish()
-    }
-}
 
 /// The per-process engine, linker, epoch ticker and compile cache.
 pub struct Sandbox {
@@ -184,6 +100,11 @@ impl Sandbox {
     /// the process started; `None` without a cache folder.
     pub fn function_cache_stats(&self) -> Option<FunctionCacheStats> {
         self.cache.function_stats()
+    }
+
+    /// The folder of the compile cache, if there is one.
+    pub fn cache_dir(&self) -> Option<&std::path::Path> {
+        self.cache.dir()
     }
 
     /// Whether instances come from the pooling allocator.

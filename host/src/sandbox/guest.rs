@@ -13,28 +13,20 @@ use wasmtime_wasi::{WasiCtx, WasiCtxBuilder, WasiCtxView, WasiView};
 
 use rand::SeedableRng as _;
 use rand::rngs::StdRng;
+use sha2::{Digest, Sha256};
 
 use super::SandboxError;
 use super::budget::{self, CallBudget};
-use super::engine::{MAX_INSTANCES_PER_STORE, MAX_MEMORIES_PER_STORE, MAX_TABLES_PER_STORE};
-use super::guest_output::{GuestOutput, LastWords};
-use super::wasi::random_seed;
+use super::guest_output::{GuestOutput, LastWords, LogBudget};
+use super::limits::{
+    HOSTCALL_FUEL_SLACK, MAX_COMPONENT_HANDLES, MAX_GUEST_MESSAGE_BYTES, MAX_INSTANCES_PER_STORE,
+    MAX_MEMORIES_PER_STORE, MAX_RESOURCE_ENTRIES, MAX_TABLES_PER_STORE,
+};
 use crate::contract::bindings::subsume::robot as wit;
 use crate::contract::v1;
 use crate::contract::v1::bindings::subsume::robot as old;
-use crate::contract::{LogLevel, Value, ValueKind, kind_of};
+use crate::contract::{LogLevel, Value, ValueKind, clip_to, kind_of};
 use crate::runtime::Outbox;
-
-/// Entries a guest may hold in its WASI resource table (open streams,
-/// pollables): a guest must not grow host-side tables without bound.
-pub const MAX_RESOURCE_ENTRIES: usize = 1000;
-/// Component-model handles alive at once in one store (`resource.new`).
-pub const MAX_COMPONENT_HANDLES: usize = 1000;
-/// Hostcall fuel beyond the component's `max-message`: room for the other
-/// arguments of a host call.
-pub const HOSTCALL_FUEL_SLACK: u64 = 64 << 10;
-/// Longest message from a guest's `log` or `err` result kept in the log.
-pub const MAX_GUEST_MESSAGE_BYTES: usize = 1024;
 
 /// State of one component's store.
 pub struct GuestState {
@@ -87,7 +79,7 @@ impl wit::host::Host for GuestState {
 
     fn report(&mut self, message: String) -> wasmtime::Result<()> {
         // Bounded like everything else a guest hands the host.
-        self.reported = Some(truncate(message, MAX_GUEST_MESSAGE_BYTES));
+        self.reported = Some(clip_to(&message, MAX_GUEST_MESSAGE_BYTES));
         Ok(())
     }
 }
@@ -143,7 +135,7 @@ impl GuestState {
 
     fn write_log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
         self.logs.take().map_err(wasmtime::Error::msg)?;
-        let message = truncate(message, MAX_GUEST_MESSAGE_BYTES);
+        let message = clip_to(&message, MAX_GUEST_MESSAGE_BYTES);
         let component = &*self.component;
         match level {
             LogLevel::Trace => tracing::trace!(component, "{message}"),
@@ -193,30 +185,14 @@ impl GuestLimits {
     }
 }
 
-/// A guest's log lines this second, shared by `log`, stdout and stderr.
-#[derive(Clone, Debug)]
-pub struct LogBudget {
-    max_per_s: u32,
-    window: Arc<std::sync::Mutex<(std::time::Instant, u32)>>,
-}
-
-impl LogBudget {
-    pub fn new(max_per_s: u32) -> LogBudget {
-        LogBudget { max_per_s, window: Arc::new(std::sync::Mutex::new((std::time::Instant::now(), 0))) }
-    }
-
-    /// Counts one line; `Err` when the guest is over its rate.
-    pub(super) fn take(&self) -> Result<(), String> {
-        let Ok(mut window) = self.window.lock() else { return Ok(()) };
-        if window.0.elapsed() >= Duration::from_secs(1) {
-            *window = (std::time::Instant::now(), 0);
-        }
-        window.1 += 1;
-        if window.1 > self.max_per_s {
-            return Err(format!("wrote more than {} log lines in one second (max-logs)", self.max_per_s));
-        }
-        Ok(())
-    }
+/// The seed of a component's WASI generators: the same for every instance
+/// of the same name, so a run replays (a component that wants different
+/// numbers per robot takes a seed parameter).
+pub fn random_seed(component: &str) -> [u8; 32] {
+    let mut hash = Sha256::new();
+    hash.update(b"subsume guest random\0");
+    hash.update(component.as_bytes());
+    hash.finalize().into()
 }
 
 /// The size a value takes on the host, for `max-message`.
@@ -325,46 +301,4 @@ pub(super) fn call_error(call: &'static str, budget: Duration, err: &wasmtime::E
         }
     };
     SandboxError::Call { call, reason }
-}
-
-pub(super) fn error_text(err: &wasmtime::Error) -> String {
-    let mut text = err.to_string();
-    let cause = err.root_cause().to_string();
-    if cause != text {
-        text = format!("{text}: {cause}");
-    }
-    text
-}
-
-pub(super) fn truncate(mut text: String, max: usize) -> String {
-    if text.len() > max {
-        let mut end = max;
-        while !text.is_char_boundary(end) {
-            end -= 1;
-        }
-        text.truncate(end);
-        text.push_str("...");
-    }
-    clip_control(text)
-}
-
-/// Replaces control characters so guest text cannot forge log lines.
-fn clip_control(text: String) -> String {
-    if text.chars().any(char::is_control) {
-        text.chars().map(|c| if c.is_control() { ' ' } else { c }).collect()
-    } else {
-        text
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn guest_text_is_cut_and_cleaned() {
-        assert_eq!(truncate("abcdef".into(), 3), "abc...");
-        assert_eq!(truncate("a\nb".into(), 10), "a b");
-        assert_eq!(truncate("ééé".into(), 3), "é...");
-    }
 }

@@ -9,12 +9,13 @@ use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll};
+use std::time::Duration;
 
 use bytes::Bytes;
 use wasmtime_wasi::cli::{IsTerminal, StdoutStream};
 use wasmtime_wasi::p2::{OutputStream, Pollable, StreamError};
 
-use super::LogBudget;
+use crate::contract::clip_to;
 
 /// Longest line kept from a guest's output; the rest of a longer line is cut,
 /// so a guest printing without newlines cannot grow host memory.
@@ -69,7 +70,7 @@ impl LastWords {
             return;
         }
         if let Ok(mut words) = self.0.line.lock() {
-            *words = super::guest::truncate(line.to_string(), MAX_LAST_WORDS_BYTES);
+            *words = clip_to(line, MAX_LAST_WORDS_BYTES);
             self.0.said.store(true, Ordering::Release);
         }
     }
@@ -115,7 +116,9 @@ impl GuestOutput {
 
     fn emit_line(&self, line: &[u8]) {
         let text = String::from_utf8_lossy(line);
-        let text = text.trim_end_matches('\r');
+        // Control characters (a terminal's escapes, a forged line) go here.
+        let text = clip_to(text.trim_end_matches('\r'), MAX_GUEST_LINE_BYTES);
+        let text = text.as_str();
         if let Some(last_words) = &self.last_words {
             last_words.hear(text);
         }
@@ -181,6 +184,32 @@ impl tokio::io::AsyncWrite for GuestOutput {
     }
     fn poll_shutdown(self: Pin<&mut Self>, _cx: &mut Context<'_>) -> Poll<io::Result<()>> {
         Poll::Ready(Ok(()))
+    }
+}
+
+/// A guest's log lines this second, shared by `log`, stdout and stderr.
+#[derive(Clone, Debug)]
+pub struct LogBudget {
+    max_per_s: u32,
+    window: Arc<std::sync::Mutex<(std::time::Instant, u32)>>,
+}
+
+impl LogBudget {
+    pub fn new(max_per_s: u32) -> LogBudget {
+        LogBudget { max_per_s, window: Arc::new(std::sync::Mutex::new((std::time::Instant::now(), 0))) }
+    }
+
+    /// Counts one line; `Err` when the guest is over its rate.
+    pub(super) fn take(&self) -> Result<(), String> {
+        let Ok(mut window) = self.window.lock() else { return Ok(()) };
+        if window.0.elapsed() >= Duration::from_secs(1) {
+            *window = (std::time::Instant::now(), 0);
+        }
+        window.1 += 1;
+        if window.1 > self.max_per_s {
+            return Err(format!("wrote more than {} log lines in one second (max-logs)", self.max_per_s));
+        }
+        Ok(())
     }
 }
 

@@ -18,6 +18,7 @@
 //! - a guest that traps, overruns its budget or breaks a host rule is
 //!   reported as [`CallError::Fault`] and its store is never called again.
 
+mod artifact;
 mod budget;
 mod cache;
 mod component;
@@ -25,28 +26,29 @@ mod engine;
 mod function_cache;
 mod guest;
 mod guest_output;
+mod limits;
 pub mod preamble;
 mod translator;
 mod wasi;
 
 use thiserror::Error;
 
+pub use artifact::{Contract, TranslatorArtifact, WasmArtifact};
 pub use budget::{OverBudget, WALL_CAP_FACTOR, thread_cpu_time, wall_cap};
 pub use component::WasmComponent;
-pub use engine::{
-    Contract, DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, INIT_BUDGET, MAX_INSTANCES_PER_STORE,
-    MAX_TABLES_PER_STORE, MAX_WASM_STACK_BYTES, POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES, Sandbox,
-    TranslatorArtifact, WasmArtifact, check_component_header,
-};
+pub use engine::{Sandbox, check_component_header};
 pub use function_cache::{
     FUNCTION_CACHE_PRUNE_TO, FunctionCacheStats, MAX_FUNCTION_CACHE_BYTES, MAX_FUNCTION_ENTRY_BYTES,
 };
-pub use guest::{
-    GuestLimits, HOSTCALL_FUEL_SLACK, LogBudget, MAX_COMPONENT_HANDLES, MAX_GUEST_MESSAGE_BYTES, MAX_RESOURCE_ENTRIES,
+pub use guest::{GuestLimits, random_seed};
+pub use guest_output::{GuestOutput, LogBudget, MAX_GUEST_LINE_BYTES};
+pub use limits::{
+    DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, HOSTCALL_FUEL_SLACK, INIT_BUDGET, MAX_COMPONENT_HANDLES,
+    MAX_GUEST_MESSAGE_BYTES, MAX_INSTANCES_PER_STORE, MAX_RESOURCE_ENTRIES, MAX_TABLES_PER_STORE, MAX_WASM_STACK_BYTES,
+    POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES,
 };
-pub use guest_output::{GuestOutput, MAX_GUEST_LINE_BYTES};
 pub use translator::{MAX_FEEDBACK_PER_DECODE, MAX_TRANSLATED_FRAME_BYTES, TranslatorCallError, WasmTranslator};
-pub use wasi::{BlockingCall, random_seed};
+pub use wasi::BlockingCall;
 
 #[derive(Clone, Debug, Error)]
 pub enum SandboxError {
@@ -94,4 +96,14 @@ pub fn read_component_file(path: &std::path::Path) -> Result<Vec<u8>, LoadError>
         return Err(LoadError::TooLarge { path: path.to_path_buf() });
     }
     Ok(bytes)
+}
+
+/// A wasmtime error and its root cause, as one line of text.
+fn error_text(err: &wasmtime::Error) -> String {
+    let mut text = err.to_string();
+    let cause = err.root_cause().to_string();
+    if cause != text {
+        text = format!("{text}: {cause}");
+    }
+    text
 }

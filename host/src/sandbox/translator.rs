@@ -9,11 +9,12 @@ use thiserror::Error;
 use wasmtime::Store;
 
 use super::SandboxError;
-use super::engine::{INIT_BUDGET, TranslatorPre};
-use super::guest::{GuestState, MAX_GUEST_MESSAGE_BYTES, arm, call_error, truncate};
+use super::artifact::TranslatorPre;
+use super::guest::{GuestState, arm, call_error};
+use super::limits::{INIT_BUDGET, MAX_GUEST_MESSAGE_BYTES};
 use crate::contract::bindings::subsume::robot::types::{Decoded, Feedback as WitFeedback, Pose};
 use crate::contract::v1::translator_bindings as v1_bindings;
-use crate::contract::{LinkPlan, Param, translator_bindings, v1};
+use crate::contract::{LinkPlan, Param, clip_to, translator_bindings, v1};
 
 /// Most bytes one `encode` or `poll` may return: a motor frame is a few
 /// dozen bytes.
@@ -81,7 +82,7 @@ impl WasmTranslator {
         match init {
             Ok(Ok(())) => {}
             Ok(Err(message)) => {
-                return Err(SandboxError::Call { call: "init()", reason: truncate(message, MAX_GUEST_MESSAGE_BYTES) });
+                return Err(SandboxError::Call { call: "init()", reason: clip_to(&message, MAX_GUEST_MESSAGE_BYTES) });
             }
             Err(e) => return Err(call_error("init()", INIT_BUDGET, &e)),
         }
@@ -137,7 +138,7 @@ impl WasmTranslator {
                 "encode: returned {} bytes; at most {MAX_TRANSLATED_FRAME_BYTES} are allowed",
                 bytes.len()
             ))),
-            Ok(Err(message)) => Err(TranslatorCallError::Refused(truncate(message, MAX_GUEST_MESSAGE_BYTES))),
+            Ok(Err(message)) => Err(TranslatorCallError::Refused(clip_to(&message, MAX_GUEST_MESSAGE_BYTES))),
             Err(err) => Err(self.break_with("encode", &err)),
         }
     }

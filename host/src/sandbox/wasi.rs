@@ -11,7 +11,7 @@
 //!   ready now, and when nothing is, the call traps with [`BlockingCall`]
 //!   (a sleep, a timer or a read that would wait);
 //! - `wasi:random/*`: generators seeded from the component's name
-//!   ([`random_seed`]), so a run can be replayed.
+//!   ([`random_seed`](super::random_seed)), so a run can be replayed.
 //!
 //! Everything else is wasmtime-wasi's, with no capabilities (`guest.rs`
 //! builds the context): no preopened directories, no sockets, no
@@ -23,7 +23,6 @@
 
 use std::time::{Duration, SystemTime};
 
-use sha2::{Digest, Sha256};
 use thiserror::Error;
 use wasmtime::component::{HasData, Linker, Resource, ResourceTable};
 use wasmtime_wasi::p2::bindings::clocks::{monotonic_clock, wall_clock};
@@ -53,16 +52,6 @@ pub(super) fn add_to_linker(linker: &mut Linker<GuestState>) -> wasmtime::Result
     poll::add_to_linker::<GuestState, NonBlocking>(linker, |state| NonBlockingPoll(&mut state.table))?;
     linker.allow_shadowing(false);
     Ok(())
-}
-
-/// The seed of a component's WASI generators: the same for every instance
-/// of the same name, so a run replays (a component that wants different
-/// numbers per robot takes a seed parameter).
-pub fn random_seed(component: &str) -> [u8; 32] {
-    let mut hash = Sha256::new();
-    hash.update(b"subsume guest random\0");
-    hash.update(component.as_bytes());
-    hash.finalize().into()
 }
 
 /// The clocks' view of a store: its table and the current call's times.
@@ -198,6 +187,7 @@ impl poll::HostPollable for NonBlockingPoll<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sandbox::random_seed;
 
     fn view<'a>(table: &'a mut ResourceTable, wall: &'a mut Option<Duration>, now_ns: u64) -> CycleClocksView<'a> {
         CycleClocksView { table, now_ns, wall }

@@ -25,9 +25,12 @@ pub const MAX_FEEDBACK_HZ: f64 = 1000.0;
 /// Longest watchdog of the simulated controller.
 pub const MAX_CONTROLLER_WATCHDOG_S: f64 = 10.0;
 
+/// The parameter naming the world file.
+pub const WORLD_PARAM: &str = "world";
+
 const PARAMS: &[ParamDecl] = &[
     ParamDecl {
-        name: "world",
+        name: WORLD_PARAM,
         ty: ParamType::File { optional: false },
         default: "",
         unit: "",
@@ -139,6 +142,15 @@ fn settings(params: &Params, world: World) -> Result<SimSettings, BuiltinError> 
 impl Builtin for SimBuiltin {
     fn kind(&self) -> &'static str {
         "sim"
+    }
+
+    /// Its pseudo-terminal must exist before a serial link opens it.
+    fn built_first(&self) -> bool {
+        true
+    }
+
+    fn world_param(&self) -> Option<&'static str> {
+        Some(WORLD_PARAM)
     }
 
     fn summary(&self) -> &'static str {

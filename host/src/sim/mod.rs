@@ -38,8 +38,8 @@ use self::create2::{OpenInterface, Readings, WheelCommand};
 use self::physics::{Body, SimStatus, Simulation};
 use self::world::World;
 use crate::robot::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
-use crate::runtime::Component;
 use crate::runtime::lockstep::{Lockstep, LockstepSim};
+use crate::runtime::{Component, NamedSection, StatusSection};
 
 /// Why a simulated robot did not start.
 #[derive(Debug, thiserror::Error)]
@@ -553,20 +553,31 @@ impl SimComponent {
 }
 
 impl Component for SimComponent {
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
-        let (status, commands, malformed, paused) = {
-            let core = self.robot.shared.core();
-            (core.sim.status(), core.commands_received, core.malformed, core.paused)
-        };
-        let mut value = serde_json::to_value(status).ok()?;
-        if let Some(object) = value.as_object_mut() {
-            object.insert("commands_received".into(), commands.into());
-            object.insert("malformed_messages".into(), malformed.into());
-            object.insert("paused".into(), paused.into());
-            object.insert("pty".into(), self.robot.pty_path.display().to_string().into());
-        }
-        Some(("sim", value))
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
+        let core = self.robot.shared.core();
+        Some(Box::new(SimSection {
+            simulation: core.sim.status(),
+            commands_received: core.commands_received,
+            malformed_messages: core.malformed,
+            paused: core.paused,
+            pty: self.robot.pty_path.display().to_string(),
+        }))
     }
+}
+
+/// The simulated robot's section of the report and the live status.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct SimSection {
+    #[serde(flatten)]
+    pub simulation: SimStatus,
+    pub commands_received: u64,
+    pub malformed_messages: u64,
+    pub paused: bool,
+    pub pty: String,
+}
+
+impl NamedSection for SimSection {
+    const SECTION: &'static str = "sim";
 }
 
 #[cfg(test)]

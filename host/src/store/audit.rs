@@ -10,18 +10,15 @@ use super::StoreError;
 
 /// Audit entries returned by one read (the file itself keeps everything).
 pub const MAX_AUDIT_READ: usize = 1000;
-/// Most characters of an entry's detail: enough to name what was refused
+/// Most bytes of an entry's detail: enough to name what was refused
 /// and why (an envelope setting and its values), while one request cannot
 /// grow the log without bound.
 pub const MAX_AUDIT_DETAIL: usize = 300;
 
-/// At most [`MAX_AUDIT_DETAIL`] characters of `detail`.
+/// At most [`MAX_AUDIT_DETAIL`] bytes of `detail`, without control
+/// characters.
 pub fn clip_detail(detail: &str) -> String {
-    let mut clipped: String = detail.chars().take(MAX_AUDIT_DETAIL).collect();
-    if clipped.len() < detail.len() {
-        clipped.push_str("...");
-    }
-    clipped
+    crate::contract::clip_to(detail, MAX_AUDIT_DETAIL)
 }
 
 /// One line of the audit log.
@@ -67,13 +64,13 @@ impl Outcome<'_> {
 
 /// Appends `entry` to the log at `path` in one write, and fsyncs it.
 pub(super) fn append(path: &Path, entry: &AuditEntry) -> Result<(), StoreError> {
-    let io = |e: std::io::Error| StoreError::Io { path: path.to_path_buf(), reason: e.to_string() };
+    let io = super::io(path);
     let mut line =
         serde_json::to_vec(entry).map_err(|e| StoreError::Io { path: path.into(), reason: e.to_string() })?;
     line.push(b'\n');
-    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(io)?;
-    file.write_all(&line).map_err(io)?;
-    file.sync_data().map_err(io)
+    let mut file = std::fs::OpenOptions::new().create(true).append(true).open(path).map_err(&io)?;
+    file.write_all(&line).map_err(&io)?;
+    file.sync_data().map_err(&io)
 }
 
 /// The newest `limit` entries of the log at `path` (at most

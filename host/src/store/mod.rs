@@ -65,11 +65,18 @@ pub const MAX_STORED_COMPONENTS: usize = 500;
 pub const MAX_STORED_WORLDS: usize = 200;
 /// Largest index file (components.json, state.json, a set) read.
 pub const MAX_INDEX_BYTES: u64 = 16 << 20;
+/// The user the first run of a store with no users makes
+/// ([`Store::add_first_admin`]).
+pub const FIRST_ADMIN: &str = "admin";
 
 #[derive(Debug, Error)]
 pub enum StoreError {
     #[error("store {path}: {reason}")]
     Io { path: PathBuf, reason: String },
+    /// The store's file system has no room (or the owner's quota is used
+    /// up): nothing of the change was kept.
+    #[error("store {path}: the disk is full: {reason}")]
+    Full { path: PathBuf, reason: String },
     #[error("store {path}: damaged: {reason}")]
     Damaged { path: PathBuf, reason: String },
     #[error("no set {0} in the store")]
@@ -81,7 +88,11 @@ pub enum StoreError {
 }
 
 fn io(path: &Path) -> impl Fn(std::io::Error) -> StoreError + '_ {
-    move |e| StoreError::Io { path: path.to_path_buf(), reason: e.to_string() }
+    move |e| {
+        let full = matches!(e.kind(), std::io::ErrorKind::StorageFull | std::io::ErrorKind::QuotaExceeded);
+        let (path, reason) = (path.to_path_buf(), e.to_string());
+        if full { StoreError::Full { path, reason } } else { StoreError::Io { path, reason } }
+    }
 }
 
 /// Seconds since the Unix epoch.
@@ -155,6 +166,28 @@ impl Store {
     /// The portal's users (read them here; change them through a writer).
     pub fn users(&self) -> &std::sync::Arc<Users> {
         &self.users
+    }
+
+    /// On a store with no users: adds [`FIRST_ADMIN`], an admin with a
+    /// generated password, records it in the audit log (by `first-run`)
+    /// and returns the password, for the caller to show once; it is
+    /// stored only as its hash. On a store with users: nothing, `None`.
+    /// Under the store's lock, so hosts starting at once on one store make
+    /// one admin between them.
+    pub fn add_first_admin(&self) -> Result<Option<String>, StoreError> {
+        let writer = self.lock()?;
+        if !writer.users().all()?.is_empty() {
+            return Ok(None);
+        }
+        let password = users::generate_password().map_err(|e| StoreError::Refused(e.to_string()))?;
+        let added = writer.users_mut().add(FIRST_ADMIN, users::Role::Admin, &[], &password, false);
+        let target = format!("user '{FIRST_ADMIN}'");
+        match &added {
+            Ok(()) => writer.record("first-run", "user-add", &target, Outcome::Ok("")),
+            Err(e) => writer.record("first-run", "user-add", &target, Outcome::Refused(&e.to_string())),
+        }
+        added?;
+        Ok(Some(password))
     }
 
     pub fn blob_path(&self, sha256: &str) -> PathBuf {
@@ -332,6 +365,23 @@ impl Store {
     }
 }
 
+/// A new store state written beside `state.json`, not yet in its place
+/// ([`StoreWriter::prepare_switch`]); dropped, it changes nothing.
+#[derive(Debug)]
+pub struct PendingState {
+    write: crate::fsutil::PreparedWrite,
+    state: StoreState,
+    path: PathBuf,
+}
+
+impl PendingState {
+    /// Puts the new state in place.
+    pub fn commit(self) -> Result<StoreState, StoreError> {
+        self.write.commit().map_err(io(&self.path))?;
+        Ok(self.state)
+    }
+}
+
 impl StoreWriter<'_> {
     fn write_json<T: serde::Serialize>(&self, path: &Path, value: &T) -> Result<(), StoreError> {
         let bytes = serde_json::to_vec_pretty(value)
@@ -420,6 +470,12 @@ impl StoreWriter<'_> {
     /// Records that set `id` is now the active one (the previous active set
     /// goes onto the rollback history).
     pub fn mark_active(&self, id: u64) -> Result<StoreState, StoreError> {
+        self.prepare_state(self.active_state(id)?)?.commit()
+    }
+
+    /// The state with `id` active (the active one before it goes to the
+    /// history).
+    fn active_state(&self, id: u64) -> Result<StoreState, StoreError> {
         self.set(id)?;
         let mut state = self.state()?;
         if let Some(previous) = state.active
@@ -430,20 +486,40 @@ impl StoreWriter<'_> {
             state.history.drain(..excess);
         }
         state.active = Some(id);
-        self.write_state(&state)?;
         Ok(state)
     }
 
     /// Records a rollback: `id` (the last of the history) is active again.
     pub fn mark_rolled_back(&self, id: u64) -> Result<StoreState, StoreError> {
+        self.prepare_state(self.rolled_back_state(id)?)?.commit()
+    }
+
+    fn rolled_back_state(&self, id: u64) -> Result<StoreState, StoreError> {
         let mut state = self.state()?;
         if state.history.last() != Some(&id) {
             return Err(StoreError::Refused(format!("set {id} is not the previous active set")));
         }
         state.history.pop();
         state.active = Some(id);
-        self.write_state(&state)?;
         Ok(state)
+    }
+
+    /// [`mark_active`](Self::mark_active) (or, with `rollback`,
+    /// [`mark_rolled_back`](Self::mark_rolled_back)) in two halves: the new
+    /// state is written beside the old one now (a full disk fails here,
+    /// before anything changed), and takes its place when the returned
+    /// [`PendingState`] is committed.
+    pub fn prepare_switch(&self, id: u64, rollback: bool) -> Result<PendingState, StoreError> {
+        let state = if rollback { self.rolled_back_state(id)? } else { self.active_state(id)? };
+        self.prepare_state(state)
+    }
+
+    fn prepare_state(&self, state: StoreState) -> Result<PendingState, StoreError> {
+        let path = self.root.join("state.json");
+        let bytes = serde_json::to_vec_pretty(&state)
+            .map_err(|e| StoreError::Io { path: path.clone(), reason: e.to_string() })?;
+        let write = crate::fsutil::prepare_atomically(&path, &bytes).map_err(io(&path))?;
+        Ok(PendingState { write, state, path })
     }
 
     pub fn set_boot_config(&self, sha256: &str) -> Result<(), StoreError> {
@@ -561,6 +637,40 @@ mod tests {
         assert_eq!(reopened.state()?.active, Some(1));
         assert_eq!(reopened.sets()?.len(), 2);
         reopened.verify()
+    }
+
+    /// Hosts starting at once on one empty store (threads with a handle
+    /// each, as processes would): one admin is made, its password (the one
+    /// returned to exactly one of them) logs in, and a later start makes none.
+    #[test]
+    fn hosts_starting_at_once_on_an_empty_store_make_one_admin() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        Store::open(dir.path())?;
+        let passwords: Vec<Option<String>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..6)
+                .map(|_| {
+                    let root = dir.path().to_path_buf();
+                    scope.spawn(move || Store::open(&root).and_then(|store| store.add_first_admin()))
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap_or(Ok(None))).collect::<Result<_, _>>()
+        })?;
+        let made: Vec<&String> = passwords.iter().flatten().collect();
+        assert_eq!(made.len(), 1, "{passwords:?}");
+        let store = Store::open(dir.path())?;
+        let users = store.users().all()?;
+        assert_eq!(
+            users.iter().map(|u| (u.name.as_str(), u.role)).collect::<Vec<_>>(),
+            [(FIRST_ADMIN, users::Role::Admin)]
+        );
+        assert!(store.users().authenticate(FIRST_ADMIN, made[0]).is_some());
+        assert_eq!(store.add_first_admin()?, None);
+        let audit = store.audit_entries(100)?;
+        assert_eq!(
+            audit.iter().map(|e| (e.user.as_str(), e.action.as_str())).collect::<Vec<_>>(),
+            [("first-run", "user-add")]
+        );
+        Ok(())
     }
 
     /// Many threads staging at once, each with its own store handle (as two

@@ -32,6 +32,13 @@ pub const MAX_LINK_DELAY_S: f64 = 10.0;
 /// Largest playout delay of the constant-delay buffer: every command waits
 /// this long at most.
 pub const MAX_PLAYOUT_DELAY_S: f64 = 5.0;
+/// Bounds of `auth-timeout`: long enough for a TLS handshake and a typed
+/// login over a slow link, short enough that a peer holding connections it
+/// never logs in on gives them back within a minute.
+pub const AUTH_TIMEOUT_RANGE_S: (f64, f64) = (0.5, 60.0);
+/// Bounds of `idle-timeout`: an idle operator keeps a place another needs
+/// for a day at most.
+pub const IDLE_TIMEOUT_RANGE_S: (f64, f64) = (1.0, 86_400.0);
 
 const PARAMS: &[ParamDecl] = &[
     ParamDecl {
@@ -88,7 +95,21 @@ const PARAMS: &[ParamDecl] = &[
         ty: ParamType::Integer { min: 1, max: MAX_OPERATORS },
         default: "4",
         unit: "",
-        doc: "connections served at once",
+        doc: "operators logged in at once (connections that have not logged in take no place)",
+    },
+    ParamDecl {
+        name: "auth-timeout",
+        ty: number_in(AUTH_TIMEOUT_RANGE_S.0, AUTH_TIMEOUT_RANGE_S.1),
+        default: "5",
+        unit: "s",
+        doc: "a connection that has not logged in this long after it opened is closed (TLS handshake included)",
+    },
+    ParamDecl {
+        name: "idle-timeout",
+        ty: number_in(IDLE_TIMEOUT_RANGE_S.0, IDLE_TIMEOUT_RANGE_S.1),
+        default: "60",
+        unit: "s",
+        doc: "an operator who sent nothing but pongs this long gives up their place, or control, to another who asks",
     },
     ParamDecl {
         name: "delay",
@@ -159,10 +180,12 @@ pub fn settings(params: &Params, base_dir: &Path) -> Result<TeleopSettings, Buil
             direct_below: params.seconds("direct-below")?,
             shared_below: params.seconds("shared-below")?,
         },
-        max_connections: usize::try_from(max_operators).map_err(|_| BuiltinError::Param {
+        max_operators: usize::try_from(max_operators).map_err(|_| BuiltinError::Param {
             name: "max-operators".into(),
             why: format!("is out of range: {max_operators}"),
         })?,
+        auth_timeout: params.seconds("auth-timeout")?,
+        idle_timeout: params.seconds("idle-timeout")?,
         delay: DelaySettings {
             fixed: fixed_delay(params.text("delay")?)
                 .map_err(|why| BuiltinError::Param { name: "delay".into(), why })?,
@@ -204,6 +227,10 @@ fn transport(
 impl Builtin for TeleopBuiltin {
     fn kind(&self) -> &'static str {
         "teleop"
+    }
+
+    fn answers_to_a_person(&self) -> bool {
+        true
     }
 
     fn summary(&self) -> &'static str {

@@ -40,7 +40,10 @@ use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
 use crate::robot::control::ControlCommand;
 use crate::runtime::control_loop::{Clock, Waker};
-use crate::runtime::{CallError, Component, Locks, Outbox, PriorityCell, RunningRobot, Standing, Standings};
+use crate::runtime::{
+    CallError, Component, Family, Locks, MetricKind, NamedSection, Outbox, PriorityCell, RunningRobot, Sample,
+    Standing, Standings, StatusSection,
+};
 use crate::store::users::Directory;
 
 /// Events from sessions waiting for the control loop; more are dropped and
@@ -61,6 +64,18 @@ pub const MAX_ENDED_SESSIONS_LISTED: usize = 32;
 /// counted): an operator asking for modes in a loop would otherwise grow
 /// its session's report without bound.
 pub const MAX_MODE_CHANGES_LISTED: usize = 32;
+/// Connections that have not logged in yet, on one network platform (its
+/// line protocol, TLS or not, and both WebSockets together): each holds a
+/// socket and a task until it logs in or its `auth-timeout` passes. They
+/// take no operator's place; past this the newest is refused.
+pub const MAX_UNAUTHENTICATED: usize = 64;
+/// Of those, from one client address (one IPv6 /64): a peer opening
+/// connections in a loop holds this many at most, and everyone else still
+/// gets in.
+pub const MAX_UNAUTHENTICATED_PER_ADDRESS: usize = 8;
+/// Orders waiting for a session (close, lose control); a second one is
+/// never needed before the first is read.
+const ORDER_QUEUE: usize = 4;
 
 /// Settings of the network platform.
 #[derive(Clone, Debug)]
@@ -75,8 +90,15 @@ pub struct TeleopSettings {
     pub directory: Option<Arc<Directory>>,
     pub probe_period: Duration,
     pub policy: ModePolicy,
-    /// Connections served at once; more are refused.
-    pub max_connections: usize,
+    /// Operators logged in at once (`max-operators`); connections that
+    /// have not logged in take no place (docs/teleop.md, "Who gets in").
+    pub max_operators: usize,
+    /// How long a connection may take to log in (`auth-timeout`), TLS
+    /// handshake included.
+    pub auth_timeout: Duration,
+    /// How long a logged-in operator may send nothing but pongs before
+    /// another operator may take their place or control (`idle-timeout`).
+    pub idle_timeout: Duration,
     pub delay: DelaySettings,
     /// Serve TLS on both listeners with this identity (the `tls`
     /// parameter, resolved against the host's certificate).
@@ -164,6 +186,83 @@ pub struct SessionReport {
     pub playout_delay_ms: Option<f64>,
 }
 
+/// The network platform's section of the report and the live status.
+#[derive(Clone, Debug, Default, Serialize)]
+pub struct TeleopStatus {
+    /// Where it listens.
+    pub listen: String,
+    /// Operators logged in now (each holds one of `max-operators` places).
+    pub operators_served: usize,
+    /// Connections that have not logged in yet (their own pool).
+    pub unauthenticated: usize,
+    /// Every open session and the newest ended ones.
+    pub sessions: Vec<SessionReport>,
+    /// Ended sessions no longer listed.
+    pub earlier_sessions: u64,
+    /// The commands of every session, listed or not.
+    pub commands: DelayStats,
+    /// The network source's priority now.
+    pub priority: i32,
+    /// The robot it belongs to (renamed by activations).
+    pub robot: String,
+}
+
+impl TeleopStatus {
+    /// The sessions still connected.
+    pub fn open_sessions(&self) -> impl Iterator<Item = &SessionReport> {
+        self.sessions.iter().filter(|s| s.disconnected_at_s.is_none())
+    }
+}
+
+impl NamedSection for TeleopStatus {
+    const SECTION: &'static str = "teleop";
+
+    fn families(&self, component: &str) -> Vec<Family> {
+        let network = || ("network", component.to_string());
+        let mut rtt = Family::new(
+            "subsume_teleop_rtt_seconds",
+            "the last measured round-trip time of each connected operator session",
+            MetricKind::Gauge,
+        );
+        for session in self.open_sessions() {
+            if let Some(ms) = session.rtt_ms {
+                let operator = session.operator.clone().unwrap_or_default();
+                let labels = vec![network(), ("session", session.session.to_string()), ("operator", operator)];
+                rtt = rtt.gauge(labels, ms / 1e3);
+            }
+        }
+        let open = self.open_sessions().count();
+        let c = &self.commands;
+        let mut dropped = Family::new(
+            "subsume_teleop_commands_dropped",
+            "operator commands never released, by reason (stale, duplicate, full, superseded)",
+            MetricKind::Counter,
+        );
+        for (reason, count) in [
+            ("stale", c.dropped_stale),
+            ("duplicate", c.dropped_duplicate),
+            ("full", c.dropped_full),
+            ("superseded", c.superseded),
+        ] {
+            dropped = dropped.counter(vec![network(), ("reason", reason.to_string())], count);
+        }
+        let mut families = vec![rtt];
+        families.extend(Family::each(
+            ("network", component),
+            &[
+                ("subsume_teleop_sessions", "operator connections open now", Sample::Gauge(open as f64)),
+                (
+                    "subsume_teleop_commands_released",
+                    "operator commands released by the delay buffer",
+                    Sample::Counter(c.released),
+                ),
+            ],
+        ));
+        families.push(dropped);
+        families
+    }
+}
+
 /// State shared by the sessions (network runtime) and the component.
 pub struct ServerContext {
     /// The robot that runs now (renamed by activations).
@@ -177,7 +276,52 @@ pub struct ServerContext {
     pub locks: Locks,
     controller: Mutex<Option<(u64, String)>>,
     reports: Mutex<SessionReports>,
-    connections: std::sync::atomic::AtomicUsize,
+    /// Sessions open (logged in or not), counted from `open_session` to
+    /// `close_session`.
+    open: std::sync::atomic::AtomicUsize,
+    /// Connections that have not logged in (their own pool: they take no
+    /// operator's place).
+    pub unauthenticated: Arc<crate::admission::Pool>,
+    /// The logged-in operators' places.
+    operators: Mutex<Vec<OperatorPlace>>,
+}
+
+/// What the host can tell a session to do from outside it.
+#[derive(Debug)]
+pub enum SessionOrder {
+    /// Close, saying why (its place went to another operator).
+    Close(String),
+    /// Control passed to another operator: drop the mode, saying why.
+    LoseControl(String),
+}
+
+/// A logged-in operator's place among `max-operators`.
+#[derive(Debug)]
+struct OperatorPlace {
+    session: u64,
+    name: String,
+    /// The last message other than a `PONG` (the client answers those by
+    /// itself, so they say nothing of a person being there).
+    last_active: tokio::time::Instant,
+    orders: tokio::sync::mpsc::Sender<SessionOrder>,
+}
+
+/// Why a login got no operator's place.
+#[derive(Debug, PartialEq, Eq)]
+pub struct NoPlace {
+    pub max: usize,
+    pub idle_timeout: Duration,
+}
+
+impl std::fmt::Display for NoPlace {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "busy: at most {} operators are served at once, and none has been idle for {} s",
+            self.max,
+            self.idle_timeout.as_secs_f64()
+        )
+    }
 }
 
 /// The sessions the status lists: every open one, in the order they
@@ -235,6 +379,7 @@ impl ServerContext {
     }
 
     fn open_session(&self, session: u64, address: &str, notices: tokio::sync::mpsc::Sender<ServerMessage>) {
+        self.open.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         if let Ok(mut reports) = self.reports.lock() {
             reports.open.push(SessionReport {
                 session,
@@ -273,16 +418,100 @@ impl ServerContext {
         self.report(session, |r| r.malformed_lines += 1);
     }
 
-    /// Gives control to `session` unless another session holds it.
-    fn take_control(&self, session: u64, name: &str) -> Result<(), String> {
+    /// Gives control to `session` unless another session holds it and
+    /// has not been idle for `idle-timeout`; an idle holder loses control
+    /// (and is told). `Err` names the holder.
+    fn take_control(&self, session: u64, name: &str, now: tokio::time::Instant) -> Result<(), String> {
         let Ok(mut controller) = self.controller.lock() else { return Err("nobody (the host is failing)".into()) };
-        match &*controller {
-            Some((holder, holder_name)) if *holder != session => Err(holder_name.clone()),
-            _ => {
-                *controller = Some((session, name.to_string()));
-                Ok(())
+        if let Some((holder, holder_name)) = &*controller
+            && *holder != session
+        {
+            let Ok(places) = self.operators.lock() else { return Err(holder_name.clone()) };
+            let idle =
+                places.iter().find(|p| p.session == *holder).map(|p| now.saturating_duration_since(p.last_active));
+            // A holder with no place is on its way out: it holds nothing.
+            if idle.is_some_and(|idle| idle < self.settings.idle_timeout) {
+                return Err(holder_name.clone());
+            }
+            if let Some(place) = places.iter().find(|p| p.session == *holder) {
+                let why = format!(
+                    "control passed to {name}: you sent nothing for {} s (idle-timeout); ask with MODE to drive again",
+                    self.settings.idle_timeout.as_secs_f64()
+                );
+                let _ = place.orders.try_send(SessionOrder::LoseControl(why));
+            }
+            tracing::info!(from = %holder_name, to = %name, "control passed from an idle operator");
+        }
+        *controller = Some((session, name.to_string()));
+        Ok(())
+    }
+
+    /// An operator's place for `session`, which just logged in as `name`:
+    /// a free one, else the place of the operator idle longest past
+    /// `idle-timeout` (who is told, and closed), else none.
+    fn claim_place(
+        &self,
+        session: u64,
+        name: &str,
+        orders: tokio::sync::mpsc::Sender<SessionOrder>,
+        now: tokio::time::Instant,
+    ) -> Result<(), NoPlace> {
+        let settings = &self.settings;
+        let no_place = NoPlace { max: settings.max_operators, idle_timeout: settings.idle_timeout };
+        let evicted = {
+            let Ok(mut places) = self.operators.lock() else { return Err(no_place) };
+            let mut evicted = None;
+            if places.len() >= settings.max_operators {
+                let idlest = places
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, p)| now.saturating_duration_since(p.last_active) >= settings.idle_timeout)
+                    .min_by_key(|(_, p)| p.last_active)
+                    .map(|(index, _)| index);
+                let Some(index) = idlest else { return Err(no_place) };
+                evicted = Some(places.remove(index));
+            }
+            places.push(OperatorPlace { session, name: name.to_string(), last_active: now, orders });
+            evicted
+        };
+        if let Some(idle) = evicted {
+            let why = format!(
+                "your place went to {name}: you sent nothing for {:.0} s (idle-timeout {} s) while all {} places were taken",
+                now.saturating_duration_since(idle.last_active).as_secs_f64(),
+                settings.idle_timeout.as_secs_f64(),
+                settings.max_operators
+            );
+            tracing::info!(operator = %idle.name, session = idle.session, "idle operator closed for {name}");
+            let _ = idle.orders.try_send(SessionOrder::Close(why));
+            // It holds control no more: the newcomer may ask for it (the
+            // controller's lock is taken after the places' is let go: the
+            // other order is `take_control`'s).
+            if let Ok(mut controller) = self.controller.lock()
+                && controller.as_ref().is_some_and(|(holder, _)| *holder == idle.session)
+            {
+                *controller = None;
             }
         }
+        Ok(())
+    }
+
+    /// Whether `session` holds control.
+    fn holds_control(&self, session: u64) -> bool {
+        self.controller.lock().is_ok_and(|c| c.as_ref().is_some_and(|(holder, _)| *holder == session))
+    }
+
+    /// `session`'s operator did something (anything but a `PONG`).
+    fn touch(&self, session: u64, now: tokio::time::Instant) {
+        if let Ok(mut places) = self.operators.lock()
+            && let Some(place) = places.iter_mut().find(|p| p.session == session)
+        {
+            place.last_active = now;
+        }
+    }
+
+    /// Operators logged in now.
+    pub fn operators_served(&self) -> usize {
+        self.operators.lock().map(|p| p.len()).unwrap_or(0)
     }
 
     fn close_session(&self, session: u64, operator: &Option<String>) {
@@ -291,7 +520,13 @@ impl ServerContext {
         {
             *controller = None;
         }
-        self.connections.fetch_sub(1, std::sync::atomic::Ordering::Relaxed);
+        if let Ok(mut places) = self.operators.lock() {
+            places.retain(|p| p.session != session);
+        }
+        let _ =
+            self.open.fetch_update(std::sync::atomic::Ordering::Relaxed, std::sync::atomic::Ordering::Relaxed, |n| {
+                Some(n.saturating_sub(1))
+            });
         if let Some(name) = operator {
             tracing::info!(operator = %name, session, "operator disconnected");
         }
@@ -360,10 +595,7 @@ impl TeleopComponent {
             ));
         }
         let bind = |address: SocketAddr| -> Result<std::net::TcpListener, BuiltinError> {
-            let listener = std::net::TcpListener::bind(address)
-                .map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))?;
-            listener.set_nonblocking(true).map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))?;
-            Ok(listener)
+            crate::admission::listen(address).map_err(|e| BuiltinError::io(format!("cannot listen on {address}"), e))
         };
         let tcp = bind(settings.listen)?;
         let listen = tcp.local_addr().map_err(|e| BuiltinError::io("cannot read the teleoperation address", e))?;
@@ -384,7 +616,13 @@ impl TeleopComponent {
             locks,
             controller: Mutex::new(None),
             reports: Mutex::new(SessionReports::default()),
-            connections: Default::default(),
+            open: Default::default(),
+            unauthenticated: crate::admission::Pool::new(
+                "unauthenticated connections",
+                MAX_UNAUTHENTICATED,
+                MAX_UNAUTHENTICATED_PER_ADDRESS,
+            ),
+            operators: Mutex::new(Vec::new()),
         });
         let tcp_ctx = ctx.clone();
         let line_tls = ctx.settings.tls.as_ref().map(|identity| identity.line_acceptor());
@@ -405,16 +643,7 @@ impl TeleopComponent {
                     Err(e) => return tracing::error!("cannot serve the teleoperation websocket: {e}"),
                 };
                 let app = websocket_router(ws_ctx);
-                match http_tls {
-                    Some(acceptor) => crate::tls::serve_https(listener, acceptor, app).await,
-                    None => {
-                        if let Err(e) =
-                            axum::serve(listener, app.into_make_service_with_connect_info::<SocketAddr>()).await
-                        {
-                            tracing::error!("the teleoperation websocket stopped: {e}");
-                        }
-                    }
-                }
+                crate::admission::serve_http(listener, http_tls, app, crate::admission::HttpLimits::default()).await;
             });
             let scheme = if over_tls { "wss" } else { "ws" };
             tracing::info!(component = name, "teleoperation websocket on {scheme}://{ws_address}/teleop");
@@ -451,8 +680,10 @@ impl TeleopComponent {
     }
 }
 
-/// Accepts line-protocol operators (over TLS when `tls` is given),
-/// refusing those over the connection limit.
+/// Accepts line-protocol operators (over TLS when `tls` is given). A
+/// connection is admitted to the pool of unauthenticated ones (a refused
+/// one is told why in plain text, or closed before a TLS handshake) and has
+/// `auth-timeout` from its accept to log in, handshake included.
 async fn accept_tcp(
     listener: tokio::net::TcpListener,
     ctx: Arc<ServerContext>,
@@ -469,52 +700,45 @@ async fn accept_tcp(
                 continue;
             }
         };
+        let deadline = tokio::time::Instant::now() + ctx.settings.auth_timeout;
+        let ticket = match ctx.unauthenticated.admit(address.ip()) {
+            Ok(ticket) => ticket,
+            Err(refusal) => {
+                tracing::debug!("refused a teleoperation connection from {address}: {refusal}");
+                if tls.is_none() {
+                    crate::admission::refuse_now(stream, &format!("ERR busy: {refusal}\n"));
+                }
+                continue;
+            }
+        };
         let _ = stream.set_nodelay(true);
         let id = next_id;
         next_id += 1;
         let ctx = ctx.clone();
+        let entry = session::Entry { id, address: address.to_string(), ticket, deadline };
         match &tls {
-            None if !admit(&ctx) => {
-                tokio::spawn(refuse(stream, ctx.settings.max_connections));
-            }
             None => {
-                tokio::spawn(session::serve_tcp(stream, id, address.to_string(), ctx));
+                tokio::spawn(session::serve_tcp(stream, entry, ctx));
             }
             Some(acceptor) => {
                 // The handshake runs on the connection's own task, so a
-                // peer that stalls in it holds up nobody else.
+                // peer that stalls in it holds up nobody else, and counts
+                // against its auth-timeout.
                 let acceptor = acceptor.clone();
-                let Ok(permit) = handshakes.clone().acquire_owned().await else { return };
+                let handshakes = handshakes.clone();
                 tokio::spawn(async move {
-                    let handshaken = crate::tls::handshake(&acceptor, stream, address).await;
-                    drop(permit);
-                    let Some(stream) = handshaken else { return };
-                    if admit(&ctx) {
-                        session::serve_tcp(stream, id, address.to_string(), ctx).await;
-                    } else {
-                        refuse(stream, ctx.settings.max_connections).await;
+                    let handshaken = tokio::time::timeout_at(deadline, async {
+                        let _permit = handshakes.acquire_owned().await.ok()?;
+                        crate::tls::handshake(&acceptor, stream, address).await
+                    })
+                    .await;
+                    if let Ok(Some(stream)) = handshaken {
+                        session::serve_tcp(stream, entry, ctx).await;
                     }
                 });
             }
         }
     }
-}
-
-/// Counts a connection in if there is room.
-fn admit(ctx: &ServerContext) -> bool {
-    use std::sync::atomic::Ordering;
-    let admitted = ctx.connections.fetch_add(1, Ordering::Relaxed) < ctx.settings.max_connections;
-    if !admitted {
-        ctx.connections.fetch_sub(1, Ordering::Relaxed);
-    }
-    admitted
-}
-
-async fn refuse<S: tokio::io::AsyncWrite + Unpin>(mut stream: S, max: usize) {
-    use tokio::io::AsyncWriteExt;
-    let line = format!("ERR busy: at most {max} operators are served at once\n");
-    let _ = stream.write_all(line.as_bytes()).await;
-    let _ = stream.shutdown().await;
 }
 
 /// The `/teleop` WebSocket route of the `websocket` parameter's listener.
@@ -537,18 +761,18 @@ pub fn upgrade_websocket(
     address: SocketAddr,
 ) -> axum::response::Response {
     use axum::response::IntoResponse;
-    if !admit(&ctx) {
-        let max = ctx.settings.max_connections;
-        return (
-            axum::http::StatusCode::SERVICE_UNAVAILABLE,
-            format!("busy: at most {max} operators are served at once"),
-        )
-            .into_response();
-    }
+    let deadline = tokio::time::Instant::now() + ctx.settings.auth_timeout;
+    let ticket = match ctx.unauthenticated.admit(address.ip()) {
+        Ok(ticket) => ticket,
+        Err(refusal) => {
+            return (axum::http::StatusCode::SERVICE_UNAVAILABLE, format!("busy: {refusal}")).into_response();
+        }
+    };
     static NEXT: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(1 << 32);
     let id = NEXT.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let entry = session::Entry { id, address: address.to_string(), ticket, deadline };
     ws.max_message_size(protocol::MAX_LINE_BYTES * 2)
-        .on_upgrade(move |socket| session::serve_websocket(socket, id, address.to_string(), ctx))
+        .on_upgrade(move |socket| session::serve_websocket(socket, entry, ctx))
 }
 
 /// The network platforms running now, so the portal can serve their
@@ -616,7 +840,7 @@ impl TeleopComponent {
     /// held, for the rest of the run. One atomic load when no event is
     /// missing.
     fn end_sessions_heard_of_no_more(&mut self) {
-        if self.sessions.len() <= self.ctx.connections.load(std::sync::atomic::Ordering::Relaxed) {
+        if self.sessions.len() <= self.ctx.open.load(std::sync::atomic::Ordering::Relaxed) {
             return;
         }
         let closed: Vec<u64> =
@@ -681,7 +905,7 @@ impl Component for TeleopComponent {
         self.sessions.values().filter_map(|c| c.buffer.next_release()).min()
     }
 
-    fn status(&self) -> Option<(&'static str, serde_json::Value)> {
+    fn status(&self) -> Option<Box<dyn StatusSection>> {
         let (mut sessions, earlier) = self.ctx.reports.lock().ok()?.listed();
         // The totals count every session, listed or not.
         let mut totals = self.earlier.clone();
@@ -702,15 +926,16 @@ impl Component for TeleopComponent {
             report.commands = stats;
             report.playout_delay_ms = delay.map(|d| d.as_secs_f64() * 1e3);
         }
-        let value = serde_json::json!({
-            "listen": self.listen.to_string(),
-            "sessions": sessions,
-            "earlier_sessions": earlier,
-            "commands": totals,
-            "priority": self.priority.get(),
-            "robot": self.ctx.robot.name(),
-        });
-        Some(("network", value))
+        Some(Box::new(TeleopStatus {
+            listen: self.listen.to_string(),
+            operators_served: self.ctx.operators_served(),
+            unauthenticated: self.ctx.unauthenticated.open(),
+            sessions,
+            earlier_sessions: earlier,
+            commands: totals,
+            priority: self.priority.get(),
+            robot: self.ctx.robot.name(),
+        }))
     }
 }
 
@@ -753,7 +978,9 @@ mod tests {
             directory: None,
             probe_period: Duration::from_secs(1),
             policy: ModePolicy::default(),
-            max_connections: 1,
+            max_operators: 1,
+            auth_timeout: Duration::from_secs(5),
+            idle_timeout: Duration::from_secs(60),
             delay: DelaySettings::default(),
             tls: None,
         };
@@ -810,7 +1037,9 @@ mod tests {
             directory: None,
             probe_period: Duration::from_secs(1),
             policy: ModePolicy::default(),
-            max_connections: 4,
+            max_operators: 4,
+            auth_timeout: Duration::from_secs(5),
+            idle_timeout: Duration::from_secs(60),
             delay: DelaySettings { fixed: Some(Duration::from_millis(100)), ..DelaySettings::default() },
             tls: None,
         };
@@ -835,7 +1064,6 @@ mod tests {
         let (mut teleop, clock) = platform();
         let ctx = teleop.context().clone();
         let mut out = Vec::new();
-        assert!(admit(&ctx));
         let (notices, notice_rx) = tokio::sync::mpsc::channel(session::NOTICE_QUEUE);
         ctx.open_session(7, "127.0.0.1:1", notices);
         let command = ControlCommand::Vel { linear: 0.2, angular: 0.0 };
@@ -877,7 +1105,7 @@ mod tests {
             };
             ctx.mode_changed(3, change);
         }
-        let status = teleop.status().map(|(_, value)| value).unwrap_or_default();
+        let status = teleop.status().map(|status| status.to_json()).unwrap_or_default();
         let session = &status["sessions"][0];
         let times: Vec<f64> =
             session["mode_changes"].as_array().into_iter().flatten().filter_map(|c| c["at_s"].as_f64()).collect();
@@ -885,5 +1113,111 @@ mod tests {
         assert_eq!(times, newest);
         assert_eq!(session["earlier_mode_changes"], extra as u64);
         assert_eq!(session["mode"], serde_json::json!(modes[(MAX_MODE_CHANGES_LISTED + extra - 1) % 2]));
+    }
+    fn orders() -> (tokio::sync::mpsc::Sender<SessionOrder>, tokio::sync::mpsc::Receiver<SessionOrder>) {
+        tokio::sync::mpsc::channel(ORDER_QUEUE)
+    }
+
+    /// Every place taken: a newcomer gets none while everyone was active
+    /// within `idle-timeout`; past it, the operator idle longest (pongs do
+    /// not count: they never touch) is closed and told, and the newcomer
+    /// takes the place. Time is passed in.
+    #[test]
+    fn an_operator_idle_past_the_timeout_gives_up_their_place_to_a_newcomer() {
+        let (teleop, _clock) = platform();
+        let ctx = teleop.context().clone();
+        let max = ctx.settings.max_operators as u64;
+        let idle = ctx.settings.idle_timeout;
+        let t0 = tokio::time::Instant::now();
+        let mut receivers = HashMap::new();
+        for session in 1..=max {
+            let (tx, rx) = orders();
+            assert_eq!(ctx.claim_place(session, &format!("op{session}"), tx, t0), Ok(()));
+            receivers.insert(session, rx);
+        }
+        // Session `max` was active a second later; the others half-way.
+        ctx.touch(max, t0 + Duration::from_secs(1));
+        for session in 2..max {
+            ctx.touch(session, t0 + idle / 2);
+        }
+        let no_place = NoPlace { max: max as usize, idle_timeout: idle };
+        let (tx, _rx) = orders();
+        assert_eq!(ctx.claim_place(100, "late", tx, t0 + idle - Duration::from_millis(1)), Err(no_place));
+        assert_eq!(ctx.operators_served(), max as usize);
+        // Session 1 is the idlest past the timeout: it goes, told why.
+        let (tx, _rx100) = orders();
+        assert_eq!(ctx.claim_place(100, "bob", tx, t0 + idle), Ok(()));
+        match receivers.get_mut(&1).map(|rx| rx.try_recv()) {
+            Some(Ok(SessionOrder::Close(why))) => assert!(why.starts_with("your place went to bob: "), "{why}"),
+            other => panic!("session 1 was not closed: {other:?}"),
+        }
+        // Then session `max` (idle 1 s less), then nobody.
+        let (tx, _rx101) = orders();
+        assert_eq!(ctx.claim_place(101, "carol", tx, t0 + idle + Duration::from_secs(1)), Ok(()));
+        assert!(matches!(receivers.get_mut(&max).map(|rx| rx.try_recv()), Some(Ok(SessionOrder::Close(_)))));
+        let (tx, _rx) = orders();
+        assert!(ctx.claim_place(102, "dave", tx, t0 + idle + Duration::from_secs(2)).is_err());
+        for session in 2..max {
+            assert!(receivers.get_mut(&session).is_some_and(|rx| rx.try_recv().is_err()), "{session} was told");
+        }
+        assert_eq!(ctx.operators_served(), max as usize);
+        // A session that ends gives its place back.
+        ctx.close_session(2, &Some("op2".into()));
+        let (tx, _rx) = orders();
+        assert_eq!(ctx.claim_place(102, "dave", tx, t0 + idle + Duration::from_secs(2)), Ok(()));
+    }
+
+    /// The holder of control keeps it while active; idle past the timeout,
+    /// the next operator's request takes it and the holder is told.
+    #[test]
+    fn an_idle_holder_loses_control_to_the_operator_who_asks() {
+        let (teleop, _clock) = platform();
+        let ctx = teleop.context().clone();
+        let idle = ctx.settings.idle_timeout;
+        let t0 = tokio::time::Instant::now();
+        let (alice_tx, mut alice_rx) = orders();
+        let (bob_tx, _bob_rx) = orders();
+        assert_eq!(ctx.claim_place(1, "alice", alice_tx, t0), Ok(()));
+        assert_eq!(ctx.claim_place(2, "bob", bob_tx, t0), Ok(()));
+        assert_eq!(ctx.take_control(1, "alice", t0), Ok(()));
+        assert_eq!(ctx.take_control(2, "bob", t0 + Duration::from_secs(10)), Err("alice".into()));
+        ctx.touch(1, t0 + Duration::from_secs(20));
+        let just_before = t0 + Duration::from_secs(20) + idle - Duration::from_millis(1);
+        assert_eq!(ctx.take_control(2, "bob", just_before), Err("alice".into()));
+        assert!(alice_rx.try_recv().is_err());
+        assert_eq!(ctx.take_control(2, "bob", t0 + Duration::from_secs(20) + idle), Ok(()));
+        assert!((ctx.holds_control(2), ctx.holds_control(1)) == (true, false));
+        match alice_rx.try_recv() {
+            Ok(SessionOrder::LoseControl(why)) => assert!(why.starts_with("control passed to bob: "), "{why}"),
+            other => panic!("alice was not told: {other:?}"),
+        }
+    }
+
+    /// Logins at once from many threads: exactly `max-operators` get a
+    /// place, the rest none, and every place is given back at the end.
+    #[test]
+    fn concurrent_logins_never_take_more_places_than_there_are() {
+        let (teleop, _clock) = platform();
+        let ctx = teleop.context().clone();
+        let now = tokio::time::Instant::now();
+        for round in 0..50u64 {
+            let threads: Vec<_> = (0..16u64)
+                .map(|i| {
+                    let ctx = ctx.clone();
+                    std::thread::spawn(move || {
+                        let (tx, rx) = orders();
+                        let session = round * 100 + i;
+                        ctx.claim_place(session, "op", tx, now).ok().map(|()| (session, rx))
+                    })
+                })
+                .collect();
+            let placed: Vec<_> = threads.into_iter().filter_map(|t| t.join().ok().flatten()).collect();
+            assert_eq!(placed.len(), ctx.settings.max_operators, "round {round}");
+            assert_eq!(ctx.operators_served(), ctx.settings.max_operators);
+            for (session, _) in &placed {
+                ctx.close_session(*session, &None);
+            }
+            assert_eq!(ctx.operators_served(), 0);
+        }
     }
 }

@@ -5,6 +5,7 @@
 use serde::Serialize;
 use serde_json::json;
 
+use crate::contract::clip;
 use crate::robot::control::{self, ControlCommand};
 use crate::runtime::Standing;
 use crate::teleop::mode::Mode;
@@ -86,7 +87,7 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
         "MODE" => match words.as_slice() {
             [mode] => Mode::parse(mode)
                 .map(ClientMessage::Mode)
-                .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", shown(mode))),
+                .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", clip(mode))),
             _ => Err("MODE takes one mode: MODE direct|shared|supervisory".into()),
         },
         "CMD" => {
@@ -95,10 +96,10 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
                 return Err("CMD takes a sequence number, a time and a control string: CMD <seq> <ms> <command>".into());
             };
             let seq =
-                seq.parse::<u64>().map_err(|_| format!("sequence number '{}' is not a whole number", shown(seq)))?;
+                seq.parse::<u64>().map_err(|_| format!("sequence number '{}' is not a whole number", clip(seq)))?;
             let time_ms = time
                 .parse::<u64>()
-                .map_err(|_| format!("time '{}' is not a whole number of milliseconds", shown(time)))?;
+                .map_err(|_| format!("time '{}' is not a whole number of milliseconds", clip(time)))?;
             let command = control::parse(command).map_err(|e| format!("bad control string: {e}"))?;
             Ok(ClientMessage::Cmd { seq, time_ms, command })
         }
@@ -106,7 +107,7 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
             [nonce] => nonce
                 .parse::<u64>()
                 .map(|nonce| ClientMessage::Pong { nonce })
-                .map_err(|_| format!("nonce '{}' is not a whole number", shown(nonce))),
+                .map_err(|_| format!("nonce '{}' is not a whole number", clip(nonce))),
             _ => Err("PONG takes the nonce of the PING it answers: PONG <nonce>".into()),
         },
         "QUIT" if words.is_empty() => Ok(ClientMessage::Quit),
@@ -119,7 +120,7 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
         },
         "" => Err("empty line".into()),
         other => {
-            Err(format!("unknown message '{}': expected AUTH, MODE, CMD, PONG, ESTOP, RELEASE or QUIT", shown(other)))
+            Err(format!("unknown message '{}': expected AUTH, MODE, CMD, PONG, ESTOP, RELEASE or QUIT", clip(other)))
         }
     }
 }
@@ -142,7 +143,7 @@ pub(super) fn parse_json(text: &str) -> Result<ClientMessage, String> {
             let mode = text_field("mode")?;
             Mode::parse(&mode)
                 .map(ClientMessage::Mode)
-                .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", shown(&mode)))
+                .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", clip(&mode)))
         }
         Some("cmd") => {
             let command = control::parse(&text_field("command")?).map_err(|e| format!("bad control string: {e}"))?;
@@ -157,7 +158,7 @@ pub(super) fn parse_json(text: &str) -> Result<ClientMessage, String> {
         },
         Some(other) => Err(format!(
             "unknown message type '{}': expected auth, mode, cmd, pong, estop, release or quit",
-            shown(other)
+            clip(other)
         )),
         None => Err("missing field 'type'".into()),
     }
@@ -240,16 +241,6 @@ pub fn control_message(standing: &Standing, mode: Option<Mode>, base: i32) -> Se
             }
         }
     }
-}
-
-/// Operator-supplied text, clipped and without control characters, for
-/// error messages.
-fn shown(text: &str) -> String {
-    let mut s: String = text.chars().take(24).map(|c| if c.is_control() { '?' } else { c }).collect();
-    if text.chars().count() > 24 {
-        s.push_str("...");
-    }
-    s
 }
 
 /// A session's summary for the report.

@@ -13,7 +13,8 @@ use tokio::sync::mpsc;
 use tokio::time::Instant;
 
 use super::protocol::{self, ClientMessage, MAX_LINE_BYTES, ModeChange, ServerMessage};
-use super::{NetEvent, ServerContext};
+use super::{NetEvent, ORDER_QUEUE, ServerContext, SessionOrder};
+use crate::admission::Ticket;
 use crate::runtime::DEFAULT_LOCK;
 use crate::runtime::locks::unix_now_ms;
 use crate::teleop::mode::{self, Mode};
@@ -27,10 +28,13 @@ pub const PONG_TIMEOUT: Duration = Duration::from_secs(2);
 pub const MAX_AUTH_FAILURES: u32 = 3;
 /// Pause after a failed authentication.
 pub const AUTH_FAILURE_DELAY: Duration = Duration::from_millis(300);
-/// A connection that has not authenticated after this long is closed.
-pub const AUTH_TIMEOUT: Duration = Duration::from_secs(30);
 /// Notices waiting for a slow client; more are dropped.
 pub const NOTICE_QUEUE: usize = 64;
+/// Longest wait to hand a logged-in operator's client one message: a peer
+/// that stops reading would otherwise hold its task, its place and its
+/// socket for good. (Before the login every write is bounded by the
+/// connection's `auth-timeout` instead.)
+pub const SEND_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// A measurement round of the latency probe.
 #[derive(Debug)]
@@ -207,11 +211,36 @@ struct Session {
     measurement: Option<Measurement>,
     probe: Probe,
     started: Instant,
+    /// Its place among the unauthenticated connections, until it logs in.
+    ticket: Option<Ticket>,
+    /// When it must have logged in (from its accept, or its upgrade).
+    auth_deadline: Instant,
+    /// Where the host's orders to this session go (kept with its
+    /// operator's place once it logs in).
+    orders: mpsc::Sender<SessionOrder>,
+}
+
+/// A connection admitted among the unauthenticated ones.
+pub struct Entry {
+    pub id: u64,
+    pub address: String,
+    pub ticket: Ticket,
+    /// Its login deadline: `auth-timeout` after it was accepted.
+    pub deadline: Instant,
+}
+
+/// A session's deadline for one write: its login deadline until it has
+/// logged in, then [`SEND_TIMEOUT`] from now.
+fn send_deadline(session: &Session) -> Instant {
+    match session.operator {
+        None => session.auth_deadline,
+        Some(_) => Instant::now() + SEND_TIMEOUT,
+    }
 }
 
 /// Serves one line-protocol connection (plain TCP or TLS) until it
 /// closes.
-pub async fn serve_tcp<S>(stream: S, id: u64, address: String, ctx: Arc<ServerContext>)
+pub async fn serve_tcp<S>(stream: S, entry: Entry, ctx: Arc<ServerContext>)
 where
     S: AsyncRead + AsyncWrite + Send + Unpin + 'static,
 {
@@ -219,56 +248,58 @@ where
     let mut lines = LineReader::new(read);
     let mut transport = LineTransport { writer: write };
     let (notices, mut notice_rx) = mpsc::channel(NOTICE_QUEUE);
-    let mut session = Session::new(id, Framing::Lines, &ctx);
-    ctx.open_session(id, &address, notices);
-    if transport.send(&session, &ServerMessage::Hello { robot: ctx.robot.name() }).await.is_err() {
-        ctx.close_session(id, &session.operator);
-        return;
-    }
-    let auth_deadline = Instant::now() + AUTH_TIMEOUT;
+    let (orders, mut order_rx) = mpsc::channel(ORDER_QUEUE);
+    let id = entry.id;
+    ctx.open_session(id, &entry.address, notices);
+    let mut session = Session::new(Framing::Lines, &ctx, entry, orders);
+    let mut outgoing = Reply::Send(vec![ServerMessage::Hello { robot: ctx.robot.name() }]);
     loop {
-        let deadline = if session.operator.is_some() { session.probe.deadline() } else { auth_deadline };
-        let outgoing = tokio::select! {
+        let (messages, close) = outgoing.split();
+        let mut failed = false;
+        for message in &messages {
+            let sent = tokio::time::timeout_at(send_deadline(&session), transport.send(&session, message)).await;
+            failed |= !matches!(sent, Ok(Ok(())));
+        }
+        if close || failed {
+            break;
+        }
+        let deadline = if session.operator.is_some() { session.probe.deadline() } else { session.auth_deadline };
+        outgoing = tokio::select! {
             line = lines.next() => match line {
                 Ok(Some(Ok(text))) => session.handle(protocol::parse_line(&text), &ctx).await,
                 Ok(Some(Err(why))) => Reply::Send(vec![ServerMessage::Error(why)]),
                 Ok(None) | Err(_) => Reply::Close(Vec::new()),
             },
             Some(notice) = notice_rx.recv() => Reply::Send(vec![notice]),
+            Some(order) = order_rx.recv() => session.obey(order, &ctx),
             () = tokio::time::sleep_until(deadline) => session.on_timer(&ctx),
         };
-        let (messages, close) = outgoing.split();
-        let mut failed = false;
-        for message in &messages {
-            failed |= transport.send(&session, message).await.is_err();
-        }
-        if close || failed {
-            break;
-        }
     }
     ctx.close_session(id, &session.operator);
 }
 
 /// Serves one WebSocket connection (JSON messages) until it closes.
-pub async fn serve_websocket(
-    mut socket: axum::extract::ws::WebSocket,
-    id: u64,
-    address: String,
-    ctx: Arc<ServerContext>,
-) {
+pub async fn serve_websocket(mut socket: axum::extract::ws::WebSocket, entry: Entry, ctx: Arc<ServerContext>) {
     use axum::extract::ws::Message;
     let (notices, mut notice_rx) = mpsc::channel(NOTICE_QUEUE);
-    let mut session = Session::new(id, Framing::Json, &ctx);
-    ctx.open_session(id, &address, notices);
-    let hello = ServerMessage::Hello { robot: ctx.robot.name() }.to_json();
-    if socket.send(Message::Text(hello.into())).await.is_err() {
-        ctx.close_session(id, &session.operator);
-        return;
-    }
-    let auth_deadline = Instant::now() + AUTH_TIMEOUT;
+    let (orders, mut order_rx) = mpsc::channel(ORDER_QUEUE);
+    let id = entry.id;
+    ctx.open_session(id, &entry.address, notices);
+    let mut session = Session::new(Framing::Json, &ctx, entry, orders);
+    let mut outgoing = Reply::Send(vec![ServerMessage::Hello { robot: ctx.robot.name() }]);
     loop {
-        let deadline = if session.operator.is_some() { session.probe.deadline() } else { auth_deadline };
-        let outgoing = tokio::select! {
+        let (messages, close) = outgoing.split();
+        let mut failed = false;
+        for message in &messages {
+            let text = Message::Text(message.to_json().into());
+            let sent = tokio::time::timeout_at(send_deadline(&session), socket.send(text)).await;
+            failed |= !matches!(sent, Ok(Ok(())));
+        }
+        if close || failed {
+            break;
+        }
+        let deadline = if session.operator.is_some() { session.probe.deadline() } else { session.auth_deadline };
+        outgoing = tokio::select! {
             message = socket.recv() => match message {
                 Some(Ok(Message::Text(text))) if text.len() <= MAX_LINE_BYTES => session.handle(protocol::parse_json(&text), &ctx).await,
                 Some(Ok(Message::Text(_))) => Reply::Send(vec![ServerMessage::Error(format!("message longer than {MAX_LINE_BYTES} bytes: ignored"))]),
@@ -277,16 +308,9 @@ pub async fn serve_websocket(
                 Some(Err(_)) | None => Reply::Close(Vec::new()),
             },
             Some(notice) = notice_rx.recv() => Reply::Send(vec![notice]),
+            Some(order) = order_rx.recv() => session.obey(order, &ctx),
             () = tokio::time::sleep_until(deadline) => session.on_timer(&ctx),
         };
-        let (messages, close) = outgoing.split();
-        let mut failed = false;
-        for message in &messages {
-            failed |= socket.send(Message::Text(message.to_json().into())).await.is_err();
-        }
-        if close || failed {
-            break;
-        }
     }
     ctx.close_session(id, &session.operator);
 }
@@ -322,10 +346,10 @@ impl Reply {
 }
 
 impl Session {
-    fn new(id: u64, framing: Framing, ctx: &ServerContext) -> Session {
+    fn new(framing: Framing, ctx: &ServerContext, entry: Entry, orders: mpsc::Sender<SessionOrder>) -> Session {
         let now = Instant::now();
         Session {
-            id,
+            id: entry.id,
             framing,
             operator: None,
             auth_failures: 0,
@@ -333,6 +357,22 @@ impl Session {
             measurement: None,
             probe: Probe::new(ctx.settings.probe_period, now),
             started: now,
+            ticket: Some(entry.ticket),
+            auth_deadline: entry.deadline,
+            orders,
+        }
+    }
+
+    /// Carries out what the host ordered from outside the session.
+    fn obey(&mut self, order: SessionOrder, ctx: &ServerContext) -> Reply {
+        match order {
+            SessionOrder::Close(why) => Reply::Close(vec![ServerMessage::Error(why)]),
+            SessionOrder::LoseControl(why) => {
+                if self.mode.is_some() {
+                    self.set_mode(None, "control passed to another operator while idle", ctx);
+                }
+                Reply::Send(vec![ServerMessage::Error(why)])
+            }
         }
     }
 
@@ -345,6 +385,9 @@ impl Session {
             }
         };
         let now = Instant::now();
+        if self.operator.is_some() && !matches!(message, ClientMessage::Pong { .. }) {
+            ctx.touch(self.id, now);
+        }
         match message {
             ClientMessage::Quit => Reply::Close(vec![ServerMessage::Ok("bye".into())]),
             ClientMessage::Pong { nonce } => match self.probe.on_pong(nonce, now) {
@@ -356,6 +399,12 @@ impl Session {
                     return Reply::Send(vec![ServerMessage::Error(format!("already authenticated as {operator}"))]);
                 }
                 if ctx.settings.check_token(&name, &token) {
+                    if let Err(no_place) = ctx.claim_place(self.id, &name, self.orders.clone(), now) {
+                        tracing::info!(operator = %name, session = self.id, "operator refused: {no_place}");
+                        return Reply::Close(vec![ServerMessage::Error(no_place.to_string())]);
+                    }
+                    // A logged-in operator leaves the unauthenticated pool.
+                    self.ticket = None;
                     self.operator = Some(name.clone());
                     ctx.authenticated(self.id, &name);
                     tracing::info!(operator = %name, session = self.id, "operator authenticated");
@@ -411,6 +460,11 @@ impl Session {
                 Reply::Send(vec![ServerMessage::Ok(format!("released {}", said.join(", ")))])
             }
             ClientMessage::Cmd { seq, time_ms, command } => {
+                if self.mode.is_some() && !ctx.holds_control(self.id) {
+                    // Control passed on while this session was idle, and
+                    // its order has not been read yet.
+                    self.set_mode(None, "control passed to another operator while idle", ctx);
+                }
                 if self.mode.is_none() {
                     return Reply::Send(vec![ServerMessage::Error(
                         "ask for a control mode first: MODE direct|shared|supervisory".into(),
@@ -475,7 +529,7 @@ impl Session {
                 mode::list(&allowed)
             ));
         }
-        if let Err(holder) = ctx.take_control(self.id, self.operator.as_deref().unwrap_or("")) {
+        if let Err(holder) = ctx.take_control(self.id, self.operator.as_deref().unwrap_or(""), Instant::now()) {
             return ServerMessage::Error(format!("control is held by {holder}"));
         }
         let reason = format!("granted: rtt {:.1} ms allows {}", ms(m.rtt), mode::list(&allowed));

@@ -7,6 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
 
+pub mod flood;
+
 /// The repository root.
 pub fn repo_root() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).parent().map_or_else(|| PathBuf::from(".."), Path::to_path_buf)
@@ -123,6 +125,48 @@ impl MotorRecorder {
     }
 }
 
+/// A pseudo-terminal to hand a child as its standard output or error (a
+/// person's terminal, as `isatty` sees it): what the child writes there
+/// is read from the other end.
+pub struct Terminal {
+    master: serialport::TTYPort,
+    slave: std::fs::File,
+    /// Everything read so far.
+    pub text: String,
+}
+
+impl Terminal {
+    pub fn new() -> Terminal {
+        use serialport::SerialPort;
+        let (mut master, slave) = serialport::TTYPort::pair().unwrap_or_else(|e| panic!("no pseudo-terminal: {e}"));
+        let _ = master.set_timeout(std::time::Duration::from_millis(50));
+        let name = slave.name().unwrap_or_default();
+        let slave = std::fs::OpenOptions::new().read(true).write(true).open(&name).unwrap();
+        Terminal { master, slave, text: String::new() }
+    }
+
+    /// The terminal's end for the child (stdout or stderr).
+    pub fn stdio(&self) -> std::process::Stdio {
+        std::process::Stdio::from(self.slave.try_clone().unwrap())
+    }
+
+    /// Reads until `done` holds for the text read so far, for at most
+    /// `timeout`; whether it held.
+    pub fn read_until(&mut self, timeout: std::time::Duration, done: impl Fn(&str) -> bool) -> bool {
+        let deadline = std::time::Instant::now() + timeout;
+        let mut buffer = [0u8; 4096];
+        while !done(&self.text) {
+            if std::time::Instant::now() >= deadline {
+                return false;
+            }
+            if let Ok(n) = std::io::Read::read(&mut self.master, &mut buffer) {
+                self.text.push_str(&String::from_utf8_lossy(&buffer[..n]));
+            }
+        }
+        true
+    }
+}
+
 /// `subsume` run from the repository root with the tests' compile cache,
 /// `RUST_LOG=info` and `NO_COLOR=1`; the caller adds the subcommand.
 pub fn subsume() -> Command {
@@ -141,10 +185,15 @@ pub struct HostProcess {
 
 impl HostProcess {
     /// Spawns `command` (stdout discarded, stderr read).
-    pub fn spawn(mut command: Command) -> HostProcess {
+    pub fn spawn(command: Command) -> HostProcess {
+        HostProcess::spawn_with_stdout(command, std::process::Stdio::null())
+    }
+
+    /// Spawns `command` with this stdout (a pipe, a terminal), stderr read.
+    pub fn spawn_with_stdout(mut command: Command, stdout: std::process::Stdio) -> HostProcess {
         use std::io::BufRead;
         let mut child = command
-            .stdout(std::process::Stdio::null())
+            .stdout(stdout)
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap_or_else(|e| panic!("cannot start the host: {e}"));
@@ -197,7 +246,19 @@ impl Drop for HostProcess {
 /// One HTTP/1.1 request to the portal at `address`: (status, JSON body,
 /// or null when the body is not JSON).
 pub fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, serde_json::Value) {
-    let mut stream = std::net::TcpStream::connect(address).unwrap();
+    http_on(std::net::TcpStream::connect(address).unwrap(), address, method, path, token, body)
+}
+
+/// [`http`] on a connection the caller opened (e.g. from a chosen source
+/// address).
+pub fn http_on(
+    mut stream: std::net::TcpStream,
+    address: &str,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: &[u8],
+) -> (u16, serde_json::Value) {
     stream.set_read_timeout(Some(std::time::Duration::from_secs(30))).unwrap();
     let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
     let head = format!(
@@ -315,4 +376,40 @@ pub fn store_snapshot(except: &[&str], store: &Path) -> Vec<(PathBuf, Vec<u8>)> 
     }
     files.sort();
     files
+}
+
+/// `component` (ticking at `hz`) kept its rate beside an offender that spent
+/// `offender_ms` in its calls: it stayed on its schedule's grid (ticks the
+/// loop could not run are counted as missed, not lost), and missed no more
+/// ticks than the machine and the offender explain. The machine's share is
+/// the time the control thread waited for a CPU (`loop_lateness.
+/// waited_for_cpu_ms`, the kernel's run delay): near zero on an idle machine,
+/// large while other processes keep the cores busy. Ticks missed beyond
+/// both (and beyond `tolerance`, the share allowed on an idle machine)
+/// would mean the host held the loop itself, e.g. while faulting the
+/// offender.
+pub fn kept_its_rate(
+    report: &serde_json::Value,
+    component: &serde_json::Value,
+    hz: f64,
+    tolerance: f64,
+    offender_ms: f64,
+    what: &str,
+) {
+    let expected = report["duration_s"].as_f64().unwrap() * hz;
+    let ticks = component["ticks"].as_f64().unwrap();
+    let missed = component["missed_ticks"].as_f64().unwrap();
+    assert!(
+        (ticks + missed - expected).abs() <= 2.0,
+        "{what}: {ticks} ticks and {missed} missed, expected {expected} on the schedule"
+    );
+    let waited_ms = report["loop_lateness"]["waited_for_cpu_ms"].as_f64().unwrap();
+    let explained = (waited_ms + offender_ms) * hz / 1e3 + 2.0;
+    let allowed = explained.max(expected * tolerance);
+    assert!(
+        missed <= allowed,
+        "{what}: the healthy component missed {missed} of {expected} ticks; the loop waited {waited_ms} ms \
+         for a cpu and the offender held it {offender_ms} ms, which explain {explained:.0}: {}",
+        report["loop_lateness"]
+    );
 }
