@@ -634,3 +634,21 @@ async fn validating_answers_like_staging_with_the_same_diagnostics_and_stores_no
     let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
     assert_eq!(audit_lines(&audit), audited + compared, "{audit}");
 }
+
+/// The lab's view carries the host's clock, so a page whose own clock is
+/// off counts down to an experiment's end by the host's; each user sees
+/// it, and the owner's settings only an admin.
+#[tokio::test]
+async fn the_lab_view_carries_the_hosts_clock_and_the_settings_for_admins_only() {
+    let portal = portal().await;
+    let now = || std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as u64;
+    for (user, _, _) in USERS {
+        let before = now();
+        let (status, json) = portal.call(user, "GET", "/api/v1/lab", "").await;
+        let after = now();
+        assert_eq!(status, StatusCode::OK, "{user}: {json}");
+        let host = json["lab"]["now_unix_ms"].as_u64().unwrap_or_default();
+        assert!((before..=after).contains(&host), "{user}: {before} <= {host} <= {after}: {json}");
+        assert_eq!(json["lab"]["settings"].is_object(), *user == "admin", "{user}: {json}");
+    }
+}
