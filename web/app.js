@@ -177,6 +177,9 @@ function renderStatus(s) {
     api('GET', '/world').then((w) => { world = w; }).catch(() => { world = null; });
   }
   $('active-set').textContent = `set ${s.set} (${s.robot})`;
+  // Whose code drives (docs/lab.md): the experiment the set runs as.
+  const tag = s.experiment;
+  $('experiment-tag').textContent = tag ? `experiment ${tag.id} by ${tag.submitter}${tag.label ? ` ('${tag.label}')` : ''}` : 'no experiment: the robot\'s own set';
   const arbiter = s.arbiter || {};
   if (arbiter.engaged) renderLocks(arbiter.engaged);
   $('holder').textContent = arbiter.holder || 'nobody (STOP)';
@@ -198,7 +201,9 @@ function renderStatus(s) {
     // Counters restart with each activated set: no rate across a swap.
     const rate = (k) => before && now.t > before.t && now[k] >= before[k] && s.set === before.set ? ((now[k] - before[k]) / (now.t - before.t)).toFixed(1) : '-';
     const state = el('td', { class: c.state }, c.state + (c.fault ? ': ' + c.fault : ''));
-    body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts))));
+    const sha = tag && tag.sha256 && tag.sha256[c.name];
+    const hash = el('td', { class: 'sha', title: sha || '' }, sha ? sha.slice(0, 12) : '-');
+    body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts)), hash));
   }
   const envelope = s.envelope;
   if (envelope) {
@@ -1396,5 +1401,7 @@ function labOnStatus(s) {
   $('lab-live-envelope').textContent = s.envelope
     ? `passed ${s.envelope.passed}, scaled ${s.envelope.scaled}, stopped ${s.envelope.stopped}${s.envelope.last ? `; last: ${s.envelope.last.text}` : ''}`
     : 'none';
-  $('lab-live-components').textContent = s.components.map((c) => `${c.name}: ${c.state}${c.fault ? ' (' + c.fault + ')' : ''}`).join('\n');
+  const sha = (s.experiment && s.experiment.sha256) || {};
+  $('lab-live-components').textContent = s.components
+    .map((c) => `${c.name}: ${c.state}${c.fault ? ' (' + c.fault + ')' : ''}${sha[c.name] ? ', sha256 ' + sha[c.name].slice(0, 12) : ''}`).join('\n');
 }

@@ -169,6 +169,12 @@ try {
   await ana.waitForSelector(`#lab-banner:has-text("${bannerText}")`);
   check(/\d+ s left$/.test((await ana.textContent('#lab-banner-text')).trim()), await ana.textContent('#lab-banner-text'));
   check(await visible(ana, '#lab-banner-stop'), 'the submitter has no stop button');
+  // Whose code drives: the live view names the experiment and each WASM
+  // component's sha256 (the record's).
+  await ana.waitForSelector(`#experiment-tag:text-is("experiment ${first} by ${researcher} ('first try')")`);
+  for (const c of running.components.filter((c) => c.sha256)) {
+    await ana.waitForSelector(`#health tr[data-component="${c.name}"] td.sha[title="${c.sha256}"]`);
+  }
   await shotOf(ana, 'lab-3-banner');
   await tab(viewer, 'components');
   await viewer.waitForSelector(`#lab-banner:has-text("${bannerText}")`);
