@@ -462,6 +462,105 @@ fn the_portals_own_views_work_in_a_real_browser() {
     }
 }
 
+/// The Lab tab in Chromium (tests/browser/lab.mjs): a researcher submits,
+/// watches, stops and downloads; refusals show their reasons; an admin
+/// pauses, resumes, edits the settings, confirms a manual reset and marks
+/// a baseline. The downloaded results are read with Python's `tarfile` and
+/// checked against their SHA256SUMS; every click reached the host as the
+/// user who clicked (the audit log).
+#[test]
+fn the_lab_tab_works_in_a_real_browser() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    add_user(&store, "ana", "researcher", &["control"]);
+    add_user(&store, "vic", "viewer", &[]);
+    let demo = std::fs::read_to_string(support::repo_root().join("config/demo.xml")).unwrap();
+    let mine = dir.path().join("mine.xml");
+    std::fs::write(&mine, &demo).unwrap();
+    let broken = dir.path().join("broken.xml");
+    std::fs::write(&broken, demo.replace("arbiter.commands\"/>", "arbiter.command\"/>")).unwrap();
+    // A source that reverses blindly (its rays look ahead) into the geofence
+    // behind the start: the preflight refuses it.
+    let reverse = dir.path().join("reverse.xml");
+    let reversing = r#"<component name="reverse" source="builtin:publish" rate="10" priority="2">
+      <param name="kind" value="command"/><param name="value" value="VEL -0.3 0"/></component>
+    <connect from="reverse.out" to="arbiter.commands"/>
+    <connect from="avoid.cmd" to="arbiter.commands"/>"#;
+    std::fs::write(&reverse, demo.replace(r#"<connect from="avoid.cmd" to="arbiter.commands"/>"#, reversing)).unwrap();
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let tar = artifacts.join("lab-results.tar");
+    let _ = std::fs::remove_file(&tar);
+    let url = format!("http://{}/", host.address);
+    let stdout = support::browser(
+        "lab.mjs",
+        &artifacts,
+        &[],
+        &[&url, &"admin", &"ana", &"vic", &PASSWORD, &mine, &broken, &reverse],
+    );
+    assert!(stdout.contains("ok: "), "{stdout}");
+    for shot in [
+        "0-researcher-watches",
+        "0-researcher-reserved",
+        "1-queued",
+        "2-running",
+        "3-banner",
+        "4-refused",
+        "5-limit",
+        "6-admin",
+        "7-baseline",
+    ] {
+        assert!(artifacts.join(format!("lab-{shot}.png")).is_file(), "{shot}");
+    }
+    // The results as downloaded, read by an implementation no one here wrote.
+    let check = r#"
+import hashlib, sys, tarfile
+with tarfile.open(sys.argv[1]) as tar:
+    files = {m.name.split("/", 1)[1]: tar.extractfile(m).read() for m in tar.getmembers() if m.isfile()}
+sums = dict(reversed(line.split("  ", 1)) for line in files.pop("SHA256SUMS").decode().splitlines())
+assert sums == {name: hashlib.sha256(data).hexdigest() for name, data in files.items()}, sorted(sums)
+print(" ".join(sorted(files)))
+"#;
+    let output = Command::new(support::python()).arg("-c").arg(check).arg(&tar).output().unwrap();
+    let names = String::from_utf8_lossy(&output.stdout).into_owned();
+    assert!(output.status.success(), "{names}{}", String::from_utf8_lossy(&output.stderr));
+    for name in ["experiment.json", "run.mcap", "preflight.mcap", "report.json", "robot.xml", "log.txt"] {
+        assert!(names.split_whitespace().any(|n| n == name), "{name} is not in the results: {names}");
+    }
+    // Each click reached the host as the user who clicked.
+    let entries = subsume::store::Store::open(&store).unwrap().audit_entries(1000).unwrap();
+    let done: Vec<(&str, &str)> = entries
+        .iter()
+        .filter(|e| e.result == "ok" && (e.user == "admin" || e.user == "ana"))
+        .filter(|e| {
+            e.action.starts_with("lab-") || ["book", "unbook", "cancel-experiment"].contains(&e.action.as_str())
+        })
+        .map(|e| (e.user.as_str(), e.action.as_str()))
+        .collect();
+    assert_eq!(
+        done,
+        [
+            ("ana", "book"),
+            ("ana", "unbook"),
+            ("admin", "lab-pause"),
+            ("admin", "lab-resume"),
+            ("ana", "book"),
+            ("ana", "unbook"),
+            ("ana", "cancel-experiment"),
+            ("admin", "lab-settings"),
+            ("admin", "lab-settings"),
+            ("admin", "lab-reset"),
+            ("admin", "lab-baseline"),
+        ],
+        "{entries:#?}"
+    );
+    let submitted = entries.iter().filter(|e| e.action == "submit-experiment" && e.user == "ana");
+    let refused: Vec<&str> = submitted.clone().filter(|e| e.result == "refused").map(|e| e.detail.as_str()).collect();
+    assert_eq!(submitted.count(), 6, "{entries:#?}");
+    assert_eq!(refused.len(), 2, "{refused:?}");
+}
+
 /// The host keeps the plots' history (`GET /api/v1/history`, for whoever
 /// may see the status): a sample a second, bounded, times increasing, the
 /// values those of the live status.

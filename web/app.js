@@ -17,6 +17,7 @@ async function api(method, path, body, headers = {}) {
     const error = new Error(data.error || response.statusText);
     error.status = response.status;
     error.body = data;
+    error.retryAfter = response.headers.get('retry-after');
     throw error;
   }
   return data;
@@ -49,6 +50,7 @@ async function boot() {
 
 function start(user) {
   me = user;
+  applyRoles();
   $('login-view').hidden = true;
   $('app').hidden = false;
   $('tabs').hidden = false;
@@ -61,6 +63,44 @@ function start(user) {
   startLive();
   refreshComponents();
   refreshSets();
+  startLab();
+}
+
+// ---- who sees which control ------------------------------------------------
+// One row per control: a CSS selector and the roles that see it. The host
+// refuses what a role may not do anyway; this hides what would be refused.
+// 'reservation' is a user inside their own reservation now (docs/lab.md:
+// they may drive); '-ROLE' hides the control from ROLE whatever else it
+// holds. A control not listed here is for every logged-in user.
+const VISIBILITY = [
+  ['#tabs button[data-tab="lab"], #lab-kit', ['researcher', 'developer', 'admin']],
+  ['#component-upload-section, #staging-section', ['researcher', 'developer', 'admin']],
+  ['button.activate, #rollback', ['developer', 'admin']],
+  ['#replay-section, button.replay', ['developer', 'admin']],
+  ['#tabs button[data-tab="recordings"]', ['developer', 'admin']],
+  ['#drive-intro, #drive-controls, #drive-pad-column, #sim-controls', ['operator', 'admin', 'reservation']],
+  ['#drive-not-yours', ['viewer', 'researcher', 'developer', '-reservation']],
+  ['#lab-admin, #lab-reset-confirm, #lab-book-for-label, .lab-submitter', ['admin']],
+];
+// The table as one stylesheet: a control is hidden unless the body carries
+// one of its roles' classes, so controls drawn later (a set's buttons) obey
+// it too.
+(() => {
+  const rules = VISIBILITY.map(([selectors, roles]) => {
+    const unless = roles.filter((r) => !r.startsWith('-')).map((r) => `:not(.role-${r})`).join('');
+    const never = roles.filter((r) => r.startsWith('-')).map((r) => `.role-${r.slice(1)}`);
+    const bodies = [`body${unless}`, ...never.map((n) => `body${n}`)];
+    return bodies.flatMap((b) => selectors.split(',').map((sel) => `${b} ${sel.trim()}`)).join(',\n') + ' { display: none !important; }';
+  });
+  document.head.append(el('style', { id: 'role-visibility' }, rules.join('\n')));
+})();
+// The body's role classes: the user's role, and 'reservation' while the
+// reservation in effect now is theirs.
+function applyRoles(reservedNow = null) {
+  for (const c of [...document.body.classList]) if (c.startsWith('role-')) document.body.classList.remove(c);
+  if (!me) return;
+  document.body.classList.add('role-' + me.role);
+  if (reservedNow && reservedNow.user === me.name) document.body.classList.add('role-reservation');
 }
 
 // ---- emergency stop (docs/estop.md) --------------------------------------
@@ -108,8 +148,10 @@ for (const button of document.querySelectorAll('#tabs button')) {
     if (button.dataset.tab === 'components') refreshComponents();
     if (button.dataset.tab === 'sets') { refreshSets(); refreshReplayRecordings(); refreshWorlds(); }
     if (button.dataset.tab === 'recordings') refreshRecordings();
+    if (button.dataset.tab === 'lab') { refreshLabSets(); renderLab(); }
   });
 }
+function showTab(name) { document.querySelector(`#tabs button[data-tab="${name}"]`).click(); }
 
 // ---- live view -----------------------------------------------------------
 async function startLive() {
@@ -135,6 +177,9 @@ function renderStatus(s) {
     api('GET', '/world').then((w) => { world = w; }).catch(() => { world = null; });
   }
   $('active-set').textContent = `set ${s.set} (${s.robot})`;
+  // Whose code drives (docs/lab.md): the experiment the set runs as.
+  const tag = s.experiment;
+  $('experiment-tag').textContent = tag ? `experiment ${tag.id} by ${tag.submitter}${tag.label ? ` ('${tag.label}')` : ''}` : 'no experiment: the robot\'s own set';
   const arbiter = s.arbiter || {};
   if (arbiter.engaged) renderLocks(arbiter.engaged);
   $('holder').textContent = arbiter.holder || 'nobody (STOP)';
@@ -156,7 +201,9 @@ function renderStatus(s) {
     // Counters restart with each activated set: no rate across a swap.
     const rate = (k) => before && now.t > before.t && now[k] >= before[k] && s.set === before.set ? ((now[k] - before[k]) / (now.t - before.t)).toFixed(1) : '-';
     const state = el('td', { class: c.state }, c.state + (c.fault ? ': ' + c.fault : ''));
-    body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts))));
+    const sha = tag && tag.sha256 && tag.sha256[c.name];
+    const hash = el('td', { class: 'sha', title: sha || '' }, sha ? sha.slice(0, 12) : '-');
+    body.append(el('tr', { 'data-component': c.name }, el('td', {}, c.name), state, el('td', {}, rate('i')), el('td', {}, rate('o')), el('td', {}, String(c.restarts)), hash));
   }
   const envelope = s.envelope;
   if (envelope) {
@@ -175,6 +222,7 @@ function renderStatus(s) {
   }).join('\n');
   drawMap(sim, envelope);
   viewsOnStatus(s);
+  labOnStatus(s);
 }
 
 function drawMap(sim, envelope, canvas = $('map')) {
@@ -958,3 +1006,402 @@ $('world-upload').addEventListener('click', async () => {
   }
   refreshWorlds();
 });
+
+// ---- the remote lab (docs/lab.md) ------------------------------------------
+// Experiments: submit a staged set (or a robot file, staged first), watch
+// each one's states live (GET /lab/events: an event `lab` with the lab and
+// the caller's experiments at every change), cancel, download results;
+// reservations; for admins the queue, the baseline and the settings. While
+// an experiment runs, a banner on every tab says who runs which set and
+// how long is left, with a stop button for its submitter and admins.
+let lab = null;
+let labExperiments = [];
+let labEvents = null;
+// The host's clock minus this page's (the lab view carries the host's), so
+// countdowns are right on a page whose clock is off.
+let hostOffsetMs = 0;
+const hostNow = () => Date.now() + hostOffsetMs;
+const FINAL_STATES = new Set(['done', 'refused', 'cancelled', 'aborted', 'failed']);
+// Experiments drawn at most (an admin's list can hold thousands).
+const MAX_EXPERIMENTS_SHOWN = 100;
+const openDetails = new Set();
+
+// "41 s", "3 min 20 s", "2 h 5 min".
+function span(seconds) {
+  const s = Math.max(0, Math.round(seconds));
+  if (s < 90) return `${s} s`;
+  if (s < 5400) return `${Math.floor(s / 60)} min${s % 60 ? ` ${s % 60} s` : ''}`;
+  const m = Math.round(s / 60);
+  return `${Math.floor(m / 60)} h ${m % 60} min`;
+}
+const clock = (ms) => new Date(ms).toLocaleTimeString();
+const when = (ms) => new Date(ms).toLocaleString();
+// A time left until `atMs` (the host's clock) that the ticker keeps current.
+const countdown = (atMs) => el('span', { class: 'countdown', 'data-until': String(atMs) }, span((atMs - hostNow()) / 1000));
+function tick() {
+  for (const node of document.querySelectorAll('[data-until]')) node.textContent = span((Number(node.dataset.until) - hostNow()) / 1000);
+}
+setInterval(tick, 1000);
+
+function startLab() {
+  const start = new Date(Date.now() + 10 * 60000);
+  start.setMinutes(Math.ceil(start.getMinutes() / 5) * 5, 0, 0);
+  const local = new Date(start.getTime() - start.getTimezoneOffset() * 60000);
+  $('lab-book-start').value = local.toISOString().slice(0, 16);
+  buildSettingsForm();
+  refreshLabSets();
+  if (labEvents) labEvents.close();
+  labEvents = new EventSource('/api/v1/lab/events');
+  labEvents.addEventListener('lab', (e) => {
+    const data = JSON.parse(e.data);
+    lab = data.lab;
+    labExperiments = data.experiments;
+    hostOffsetMs = lab.now_unix_ms - Date.now();
+    applyRoles(lab.reserved_now);
+    renderBanner();
+    renderLab();
+  });
+}
+
+// The banner on every tab while an experiment runs.
+function renderBanner() {
+  const running = lab && lab.running;
+  const banner = $('lab-banner');
+  banner.hidden = !running;
+  document.body.classList.toggle('experiment-running', !!running);
+  if (!running) { delete banner.dataset.experiment; return; }
+  banner.dataset.experiment = String(running.id);
+  const label = running.label ? ` '${running.label}'` : '';
+  $('lab-banner-text').replaceChildren(
+    el('b', {}, `Experiment ${running.id}${label}`), ` by ${running.submitter} runs set ${running.set}: `,
+    countdown(running.ends_unix_ms), ' left');
+  $('lab-banner-stop').hidden = !(me && (running.submitter === me.name || me.role === 'admin'));
+}
+$('lab-banner-watch').addEventListener('click', () => showTab('lab'));
+$('lab-banner-stop').addEventListener('click', async () => {
+  const id = $('lab-banner').dataset.experiment;
+  if (!id) return;
+  $('lab-banner-stop').disabled = true;
+  $('lab-banner-text').textContent = `stopping experiment ${id}: the robot goes back to the baseline...`;
+  try { await api('POST', `/experiments/${id}/cancel`); } catch (err) { $('lab-banner-text').textContent = `not stopped: ${err.message}`; }
+  $('lab-banner-stop').disabled = false;
+});
+for (const link of document.querySelectorAll('a[data-goto]')) {
+  link.addEventListener('click', (e) => { e.preventDefault(); showTab(link.dataset.goto); });
+}
+
+// The staged sets to submit (the user's own first) and, for admins, to
+// mark as the baseline.
+async function refreshLabSets() {
+  let sets;
+  try { ({ sets } = await api('GET', '/sets')); } catch (err) { return; }
+  const mine = (x) => (me && x.created_by === me.name ? 0 : 1);
+  const ordered = sets.slice().sort((a, b) => mine(a) - mine(b) || b.id - a.id);
+  const option = (x) => el('option', { value: String(x.id) }, `set ${x.id}: ${x.config_name} (by ${x.created_by}, ${x.status})`);
+  // A choice the user made stays chosen; otherwise the first is.
+  const pick = $('lab-set');
+  const kept = pick.dataset.chosen;
+  pick.replaceChildren(...ordered.map(option));
+  if (ordered.some((x) => String(x.id) === kept)) pick.value = kept;
+  const base = $('lab-baseline-set');
+  const keptBase = base.dataset.chosen || String(lab ? lab.baseline : '');
+  base.replaceChildren(...sets.slice().sort((a, b) => b.id - a.id).map(option));
+  if (ordered.some((x) => String(x.id) === keptBase)) base.value = keptBase;
+}
+for (const id of ['lab-set', 'lab-baseline-set']) $(id).addEventListener('change', () => { $(id).dataset.chosen = $(id).value; });
+
+// A refused request's answer on `resultId`: the reason, each located
+// diagnostic (file:line:column: message) in `errorsId`, and, for a 429,
+// when the limit frees.
+function showLabRefusal(err, what, resultId, errorsId) {
+  const result = $(resultId);
+  result.className = 'error';
+  result.dataset.status = String(err.status || '');
+  result.replaceChildren(`${what}${err.status ? ` (${err.status})` : ''}: ${err.message}`);
+  if (err.status === 429 && err.retryAfter) {
+    const at = hostNow() + Number(err.retryAfter) * 1000;
+    result.append(el('span', { class: 'frees' }, ` You may submit again at ${when(at)} (in `, countdown(at), ').'));
+  }
+  if (errorsId) {
+    $(errorsId).replaceChildren(...((err.body && err.body.diagnostics) || []).map((d) =>
+      el('li', { 'data-line': String(d.line), 'data-column': String(d.column) }, d.text)));
+  }
+}
+
+$('lab-submit-form').addEventListener('submit', async (e) => {
+  e.preventDefault();
+  const result = $('lab-submit-result');
+  result.className = '';
+  delete result.dataset.experiment;
+  $('lab-submit-errors').replaceChildren();
+  const file = $('lab-robot').files[0];
+  let set = Number($('lab-set').value);
+  let staged = '';
+  if (file) {
+    result.textContent = `validating and staging ${file.name}...`;
+    try {
+      const platform = $('lab-platform').value;
+      const answer = await api('PUT', `/platforms/${platform}/configs/${encodeURIComponent(file.name)}`, await file.text(), { 'content-type': 'application/xml' });
+      set = answer.set.id;
+      staged = `staged ${file.name} as set ${set}; `;
+      $('lab-robot').value = '';
+      refreshLabSets();
+    } catch (err) {
+      showLabRefusal(err, `${file.name} was not staged, nothing was submitted`, 'lab-submit-result', 'lab-submit-errors');
+      return;
+    }
+  }
+  if (!set) { result.className = 'error'; result.textContent = 'choose a staged set or a robot file'; return; }
+  result.textContent = `${staged}submitting set ${set}...`;
+  try {
+    const body = JSON.stringify({ set, duration_s: Number($('lab-duration').value), label: $('lab-label').value });
+    const { experiment } = await api('POST', '/experiments', body, { 'content-type': 'application/json' });
+    result.className = 'ok';
+    result.dataset.experiment = String(experiment.id);
+    result.textContent = `${staged}submitted set ${set} as experiment ${experiment.id}: it runs in the simulator first`;
+  } catch (err) {
+    showLabRefusal(err, `${staged}set ${set} was not submitted`, 'lab-submit-result', 'lab-submit-errors');
+  }
+});
+
+function renderLab() {
+  if (!lab || $('tab-lab').hidden) return;
+  const state = [`The queue ${lab.paused ? 'is paused by an admin' : 'runs'}; ${lab.queued} queued; the baseline is set ${lab.baseline}.`];
+  if (lab.held) state.push(` It waits: ${lab.held}.`);
+  if (lab.reserved_now) state.push(` Reserved now for ${lab.reserved_now.user} until ${clock(lab.reserved_now.end_ms)}.`);
+  $('lab-state').textContent = state.join('');
+  $('lab-state').dataset.paused = String(lab.paused);
+  $('lab-reset-wait').hidden = lab.awaiting_reset == null;
+  $('lab-reset-text').textContent = lab.awaiting_reset == null ? '' : `Experiment ${lab.awaiting_reset} is next and waits for the robot to be put back at its start.`;
+  const running = lab.running;
+  $('lab-live').hidden = !running;
+  if (running) {
+    $('lab-live-title').textContent = `On the robot now: experiment ${running.id} by ${running.submitter} (set ${running.set}${running.label ? `, '${running.label}'` : ''})`;
+    $('lab-live-left').replaceChildren(countdown(running.ends_unix_ms), ` (until ${clock(running.ends_unix_ms)})`);
+  }
+  $('lab-experiments-title').textContent = me && me.role === 'admin' ? 'Every experiment' : 'My experiments';
+  const shown = labExperiments.slice(0, MAX_EXPERIMENTS_SHOWN).map(experimentCard);
+  if (!labExperiments.length) shown.push(el('p', { class: 'hint' }, 'none yet'));
+  if (labExperiments.length > MAX_EXPERIMENTS_SHOWN) shown.push(el('p', { class: 'hint' }, `and ${labExperiments.length - MAX_EXPERIMENTS_SHOWN} older ones`));
+  $('lab-experiments').replaceChildren(...shown);
+  renderReservations();
+  renderLabAdmin();
+}
+
+// Where an experiment is now, in words.
+function experimentNow(x) {
+  const now = el('div', { class: 'exp-now' });
+  if (x.state === 'checking') now.append('its set is validated again');
+  if (x.state === 'preflight') now.append('it runs in the simulator first (the preflight)');
+  if (x.state === 'finishing') now.append('the baseline comes back and its results are written');
+  if (x.state === 'running' && x.ends_unix_ms) now.append('on the robot: ', countdown(x.ends_unix_ms), ` left (until ${clock(x.ends_unix_ms)})`);
+  if (x.state === 'queued') {
+    now.append(el('span', { class: 'place' }, `place ${x.place || '?'} in the queue`), '; ');
+    if (x.awaiting_reset) now.append('it is next and waits for the robot to be reset (an admin confirms)');
+    else if (x.eta_unix_ms) now.append(el('span', { class: 'eta', 'data-eta': String(x.eta_unix_ms) }, `starts about ${clock(x.eta_unix_ms)} (in `, countdown(x.eta_unix_ms), ')'));
+    else now.append(lab.paused ? 'the queue is paused' : (lab.held || 'no start time known yet'));
+  }
+  return now;
+}
+
+function experimentCard(x) {
+  const card = el('div', { class: `experiment state-${x.state}`, 'data-experiment': String(x.id), 'data-state': x.state });
+  const actions = el('span', { class: 'exp-actions' });
+  if (!FINAL_STATES.has(x.state)) {
+    const cancel = el('button', { class: 'cancel', 'data-experiment': String(x.id) }, 'Cancel');
+    cancel.addEventListener('click', async () => {
+      cancel.disabled = true;
+      try { await api('POST', `/experiments/${x.id}/cancel`); } catch (err) { card.append(el('p', { class: 'error' }, `not cancelled: ${err.message}`)); }
+    });
+    actions.append(cancel);
+  } else if (x.results.length) {
+    const bytes = x.results.reduce((sum, f) => sum + f.bytes, 0);
+    actions.append(el('a', { class: 'results', href: `/api/v1/experiments/${x.id}/results`, download: `experiment-${x.id}.tar` },
+      `Results (tar, ${x.results.length} files, ${(bytes / 1048576).toFixed(1)} MiB)`));
+  }
+  card.append(el('div', { class: 'exp-head' },
+    el('b', {}, `Experiment ${x.id}`), ' ', el('span', { class: 'exp-label' }, x.label || '(no label)'), ' ',
+    el('span', { class: 'state' }, x.state), actions));
+  card.append(el('div', { class: 'exp-meta hint' }, `set ${x.set}, ${x.duration_s} s`,
+    el('span', { class: 'lab-submitter' }, `, by ${x.submitter}`), `, submitted ${when(x.submitted_ms)}`));
+  if (!FINAL_STATES.has(x.state)) card.append(experimentNow(x));
+  card.append(el('ol', { class: 'timeline' }, ...x.history.map((h) =>
+    el('li', { 'data-state': h.state, title: h.cause }, el('span', { class: 'tl-state' }, h.state), ` ${clock(h.at_ms)}`))));
+  if (x.reasons.length) card.append(el('ul', { class: 'reasons errors' }, ...x.reasons.map((r) => el('li', {}, r))));
+  const p = x.preflight;
+  if (p) {
+    card.append(el('div', { class: 'preflight', 'data-passed': String(p.passed) },
+      `Preflight: ${p.passed ? 'passed' : 'did not pass'} (${p.simulated_s.toFixed(1)} s simulated in ${p.wall_s.toFixed(1)} s)`,
+      p.replay ? `; replay against the reference: ${JSON.stringify(p.replay)}` : ''));
+  }
+  if (x.run) {
+    card.append(el('div', { class: 'run' }, `On the robot: ${x.run.ran_s.toFixed(1)} s; ${x.run.late_cycles} control cycles late ` +
+      `beyond the watchdog's margin (worst ${x.run.worst_lateness_ms.toFixed(1)} ms)`));
+  }
+  if (x.recording_expired) card.append(el('p', { class: 'hint' }, "its recordings expired (the lab's retention cap); the record stays"));
+  const details = el('details', {}, el('summary', {}, 'States with their causes, components'),
+    el('table', { class: 'history' }, ...x.history.map((h) => el('tr', {}, el('td', {}, when(h.at_ms)), el('td', {}, h.state), el('td', {}, h.cause)))),
+    el('table', { class: 'hashes' }, ...x.components.map((c) => el('tr', {}, el('td', {}, c.name), el('td', {}, c.source), el('td', { class: 'sha' }, c.sha256 || '')))));
+  details.open = openDetails.has(x.id);
+  details.addEventListener('toggle', () => (details.open ? openDetails.add(x.id) : openDetails.delete(x.id)));
+  card.append(details);
+  return card;
+}
+
+function renderReservations() {
+  const body = $('lab-reservations').querySelector('tbody');
+  body.replaceChildren(...lab.reservations.map((r) => {
+    const actions = el('td', {});
+    if (me && (r.user === me.name || me.role === 'admin')) {
+      const cancel = el('button', { class: 'unbook', 'data-reservation': String(r.id) }, 'Cancel');
+      cancel.addEventListener('click', async () => {
+        try { await api('DELETE', `/lab/reservations/${r.id}`); $('lab-book-result').textContent = `cancelled reservation ${r.id}`; } catch (err) { showLabRefusal(err, 'not cancelled', 'lab-book-result'); }
+      });
+      actions.append(cancel);
+    }
+    const now = lab.reserved_now && lab.reserved_now.id === r.id;
+    return el('tr', { 'data-reservation': String(r.id), class: now ? 'now' : '' }, el('td', {}, String(r.id)), el('td', {}, r.user + (now ? ' (now)' : '')),
+      el('td', {}, when(r.start_ms)), el('td', {}, when(r.end_ms)), actions);
+  }));
+  if (!lab.reservations.length) body.append(el('tr', {}, el('td', { colspan: '5', class: 'hint' }, 'none booked')));
+}
+$('lab-book').addEventListener('click', async () => {
+  const start = new Date($('lab-book-start').value).getTime();
+  const minutes = Number($('lab-book-minutes').value);
+  if (!Number.isFinite(start)) { $('lab-book-result').className = 'error'; $('lab-book-result').textContent = 'choose when it starts'; return; }
+  const request = { start_unix_ms: start, end_unix_ms: start + Math.round(minutes * 60000) };
+  if ($('lab-book-for').value.trim()) request.user = $('lab-book-for').value.trim();
+  try {
+    const { reservation } = await api('POST', '/lab/reservations', JSON.stringify(request), { 'content-type': 'application/json' });
+    $('lab-book-result').className = 'ok';
+    $('lab-book-result').textContent = `booked reservation ${reservation.id} for ${reservation.user}: ${when(reservation.start_ms)} to ${clock(reservation.end_ms)}`;
+  } catch (err) {
+    showLabRefusal(err, 'not booked', 'lab-book-result');
+  }
+});
+
+// ---- the lab for admins: the queue, the baseline, the owner's settings ----
+// The settings form, one row per field: [path in the settings, label, kind].
+const LAB_SETTINGS_FIELDS = [
+  ['max_duration_s', 'Longest experiment (s)', 'number'],
+  ['limits.max_queued', 'Experiments waiting, per user', 'number'],
+  ['limits.robot_minutes_per_day', 'Robot minutes per user in any 24 h', 'number'],
+  ['limits.max_reservation_s', 'Longest reservation (s)', 'number'],
+  ['limits.reservation_per_day_s', 'Reserved seconds per user a day', 'number'],
+  ['criteria.max_collisions', 'Preflight: collisions allowed', 'number'],
+  ['criteria.allow_faults', 'Preflight: a component may fault', 'boolean'],
+  ['criteria.allow_geofence', 'Preflight: the geofence may hold the robot', 'boolean'],
+  ['criteria.allow_stop_zone', "Preflight: the envelope's stop zone may stop it", 'boolean'],
+  ['reset', 'Before each experiment the robot is reset by', ['sim', 'manual']],
+  ['preflight_world', "Preflight world (an uploaded world; empty: each set's own)", 'optional'],
+  ['reference_recording', 'Reference recording to replay against (empty: none)', 'optional'],
+  ['retention_bytes', 'Results kept, at most (MiB)', 'mebibytes'],
+  ['kit', 'Researchers may download the lab kit', 'boolean'],
+];
+let settingsDirty = false;
+const settingId = (path) => 'lab-setting-' + path.replace(/[._]/g, '-');
+function buildSettingsForm() {
+  const fields = $('lab-settings-fields');
+  if (fields.children.length) return;
+  for (const [path, label, kind] of LAB_SETTINGS_FIELDS) {
+    let input;
+    if (Array.isArray(kind)) input = el('select', { id: settingId(path) }, ...kind.map((k) => el('option', { value: k }, k)));
+    else if (kind === 'boolean') input = el('input', { id: settingId(path), type: 'checkbox' });
+    else if (kind === 'optional') input = el('input', { id: settingId(path), size: '20' });
+    else input = el('input', { id: settingId(path), type: 'number', step: 'any', min: '0' });
+    input.addEventListener('input', () => { settingsDirty = true; });
+    fields.append(el('label', { for: settingId(path) }, label), input);
+  }
+}
+const settingAt = (settings, path) => path.split('.').reduce((o, k) => o[k], settings);
+function fillSettings(settings) {
+  for (const [path, , kind] of LAB_SETTINGS_FIELDS) {
+    const input = $(settingId(path));
+    const value = settingAt(settings, path);
+    if (kind === 'boolean') input.checked = value;
+    else if (kind === 'optional') input.value = value || '';
+    else if (kind === 'mebibytes') input.value = String(value / 1048576);
+    else input.value = String(value);
+  }
+  settingsDirty = false;
+}
+function readSettings() {
+  const settings = JSON.parse(JSON.stringify(lab.settings));
+  for (const [path, , kind] of LAB_SETTINGS_FIELDS) {
+    const input = $(settingId(path));
+    let value = input.value;
+    if (kind === 'boolean') value = input.checked;
+    else if (kind === 'optional') value = value.trim() || null;
+    else if (kind === 'mebibytes') value = Math.round(Number(value) * 1048576);
+    else if (kind === 'number') value = Number(value);
+    const keys = path.split('.');
+    const last = keys.pop();
+    keys.reduce((o, k) => o[k], settings)[last] = value;
+  }
+  return settings;
+}
+function renderLabAdmin() {
+  if (!me || me.role !== 'admin' || !lab.settings) return;
+  $('lab-queue-state').textContent = lab.paused ? 'paused' : 'runs';
+  $('lab-pause').disabled = lab.paused;
+  $('lab-resume').disabled = !lab.paused;
+  $('lab-baseline').textContent = `set ${lab.baseline}`;
+  if (!settingsDirty) fillSettings(lab.settings);
+}
+for (const [id, action] of [['lab-pause', 'pause'], ['lab-resume', 'resume']]) {
+  $(id).addEventListener('click', async () => {
+    try {
+      const { paused } = await api('POST', `/lab/${action}`);
+      $('lab-queue-result').className = 'ok';
+      $('lab-queue-result').textContent = paused ? 'paused: nothing new starts; what runs goes on' : 'resumed';
+    } catch (err) {
+      showLabRefusal(err, `not ${action}d`, 'lab-queue-result');
+    }
+  });
+}
+$('lab-baseline-mark').addEventListener('click', async () => {
+  const set = Number($('lab-baseline-set').value);
+  try {
+    const { baseline } = await api('PUT', '/lab/baseline', JSON.stringify({ set }), { 'content-type': 'application/json' });
+    $('lab-baseline-result').className = 'ok';
+    $('lab-baseline-result').textContent = `set ${baseline} is the baseline: the robot runs it between experiments`;
+  } catch (err) {
+    showLabRefusal(err, `set ${set} is not the baseline`, 'lab-baseline-result');
+  }
+});
+$('lab-settings').addEventListener('submit', async (e) => {
+  e.preventDefault();
+  try {
+    const { settings } = await api('PUT', '/lab/settings', JSON.stringify(readSettings()), { 'content-type': 'application/json' });
+    fillSettings(settings);
+    $('lab-settings-result').className = 'ok';
+    $('lab-settings-result').textContent = 'saved: they apply to experiments submitted from now on';
+  } catch (err) {
+    showLabRefusal(err, 'not saved', 'lab-settings-result');
+  }
+});
+$('lab-reset-confirm').addEventListener('click', async () => {
+  try {
+    const { confirmed_for: id } = await api('POST', '/lab/reset');
+    $('lab-reset-text').textContent = `confirmed: experiment ${id} starts`;
+  } catch (err) {
+    $('lab-reset-text').textContent = `not confirmed: ${err.message}`;
+  }
+});
+
+// The live view of the experiment on the robot, in the Lab tab (called
+// with every live status).
+function labOnStatus(s) {
+  if ($('tab-lab').hidden || !lab || !lab.running) return;
+  drawMap(s.sim, s.envelope, $('lab-map'));
+  const arbiter = s.arbiter || {};
+  $('lab-live-holder').textContent = arbiter.holder || 'nobody (STOP)';
+  $('lab-live-pose').textContent = s.sim ? `x ${s.sim.x.toFixed(2)} y ${s.sim.y.toFixed(2)} heading ${s.sim.heading.toFixed(2)}` : '-';
+  $('lab-live-collisions').textContent = s.sim ? String(s.sim.collisions) : '-';
+  $('lab-live-envelope').textContent = s.envelope
+    ? `passed ${s.envelope.passed}, scaled ${s.envelope.scaled}, stopped ${s.envelope.stopped}${s.envelope.last ? `; last: ${s.envelope.last.text}` : ''}`
+    : 'none';
+  const sha = (s.experiment && s.experiment.sha256) || {};
+  $('lab-live-components').textContent = s.components
+    .map((c) => `${c.name}: ${c.state}${c.fault ? ' (' + c.fault + ')' : ''}${sha[c.name] ? ', sha256 ' + sha[c.name].slice(0, 12) : ''}`).join('\n');
+}

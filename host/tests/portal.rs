@@ -681,3 +681,56 @@ async fn validating_answers_like_staging_with_the_same_diagnostics_and_stores_no
     let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
     assert_eq!(audit_lines(&audit), audited + compared, "{audit}");
 }
+
+/// The lab's view carries the host's clock, so a page whose own clock is
+/// off counts down to an experiment's end by the host's; each user sees
+/// it, and the owner's settings only an admin.
+#[tokio::test]
+async fn the_lab_view_carries_the_hosts_clock_and_the_settings_for_admins_only() {
+    let portal = portal().await;
+    let now = || std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as u64;
+    for (user, _, _) in USERS {
+        let before = now();
+        let (status, json) = portal.call(user, "GET", "/api/v1/lab", "").await;
+        let after = now();
+        assert_eq!(status, StatusCode::OK, "{user}: {json}");
+        let host = json["lab"]["now_unix_ms"].as_u64().unwrap_or_default();
+        assert!((before..=after).contains(&host), "{user}: {before} <= {host} <= {after}: {json}");
+        assert_eq!(json["lab"]["settings"].is_object(), *user == "admin", "{user}: {json}");
+    }
+}
+
+/// The lab writes its state back whole (pause, a reservation, settings)
+/// from its copy in memory; experiments submitted before and after each of
+/// them keep distinct ids, and none replaces another's record.
+#[tokio::test]
+async fn experiments_submitted_around_lab_changes_never_share_an_id() {
+    let portal = portal().await;
+    let robot = ROBOT.replace(r#"value="1""#, r#"value="7""#);
+    let (status, json) = portal.call("researcher", "PUT", "/api/v1/platforms/control/configs/mine.xml", robot).await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+    let set = json["set"]["id"].as_u64().unwrap();
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).unwrap().as_millis() as u64;
+    let booking = serde_json::json!({ "start_unix_ms": now + 3_600_000, "end_unix_ms": now + 3_900_000 }).to_string();
+    let changes: [(&str, &str, &str, String); 3] = [
+        ("admin", "POST", "/api/v1/lab/pause", String::new()),
+        ("researcher", "POST", "/api/v1/lab/reservations", booking),
+        ("admin", "POST", "/api/v1/lab/resume", String::new()),
+    ];
+    let mut ids = Vec::new();
+    for (n, (user, method, uri, body)) in changes.into_iter().enumerate() {
+        let submission = serde_json::json!({ "set": set, "duration_s": 2, "label": format!("try {n}") }).to_string();
+        let (status, json) = portal.call("researcher", "POST", "/api/v1/experiments", submission).await;
+        assert_eq!(status, StatusCode::CREATED, "{json}");
+        ids.push(json["experiment"]["id"].as_u64().unwrap());
+        let (status, json) = portal.call(user, method, uri, body).await;
+        assert!(status.is_success(), "{uri}: {json}");
+    }
+    assert_eq!(ids, [1, 2, 3]);
+    for (n, id) in ids.iter().enumerate() {
+        let (status, json) = portal.call("researcher", "GET", &format!("/api/v1/experiments/{id}"), "").await;
+        assert_eq!(status, StatusCode::OK, "{json}");
+        assert_eq!(json["experiment"]["label"], format!("try {n}"), "{json}");
+    }
+    assert_eq!(portal.store.lab_state().unwrap().next_experiment, 4);
+}

@@ -192,6 +192,10 @@ pub struct LabView {
     pub reserved_now: Option<Reservation>,
     /// The owner's settings (admins only).
     pub settings: Option<LabSettings>,
+    /// The host's clock when this view was made (ms since the Unix epoch):
+    /// a client whose own clock is off counts down to `running`'s end and
+    /// to ETAs from it.
+    pub now_unix_ms: u64,
 }
 
 /// The body of a submission.
@@ -555,6 +559,7 @@ impl Lab {
             reservations: book.lab.reservations.iter().filter(|r| r.end_ms > now).cloned().collect(),
             reserved_now: queue::reservation_at(&book.lab.reservations, now).cloned(),
             settings: (user.role == Role::Admin).then(|| book.lab.settings.clone()),
+            now_unix_ms: now,
         })
     }
 
