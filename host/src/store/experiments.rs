@@ -317,8 +317,8 @@ impl Default for Limits {
 }
 
 /// What the preflight must see to pass (the owner's; by default nothing
-/// of the kind may happen).
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+/// of the kind may happen: the derived default).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Criteria {
     /// Collisions with obstacles allowed.
@@ -332,11 +332,6 @@ pub struct Criteria {
     pub allow_stop_zone: bool,
 }
 
-impl Default for Criteria {
-    fn default() -> Criteria {
-        Criteria { max_collisions: 0, allow_faults: false, allow_geofence: false, allow_stop_zone: false }
-    }
-}
 
 /// How the robot gets back to its start before each experiment.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
