@@ -1,6 +1,11 @@
 //! The `subsume` command line: parses arguments, sets up logging and signals,
 //! and calls into the library. Errors become messages and exit codes here.
 
+// One file per command is where main.rs is going (host/src/commands/);
+// `lab` starts there.
+#[path = "commands/lab.rs"]
+mod lab_command;
+
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use std::time::Duration;
@@ -246,6 +251,10 @@ enum Command {
         #[arg(long, env = "SUBSUME_PASSWORD", hide_env_values = true)]
         password: String,
     },
+    /// Submit experiments to a robot's remote lab and follow them, list,
+    /// show and cancel them, download their results and the lab kit
+    /// (docs/lab.md).
+    Lab(lab_command::LabCommand),
 }
 
 fn parse_component_arg(text: &str) -> Result<(String, PathBuf), String> {
@@ -440,6 +449,7 @@ fn main() -> ExitCode {
                 })
                 .map_err(anyhow::Error::from)
         }
+        Command::Lab(command) => command.execute(),
         Command::Teleop { address, name, token, tls_ca } => {
             let options = subsume::teleop::client::ClientOptions { address, name, token, tls_ca };
             subsume::teleop::client::run(&options).map(|()| ExitCode::SUCCESS).map_err(anyhow::Error::from)

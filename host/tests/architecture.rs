@@ -7,11 +7,11 @@
 //! - `runtime` imports only the contract; `config` imports no `sandbox` and
 //!   of `runtime` only `runtime::wiring`;
 //! - `builtin` (the framework) imports no built-in module;
-//! - `portal` talks to `deploy`, `store`, `report`, `metrics`, `teleop`
-//!   and the contract only;
+//! - `portal` talks to `deploy`, `lab`, `store`, `report`, `metrics`,
+//!   `teleop` and the contract only;
 //! - nothing but `main.rs` imports `run`, and nothing imports the crate
 //!   root (every `crate::X` names a module);
-//! - `anyhow` appears only in `main.rs`;
+//! - `anyhow` appears only in the binary (`main.rs` and its `commands/`);
 //! - no public function or trait method returns `Result<_, String>`: errors
 //!   that cross a module seam are typed.
 
@@ -221,7 +221,8 @@ fn every_import_rule_holds() {
     }));
     broken.extend(violations(&krate, |_, top, m| top == "builtin" && BUILTIN_MODULES.contains(&m)));
     broken.extend(violations(&krate, |_, top, m| {
-        top == "portal" && !["deploy", "store", "report", "teleop", "contract", "metrics", "logfields"].contains(&m)
+        top == "portal"
+            && !["deploy", "lab", "store", "report", "teleop", "contract", "metrics", "logfields"].contains(&m)
     }));
     broken.extend(violations(&krate, |file, _, m| m == "run" && file != "main.rs"));
     broken.extend(violations(&krate, |_, _, m| !krate.modules.contains(m)));
@@ -233,7 +234,7 @@ fn anyhow_lives_only_in_main_and_no_public_function_returns_a_string_error() {
     let krate = read_crate();
     let mut broken = Vec::new();
     for (file, code) in &krate.code {
-        if file != "main.rs" && code.contains("anyhow") {
+        if file != "main.rs" && !file.starts_with("commands/") && code.contains("anyhow") {
             broken.push(format!("{file} uses anyhow"));
         }
         // Public functions, and methods of public traits (their `fn`s carry
