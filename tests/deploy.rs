@@ -354,6 +354,14 @@ fn lab_host(dir: &Path, boot: &Path) -> Host {
     start(&store, boot)
 }
 
+/// A host whose robot drives gently for 1.5 s (its preflight passes),
+/// with researchers `ada` and `bob`.
+fn gentle_lab(dir: &Path) -> Host {
+    let commander_path = support::guest("test-commander").display().to_string();
+    let boot = lab_robot(dir, "boot.xml", &commander_path, &commander("VEL 0.2 0", 15), WATCHFUL);
+    lab_host(dir, &boot)
+}
+
 /// `subsume lab ARGS...` as `user` (by the environment).
 fn lab(user: &str, args: &[&str]) -> std::process::Output {
     subsume()
@@ -426,9 +434,7 @@ const DONE: [&str; 6] = ["checking", "preflight", "queued", "running", "finishin
 #[test]
 fn lab_submit_follows_an_experiment_to_done_and_unpacks_results_the_mcap_package_reads() {
     let dir = tempfile::tempdir().unwrap();
-    let commander_path = support::guest("test-commander").display().to_string();
-    let boot = lab_robot(dir.path(), "boot.xml", &commander_path, &commander("VEL 0.2 0", 15), WATCHFUL);
-    let host = lab_host(dir.path(), &boot);
+    let host = gentle_lab(dir.path());
 
     // A component of the running robot replaced, by the environment's
     // credentials.
@@ -496,9 +502,7 @@ fn lab_submit_follows_an_experiment_to_done_and_unpacks_results_the_mcap_package
 #[test]
 fn a_refused_submission_says_why_in_the_robot_files_own_lines_and_exits_1() {
     let dir = tempfile::tempdir().unwrap();
-    let commander_path = support::guest("test-commander").display().to_string();
-    let boot = lab_robot(dir.path(), "boot.xml", &commander_path, &commander("VEL 0.2 0", 15), WATCHFUL);
-    let host = lab_host(dir.path(), &boot);
+    let host = gentle_lab(dir.path());
     let store = dir.path().join("store");
     let sets = || subsume::store::Store::open(&store).unwrap().sets().unwrap().len();
     let before = sets();
@@ -565,9 +569,7 @@ fn a_refused_submission_says_why_in_the_robot_files_own_lines_and_exits_1() {
 #[test]
 fn lab_show_list_and_cancel_act_on_ones_own_experiments_only() {
     let dir = tempfile::tempdir().unwrap();
-    let commander_path = support::guest("test-commander").display().to_string();
-    let boot = lab_robot(dir.path(), "boot.xml", &commander_path, &commander("VEL 0.2 0", 15), WATCHFUL);
-    let host = lab_host(dir.path(), &boot);
+    let host = gentle_lab(dir.path());
 
     // A long experiment (the running robot file as it is), followed by a
     // submit in the background.

@@ -91,32 +91,13 @@ pub(crate) fn portal_address(host: &str) -> Result<String, ClientError> {
 /// One request; the JSON answer of a 2xx, else the portal's error.
 fn request(address: &str, method: &str, path: &str, token: Option<&str>, body: &Value) -> Result<Value, ClientError> {
     let body = if body.is_null() { String::new() } else { body.to_string() };
-    let (status, json, text) =
-        exchange(address, method, path, token, "application/json", body.as_bytes(), CLIENT_TIMEOUT)?;
+    let (status, json, text) = send(address, method, path, token, "application/json", body.as_bytes(), CLIENT_TIMEOUT)?
+        .read(MAX_ANSWER_BYTES)?;
     if (200..300).contains(&status) {
         return Ok(json);
     }
     let message = json["error"].as_str().map_or_else(|| text.trim().to_string(), str::to_string);
     Err(ClientError::Refused { address: address.to_string(), status, message: clip(&message) })
-}
-
-/// One request with `body` as `content_type`, every wait bounded by
-/// `timeout`: the status, the answer as JSON (`Null` when it is not) and as
-/// text (at most [`MAX_ANSWER_BYTES`] of it).
-pub(crate) fn exchange(
-    address: &str,
-    method: &str,
-    path: &str,
-    token: Option<&str>,
-    content_type: &str,
-    body: &[u8],
-    timeout: Duration,
-) -> Result<(u16, Value, String), ClientError> {
-    let answer = send(address, method, path, token, content_type, body, timeout)?;
-    let status = answer.status;
-    let text = answer.text(MAX_ANSWER_BYTES)?;
-    let json: Value = serde_json::from_str(text.trim()).unwrap_or(Value::Null);
-    Ok((status, json, text))
 }
 
 /// Largest head of an answer read (status line and headers).
@@ -129,6 +110,15 @@ pub(crate) struct Answer {
 }
 
 impl Answer {
+    /// The status, the body as JSON (`Null` when it is not) and as text, at
+    /// most `limit` bytes of it (the rest is not read).
+    pub(crate) fn read(self, limit: u64) -> Result<(u16, Value, String), ClientError> {
+        let status = self.status;
+        let text = self.text(limit)?;
+        let json: Value = serde_json::from_str(text.trim()).unwrap_or(Value::Null);
+        Ok((status, json, text))
+    }
+
     /// The body as text, at most `limit` bytes of it (the rest is not read).
     pub(crate) fn text(self, limit: u64) -> Result<String, ClientError> {
         let address = self.body.address.clone();

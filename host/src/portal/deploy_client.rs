@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 use serde_json::{Value, json};
 use thiserror::Error;
 
-use super::client::{ClientError, exchange, portal_address};
+use super::client::{ClientError, MAX_ANSWER_BYTES, portal_address, send};
 use crate::contract::{clip, is_valid_name};
 
 /// Longest wait for one upload or activation: the portal answers an upload
@@ -136,15 +136,9 @@ impl Portal {
     }
 
     pub(super) fn logout(&self) {
-        let _ = exchange(
-            &self.address,
-            "POST",
-            "/api/v1/logout",
-            Some(&self.token),
-            "application/json",
-            b"",
-            DEPLOY_TIMEOUT,
-        );
+        let logout =
+            send(&self.address, "POST", "/api/v1/logout", Some(&self.token), "application/json", b"", DEPLOY_TIMEOUT);
+        let _ = logout.and_then(|answer| answer.read(MAX_ANSWER_BYTES));
     }
 
     pub(super) fn call(
@@ -271,7 +265,8 @@ fn call(
     body: &[u8],
     what: &str,
 ) -> Result<Value, DeployClientError> {
-    let (status, answer, text) = exchange(address, method, path, token, content_type, body, DEPLOY_TIMEOUT)?;
+    let (status, answer, text) =
+        send(address, method, path, token, content_type, body, DEPLOY_TIMEOUT)?.read(MAX_ANSWER_BYTES)?;
     if (200..300).contains(&status) {
         return Ok(answer);
     }

@@ -28,7 +28,7 @@ use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 use thiserror::Error;
 
-use super::client::{ClientError, portal_address, send};
+use super::client::{Answer, ClientError, portal_address, send};
 use super::deploy_client::{
     DEPLOY_TIMEOUT, DeployClientError, Edit, Portal, file_name, locate, point_source_at, read, refused, upload_source,
 };
@@ -167,8 +167,22 @@ impl Session {
         &self.portal.address
     }
 
-    /// One JSON request (answers up to `limit` bytes); a 401 logs in again
-    /// and asks once more.
+    /// Sends one request; a 401 (the portal forgot the session) logs in
+    /// again and sends it once more.
+    fn send(&mut self, method: &str, path: &str, body: &[u8]) -> Result<Answer, DeployClientError> {
+        let once = |session: &Session| {
+            let token = Some(session.portal.token.as_str());
+            send(session.address(), method, path, token, "application/json", body, DEPLOY_TIMEOUT)
+        };
+        let answer = once(self)?;
+        if answer.status != 401 {
+            return Ok(answer);
+        }
+        self.portal = Portal::login(&self.login.host, &self.login.user, &self.login.password)?;
+        Ok(once(self)?)
+    }
+
+    /// One JSON request (answers up to `limit` bytes).
     fn request(
         &mut self,
         method: &str,
@@ -178,21 +192,7 @@ impl Session {
         limit: u64,
     ) -> Result<Value, DeployClientError> {
         let body = if body.is_null() { Vec::new() } else { body.to_string().into_bytes() };
-        match self.once(method, path, &body, what, limit) {
-            Err(DeployClientError::Refused { status: 401, .. }) => {
-                self.portal = Portal::login(&self.login.host, &self.login.user, &self.login.password)?;
-                self.once(method, path, &body, what, limit)
-            }
-            other => other,
-        }
-    }
-
-    fn once(&self, method: &str, path: &str, body: &[u8], what: &str, limit: u64) -> Result<Value, DeployClientError> {
-        let answer =
-            send(self.address(), method, path, Some(&self.portal.token), "application/json", body, DEPLOY_TIMEOUT)?;
-        let status = answer.status;
-        let text = answer.text(limit)?;
-        let json: Value = serde_json::from_str(text.trim()).unwrap_or(Value::Null);
+        let (status, json, text) = self.send(method, path, &body)?.read(limit)?;
         if (200..300).contains(&status) { Ok(json) } else { Err(refused(status, &json, &text, what)) }
     }
 
@@ -581,27 +581,9 @@ impl<R: Read> Read for Bounded<R> {
 /// Downloads the tar archive at `path` and unpacks it into `dir` (see the
 /// module's doc).
 fn download(session: &mut Session, path: &str, what: &str, dir: &Path) -> Result<Unpacked, LabClientError> {
-    let answer = {
-        let mut answer =
-            send(session.address(), "GET", path, Some(&session.portal.token), "application/json", b"", DEPLOY_TIMEOUT)?;
-        if answer.status == 401 {
-            session.portal = Portal::login(&session.login.host, &session.login.user, &session.login.password)?;
-            answer = send(
-                session.address(),
-                "GET",
-                path,
-                Some(&session.portal.token),
-                "application/json",
-                b"",
-                DEPLOY_TIMEOUT,
-            )?;
-        }
-        answer
-    };
+    let answer = session.send("GET", path, b"")?;
     if answer.status != 200 {
-        let status = answer.status;
-        let text = answer.text(DEPLOY_LIMIT)?;
-        let json: Value = serde_json::from_str(text.trim()).unwrap_or(Value::Null);
+        let (status, json, text) = answer.read(DEPLOY_LIMIT)?;
         return Err(refused(status, &json, &text, what).into());
     }
     let archive_error = |why: String| LabClientError::Archive {

@@ -332,7 +332,6 @@ pub struct Criteria {
     pub allow_stop_zone: bool,
 }
 
-
 /// How the robot gets back to its start before each experiment.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
