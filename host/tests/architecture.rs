@@ -9,8 +9,8 @@
 //! - `runtime` imports only the contract; `config` imports no `sandbox` and
 //!   of `runtime` only `runtime::wiring`;
 //! - `builtin` (the framework) imports no built-in module;
-//! - `portal` talks to `deploy`, `store`, `report`, `metrics`, `teleop`
-//!   and the contract only;
+//! - `portal` talks to `deploy`, `lab`, `store`, `report`, `metrics`,
+//!   `teleop` and the contract only;
 //! - nothing but the binary (`main.rs` and its `commands/`) imports `run`,
 //!   and nothing imports the crate root (every `crate::X` names a module);
 //! - `anyhow` appears only in the binary;

@@ -10,6 +10,7 @@ mod describe;
 mod dev;
 mod estop;
 mod flags;
+mod lab;
 mod new;
 mod release;
 mod replay;
@@ -62,6 +63,7 @@ enum Command {
     New(new::NewCommand),
     Dev(dev::DevCommand),
     Deploy(deploy::DeployCommand),
+    Lab(lab::LabCommand),
 }
 
 /// What every command gets besides its own flags.
@@ -103,6 +105,7 @@ impl Cli {
             Command::New(command) => command.execute(&context),
             Command::Dev(command) => command.execute(&context),
             Command::Deploy(command) => command.execute(&context),
+            Command::Lab(command) => command.execute(),
         }
     }
 }

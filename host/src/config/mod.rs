@@ -237,6 +237,17 @@ pub fn read_config(path: &Path) -> Result<String, Diagnostics> {
     String::from_utf8(bytes).map_err(|e| fail(format!("robot file is not utf-8: {e}")))
 }
 
+/// Reads the robot file at `path` and parses it (the XML, its elements and
+/// their attributes) without validating it against components: what a
+/// client checks before it sends the file to a portal. Its text, or every
+/// error located in it.
+pub fn read_and_parse(path: &Path) -> Result<String, Diagnostics> {
+    let text = read_config(path)?;
+    let mut errors = Vec::new();
+    raw::parse(&SourceMap::new(path, &text), &text, &mut errors);
+    if errors.is_empty() { Ok(text) } else { Err(Diagnostics(errors)) }
+}
+
 /// Parses and validates robot-file `text`; `path` names it in diagnostics and
 /// anchors relative component paths.
 pub fn parse_and_validate(path: &Path, text: &str, resolver: &mut dyn Resolver) -> Result<RobotConfig, Diagnostics> {

@@ -61,7 +61,7 @@ use crate::assemble::{self, Carry, Loader, StartError};
 use crate::builtin::Services;
 pub use crate::config::limits::MAX_CONFIG_BYTES as MAX_CONFIG_UPLOAD_BYTES;
 use crate::config::{ComponentSource, ParamOverride, RobotConfig};
-pub use crate::config::{Diagnostic, Diagnostics, Platform};
+pub use crate::config::{Diagnostic, Diagnostics, Platform, SourceMap, read_and_parse};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::wiring::PriorityCell;
 use crate::runtime::{Graph, RunningRobot};

@@ -18,7 +18,7 @@ use std::time::{Duration, Instant};
 use serde_json::{Value, json};
 use thiserror::Error;
 
-use super::client::{ClientError, exchange};
+use super::client::{ClientError, MAX_ANSWER_BYTES, portal_address, send};
 use crate::contract::{clip, is_valid_name};
 
 /// Longest wait for one upload or activation: the portal answers an upload
@@ -85,10 +85,7 @@ pub fn deploy(request: &DeployRequest, say: &mut dyn FnMut(&str)) -> Result<Depl
     if request.components.is_empty() && request.robot.is_none() {
         return Err(DeployClientError::Nothing);
     }
-    let address = request.host.strip_prefix("http://").unwrap_or(&request.host).trim_end_matches('/').to_string();
-    if address.is_empty() || address.contains('/') || request.host.starts_with("https://") {
-        return Err(ClientError::Host(address).into());
-    }
+    let address = portal_address(&request.host)?;
     // Everything local first: a missing file changes nothing remotely.
     let mut components = Vec::new();
     for (name, path) in &request.components {
@@ -107,7 +104,8 @@ pub fn deploy(request: &DeployRequest, say: &mut dyn FnMut(&str)) -> Result<Depl
     result
 }
 
-fn read(path: &Path) -> Result<Vec<u8>, DeployClientError> {
+/// A local file to upload, bounded by [`MAX_DEPLOY_FILE_BYTES`].
+pub(super) fn read(path: &Path) -> Result<Vec<u8>, DeployClientError> {
     let file = |why: String| DeployClientError::File { path: path.display().to_string(), why };
     let size = std::fs::metadata(path).map_err(|e| file(e.to_string()))?.len();
     if size > MAX_DEPLOY_FILE_BYTES {
@@ -116,40 +114,34 @@ fn read(path: &Path) -> Result<Vec<u8>, DeployClientError> {
     std::fs::read(path).map_err(|e| file(e.to_string()))
 }
 
-fn file_name(path: &Path) -> Result<String, DeployClientError> {
+pub(super) fn file_name(path: &Path) -> Result<String, DeployClientError> {
     path.file_name()
         .and_then(|n| n.to_str())
         .map(str::to_string)
         .ok_or_else(|| DeployClientError::File { path: path.display().to_string(), why: "has no file name".into() })
 }
 
-/// A logged-in session on one portal.
-struct Portal {
-    address: String,
-    token: String,
+/// A logged-in session on one portal (`deploy`'s and `lab`'s).
+pub(super) struct Portal {
+    pub(super) address: String,
+    pub(super) token: String,
 }
 
 impl Portal {
-    fn login(address: &str, user: &str, password: &str) -> Result<Portal, DeployClientError> {
+    pub(super) fn login(address: &str, user: &str, password: &str) -> Result<Portal, DeployClientError> {
         let body = json!({ "name": user, "password": password }).to_string();
         let answer = call(address, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")?;
         let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(address.to_string()))?.to_string();
         Ok(Portal { address: address.to_string(), token })
     }
 
-    fn logout(&self) {
-        let _ = exchange(
-            &self.address,
-            "POST",
-            "/api/v1/logout",
-            Some(&self.token),
-            "application/json",
-            b"",
-            DEPLOY_TIMEOUT,
-        );
+    pub(super) fn logout(&self) {
+        let logout =
+            send(&self.address, "POST", "/api/v1/logout", Some(&self.token), "application/json", b"", DEPLOY_TIMEOUT);
+        let _ = logout.and_then(|answer| answer.read(MAX_ANSWER_BYTES));
     }
 
-    fn call(
+    pub(super) fn call(
         &self,
         method: &str,
         path: &str,
@@ -172,21 +164,15 @@ impl Portal {
         let (shown, name, text) = match robot {
             Some(robot) => robot,
             None => {
-                let status = self.call("GET", "/api/v1/status", "application/json", b"", "reading the status")?;
-                let set = status["set"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()))?;
-                let active = self.call(
-                    "GET",
-                    &format!("/api/v1/sets/{set}"),
-                    "application/json",
-                    b"",
-                    "reading the active set",
-                )?;
-                let name = active["set"]["config_name"].as_str().unwrap_or("robot.xml").to_string();
-                let mut text = active["config"].as_str().unwrap_or_default().to_string();
+                let (set, name, mut text) = self.active_robot()?;
                 for (component, _) in components {
-                    text = point_source_at(&text, component, &format!("{component}.wasm")).map_err(|has| {
-                        DeployClientError::NoSuchComponent { file: name.clone(), name: component.clone(), has }
-                    })?;
+                    text = point_source_at(&text, component, &upload_source(component))
+                        .map_err(|has| DeployClientError::NoSuchComponent {
+                            file: name.clone(),
+                            name: component.clone(),
+                            has,
+                        })?
+                        .0;
                 }
                 say(&format!("using the active robot file {name} (set {set}) with {}", list(components)));
                 (format!("{name} (the active robot file)"), name, text.into_bytes())
@@ -194,20 +180,9 @@ impl Portal {
         };
         let mut uploads = Vec::new();
         for (component, bytes) in components {
-            say(&format!(
-                "uploading {component} ({} KiB): the portal compiles and checks it...",
-                bytes.len().div_ceil(1024)
-            ));
-            let started = Instant::now();
-            let path = format!("/api/v1/platforms/{platform}/components/{component}");
-            self.call("PUT", &path, "application/wasm", bytes, &format!("component {component}"))?;
-            let took = started.elapsed().as_secs_f64();
-            say(&format!("uploaded {component} in {took:.1} s"));
-            uploads.push((component.clone(), took));
+            uploads.push((component.clone(), self.upload(platform, component, bytes, say)?));
         }
-        let path = format!("/api/v1/platforms/{platform}/configs/{name}");
-        let staged = self.call("PUT", &path, "application/xml", &text, &shown).map_err(|e| locate(e, &shown))?;
-        let set = staged["set"]["id"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()))?;
+        let set = self.stage(platform, &name, &text, &shown, &|line, column| (line, column))?;
         say(&format!("staged {shown} as set {set}; activating..."));
         self.call(
             "POST",
@@ -216,14 +191,67 @@ impl Portal {
             b"",
             &format!("activating set {set}"),
         )
-        .map_err(|e| locate(e, &format!("activating set {set}")))?;
+        .map_err(|e| locate(e, &format!("activating set {set}"), &|line, column| (line, column)))?;
         say(&format!("set {set} is running"));
         Ok(Deployed { set, uploads })
     }
+
+    /// The active set's id, its robot file's name and its text.
+    pub(super) fn active_robot(&self) -> Result<(u64, String, String), DeployClientError> {
+        let status = self.call("GET", "/api/v1/status", "application/json", b"", "reading the status")?;
+        let set = status["set"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()))?;
+        let active =
+            self.call("GET", &format!("/api/v1/sets/{set}"), "application/json", b"", "reading the active set")?;
+        let name = active["set"]["config_name"].as_str().unwrap_or("robot.xml").to_string();
+        let text = active["config"].as_str().unwrap_or_default().to_string();
+        Ok((set, name, text))
+    }
+
+    /// Uploads component `component` of `platform`; the seconds it took
+    /// (sent, compiled, checked).
+    pub(super) fn upload(
+        &self,
+        platform: &str,
+        component: &str,
+        bytes: &[u8],
+        say: &mut dyn FnMut(&str),
+    ) -> Result<f64, DeployClientError> {
+        say(&format!(
+            "uploading {component} ({} KiB): the portal compiles and checks it...",
+            bytes.len().div_ceil(1024)
+        ));
+        let started = Instant::now();
+        let path = format!("/api/v1/platforms/{platform}/components/{component}");
+        self.call("PUT", &path, "application/wasm", bytes, &format!("component {component}"))?;
+        let took = started.elapsed().as_secs_f64();
+        say(&format!("uploaded {component} in {took:.1} s"));
+        Ok(took)
+    }
+
+    /// Stages robot file `text` as `name` of `platform`; the staged set's
+    /// id. A refusal's diagnostics name `shown`, at the positions
+    /// `position` gives for each line and column of `text`.
+    pub(super) fn stage(
+        &self,
+        platform: &str,
+        name: &str,
+        text: &[u8],
+        shown: &str,
+        position: &dyn Fn(u64, u64) -> (u64, u64),
+    ) -> Result<u64, DeployClientError> {
+        let path = format!("/api/v1/platforms/{platform}/configs/{name}");
+        let staged = self.call("PUT", &path, "application/xml", text, shown).map_err(|e| locate(e, shown, position))?;
+        staged["set"]["id"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()).into())
+    }
+}
+
+/// How a robot file names the logged-in user's upload `component`.
+pub(super) fn upload_source(component: &str) -> String {
+    format!("{component}.wasm")
 }
 
 fn list(components: &[(String, Vec<u8>)]) -> String {
-    components.iter().map(|(name, _)| format!("{name} -> {name}.wasm")).collect::<Vec<_>>().join(", ")
+    components.iter().map(|(name, _)| format!("{name} -> {}", upload_source(name))).collect::<Vec<_>>().join(", ")
 }
 
 /// One request whose non-2xx answer becomes `Refused` (diagnostics kept in
@@ -237,12 +265,18 @@ fn call(
     body: &[u8],
     what: &str,
 ) -> Result<Value, DeployClientError> {
-    let (status, answer, text) = exchange(address, method, path, token, content_type, body, DEPLOY_TIMEOUT)?;
+    let (status, answer, text) =
+        send(address, method, path, token, content_type, body, DEPLOY_TIMEOUT)?.read(MAX_ANSWER_BYTES)?;
     if (200..300).contains(&status) {
         return Ok(answer);
     }
-    // The portal's own answer (bounded by `MAX_ANSWER_BYTES`), whole: its
-    // diagnostics are what the person needs to see.
+    Err(refused(status, &answer, &text, what))
+}
+
+/// A non-2xx answer as `Refused`: the portal's own answer (bounded by
+/// `MAX_ANSWER_BYTES`), whole, its diagnostics one per line (for
+/// [`locate`]): they are what the person needs to see.
+pub(super) fn refused(status: u16, answer: &Value, text: &str, what: &str) -> DeployClientError {
     let mut message = answer["error"].as_str().map_or_else(|| text.trim().to_string(), str::to_string);
     for d in answer["diagnostics"].as_array().into_iter().flatten() {
         let line = format!(
@@ -255,22 +289,32 @@ fn call(
         message.push('\n');
         message.push_str(&line);
     }
-    Err(DeployClientError::Refused { what: what.to_string(), status, message })
+    DeployClientError::Refused { what: what.to_string(), status, message }
 }
 
 /// A robot file's refusal with its diagnostics as `FILE:line:column:
-/// message` lines, `FILE` the local path (the portal names the upload).
-fn locate(error: DeployClientError, shown: &str) -> DeployClientError {
+/// message` lines, `FILE` the local path (the portal names the upload),
+/// at the line and column `position` gives for the portal's.
+pub(super) fn locate(
+    error: DeployClientError,
+    shown: &str,
+    position: &dyn Fn(u64, u64) -> (u64, u64),
+) -> DeployClientError {
     match error {
         DeployClientError::Refused { status: 422, message, .. } if message.contains('\n') => {
             let mut lines = message.lines();
             let head = lines.next().unwrap_or_default();
             let located: Vec<String> = lines
-                .map(|l| match l.split_once(':') {
-                    Some((_, rest)) if rest.split(':').next().is_some_and(|n| n.parse::<u64>().is_ok()) => {
-                        format!("{shown}:{rest}")
+                .map(|l| {
+                    let mut parts = l.splitn(4, ':');
+                    let (_, line, column, rest) = (parts.next(), parts.next(), parts.next(), parts.next());
+                    match (line.and_then(|n| n.parse().ok()), column.and_then(|n| n.parse().ok()), rest) {
+                        (Some(line), Some(column), Some(rest)) => {
+                            let (line, column) = position(line, column);
+                            format!("{shown}:{line}:{column}:{rest}")
+                        }
+                        _ => l.to_string(),
                     }
-                    _ => l.to_string(),
                 })
                 .collect();
             DeployClientError::Invalid(shown.to_string(), format!("{head}\n{}", located.join("\n")))
@@ -279,10 +323,19 @@ fn locate(error: DeployClientError, shown: &str) -> DeployClientError {
     }
 }
 
+/// One replacement in a text: at byte `at`, `removed` bytes were replaced
+/// by `inserted` bytes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(super) struct Edit {
+    pub at: usize,
+    pub removed: usize,
+    pub inserted: usize,
+}
+
 /// `xml` with the `source` attribute of `<component name="NAME" ...>` set
-/// to `source`; the rest byte for byte. Err: the names of the components it
-/// has.
-fn point_source_at(xml: &str, name: &str, source: &str) -> Result<String, String> {
+/// to `source`, the rest byte for byte, and where it changed. Err: the
+/// names of the components it has.
+pub(super) fn point_source_at(xml: &str, name: &str, source: &str) -> Result<(String, Edit), String> {
     use quick_xml::events::Event;
     let mut reader = quick_xml::Reader::from_str(xml);
     let mut names = Vec::new();
@@ -309,7 +362,8 @@ fn point_source_at(xml: &str, name: &str, source: &str) -> Result<String, String
         let after = reader.buffer_position() as usize;
         let element = xml.get(before..after).unwrap_or_default();
         if let Some((from, to)) = attribute_value(element, "source") {
-            return Ok(format!("{}{source}{}", &xml[..before + from], &xml[before + to..]));
+            let edit = Edit { at: before + from, removed: to - from, inserted: source.len() };
+            return Ok((format!("{}{source}{}", &xml[..before + from], &xml[before + to..]), edit));
         }
         names.push(this);
     }
@@ -347,8 +401,10 @@ mod tests {
     #[test]
     fn a_component_source_is_repointed_and_nothing_else_changes() {
         let xml = "<robot name=\"r\">\n  <platform name=\"control\">\n    <component name=\"filter\" source=\"a/filter.wasm\"/>\n    <component rate=\"20\" name=\"avoid\"\n      source = 'x/avoider.wasm' budget=\"5ms\">\n      <param name=\"source\" value=\"1\"/>\n    </component>\n  </platform>\n</robot>\n";
-        let out = point_source_at(xml, "avoid", "avoid.wasm").unwrap();
+        let (out, edit) = point_source_at(xml, "avoid", "avoid.wasm").unwrap();
         assert_eq!(out, xml.replace("x/avoider.wasm", "avoid.wasm"));
+        let at = xml.find("x/avoider.wasm").unwrap();
+        assert_eq!(edit, Edit { at, removed: "x/avoider.wasm".len(), inserted: "avoid.wasm".len() });
         assert_eq!(point_source_at(xml, "ghost", "g.wasm").unwrap_err(), "filter, avoid");
     }
 

@@ -30,6 +30,7 @@ pub mod client;
 pub mod deploy_client;
 pub mod error;
 mod lab;
+pub mod lab_client;
 pub mod logs;
 mod routes;
 

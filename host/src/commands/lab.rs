@@ -1,0 +1,186 @@
+//! `subsume lab`: the remote lab from the command line (docs/lab.md):
+//! submit an experiment and follow it to its end, list, show and cancel
+//! experiments, unpack their results, unpack the lab kit. The work is
+//! `subsume::portal::lab_client`'s; this file parses and prints.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use subsume::portal::deploy_client::component_arg;
+use subsume::portal::lab_client::{self, Login, Say, SubmitRequest, list_text, now_ms, show_text};
+use subsume::store::experiments::ExperimentState;
+
+use super::flags::LoginFlags;
+
+/// Submit experiments to a robot's remote lab and follow them, list, show
+/// and cancel them, download their results and the lab kit (docs/lab.md).
+#[derive(clap::Args)]
+pub struct LabCommand {
+    #[command(subcommand)]
+    action: LabAction,
+}
+
+#[derive(clap::Subcommand)]
+enum LabAction {
+    /// Upload components and/or a robot file, stage them and submit them as
+    /// an experiment, then print each state it enters until it ends: exit 0
+    /// when it is `done`, 1 otherwise (with the reasons).
+    Submit(SubmitArgs),
+    /// List your experiments (an admin's: every one), newest first.
+    List {
+        /// Print the portal's records as JSON.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// Show one experiment: its states with their times and causes, its
+    /// place in the queue, preflight, run, components and reasons.
+    Show {
+        /// The experiment's id.
+        id: u64,
+        /// Print the portal's record as JSON.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// Cancel an experiment (your own; an admin: any) while it waits or
+    /// runs; a running one ends with the baseline back on the robot.
+    Cancel {
+        /// The experiment's id.
+        id: u64,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// Download an ended experiment's results and unpack them into a new
+    /// or empty folder (every file checked against its SHA256SUMS).
+    Results {
+        /// The experiment's id.
+        id: u64,
+        /// The folder to unpack into.
+        #[arg(short = 'o', long = "output", value_name = "DIR")]
+        output: PathBuf,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// Download the lab kit (the lab's robot in its preflight form, its
+    /// components, world and criteria) into a new or empty folder; then
+    /// `subsume run DIR/robot.xml --http off --speed max --duration 60
+    /// --criteria DIR/criteria.json` gives the verdict the lab's preflight
+    /// would.
+    Kit {
+        /// The folder to unpack into.
+        #[arg(short = 'o', long = "output", value_name = "DIR")]
+        output: PathBuf,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+}
+
+#[derive(clap::Args)]
+struct SubmitArgs {
+    /// A component of the robot and its file: uploaded under NAME
+    /// (repeatable); the robot file's component NAME runs it.
+    #[arg(long = "component", value_name = "NAME=FILE.wasm", value_parser = component_arg)]
+    components: Vec<(String, PathBuf)>,
+    /// The robot file of the experiment (read and parsed here first);
+    /// without it, the robot file that runs now.
+    #[arg(long, value_name = "FILE.xml")]
+    robot: Option<PathBuf>,
+    /// How long it runs on the robot, in seconds (at most the robot's
+    /// max-duration).
+    #[arg(long, value_name = "SECONDS")]
+    duration: f64,
+    /// A label shown with it.
+    #[arg(long, value_name = "TEXT", default_value = "")]
+    label: String,
+    /// When it ends, download its results and unpack them into this new or
+    /// empty folder.
+    #[arg(long, value_name = "DIR")]
+    results: Option<PathBuf>,
+    /// The platform the uploads belong to.
+    #[arg(long, default_value = "control")]
+    platform: String,
+    #[command(flatten)]
+    login: LoginFlags,
+}
+
+/// The client's login from the shared flags.
+fn to_login(flags: LoginFlags) -> Login {
+    Login { host: flags.host, user: flags.user, password: flags.password }
+}
+
+fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {
+    println!("{}", serde_json::to_string_pretty(value)?);
+    Ok(())
+}
+
+impl LabCommand {
+    pub fn execute(self) -> anyhow::Result<ExitCode> {
+        match self.action {
+            LabAction::Submit(args) => {
+                let request = SubmitRequest {
+                    login: to_login(args.login),
+                    platform: args.platform,
+                    components: args.components,
+                    robot: args.robot,
+                    duration_s: args.duration,
+                    label: args.label,
+                    results: args.results,
+                };
+                let mut progress = |line: &str| eprintln!("lab: {line}");
+                let mut states = |line: &str| println!("{line}");
+                let submitted =
+                    lab_client::submit(&request, &mut Say { progress: &mut progress, states: &mut states })?;
+                Ok(if submitted.experiment.record.state == ExperimentState::Done {
+                    ExitCode::SUCCESS
+                } else {
+                    ExitCode::FAILURE
+                })
+            }
+            LabAction::List { json, login } => {
+                let experiments = lab_client::list(&to_login(login))?;
+                if json {
+                    print_json(&experiments)?;
+                } else {
+                    print!("{}", list_text(&experiments, now_ms()));
+                }
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Show { id, json, login } => {
+                let experiment = lab_client::show(&to_login(login), id)?;
+                if json {
+                    print_json(&experiment)?;
+                } else {
+                    print!("{}", show_text(&experiment, now_ms()));
+                }
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Cancel { id, login } => {
+                let record = lab_client::cancel(&to_login(login), id)?;
+                let cause = record.history.last().map_or("", |c| c.cause.as_str());
+                println!("experiment {id}: {}: {cause}", record.state);
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Results { id, output, login } => {
+                let unpacked = lab_client::results(&to_login(login), id, &output)?;
+                println!(
+                    "results of experiment {id}: {} ({} files, sha256 checked)",
+                    unpacked.dir.display(),
+                    unpacked.files
+                );
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Kit { output, login } => {
+                let unpacked = lab_client::kit(&to_login(login), &output)?;
+                let dir = unpacked.dir.display();
+                println!("the lab kit: {dir} ({} files, sha256 checked)", unpacked.files);
+                println!(
+                    "try the lab's robot as its preflight does: subsume run {dir}/robot.xml --http off --speed max --duration 60 --criteria {dir}/criteria.json"
+                );
+                Ok(ExitCode::SUCCESS)
+            }
+        }
+    }
+}
