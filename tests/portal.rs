@@ -802,15 +802,32 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
     let (status, json) =
         http(&host.address, "PUT", "/api/v1/platforms/control/components/rammer", Some(&dev), &commander);
     assert!((200..300).contains(&status), "{status} {json}");
-    let driver = r#"    <component name="rammer" source="rammer.wasm" rate="20" priority="1000" timeout="300ms">
+    let driver = |priority: i32| {
+        format!(
+            r#"    <component name="rammer" source="rammer.wasm" rate="20" priority="{priority}" timeout="300ms">
       <param name="command" value="VEL 0.45 0"/>
       <param name="ticks" value="100000000"/>
     </component>
     <connect from="rammer.cmd" to="arbiter.commands"/>
-"#;
+"#
+        )
+    };
     let stage = |name: &str, xml: &str| {
         http(&host.address, "PUT", &format!("/api/v1/platforms/control/configs/{name}"), Some(&dev), xml.as_bytes())
     };
+    // Above the envelope's default cap (the avoider's priority, 3): refused
+    // at the component, nothing stored.
+    let (status, json) = stage("ram.xml", &wall_robot(&driver(1000), ""));
+    assert_eq!(status, 422, "{json}");
+    let text = json["diagnostics"][0]["text"].as_str().unwrap_or_default();
+    assert_eq!(
+        text,
+        "ram.xml:11:5: component 'rammer' claims priority 1000, but envelope 'envelope' allows WASM motion sources at most 3",
+        "{json}"
+    );
+    assert_eq!(subsume::store::Store::open(&store).unwrap().sets().unwrap().len(), 1, "nothing was staged");
+    // At the cap it holds control: the top priority a WASM component may have.
+    let driver = &driver(3);
     let (status, staged) = stage("ram.xml", &wall_robot(driver, ""));
     assert!((200..300).contains(&status), "{status} {staged}");
     let id = staged["set"]["id"].as_u64().unwrap();

@@ -645,3 +645,43 @@ async fn validating_answers_like_staging_with_the_same_diagnostics_and_stores_no
     let (_, audit) = portal.call("admin", "GET", "/api/v1/audit", "").await;
     assert_eq!(audit_lines(&audit), audited + compared, "{audit}");
 }
+
+/// A WASM motion source above the envelope's default cap (the obstacle
+/// avoider's priority, 3: the file sets no `max-priority`) is refused at
+/// the component that claims it, with nothing stored; at the cap it stages.
+#[tokio::test]
+async fn a_motion_source_above_the_default_priority_cap_is_refused_where_it_is_declared() {
+    let portal = portal().await;
+    let avoider = std::fs::read(support::guest("avoider")).unwrap();
+    for user in ["control-dev", "admin"] {
+        let uri = "/api/v1/platforms/control/components/avoid";
+        let (status, json) = portal.call(user, "PUT", uri, avoider.clone()).await;
+        assert_eq!(status, StatusCode::CREATED, "{user}: {json}");
+    }
+    let robot = |priority: i32| {
+        ROBOT.replace(
+            "    <connect from=\"source.out\"",
+            &format!(
+                "    <component name=\"avoid\" source=\"avoid.wasm\" rate=\"10\" priority=\"{priority}\"/>\n    \
+                 <component name=\"arbiter\" source=\"builtin:arbiter\" rate=\"20\"/>\n    \
+                 <component name=\"envelope\" source=\"builtin:envelope\" rate=\"20\"/>\n    \
+                 <connect from=\"avoid.cmd\" to=\"arbiter.commands\"/>\n    \
+                 <connect from=\"arbiter.cmd\" to=\"envelope.cmd\"/>\n    \
+                 <connect from=\"source.out\""
+            ),
+        )
+    };
+    let before = portal.snapshot();
+    for user in ["control-dev", "admin"] {
+        let (status, json) = portal.call(user, "PUT", "/api/v1/platforms/control/configs/r.xml", robot(50)).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{user}: {json}");
+        assert_eq!(
+            json["diagnostics"][0]["text"],
+            "r.xml:5:5: component 'avoid' claims priority 50, but envelope 'envelope' allows WASM motion sources at most 3",
+            "{user}: {json}"
+        );
+        assert_eq!(portal.snapshot(), before, "{user}: the refusal changed the store");
+    }
+    let (status, json) = portal.call("admin", "PUT", "/api/v1/platforms/control/configs/r.xml", robot(3)).await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+}

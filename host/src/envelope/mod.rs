@@ -49,10 +49,20 @@ pub const RECENT_INTERVENTIONS: usize = 10;
 /// Least time between two log lines for the same kind of intervention: a
 /// driver pushing at a wall 20 times a second must not flood the log.
 pub const LOG_INTERVAL_NS: u64 = 1_000_000_000;
+/// The default `max-priority`: the obstacle avoider's priority in the
+/// subsumption paper's layering (docs/background.md). A WASM component may
+/// claim at most this unless the owner raises it: a driver uploaded at a
+/// higher priority would suppress the avoider and every operator mode for
+/// as long as it drives.
+pub const DEFAULT_MAX_PRIORITY: i32 = 3;
 /// Port indices.
 pub const INPUT_CMD: u32 = 0;
 pub const INPUT_RANGES: u32 = 1;
 pub const INPUT_POSE: u32 = 2;
+
+/// [`DEFAULT_MAX_PRIORITY`] as the parameter's default (a unit test keeps
+/// the two equal).
+const DEFAULT_MAX_PRIORITY_TEXT: &str = "3";
 
 const PARAMS: &[ParamDecl] = &[
     ParamDecl {
@@ -135,7 +145,7 @@ const PARAMS: &[ParamDecl] = &[
     ParamDecl {
         name: "max-priority",
         ty: ParamType::Integer { min: -1000, max: 1000 },
-        default: "1000",
+        default: DEFAULT_MAX_PRIORITY_TEXT,
         unit: "",
         doc: "highest priority a WASM component feeding the arbiter may claim (validation refuses more)",
     },
@@ -507,6 +517,11 @@ mod tests {
 
     fn cmd(text: &str) -> Value {
         Value::Command(text.into())
+    }
+
+    #[test]
+    fn the_default_priority_cap_is_the_avoiders() {
+        assert_eq!(DEFAULT_MAX_PRIORITY_TEXT.parse::<i32>(), Ok(DEFAULT_MAX_PRIORITY));
     }
 
     #[test]
