@@ -264,7 +264,7 @@ $('component-upload').addEventListener('click', () => {
     const result = $('upload-result');
     if (xhr.status === 201) {
       result.className = 'ok';
-      result.textContent = `stored '${data.name}' (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)${took}`;
+      result.textContent = `stored '${data.name}' as ${data.uploaded_by}/${data.name} (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)${took}; your robot files name it ${data.name}.wasm, anyone's ${data.source}`;
       refreshComponents();
     } else {
       result.className = 'error';
@@ -313,10 +313,14 @@ async function refreshComponents() {
   const list = $('component-list');
   try {
     const { components } = await api('GET', '/components');
+    // Each upload is its uploader's: yours first, then everyone else's.
+    const mine = (c) => (me && c.uploaded_by === me.name ? 0 : 1);
+    components.sort((a, b) => mine(a) - mine(b) || a.source.localeCompare(b.source));
     list.replaceChildren(...components.map((c) => {
       const d = c.description || {};
-      const box = el('div', { class: 'component', 'data-component': c.name },
-        el('h3', {}, `${c.name} `, el('small', {}, `${c.world}, ${(c.size / 1024).toFixed(0)} KiB, by ${c.uploaded_by}`)));
+      const whose = mine(c) === 0 ? 'yours: name it ' + c.name + '.wasm' : 'by ' + c.uploaded_by + ': name it ' + c.source;
+      const box = el('div', { class: 'component', 'data-component': c.name, 'data-owner': c.uploaded_by },
+        el('h3', {}, `${c.uploaded_by}/${c.name} `, el('small', {}, `${c.world}, ${(c.size / 1024).toFixed(0)} KiB, ${whose}`)));
       if (d.inputs) {
         box.append(el('p', {}, `${d.name} ${d.version}: ${d.summary}`));
         box.append(portList('inputs', d.inputs), portList('outputs', d.outputs));
