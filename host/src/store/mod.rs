@@ -649,6 +649,42 @@ mod tests {
         store.verify()
     }
 
+    /// One user's uploads of a name replace only that user's record, and a
+    /// user's room is bounded without touching anyone else's.
+    #[test]
+    fn components_belong_to_their_uploader_within_each_users_room() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        let store = Store::open(dir.path())?;
+        let writer = store.lock()?;
+        let record = |owner: &str, name: &str, bytes: &[u8]| -> Result<ComponentRecord, StoreError> {
+            Ok(ComponentRecord {
+                name: name.into(),
+                sha256: writer.put_blob(bytes)?,
+                size: bytes.len() as u64,
+                world: World::Component,
+                platform: "control".into(),
+                uploaded_by: owner.into(),
+                uploaded_at: 1,
+                description: None,
+            })
+        };
+        writer.put_component(record("ana", "avoid", b"ana 1")?)?;
+        writer.put_component(record("bob", "avoid", b"bob 1")?)?;
+        writer.put_component(record("ana", "avoid", b"ana 2")?)?;
+        assert_eq!(store.component("ana", "avoid")?.map(|c| c.sha256), Some(sha256_hex(b"ana 2")));
+        assert_eq!(store.component("bob", "avoid")?.map(|c| c.sha256), Some(sha256_hex(b"bob 1")));
+        for i in 1..MAX_COMPONENTS_PER_USER {
+            writer.put_component(record("ana", &format!("c{i}"), b"x")?)?;
+        }
+        let full = writer.put_component(record("ana", "one-more", b"x")?);
+        assert!(matches!(full, Err(StoreError::Refused(ref why)) if why.contains("ana has 50 components")), "{full:?}");
+        writer.put_component(record("ana", "avoid", b"ana 3")?)?;
+        writer.put_component(record("bob", "one-more", b"x")?)?;
+        assert_eq!(store.components()?.len(), MAX_COMPONENTS_PER_USER + 2);
+        drop(writer);
+        store.verify()
+    }
+
     #[test]
     fn damaged_blobs_and_torn_audit_lines_are_found() -> Result<(), StoreError> {
         let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
