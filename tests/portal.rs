@@ -896,6 +896,18 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
         "the refusal is audited"
     );
 
+    // Listening to what the envelope did changes none of its settings: a
+    // developer may wire its `interventions` output.
+    let listening = wall_robot(
+        &format!(
+            "{driver}    <component name=\"heard\" source=\"builtin:log\" rate=\"0\"/>\n    \
+             <connect from=\"envelope.interventions\" to=\"heard.in\"/>\n"
+        ),
+        "",
+    );
+    let (status, json) = stage("listening.xml", &listening);
+    assert_eq!(status, 201, "{json}");
+
     // An admin may change it, and the audit line says how.
     let admin = login(&host.address);
     let (status, json) =

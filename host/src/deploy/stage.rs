@@ -429,9 +429,10 @@ pub fn wiring_graph(config: &RobotConfig) -> WiringGraph {
 }
 
 /// The first difference between the envelopes of two robots (their
-/// parameters, rate and every connection into or out of them), in words
-/// naming the setting; None when they are the same. Envelope settings are
-/// the owner's: only an admin may change them.
+/// parameters, rate and every connection into or out of them but those
+/// from their `interventions` output), in words naming the setting; None
+/// when they are the same. Envelope settings are the owner's: only an
+/// admin may change them.
 pub fn envelope_change(old: &RobotConfig, new: &RobotConfig) -> Option<String> {
     fn envelopes(robot: &RobotConfig) -> BTreeMap<String, (usize, &ComponentConfig)> {
         robot
@@ -452,10 +453,20 @@ pub fn envelope_change(old: &RobotConfig, new: &RobotConfig) -> Option<String> {
             };
             format!("{} ({source}).{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
         };
+        // Components may listen to what the envelope did: wiring its
+        // `interventions` output changes none of the owner's settings.
+        let tells_interventions = |c: &crate::config::ConnectionConfig| {
+            c.from.component == index
+                && robot
+                    .components
+                    .get(index)
+                    .and_then(|envelope| envelope.description.outputs.get(c.from.port as usize))
+                    .is_some_and(|port| port.name == crate::envelope::INTERVENTIONS_PORT)
+        };
         let mut lines: Vec<String> = robot
             .connections
             .iter()
-            .filter(|c| c.from.component == index || c.to.component == index)
+            .filter(|c| (c.from.component == index || c.to.component == index) && !tells_interventions(c))
             .map(|c| {
                 format!("{} -> {}", port(c.from.component, c.from.port, true), port(c.to.component, c.to.port, false))
             })
