@@ -1286,3 +1286,43 @@ fn two_users_uploading_one_name_at_once_never_overwrite_each_other() {
     }
     opened.verify().unwrap();
 }
+
+/// Each role sees only the controls it may use (hidden, not disabled), in
+/// Chromium: `tests/browser/roles.mjs` logs in as a viewer, an operator, a
+/// developer of each platform and an admin, against the demo with one set
+/// staged beside the active one.
+#[test]
+fn each_role_sees_only_the_controls_it_may_use_in_a_real_browser() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let users = [
+        ("viewer", "viewer", &[][..]),
+        ("operator", "operator", &[][..]),
+        ("control-dev", "developer", &["control"][..]),
+        ("network-dev", "developer", &["network"][..]),
+    ];
+    for (name, role, platforms) in users {
+        add_user(&store, name, role, platforms);
+    }
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let admin = login(&host.address);
+    let staged = std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
+        .unwrap()
+        .replace("<param name=\"interval\" value=\"2.0\"/>", "<param name=\"interval\" value=\"3.0\"/>");
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/configs/demo.xml", Some(&admin), staged.as_bytes());
+    assert_eq!(status, 201, "{json}");
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let url = format!("http://{}/", host.address);
+    let mut args: Vec<&dyn AsRef<std::ffi::OsStr>> = vec![&url, &PASSWORD];
+    let names = ["viewer", "operator", "control-dev", "network-dev", "admin"];
+    for name in &names {
+        args.push(name);
+    }
+    let stdout = support::browser("roles.mjs", &artifacts, &[], &args);
+    assert!(stdout.contains("ok: 5 roles"), "{stdout}");
+    for name in names {
+        assert!(artifacts.join(format!("role-{name}.png")).is_file(), "role-{name}.png");
+    }
+}

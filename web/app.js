@@ -57,16 +57,58 @@ function start(user) {
   logout.addEventListener('click', async () => { await api('POST', '/logout').catch(() => {}); location.reload(); });
   $('whoami').append(' ', logout);
   $('estop-bar').hidden = false;
+  applyRole();
   refreshLocks();
   startLive();
   refreshComponents();
   refreshSets();
 }
 
+// ---- what each role sees -------------------------------------------------
+// Each role sees only the controls it may use: what it may not use is
+// hidden, not merely disabled. One row per role, saying what the host lets
+// it do (host/src/deploy/mod.rs `authorise`, host/src/store/users.rs):
+//   drive     the pad, the simulator's buttons, releasing a stop
+//   change    upload components and robot files, edit them: 'all'
+//             platforms, the session's 'platforms', or 'none'
+//   activate  activate a set, roll back
+//   record    recordings, and replaying a set against one
+// A new role is one more row. An element says what it needs with
+// data-may="drive", "change" (any platform) or "change:PLATFORM".
+const ROLE_MAY = {
+  viewer:    { drive: false, change: 'none',      activate: false, record: false },
+  operator:  { drive: true,  change: 'none',      activate: false, record: false },
+  developer: { drive: false, change: 'platforms', activate: true,  record: true },
+  admin:     { drive: true,  change: 'all',       activate: true,  record: true },
+};
+function may(what) {
+  const row = (me && ROLE_MAY[me.role]) || {};
+  const [permission, platform] = what.split(':');
+  if (permission !== 'change') return row[permission] === true;
+  if (row.change === 'all') return true;
+  if (row.change !== 'platforms') return false;
+  return platform ? me.platforms.includes(platform) : me.platforms.length > 0;
+}
+// Hides every element under `root` whose data-may the user lacks; a
+// select whose chosen option is hidden moves to the first one shown.
+function applyRole(root = document) {
+  for (const node of root.querySelectorAll('[data-may]')) {
+    node.hidden = !may(node.dataset.may);
+    if (node.tagName === 'OPTION') node.disabled = node.hidden;
+  }
+  for (const select of root.querySelectorAll('select')) {
+    const chosen = select.selectedOptions[0];
+    if (chosen && chosen.hidden) {
+      const shown = [...select.options].find((o) => !o.hidden);
+      if (shown) select.value = shown.value;
+    }
+  }
+}
+
 // ---- emergency stop (docs/estop.md) --------------------------------------
 // STOP on every tab for every logged-in user; release is a separate,
 // confirmed action, offered to users who may drive.
-const mayDrive = () => me && (me.role === 'operator' || me.role === 'admin');
+const mayDrive = () => may('drive');
 function renderLocks(engaged) {
   const banner = $('lock-banner');
   if (!engaged || engaged.length === 0) {
@@ -106,7 +148,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
     for (const b of document.querySelectorAll('#tabs button')) b.classList.toggle('active', b === button);
     for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
     if (button.dataset.tab === 'components') refreshComponents();
-    if (button.dataset.tab === 'sets') { refreshSets(); refreshReplayRecordings(); refreshWorlds(); }
+    if (button.dataset.tab === 'sets') { refreshSets(); if (may('record')) refreshReplayRecordings(); refreshWorlds(); }
     if (button.dataset.tab === 'recordings') refreshRecordings();
   });
 }
@@ -370,13 +412,14 @@ async function refreshSets() {
       const cells = [el('td', {}, String(s.id)), el('td', {}, s.config_name), el('td', {}, s.created_by), el('td', {}, s.changes.join(', ')), el('td', { class: 'status' }, s.status)];
       const actions = el('td', {}, show);
       if (s.status !== 'active') {
-        const activate = el('button', { class: 'activate', 'data-set': s.id }, 'activate');
+        const activate = el('button', { class: 'activate', 'data-set': s.id, 'data-may': 'activate' }, 'activate');
         activate.addEventListener('click', () => activateSet(s.id));
         actions.append(' ', activate);
         actions.append(' ', replayButton(s.id));
       }
       return el('tr', { 'data-set': s.id }, ...cells, actions);
     }));
+    applyRole(body);
     const active = sets.find((s) => s.status === 'active');
     if (active && $('graph-set').textContent === '-') showGraph(active.id);
   } catch (err) {
@@ -880,7 +923,7 @@ $('recording-stop').addEventListener('click', async () => {
 
 // ---- replay before activation (POST /sets/{id}/replay; developers and admins)
 function replayButton(id) {
-  const button = el('button', { class: 'replay', 'data-set': id, title: 'Replay this set against the chosen recording' }, 'replay');
+  const button = el('button', { class: 'replay', 'data-set': id, 'data-may': 'record', title: 'Replay this set against the chosen recording' }, 'replay');
   button.addEventListener('click', () => replaySet(id));
   return button;
 }
