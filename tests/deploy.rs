@@ -101,11 +101,16 @@ fn active(address: &str, name: &str) -> (u64, String, Option<String>) {
 
 /// `subsume deploy ARGS... ADDRESS` as admin: (success, stdout, stderr).
 fn deploy(address: &str, args: &[&str]) -> (bool, String, String) {
+    deploy_as("admin", address, args)
+}
+
+/// `subsume deploy ARGS... ADDRESS` as `user`: (success, stdout, stderr).
+fn deploy_as(user: &str, address: &str, args: &[&str]) -> (bool, String, String) {
     let output = subsume()
         .arg("deploy")
         .args(args)
         .arg(address)
-        .env("SUBSUME_USER", "admin")
+        .env("SUBSUME_USER", user)
         .env("SUBSUME_PASSWORD", PASSWORD)
         .output()
         .unwrap();
@@ -211,6 +216,68 @@ fn deploy_replaces_a_component_or_a_whole_robot_in_one_step_and_changes_nothing_
     assert!(!ok);
     assert!(stderr.contains("component relay: the portal answered 415"), "{stderr}");
     assert_eq!(active(&host.address, "relay").0, third);
+}
+
+/// The sha256 of `owner`'s stored upload `name`, if any.
+fn stored(address: &str, owner: &str, name: &str) -> Option<String> {
+    let (status, record) =
+        http(address, "GET", &format!("/api/v1/components/{owner}/{name}"), Some(&token(address)), b"");
+    (status == 200).then(|| record["sha256"].as_str().unwrap().to_string())
+}
+
+/// The source the active robot file gives component `name`.
+fn active_source(address: &str, name: &str) -> String {
+    let token = token(address);
+    let (_, status) = http(address, "GET", "/api/v1/status", Some(&token), b"");
+    let (_, record) = http(address, "GET", &format!("/api/v1/sets/{}", status["set"]), Some(&token), b"");
+    let config = record["config"].as_str().unwrap();
+    let source = config.split(&format!("name=\"{name}\" source=\"")).nth(1).unwrap();
+    source.split('"').next().unwrap().to_string()
+}
+
+#[test]
+fn a_second_users_deploy_of_the_same_name_does_not_overwrite_the_first_users_upload() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    support::add_user(&store, "bob", "developer", &["control"], PASSWORD);
+    let boot = dir.path().join("boot.xml");
+    std::fs::write(&boot, robot("boot", &support::guest("test-relay").display().to_string())).unwrap();
+    let host = start(&store, &boot);
+
+    // The admin replaces the running relay: the file now names the admin's upload.
+    let first = unique_relay(dir.path(), "admin-1");
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("relay={}", first.display())]);
+    assert!(ok, "{stderr}");
+    assert_eq!(active_source(&host.address, "relay"), "admin/relay.wasm");
+    assert_eq!(stored(&host.address, "admin", "relay"), Some(sha256(&first)));
+
+    // Bob deploys his own relay under the same name: it runs, named as his,
+    // and the admin's stored upload is untouched.
+    let second = unique_relay(dir.path(), "bob-1");
+    let (ok, stdout, stderr) =
+        deploy_as("bob", &host.address, &["--component", &format!("relay={}", second.display())]);
+    assert!(ok, "{stderr}");
+    assert!(stderr.contains("with relay -> bob/relay.wasm"), "{stderr}");
+    let (set, _, sha) = active(&host.address, "relay");
+    assert_eq!(stdout.trim(), format!("deployed: set {set} is running"));
+    assert_eq!(sha, Some(sha256(&second)));
+    assert_eq!(active_source(&host.address, "relay"), "bob/relay.wasm");
+    assert_eq!(stored(&host.address, "bob", "relay"), Some(sha256(&second)));
+    assert_eq!(
+        stored(&host.address, "admin", "relay"),
+        Some(sha256(&first)),
+        "bob's deploy replaced the admin's upload"
+    );
+
+    // A robot file of Bob's may run the admin's by owner and name (read-only).
+    let shared = dir.path().join("shared.xml");
+    std::fs::write(&shared, robot("shared", "admin/relay.wasm")).unwrap();
+    let (ok, _, stderr) = deploy_as("bob", &host.address, &["--robot", shared.to_str().unwrap()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(active(&host.address, "relay").2, Some(sha256(&first)));
+    assert_eq!(stored(&host.address, "admin", "relay"), Some(sha256(&first)));
+    assert_eq!(stored(&host.address, "bob", "relay"), Some(sha256(&second)));
 }
 
 /// `subsume dev ROBOT` with the portal on a free port; its stderr lines

@@ -6,7 +6,8 @@
 //! same commands for the same scans, refuses the same bad parameters and
 //! keeps a simulated robot off a wall. And `subsume new` makes a project in
 //! each language that builds with the command its README documents, loads,
-//! and drives its simulated robot without a collision.
+//! and drives its simulated robot without a collision; the Python and
+//! JavaScript ones (contract 0.2.0) read each ray's angle from the scan.
 //!
 //! The toolchains come from `scripts/setup`; `guest-components/build-all`
 //! builds the avoiders (incrementally) on first use.
@@ -97,10 +98,22 @@ fn describe(wasm: &Path) -> Json {
     let output = succeed(subsume().args(["describe", "--json"]).arg(wasm), "subsume describe");
     let mut json: Json = serde_json::from_slice(&output.stdout).unwrap();
     json.as_object_mut().unwrap().remove("sha256");
-    // The Rust avoider is built against the contract 0.2.0, the others
-    // against 0.1.0: the same component either way.
+    // The C avoider is built against the contract 0.1.0, the others
+    // against 0.2.0: the same component either way.
     json.as_object_mut().unwrap().remove("contract");
     json
+}
+
+/// The contract version `wasm` was built against, as `describe` says.
+fn contract(wasm: &Path) -> String {
+    let output = succeed(subsume().args(["describe", "--json"]).arg(wasm), "subsume describe");
+    let json: Json = serde_json::from_slice(&output.stdout).unwrap();
+    json["contract"].as_str().unwrap_or_default().to_string()
+}
+
+/// The contract each language's avoider and `subsume new` template target.
+fn contract_of(lang: &str) -> &'static str {
+    if lang == "c" { "0.1.0" } else { "0.2.0" }
 }
 
 /// Runs a robot file written into a temporary folder, with the world file
@@ -135,6 +148,9 @@ fn every_language_describes_the_same_avoider() {
     assert_eq!((rust["name"].as_str(), rust["default_priority"].as_i64()), (Some("avoider"), Some(3)));
     for lang in &LANGUAGES[1..] {
         assert_eq!(describe(&avoider(lang)), rust, "{lang}");
+    }
+    for lang in LANGUAGES {
+        assert_eq!(contract(&avoider(lang)), contract_of(lang), "{lang}");
     }
 }
 
@@ -344,9 +360,14 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         compile_into_cache(&wasm);
         let description = describe(&wasm);
         assert_eq!(description["name"], name.as_str());
+        // The Python and JavaScript templates (contract 0.2.0) take a scan
+        // with its geometry or a plain vector; the Rust and C ones a vector.
+        let ranges = if matches!(lang, "python" | "js") { "any" } else { "vector" };
+        assert_eq!(contract(&wasm), contract_of(lang), "{lang}");
         assert_eq!(
             (description["inputs"][0]["name"].as_str(), description["inputs"][0]["kind"].as_str()),
-            (Some("ranges"), Some("vector"))
+            (Some("ranges"), Some(ranges)),
+            "{lang}"
         );
         assert_eq!(
             (description["outputs"][0]["name"].as_str(), description["outputs"][0]["kind"].as_str()),
@@ -392,6 +413,30 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
             .spawn()
             .unwrap();
         runs.push((format!("{lang} in the demo"), "avoid".to_string(), run, report, Some(copy)));
+        if matches!(*lang, "python" | "js") {
+            // A template of contract 0.2.0 reads each ray's angle from the
+            // scan: in a corridor seen by rays all around (fov 6 rad), the
+            // wall beside it is not in front, and it stays silent. One that
+            // assumed its rays spread over the default fov (pi) would see
+            // the ray at 1.5 rad (0.45 m away) inside its front cone.
+            std::fs::write(
+                dir.join("corridor.world"),
+                "bounds 0 0 12 4\nstart 1 2 0\ngoal 11 2 0.3\nwall 0 2.45 12 2.45\n",
+            )
+            .unwrap();
+            let corridor = dir.join("corridor.xml");
+            std::fs::write(&corridor, corridor_robot(name, &wasm.display().to_string(), budget(lang))).unwrap();
+            let report = dir.join("corridor-report.json");
+            let run = subsume()
+                .arg("run")
+                .arg(&corridor)
+                .args(["--duration", "4", "--report"])
+                .arg(&report)
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap();
+            runs.push((format!("{lang} in the corridor"), name.clone(), run, report, None));
+        }
     }
     for (what, component, run, report, demo_copy) in runs {
         let output = run.wait_with_output().unwrap();
@@ -405,6 +450,16 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         if what.ends_with("trial") {
             assert_eq!(report["sim"]["collisions"], 0, "{what}: {}", report["sim"]);
             assert!(held > 0.5, "{what}: {}", report["arbiter"]);
+        } else if what.ends_with("corridor") {
+            let component = report["components"].as_array().unwrap().iter().find(|c| c["name"] == component.as_str());
+            let component = component.unwrap();
+            assert!(component["calls"].as_u64().unwrap_or_default() > 50, "{what}: {component}");
+            assert_eq!(component["messages_out"], 0, "{what}: a wall beside it is not in front: {component}");
+            assert!(
+                report["sim"]["distance_travelled_m"].as_f64().unwrap_or_default() > 0.5,
+                "{what}: {}",
+                report["sim"]
+            );
         } else {
             let calls =
                 report["components"].as_array().unwrap().iter().find(|c| c["name"] == "avoid").unwrap()["calls"]
@@ -425,6 +480,35 @@ fn suggested_trial(next_steps: &str) -> Vec<String> {
     let at = args.iter().position(|a| a == "--duration").unwrap_or_else(|| panic!("no --duration in {line}"));
     args[at + 1] = "12".into();
     args
+}
+
+/// A robot driving along a corridor (`corridor.world`) with `component`
+/// (a `subsume new` project's, built at `wasm`) watching a scan of 9 rays
+/// over 6 rad, nearly all around.
+fn corridor_robot(component: &str, wasm: &str, budget: &str) -> String {
+    format!(
+        r#"<robot name="corridor">
+  <platform name="control">
+    <component name="sim" source="builtin:sim">
+      <param name="world" value="corridor.world"/><param name="rays" value="9"/><param name="fov" value="6.0"/>
+    </component>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
+    <component name="cruise" source="builtin:publish" rate="10" priority="1">
+      <param name="kind" value="command"/><param name="value" value="VEL 0.3 0"/>
+    </component>
+    <component name="{component}" source="{wasm}" rate="20" budget="{budget}" timeout="400ms"/>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="envelope" source="builtin:envelope" rate="20"><param name="fov" value="6.0"/></component>
+    <connect from="motors.ranges" to="{component}.ranges"/>
+    <connect from="cruise.out" to="arbiter.commands"/>
+    <connect from="{component}.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="motors.ranges" to="envelope.ranges"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+</robot>
+"#
+    )
 }
 
 /// `(hits, looked up)` from the line "compiled component SHA in T s

@@ -135,7 +135,7 @@ struct Request {
 
 #[test]
 fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
-    const ROUNDS: usize = 10;
+    const ROUNDS: usize = 25;
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
     let users: [(&str, &str, &[&str]); 5] = [
@@ -901,15 +901,32 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
     let (status, json) =
         http(&host.address, "PUT", "/api/v1/platforms/control/components/rammer", Some(&dev), &commander);
     assert!((200..300).contains(&status), "{status} {json}");
-    let driver = r#"    <component name="rammer" source="rammer.wasm" rate="20" priority="1000" timeout="300ms">
+    let driver = |priority: i32| {
+        format!(
+            r#"    <component name="rammer" source="rammer.wasm" rate="20" priority="{priority}" timeout="300ms">
       <param name="command" value="VEL 0.45 0"/>
       <param name="ticks" value="100000000"/>
     </component>
     <connect from="rammer.cmd" to="arbiter.commands"/>
-"#;
+"#
+        )
+    };
     let stage = |name: &str, xml: &str| {
         http(&host.address, "PUT", &format!("/api/v1/platforms/control/configs/{name}"), Some(&dev), xml.as_bytes())
     };
+    // Above the envelope's default cap (the avoider's priority, 3): refused
+    // at the component, nothing stored.
+    let (status, json) = stage("ram.xml", &wall_robot(&driver(1000), ""));
+    assert_eq!(status, 422, "{json}");
+    let text = json["diagnostics"][0]["text"].as_str().unwrap_or_default();
+    assert_eq!(
+        text,
+        "ram.xml:11:5: component 'rammer' claims priority 1000, but envelope 'envelope' allows WASM motion sources at most 3",
+        "{json}"
+    );
+    assert_eq!(subsume::store::Store::open(&store).unwrap().sets().unwrap().len(), 1, "nothing was staged");
+    // At the cap it holds control: the top priority a WASM component may have.
+    let driver = &driver(3);
     let (status, staged) = stage("ram.xml", &wall_robot(driver, ""));
     assert!((200..300).contains(&status), "{status} {staged}");
     let id = staged["set"]["id"].as_u64().unwrap();
@@ -977,6 +994,18 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
         entries.iter().any(|e| e.user == "dev" && e.result == "refused" && e.detail.contains("stop-distance")),
         "the refusal is audited"
     );
+
+    // Listening to what the envelope did changes none of its settings: a
+    // developer may wire its `interventions` output.
+    let listening = wall_robot(
+        &format!(
+            "{driver}    <component name=\"heard\" source=\"builtin:log\" rate=\"0\"/>\n    \
+             <connect from=\"envelope.interventions\" to=\"heard.in\"/>\n"
+        ),
+        "",
+    );
+    let (status, json) = stage("listening.xml", &listening);
+    assert_eq!(status, 201, "{json}");
 
     // An admin may change it, and the audit line says how.
     let admin = login(&host.address);
@@ -1260,4 +1289,139 @@ fn an_uploads_compile_and_the_simulator_buttons_show_in_a_real_browser() {
         ],
         "{entries:#?}"
     );
+}
+
+/// `bytes` with a custom section holding `tag`: a component no one uploaded
+/// before (its own sha256), which runs like the original.
+fn tagged_component(bytes: &[u8], tag: &str) -> Vec<u8> {
+    let name = b"tag";
+    let mut out = bytes.to_vec();
+    out.extend_from_slice(&[0, (1 + name.len() + tag.len()) as u8, name.len() as u8]);
+    out.extend_from_slice(name);
+    out.extend_from_slice(tag.as_bytes());
+    out
+}
+
+/// Two developers upload a component of the same name at once, again and
+/// again, over real HTTP: after each of their uploads their own record
+/// holds exactly their bytes, and at the end both records, every blob and
+/// every audit line are there; neither user's upload ever replaced the
+/// other's.
+#[test]
+fn two_users_uploading_one_name_at_once_never_overwrite_each_other() {
+    const ROUNDS: usize = 25;
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    for user in ["ana", "bob"] {
+        add_user(&store, user, "developer", &["control"]);
+    }
+    let robot = dir.path().join("robot.xml");
+    std::fs::write(
+        &robot,
+        r#"<robot name="uploads"><platform name="control">
+    <component name="source" source="builtin:publish" rate="10"><param name="value" value="1"/></component>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="source.out" to="sink.in"/>
+</platform></robot>"#,
+    )
+    .unwrap();
+    let host = start_plain(&store, &robot);
+    let relay = std::fs::read(support::guest("test-relay")).unwrap();
+    let sha256 = |bytes: &[u8]| {
+        use sha2::Digest;
+        hex::encode(sha2::Sha256::digest(bytes))
+    };
+    let ready = std::sync::Barrier::new(2);
+    let uploaded: Vec<(&str, Vec<Vec<u8>>)> = std::thread::scope(|scope| {
+        let workers: Vec<_> = ["ana", "bob"]
+            .into_iter()
+            .map(|user| {
+                let (address, relay, ready) = (&host.address, &relay, &ready);
+                scope.spawn(move || {
+                    let token = login_as(address, user);
+                    let mut sent = Vec::new();
+                    ready.wait();
+                    for round in 0..ROUNDS {
+                        let bytes = tagged_component(relay, &format!("{user}-{round}"));
+                        let (status, json) =
+                            http(address, "PUT", "/api/v1/platforms/control/components/avoid", Some(&token), &bytes);
+                        assert_eq!(status, 201, "{user} round {round}: {json}");
+                        assert_eq!(json["sha256"].as_str(), Some(sha256(&bytes).as_str()), "{user} round {round}");
+                        assert_eq!(json["source"].as_str(), Some(format!("{user}/avoid.wasm").as_str()));
+                        // Whatever the other user uploads meanwhile, this
+                        // user's record is this user's last upload.
+                        let (status, own) = http(address, "GET", "/api/v1/components/avoid", Some(&token), b"");
+                        assert_eq!(status, 200, "{own}");
+                        assert_eq!(own["sha256"], json["sha256"], "{user} round {round}: {own}");
+                        sent.push(bytes);
+                    }
+                    (user, sent)
+                })
+            })
+            .collect();
+        workers.into_iter().map(|w| w.join().unwrap()).collect()
+    });
+    let admin = login(&host.address);
+    let (_, list) = http(&host.address, "GET", "/api/v1/components", Some(&admin), b"");
+    let records = list["components"].as_array().unwrap();
+    assert_eq!(records.len(), 2, "{list}");
+    let opened = subsume::store::Store::open(&store).unwrap();
+    for (user, sent) in &uploaded {
+        let last = sent.last().unwrap();
+        let record = records.iter().find(|r| r["uploaded_by"] == *user).unwrap();
+        assert_eq!((record["name"].as_str(), record["sha256"].as_str()), (Some("avoid"), Some(sha256(last).as_str())));
+        // Every upload's bytes are stored, intact.
+        for bytes in sent {
+            assert_eq!(&opened.blob(&sha256(bytes)).unwrap(), bytes, "{user}");
+        }
+        let audited = opened
+            .audit_entries(1000)
+            .unwrap()
+            .iter()
+            .filter(|e| e.user == *user && e.action == "upload-component" && e.result == "ok")
+            .count();
+        assert_eq!(audited, ROUNDS, "{user}");
+    }
+    opened.verify().unwrap();
+}
+
+/// Each role sees only the controls it may use (hidden, not disabled), in
+/// Chromium: `tests/browser/roles.mjs` logs in as a viewer, an operator, a
+/// developer of each platform and an admin, against the demo with one set
+/// staged beside the active one.
+#[test]
+fn each_role_sees_only_the_controls_it_may_use_in_a_real_browser() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let users = [
+        ("viewer", "viewer", &[][..]),
+        ("operator", "operator", &[][..]),
+        ("control-dev", "developer", &["control"][..]),
+        ("network-dev", "developer", &["network"][..]),
+    ];
+    for (name, role, platforms) in users {
+        add_user(&store, name, role, platforms);
+    }
+    let host = start(&store, &support::repo_root().join("config/demo.xml"));
+    let admin = login(&host.address);
+    let staged = std::fs::read_to_string(support::repo_root().join("config/demo.xml"))
+        .unwrap()
+        .replace("<param name=\"interval\" value=\"2.0\"/>", "<param name=\"interval\" value=\"3.0\"/>");
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/platforms/control/configs/demo.xml", Some(&admin), staged.as_bytes());
+    assert_eq!(status, 201, "{json}");
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let url = format!("http://{}/", host.address);
+    let mut args: Vec<&dyn AsRef<std::ffi::OsStr>> = vec![&url, &PASSWORD];
+    let names = ["viewer", "operator", "control-dev", "network-dev", "admin"];
+    for name in &names {
+        args.push(name);
+    }
+    let stdout = support::browser("roles.mjs", &artifacts, &[], &args);
+    assert!(stdout.contains("ok: 5 roles"), "{stdout}");
+    for name in names {
+        assert!(artifacts.join(format!("role-{name}.png")).is_file(), "role-{name}.png");
+    }
 }

@@ -50,7 +50,6 @@ async function boot() {
 
 function start(user) {
   me = user;
-  applyRoles();
   $('login-view').hidden = true;
   $('app').hidden = false;
   $('tabs').hidden = false;
@@ -59,6 +58,7 @@ function start(user) {
   logout.addEventListener('click', async () => { await api('POST', '/logout').catch(() => {}); location.reload(); });
   $('whoami').append(' ', logout);
   $('estop-bar').hidden = false;
+  applyRole();
   refreshLocks();
   startLive();
   refreshComponents();
@@ -66,47 +66,65 @@ function start(user) {
   startLab();
 }
 
-// ---- who sees which control ------------------------------------------------
-// One row per control: a CSS selector and the roles that see it. The host
-// refuses what a role may not do anyway; this hides what would be refused.
-// 'reservation' is a user inside their own reservation now (docs/lab.md:
-// they may drive); '-ROLE' hides the control from ROLE whatever else it
-// holds. A control not listed here is for every logged-in user.
-const VISIBILITY = [
-  ['#tabs button[data-tab="lab"], #lab-kit', ['researcher', 'developer', 'admin']],
-  ['#component-upload-section, #staging-section', ['researcher', 'developer', 'admin']],
-  ['button.activate, #rollback', ['developer', 'admin']],
-  ['#replay-section, button.replay', ['developer', 'admin']],
-  ['#tabs button[data-tab="recordings"]', ['developer', 'admin']],
-  ['#drive-intro, #drive-controls, #drive-pad-column, #sim-controls', ['operator', 'admin', 'reservation']],
-  ['#drive-not-yours', ['viewer', 'researcher', 'developer', '-reservation']],
-  ['#lab-admin, #lab-reset-confirm, #lab-book-for-label, .lab-submitter', ['admin']],
-];
-// The table as one stylesheet: a control is hidden unless the body carries
-// one of its roles' classes, so controls drawn later (a set's buttons) obey
-// it too.
-(() => {
-  const rules = VISIBILITY.map(([selectors, roles]) => {
-    const unless = roles.filter((r) => !r.startsWith('-')).map((r) => `:not(.role-${r})`).join('');
-    const never = roles.filter((r) => r.startsWith('-')).map((r) => `.role-${r.slice(1)}`);
-    const bodies = [`body${unless}`, ...never.map((n) => `body${n}`)];
-    return bodies.flatMap((b) => selectors.split(',').map((sel) => `${b} ${sel.trim()}`)).join(',\n') + ' { display: none !important; }';
-  });
-  document.head.append(el('style', { id: 'role-visibility' }, rules.join('\n')));
-})();
-// The body's role classes: the user's role, and 'reservation' while the
-// reservation in effect now is theirs.
+// ---- what each role sees -------------------------------------------------
+// Each role sees only the controls it may use: what it may not use is
+// hidden, not merely disabled. One row per role, saying what the host lets
+// it do (host/src/deploy/mod.rs `authorise`, host/src/store/users.rs):
+//   drive     the pad, the simulator's buttons, releasing a stop
+//   change    upload components and robot files, edit them: 'all'
+//             platforms, the session's 'platforms', or 'none'
+//   activate  activate a set, roll back
+//   record    recordings, and replaying a set against one
+// A new role is one more row. An element says what it needs with
+// data-may="drive", "change" (any platform) or "change:PLATFORM".
+//   lab       the Lab tab: submit experiments, book reservations, the kit
+//   admin     the lab's settings, every experiment's submitter, confirming
+//             a manual reset, booking for someone else
+// Inside a reservation of one's own (docs/lab.md), any user may drive.
+const ROLE_MAY = {
+  viewer:     { drive: false, change: 'none',      activate: false, record: false, lab: false, admin: false },
+  operator:   { drive: true,  change: 'none',      activate: false, record: false, lab: false, admin: false },
+  researcher: { drive: false, change: 'platforms', activate: false, record: false, lab: true,  admin: false },
+  developer:  { drive: false, change: 'platforms', activate: true,  record: true,  lab: true,  admin: false },
+  admin:      { drive: true,  change: 'all',       activate: true,  record: true,  lab: true,  admin: true },
+};
+// Whether the reservation in effect now is the user's (the lab's view says).
+let reservedByMe = false;
 function applyRoles(reservedNow = null) {
-  for (const c of [...document.body.classList]) if (c.startsWith('role-')) document.body.classList.remove(c);
-  if (!me) return;
-  document.body.classList.add('role-' + me.role);
-  if (reservedNow && reservedNow.user === me.name) document.body.classList.add('role-reservation');
+  const mine = Boolean(me && reservedNow && reservedNow.user === me.name);
+  if (mine === reservedByMe) return;
+  reservedByMe = mine;
+  applyRole();
+}
+function may(what) {
+  const row = (me && ROLE_MAY[me.role]) || {};
+  const [permission, platform] = what.split(':');
+  if (permission === 'drive' && reservedByMe) return true;
+  if (permission !== 'change') return row[permission] === true;
+  if (row.change === 'all') return true;
+  if (row.change !== 'platforms') return false;
+  return platform ? me.platforms.includes(platform) : me.platforms.length > 0;
+}
+// Hides every element under `root` whose data-may the user lacks; a
+// select whose chosen option is hidden moves to the first one shown.
+function applyRole(root = document) {
+  for (const node of root.querySelectorAll('[data-may]')) {
+    node.hidden = !may(node.dataset.may);
+    if (node.tagName === 'OPTION') node.disabled = node.hidden;
+  }
+  for (const select of root.querySelectorAll('select')) {
+    const chosen = select.selectedOptions[0];
+    if (chosen && chosen.hidden) {
+      const shown = [...select.options].find((o) => !o.hidden);
+      if (shown) select.value = shown.value;
+    }
+  }
 }
 
 // ---- emergency stop (docs/estop.md) --------------------------------------
 // STOP on every tab for every logged-in user; release is a separate,
 // confirmed action, offered to users who may drive.
-const mayDrive = () => me && (me.role === 'operator' || me.role === 'admin');
+const mayDrive = () => may('drive');
 function renderLocks(engaged) {
   const banner = $('lock-banner');
   if (!engaged || engaged.length === 0) {
@@ -146,7 +164,7 @@ for (const button of document.querySelectorAll('#tabs button')) {
     for (const b of document.querySelectorAll('#tabs button')) b.classList.toggle('active', b === button);
     for (const tab of document.querySelectorAll('.tab')) tab.hidden = tab.id !== 'tab-' + button.dataset.tab;
     if (button.dataset.tab === 'components') refreshComponents();
-    if (button.dataset.tab === 'sets') { refreshSets(); refreshReplayRecordings(); refreshWorlds(); }
+    if (button.dataset.tab === 'sets') { refreshSets(); if (may('record')) refreshReplayRecordings(); refreshWorlds(); }
     if (button.dataset.tab === 'recordings') refreshRecordings();
     if (button.dataset.tab === 'lab') { refreshLabSets(); renderLab(); }
   });
@@ -312,7 +330,7 @@ $('component-upload').addEventListener('click', () => {
     const result = $('upload-result');
     if (xhr.status === 201) {
       result.className = 'ok';
-      result.textContent = `stored '${data.name}' (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)${took}`;
+      result.textContent = `stored '${data.name}' as ${data.uploaded_by}/${data.name} (${data.world}, sha256 ${data.sha256.slice(0, 12)}...)${took}; your robot files name it ${data.name}.wasm, anyone's ${data.source}`;
       refreshComponents();
     } else {
       result.className = 'error';
@@ -361,10 +379,14 @@ async function refreshComponents() {
   const list = $('component-list');
   try {
     const { components } = await api('GET', '/components');
+    // Each upload is its uploader's: yours first, then everyone else's.
+    const mine = (c) => (me && c.uploaded_by === me.name ? 0 : 1);
+    components.sort((a, b) => mine(a) - mine(b) || a.source.localeCompare(b.source));
     list.replaceChildren(...components.map((c) => {
       const d = c.description || {};
-      const box = el('div', { class: 'component', 'data-component': c.name },
-        el('h3', {}, `${c.name} `, el('small', {}, `${c.world}, ${(c.size / 1024).toFixed(0)} KiB, by ${c.uploaded_by}`)));
+      const whose = mine(c) === 0 ? 'yours: name it ' + c.name + '.wasm' : 'by ' + c.uploaded_by + ': name it ' + c.source;
+      const box = el('div', { class: 'component', 'data-component': c.name, 'data-owner': c.uploaded_by },
+        el('h3', {}, `${c.uploaded_by}/${c.name} `, el('small', {}, `${c.world}, ${(c.size / 1024).toFixed(0)} KiB, ${whose}`)));
       if (d.inputs) {
         box.append(el('p', {}, `${d.name} ${d.version}: ${d.summary}`));
         box.append(portList('inputs', d.inputs), portList('outputs', d.outputs));
@@ -414,13 +436,14 @@ async function refreshSets() {
       const cells = [el('td', {}, String(s.id)), el('td', {}, s.config_name), el('td', {}, s.created_by), el('td', {}, s.changes.join(', ')), el('td', { class: 'status' }, s.status)];
       const actions = el('td', {}, show);
       if (s.status !== 'active') {
-        const activate = el('button', { class: 'activate', 'data-set': s.id }, 'activate');
+        const activate = el('button', { class: 'activate', 'data-set': s.id, 'data-may': 'activate' }, 'activate');
         activate.addEventListener('click', () => activateSet(s.id));
         actions.append(' ', activate);
         actions.append(' ', replayButton(s.id));
       }
       return el('tr', { 'data-set': s.id }, ...cells, actions);
     }));
+    applyRole(body);
     const active = sets.find((s) => s.status === 'active');
     if (active && $('graph-set').textContent === '-') showGraph(active.id);
   } catch (err) {
@@ -924,7 +947,7 @@ $('recording-stop').addEventListener('click', async () => {
 
 // ---- replay before activation (POST /sets/{id}/replay; developers and admins)
 function replayButton(id) {
-  const button = el('button', { class: 'replay', 'data-set': id, title: 'Replay this set against the chosen recording' }, 'replay');
+  const button = el('button', { class: 'replay', 'data-set': id, 'data-may': 'record', title: 'Replay this set against the chosen recording' }, 'replay');
   button.addEventListener('click', () => replaySet(id));
   return button;
 }
@@ -1075,7 +1098,7 @@ function renderBanner() {
   $('lab-banner-text').replaceChildren(
     el('b', {}, `Experiment ${running.id}${label}`), ` by ${running.submitter} runs set ${running.set}: `,
     countdown(running.ends_unix_ms), ' left');
-  $('lab-banner-stop').hidden = !(me && (running.submitter === me.name || me.role === 'admin'));
+  $('lab-banner-stop').hidden = !(me && (running.submitter === me.name || may('admin')));
 }
 $('lab-banner-watch').addEventListener('click', () => showTab('lab'));
 $('lab-banner-stop').addEventListener('click', async () => {
@@ -1179,11 +1202,12 @@ function renderLab() {
     $('lab-live-title').textContent = `On the robot now: experiment ${running.id} by ${running.submitter} (set ${running.set}${running.label ? `, '${running.label}'` : ''})`;
     $('lab-live-left').replaceChildren(countdown(running.ends_unix_ms), ` (until ${clock(running.ends_unix_ms)})`);
   }
-  $('lab-experiments-title').textContent = me && me.role === 'admin' ? 'Every experiment' : 'My experiments';
+  $('lab-experiments-title').textContent = me && may('admin') ? 'Every experiment' : 'My experiments';
   const shown = labExperiments.slice(0, MAX_EXPERIMENTS_SHOWN).map(experimentCard);
   if (!labExperiments.length) shown.push(el('p', { class: 'hint' }, 'none yet'));
   if (labExperiments.length > MAX_EXPERIMENTS_SHOWN) shown.push(el('p', { class: 'hint' }, `and ${labExperiments.length - MAX_EXPERIMENTS_SHOWN} older ones`));
   $('lab-experiments').replaceChildren(...shown);
+  applyRole($('lab-experiments'));
   renderReservations();
   renderLabAdmin();
 }
@@ -1223,7 +1247,7 @@ function experimentCard(x) {
     el('b', {}, `Experiment ${x.id}`), ' ', el('span', { class: 'exp-label' }, x.label || '(no label)'), ' ',
     el('span', { class: 'state' }, x.state), actions));
   card.append(el('div', { class: 'exp-meta hint' }, `set ${x.set}, ${x.duration_s} s`,
-    el('span', { class: 'lab-submitter' }, `, by ${x.submitter}`), `, submitted ${when(x.submitted_ms)}`));
+    el('span', { class: 'lab-submitter', 'data-may': 'admin' }, `, by ${x.submitter}`), `, submitted ${when(x.submitted_ms)}`));
   if (!FINAL_STATES.has(x.state)) card.append(experimentNow(x));
   card.append(el('ol', { class: 'timeline' }, ...x.history.map((h) =>
     el('li', { 'data-state': h.state, title: h.cause }, el('span', { class: 'tl-state' }, h.state), ` ${clock(h.at_ms)}`))));
@@ -1252,7 +1276,7 @@ function renderReservations() {
   const body = $('lab-reservations').querySelector('tbody');
   body.replaceChildren(...lab.reservations.map((r) => {
     const actions = el('td', {});
-    if (me && (r.user === me.name || me.role === 'admin')) {
+    if (me && (r.user === me.name || may('admin'))) {
       const cancel = el('button', { class: 'unbook', 'data-reservation': String(r.id) }, 'Cancel');
       cancel.addEventListener('click', async () => {
         try { await api('DELETE', `/lab/reservations/${r.id}`); $('lab-book-result').textContent = `cancelled reservation ${r.id}`; } catch (err) { showLabRefusal(err, 'not cancelled', 'lab-book-result'); }
@@ -1341,7 +1365,7 @@ function readSettings() {
   return settings;
 }
 function renderLabAdmin() {
-  if (!me || me.role !== 'admin' || !lab.settings) return;
+  if (!me || !may('admin') || !lab.settings) return;
   $('lab-queue-state').textContent = lab.paused ? 'paused' : 'runs';
   $('lab-pause').disabled = lab.paused;
   $('lab-resume').disabled = !lab.paused;

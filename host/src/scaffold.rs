@@ -74,6 +74,15 @@ impl Language {
         }
     }
 
+    /// The contract the language's template is written against (the
+    /// project's `wit/robot.wit`).
+    fn contract(self) -> &'static str {
+        match self {
+            Language::C => WIT_0_1,
+            Language::Rust | Language::Python | Language::Js => WIT_CURRENT,
+        }
+    }
+
     /// Where the build leaves the component, relative to the project.
     pub fn wasm_path(self, name: &str) -> String {
         match self {
@@ -170,8 +179,8 @@ const COMMON_FILES: [(&str, &str); 3] = [
 ];
 
 /// The contract a project is built against, as `wit/robot.wit`: the Rust
-/// SDK speaks 0.2.0; the C, Python and JavaScript templates are still
-/// written against 0.1.0, which the host keeps running.
+/// SDK and the Python and JavaScript templates speak 0.2.0; the C template
+/// is still written against 0.1.0, which the host keeps running.
 const WIT_CURRENT: &str = include_str!("../../wit/robot.wit");
 const WIT_0_1: &str = include_str!("../../wit/0.1.0/robot.wit");
 
@@ -344,7 +353,7 @@ pub fn render(name: &str, language: Language) -> Vec<(String, String)> {
     let fill = |text: &str| vars.iter().fold(text.to_string(), |text, (key, value)| text.replace(key, value));
     let mut files: Vec<(String, String)> =
         COMMON_FILES.iter().chain(language.files()).map(|(path, text)| (path.to_string(), fill(text))).collect();
-    let wit = if language == Language::Rust { WIT_CURRENT } else { WIT_0_1 };
+    let wit = language.contract();
     files.push(("wit/robot.wit".to_string(), wit.to_string()));
     if language == Language::Rust {
         files.push(("sdk/src/lib.rs".to_string(), SDK_SOURCE.replace(SDK_WIT_PATH.0, SDK_WIT_PATH.1)));
@@ -429,7 +438,7 @@ mod tests {
                 assert!(!text.contains("{{"), "{language} {path} keeps a placeholder");
             }
             let file = |name: &str| files.iter().find(|(path, _)| path == name).map(|(_, text)| text.as_str());
-            let contract = if language == Language::Rust { WIT_CURRENT } else { WIT_0_1 };
+            let contract = if language == Language::C { WIT_0_1 } else { WIT_CURRENT };
             assert_eq!(file("wit/robot.wit"), Some(contract), "{language}");
             let robot = file("robot.xml").unwrap_or_default();
             assert!(robot.contains(&format!("source=\"{}\"", language.wasm_path("wall-follower"))), "{robot}");

@@ -178,6 +178,7 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("GET", "/api/v1/session", b"", Allowed::AnyUser),
         ("GET", "/api/v1/components", b"", Allowed::AnyUser),
         ("GET", "/api/v1/components/none", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/components/admin/none", b"", Allowed::AnyUser),
         ("PUT", "/api/v1/platforms/control/components/x", b"not wasm", Allowed::Control),
         ("PUT", "/api/v1/platforms/network/components/x", b"not wasm", Allowed::Network),
         ("PUT", "/api/v1/platforms/control/configs/r.xml", b"<robot", Allowed::Control),
@@ -311,6 +312,7 @@ fn malformed_uploads() -> Vec<(&'static str, String, Vec<u8>, StatusCode, &'stat
         ("oversize component", component("a"), vec![0u8; MAX_UPLOAD_BYTES + 1], S::PAYLOAD_TOO_LARGE, ""),
         ("name with a path", component("..%2Fevil"), avoider.clone(), S::BAD_REQUEST, "is not [a-z]"),
         ("name in capitals", component("Evil"), avoider.clone(), S::BAD_REQUEST, "is not [a-z]"),
+        ("name in another user's uploads", component("admin%2Favoid"), avoider.clone(), S::BAD_REQUEST, "is not [a-z]"),
         ("unknown platform", "/api/v1/platforms/kitchen/components/a".into(), avoider, S::NOT_FOUND, "unknown platform 'kitchen'"),
         ("bad xml", config("r.xml"), b"<robot name=\"bench\"><platform name=\"control\">".to_vec(), S::UNPROCESSABLE_ENTITY, "r.xml:1:"),
         (
@@ -322,6 +324,8 @@ fn malformed_uploads() -> Vec<(&'static str, String, Vec<u8>, StatusCode, &'stat
         ),
         ("unknown component", config("r.xml"), robot(r#"<component name="a" source="nowhere.wasm"/>"#), S::UNPROCESSABLE_ENTITY, "unknown component 'nowhere.wasm'"),
         ("component outside the store", config("r.xml"), robot(r#"<component name="a" source="../../../etc/passwd.wasm"/>"#), S::UNPROCESSABLE_ENTITY, "unknown component"),
+        ("another user's component that is not there", config("r.xml"), robot(r#"<component name="a" source="admin/nowhere.wasm"/>"#), S::UNPROCESSABLE_ENTITY, "unknown component 'admin/nowhere.wasm'"),
+        ("an owner that is not a name", config("r.xml"), robot(r#"<component name="a" source="Admin/../nowhere.wasm"/>"#), S::UNPROCESSABLE_ENTITY, "unknown component"),
         ("world file outside the folder", config("r.xml"), robot(&format!("{publish}<component name=\"sim\" source=\"builtin:sim\"><param name=\"world\" value=\"../../etc/passwd\"/></component>")), S::UNPROCESSABLE_ENTITY, "must be a path inside the robot's folder"),
         ("file name with a path", config("..%2Fr.xml"), robot(publish), S::BAD_REQUEST, "is not a plain name"),
         ("file name hidden", config(".r.xml"), robot(publish), S::BAD_REQUEST, "is not a plain name"),
@@ -368,7 +372,7 @@ async fn an_uploaded_component_shows_its_ports_and_a_robot_file_using_it_is_stag
     let (status, json) = portal.call("control-dev", "PUT", "/api/v1/platforms/control/components/smooth", bytes).await;
     assert_eq!(status, StatusCode::CREATED, "{json}");
     assert_eq!(json["world"], "component");
-    let (_, json) = portal.call("viewer", "GET", "/api/v1/components/smooth", "").await;
+    let (_, json) = portal.call("viewer", "GET", "/api/v1/components/control-dev/smooth", "").await;
     assert_eq!(json["description"]["inputs"][0]["name"], "ranges", "{json}");
     let robot = ROBOT.replace(
         r#"<connect from="source.out" to="sink.in"/>"#,
@@ -402,6 +406,7 @@ async fn the_openapi_document_lists_exactly_the_routes() {
     for (method, path) in &documented {
         let uri = path
             .replace("{platform}", "control")
+            .replace("{owner}", "admin")
             .replace("{name}", "x")
             .replace("{file}", "x.xml")
             .replace("{id}", "1");
@@ -733,4 +738,130 @@ async fn experiments_submitted_around_lab_changes_never_share_an_id() {
         assert_eq!(json["experiment"]["label"], format!("try {n}"), "{json}");
     }
     assert_eq!(portal.store.lab_state().unwrap().next_experiment, 4);
+}
+
+/// A WASM motion source above the envelope's default cap (the obstacle
+/// avoider's priority, 3: the file sets no `max-priority`) is refused at
+/// the component that claims it, with nothing stored; at the cap it stages.
+#[tokio::test]
+async fn a_motion_source_above_the_default_priority_cap_is_refused_where_it_is_declared() {
+    let portal = portal().await;
+    let avoider = std::fs::read(support::guest("avoider")).unwrap();
+    for user in ["control-dev", "admin"] {
+        let uri = "/api/v1/platforms/control/components/avoid";
+        let (status, json) = portal.call(user, "PUT", uri, avoider.clone()).await;
+        assert_eq!(status, StatusCode::CREATED, "{user}: {json}");
+    }
+    let robot = |priority: i32| {
+        ROBOT.replace(
+            "    <connect from=\"source.out\"",
+            &format!(
+                "    <component name=\"avoid\" source=\"avoid.wasm\" rate=\"10\" priority=\"{priority}\"/>\n    \
+                 <component name=\"arbiter\" source=\"builtin:arbiter\" rate=\"20\"/>\n    \
+                 <component name=\"envelope\" source=\"builtin:envelope\" rate=\"20\"/>\n    \
+                 <connect from=\"avoid.cmd\" to=\"arbiter.commands\"/>\n    \
+                 <connect from=\"arbiter.cmd\" to=\"envelope.cmd\"/>\n    \
+                 <connect from=\"source.out\""
+            ),
+        )
+    };
+    let before = portal.snapshot();
+    for user in ["control-dev", "admin"] {
+        let (status, json) = portal.call(user, "PUT", "/api/v1/platforms/control/configs/r.xml", robot(50)).await;
+        assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{user}: {json}");
+        assert_eq!(
+            json["diagnostics"][0]["text"],
+            "r.xml:5:5: component 'avoid' claims priority 50, but envelope 'envelope' allows WASM motion sources at most 3",
+            "{user}: {json}"
+        );
+        assert_eq!(portal.snapshot(), before, "{user}: the refusal changed the store");
+    }
+    let (status, json) = portal.call("admin", "PUT", "/api/v1/platforms/control/configs/r.xml", robot(3)).await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+}
+
+/// Two users' uploads of one name are two records: each user's robot
+/// files run their own by `NAME.wasm`, anyone's run another user's by
+/// `OWNER/NAME.wasm`, and one user's upload never replaces the other's.
+#[tokio::test]
+async fn uploads_belong_to_their_uploader_and_another_users_are_used_by_owner_and_name() {
+    let portal = portal().await;
+    let filter = std::fs::read(support::guest("range_filter")).unwrap();
+    let relay = std::fs::read(support::guest("test-relay")).unwrap();
+    let uri = "/api/v1/platforms/control/components/smooth";
+    let (status, ana) = portal.call("control-dev", "PUT", uri, filter.clone()).await;
+    assert_eq!(status, StatusCode::CREATED, "{ana}");
+    assert_eq!(
+        (ana["uploaded_by"].as_str(), ana["source"].as_str()),
+        (Some("control-dev"), Some("control-dev/smooth.wasm"))
+    );
+    let (status, admin) = portal.call("admin", "PUT", uri, relay.clone()).await;
+    assert_eq!(status, StatusCode::CREATED, "{admin}");
+    assert_ne!(ana["sha256"], admin["sha256"]);
+    // Both records are there; each user's own is theirs, and anyone reads either.
+    let (_, list) = portal.call("viewer", "GET", "/api/v1/components", "").await;
+    let listed: Vec<(&str, &str)> = list["components"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|c| (c["source"].as_str().unwrap(), c["sha256"].as_str().unwrap()))
+        .collect();
+    let (ana_sha, admin_sha) = (ana["sha256"].as_str().unwrap(), admin["sha256"].as_str().unwrap());
+    assert_eq!(listed, [("admin/smooth.wasm", admin_sha), ("control-dev/smooth.wasm", ana_sha)], "{list}");
+    let (_, own) = portal.call("control-dev", "GET", "/api/v1/components/smooth", "").await;
+    assert_eq!(own["sha256"], ana["sha256"], "{own}");
+    let (_, own) = portal.call("admin", "GET", "/api/v1/components/smooth", "").await;
+    assert_eq!(own["sha256"], admin["sha256"], "{own}");
+    let (_, other) = portal.call("viewer", "GET", "/api/v1/components/control-dev/smooth", "").await;
+    assert_eq!(other["sha256"], ana["sha256"], "{other}");
+    let (status, _) = portal.call("viewer", "GET", "/api/v1/components/smooth", "").await;
+    assert_eq!(status, StatusCode::NOT_FOUND, "the viewer uploaded nothing");
+
+    // Staging: `smooth.wasm` is the stager's own, `OWNER/smooth.wasm` the owner's.
+    let robot = |source: &str| {
+        ROBOT.replace(
+            r#"<connect from="source.out" to="sink.in"/>"#,
+            &format!(
+                r#"<component name="smooth" source="{source}" rate="0"/><connect from="source.out" to="sink.in"/>"#
+            ),
+        )
+    };
+    let staged = |json: &Value, source: &str| json["set"]["sources"][source].as_str().map(str::to_string);
+    for (user, source, expected) in [
+        ("control-dev", "smooth.wasm", ana_sha),
+        ("admin", "smooth.wasm", admin_sha),
+        ("control-dev", "admin/smooth.wasm", admin_sha),
+        ("admin", "control-dev/smooth.wasm", ana_sha),
+    ] {
+        let (status, json) = portal.call(user, "PUT", "/api/v1/platforms/control/configs/r.xml", robot(source)).await;
+        assert_eq!(status, StatusCode::CREATED, "{user} {source}: {json}");
+        assert_eq!(staged(&json, source).as_deref(), Some(expected), "{user} {source}: {json}");
+    }
+    // A user with no upload of the name is told whose there are.
+    let (status, json) =
+        portal.call("network-dev", "POST", "/api/v1/platforms/network/validate/r.xml", robot("smooth.wasm")).await;
+    assert_eq!(status, StatusCode::UNPROCESSABLE_ENTITY, "{json}");
+    let message = json["diagnostics"][0]["message"].as_str().unwrap_or_default();
+    assert!(
+        message.ends_with(
+            "unknown component 'smooth.wasm': network-dev has uploaded no 'smooth'; to run another user's, \
+             name it as admin/smooth.wasm or control-dev/smooth.wasm"
+        ),
+        "{json}"
+    );
+
+    // Uploading again replaces only the uploader's own record.
+    let (status, json) = portal.call("admin", "PUT", uri, filter).await;
+    assert_eq!(status, StatusCode::CREATED, "{json}");
+    let (_, other) = portal.call("admin", "GET", "/api/v1/components/control-dev/smooth", "").await;
+    assert_eq!(other["sha256"], ana["sha256"], "{other}");
+    let audit = portal.store.audit_entries(100).unwrap();
+    // The audit log names whose record each upload wrote (targets are clipped).
+    let uploads: Vec<&str> =
+        audit.iter().filter(|e| e.action == "upload-component").map(|e| e.target.as_str()).collect();
+    let expected = ["component 'control-dev/smooth'", "component 'admin/smooth'", "component 'admin/smooth'"];
+    assert_eq!(uploads.len(), expected.len(), "{uploads:?}");
+    for (target, start) in uploads.iter().zip(expected) {
+        assert!(target.starts_with(start), "{uploads:?}");
+    }
 }

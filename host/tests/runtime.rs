@@ -373,3 +373,99 @@ fn a_faulted_component_restarts_with_backoff_until_its_restarts_run_out() {
     // Each life emitted its two good ticks, counting from 1 again.
     assert_eq!(recorder.scalars(), vec![1.0, 2.0, 1.0, 2.0, 1.0, 2.0]);
 }
+
+/// Records every input a graph delivers to one component.
+struct InputsOf {
+    component: usize,
+    seen: Arc<Mutex<Vec<(u32, Value, u64)>>>,
+}
+
+impl subsume::runtime::Tap for InputsOf {
+    fn call(&mut self, index: usize, call: subsume::runtime::Call<'_>, now_ns: u64) {
+        if let (true, subsume::runtime::Call::Input { port, value, .. }) = (index == self.component, call) {
+            self.seen.lock().unwrap().push((port, value.clone(), now_ns));
+        }
+    }
+    fn emitted(&mut self, _: usize, _: u32, _: &Value, _: u64) {}
+    fn faulted(&mut self, _: usize, _: &str, _: u64) {}
+    fn restarted(&mut self, _: usize, _: u64, _: u64) {}
+}
+
+/// A WASM component wired to the envelope's `interventions` output, in a
+/// graph built from a robot file: a driver heads out of the geofence, the
+/// envelope holds it, and the component receives one message saying so
+/// (stopped, geofence, the reading), not one per command.
+#[test]
+fn a_component_wired_to_the_envelope_hears_of_the_geofence_hold() {
+    let sandbox = sandbox();
+    let dir = tempfile::tempdir().unwrap();
+    let robot = dir.path().join("fenced.xml");
+    let relay = support::guest("test-relay");
+    std::fs::write(
+        &robot,
+        format!(
+            r#"<robot name="fenced">
+  <platform name="control">
+    <component name="driver" source="builtin:publish" rate="20" priority="1">
+      <param name="kind" value="command"/><param name="value" value="VEL 0.3 0"/>
+    </component>
+    <component name="odometry" source="builtin:publish" rate="20">
+      <param name="kind" value="vector"/><param name="value" value="3.9 1.5 0"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="geofence" value="0,0 4,0 4,3 0,3"/>
+    </component>
+    <component name="listener" source="{}" rate="0"/>
+    <component name="motors" source="builtin:log" rate="0"/>
+    <component name="heard" source="builtin:log" rate="0"/>
+    <connect from="driver.out" to="arbiter.commands"/>
+    <connect from="odometry.out" to="envelope.pose"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.in"/>
+    <connect from="envelope.interventions" to="listener.text-in"/>
+    <connect from="listener.text-out" to="heard.in"/>
+  </platform>
+</robot>
+"#,
+            relay.display()
+        ),
+    )
+    .unwrap();
+    let mut loader = subsume::assemble::Loader::new(&sandbox);
+    let config = subsume::config::load(&robot, &mut loader).unwrap_or_else(|d| panic!("{d}"));
+    let listener = config.components.iter().position(|c| c.name == "listener").unwrap();
+    let clock = subsume::runtime::control_loop::Clock::new();
+    let shutdown = subsume::runtime::control_loop::Shutdown::new();
+    let mut graph = subsume::assemble::build_graph(&config, &mut loader, clock.clone(), &shutdown.waker())
+        .unwrap_or_else(|e| panic!("{e:?}"));
+    let seen = Arc::new(Mutex::new(Vec::new()));
+    graph.set_tap(Box::new(InputsOf { component: listener, seen: seen.clone() }));
+    // Two seconds of graph time, 100 cycles a second.
+    let start = clock.now_ns();
+    for cycle in 0..=200 {
+        graph.step(start + cycle * 10 * MS);
+    }
+    let heard: Vec<serde_json::Value> = seen
+        .lock()
+        .unwrap()
+        .iter()
+        .map(|(port, value, _)| match value {
+            Value::Text(text) => {
+                assert_eq!(*port, 3, "text-in");
+                serde_json::from_str(text).unwrap()
+            }
+            other => panic!("the listener got {other:?}"),
+        })
+        .collect();
+    assert_eq!(heard.len(), 1, "one message for the whole hold: {heard:?}");
+    let hold = &heard[0];
+    assert_eq!((hold["action"].as_str(), hold["cause"].as_str()), (Some("stopped"), Some("geofence")), "{hold}");
+    assert_eq!((hold["command"].as_str(), hold["output"].as_str()), (Some("VEL 0.3 0.0"), Some("STOP")), "{hold}");
+    assert!(hold["reading"]["edge_m"].as_f64().is_some_and(|e| (e - 0.1).abs() < 1e-9), "{hold}");
+    assert_eq!(hold["reading"]["outside"], false, "{hold}");
+    assert!(hold["text"].as_str().unwrap().starts_with("stopped VEL 0.3 0.0: geofence"), "{hold}");
+    // The listener ran normally and forwarded what it heard.
+    let state = graph.state(listener).unwrap();
+    assert!(matches!(state, ComponentState::Running), "{state:?}");
+}

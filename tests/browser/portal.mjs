@@ -55,7 +55,9 @@ try {
   const card = page.locator('.component[data-component="browser-avoider"]');
   await card.waitFor();
   const text = await card.innerText();
-  for (const words of ['inputs: ranges (vector)', 'outputs: cmd (command)', 'threshold=']) {
+  // The upload is the user's own, and the card says how robot files name it.
+  const owned = [`${user}/browser-avoider`, 'yours: name it browser-avoider.wasm'];
+  for (const words of ['inputs: ranges (vector)', 'outputs: cmd (command)', 'threshold=', ...owned]) {
     if (!text.includes(words)) throw new Error(`component card lacks '${words}': ${text}`);
   }
   await shot('1-component');

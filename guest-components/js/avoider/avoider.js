@@ -1,7 +1,9 @@
 // Obstacle avoider (subsumption layer, default priority 3), in JavaScript.
 //
 // The same component as guest-components/rust/avoider: the same ports,
-// parameters, description and commands (tests/languages.rs checks it).
+// parameters, description and commands (tests/languages.rs checks it), built
+// like it against the contract subsume:robot@0.2.0: `onInput` and `tick`
+// return nothing, and a problem goes to `report`.
 // Reads a range scan whose rays are spread evenly from -fov/2 (right) to
 // +fov/2 (left) of the heading. While an obstacle inside the front cone is
 // nearer than `threshold`, it emits `VEL <creep> <turn>` on every tick,
@@ -9,12 +11,12 @@
 // arbiter this behaviour is not active, so a lower layer drives.
 //
 // WIT to JavaScript: exports are the module's exported functions, in
-// camelCase (on-input -> onInput); a `result` export returns normally for
-// `ok` and throws the `err` payload; a variant is `{ tag, val }`; an enum is
+// camelCase (on-input -> onInput); a `result` export (`init`) returns
+// normally for `ok` and throws the `err` payload; a variant is `{ tag, val }`; an enum is
 // its case name as a string; list<f64> arrives as a Float64Array; u64 is a
 // BigInt.
 
-import { emit } from 'subsume:robot/host@0.1.0';
+import { emit, report } from 'subsume:robot/host@0.2.0';
 
 /** The one instance, made by `init`. */
 let state = null;
@@ -69,17 +71,18 @@ export function init(params) {
 
 export function onInput(_port, value) {
   if (state === null) {
-    throw 'on-input called before init';
+    report('on-input called before init');
+  } else if (value.tag !== 'vector') {
+    report('ranges: expected a vector');
+  } else {
+    state.ranges = value.val;
   }
-  if (value.tag !== 'vector') {
-    throw 'ranges: expected a vector';
-  }
-  state.ranges = value.val;
 }
 
 export function tick(_nowNs) {
   if (state === null) {
-    throw 'tick called before init';
+    report('tick called before init');
+    return;
   }
   const n = state.ranges.length;
   if (n === 0) {

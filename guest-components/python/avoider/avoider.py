@@ -1,7 +1,9 @@
 """Obstacle avoider (subsumption layer, default priority 3), in Python.
 
 The same component as guest-components/rust/avoider: the same ports,
-parameters, description and commands (tests/languages.rs checks it).
+parameters, description and commands (tests/languages.rs checks it), built
+like it against the contract subsume:robot@0.2.0: `on_input` and `tick`
+return nothing, and a problem goes to `host.report`.
 Reads a range scan whose rays are spread evenly from -fov/2 (right) to
 +fov/2 (left) of the heading. While an obstacle inside the front cone is
 nearer than `threshold`, it emits `VEL <creep> <turn>` on every tick,
@@ -90,14 +92,16 @@ class WitWorld(wit_world.WitWorld):
 
     def on_input(self, port: int, value: Value) -> None:
         if state is None:
-            raise Err("on-input called before init")
-        if not isinstance(value, Value_Vector):
-            raise Err("ranges: expected a vector")
-        state.ranges = value.value
+            host.report("on-input called before init")
+        elif not isinstance(value, Value_Vector):
+            host.report("ranges: expected a vector")
+        else:
+            state.ranges = value.value
 
     def tick(self, now_ns: int) -> None:
         if state is None:
-            raise Err("tick called before init")
+            host.report("tick called before init")
+            return
         n = len(state.ranges)
         if n == 0:
             return

@@ -13,13 +13,14 @@ use super::flags::LoginFlags;
 /// and activate them in one step (docs/portal.md).
 #[derive(clap::Args)]
 pub struct DeployCommand {
-    /// A component of the robot and its file: uploaded under NAME
-    /// (repeatable). Without --robot, the active robot file's component
-    /// NAME is pointed at it.
+    /// A component of the robot and its file: uploaded as the user's
+    /// NAME, never replacing another user's (repeatable). Without
+    /// --robot, the active robot file's component NAME is pointed at it
+    /// (USER/NAME.wasm).
     #[arg(long = "component", value_name = "NAME=FILE.wasm", value_parser = component_arg)]
     components: Vec<(String, PathBuf)>,
     /// A robot file to stage and activate (its sources may name the
-    /// uploaded components as NAME.wasm).
+    /// user's uploads as NAME.wasm, another user's as OWNER/NAME.wasm).
     #[arg(long, value_name = "FILE.xml")]
     robot: Option<PathBuf>,
     /// The platform the uploads belong to.

@@ -1,5 +1,8 @@
 //! Staging: an uploaded robot file, validated exactly like `subsume check`
 //! with its WASM sources resolved to stored components, becomes a new set.
+//! A source `NAME.wasm` is the stager's own upload `NAME`, `OWNER/NAME.wasm`
+//! is `OWNER`'s ([`upload_for_source`]), and either falls back to what the
+//! active set pinned under that exact text.
 //! Also what validating a stored set, comparing two robots platform by
 //! platform, and the wiring view need.
 
@@ -12,9 +15,12 @@ use crate::config::{
     BuiltinKind, ComponentConfig, ComponentSource, Diagnostic, Diagnostics, ParamOverride, Platform, ResolveError,
     Resolver, RobotConfig, RobotProblem, RobotView, limits,
 };
-use crate::contract::{Description, clip};
+use crate::contract::{Description, clip, is_valid_name};
 use crate::store::users::{Role, User};
-use crate::store::{STORE_FORMAT, SetRecord, Store, WiringComponent, WiringConnection, WiringGraph, unix_now};
+use crate::store::{
+    ComponentRecord, STORE_FORMAT, SetRecord, Store, WiringComponent, WiringConnection, WiringGraph, component_key,
+    unix_now,
+};
 
 /// Longest robot-file name kept (it names diagnostics).
 pub const MAX_FILE_NAME_LEN: usize = 64;
@@ -118,9 +124,13 @@ impl Deployer {
             .map_err(|e| DeployError::BadRequest(format!("{file_name} is not utf-8: {e}")))?;
         let (active_set, active_config) = self.active()?;
         let components = self.store.components()?;
-        let lookup = |source: &str| -> Option<String> {
-            let name = source.strip_suffix(".wasm").unwrap_or(source);
-            components.get(name).map(|c| c.sha256.clone()).or_else(|| active_set.sources.get(source).cloned())
+        // The stager's own upload (or the one of the user it names), then
+        // what the active set pinned under that source.
+        let lookup = |source: &str| -> Result<String, String> {
+            if let Some(record) = upload_for_source(&components, &user.name, source) {
+                return Ok(record.sha256.clone());
+            }
+            active_set.sources.get(source).cloned().ok_or_else(|| unknown_component(&components, &user.name, source))
         };
         let record = SetRecord {
             format: STORE_FORMAT,
@@ -194,19 +204,64 @@ pub(super) fn validate_set(
     let bytes = store.blob(&set.config_sha256)?;
     let text =
         String::from_utf8(bytes).map_err(|e| DeployError::Host(format!("stored robot file is not utf-8: {e}")))?;
-    let lookup = |source: &str| set.sources.get(source).cloned();
-    validate_text(store, set, &text, &lookup, &lookup, loader, overrides).map(|(config, _)| config)
+    let lookup = |source: &str| {
+        set.sources
+            .get(source)
+            .cloned()
+            .ok_or_else(|| format!("unknown component '{}': not in set {}", clip(source), set.id))
+    };
+    let worlds = |name: &str| set.sources.get(name).cloned();
+    validate_text(store, set, &text, &lookup, &worlds, loader, overrides).map(|(config, _)| config)
+}
+
+/// The stored upload a robot file staged by `stager` means by `source`:
+/// `NAME.wasm` is the stager's own upload `NAME`; `OWNER/NAME.wasm` is
+/// `OWNER`'s (anyone may run another user's component; only its owner can
+/// replace it). Anything else names no upload.
+pub fn upload_for_source<'c>(
+    components: &'c BTreeMap<String, ComponentRecord>,
+    stager: &str,
+    source: &str,
+) -> Option<&'c ComponentRecord> {
+    let stem = source.strip_suffix(".wasm")?;
+    let key = match stem.split_once('/') {
+        None if is_valid_name(stem) => component_key(stager, stem),
+        Some((owner, name)) if is_valid_name(owner) && is_valid_name(name) => component_key(owner, name),
+        _ => return None,
+    };
+    components.get(&key)
+}
+
+/// Why `source` resolves to nothing for `stager`, naming other users'
+/// uploads of that name (a plain `NAME.wasm` means the stager's own).
+fn unknown_component(components: &BTreeMap<String, ComponentRecord>, stager: &str, source: &str) -> String {
+    let stem = source.strip_suffix(".wasm").unwrap_or(source);
+    let others: Vec<String> = if is_valid_name(stem) {
+        components.values().filter(|c| c.name == stem).take(3).map(ComponentRecord::source).collect()
+    } else {
+        Vec::new()
+    };
+    if others.is_empty() {
+        format!("unknown component '{}': upload it first (GET /api/v1/components lists the stored ones)", clip(source))
+    } else {
+        format!(
+            "unknown component '{}': {stager} has uploaded no '{stem}'; to run another user's, name it as {}",
+            clip(source),
+            others.join(" or ")
+        )
+    }
 }
 
 /// Validates robot-file `text` for `set`'s folder, resolving WASM sources
-/// through `lookup` and uploaded simulator worlds through `worlds`; returns
+/// through `lookup` (the blob's sha256, or why there is none) and uploaded
+/// simulator worlds through `worlds`; returns
 /// the robot (sources and pinned worlds as blob paths) and the sources and
 /// worlds it used, by name.
 fn validate_text(
     store: &Store,
     set: &SetRecord,
     text: &str,
-    lookup: &dyn Fn(&str) -> Option<String>,
+    lookup: &dyn Fn(&str) -> Result<String, String>,
     worlds: &dyn Fn(&str) -> Option<String>,
     loader: &mut Loader<'_>,
     overrides: &[ParamOverride],
@@ -258,7 +313,7 @@ struct SetResolver<'r, 'l> {
     store: &'r Store,
     loader: &'r mut Loader<'l>,
     base_dir: &'r Path,
-    lookup: &'r dyn Fn(&str) -> Option<String>,
+    lookup: &'r dyn Fn(&str) -> Result<String, String>,
     worlds: &'r dyn Fn(&str) -> Option<String>,
     used: BTreeMap<String, String>,
 }
@@ -303,12 +358,7 @@ impl Resolver for SetResolver<'_, '_> {
             ComponentSource::Builtin(_) => self.loader.describe(source, params, base_dir),
             ComponentSource::Wasm(file) => {
                 let key = relative_source(self.base_dir, file);
-                let sha = (self.lookup)(&key).ok_or_else(|| {
-                    ResolveError::Source(format!(
-                        "unknown component '{}': upload it first (GET /api/v1/components lists the stored ones)",
-                        clip(&key)
-                    ))
-                })?;
+                let sha = (self.lookup)(&key).map_err(ResolveError::Source)?;
                 let description = self
                     .loader
                     .load_wasm(&self.store.blob_path(&sha))
@@ -379,9 +429,10 @@ pub fn wiring_graph(config: &RobotConfig) -> WiringGraph {
 }
 
 /// The first difference between the envelopes of two robots (their
-/// parameters, rate and every connection into or out of them), in words
-/// naming the setting; None when they are the same. Envelope settings are
-/// the owner's: only an admin may change them.
+/// parameters, rate and every connection into or out of them but those
+/// from their `interventions` output), in words naming the setting; None
+/// when they are the same. Envelope settings are the owner's: only an
+/// admin may change them.
 pub fn envelope_change(old: &RobotConfig, new: &RobotConfig) -> Option<String> {
     fn envelopes(robot: &RobotConfig) -> BTreeMap<String, (usize, &ComponentConfig)> {
         robot
@@ -402,10 +453,20 @@ pub fn envelope_change(old: &RobotConfig, new: &RobotConfig) -> Option<String> {
             };
             format!("{} ({source}).{}", c.name, ports.get(port as usize).map_or("?", |p| p.name.as_str()))
         };
+        // Components may listen to what the envelope did: wiring its
+        // `interventions` output changes none of the owner's settings.
+        let tells_interventions = |c: &crate::config::ConnectionConfig| {
+            c.from.component == index
+                && robot
+                    .components
+                    .get(index)
+                    .and_then(|envelope| envelope.description.outputs.get(c.from.port as usize))
+                    .is_some_and(|port| port.name == crate::envelope::INTERVENTIONS_PORT)
+        };
         let mut lines: Vec<String> = robot
             .connections
             .iter()
-            .filter(|c| c.from.component == index || c.to.component == index)
+            .filter(|c| (c.from.component == index || c.to.component == index) && !tells_interventions(c))
             .map(|c| {
                 format!("{} -> {}", port(c.from.component, c.from.port, true), port(c.to.component, c.to.port, false))
             })

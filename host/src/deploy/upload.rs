@@ -1,12 +1,14 @@
 //! Uploading a component: checked (preamble, then compiled and linked
 //! against the WIT worlds, then described) before anything is stored, off
-//! the control loop and one compile at a time.
+//! the control loop and one compile at a time. Each upload belongs to its
+//! uploader: user U's `avoid` is stored as `U/avoid` and replaces only U's
+//! earlier `avoid`, never another user's (`store::records::component_key`).
 
 use super::{DeployError, Deployer, Permission, Platform, authorise};
 use crate::contract::{DescriptionDoc, clip, is_valid_name};
 use crate::sandbox::{MAX_COMPONENT_BYTES, preamble};
 use crate::store::users::User;
-use crate::store::{ComponentRecord, World, unix_now};
+use crate::store::{ComponentRecord, MAX_COMPONENTS_PER_USER, World, component_key, unix_now};
 
 /// Largest component upload: Python and JavaScript components are ~20 MB.
 pub const MAX_UPLOAD_BYTES: usize = MAX_COMPONENT_BYTES as usize;
@@ -15,7 +17,7 @@ pub const MAX_UPLOAD_BYTES: usize = MAX_COMPONENT_BYTES as usize;
 pub const MAX_CONCURRENT_COMPILES: usize = 1;
 
 impl Deployer {
-    /// Checks, compiles and stores `bytes` as component `name` for
+    /// Checks, compiles and stores `bytes` as `user`'s component `name` for
     /// `platform`.
     pub fn upload_component(
         &self,
@@ -24,7 +26,7 @@ impl Deployer {
         name: &str,
         bytes: &[u8],
     ) -> Result<ComponentRecord, DeployError> {
-        let target = format!("component '{}' for platform {}", clip(name), platform.name());
+        let target = format!("component '{}' for platform {}", component_key(&user.name, &clip(name)), platform.name());
         let prepared = authorise(user, Permission::Change(platform))
             .and_then(|()| self.prepare_upload(user, platform, name, bytes));
         // The compile's working memory is freed by now.
@@ -40,7 +42,7 @@ impl Deployer {
                 writer.put_component(record.clone())?;
                 tracing::info!(
                     "component '{}' uploaded by {} ({} bytes)",
-                    record.name,
+                    record.key(),
                     record.uploaded_by,
                     record.size
                 );
@@ -73,6 +75,16 @@ impl Deployer {
             )));
         }
         preamble::check_component_preamble(bytes).map_err(|why| DeployError::NotAComponent(why.to_string()))?;
+        // The user's room, before the compile (the store checks it again
+        // under its lock).
+        let stored = self.store.components()?;
+        let owned = stored.values().filter(|c| c.uploaded_by == user.name).count();
+        if !stored.contains_key(&component_key(&user.name, name)) && owned >= MAX_COMPONENTS_PER_USER {
+            return Err(DeployError::Conflict(format!(
+                "{} has {MAX_COMPONENTS_PER_USER} components stored already; upload one of their names again to replace it",
+                user.name
+            )));
+        }
         let _compiling = self.compiles.lock().map_err(|_| DeployError::Host("the compile lock is unusable".into()))?;
         let (world, description) = match self.sandbox.load(bytes) {
             Ok(artifact) => (World::Component, Some(DescriptionDoc::new(&artifact.description, &artifact.sha256))),

@@ -201,6 +201,26 @@ impl fmt::Display for Cause {
 }
 
 impl Cause {
+    /// The reading behind the cause, as numbers with their units in the
+    /// field names (what the `interventions` output carries; `None` for a
+    /// sensor never received).
+    pub fn reading(&self) -> serde_json::Value {
+        use serde_json::json;
+        match self {
+            Cause::StaleRanges { age_s } | Cause::StalePose { age_s } => json!({ "age_s": age_s }),
+            Cause::Goto => json!({}),
+            Cause::StopZone { ahead, zone } => json!({ "ahead_m": ahead, "zone_m": zone }),
+            Cause::Geofence { edge, outside } => json!({ "edge_m": edge, "outside": outside }),
+            Cause::SlowZone { ahead, zone, cap } => json!({ "ahead_m": ahead, "zone_m": zone, "cap_m_s": cap }),
+            Cause::TimeToCollision { ahead, ttc_s, limit_s } => {
+                json!({ "ahead_m": ahead, "ttc_s": ttc_s, "limit_s": limit_s })
+            }
+            Cause::SpeedLimit { limit } | Cause::ReverseLimit { limit } => json!({ "limit_m_s": limit }),
+            Cause::TurnLimit { limit } => json!({ "limit_rad_s": limit }),
+            Cause::Acceleration { linear, angular } => json!({ "linear_m_s2": linear, "angular_rad_s2": angular }),
+        }
+    }
+
     /// A short name, for counts in the report.
     pub fn kind(&self) -> &'static str {
         match self {

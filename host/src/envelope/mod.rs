@@ -12,12 +12,15 @@
 //! behind it.
 //!
 //! Ports: `cmd` in (the arbiter's command), `ranges` in (the link's range
-//! readings), `pose` in (odometry), `cmd` out (what may reach the motors).
-//! A sensor input left unwired turns its checks off (no collision monitor
-//! without ranges); a geofence needs the pose wired (a validation error
-//! otherwise).
+//! readings), `pose` in (odometry), `cmd` out (what may reach the motors),
+//! `interventions` out (JSON text when an intervention starts, changes or
+//! ends, [`notices`]: what components may learn of it; wiring it changes
+//! none of the owner's settings). A sensor input left unwired turns its
+//! checks off (no collision monitor without ranges); a geofence needs the
+//! pose wired (a validation error otherwise).
 
 pub mod logic;
+pub mod notices;
 
 use std::collections::{BTreeMap, VecDeque};
 use std::f64::consts::TAU;
@@ -25,6 +28,7 @@ use std::f64::consts::TAU;
 use serde::Serialize;
 
 use self::logic::{Action, Envelope, MAX_FENCE_POINTS, Settings, Verdict};
+use self::notices::Notices;
 use crate::builtin::{
     self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, number_in,
     positive_up_to,
@@ -49,10 +53,25 @@ pub const RECENT_INTERVENTIONS: usize = 10;
 /// Least time between two log lines for the same kind of intervention: a
 /// driver pushing at a wall 20 times a second must not flood the log.
 pub const LOG_INTERVAL_NS: u64 = 1_000_000_000;
+/// The default `max-priority`: the obstacle avoider's priority in the
+/// subsumption paper's layering (docs/background.md). A WASM component may
+/// claim at most this unless the owner raises it: a driver uploaded at a
+/// higher priority would suppress the avoider and every operator mode for
+/// as long as it drives.
+pub const DEFAULT_MAX_PRIORITY: i32 = 3;
 /// Port indices.
 pub const INPUT_CMD: u32 = 0;
 pub const INPUT_RANGES: u32 = 1;
 pub const INPUT_POSE: u32 = 2;
+pub const OUTPUT_CMD: u32 = 0;
+pub const OUTPUT_INTERVENTIONS: u32 = 1;
+/// The output components may connect to (a developer's file may wire it:
+/// `deploy::stage::envelope_change` leaves it out).
+pub const INTERVENTIONS_PORT: &str = "interventions";
+
+/// [`DEFAULT_MAX_PRIORITY`] as the parameter's default (a unit test keeps
+/// the two equal).
+const DEFAULT_MAX_PRIORITY_TEXT: &str = "3";
 
 const PARAMS: &[ParamDecl] = &[
     ParamDecl {
@@ -135,7 +154,7 @@ const PARAMS: &[ParamDecl] = &[
     ParamDecl {
         name: "max-priority",
         ty: ParamType::Integer { min: -1000, max: 1000 },
-        default: "1000",
+        default: DEFAULT_MAX_PRIORITY_TEXT,
         unit: "",
         doc: "highest priority a WASM component feeding the arbiter may claim (validation refuses more)",
     },
@@ -282,7 +301,14 @@ impl Builtin for EnvelopeBuiltin {
                 builtin::port("ranges", ValueKind::Vector, "range readings in metres, right to left over fov"),
                 builtin::port("pose", ValueKind::Vector, "odometry [x m, y m, heading rad]"),
             ],
-            outputs: vec![builtin::port("cmd", ValueKind::Command, "the command as the envelope lets it through")],
+            outputs: vec![
+                builtin::port("cmd", ValueKind::Command, "the command as the envelope lets it through"),
+                builtin::port(
+                    INTERVENTIONS_PORT,
+                    ValueKind::Text,
+                    "JSON when an intervention starts, changes or ends: action, cause, reading, commands (at most 10 a second)",
+                ),
+            ],
         }
     }
 
@@ -355,6 +381,8 @@ pub struct EnvelopeComponent {
     last_command: Option<ControlCommand>,
     status: EnvelopeStatus,
     logged: BTreeMap<&'static str, u64>,
+    /// What `interventions` has said and owes.
+    notices: Notices,
 }
 
 impl EnvelopeComponent {
@@ -379,6 +407,7 @@ impl EnvelopeComponent {
             envelope: Envelope::new(settings),
             last_command: None,
             logged: BTreeMap::new(),
+            notices: Notices::default(),
         }
     }
 
@@ -388,7 +417,9 @@ impl EnvelopeComponent {
     }
 
     fn record(&mut self, command: ControlCommand, verdict: &Verdict, now_ns: u64, out: &mut Outbox) {
-        out.push((0, Value::Command(verdict.command.to_string())));
+        out.push((OUTPUT_CMD, Value::Command(verdict.command.to_string())));
+        let notice = self.notices.note(command, verdict, now_ns);
+        Self::say(notice, out);
         self.status.reaction_max_s = self.status.reaction_max_s.max(self.envelope.reaction_s());
         match verdict.action {
             Action::Passed => {
@@ -428,6 +459,13 @@ impl EnvelopeComponent {
         self.status.last = Some(intervention);
     }
 
+    /// Sends `notice` on the `interventions` output.
+    fn say(notice: Option<notices::Notice>, out: &mut Outbox) {
+        if let Some(text) = notice.and_then(|n| serde_json::to_string(&n).ok()) {
+            out.push((OUTPUT_INTERVENTIONS, Value::Text(text)));
+        }
+    }
+
     /// Re-judges the latest command after new data or on a tick; emits
     /// only a more restrictive output.
     fn review(&mut self, now_ns: u64, out: &mut Outbox) {
@@ -461,7 +499,7 @@ impl Component for EnvelopeComponent {
                     self.status.rejected += 1;
                     self.last_command = Some(ControlCommand::Stop);
                     let verdict = self.envelope.decide(ControlCommand::Stop, now_ns);
-                    out.push((0, Value::Command(verdict.command.to_string())));
+                    out.push((OUTPUT_CMD, Value::Command(verdict.command.to_string())));
                     Err(CallError::Reported(format!("stopped an invalid control string: {err}")))
                 }
             },
@@ -490,6 +528,10 @@ impl Component for EnvelopeComponent {
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
         self.review(now_ns, out);
+        // A message held back by the interval goes out without waiting
+        // for the next command.
+        let notice = self.notices.due(now_ns);
+        Self::say(notice, out);
         Ok(())
     }
 
@@ -515,6 +557,19 @@ mod tests {
     }
 
     #[test]
+    fn the_default_priority_cap_is_the_avoiders() {
+        assert_eq!(DEFAULT_MAX_PRIORITY_TEXT.parse::<i32>(), Ok(DEFAULT_MAX_PRIORITY));
+    }
+
+    #[test]
+    fn the_interventions_port_says_its_rate_bound() {
+        let ports = EnvelopeBuiltin.ports(&Params::from_pairs(PARAMS, &[]).unwrap_or_default());
+        let doc = ports.outputs.get(OUTPUT_INTERVENTIONS as usize).map(|p| p.doc.clone()).unwrap_or_default();
+        assert_eq!(1_000_000_000 / notices::NOTICE_INTERVAL_NS, 10);
+        assert!(doc.ends_with("(at most 10 a second)"), "{doc}");
+    }
+
+    #[test]
     fn geofences_parse_or_say_which_corner_is_wrong() {
         assert_eq!(parse_geofence(""), Ok(vec![]));
         assert_eq!(parse_geofence(" 0,0 4,0  4,3 "), Ok(vec![[0.0, 0.0], [4.0, 0.0], [4.0, 3.0]]));
@@ -525,16 +580,32 @@ mod tests {
         assert!(parse_geofence(&many).is_err());
     }
 
+    /// The last command on the `cmd` output.
+    fn last_cmd(out: &Outbox) -> Option<&Value> {
+        out.iter().rev().find(|(port, _)| *port == OUTPUT_CMD).map(|(_, value)| value)
+    }
+
+    /// The messages on the `interventions` output, parsed.
+    fn notices_sent(out: &Outbox) -> Vec<serde_json::Value> {
+        out.iter()
+            .filter(|(port, _)| *port == OUTPUT_INTERVENTIONS)
+            .filter_map(|(_, value)| match value {
+                Value::Text(text) => serde_json::from_str(text).ok(),
+                _ => None,
+            })
+            .collect()
+    }
+
     #[test]
     fn a_wall_in_the_stop_zone_stops_at_once_and_is_reported() {
         let mut envelope = component(&[("max-accel", "100"), ("stop-distance", "0.25")]);
         let mut out = Vec::new();
         envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0, 4.0, 4.0]), 0, 0, &mut out).ok();
         envelope.on_input(INPUT_CMD, &cmd("VEL 0.45 0"), 0, 10 * MS, &mut out).ok();
-        assert_eq!(out.last(), Some(&(0, cmd("VEL 0.45 0.0"))));
+        assert_eq!(last_cmd(&out), Some(&cmd("VEL 0.45 0.0")));
         // A reading in the stop zone: STOP goes out on the reading itself.
         envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0, 0.36, 4.0]), 0, 20 * MS, &mut out).ok();
-        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        assert_eq!(last_cmd(&out), Some(&cmd("STOP")));
         let status = envelope.report();
         assert_eq!((status.passed, status.stopped), (1, 1));
         assert_eq!(
@@ -543,14 +614,20 @@ mod tests {
         );
         assert_eq!(status.causes.get("stop-zone"), Some(&1));
         assert!(status.closest_ever_m.is_some_and(|c| (c - 0.18).abs() < 1e-9));
+        // Components wired to `interventions` hear of it once, with the reading.
+        let said = notices_sent(&out);
+        assert_eq!(said.len(), 1, "{said:?}");
+        assert_eq!((said[0]["action"].as_str(), said[0]["cause"].as_str()), (Some("stopped"), Some("stop-zone")));
+        assert!(said[0]["reading"]["ahead_m"].as_f64().is_some_and(|a| (a - 0.18).abs() < 1e-9), "{said:?}");
         // The driver keeps pushing: every command is stopped.
         envelope.on_input(INPUT_CMD, &cmd("VEL 0.45 0"), 0, 30 * MS, &mut out).ok();
-        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        assert_eq!(last_cmd(&out), Some(&cmd("STOP")));
         // Garbage is stopped too, and counted.
         let err = envelope.on_input(INPUT_CMD, &cmd("FLY"), 0, 40 * MS, &mut out);
         assert!(err.is_err());
-        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        assert_eq!(last_cmd(&out), Some(&cmd("STOP")));
         assert_eq!(envelope.report().rejected, 1);
+        assert_eq!(notices_sent(&out).len(), 1, "the hold went on: nothing more to say");
     }
 
     #[test]
@@ -560,9 +637,9 @@ mod tests {
         envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0; 5]), 0, 0, &mut out).ok();
         envelope.on_input(INPUT_CMD, &cmd("VEL 0.3 0"), 0, 10 * MS, &mut out).ok();
         envelope.tick(150 * MS, &mut out).ok();
-        assert_eq!(out.len(), 1, "fresh data: the tick sends nothing");
+        assert_eq!(out.len(), 1, "fresh data: the tick sends nothing, and nothing was changed");
         envelope.tick(250 * MS, &mut out).ok();
-        assert_eq!(out.last(), Some(&(0, cmd("STOP"))));
+        assert_eq!(last_cmd(&out), Some(&cmd("STOP")));
         assert_eq!(envelope.report().causes.get("stale-ranges"), Some(&1));
     }
 }

@@ -4,13 +4,17 @@
 //! component, `PUT` the robot file (a staged set), `POST` its activation,
 //! log out.
 //!
-//! Without `--robot`, the robot file of the active set is fetched and each
-//! deployed component's `source` in it is pointed at the uploaded name
-//! (`NAME.wasm`), so "replace component NAME of the running robot" is one
-//! command. Everything local (files, names, the components the robot file
-//! must have) is checked before anything is sent; any refusal after that
-//! leaves the running set as it was (a component that was uploaded stays in
-//! the store under its name, as a page upload would).
+//! Uploads belong to their uploader (the portal stores user U's `avoid` as
+//! `U/avoid`): a second user's deploy of a name never replaces the first
+//! user's stored upload. Without `--robot`, the robot file of the active
+//! set is fetched and each deployed component's `source` in it is pointed
+//! at the upload by its full name (`USER/NAME.wasm`, so the file says whose
+//! code runs, whoever stages it next), so "replace component NAME of the
+//! running robot" is one command. Everything local (files, names, the
+//! components the robot file must have) is checked before anything is
+//! sent; any refusal after that leaves the running set as it was (a
+//! component that was uploaded stays in the store as the user's, as a page
+//! upload would).
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -125,6 +129,8 @@ pub(super) fn file_name(path: &Path) -> Result<String, DeployClientError> {
 pub(super) struct Portal {
     pub(super) address: String,
     pub(super) token: String,
+    /// Who is logged in (uploads are stored as theirs).
+    pub(super) user: String,
 }
 
 impl Portal {
@@ -132,7 +138,7 @@ impl Portal {
         let body = json!({ "name": user, "password": password }).to_string();
         let answer = call(address, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")?;
         let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(address.to_string()))?.to_string();
-        Ok(Portal { address: address.to_string(), token })
+        Ok(Portal { address: address.to_string(), token, user: user.to_string() })
     }
 
     pub(super) fn logout(&self) {
@@ -166,7 +172,7 @@ impl Portal {
             None => {
                 let (set, name, mut text) = self.active_robot()?;
                 for (component, _) in components {
-                    text = point_source_at(&text, component, &upload_source(component))
+                    text = point_source_at(&text, component, &self.source(component))
                         .map_err(|has| DeployClientError::NoSuchComponent {
                             file: name.clone(),
                             name: component.clone(),
@@ -174,7 +180,7 @@ impl Portal {
                         })?
                         .0;
                 }
-                say(&format!("using the active robot file {name} (set {set}) with {}", list(components)));
+                say(&format!("using the active robot file {name} (set {set}) with {}", self.list(components)));
                 (format!("{name} (the active robot file)"), name, text.into_bytes())
             }
         };
@@ -245,13 +251,22 @@ impl Portal {
     }
 }
 
-/// How a robot file names the logged-in user's upload `component`.
+/// How a robot file the logged-in user stages names their own upload
+/// `component` (staging resolves `NAME.wasm` to the stager's upload).
 pub(super) fn upload_source(component: &str) -> String {
     format!("{component}.wasm")
 }
 
-fn list(components: &[(String, Vec<u8>)]) -> String {
-    components.iter().map(|(name, _)| format!("{name} -> {}", upload_source(name))).collect::<Vec<_>>().join(", ")
+impl Portal {
+    /// How a robot file names this user's upload `component` from anyone's
+    /// file.
+    fn source(&self, component: &str) -> String {
+        format!("{}/{component}.wasm", self.user)
+    }
+
+    fn list(&self, components: &[(String, Vec<u8>)]) -> String {
+        components.iter().map(|(name, _)| format!("{name} -> {}", self.source(name))).collect::<Vec<_>>().join(", ")
+    }
 }
 
 /// One request whose non-2xx answer becomes `Refused` (diagnostics kept in

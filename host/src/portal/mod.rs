@@ -189,7 +189,8 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/logout", post(auth::logout))
         .route("/session", get(auth::session))
         .route("/components", get(list_components))
-        .route("/components/{name}", get(get_component))
+        .route("/components/{name}", get(get_own_component))
+        .route("/components/{owner}/{name}", get(get_component))
         .route(
             "/platforms/{platform}/components/{name}",
             put(upload_component).layer(DefaultBodyLimit::max(MAX_UPLOAD_BYTES)),

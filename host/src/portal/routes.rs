@@ -32,27 +32,52 @@ async fn blocking<T: Send + 'static>(
     tokio::task::spawn_blocking(work).await.map_err(|e| ApiError::internal(format!("the worker failed: {e}")))?
 }
 
+/// A stored component as the API shows it: its record, and the `source`
+/// a robot file names it by from any user's file (`OWNER/NAME.wasm`).
+fn component_json(record: ComponentRecord) -> Json_ {
+    let source = record.source();
+    let mut value = serde_json::to_value(record).unwrap_or_default();
+    if let Some(fields) = value.as_object_mut() {
+        fields.insert("source".into(), source.into());
+    }
+    value
+}
+
+/// Every stored component of every user, by owner then name.
 pub(super) async fn list_components(
     State(state): State<Arc<PortalState>>,
     Authed(_): Authed,
 ) -> Result<Json<Json_>, ApiError> {
     let store = state.deployer.store.clone();
     let components = blocking(move || Ok(store.components()?)).await?;
-    Ok(Json(json!({ "components": components.into_values().collect::<Vec<_>>() })))
+    Ok(Json(json!({ "components": components.into_values().map(component_json).collect::<Vec<_>>() })))
 }
 
+async fn one_component(state: &PortalState, owner: String, name: String) -> Result<Json<Json_>, ApiError> {
+    let store = state.deployer.store.clone();
+    let key = crate::store::component_key(&clip(&owner), &clip(&name));
+    let found = blocking(move || Ok(store.component(&owner, &name)?)).await?;
+    found
+        .map(|record| Json(component_json(record)))
+        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no component '{key}' in the store")))
+}
+
+/// The caller's own upload `name`.
+pub(super) async fn get_own_component(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(name): Path<String>,
+) -> Result<Json<Json_>, ApiError> {
+    one_component(&state, user.name, name).await
+}
+
+/// User `owner`'s upload `name` (any user may read any record).
 pub(super) async fn get_component(
     State(state): State<Arc<PortalState>>,
     Authed(_): Authed,
-    Path(name): Path<String>,
-) -> Result<Json<ComponentRecord>, ApiError> {
-    let store = state.deployer.store.clone();
-    let components = blocking(move || Ok(store.components()?)).await?;
-    components
-        .get(&name)
-        .cloned()
-        .map(Json)
-        .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no component '{}' in the store", clip(&name))))
+    Path((owner, name)): Path<(String, String)>,
+) -> Result<Json<Json_>, ApiError> {
+    one_component(&state, owner, name).await
 }
 
 pub(super) async fn upload_component(
@@ -60,11 +85,11 @@ pub(super) async fn upload_component(
     Authed(user): Authed,
     Path((platform, name)): Path<(String, String)>,
     body: Bytes,
-) -> Result<(StatusCode, Json<ComponentRecord>), ApiError> {
+) -> Result<(StatusCode, Json<Json_>), ApiError> {
     let platform = platform_of(&platform)?;
     let deployer = state.deployer.clone();
     let record = blocking(move || Ok(deployer.upload_component(&user, platform, &name, &body)?)).await?;
-    Ok((StatusCode::CREATED, Json(record)))
+    Ok((StatusCode::CREATED, Json(component_json(record))))
 }
 
 pub(super) async fn upload_config(

@@ -8,7 +8,7 @@
 //! lock                        held while a writer changes anything
 //! users.json                  portal users (`users`)
 //! blobs/<sha256>              component and robot-file bytes, by content
-//! components.json             upload name -> record (`records::ComponentIndex`)
+//! components.json             OWNER/NAME -> record: each upload belongs to its uploader (`records::ComponentIndex`)
 //! worlds.json                 uploaded simulator worlds, name -> record (`records::WorldIndex`)
 //! sets/<id>.json              one set (`records::SetRecord`), never rewritten
 //! state.json                  active set, previously active sets, next id
@@ -47,7 +47,7 @@ pub use self::audit::{AuditEntry, MAX_AUDIT_READ, Outcome};
 use self::experiments::{ExperimentRecord, Experiments, LabState, experiment_dir};
 pub use self::records::{
     ComponentIndex, ComponentRecord, STORE_FORMAT, SetRecord, StoreState, WiringComponent, WiringConnection,
-    WiringGraph, World, WorldIndex, WorldRecord,
+    WiringGraph, World, WorldIndex, WorldRecord, component_key,
 };
 use self::users::{Users, UsersError};
 use crate::contract::clip;
@@ -60,6 +60,9 @@ pub const MAX_SETS: usize = 200;
 pub const MAX_HISTORY: usize = 20;
 /// Most named components in the store.
 pub const MAX_STORED_COMPONENTS: usize = 500;
+/// Most named components one user may keep: one uploader must not fill
+/// the store's room (above) and lock every other user out of uploading.
+pub const MAX_COMPONENTS_PER_USER: usize = 50;
 /// Most uploaded simulator worlds in the store (bounds its growth from
 /// uploads; each is at most `sim::world::MAX_WORLD_BYTES`).
 pub const MAX_STORED_WORLDS: usize = 200;
@@ -224,7 +227,12 @@ impl Store {
         move |reason| StoreError::Damaged { path: path.to_path_buf(), reason }
     }
 
-    /// Every named component, by name.
+    /// `owner`'s upload `name`, if there is one.
+    pub fn component(&self, owner: &str, name: &str) -> Result<Option<ComponentRecord>, StoreError> {
+        Ok(self.components()?.remove(&component_key(owner, name)))
+    }
+
+    /// Every uploaded component, by `OWNER/NAME` ([`component_key`]).
     pub fn components(&self) -> Result<BTreeMap<String, ComponentRecord>, StoreError> {
         let path = self.root.join("components.json");
         match self.read_index(&path)? {
@@ -400,16 +408,28 @@ impl StoreWriter<'_> {
         Ok(sha)
     }
 
-    /// Records `record` under its name (its blob must be stored already).
+    /// Records `record` as its uploader's component of its name (its blob
+    /// must be stored already): it replaces that uploader's earlier upload
+    /// of the name, never another user's.
     pub fn put_component(&self, record: ComponentRecord) -> Result<(), StoreError> {
         let mut components = self.components()?;
-        if !components.contains_key(&record.name) && components.len() >= MAX_STORED_COMPONENTS {
-            return Err(StoreError::Refused(format!("the store holds {MAX_STORED_COMPONENTS} components already")));
+        let key = record.key();
+        if !components.contains_key(&key) {
+            if components.len() >= MAX_STORED_COMPONENTS {
+                return Err(StoreError::Refused(format!("the store holds {MAX_STORED_COMPONENTS} components already")));
+            }
+            let owned = components.values().filter(|c| c.uploaded_by == record.uploaded_by).count();
+            if owned >= MAX_COMPONENTS_PER_USER {
+                return Err(StoreError::Refused(format!(
+                    "{} has {MAX_COMPONENTS_PER_USER} components stored already",
+                    record.uploaded_by
+                )));
+            }
         }
         if !self.blob_path(&record.sha256).is_file() {
             return Err(StoreError::Refused(format!("blob {} is not stored", record.sha256)));
         }
-        components.insert(record.name.clone(), record);
+        components.insert(key, record);
         let index = ComponentIndex { format: STORE_FORMAT, components };
         self.write_json(&self.root.join("components.json"), &index)
     }
@@ -714,6 +734,42 @@ mod tests {
         ids.dedup();
         assert_eq!((ids.len(), count), (80, 80));
         assert_eq!(store.state()?.next_set, 81);
+        store.verify()
+    }
+
+    /// One user's uploads of a name replace only that user's record, and a
+    /// user's room is bounded without touching anyone else's.
+    #[test]
+    fn components_belong_to_their_uploader_within_each_users_room() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        let store = Store::open(dir.path())?;
+        let writer = store.lock()?;
+        let record = |owner: &str, name: &str, bytes: &[u8]| -> Result<ComponentRecord, StoreError> {
+            Ok(ComponentRecord {
+                name: name.into(),
+                sha256: writer.put_blob(bytes)?,
+                size: bytes.len() as u64,
+                world: World::Component,
+                platform: "control".into(),
+                uploaded_by: owner.into(),
+                uploaded_at: 1,
+                description: None,
+            })
+        };
+        writer.put_component(record("ana", "avoid", b"ana 1")?)?;
+        writer.put_component(record("bob", "avoid", b"bob 1")?)?;
+        writer.put_component(record("ana", "avoid", b"ana 2")?)?;
+        assert_eq!(store.component("ana", "avoid")?.map(|c| c.sha256), Some(sha256_hex(b"ana 2")));
+        assert_eq!(store.component("bob", "avoid")?.map(|c| c.sha256), Some(sha256_hex(b"bob 1")));
+        for i in 1..MAX_COMPONENTS_PER_USER {
+            writer.put_component(record("ana", &format!("c{i}"), b"x")?)?;
+        }
+        let full = writer.put_component(record("ana", "one-more", b"x")?);
+        assert!(matches!(full, Err(StoreError::Refused(ref why)) if why.contains("ana has 50 components")), "{full:?}");
+        writer.put_component(record("ana", "avoid", b"ana 3")?)?;
+        writer.put_component(record("bob", "one-more", b"x")?)?;
+        assert_eq!(store.components()?.len(), MAX_COMPONENTS_PER_USER + 2);
+        drop(writer);
         store.verify()
     }
 

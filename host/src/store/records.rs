@@ -15,8 +15,10 @@ use crate::contract::DescriptionDoc;
 
 /// Format of `components.json`, `sets/<id>.json` and `state.json`.
 /// 1: the first layout (no `format` field; a translator's description was
-/// `{"name", "world"}`); 2: typed descriptions and wiring graphs.
-pub const STORE_FORMAT: u32 = 2;
+/// `{"name", "world"}`); 2: typed descriptions and wiring graphs; 3: each
+/// component belongs to its uploader (`components.json` is keyed by
+/// `OWNER/NAME`, so two users' uploads of one name are two records).
+pub const STORE_FORMAT: u32 = 3;
 
 fn first_format() -> u32 {
     1
@@ -57,7 +59,26 @@ fn description_or_none<'de, D: Deserializer<'de>>(deserializer: D) -> Result<Opt
     serde_json::from_value(value).map(Some).map_err(serde::de::Error::custom)
 }
 
-/// `components.json`: every named component.
+impl ComponentRecord {
+    /// Its key in the store: `OWNER/NAME`.
+    pub fn key(&self) -> String {
+        component_key(&self.uploaded_by, &self.name)
+    }
+
+    /// How a robot file names it from anywhere: `source="OWNER/NAME.wasm"`
+    /// (its owner may also write `NAME.wasm`).
+    pub fn source(&self) -> String {
+        format!("{}.wasm", self.key())
+    }
+}
+
+/// The store's key of `owner`'s upload `name`. User and component names
+/// are both `[a-z][a-z0-9_-]*`, so the `/` is unambiguous.
+pub fn component_key(owner: &str, name: &str) -> String {
+    format!("{owner}/{name}")
+}
+
+/// `components.json`: every uploaded component, by `OWNER/NAME`.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct ComponentIndex {
     #[serde(default = "first_format")]
@@ -67,7 +88,8 @@ pub struct ComponentIndex {
 
 impl ComponentIndex {
     /// Reads `components.json` of any known format: format 1 was the bare
-    /// map of name -> record.
+    /// map of name -> record, formats 1 and 2 kept one record per name (the
+    /// last uploader's), which becomes that uploader's record.
     pub(super) fn parse(bytes: &[u8]) -> Result<ComponentIndex, String> {
         let value: serde_json::Value = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
         let index = if value.get("format").is_some() {
@@ -83,6 +105,8 @@ impl ComponentIndex {
         if self.format > STORE_FORMAT {
             return Err(format!("format {} is newer than this host's {STORE_FORMAT}", self.format));
         }
+        // Keyed by what each record says, whatever the file's keys were.
+        self.components = self.components.into_values().map(|record| (record.key(), record)).collect();
         self.format = STORE_FORMAT;
         Ok(self)
     }
@@ -241,14 +265,45 @@ mod tests {
         }"#;
         let index = ComponentIndex::parse(components)?;
         assert_eq!(index.format, STORE_FORMAT);
-        assert_eq!(index.components["avoider"].description.as_ref().map(|d| d.default_priority), Some(Some(3)));
-        assert_eq!(index.components["tr"].description, None);
-        assert_eq!(index.components["tr"].world, World::Translator);
+        assert_eq!(index.components["ana/avoider"].description.as_ref().map(|d| d.default_priority), Some(Some(3)));
+        assert_eq!(index.components["ana/tr"].description, None);
+        assert_eq!(index.components["ana/tr"].world, World::Translator);
         let set = br#"{"id": 3, "created_by": "boot", "created_at": 1, "platform": null, "config_name": "demo.xml",
                        "config_sha256": "ef", "base_dir": "/r", "sources": {}, "changes": [], "graph": null}"#;
         assert_eq!(SetRecord::parse(set)?.graph, WiringGraph::default());
         let state = br#"{"active": 3, "history": [1, 2], "next_set": 4, "boot_config_sha256": null}"#;
         assert_eq!(StoreState::parse(state)?.active, Some(3));
+        Ok(())
+    }
+
+    /// A format 2 index (one record per name, the last uploader's) loads
+    /// with each record under its uploader; a format 3 index keeps two
+    /// users' uploads of one name apart.
+    #[test]
+    fn format_two_components_belong_to_their_uploaders() -> Result<(), String> {
+        let record = |name: &str, by: &str, sha: &str| {
+            format!(
+                r#"{{"name": "{name}", "sha256": "{sha}", "size": 3, "world": "component", "platform": "control",
+                    "uploaded_by": "{by}", "uploaded_at": 1, "description": null}}"#
+            )
+        };
+        let two = format!(
+            r#"{{"format": 2, "components": {{"avoid": {}, "filter": {}}}}}"#,
+            record("avoid", "bob", "b1"),
+            record("filter", "ana", "a1")
+        );
+        let index = ComponentIndex::parse(two.as_bytes())?;
+        let keys: Vec<&str> = index.components.keys().map(String::as_str).collect();
+        assert_eq!(keys, ["ana/filter", "bob/avoid"]);
+        assert_eq!(index.components["bob/avoid"].source(), "bob/avoid.wasm");
+        let three = format!(
+            r#"{{"format": 3, "components": {{"ana/avoid": {}, "bob/avoid": {}}}}}"#,
+            record("avoid", "ana", "a2"),
+            record("avoid", "bob", "b2")
+        );
+        let index = ComponentIndex::parse(three.as_bytes())?;
+        let shas: Vec<&str> = index.components.values().map(|c| c.sha256.as_str()).collect();
+        assert_eq!(shas, ["a2", "b2"]);
         Ok(())
     }
 

@@ -14,6 +14,8 @@ impl Component for Relay {
             .input(input("scan-in", ValueKind::Scan, "forwarded to scan-out, geometry and all"))
             .output(output("vector-out", ValueKind::Vector, "what vector-in received"))
             .output(output("scan-out", ValueKind::Scan, "what scan-in received"))
+            .input(input("text-in", ValueKind::Text, "forwarded to text-out"))
+            .output(output("text-out", ValueKind::Text, "what text-in received"))
     }
     fn init(_params: &Params) -> Result<Self, String> {
         Ok(Relay)
