@@ -2,7 +2,6 @@
 //! End-to-end tests: the built `subsume` binary, driven from outside as a
 //! user drives it (processes, files, signals, exit codes, stdout, reports).
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader};
@@ -318,12 +317,12 @@ fn sigint_and_sigterm_stop_the_host_cleanly() {
 
 #[test]
 fn check_prints_every_error_one_per_line_and_exits_1() {
-    let output = run(&["check", "host/tests/config/many-errors.xml"]);
+    let output = run(&["check", "tests/config/many-errors.xml"]);
     assert_eq!(output.status.code(), Some(1));
     let stdout = text(&output.stdout);
     let expected =
-        std::fs::read_to_string(support::repo_root().join("host/tests/config/many-errors.expected")).unwrap();
-    let expected: Vec<String> = expected.lines().map(|l| format!("host/tests/config/{l}")).collect();
+        std::fs::read_to_string(support::repo_root().join("tests/config/many-errors.expected")).unwrap();
+    let expected: Vec<String> = expected.lines().map(|l| format!("tests/config/{l}")).collect();
     assert_eq!(stdout.lines().collect::<Vec<_>>(), expected);
 }
 
@@ -346,11 +345,11 @@ fn check_accepts_a_good_file_with_a_summary() {
 
 #[test]
 fn run_refuses_a_bad_file_and_starts_nothing() {
-    let output = run(&["run", "host/tests/config/bad-connections.xml", "--duration", "1"]);
+    let output = run(&["run", "tests/config/bad-connections.xml", "--duration", "1"]);
     assert_eq!(output.status.code(), Some(1));
     assert_eq!(text(&output.stdout).lines().count(), 11);
     let stderr = text(&output.stderr);
-    assert!(stderr.contains("11 problem(s) in host/tests/config/bad-connections.xml; nothing was started"), "{stderr}");
+    assert!(stderr.contains("11 problem(s) in tests/config/bad-connections.xml; nothing was started"), "{stderr}");
     assert!(!stderr.contains("started range-filter"), "{stderr}");
 }
 

@@ -7,7 +7,6 @@
 //! (ros2/rmw_zenoh docs/design.md); the fixtures in `bridge::ros2`'s unit
 //! tests are the document's own examples.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Write};

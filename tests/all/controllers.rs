@@ -15,7 +15,6 @@
 //!   v/0.5.6/ascii-protocol.html); the fixtures are its examples.
 //! - The demo runs "as a Create 2" (config/demo-create2.xml).
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Read};

@@ -13,7 +13,6 @@
 //! rate, and STOP is on the wire within the stall watchdog's limit of the
 //! last motion command.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::path::{Path, PathBuf};

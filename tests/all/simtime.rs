@@ -3,7 +3,6 @@
 //! a simulated clock (`--speed N`, `--speed max`), faster than real time and
 //! with the same result for the same inputs.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::path::Path;

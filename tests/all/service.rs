@@ -8,7 +8,6 @@
 //! `prometheus_client` package's OpenMetrics parser and counts what
 //! happened; the systemd unit passes `systemd-analyze verify`.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Write};

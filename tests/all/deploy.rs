@@ -6,7 +6,6 @@
 //! changed; a component the running robot does not have refused before
 //! anything is uploaded.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Write};

@@ -2,7 +2,6 @@
 //! Teleoperation end to end: the built binary with a `builtin:teleop`,
 //! operators over real loopback TCP and WebSocket connections.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Read, Write};

@@ -14,7 +14,6 @@
 //! 422 or 429, each with its own text's answer, the store unchanged), and a
 //! recording across an activation holds both sets' values.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::path::{Path, PathBuf};

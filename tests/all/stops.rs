@@ -13,7 +13,6 @@
 //! `SUBSUME_FAULT_INJECTION` setting; the fatal error is a real one (the
 //! portal's address is taken).
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Read, Write};

@@ -32,7 +32,7 @@ fn render(dir: &Path, file: &Path, sandbox: &Sandbox) -> String {
 #[test]
 fn every_case_gives_its_expected_diagnostics() {
     support::guest_dir();
-    let dir = support::repo_root().join("host/tests/config");
+    let dir = support::repo_root().join("tests/config");
     let sandbox = Sandbox::new(Some(support::cache_dir())).unwrap_or_else(|e| panic!("{e}"));
     let bless = std::env::var_os("BLESS").is_some();
     let mut cases: Vec<_> = std::fs::read_dir(&dir)

@@ -4,7 +4,6 @@
 //! each way of engaging stops it, STOP is the last thing on the wire and
 //! nothing moves until a release (docs/estop.md).
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Write};

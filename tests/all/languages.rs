@@ -11,7 +11,6 @@
 //! The toolchains come from `scripts/setup`; `guest-components/build-all`
 //! builds the avoiders (incrementally) on first use.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::collections::{BTreeMap, BTreeSet};

@@ -8,7 +8,6 @@
 //! checks the portal's own views (plots, the Drive tab's map, the wiring,
 //! the robot-file editor).
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader};

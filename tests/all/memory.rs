@@ -5,7 +5,6 @@
 //! 19 MiB of working memory); that memory must go back when the hash is
 //! done, not stay resident in the allocator (issue 15).
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Write};

@@ -30,14 +30,14 @@ fn accepted_robot_files_validate_against_the_schema() {
         .filter(|p| p.extension().is_some_and(|x| x == "xml"))
         .collect();
     assert!(!files.is_empty());
-    files.push(root.join("host/tests/config/good-robot.xml"));
+    files.push(root.join("tests/config/good-robot.xml"));
     let (ok, log) = xmllint(&files);
     assert!(ok, "{log}");
 }
 
 #[test]
 fn structurally_bad_files_fail_the_schema_too() {
-    let root = support::repo_root().join("host/tests/config");
+    let root = support::repo_root().join("tests/config");
     for case in [
         "unknown-element.xml",
         "unknown-attribute.xml",

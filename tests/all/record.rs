@@ -3,7 +3,6 @@
 //! read back by the `mcap` package from PyPI (tests/python/mcap_reader.py),
 //! a killed host's file, rotation, and `subsume replay`.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::path::{Path, PathBuf};

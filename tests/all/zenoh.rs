@@ -7,7 +7,6 @@
 //! avoider on A's ranges. Killing B must hand the motors back to the
 //! planner within B's timeout.
 
-#[path = "../host/tests/support/mod.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader};
