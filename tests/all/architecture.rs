@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The import rules of ARCHITECTURE.md, checked by reading the sources:
 //! every `crate::MODULE` a file names (in `use` lines and in paths) is an
 //! edge from the file's top-level module to MODULE.
@@ -15,10 +14,10 @@
 //! - no public function or trait method returns `Result<_, String>`: errors
 //!   that cross a module seam are typed.
 
-mod support;
-
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
+
+use crate::support;
 
 /// Every `.rs` file under `dir`.
 fn sources(dir: &Path, out: &mut Vec<PathBuf>) {

@@ -1,10 +1,7 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Built-ins, from their declarations: every bound of every parameter of
 //! every built-in is a located diagnostic one step past it and accepted at
 //! it (through the real validator and loader), and docs/config.md's tables
 //! say what the declarations say (`BLESS=1` rewrites them).
-
-mod support;
 
 use std::fmt::Write as _;
 
@@ -12,6 +9,8 @@ use subsume::assemble::{Loader, registry};
 use subsume::builtin::{Bound, Builtin, ParamDecl, ParamType};
 use subsume::config;
 use subsume::sandbox::Sandbox;
+
+use crate::support;
 
 /// Parameters a built-in needs to be checked at all, beside the one tested.
 fn required(kind: &str) -> &'static [(&'static str, &'static str)] {
@@ -202,10 +201,7 @@ fn the_tables_of_docs_config_md_match_the_declarations() {
 #[test]
 fn describe_builtin_prints_every_declared_parameter_with_its_bounds() {
     for builtin in registry::BUILTINS {
-        let output = std::process::Command::new(env!("CARGO_BIN_EXE_subsume"))
-            .args(["describe", &format!("builtin:{}", builtin.kind())])
-            .output()
-            .unwrap();
+        let output = support::subsume().args(["describe", &format!("builtin:{}", builtin.kind())]).output().unwrap();
         assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
         let text = String::from_utf8_lossy(&output.stdout);
         for decl in builtin.params() {
@@ -218,8 +214,7 @@ fn describe_builtin_prints_every_declared_parameter_with_its_bounds() {
             );
         }
     }
-    let output =
-        std::process::Command::new(env!("CARGO_BIN_EXE_subsume")).args(["describe", "builtin:nope"]).output().unwrap();
+    let output = support::subsume().args(["describe", "builtin:nope"]).output().unwrap();
     assert!(!output.status.success());
     assert!(
         String::from_utf8_lossy(&output.stderr)

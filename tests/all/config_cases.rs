@@ -1,19 +1,18 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
-
 //! Data-driven tests of the robot-file reader and validator: every
 //! `tests/config/NAME.xml` is checked with the real loader (real guests, real
 //! compilation) and its diagnostics, one per line, must equal
 //! `NAME.expected` (or `ok: ...` for a good file).
 //!
-//! `BLESS=1 cargo test --test config_cases` rewrites the expected files.
-
-mod support;
+//! `BLESS=1 cargo test --test all config_cases::` rewrites the expected
+//! files.
 
 use std::path::Path;
 
 use subsume::assemble::Loader;
 use subsume::config;
 use subsume::sandbox::Sandbox;
+
+use crate::support;
 
 fn render(dir: &Path, file: &Path, sandbox: &Sandbox) -> String {
     let mut loader = Loader::new(sandbox);
@@ -31,9 +30,8 @@ fn render(dir: &Path, file: &Path, sandbox: &Sandbox) -> String {
 
 #[test]
 fn every_case_gives_its_expected_diagnostics() {
-    support::guest_dir();
     let dir = support::repo_root().join("tests/config");
-    let sandbox = Sandbox::new(Some(support::cache_dir())).unwrap_or_else(|e| panic!("{e}"));
+    let sandbox = support::sandbox();
     let bless = std::env::var_os("BLESS").is_some();
     let mut cases: Vec<_> = std::fs::read_dir(&dir)
         .unwrap_or_else(|e| panic!("{e}"))
@@ -64,8 +62,7 @@ fn every_case_gives_its_expected_diagnostics() {
 
 #[test]
 fn the_example_robot_files_are_valid() {
-    support::guest_dir();
-    let sandbox = Sandbox::new(Some(support::cache_dir())).unwrap_or_else(|e| panic!("{e}"));
+    let sandbox = support::sandbox();
     let dir = support::repo_root().join("config");
     let mut checked = 0;
     for entry in std::fs::read_dir(&dir).unwrap() {

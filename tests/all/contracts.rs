@@ -1,12 +1,9 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Both versions of the contract side by side: components and translators
 //! built against `subsume:robot@0.1.0` (`test-relay-v1`,
 //! `test-translator-v1`) run beside 0.2.0 ones (`test-relay`,
 //! `translator-ascii`) in one graph, values cross between them, each
 //! version's errors are counted, and a 0.2.0 scan reaches vector inputs of
 //! either version as its ranges. Controlled time throughout.
-
-mod support;
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -18,6 +15,8 @@ use subsume::robot::translator::{DriveGeometry, ProfileTranslator, Translator};
 use subsume::runtime::{CallError, Component, Convert, Graph, Outbox, Policy};
 use subsume::sandbox::{Contract, GuestLimits, Sandbox, WasmArtifact};
 
+use crate::support::{self, sandbox};
+
 const MS: u64 = 1_000_000;
 const LIMITS: GuestLimits = GuestLimits {
     memory_bytes: 16 << 20,
@@ -26,11 +25,6 @@ const LIMITS: GuestLimits = GuestLimits {
     max_message_bytes: 1 << 20,
     max_logs_per_s: 100,
 };
-
-fn sandbox() -> Sandbox {
-    support::guest_dir();
-    Sandbox::new(Some(support::cache_dir())).unwrap()
-}
 
 fn artifact(sandbox: &Sandbox, name: &str) -> Arc<WasmArtifact> {
     sandbox.load(&std::fs::read(support::guest(name)).unwrap()).unwrap()

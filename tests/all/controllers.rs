@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Real motor controllers: the WASM translators in guest-components/rust
 //! (translator-create2, translator-roboclaw, translator-odrive), checked
 //! against implementations no one here wrote.
@@ -15,8 +14,6 @@
 //!   v/0.5.6/ascii-protocol.html); the fixtures are its examples.
 //! - The demo runs "as a Create 2" (config/demo-create2.xml).
 
-mod support;
-
 use std::io::{BufRead, BufReader, Read};
 use std::path::Path;
 use std::process::{Child, ChildStdout, Command, Output, Stdio};
@@ -29,22 +26,7 @@ use subsume::robot::protocol::Feedback;
 use subsume::robot::translator::Translator;
 use subsume::sandbox::{GuestLimits, Sandbox, WasmTranslator};
 
-fn subsume() -> Command {
-    support::guest_dir();
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .arg("--cache-dir")
-        .arg(support::cache_dir())
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1");
-    command
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
-}
+use crate::support::{self, FREE_TELEOP_PORTS, PASS_ENVELOPE, component, read_report, sandbox, subsume, text};
 
 /// A Python peer on its pseudo-terminal: the device path it printed and
 /// its process.
@@ -91,7 +73,7 @@ fn run_robot(dir: &Path, robot: &str, seconds: &str) -> (Output, Json) {
         .output()
         .unwrap();
     assert!(output.status.success(), "{}", text(&output.stderr));
-    let report = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+    let report = read_report(&report);
     (output, report)
 }
 
@@ -114,10 +96,7 @@ fn driving_robot(device: &str, translator: &str, options: &str, wheel_base: &str
       <param name="value" value="{command}"/>
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <component name="pose-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="ranges-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="bumper-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
@@ -154,10 +133,6 @@ fn vector(entry: &str) -> Vec<f64> {
 fn hex(json: &Json) -> Vec<u8> {
     let text = json.as_str().unwrap();
     (0..text.len()).step_by(2).map(|i| u8::from_str_radix(&text[i..i + 2], 16).unwrap()).collect()
-}
-
-fn component<'a>(report: &'a Json, name: &str) -> &'a Json {
-    report["components"].as_array().unwrap().iter().find(|c| c["name"] == name).unwrap()
 }
 
 #[test]
@@ -330,11 +305,6 @@ fn decode(translator: &mut WasmTranslator, bytes: &[u8]) -> Vec<Feedback> {
     let mut out = Vec::new();
     Translator::decode(translator, bytes, &mut out).unwrap();
     out
-}
-
-fn sandbox() -> Sandbox {
-    support::guest_dir();
-    Sandbox::new(Some(support::cache_dir())).unwrap()
 }
 
 #[test]
@@ -529,12 +499,12 @@ fn the_demo_runs_as_a_create2_and_reaches_its_goal_without_collisions() {
         // at 40-45 s of 50 on this machine, and later on a loaded one).
         .args(["run", "config/demo-create2.xml", "--speed", "max", "--duration", "90"])
         .args(["--report", report_path.to_str().unwrap()])
-        .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"])
+        .args(FREE_TELEOP_PORTS)
         .output()
         .unwrap();
     let log = text(&output.stderr);
     assert!(output.status.success(), "{log}");
-    let report: Json = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    let report: Json = read_report(&report_path);
     assert_eq!(report["robot"], "demo-create2");
     for c in report["components"].as_array().unwrap() {
         assert_eq!(c["errors"], 0, "{c}");

@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! `subsume deploy` end to end: the built binary against a real `subsume
 //! run` with the portal, over real HTTP. A component replaced in the
 //! running robot in one command; a robot file and its component in one
@@ -6,76 +5,34 @@
 //! changed; a component the running robot does not have refused before
 //! anything is uploaded.
 
-mod support;
-
-use std::io::{BufRead, BufReader, Write};
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
 use std::time::Duration;
 
-use support::http;
+use crate::support::{self, HostProcess, http, subsume};
 
 const PASSWORD: &str = "deploy-test-password";
 
+/// A running `subsume run` and its portal's address.
 struct Host {
-    child: Child,
+    _process: HostProcess,
     address: String,
 }
 
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
-fn subsume() -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command.current_dir(support::repo_root()).env("NO_COLOR", "1").env_remove("SUBSUME_HTTP");
-    command
-}
-
 fn add_admin(store: &Path) {
-    let mut child = subsume()
-        .args(["user", "add", "admin", "--role", "admin", "--password-stdin", "--store"])
-        .arg(store)
-        .stdin(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
-    assert!(child.wait().unwrap().success());
+    support::add_user(store, "admin", "admin", &[], PASSWORD);
 }
 
 /// `subsume run ROBOT` with the portal on a free port.
 fn start(store: &Path, robot: &Path) -> Host {
-    support::guest_dir();
-    let mut child = subsume()
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-        .arg(robot)
-        .args(["--http", "127.0.0.1:0"])
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("portal on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    Host { child, address }
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "run"]).arg(robot).args(["--http", "127.0.0.1:0"]);
+    let process = HostProcess::spawn(command);
+    let address = process.portal_address();
+    Host { _process: process, address }
 }
 
 fn token(address: &str) -> String {
-    let body = serde_json::json!({ "name": "admin", "password": PASSWORD }).to_string();
-    let (status, json) = http(address, "POST", "/api/v1/login", None, body.as_bytes());
-    assert_eq!(status, 200, "{json}");
-    json["token"].as_str().unwrap().to_string()
+    support::login(address, "admin", PASSWORD)
 }
 
 /// The active set: (id, robot name, the sha256 of the component `name` runs).
@@ -199,46 +156,24 @@ fn deploy_replaces_a_component_or_a_whole_robot_in_one_step_and_changes_nothing_
     assert_eq!(active(&host.address, "relay").0, third);
 }
 
-/// `subsume dev ROBOT` with the portal on a free port; its stderr lines
-/// arrive on the receiver.
-fn start_dev(store: &Path, robot: &Path) -> (Host, std::sync::mpsc::Receiver<String>) {
-    support::guest_dir();
-    let mut child = subsume()
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "dev"])
-        .arg(robot)
-        .args(["--http", "127.0.0.1:0", "--poll", "0.05"])
-        .env("RUST_LOG", "info")
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
-    (Host { child, address: String::new() }, rx)
+/// `subsume dev ROBOT` with the portal on a free port.
+fn start_dev(store: &Path, robot: &Path) -> HostProcess {
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "dev"]).arg(robot).args([
+        "--http",
+        "127.0.0.1:0",
+        "--poll",
+        "0.05",
+    ]);
+    HostProcess::spawn(command)
 }
 
-/// Lines until one contains `what` (all of them, that one last).
-fn until(lines: &std::sync::mpsc::Receiver<String>, what: &str) -> Vec<String> {
-    let deadline = std::time::Instant::now() + Duration::from_secs(120);
-    let mut seen = Vec::new();
-    loop {
-        let left = deadline.saturating_duration_since(std::time::Instant::now());
-        match lines.recv_timeout(left) {
-            Ok(line) => {
-                let done = line.contains(what);
-                seen.push(line);
-                if done {
-                    return seen;
-                }
-            }
-            Err(_) => panic!("no line with '{what}' within 120 s:\n{}", seen.join("\n")),
-        }
-    }
+/// The host's log lines after the `seen` ones until one contains `what`
+/// (all of them, that one last); counts them into `seen`.
+fn until(host: &HostProcess, seen: &mut usize, what: &str) -> Vec<String> {
+    let lines = host.lines_until(*seen, what, Duration::from_secs(120));
+    *seen += lines.len();
+    lines
 }
 
 fn sim_robot(name: &str, relay_to: &str) -> String {
@@ -267,14 +202,15 @@ fn dev_swaps_a_changed_component_in_and_keeps_the_running_set_when_the_robot_fil
     let relay = dir.path().join("relay.wasm");
     std::fs::copy(support::guest("test-relay"), &relay).unwrap();
     std::fs::write(&robot, sim_robot("dev", "vector-in")).unwrap();
-    let (_host, lines) = start_dev(&store, &robot);
-    let watching = until(&lines, "dev: watching 2 file(s) every 50 ms");
+    let host = start_dev(&store, &robot);
+    let mut seen = 0;
+    let watching = until(&host, &mut seen, "dev: watching 2 file(s) every 50 ms");
     assert!(watching.last().unwrap().contains(&relay.display().to_string()), "{watching:?}");
 
     // A new build of the component: swapped in, the simulated robot and
     // its link carried across.
     std::fs::copy(unique_relay(dir.path(), "edit1"), &relay).unwrap();
-    let swapped = until(&lines, "dev: set 2 is running");
+    let swapped = until(&host, &mut seen, "dev: set 2 is running");
     let text = swapped.join("\n");
     assert!(text.contains(&format!("dev: changed: {}", relay.display())), "{text}");
     assert!(text.contains("kept running") && text.contains("robot-sim"), "{text}");
@@ -282,7 +218,7 @@ fn dev_swaps_a_changed_component_in_and_keeps_the_running_set_when_the_robot_fil
 
     // A broken robot file: located errors, the running set stays.
     std::fs::write(&robot, sim_robot("dev", "nothing")).unwrap();
-    let refused = until(&lines, "the running set is unchanged");
+    let refused = until(&host, &mut seen, "the running set is unchanged");
     let text = refused.join("\n");
     assert!(text.contains(&format!("dev: {}:7:", robot.display())), "{text}");
     assert!(text.contains("unknown input port 'nothing' on component 'relay'"), "{text}");
@@ -290,5 +226,5 @@ fn dev_swaps_a_changed_component_in_and_keeps_the_running_set_when_the_robot_fil
 
     // Fixed again: the next set runs.
     std::fs::write(&robot, sim_robot("dev2", "vector-in")).unwrap();
-    until(&lines, "dev: set 3 is running");
+    until(&host, &mut seen, "dev: set 3 is running");
 }

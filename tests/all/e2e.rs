@@ -1,66 +1,18 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! End-to-end tests: the built `subsume` binary, driven from outside as a
 //! user drives it (processes, files, signals, exit codes, stdout, reports).
 
-mod support;
-
-use std::io::{BufRead, BufReader};
-use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::sync::mpsc;
+use std::path::Path;
+use std::process::{Output, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
 
-fn subsume() -> Command {
-    support::guest_dir();
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command
-        .current_dir(support::repo_root())
-        // These tests run the robot file alone; tests/portal.rs runs the portal.
-        .env("SUBSUME_HTTP", "off")
-        .arg("--cache-dir")
-        .arg(support::cache_dir())
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1");
-    command
-}
+use crate::support::{
+    self, FREE_TELEOP_PORTS, PASS_ENVELOPE, component, read_report, robot_file, subsume, text, wait_for_exit,
+};
 
 fn run(args: &[&str]) -> Output {
     subsume().args(args).output().unwrap()
-}
-
-/// The demo listens for operators on fixed ports; tests that run it at the
-/// same time move those to free ones.
-const FREE_PORTS: [&str; 4] = ["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"];
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
-}
-
-fn read_report(path: &Path) -> Json {
-    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
-}
-
-fn component<'a>(report: &'a Json, name: &str) -> &'a Json {
-    report["components"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .find(|c| c["name"] == name)
-        .unwrap_or_else(|| panic!("no component '{name}' in the report"))
-}
-
-/// Writes a robot file into `dir` whose `GUEST(name)` placeholders name the
-/// built guests.
-fn robot_file(dir: &Path, body: &str) -> PathBuf {
-    let mut xml = body.to_string();
-    for name in ["test-counter", "test-faulty", "test-relay", "test-commander", "avoider", "planner", "range-filter"] {
-        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
-    }
-    let path = dir.join("robot.xml");
-    std::fs::write(&path, xml).unwrap();
-    path
 }
 
 #[test]
@@ -73,7 +25,7 @@ fn the_demo_robot_reaches_its_goal_without_collisions() {
     let report_path = dir.path().join("report.json");
     let mut args = vec!["run", "config/demo.xml", "--speed", "max", "--duration", "50"];
     args.extend(["--report", report_path.to_str().unwrap()]);
-    args.extend(FREE_PORTS);
+    args.extend(FREE_TELEOP_PORTS);
     let output = run(&args);
     let log = text(&output.stderr);
     assert!(output.status.success(), "{log}");
@@ -133,10 +85,7 @@ fn drive_at_a_wall(with_avoider: bool, monitor: bool) -> Json {
     <connect from="motors.ranges" to="envelope.ranges"/>
     <connect from="motors.pose" to="envelope.pose"/>"#
     } else {
-        r#"<component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>"#
+        PASS_ENVELOPE
     };
     let body = format!(
         r#"<robot name="wall">
@@ -236,10 +185,7 @@ fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_ti
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
@@ -262,41 +208,12 @@ fn when_every_source_goes_silent_stop_bytes_reach_the_pty_within_the_watchdog_ti
 
 /// Starts `subsume run` without a duration and waits until the log shows a
 /// value moving through the graph.
-fn start_and_wait_until_running(report: &Path) -> Child {
-    let mut child = subsume()
-        .args(["run", "config/demo.xml", "--report", report.to_str().unwrap()])
-        .args(FREE_PORTS)
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (seen, wait) = mpsc::channel();
-    std::thread::spawn(move || {
-        let mut told = false;
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if !told && line.contains("received command") {
-                told = true;
-                let _ = seen.send(());
-            }
-        }
-    });
-    wait.recv_timeout(Duration::from_secs(30)).expect("the demo never logged a command");
-    child
-}
-
-fn wait_for_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
-    let deadline = Instant::now() + limit;
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            return status;
-        }
-        if Instant::now() > deadline {
-            let _ = child.kill();
-            panic!("the host did not stop within {limit:?}");
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
+fn start_and_wait_until_running(report: &Path) -> support::HostProcess {
+    let mut command = subsume();
+    command.args(["run", "config/demo.xml", "--report", report.to_str().unwrap()]).args(FREE_TELEOP_PORTS);
+    let host = support::HostProcess::spawn(command);
+    host.word_after("received command", Duration::from_secs(30));
+    host
 }
 
 #[test]
@@ -304,10 +221,9 @@ fn sigint_and_sigterm_stop_the_host_cleanly() {
     for signal in ["INT", "TERM"] {
         let dir = tempfile::tempdir().unwrap();
         let report_path = dir.path().join("report.json");
-        let mut child = start_and_wait_until_running(&report_path);
-        let sent = Command::new("kill").arg(format!("-{signal}")).arg(child.id().to_string()).status().unwrap();
-        assert!(sent.success());
-        let status = wait_for_exit(&mut child, Duration::from_secs(5));
+        let mut host = start_and_wait_until_running(&report_path);
+        support::signal(host.child.id(), signal);
+        let status = wait_for_exit(&mut host.child, Duration::from_secs(5));
         assert!(status.success(), "SIG{signal}: {status}");
         let report = read_report(&report_path);
         assert_eq!(report["stopped_by"], "shutdown", "SIG{signal}");
@@ -320,8 +236,7 @@ fn check_prints_every_error_one_per_line_and_exits_1() {
     let output = run(&["check", "tests/config/many-errors.xml"]);
     assert_eq!(output.status.code(), Some(1));
     let stdout = text(&output.stdout);
-    let expected =
-        std::fs::read_to_string(support::repo_root().join("tests/config/many-errors.expected")).unwrap();
+    let expected = std::fs::read_to_string(support::repo_root().join("tests/config/many-errors.expected")).unwrap();
     let expected: Vec<String> = expected.lines().map(|l| format!("tests/config/{l}")).collect();
     assert_eq!(stdout.lines().collect::<Vec<_>>(), expected);
 }
@@ -452,16 +367,8 @@ fn a_component_that_refuses_to_start_stops_startup() {
 fn compiling_a_component_says_so_and_how_long_it_took_and_a_cached_one_is_silent() {
     let cache = tempfile::tempdir().unwrap();
     let describe = || {
-        let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
-            .current_dir(support::repo_root())
-            .env("NO_COLOR", "1")
-            .env("RUST_LOG", "info")
-            .arg("--cache-dir")
-            .arg(cache.path())
-            .arg("describe")
-            .arg(support::guest("avoider"))
-            .output()
-            .unwrap();
+        let output =
+            support::subsume_with_cache(cache.path()).arg("describe").arg(support::guest("avoider")).output().unwrap();
         assert!(output.status.success(), "{}", text(&output.stderr));
         text(&output.stderr)
     };

@@ -1,16 +1,14 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The emergency stop end to end: the built binary drives an external
 //! pseudo-terminal (the motor controller) while a WASM component drives;
 //! each way of engaging stops it, STOP is the last thing on the wire and
 //! nothing moves until a release (docs/estop.md).
 
-mod support;
-
 use std::io::{BufRead, BufReader, Write};
-use std::net::TcpStream;
 use std::process::{Command, Stdio};
 use std::sync::mpsc;
 use std::time::{Duration, Instant};
+
+use crate::support::{self, PASS_ENVELOPE, subsume};
 
 const TOKEN: &str = "alice-token-0123456789";
 
@@ -48,10 +46,7 @@ fn start_with_teleop(device: &str, arbiter_extra: &str, wiring_extra: &str, tele
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20">{arbiter_extra}</component>
     <component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="driver.cmd" to="arbiter.commands"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
     <connect from="arbiter.cmd" to="envelope.cmd"/>
@@ -63,8 +58,8 @@ fn start_with_teleop(device: &str, arbiter_extra: &str, wiring_extra: &str, tele
     );
     let robot = dir.path().join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
-    let mut command = support::subsume();
-    command.env("SUBSUME_HTTP", "off").args(["run", robot.to_str().unwrap(), "--duration", "60"]);
+    let mut command = subsume();
+    command.args(["run", robot.to_str().unwrap(), "--duration", "60"]);
     let process = support::HostProcess::spawn(command);
     let teleop = process.word_after("teleoperation on tcp ", Duration::from_secs(60));
     // The whole ws:// URL the host announces.
@@ -75,44 +70,11 @@ fn start_with_teleop(device: &str, arbiter_extra: &str, wiring_extra: &str, tele
 
 /// An authenticated operator on the line protocol (it never asks for a
 /// mode: it does not drive, it only stops and releases).
-struct Operator {
-    reader: BufReader<TcpStream>,
-    writer: TcpStream,
-}
-
-impl Operator {
-    fn connect(address: &str) -> Operator {
-        let stream = TcpStream::connect(address).unwrap();
-        stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
-        let mut operator = Operator { reader: BufReader::new(stream.try_clone().unwrap()), writer: stream };
-        assert!(operator.line().starts_with("HELLO "));
-        operator.writer.write_all(format!("AUTH alice {TOKEN}\n").as_bytes()).unwrap();
-        assert!(operator.reply().starts_with("OK authenticated as alice"));
-        operator
-    }
-
-    fn line(&mut self) -> String {
-        let mut line = String::new();
-        assert!(self.reader.read_line(&mut line).unwrap_or(0) > 0, "the host closed the connection");
-        line.trim_end().to_string()
-    }
-
-    /// The next OK or ERR line (PINGs answered, other notices skipped).
-    fn reply(&mut self) -> String {
-        loop {
-            let line = self.line();
-            if let Some(nonce) = line.strip_prefix("PING ") {
-                self.writer.write_all(format!("PONG {nonce}\n").as_bytes()).unwrap();
-            } else if line.starts_with("OK ") || line.starts_with("ERR ") {
-                return line;
-            }
-        }
-    }
-
-    fn say(&mut self, line: &str) -> String {
-        self.writer.write_all(format!("{line}\n").as_bytes()).unwrap();
-        self.reply()
-    }
+fn operator(address: &str) -> support::Operator {
+    let (mut operator, hello) = support::Operator::connect_to(address);
+    assert!(hello.starts_with("HELLO "));
+    assert!(operator.say(&format!("AUTH alice {TOKEN}")).starts_with("OK authenticated as alice"));
+    operator
 }
 
 /// Reads the motors for `for_ms` and returns the lines read in that time.
@@ -156,7 +118,7 @@ fn estop_and_release_over_the_teleop_line_stop_a_driving_component_until_release
     let (mut motors, _slave, device) = support::MotorRecorder::new();
     let host = start(&device, "", "");
     assert_drives(&mut motors, "before");
-    let mut alice = Operator::connect(&host.teleop);
+    let mut alice = operator(&host.teleop);
     let engaged = Instant::now();
     assert_eq!(alice.say("ESTOP"), "OK estop engaged: the motors are stopped");
     let lines = watch(&mut motors, 1500);
@@ -192,7 +154,7 @@ fn a_bumper_hit_from_the_controller_engages_a_lock_that_only_a_release_ends() {
     motors.write(b"B 0\n");
     let lines = watch(&mut motors, 800);
     assert!(lines.iter().all(|(_, l)| l == "S"), "released by the bumper's false: {lines:?}");
-    let mut alice = Operator::connect(&host.teleop);
+    let mut alice = operator(&host.teleop);
     let reply = alice.say("RELEASE bumper");
     assert!(reply.starts_with("OK released bumper after "), "{reply}");
     assert_drives(&mut motors, "after the release");
@@ -304,10 +266,7 @@ fn start_with_portal(device: &str, dir: &std::path::Path) -> (support::HostProce
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="20"/>
     <component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="driver.cmd" to="arbiter.commands"/>
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>
@@ -317,22 +276,17 @@ fn start_with_portal(device: &str, dir: &std::path::Path) -> (support::HostProce
     );
     let robot = dir.join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
-    let mut command = support::subsume();
+    let mut command = subsume();
     command.args(["--store", store.to_str().unwrap(), "run", robot.to_str().unwrap()]);
     command.args(["--http", "127.0.0.1:0", "--duration", "90"]);
     let process = support::HostProcess::spawn(command);
-    let url = process.word_after("portal on http://", Duration::from_secs(60));
-    let address = url.split('/').next().unwrap_or_default().to_string();
+    let address = process.portal_address();
     (process, address)
 }
 
 /// `subsume estop|release ADDRESS --user USER`: (success, stdout + stderr).
 fn cli(action: &str, address: &str, user: &str) -> (bool, String) {
-    let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .args([action, address, "--user", user])
-        .env("SUBSUME_PASSWORD", PASSWORD)
-        .output()
-        .unwrap();
+    let output = subsume().args([action, address, "--user", user]).env("SUBSUME_PASSWORD", PASSWORD).output().unwrap();
     let text = format!("{}{}", String::from_utf8_lossy(&output.stdout), String::from_utf8_lossy(&output.stderr));
     (output.status.success(), text)
 }
@@ -362,13 +316,8 @@ fn the_command_line_and_the_portal_button_stop_the_robot_and_only_a_driver_relea
     assert!(ok && said.contains("released estop after"), "{said}");
     assert_drives(&mut motors, "after the release");
     // The portal's STOP button, clicked by a viewer in headless Chromium.
-    let browser_dir = support::repo_root().join("tests/browser");
-    assert!(
-        browser_dir.join("node_modules/playwright-core").is_dir(),
-        "run scripts/setup first: it installs playwright-core and chromium"
-    );
     let node = Command::new("node")
-        .current_dir(&browser_dir)
+        .current_dir(support::browser_dir())
         .arg("estop.mjs")
         .arg(format!("http://{address}/"))
         .args(["viewer", PASSWORD])

@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Hostile components: a guest that misbehaves in each way we know is
 //! stopped alone, with its reason in the report, while a healthy component
 //! beside it keeps its tick rate (within 5%, or the ticks the machine's
@@ -13,21 +12,18 @@
 //! rate, and STOP is on the wire within the stall watchdog's limit of the
 //! last motion command.
 
-mod support;
-
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
+use std::process::Output;
 use std::sync::OnceLock;
 use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
 use subsume::sandbox::wall_cap;
 
+use crate::support::{self, PASS_ENVELOPE, component, subsume};
+
 fn run_robot(dir: &Path, body: &str, args: &[&str]) -> (Output, Option<Json>) {
-    let mut xml = body.to_string();
-    for name in ["test-counter", "test-faulty", "test-loop-describe"] {
-        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
-    }
+    let mut xml = support::with_guests(body);
     for lang in ["python", "js"] {
         let placeholder = format!("SLEEPER({lang})");
         if xml.contains(&placeholder) {
@@ -37,22 +33,14 @@ fn run_robot(dir: &Path, body: &str, args: &[&str]) -> (Output, Option<Json>) {
     let robot = dir.join("robot.xml");
     std::fs::write(&robot, xml).unwrap();
     let report = dir.join("report.json");
-    let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap()])
+    let output = subsume()
         .args(args)
         .arg(&robot)
         .args(if args.first() == Some(&"run") { vec!["--report", report.to_str().unwrap()] } else { vec![] })
-        .env("NO_COLOR", "1")
         .output()
         .unwrap();
     let report = std::fs::read(&report).ok().and_then(|b| serde_json::from_slice(&b).ok());
     (output, report)
-}
-
-fn component<'a>(report: &'a Json, name: &str) -> &'a Json {
-    report["components"].as_array().unwrap().iter().find(|c| c["name"] == name).unwrap()
 }
 
 /// Runs test-faulty in `mode` beside a 100 Hz counter for 2 s; checks the
@@ -165,25 +153,16 @@ hostile_cases! {
 }
 
 /// The Python or JavaScript sleeper (`guest-components/{python,js}/test-sleeper`),
-/// built once per test process with build-all, and compiled into the cache.
+/// built once per test process with the other languages' guests, and
+/// compiled into the cache.
 fn sleeper(lang: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
-        let script = support::repo_root().join("guest-components/build-all");
-        let output = Command::new(script).args(["python", "js"]).env_remove("CARGO_TARGET_DIR").output().unwrap();
-        assert!(
-            output.status.success(),
-            "guest-components/build-all python js (scripts/setup installs the toolchains) failed:\n{}",
-            String::from_utf8_lossy(&output.stderr)
-        );
+        support::build_other_languages();
         // Compile both once here: the runs would each spend seconds on it.
         for lang in ["python", "js"] {
             let wasm = support::repo_root().join(format!("guest-components/{lang}/test-sleeper/sleeper.wasm"));
-            let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
-                .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "describe"])
-                .arg(&wasm)
-                .output()
-                .unwrap();
+            let output = subsume().arg("describe").arg(&wasm).output().unwrap();
             assert!(output.status.success(), "{lang}: {}", String::from_utf8_lossy(&output.stderr));
         }
     });
@@ -196,14 +175,6 @@ const STALL_LIMIT: Duration = Duration::from_millis(100);
 /// One period each of the arbiter (50 Hz) and the link (100 Hz): how late
 /// after the fault the arbiter's STOP can be written, by design.
 const STOP_PATH: Duration = Duration::from_millis(30);
-
-/// An envelope that passes every command unchanged (no sensors wired, limits
-/// far above what these guests send): the robots here check what reaches
-/// the motors, and the validator requires an envelope in front of them.
-const PASS_ENVELOPE: &str = r#"<component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>"#;
 
 const FIVE_MS: Duration = Duration::from_millis(5);
 

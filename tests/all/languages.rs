@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Components in four languages, driven through the built `subsume` binary.
 //!
 //! The obstacle avoider exists in Rust, C, Python and JavaScript
@@ -11,14 +10,14 @@
 //! The toolchains come from `scripts/setup`; `guest-components/build-all`
 //! builds the avoiders (incrementally) on first use.
 
-mod support;
-
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 use std::sync::OnceLock;
 
 use serde_json::Value as Json;
+
+use crate::support::{self, FREE_TELEOP_PORTS, read_report, subsume, text};
 
 const LANGUAGES: [&str; 4] = ["rust", "c", "python", "js"];
 
@@ -29,23 +28,6 @@ const LANGUAGES: [&str; 4] = ["rust", "c", "python", "js"];
 /// 10 ms default).
 fn budget(lang: &str) -> &'static str {
     if matches!(lang, "python" | "js") { "50ms" } else { "5ms" }
-}
-
-fn subsume() -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command
-        .current_dir(support::repo_root())
-        .arg("--cache-dir")
-        .arg(support::cache_dir())
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        // Runs side by side: no web portal (it would take the same port).
-        .env("SUBSUME_HTTP", "off");
-    command
-}
-
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
 }
 
 /// Runs `command`, panicking with its output unless it succeeds.
@@ -65,9 +47,7 @@ fn succeed(command: &mut Command, what: &str) -> Output {
 fn avoider(lang: &str) -> PathBuf {
     static BUILT: OnceLock<()> = OnceLock::new();
     BUILT.get_or_init(|| {
-        let script = support::repo_root().join("guest-components/build-all");
-        let what = "guest-components/build-all c python js (scripts/setup installs the toolchains)";
-        succeed(Command::new(script).args(["c", "python", "js"]).env_remove("CARGO_TARGET_DIR"), what);
+        support::build_other_languages();
         for lang in LANGUAGES {
             compile_into_cache(&avoider_path(lang));
         }
@@ -87,7 +67,7 @@ fn avoider_path(lang: &str) -> PathBuf {
 /// JavaScript component (seconds each) on their own.
 fn compile_into_cache(wasm: &Path) {
     static SANDBOX: OnceLock<subsume::sandbox::Sandbox> = OnceLock::new();
-    let sandbox = SANDBOX.get_or_init(|| subsume::sandbox::Sandbox::new(Some(support::cache_dir())).unwrap());
+    let sandbox = SANDBOX.get_or_init(support::sandbox);
     let bytes = std::fs::read(wasm).unwrap_or_else(|e| panic!("{}: {e}", wasm.display()));
     sandbox.load(&bytes).unwrap_or_else(|e| panic!("{}: {e}", wasm.display()));
 }
@@ -113,7 +93,7 @@ fn run_robot(xml: &str, seconds: &str) -> (Json, String) {
     let report = dir.path().join("report.json");
     let output =
         succeed(subsume().arg("run").arg(&robot).args(["--duration", seconds, "--report"]).arg(&report), "subsume run");
-    (serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap(), text(&output.stderr))
+    (read_report(&report), text(&output.stderr))
 }
 
 /// The report section of built-in `component` of `kind` (the first
@@ -383,7 +363,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
             .arg(copy.path())
             .args(["--duration", "4", "--report"])
             .arg(&report)
-            .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"])
+            .args(FREE_TELEOP_PORTS)
             .stderr(std::process::Stdio::piped())
             .spawn()
             .unwrap();
@@ -393,7 +373,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         let output = run.wait_with_output().unwrap();
         drop(demo_copy);
         assert!(output.status.success(), "{what}: {}", text(&output.stderr));
-        let report: Json = serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap();
+        let report: Json = read_report(&report);
         assert_all_running(&report);
         let held = report["arbiter"]["held_s"].as_array().unwrap();
         let held = held.iter().find(|h| h[0] == component.as_str()).and_then(|h| h[1].as_f64()).unwrap_or_default();
@@ -437,8 +417,7 @@ fn a_rebuilt_python_component_compiles_only_its_changed_functions() {
     std::fs::write(&edited_file, &edited).unwrap();
     let cache = dir.path().join("cache");
     let describe = |wasm: &Path| {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-        command.env("RUST_LOG", "info").env("NO_COLOR", "1").arg("--cache-dir").arg(&cache);
+        let mut command = support::subsume_with_cache(&cache);
         let output = succeed(command.args(["describe", "--json"]).arg(wasm), "subsume describe");
         let json: Json = serde_json::from_slice(&output.stdout).unwrap();
         (json["summary"].as_str().unwrap_or_default().to_owned(), text(&output.stderr))

@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The portal end to end: the real binary over real HTTP. Many users
 //! uploading, staging, activating and rolling back at once never lose or
 //! rewrite a record; a kill -9 during uploads and activations leaves a
@@ -8,31 +7,19 @@
 //! checks the portal's own views (plots, the Drive tab's map, the wiring,
 //! the robot-file editor).
 
-mod support;
-
-use std::io::{BufRead, BufReader};
-use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
-use support::http;
+
+use crate::support::{self, HostProcess, Operator, http, subsume};
 
 const PASSWORD: &str = "portal-test-password";
 
+/// A running `subsume run` and its portal's address.
 struct Host {
-    child: Child,
+    process: HostProcess,
     address: String,
-    /// The network platform's TCP address, once it said where it listens.
-    teleop: std::sync::mpsc::Receiver<String>,
-}
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 fn add_admin(store: &Path) {
@@ -44,34 +31,19 @@ fn add_user(store: &Path, name: &str, role: &str, platforms: &[&str]) {
     support::add_user(store, name, role, platforms, PASSWORD);
 }
 
-/// Starts `subsume run ROBOT` with the portal on a free port; returns once
-/// the portal listens.
+/// Starts `subsume run ROBOT` with the portal on a free port (and the
+/// demo's operator port on a free one); returns once the portal listens.
 fn start(store: &Path, robot: &Path) -> Host {
-    support::guest_dir();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-        .arg(robot)
-        .args(["--http", "127.0.0.1:0", "--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="])
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let (teleop_tx, teleop) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("portal on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
-            }
-            if let Some(rest) = line.split("teleoperation on tcp ").nth(1) {
-                let _ = teleop_tx.send(rest.split_whitespace().next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    Host { child, address, teleop }
+    start_with(store, robot, &["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="])
+}
+
+/// `subsume run ROBOT` with the portal on a free port and `args`.
+fn start_with(store: &Path, robot: &Path, args: &[&str]) -> Host {
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "run"]).arg(robot).args(["--http", "127.0.0.1:0"]).args(args);
+    let process = HostProcess::spawn(command);
+    let address = process.portal_address();
+    Host { process, address }
 }
 
 fn login(address: &str) -> String {
@@ -311,8 +283,8 @@ fn a_kill_during_uploads_and_activations_leaves_a_consistent_store_that_restarts
             }
         });
         std::thread::sleep(Duration::from_millis(delay_ms));
-        host.child.kill().unwrap(); // SIGKILL
-        host.child.wait().unwrap();
+        host.process.child.kill().unwrap(); // SIGKILL
+        host.process.child.wait().unwrap();
         let _ = worker.join();
         let opened = subsume::store::Store::open(&store).unwrap();
         opened.verify().unwrap_or_else(|e| panic!("round {round}: {e}"));
@@ -513,28 +485,7 @@ fn wall_robot(extra: &str, envelope_params: &str) -> String {
 
 /// `subsume run ROBOT` with the portal on a free port (no teleop to move).
 fn start_plain(store: &Path, robot: &Path) -> Host {
-    support::guest_dir();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-        .arg(robot)
-        .args(["--http", "127.0.0.1:0"])
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("portal on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
-            }
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    let (_, teleop) = std::sync::mpsc::channel();
-    Host { child, address, teleop }
+    start_with(store, robot, &[])
 }
 
 #[test]
@@ -641,11 +592,7 @@ fn a_developers_top_priority_driver_cannot_hit_the_wall_or_loosen_the_envelope()
 
 /// The first line the network platform at `address` sends.
 fn teleop_hello(address: &str) -> String {
-    let stream = TcpStream::connect(address).unwrap();
-    stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
-    let mut line = String::new();
-    BufReader::new(stream).read_line(&mut line).unwrap();
-    line.trim_end().to_string()
+    Operator::connect_to(address).1
 }
 
 #[test]
@@ -654,7 +601,7 @@ fn after_an_activation_operators_are_greeted_with_the_robot_that_runs_now() {
     let store = dir.path().join("store");
     add_admin(&store);
     let host = start(&store, &support::repo_root().join("config/demo.xml"));
-    let teleop = host.teleop.recv_timeout(Duration::from_secs(30)).expect("the network platform did not listen");
+    let teleop = host.process.word_after("teleoperation on tcp ", Duration::from_secs(30));
     let hello = teleop_hello(&teleop);
     assert!(hello.ends_with(" robot=demo"), "{hello}");
     let token = login(&host.address);

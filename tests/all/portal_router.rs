@@ -1,11 +1,7 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The portal's router without a server (`oneshot`): every endpoint x every
 //! role, the malformed-upload corpus, login rate limiting with controlled
 //! time, and the OpenAPI document against the routes.
 
-mod support;
-
-use std::path::Path;
 use std::sync::Arc;
 
 use axum::body::Body;
@@ -18,11 +14,12 @@ use subsume::deploy::{BootOptions, Deployer};
 use subsume::portal::{self, PortalState};
 use subsume::record::control::Recordings;
 use subsume::runtime::control_loop::{Clock, Shutdown};
-use subsume::sandbox::Sandbox;
 use subsume::store::Store;
 use subsume::store::users::{Directory, Role};
 use subsume::teleop::TeleopServers;
 use tower::ServiceExt as _;
+
+use crate::support;
 
 const ROBOT: &str = r#"<robot name="bench">
   <platform name="control">
@@ -72,7 +69,7 @@ async fn portal_over(over_tls: bool) -> Portal {
     let shutdown = Shutdown::new();
     let boot = Deployer::boot(BootOptions {
         store: store.clone(),
-        sandbox: Arc::new(Sandbox::new(Some(support::cache_dir())).unwrap()),
+        sandbox: Arc::new(support::sandbox()),
         services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())).with(Arc::new(
             Recordings::new(dir.path().join("recordings"), subsume::record::DEFAULT_MAX_FILE_BYTES, 0, false).unwrap(),
         )),
@@ -399,7 +396,7 @@ async fn the_openapi_document_lists_exactly_the_routes() {
         let response = portal.app.clone().oneshot(Request::get(path).body(Body::empty()).unwrap()).await.unwrap();
         assert_eq!(response.status(), StatusCode::OK, "{path}");
     }
-    assert!(Path::new(env!("CARGO_MANIFEST_DIR")).join("src/portal/openapi.json").is_file());
+    assert!(support::repo_root().join("host/src/portal/openapi.json").is_file());
 }
 
 /// A recording from a fresh start re-activates the active set and waits

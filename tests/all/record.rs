@@ -1,9 +1,6 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Recording and replay through the built binary: `subsume run --record`
 //! read back by the `mcap` package from PyPI (tests/python/mcap_reader.py),
 //! a killed host's file, rotation, and `subsume replay`.
-
-mod support;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
@@ -11,59 +8,21 @@ use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
 
-fn subsume() -> Command {
-    support::guest_dir();
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .arg("--cache-dir")
-        .arg(support::cache_dir())
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1");
-    command
-}
+use crate::support::{self, FREE_TELEOP_PORTS, component, http, http_bytes, read_report, robot_file, subsume, text};
 
 fn run(args: &[&str]) -> Output {
     subsume().args(args).output().unwrap()
 }
 
-fn text(bytes: &[u8]) -> String {
-    String::from_utf8_lossy(bytes).into_owned()
-}
-
-const FREE_PORTS: [&str; 4] = ["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"];
-
 /// What the `mcap` package reads in `file`.
 fn read_mcap(file: &Path, truncated: bool) -> Json {
-    let mut command = Command::new(support::python());
-    command.arg(support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
-    if truncated {
-        command.arg("--truncated");
-    }
-    let output = command.output().unwrap();
-    assert!(output.status.success(), "mcap reader failed on {}: {}", file.display(), text(&output.stderr));
-    serde_json::from_slice(&output.stdout).unwrap()
-}
-
-fn robot_file(dir: &Path, body: &str) -> PathBuf {
-    let mut xml = body.to_string();
-    for name in ["test-counter", "test-faulty", "test-relay-v1", "test-relay", "avoider", "planner", "range-filter"] {
-        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
-    }
-    let path = dir.join("robot.xml");
-    std::fs::write(&path, xml).unwrap();
-    path
+    support::read_mcap(file, truncated, &[])
 }
 
 fn channel<'a>(read: &'a Json, topic: &str) -> &'a Json {
     let channel = &read["channels"][topic];
     assert!(channel.is_object(), "no channel {topic} in {}", read["channels"]);
     channel
-}
-
-fn component<'a>(report: &'a Json, name: &str) -> &'a Json {
-    report["components"].as_array().unwrap().iter().find(|c| c["name"] == name).unwrap()
 }
 
 #[test]
@@ -73,7 +32,7 @@ fn the_demo_recording_has_every_value_call_status_and_log_line() {
     let report_path = dir.path().join("report.json");
     let mut args = vec!["run", "config/demo.xml", "--duration", "3", "--record", file.to_str().unwrap()];
     args.extend(["--report", report_path.to_str().unwrap()]);
-    args.extend(FREE_PORTS);
+    args.extend(FREE_TELEOP_PORTS);
     let output = run(&args);
     let log = text(&output.stderr);
     assert!(output.status.success(), "{log}");
@@ -117,7 +76,7 @@ fn the_demo_recording_has_every_value_call_status_and_log_line() {
     assert!(pose["pose"]["orientation"]["w"].is_number(), "{pose}");
     assert_eq!(pose["value"].as_array().unwrap().len(), 3);
     // Every value every component emitted is there: the report's counts.
-    let report: Json = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    let report: Json = read_report(&report_path);
     for name in ["motors", "filter", "avoid", "planner", "arbiter", "envelope"] {
         let recorded: u64 = read["channels"]
             .as_object()
@@ -197,7 +156,7 @@ fn a_0_1_0_and_a_0_2_0_component_run_side_by_side_on_the_simulated_robots_scan()
     }
     assert_eq!(read["first"]["/new/vector-out"]["value"]["vector"], scan["ranges"]);
     assert_eq!(read["first"]["/old/vector-out"]["value"]["vector"], scan["ranges"]);
-    let report: Json = serde_json::from_slice(&std::fs::read(&report_path).unwrap()).unwrap();
+    let report: Json = read_report(&report_path);
     let scans = component(&report, "motors")["messages_out"].as_u64().unwrap();
     assert!(scans > 0);
     for (relay, inputs) in [("new", 2), ("old", 1)] {
@@ -269,7 +228,7 @@ fn a_killed_host_leaves_a_file_whose_chunks_read() {
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("killed.mcap");
     let mut args = vec!["run", "config/demo.xml", "--record", file.to_str().unwrap()];
-    args.extend(FREE_PORTS);
+    args.extend(FREE_TELEOP_PORTS);
     let mut child = subsume().args(&args).stderr(std::process::Stdio::null()).spawn().unwrap();
     // Past a few flushes of finished chunks.
     let started = Instant::now();
@@ -297,7 +256,7 @@ fn a_killed_host_leaves_a_file_whose_chunks_read() {
 fn record_demo(dir: &Path, seconds: &str) -> PathBuf {
     let file = dir.join("demo.mcap");
     let mut args = vec!["run", "config/demo.xml", "--duration", seconds, "--record", file.to_str().unwrap()];
-    args.extend(FREE_PORTS);
+    args.extend(FREE_TELEOP_PORTS);
     let output = run(&args);
     assert!(output.status.success(), "{}", text(&output.stderr));
     file
@@ -367,28 +326,16 @@ fn replay_refuses_built_ins_unknown_names_and_what_is_not_a_recording() {
 
 #[test]
 fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses_and_scans() {
-    use std::io::{BufRead, BufReader};
-    let mut args = vec!["run", "config/demo.xml", "--duration", "60", "--foxglove", "127.0.0.1:0"];
-    args.extend(FREE_PORTS);
-    let mut child = subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (found, address) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(at) = line.find("foxglove live view on ws://") {
-                let rest = &line[at + "foxglove live view on ".len()..];
-                let _ = found.send(rest.split_whitespace().next().unwrap_or_default().to_string());
-            }
-        }
-    });
-    let url = address.recv_timeout(Duration::from_secs(60)).expect("the live view never started");
+    let mut command = subsume();
+    command.args(["run", "config/demo.xml", "--duration", "60", "--foxglove", "127.0.0.1:0"]).args(FREE_TELEOP_PORTS);
+    let host = support::HostProcess::spawn(command);
+    let url = format!("ws://{}", host.word_after("foxglove live view on ws://", Duration::from_secs(60)));
     let output = Command::new(support::python())
         .arg(support::repo_root().join("tests/python/foxglove_client.py"))
         .args([&url, "5", "/motors/pose", "/motors/pose/tf", "/motors/ranges", "/arbiter/cmd", "/subsume/log"])
         .output()
         .unwrap();
-    child.kill().unwrap();
-    child.wait().unwrap();
+    drop(host);
     assert!(output.status.success(), "{}", text(&output.stderr));
     let seen: Json = serde_json::from_slice(&output.stdout).unwrap();
     assert_eq!(seen["server"], "subsume");
@@ -423,68 +370,24 @@ fn a_foxglove_websocket_client_subscribes_to_the_live_view_and_decodes_poses_and
     }
 }
 
-/// One HTTP/1.1 request to the portal; returns (status, body bytes).
-fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &str) -> (u16, Vec<u8>) {
-    use std::io::{Read as _, Write as _};
-    let mut stream = std::net::TcpStream::connect(address).unwrap();
-    stream.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
-    let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    stream.write_all(head.as_bytes()).unwrap();
-    let mut response = Vec::new();
-    let _ = stream.read_to_end(&mut response);
-    let split = response.windows(4).position(|w| w == b"\r\n\r\n").unwrap() + 4;
-    let status = text(&response[..split]).split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
-    (status, response[split..].to_vec())
-}
-
 fn http_json(address: &str, method: &str, path: &str, token: Option<&str>) -> (u16, Json) {
-    let (status, body) = http(address, method, path, token, "");
-    (status, serde_json::from_slice(&body).unwrap_or(Json::Null))
+    http(address, method, path, token, b"")
 }
 
 #[test]
 fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_reads() {
     let dir = tempfile::tempdir().unwrap();
     let store = dir.path().join("store");
+    const PASSWORD: &str = "recording-password-1";
     for (name, role) in [("admin", "admin"), ("viewer", "viewer"), ("operator", "operator")] {
-        let mut child = subsume()
-            .args(["user", "add", name, "--role", role, "--password-stdin", "--store"])
-            .arg(&store)
-            .stdin(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::null())
-            .spawn()
-            .unwrap();
-        use std::io::Write as _;
-        child.stdin.take().unwrap().write_all(b"recording-password-1\n").unwrap();
-        assert!(child.wait().unwrap().success());
+        support::add_user(&store, name, role, &[], PASSWORD);
     }
-    let mut args = vec!["--store", store.to_str().unwrap(), "run", "config/demo.xml", "--http", "127.0.0.1:0"];
-    args.extend(FREE_PORTS);
-    let mut child = KillOnDrop(subsume().args(&args).stderr(std::process::Stdio::piped()).spawn().unwrap());
-    let stderr = child.0.stderr.take().unwrap();
-    let (tx, rx) = std::sync::mpsc::channel();
-    let log = std::sync::Arc::new(std::sync::Mutex::new(String::new()));
-    let kept = log.clone();
-    std::thread::spawn(move || {
-        use std::io::BufRead as _;
-        for line in std::io::BufReader::new(stderr).lines().map_while(Result::ok) {
-            if let Some(rest) = line.split("portal on http://").nth(1) {
-                let _ = tx.send(rest.split('/').next().unwrap_or("").to_string());
-            }
-            kept.lock().unwrap().push_str(&format!("{line}\n"));
-        }
-    });
-    let address = rx.recv_timeout(Duration::from_secs(60)).expect("the portal did not start");
-    let login = |name: &str| {
-        let body = serde_json::json!({ "name": name, "password": "recording-password-1" }).to_string();
-        let (status, body) = http(&address, "POST", "/api/v1/login", None, &body);
-        assert_eq!(status, 200, "{}", text(&body));
-        serde_json::from_slice::<Json>(&body).unwrap()["token"].as_str().unwrap().to_string()
-    };
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "run", "config/demo.xml", "--http", "127.0.0.1:0"]);
+    command.args(FREE_TELEOP_PORTS);
+    let mut host = support::HostProcess::spawn(command);
+    let address = host.portal_address();
+    let login = |name: &str| support::login(&address, name, PASSWORD);
     let (admin, viewer, operator) = (login("admin"), login("viewer"), login("operator"));
 
     // Viewers and operators may not record; the refusals are audited.
@@ -516,7 +419,7 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
     assert!(listed["recording"].is_null(), "{listed}");
     let file = &listed["files"][0];
     assert_eq!((file["name"].as_str(), file["recording"].as_bool()), (Some(name.as_str()), Some(false)), "{listed}");
-    let (status, bytes) = http(&address, "GET", &format!("/api/v1/recordings/{name}"), Some(&admin), "");
+    let (status, bytes) = http_bytes(&address, "GET", &format!("/api/v1/recordings/{name}"), Some(&admin), b"");
     assert_eq!(status, 200);
     assert_eq!(bytes.len() as u64, file["bytes"].as_u64().unwrap());
     let downloaded = dir.path().join("downloaded.mcap");
@@ -546,7 +449,7 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
         let (status, json) = http_json(&address, "GET", path, Some(&admin));
         assert_eq!(status, expected, "{path}: {json}");
     }
-    assert_eq!(http(&address, "GET", &format!("/api/v1/recordings/{name}"), Some(&viewer), "").0, 403);
+    assert_eq!(http_bytes(&address, "GET", &format!("/api/v1/recordings/{name}"), Some(&viewer), b"").0, 403);
 
     // Audited: who started and stopped, and who was refused.
     let (_, audit) = http_json(&address, "GET", "/api/v1/audit", Some(&admin));
@@ -567,26 +470,11 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
     std::thread::sleep(Duration::from_secs(1));
     let (_, listed) = http_json(&address, "GET", "/api/v1/recordings", Some(&admin));
     assert_eq!(listed["files"].as_array().unwrap().len(), 1, "{listed}");
-    let terminated = Command::new("kill").args(["-TERM", &child.0.id().to_string()]).status().unwrap();
-    assert!(terminated.success());
-    let started = Instant::now();
-    while child.0.try_wait().unwrap().is_none() {
-        assert!(started.elapsed() < Duration::from_secs(30), "the host did not stop on SIGTERM");
-        std::thread::sleep(Duration::from_millis(100));
-    }
+    support::signal(host.child.id(), "TERM");
+    support::wait_for_exit(&mut host.child, Duration::from_secs(30));
     let read = read_mcap(&store.join("recordings").join(&second), false);
-    assert_eq!(read["complete"], true, "{}", log.lock().unwrap());
+    assert_eq!(read["complete"], true, "{}", host.log());
     assert!(read["messages"].as_u64().unwrap() > 100, "{read}");
-    assert!(log.lock().unwrap().contains(&format!("recording {second} stopped with the run")));
-}
-
-/// Kills the host if the test ends early (a failed assertion), so no host
-/// outlives the test and holds its output pipe open.
-struct KillOnDrop(std::process::Child);
-
-impl Drop for KillOnDrop {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
+    // (Waits for the log's last lines: the host has exited, its log is read on.)
+    host.word_after(&format!("recording {second} stopped with the run"), Duration::from_secs(10));
 }

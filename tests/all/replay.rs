@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Replay before activation through the built binary over real HTTP
 //! (`POST /api/v1/sets/{id}/replay`): a recording made from the portal, a
 //! staged set with the recorded components (identical) and one with a
@@ -14,14 +13,12 @@
 //! 422 or 429, each with its own text's answer, the store unchanged), and a
 //! recording across an activation holds both sets' values.
 
-mod support;
-
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::{Value as Json, json};
-use support::{HostProcess, http};
+
+use crate::support::{self, HostProcess, http, subsume};
 
 const PASSWORD: &str = "replay-test-password";
 
@@ -36,14 +33,7 @@ fn login(address: &str, name: &str) -> String {
 /// What the `mcap` package reads in `file` (every message of `values`'
 /// topics too).
 fn read_mcap_values(file: &Path, values: &[&str]) -> Json {
-    let mut command = Command::new(support::python());
-    command.arg(support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
-    for topic in values {
-        command.args(["--values", topic]);
-    }
-    let output = command.output().unwrap();
-    assert!(output.status.success(), "mcap reader failed: {}", String::from_utf8_lossy(&output.stderr));
-    serde_json::from_slice(&output.stdout).unwrap()
+    support::read_mcap(file, false, values)
 }
 
 fn read_mcap(file: &Path) -> Json {
@@ -72,14 +62,13 @@ struct Portal {
 
 impl Portal {
     fn start() -> Portal {
-        support::guest_dir();
         let dir = tempfile::tempdir().unwrap();
         let store = dir.path().join("store");
         add_user(&store, "admin", "admin", &[]);
         add_user(&store, "dev", "developer", &["control"]);
         add_user(&store, "operator", "operator", &[]);
         add_user(&store, "viewer", "viewer", &[]);
-        let mut command = support::subsume();
+        let mut command = subsume();
         command.arg("--store").arg(&store).args([
             "run",
             "config/demo.xml",
@@ -91,7 +80,7 @@ impl Portal {
             "teleop.websocket=",
         ]);
         let host = HostProcess::spawn(command);
-        let address = host.word_after("portal on http://", Duration::from_secs(120)).trim_end_matches('/').to_string();
+        let address = host.portal_address();
         let admin = login(&address, "admin");
         Portal { host, address, store, admin, _dir: dir }
     }
@@ -115,8 +104,7 @@ impl Portal {
         let n = MADE.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
         let name = format!("rec-20200101-000001-{n}.mcap");
         let scratch = self.store.with_file_name(format!("recording-store-{n}"));
-        let output = support::subsume()
-            .env("SUBSUME_HTTP", "off")
+        let output = subsume()
             .arg("--store")
             .arg(&scratch)
             .args(["run", "config/demo.xml", "--duration", &seconds.to_string(), "--record"])
@@ -245,8 +233,7 @@ fn a_staged_set_is_replayed_against_a_portal_recording_before_activation() {
     )
     .unwrap();
     let foreign = "rec-20200101-000000-1.mcap";
-    let output = support::subsume()
-        .env("SUBSUME_HTTP", "off")
+    let output = subsume()
         .arg("run")
         .arg(&other)
         .args(["--duration", "1", "--record"])
@@ -601,15 +588,14 @@ fn a_replay_past_its_bounds_is_stopped_with_a_clear_error() {
     use subsume::record::replay::{ReplayError, ReplayLimits, replay_robot};
     let dir = tempfile::tempdir().unwrap();
     let file = dir.path().join("demo.mcap");
-    let output = support::subsume()
-        .env("SUBSUME_HTTP", "off")
+    let output = subsume()
         .args(["run", "config/demo.xml", "--duration", "1", "--record"])
         .arg(&file)
         .args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="])
         .output()
         .unwrap();
     assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
-    let sandbox = subsume::sandbox::Sandbox::new(Some(support::cache_dir())).unwrap();
+    let sandbox = support::sandbox();
     let mut loader = subsume::assemble::Loader::new(&sandbox);
     let config = subsume::config::load_with(&support::repo_root().join("config/demo.xml"), &mut loader, &[]).unwrap();
     let only = ["planner".to_string()];

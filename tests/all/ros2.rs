@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The ROS 2 face end to end, against implementations no one here wrote:
 //! `tests/python/ros2_peer.py` is the ROS 2 side, built on the
 //! `eclipse-zenoh` package (the Zenoh peer) and `rosbags` (CDR for every
@@ -7,15 +6,15 @@
 //! (ros2/rmw_zenoh docs/design.md); the fixtures in `bridge::ros2`'s unit
 //! tests are the document's own examples.
 
-mod support;
-
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Child, ChildStdin, ChildStdout, Command, Stdio};
-use std::time::{Duration, Instant};
+use std::time::Duration;
 
 use serde_json::Value as Json;
 use subsume::bridge::cdr::{self, Header, LaserScan, Log, Odometry, Time, Twist};
 use subsume::bridge::ros2::MessageType;
+
+use crate::support::{self, free_port, read_report, subsume, wait_for_exit};
 
 fn peer_once(mode: &str) -> Json {
     let out = Command::new(support::python())
@@ -90,9 +89,14 @@ struct Peer {
 
 impl Peer {
     fn start(mode: &str, endpoint: &str) -> Peer {
+        Peer::spawn(&[mode, endpoint])
+    }
+
+    /// `ros2_peer.py ARGS`, once it is ready.
+    fn spawn(args: &[&str]) -> Peer {
         let mut child = Command::new(support::python())
             .arg(support::repo_root().join("tests/python/ros2_peer.py"))
-            .args([mode, endpoint])
+            .args(args)
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .spawn()
@@ -123,21 +127,13 @@ impl Drop for Peer {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
-}
-
 /// `subsume run CONFIG --param zenoh.connect=ENDPOINT`, stopped by SIGTERM
 /// after `run_for`; returns its report.
 fn run_host(config: &str, endpoint: &str, run_for: Duration) -> Json {
-    support::guest_dir();
     let dir = tempfile::tempdir().unwrap();
     let report = dir.path().join("report.json");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .env("NO_COLOR", "1")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", config])
+    let mut child = subsume()
+        .args(["run", config])
         .args(["--param", &format!("zenoh.connect={endpoint}")])
         .args(["--duration", "120", "--report", report.to_str().unwrap()])
         .stdout(Stdio::null())
@@ -145,14 +141,9 @@ fn run_host(config: &str, endpoint: &str, run_for: Duration) -> Json {
         .spawn()
         .unwrap();
     std::thread::sleep(run_for);
-    let status = Command::new("kill").args(["-15", &child.id().to_string()]).status().unwrap();
-    assert!(status.success());
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while child.try_wait().unwrap().is_none() {
-        assert!(Instant::now() < deadline, "the host did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    serde_json::from_str(&std::fs::read_to_string(&report).unwrap()).unwrap()
+    support::signal(child.id(), "TERM");
+    wait_for_exit(&mut child, Duration::from_secs(20));
+    read_report(&report)
 }
 
 fn section<'a>(report: &'a Json, key_part: &str) -> &'a Json {
@@ -228,19 +219,7 @@ fn use_a_ros2_tools_drive_the_simulated_robot_and_decode_scan_and_odom() {
 #[test]
 fn a_bool_on_the_estop_topic_stops_the_robot_and_the_lock_holds() {
     let endpoint = format!("tcp/127.0.0.1:{}", free_port());
-    let mut child = Command::new(support::python())
-        .arg(support::repo_root().join("tests/python/ros2_peer.py"))
-        .args(["robot-estop", &endpoint, "2.5"])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .spawn()
-        .unwrap();
-    let stdin = child.stdin.take();
-    let mut stdout = BufReader::new(child.stdout.take().unwrap());
-    let mut line = String::new();
-    stdout.read_line(&mut line).unwrap();
-    assert_eq!(line.trim(), "ready");
-    let peer = Peer { child, stdin, stdout };
+    let peer = Peer::spawn(&["robot-estop", &endpoint, "2.5"]);
     let (report, summary) = std::thread::scope(|s| {
         let host = s.spawn(|| run_host("config/ros2-demo.xml", &endpoint, Duration::from_secs(7)));
         std::thread::sleep(Duration::from_secs(6));
@@ -309,13 +288,9 @@ fn run_base_to_a_hard_exit(
     fault: Option<&str>,
     second_signal_after: Option<Duration>,
 ) -> (i32, String) {
-    support::guest_dir();
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
+    let mut command = subsume();
     command
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .env("NO_COLOR", "1")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", "config/ros2-base.xml"])
+        .args(["run", "config/ros2-base.xml"])
         .args(["--param", &format!("zenoh.connect={endpoint}")])
         .args(["--duration", "120"])
         .stdout(Stdio::null())
@@ -335,18 +310,11 @@ fn run_base_to_a_hard_exit(
         // The first asks for a clean stop; the loop is hung by the fault,
         // so only the second one ends the process.
         for _ in 0..2 {
-            assert!(Command::new("kill").args(["-15", &child.id().to_string()]).status().unwrap().success());
+            support::signal(child.id(), "TERM");
             std::thread::sleep(Duration::from_millis(300));
         }
     }
-    let deadline = Instant::now() + Duration::from_secs(30);
-    let status = loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            break status;
-        }
-        assert!(Instant::now() < deadline, "the host did not exit");
-        std::thread::sleep(Duration::from_millis(20));
-    };
+    let status = wait_for_exit(&mut child, Duration::from_secs(30));
     (status.code().unwrap_or(-1), log.join().unwrap())
 }
 

@@ -1,9 +1,6 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The runtime with real guests from guest-components/rust, driven with
 //! controlled time: `Graph::step(now)` is called with chosen instants, so
 //! rates and routing are checked exactly, without sleeping.
-
-mod support;
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -13,12 +10,9 @@ use subsume::contract::{Param, Value};
 use subsume::runtime::{CallError, Component, ComponentState, Graph, Outbox};
 use subsume::sandbox::{GuestLimits, Sandbox};
 
-const MS: u64 = 1_000_000;
+use crate::support::{self, sandbox};
 
-fn sandbox() -> Sandbox {
-    support::guest_dir();
-    Sandbox::new(Some(support::cache_dir())).unwrap()
-}
+const MS: u64 = 1_000_000;
 
 /// Instantiates guest `name` with `params` over its declared defaults.
 fn guest(

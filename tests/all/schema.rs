@@ -1,13 +1,12 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The XSD schema in config/ agrees with the host: the example robot files
 //! and every case the host accepts validate against it, and files with
 //! structural errors the schema can see are rejected by it too.
 //! Needs `xmllint` (Debian package libxml2-utils; .ci/run installs it).
 
-mod support;
-
 use std::path::PathBuf;
 use std::process::Command;
+
+use crate::support;
 
 fn xmllint(files: &[PathBuf]) -> (bool, String) {
     let root = support::repo_root();

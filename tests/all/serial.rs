@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The serial link over real pseudo-terminals. The link's control-loop side
 //! is driven with controlled time (`tick(now)`); its I/O thread and the PTY
 //! are real, so the tests wait (bounded) for bytes to cross.
@@ -15,13 +14,17 @@ use subsume::robot::serial::{LinkError, LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, LinkPlan, ProfileTranslator, TranslateError, Translator};
 use subsume::runtime::{Component, StopOutcome};
 
+use crate::support;
+
 const MS: u64 = 1_000_000;
 const WAIT: Duration = Duration::from_secs(5);
 
-fn pty() -> (TTYPort, TTYPort, PathBuf) {
-    let (mut master, slave) = TTYPort::pair().unwrap();
+/// A pseudo-terminal ([`support::pty`], so no child process another test
+/// spawns holds it open): the master, with reads that wait 20 ms; the
+/// slave; its path.
+fn pty() -> (TTYPort, std::fs::File, PathBuf) {
+    let (mut master, slave, path) = support::pty();
     master.set_timeout(Duration::from_millis(20)).unwrap();
-    let path = PathBuf::from(slave.name().unwrap());
     (master, slave, path)
 }
 

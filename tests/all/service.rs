@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The host as a service on a network, from outside: the real binary with a
 //! certificate from a test CA made here with the openssl CLI. The portal,
 //! its login cookie (Secure), `/metrics`, the line protocol and the
@@ -8,15 +7,14 @@
 //! `prometheus_client` package's OpenMetrics parser and counts what
 //! happened; the systemd unit passes `systemd-analyze verify`.
 
-mod support;
-
-use std::io::{BufRead, BufReader, Write};
+use std::io::Write;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Output, Stdio};
-use std::sync::mpsc;
+use std::process::{Command, Output, Stdio};
 use std::time::Duration;
 
 use serde_json::Value;
+
+use crate::support::{self, HostProcess};
 
 const PASSWORD: &str = "service-test-password";
 /// The demo robot's operator (config/demo-operators).
@@ -46,87 +44,38 @@ fn make_pki() -> Pki {
     }
 }
 
+/// A running host; [`Host::address`] is what it said after a marker, as
+/// `portal on https://` or `teleoperation on tls `.
 struct Host {
-    child: Child,
-    /// Addresses the host logged, by what it said before them.
-    found: Vec<(String, String)>,
-}
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+    process: HostProcess,
 }
 
 impl Host {
     fn address(&self, marker: &str) -> String {
-        self.found.iter().find(|(m, _)| m == marker).map(|(_, a)| a.clone()).unwrap_or_default()
+        self.process.address_after(marker, Duration::from_secs(60))
     }
 }
 
-const MARKERS: [&str; 6] = [
-    "portal on https://",
-    "portal on http://",
-    "teleoperation on tls ",
-    "teleoperation on tcp ",
-    "teleoperation websocket on wss://",
-    "teleoperation websocket on ws://",
-];
-
+/// `subsume --store STORE`.
 fn subsume(store: &Path) -> Command {
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command
-        .current_dir(support::repo_root())
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap()])
-        .env_remove("SUBSUME_HTTP")
-        .env("NO_COLOR", "1");
+    let mut command = support::subsume();
+    command.arg("--store").arg(store);
     command
 }
 
 fn add_admin(store: &Path) {
-    let mut child = subsume(store)
-        .args(["user", "add", "admin", "--role", "admin", "--password-stdin"])
-        .stdin(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    child.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
-    assert!(child.wait().unwrap().success());
+    support::add_user(store, "admin", "admin", &[], PASSWORD);
 }
 
 /// `subsume run config/demo.xml ARGS` on free ports; returns once it logged
 /// every address in `wait_for`.
 fn start(store: &Path, args: &[&str], wait_for: &[&str]) -> Host {
-    support::guest_dir();
-    let mut child = subsume(store)
-        .args(["run", "config/demo.xml", "--param", "teleop.listen=127.0.0.1:0"])
-        .args(["--param", "teleop.websocket=127.0.0.1:0"])
-        .args(args)
-        .stderr(Stdio::piped())
-        .stdout(Stdio::null())
-        .spawn()
-        .unwrap();
-    let stderr = child.stderr.take().unwrap();
-    let (tx, rx) = mpsc::channel();
-    std::thread::spawn(move || {
-        for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-            for marker in MARKERS {
-                if let Some(at) = line.find(marker) {
-                    let rest = &line[at + marker.len()..];
-                    let address = rest.split(|c: char| c.is_whitespace() || c == '/').next().unwrap_or("");
-                    let _ = tx.send((marker.to_string(), address.to_string()));
-                }
-            }
-            if line.contains("ERROR") || line.contains("error:") {
-                eprintln!("host: {line}");
-            }
-        }
-    });
-    let mut host = Host { child, found: Vec::new() };
-    while !wait_for.iter().all(|w| host.found.iter().any(|(m, _)| m == w)) {
-        let found = rx.recv_timeout(Duration::from_secs(60)).expect("the host did not listen");
-        host.found.push(found);
+    let mut command = subsume(store);
+    command.args(["run", "config/demo.xml", "--param", "teleop.listen=127.0.0.1:0"]);
+    command.args(["--param", "teleop.websocket=127.0.0.1:0"]).args(args);
+    let host = Host { process: HostProcess::spawn(command) };
+    for marker in wait_for {
+        host.address(marker);
     }
     host
 }
@@ -302,48 +251,17 @@ fn the_keyboard_client_speaks_tls() {
     // is measured, gets direct mode, and quits on q.
     let client = format!(
         "{} teleop {address} --name {} --token {} --tls-ca {}",
-        env!("CARGO_BIN_EXE_subsume"),
+        support::BIN,
         OPERATOR.0,
         OPERATOR.1,
         pki.ca.display()
     );
-    let mut terminal = Command::new("script")
-        .args(["-qfec", &client, "/dev/null"])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("script (from bsdutils) runs the client in a pseudo-terminal");
-    let mut keys = terminal.stdin.take().unwrap();
-    let mut screen_out = terminal.stdout.take().unwrap();
-    let (screen_tx, screen) = mpsc::channel::<String>();
-    std::thread::spawn(move || {
-        use std::io::Read as _;
-        let mut buffer = [0u8; 4096];
-        while let Ok(n) = screen_out.read(&mut buffer) {
-            if n == 0 || screen_tx.send(String::from_utf8_lossy(&buffer[..n]).into_owned()).is_err() {
-                break;
-            }
-        }
-    });
-    let mut seen = String::new();
+    let mut terminal = support::Terminal::start(&client);
     for text in ["mode direct", "rtt "] {
-        let deadline = std::time::Instant::now() + Duration::from_secs(20);
-        while !seen.contains(text) {
-            assert!(std::time::Instant::now() < deadline, "the client never showed {text:?}: {seen:?}");
-            if let Ok(chunk) = screen.recv_timeout(Duration::from_millis(100)) {
-                seen.push_str(&chunk);
-            }
-        }
+        terminal.wait_for(text);
     }
-    keys.write_all(b"q").unwrap();
-    keys.flush().unwrap();
-    let deadline = std::time::Instant::now() + Duration::from_secs(10);
-    while terminal.try_wait().unwrap().is_none() {
-        assert!(std::time::Instant::now() < deadline, "the client did not quit");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    assert!(terminal.wait().unwrap().success());
+    terminal.press(b"q");
+    assert!(terminal.wait_for_quit().success());
 }
 
 #[test]
@@ -483,7 +401,7 @@ fn the_systemd_unit_installs_verifies_and_is_hardened() {
         .args(["--dry-run", "--simulator", "--device", "/dev/ttyACM0", "--root"])
         .arg(dir.path())
         .arg("--binary")
-        .arg(env!("CARGO_BIN_EXE_subsume"))
+        .arg(support::BIN)
         .output()
         .unwrap();
     let stdout = String::from_utf8_lossy(&output.stdout);
@@ -516,7 +434,7 @@ fn the_systemd_unit_installs_verifies_and_is_hardened() {
     // systemd-analyze verify checks the unit's syntax, every setting's
     // value and that ExecStart's binary exists: point it at the one built.
     let checked = dir.path().join("subsume.service");
-    std::fs::write(&checked, unit.replace("/usr/local/bin/subsume", env!("CARGO_BIN_EXE_subsume"))).unwrap();
+    std::fs::write(&checked, unit.replace("/usr/local/bin/subsume", support::BIN)).unwrap();
     let verify = Command::new("systemd-analyze").args(["verify", "--man=no"]).arg(&checked).output().unwrap();
     let said = format!("{}{}", String::from_utf8_lossy(&verify.stdout), String::from_utf8_lossy(&verify.stderr));
     assert!(verify.status.success() && said.trim().is_empty(), "systemd-analyze verify: {said}");
@@ -569,9 +487,8 @@ fn nice(task: &Path) -> i64 {
 /// are compiled) run at the background nice value; the loop's at 0.
 #[test]
 fn the_control_thread_takes_its_real_time_settings_and_no_other_thread_does() {
-    support::guest_dir();
-    let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-    command.current_dir(support::repo_root()).env("RUST_LOG", "info").env("NO_COLOR", "1").arg("--no-cache");
+    let mut command = support::subsume();
+    command.arg("--no-cache");
     command.args([
         "run",
         "config/demo.xml",

@@ -1,18 +1,13 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Simulated time, end to end: the built `subsume` binary runs the demo on
 //! a simulated clock (`--speed N`, `--speed max`), faster than real time and
 //! with the same result for the same inputs.
 
-mod support;
-
 use std::path::Path;
-use std::process::Command;
 use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
 
-/// The demo listens for operators on fixed ports; move them to free ones.
-const FREE_PORTS: [&str; 4] = ["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=127.0.0.1:0"];
+use crate::support::{FREE_TELEOP_PORTS, read_report, subsume};
 
 /// Runs the demo on simulated time; returns the report and the wall time.
 fn run_demo(dir: &Path, label: &str, speed: &str, seconds: &str) -> (Json, Duration) {
@@ -20,17 +15,12 @@ fn run_demo(dir: &Path, label: &str, speed: &str, seconds: &str) -> (Json, Durat
 }
 
 fn run_robot(dir: &Path, robot: &str, label: &str, speed: &str, seconds: &str) -> (Json, Duration) {
-    support::guest_dir();
     let report = dir.join(format!("{label}.json"));
     let started = Instant::now();
-    let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .env("NO_COLOR", "1")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap()])
+    let output = subsume()
         .args(["run", robot, "--speed", speed, "--duration", seconds])
         .args(["--report", report.to_str().unwrap()])
-        .args(FREE_PORTS)
+        .args(FREE_TELEOP_PORTS)
         .output()
         .unwrap();
     let wall = started.elapsed();
@@ -38,7 +28,7 @@ fn run_robot(dir: &Path, robot: &str, label: &str, speed: &str, seconds: &str) -
     assert!(output.status.success(), "{log}");
     assert!(log.contains("simulated time:"), "{log}");
     assert!(!log.contains("no longer deterministic"), "a lock-step wait ran out:\n{log}");
-    (serde_json::from_slice(&std::fs::read(&report).unwrap()).unwrap(), wall)
+    (read_report(&report), wall)
 }
 
 /// What must not differ between two runs with the same inputs: the
@@ -91,12 +81,7 @@ fn the_demo_as_a_create2_is_repeatable_in_lockstep_too() {
 #[test]
 fn a_bad_speed_is_refused_and_nothing_runs() {
     for bad in ["0", "fast", "1e9"] {
-        let output = Command::new(env!("CARGO_BIN_EXE_subsume"))
-            .current_dir(support::repo_root())
-            .env("SUBSUME_HTTP", "off")
-            .args(["run", "config/demo.xml", "--speed", bad, "--duration", "1"])
-            .output()
-            .unwrap();
+        let output = subsume().args(["run", "config/demo.xml", "--speed", bad, "--duration", "1"]).output().unwrap();
         let stderr = String::from_utf8_lossy(&output.stderr);
         assert!(!output.status.success());
         assert!(

@@ -1,11 +1,8 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The stall watchdog: native components that block the control loop (they
 //! sleep in a call) in a graph with a real serial link on a pseudo-terminal,
 //! run by the real control loop. The watchdog must put STOP on the wire
 //! while the loop is still stuck, fault the component with the call named,
 //! and leave the others running.
-
-mod support;
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
@@ -19,7 +16,8 @@ use subsume::robot::translator::{DriveGeometry, ProfileTranslator};
 use subsume::runtime::control_loop::{self, Clock, CycleHook, NoHook, Shutdown};
 use subsume::runtime::stall::Stall;
 use subsume::runtime::{CallError, Component, ComponentState, Graph, Heartbeat, Outbox, Policy, StallWatchdog};
-use support::MotorRecorder;
+
+use crate::support::MotorRecorder;
 
 const LIMIT: Duration = Duration::from_millis(100);
 const MS: u64 = 1_000_000;

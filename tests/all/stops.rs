@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! The motors stop on every exit the host controls: the built binary drives
 //! a pseudo-terminal playing the motor controller, a source keeps the robot
 //! moving, and the run ends in each way it can (SIGINT, SIGTERM, the end of
@@ -13,16 +12,12 @@
 //! `SUBSUME_FAULT_INJECTION` setting; the fatal error is a real one (the
 //! portal's address is taken).
 
-mod support;
-
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{TcpListener, TcpStream};
+use std::net::TcpListener;
 use std::path::Path;
-use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::{Arc, Mutex};
+use std::process::ExitStatus;
 use std::time::{Duration, Instant};
 
-use support::MotorRecorder;
+use crate::support::{self, HostProcess, MotorRecorder, PASS_ENVELOPE, http, subsume};
 
 /// Longest a test waits for the host to start moving or to exit.
 const WAIT: Duration = Duration::from_secs(60);
@@ -111,10 +106,7 @@ fn robot(device: &str, wire: Wire, command: &str, refresh: &str) -> String {
       <param name="refresh" value="{refresh}"/>
     </component>
     <connect from="driver.cmd" to="arbiter.commands"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>
   </platform>
@@ -133,55 +125,24 @@ fn robot_dir(device: &str, wire: Wire) -> tempfile::TempDir {
     dir
 }
 
-/// A running host, its log (stderr, collected on a thread) and the far end
-/// of its motor PTY.
+/// A running host (its log collected on a thread) and the far end of its
+/// motor PTY.
 struct Host {
-    child: Child,
-    log: Arc<Mutex<String>>,
+    process: HostProcess,
     motors: MotorRecorder,
     wire: Wire,
-}
-
-impl Drop for Host {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
 }
 
 impl Host {
     /// Starts `subsume run` on the robot in `dir` with `args` and `env`.
     fn start(dir: &Path, motors: MotorRecorder, wire: Wire, args: &[&str], env: &[(&str, &str)]) -> Host {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-        command
-            .current_dir(support::repo_root())
-            .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run"])
-            .arg(dir.join("robot.xml"))
-            .args(args)
-            .env("SUBSUME_HTTP", "off")
-            .env("RUST_LOG", "info")
-            .env("NO_COLOR", "1")
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped());
-        for (name, value) in env {
-            command.env(name, value);
-        }
-        let mut child = command.spawn().unwrap();
-        let stderr = child.stderr.take().unwrap();
-        let log = Arc::new(Mutex::new(String::new()));
-        let sink = log.clone();
-        std::thread::spawn(move || {
-            for line in BufReader::new(stderr).lines().map_while(Result::ok) {
-                let mut log = sink.lock().unwrap();
-                log.push_str(&line);
-                log.push('\n');
-            }
-        });
-        Host { child, log, motors, wire }
+        let mut command = subsume();
+        command.arg("run").arg(dir.join("robot.xml")).args(args).envs(env.iter().copied());
+        Host { process: HostProcess::spawn(command), motors, wire }
     }
 
     fn log(&self) -> String {
-        self.log.lock().unwrap().clone()
+        self.process.log()
     }
 
     /// Reads the PTY until the motors are being driven.
@@ -190,7 +151,12 @@ impl Host {
         let moving = self.wire.moving();
         while !contains(&self.motors.bytes, &moving) {
             assert!(Instant::now() < deadline, "{:?}: the motors never moved; log:\n{}", self.wire, self.log());
-            assert!(self.child.try_wait().unwrap().is_none(), "{:?}: the host exited; log:\n{}", self.wire, self.log());
+            assert!(
+                self.process.child.try_wait().unwrap().is_none(),
+                "{:?}: the host exited; log:\n{}",
+                self.wire,
+                self.log()
+            );
             self.motors.read();
         }
     }
@@ -201,7 +167,7 @@ impl Host {
         let mut exited = false;
         while !self.log().contains(text) {
             assert!(Instant::now() < deadline, "{:?}: no '{text}' in the log:\n{}", self.wire, self.log());
-            if !exited && self.child.try_wait().unwrap().is_some() {
+            if !exited && self.process.child.try_wait().unwrap().is_some() {
                 // Give the log thread a moment to read the rest.
                 exited = true;
                 deadline = deadline.min(Instant::now() + Duration::from_secs(2));
@@ -211,15 +177,14 @@ impl Host {
     }
 
     fn signal(&self, signal: &str) {
-        let sent = Command::new("kill").arg(format!("-{signal}")).arg(self.child.id().to_string()).status().unwrap();
-        assert!(sent.success());
+        support::signal(self.process.child.id(), signal);
     }
 
     /// Reads the PTY until the host exits, then what is left.
     fn wait_for_exit(&mut self) -> ExitStatus {
         let deadline = Instant::now() + WAIT;
         loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
+            if let Some(status) = self.process.child.try_wait().unwrap() {
                 self.motors.read();
                 return status;
             }
@@ -351,49 +316,15 @@ fn a_fatal_error_after_the_link_started_sends_stop() {
 
 const PASSWORD: &str = "stops-test-password";
 
-/// One HTTP/1.1 request; returns (status, body).
-fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, String) {
-    let mut stream = TcpStream::connect(address).unwrap();
-    stream.set_read_timeout(Some(WAIT)).unwrap();
-    let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n",
-        body.len()
-    );
-    stream.write_all(head.as_bytes()).unwrap();
-    stream.write_all(body).unwrap();
-    let mut response = Vec::new();
-    let _ = stream.read_to_end(&mut response);
-    let text = String::from_utf8_lossy(&response).into_owned();
-    let status = text.split(' ').nth(1).and_then(|s| s.parse().ok()).unwrap_or(0);
-    (status, text.split("\r\n\r\n").nth(1).unwrap_or("").to_string())
-}
-
-fn json(body: &str) -> serde_json::Value {
-    serde_json::from_str(body).unwrap_or(serde_json::Value::Null)
-}
-
 /// Starts the host with the portal on the robot in `dir`, adds an admin and
 /// logs in; returns the host, the portal's address and a session token.
 fn start_with_portal(dir: &Path, store: &Path, motors: MotorRecorder, wire: Wire) -> (Host, String, String) {
-    let mut add = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .args(["user", "add", "admin", "--role", "admin", "--password-stdin", "--store"])
-        .arg(store)
-        .stdin(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .unwrap();
-    add.stdin.take().unwrap().write_all(format!("{PASSWORD}\n").as_bytes()).unwrap();
-    assert!(add.wait().unwrap().success());
+    support::add_user(store, "admin", "admin", &[], PASSWORD);
     let args = ["--http", "127.0.0.1:0", "--store", store.to_str().unwrap()];
     let mut host = Host::start(dir, motors, wire, &args, &[]);
     host.wait_for_log("portal on http://");
-    let log = host.log();
-    let address = log.split("portal on http://").nth(1).unwrap().split('/').next().unwrap().to_string();
-    let login = serde_json::json!({ "name": "admin", "password": PASSWORD }).to_string();
-    let (status, body) = http(&address, "POST", "/api/v1/login", None, login.as_bytes());
-    assert_eq!(status, 200, "{body}");
-    let token = json(&body)["token"].as_str().unwrap().to_string();
+    let address = host.process.portal_address();
+    let token = support::login(&address, "admin", PASSWORD);
     (host, address, token)
 }
 
@@ -403,7 +334,7 @@ fn activate(address: &str, token: &str, file: &str, robot: &str) {
     let path = format!("/api/v1/platforms/control/configs/{file}");
     let (status, body) = http(address, "PUT", &path, Some(token), robot.as_bytes());
     assert_eq!(status, 201, "{body}");
-    let id = json(&body)["set"]["id"].as_u64().unwrap_or_else(|| panic!("no set id in {body}"));
+    let id = body["set"]["id"].as_u64().unwrap_or_else(|| panic!("no set id in {body}"));
     let (status, body) = http(address, "POST", &format!("/api/v1/sets/{id}/activate"), Some(token), b"");
     assert_eq!(status, 200, "{body}");
 }

@@ -1,17 +1,13 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Teleoperation end to end: the built binary with a `builtin:teleop`,
 //! operators over real loopback TCP and WebSocket connections.
 
-mod support;
-
-use std::io::{BufRead, BufReader, Read, Write};
+use std::io::Read;
 use std::net::TcpStream;
-use std::path::Path;
-use std::process::{Child, Command, Stdio};
-use std::sync::mpsc;
 use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
+
+use crate::support::{self, Operator, PASS_ENVELOPE, read_report, subsume, wait_for_exit, with_guests};
 
 const TOKEN: &str = "alice-token-0123456789";
 const BOB_TOKEN: &str = "bob-token-0123456789";
@@ -32,7 +28,7 @@ fn start(teleop_params: &str, components: &str, duration_s: u32) -> Host {
     let dir = tempfile::tempdir().unwrap();
     std::fs::write(dir.path().join("operators"), format!("# test operators\nalice {TOKEN}\nbob {BOB_TOKEN}\n"))
         .unwrap();
-    let mut xml = format!(
+    let xml = format!(
         r#"<robot name="net">
   <platform name="network">
     <component name="teleop" source="builtin:teleop" rate="100" timeout="300ms">
@@ -46,14 +42,11 @@ fn start(teleop_params: &str, components: &str, duration_s: u32) -> Host {
   </platform>
 </robot>"#
     );
-    for name in ["test-commander", "avoider", "planner", "range-filter"] {
-        xml = xml.replace(&format!("GUEST({name})"), &support::guest(name).display().to_string());
-    }
     let robot = dir.path().join("robot.xml");
-    std::fs::write(&robot, xml).unwrap();
+    std::fs::write(&robot, with_guests(&xml)).unwrap();
     let report = dir.path().join("report.json");
-    let mut command = support::subsume();
-    command.env("SUBSUME_HTTP", "off").args(["run", robot.to_str().unwrap()]);
+    let mut command = subsume();
+    command.args(["run", robot.to_str().unwrap()]);
     command.args(["--duration", &duration_s.to_string(), "--report", report.to_str().unwrap()]);
     let process = support::HostProcess::spawn(command);
     let address = process.word_after("teleoperation on tcp ", Duration::from_secs(30));
@@ -64,113 +57,12 @@ fn start(teleop_params: &str, components: &str, duration_s: u32) -> Host {
     Host { process, address, websocket, _dir: dir, report }
 }
 
-/// An operator on a TCP connection, answering pings after `pong_delay`.
-struct Operator {
-    reader: BufReader<TcpStream>,
-    writer: TcpStream,
-    pong_delay: Duration,
-    started: Instant,
-    seq: u64,
-    /// The CONTROL notices received so far (they come when the arbiter's
-    /// verdict changes, between the replies).
-    controls: Vec<String>,
-}
-
-impl Operator {
-    fn connect(host: &Host) -> Operator {
-        let (operator, hello) = Operator::connect_to(&host.address);
-        assert!(hello.starts_with("HELLO subsume ") && hello.ends_with(" robot=net"), "{hello}");
-        operator
-    }
-
-    /// Connects to the platform at `address`: returns the operator and the
-    /// HELLO line.
-    fn connect_to(address: &str) -> (Operator, String) {
-        let stream = TcpStream::connect(address).unwrap();
-        stream.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
-        let mut operator = Operator {
-            reader: BufReader::new(stream.try_clone().unwrap()),
-            writer: stream,
-            pong_delay: Duration::ZERO,
-            started: Instant::now(),
-            seq: 0,
-            controls: Vec::new(),
-        };
-        let hello = operator.line();
-        (operator, hello)
-    }
-
-    fn send(&mut self, line: &str) {
-        self.writer.write_all(format!("{line}\n").as_bytes()).unwrap();
-    }
-
-    /// The next line, whatever it is.
-    fn line(&mut self) -> String {
-        let mut line = String::new();
-        let n = self.reader.read_line(&mut line).unwrap_or(0);
-        assert!(n > 0, "the host closed the connection");
-        line.trim_end().to_string()
-    }
-
-    /// The next line that is neither a PING (answered on the way) nor a
-    /// CONTROL notice (kept in `controls`).
-    fn reply(&mut self) -> String {
-        loop {
-            let line = self.not_ping();
-            if line.starts_with("CONTROL ") {
-                self.controls.push(line);
-            } else {
-                return line;
-            }
-        }
-    }
-
-    /// The next line that is not a PING (answered on the way).
-    fn not_ping(&mut self) -> String {
-        loop {
-            let line = self.line();
-            match line.strip_prefix("PING ") {
-                Some(nonce) => {
-                    std::thread::sleep(self.pong_delay);
-                    let nonce = nonce.to_string();
-                    self.send(&format!("PONG {nonce}"));
-                }
-                None => return line,
-            }
-        }
-    }
-
-    /// Reads (answering PINGs) until a CONTROL notice starting with
-    /// `prefix` has arrived; returns it.
-    fn await_control(&mut self, prefix: &str) -> String {
-        loop {
-            if let Some(found) = self.controls.iter().find(|c| c.starts_with(prefix)) {
-                return found.clone();
-            }
-            let line = self.not_ping();
-            if line.starts_with("CONTROL ") {
-                self.controls.push(line);
-            } else {
-                assert!(line.starts_with("DROP") || line.starts_with("RTT") || line.starts_with("MODE"), "{line}");
-            }
-        }
-    }
-
-    /// Logs in and waits for the first measurement; returns the RTT line.
-    fn login(&mut self, name: &str, token: &str) -> String {
-        self.send(&format!("AUTH {name} {token}"));
-        assert_eq!(self.reply(), format!("OK authenticated as {name}; measuring the round-trip time"));
-        let rtt = self.reply();
-        assert!(rtt.starts_with("RTT "), "{rtt}");
-        rtt
-    }
-
-    fn command(&mut self, command: &str) {
-        self.seq += 1;
-        let ms = self.started.elapsed().as_millis();
-        let line = format!("CMD {} {ms} {command}", self.seq);
-        self.send(&line);
-    }
+/// An operator connected to `host`'s teleoperation port (greeted as the
+/// robot `net`).
+fn connect(host: &Host) -> Operator {
+    let (operator, hello) = Operator::connect_to(&host.address);
+    assert!(hello.starts_with("HELLO subsume ") && hello.ends_with(" robot=net"), "{hello}");
+    operator
 }
 
 fn allowed(rtt_line: &str) -> &str {
@@ -185,7 +77,7 @@ const SINK: &str = r#"<component name="arbiter" source="builtin:arbiter" rate="5
 #[test]
 fn every_line_gets_an_answer_and_the_connection_stays_usable() {
     let host = start("", SINK, 30);
-    let mut alice = Operator::connect(&host);
+    let mut alice = connect(&host);
     #[rustfmt::skip]
     let before_login = [
         ("CMD 1 0 STOP", "ERR authenticate first: AUTH <name> <token>"),
@@ -230,7 +122,7 @@ fn every_line_gets_an_answer_and_the_connection_stays_usable() {
     assert_eq!(alice.reply(), "DROP 4 duplicate or out of order");
 
     // A second operator can log in and watch, but not take control.
-    let mut bob = Operator::connect(&host);
+    let mut bob = connect(&host);
     bob.login("bob", BOB_TOKEN);
     bob.send("MODE shared");
     assert_eq!(bob.reply(), "ERR control is held by alice");
@@ -254,7 +146,7 @@ fn every_line_gets_an_answer_and_the_connection_stays_usable() {
 #[test]
 fn three_failed_logins_close_the_connection() {
     let host = start("", SINK, 30);
-    let mut mallory = Operator::connect(&host);
+    let mut mallory = connect(&host);
     for _ in 0..2 {
         mallory.send("AUTH alice guess-guess-guess");
         assert_eq!(mallory.reply(), "ERR authentication failed");
@@ -269,7 +161,7 @@ fn three_failed_logins_close_the_connection() {
 #[test]
 fn the_link_quality_decides_the_modes_and_a_worse_link_downgrades_the_operator() {
     let host = start(r#"<param name="probe-period" value="0.5"/>"#, SINK, 60);
-    let mut alice = Operator::connect(&host);
+    let mut alice = connect(&host);
     alice.pong_delay = Duration::from_millis(50);
     let rtt = alice.login("alice", TOKEN);
     assert_eq!(allowed(&rtt), "direct,shared,supervisory", "{rtt}");
@@ -300,18 +192,6 @@ fn the_link_quality_decides_the_modes_and_a_worse_link_downgrades_the_operator()
     assert_eq!(alice.reply(), "OK bye");
 }
 
-fn read_report(path: &Path) -> Json {
-    serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
-}
-
-fn wait_for_exit(child: &mut Child, limit: Duration) {
-    let deadline = Instant::now() + limit;
-    while child.try_wait().unwrap().is_none() {
-        assert!(Instant::now() < deadline, "the host did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 #[test]
 fn an_operator_drives_the_simulated_robot_over_tcp() {
     let world = support::repo_root().join("config/worlds/demo.world");
@@ -320,16 +200,13 @@ fn an_operator_drives_the_simulated_robot_over_tcp() {
     <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>"#,
         world.display()
     );
     let mut host = start("", &components, 6);
-    let mut alice = Operator::connect(&host);
+    let mut alice = connect(&host);
     alice.login("alice", TOKEN);
     alice.send("MODE direct");
     assert!(alice.reply().starts_with("MODE direct granted"));
@@ -426,15 +303,12 @@ fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
         r#"<component name="motors" source="builtin:serial" rate="100"><param name="device" value="{device}"/></component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
     <connect from="teleop.cmd" to="arbiter.commands"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>"#
     );
     let host = start("", &components, 30);
-    let mut alice = Operator::connect(&host);
+    let mut alice = connect(&host);
     alice.login("alice", TOKEN);
     alice.send("MODE direct");
     assert!(alice.reply().starts_with("MODE direct granted"));
@@ -499,54 +373,18 @@ fn the_keyboard_client_drives_from_a_real_terminal() {
     let mut host = start("", SINK, 8);
     // `script` gives the client a real pseudo-terminal; what we write to its
     // stdin arrives as key presses.
-    let client = format!("{} teleop {} --name alice --token {TOKEN}", env!("CARGO_BIN_EXE_subsume"), host.address);
-    let mut terminal = Command::new("script")
-        .args(["-qfec", &client, "/dev/null"])
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("script (from bsdutils) runs the client in a pseudo-terminal");
-    let mut keys = terminal.stdin.take().unwrap();
-    let mut screen_out = terminal.stdout.take().unwrap();
-    let (screen_tx, screen) = mpsc::channel::<String>();
-    std::thread::spawn(move || {
-        let mut buffer = [0u8; 4096];
-        while let Ok(n) = screen_out.read(&mut buffer) {
-            if n == 0 || screen_tx.send(String::from_utf8_lossy(&buffer[..n]).into_owned()).is_err() {
-                break;
-            }
-        }
-    });
-    let mut seen = String::new();
-    let mut wait_for = |text: &str| {
-        let deadline = Instant::now() + Duration::from_secs(20);
-        while !seen.contains(text) {
-            assert!(Instant::now() < deadline, "the client never showed {text:?}: {seen:?}");
-            if let Ok(chunk) = screen.recv_timeout(Duration::from_millis(100)) {
-                seen.push_str(&chunk);
-            }
-        }
-    };
+    let client = format!("{} teleop {} --name alice --token {TOKEN}", support::BIN, host.address);
+    let mut terminal = support::Terminal::start(&client);
     // The client logs in, is measured and asks for the best mode.
-    wait_for("mode direct");
-    wait_for("rtt ");
-    for _ in 0..4 {
-        keys.write_all(b"\x1b[A").unwrap(); // arrow up: faster
-    }
-    keys.flush().unwrap();
-    wait_for("vel +0.20");
+    terminal.wait_for("mode direct");
+    terminal.wait_for("rtt ");
+    terminal.press(&b"\x1b[A".repeat(4)); // arrow up, 4 times: faster
+    terminal.wait_for("vel +0.20");
     std::thread::sleep(Duration::from_millis(1500));
-    keys.write_all(b" ").unwrap(); // space: stop
-    keys.flush().unwrap();
-    wait_for("vel +0.00");
-    keys.write_all(b"q").unwrap();
-    keys.flush().unwrap();
-    let deadline = Instant::now() + Duration::from_secs(10);
-    while terminal.try_wait().unwrap().is_none() {
-        assert!(Instant::now() < deadline, "the client did not quit");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    terminal.press(b" "); // space: stop
+    terminal.wait_for("vel +0.00");
+    terminal.press(b"q");
+    terminal.wait_for_quit();
     wait_for_exit(&mut host.process.child, Duration::from_secs(20));
     let report = read_report(&host.report);
     let session = &report["network"]["sessions"][0];
@@ -574,8 +412,8 @@ fn the_readme_drive_works_on_the_demo_and_the_operator_is_told_who_holds_control
     support::guest_dir();
     let dir = tempfile::tempdir().unwrap();
     let report = dir.path().join("report.json");
-    let mut command = support::subsume();
-    command.env("SUBSUME_HTTP", "off").args(["run", "config/demo.xml"]);
+    let mut command = subsume();
+    command.args(["run", "config/demo.xml"]);
     command.args(["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket="]);
     command.args(["--duration", "20", "--report", report.to_str().unwrap()]);
     let mut host = support::HostProcess::spawn(command);

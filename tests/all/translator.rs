@@ -1,15 +1,11 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! WASM translators (the `translator` world): the guest in
 //! guest-components/rust/translator-ascii speaks the same ASCII protocol as
 //! the built-in profile, byte for byte, and can drive a serial link.
 
-mod support;
-
 use std::io::Read;
-use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
-use serialport::{SerialPort, TTYPort};
+use serialport::SerialPort;
 use subsume::contract::{Param, Value};
 use subsume::robot::control::ControlCommand;
 use subsume::robot::protocol::{Feedback, Profile};
@@ -18,12 +14,9 @@ use subsume::robot::translator::{DriveGeometry, ProfileTranslator, TranslateErro
 use subsume::runtime::Component;
 use subsume::sandbox::{GuestLimits, Sandbox, WasmTranslator};
 
-const GEOMETRY: DriveGeometry = DriveGeometry { wheel_base: 0.3, max_wheel_speed: 0.5 };
+use crate::support::{self, sandbox};
 
-fn sandbox() -> Sandbox {
-    support::guest_dir();
-    Sandbox::new(Some(support::cache_dir())).unwrap()
-}
+const GEOMETRY: DriveGeometry = DriveGeometry { wheel_base: 0.3, max_wheel_speed: 0.5 };
 
 fn wasm_translator(sandbox: &Sandbox) -> WasmTranslator {
     let bytes = std::fs::read(support::guest("translator-ascii")).unwrap();
@@ -96,10 +89,10 @@ fn a_component_of_another_world_is_not_a_translator() {
 #[test]
 fn a_serial_link_drives_the_pty_through_the_wasm_translator() {
     let sandbox = sandbox();
-    let (mut master, slave) = TTYPort::pair().unwrap();
+    let (mut master, _slave, device) = support::pty();
     master.set_timeout(Duration::from_millis(20)).unwrap();
     let settings = LinkSettings {
-        device: PathBuf::from(slave.name().unwrap()),
+        device,
         baud: 115_200,
         min_interval_ns: 1,
         watchdog_ns: 10_000_000_000,

@@ -1,4 +1,3 @@
-#![allow(clippy::unwrap_used, clippy::expect_used, clippy::panic)]
 //! Cooperating hosts end to end: two `subsume run` processes on loopback,
 //! joined by Zenoh (docs/distributed.md). Host A owns the motors (a
 //! pseudo-terminal this test plays), publishes its ranges and takes host
@@ -7,14 +6,14 @@
 //! avoider on A's ranges. Killing B must hand the motors back to the
 //! planner within B's timeout.
 
-mod support;
-
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::Value as Json;
+
+use crate::support::{self, PASS_ENVELOPE, free_port, read_report, subsume, wait_for_exit};
 
 struct Host {
     child: Child,
@@ -29,25 +28,12 @@ impl Drop for Host {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port()
-}
-
 fn start(name: &str, body: &str) -> Host {
     let dir = tempfile::tempdir().unwrap();
-    let mut xml = format!("<robot name=\"{name}\">\n{body}\n</robot>\n");
-    for guest in ["avoider", "range-filter"] {
-        xml = xml.replace(&format!("GUEST({guest})"), &support::guest(guest).display().to_string());
-    }
-    let robot = dir.path().join("robot.xml");
-    std::fs::write(&robot, xml).unwrap();
+    let robot = support::robot_file(dir.path(), &format!("<robot name=\"{name}\">\n{body}\n</robot>\n"));
     let report = dir.path().join("report.json");
-    let mut child = Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
+    let mut child = subsume()
+        .args(["run", robot.to_str().unwrap()])
         .args(["--duration", "60", "--report", report.to_str().unwrap()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
@@ -71,23 +57,9 @@ fn start(name: &str, body: &str) -> Host {
 }
 
 fn stop(mut host: Host) -> Json {
-    let pid = host.child.id() as i32;
-    unsafe_kill(pid, 15);
-    let deadline = Instant::now() + Duration::from_secs(20);
-    while host.child.try_wait().unwrap().is_none() {
-        assert!(Instant::now() < deadline, "host did not stop");
-        std::thread::sleep(Duration::from_millis(20));
-    }
+    support::signal(host.child.id(), "TERM");
+    wait_for_exit(&mut host.child, Duration::from_secs(20));
     read_report(&host.report)
-}
-
-fn unsafe_kill(pid: i32, signal: i32) {
-    let status = Command::new("kill").arg(format!("-{signal}")).arg(pid.to_string()).status().unwrap();
-    assert!(status.success());
-}
-
-fn read_report(path: &Path) -> Json {
-    serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
 }
 
 /// The report section of the bridge on `key`.
@@ -132,10 +104,7 @@ fn host_b_avoids_for_host_a_and_when_b_dies_the_planner_takes_over_within_the_ti
       <param name="kind" value="command"/><param name="value" value="VEL 0.2 0"/>
     </component>
     <component name="arbiter" source="builtin:arbiter" rate="50"/>
-    <component name="envelope" source="builtin:envelope" rate="20">
-      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
-      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
-    </component>
+    {PASS_ENVELOPE}
     <connect from="planner.out" to="arbiter.commands"/>
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>
@@ -187,7 +156,7 @@ fn host_b_avoids_for_host_a_and_when_b_dies_the_planner_takes_over_within_the_ti
 
     // B dies without a word.
     let killed = Instant::now();
-    unsafe_kill(b.child.id() as i32, 9);
+    support::signal(b.child.id(), "KILL");
     feed_until(&mut motors, killed + Duration::from_millis(1500), &|_| false);
     drop(b);
     let back = motors.lines.iter().find(|(at, l)| *at > killed && l == PLANNER).expect("the planner took over");
@@ -268,11 +237,8 @@ fn tls_host(dir: &Path, pki: &Path, endpoint: &str, password: &str) -> Child {
 "#,
     )
     .unwrap();
-    Command::new(env!("CARGO_BIN_EXE_subsume"))
-        .current_dir(support::repo_root())
-        .env("SUBSUME_HTTP", "off")
-        .env("NO_COLOR", "1")
-        .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "run", robot.to_str().unwrap()])
+    subsume()
+        .args(["run", robot.to_str().unwrap()])
         .args(["--duration", "60", "--report", dir.join("report.json").to_str().unwrap()])
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
