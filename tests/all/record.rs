@@ -38,7 +38,7 @@ fn the_demo_recording_has_every_value_call_status_and_log_line() {
     assert!(output.status.success(), "{log}");
     let read = read_mcap(&file, false);
     assert_eq!(read["complete"], true);
-    assert_eq!(read["in_order_per_channel"], true);
+    assert_eq!(read["in_order_per_channel"], true, "{}", read["out_of_order"]);
     // The summary a clean stop writes agrees with what was read.
     assert_eq!(read["summary"]["message_count"], read["messages"]);
     for (topic, entry) in read["channels"].as_object().unwrap() {
@@ -241,7 +241,7 @@ fn a_killed_host_leaves_a_file_whose_chunks_read() {
     let read = read_mcap(&file, true);
     assert_eq!(read["complete"], false, "a killed host writes no footer");
     assert!(read["messages"].as_u64().unwrap() > 500, "{}", read["messages"]);
-    assert_eq!(read["in_order_per_channel"], true);
+    assert_eq!(read["in_order_per_channel"], true, "{}", read["out_of_order"]);
     for topic in ["/motors/pose", "/arbiter/cmd", "/subsume/calls/avoid", "/subsume/log"] {
         assert!(channel(&read, topic)["count"].as_u64().unwrap() > 0, "{topic}");
     }
@@ -426,7 +426,7 @@ fn a_recording_started_and_stopped_from_the_portal_is_listed_downloaded_and_read
     std::fs::write(&downloaded, &bytes).unwrap();
     let read = read_mcap(&downloaded, false);
     assert_eq!(read["complete"], true);
-    assert_eq!(read["in_order_per_channel"], true);
+    assert_eq!(read["in_order_per_channel"], true, "{}", read["out_of_order"]);
     assert_eq!(read["messages"], stopped["stopped"]["messages"], "{read}");
     assert_eq!(read["summary"]["message_count"], read["messages"]);
     assert_eq!(channel(&read, "/motors/pose")["schema"], "foxglove.PoseInFrame");
