@@ -17,7 +17,7 @@ use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::portal::{self, logs::LogRing};
 use crate::record::control::{RecordingError, Recordings};
-use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder};
+use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder, Timeline};
 use crate::report::{self, Report};
 use crate::robot::serial::HALT_WAIT;
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
@@ -215,7 +215,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     if let Some(address) = record.live {
         options.tls.check_plain("foxglove live view", address)?;
     }
-    let recorder = Recorder::start(record, Layout::of(&config), epoch_unix_ns(&clock))?;
+    let recorder = Recorder::start(record, Layout::of(&config), Timeline::of(&clock))?;
     graph.set_tap(recorder.tap());
     let hook = recorder.hook(control_loop::NoHook);
     let (mut graph, _, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
@@ -225,12 +225,6 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     drop(graph);
     log_recording(&summary);
     Ok(report)
-}
-
-/// The wall-clock time of the clock's zero, in ns since the Unix epoch.
-fn epoch_unix_ns(clock: &Clock) -> u64 {
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
-    now.saturating_sub(clock.now_ns())
 }
 
 fn log_recording(summary: &RecordSummary) {
@@ -403,7 +397,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let recordings = Arc::new(Recordings::new(
         store.root().join("recordings"),
         portal.record_max_file_bytes,
-        epoch_unix_ns(&clock),
+        Timeline::of(&clock),
         options.record.is_some(),
     )?);
     let services = services.with(recordings.clone());
@@ -473,7 +467,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     if let Some(address) = record.live {
         options.tls.check_plain("foxglove live view", address)?;
     }
-    let recorder = Recorder::start(record, Layout::of(hook.config()), epoch_unix_ns(&clock))?;
+    let recorder = Recorder::start(record, Layout::of(hook.config()), Timeline::of(&clock))?;
     graph.set_tap(recorder.tap());
     let hook = recorder.swapping_hook(hook, |hook| Layout::of(hook.config()));
     let (mut graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;

@@ -71,7 +71,13 @@ async fn portal_over(over_tls: bool) -> Portal {
         store: store.clone(),
         sandbox: Arc::new(support::sandbox()),
         services: Services::default().with(directory.clone()).with(Arc::new(TeleopServers::default())).with(Arc::new(
-            Recordings::new(dir.path().join("recordings"), subsume::record::DEFAULT_MAX_FILE_BYTES, 0, false).unwrap(),
+            Recordings::new(
+                dir.path().join("recordings"),
+                subsume::record::DEFAULT_MAX_FILE_BYTES,
+                subsume::record::Timeline::new(0, Clock::new()),
+                false,
+            )
+            .unwrap(),
         )),
         config_path: &dir.path().join("robot.xml"),
         overrides: vec![],
