@@ -424,3 +424,22 @@ fn the_opening_is_sent_again_on_every_reconnect_before_any_command() {
     assert_eq!(read_lines(&mut master, 2), vec!["HELLO", "S"]);
     assert_eq!(link.status().openings_written, 2);
 }
+
+/// Every module's tests share this process, and a child one of them spawns
+/// inherits every descriptor that is not close-on-exec: a controller's
+/// pseudo-terminal a child held open would never hang up, and a link would
+/// never see its controller go (the reconnect tests above). The ends
+/// [`support::pty`] opens are not inherited.
+#[test]
+fn a_child_process_does_not_keep_a_closed_controllers_terminal_open() {
+    use std::os::fd::AsRawFd;
+    let (master, slave, _path) = pty();
+    let mut child = std::process::Command::new("sleep").arg("30").spawn().unwrap();
+    drop(master);
+    let mut poll = libc::pollfd { fd: slave.as_raw_fd(), events: libc::POLLIN, revents: 0 };
+    // SAFETY: one pollfd for an open descriptor.
+    let ready = unsafe { libc::poll(&mut poll, 1, 2000) };
+    let _ = child.kill();
+    let _ = child.wait();
+    assert!(ready == 1 && poll.revents & libc::POLLHUP != 0, "no hang-up: poll {ready}, revents {}", poll.revents);
+}

@@ -226,9 +226,9 @@ pub fn signal(pid: u32, signal: &str) {
 pub fn pty() -> (serialport::TTYPort, std::fs::File, PathBuf) {
     use std::os::fd::{FromRawFd, IntoRawFd, OwnedFd};
     use std::os::unix::fs::OpenOptionsExt;
-    // SAFETY: every call gets a descriptor this block owns (wrapped in an
-    // `OwnedFd` at once) or a buffer of the stated length; `termios` is
-    // filled by tcgetattr before it is read.
+    // SAFETY: posix_openpt's descriptor is owned by an `OwnedFd` at once;
+    // the other calls get that open descriptor and a buffer of the stated
+    // length, which ptsname_r fills with a NUL-terminated name.
     let (master, path) = unsafe {
         let fd = libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY | libc::O_CLOEXEC);
         assert!(fd >= 0, "no pseudo-terminal: {}", std::io::Error::last_os_error());
@@ -245,7 +245,9 @@ pub fn pty() -> (serialport::TTYPort, std::fs::File, PathBuf) {
         .custom_flags(libc::O_NOCTTY)
         .open(&path)
         .unwrap_or_else(|e| panic!("cannot open {}: {e}", path.display()));
-    // SAFETY: as above; `slave` and `master` are open for the whole block.
+    // SAFETY: `slave` and `master` are open descriptors for the whole block;
+    // `termios` is filled by tcgetattr before it is read; from_raw_fd takes
+    // the master's descriptor over from the `OwnedFd` that let it go.
     let master = unsafe {
         use std::os::fd::AsRawFd;
         // Raw both ways until the host sets its own mode (raw too).
