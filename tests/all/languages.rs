@@ -334,7 +334,10 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
     }
 
     // Every project drives its own trial robot, and takes the avoider's
-    // place in the demo unchanged; all runs at once.
+    // place in the demo unchanged; all runs at once, on simulated time in
+    // lock-step (`--speed max`): eight hosts at once on real time, with both
+    // cores busy (scripts/test-under-load), ran so late that a trial robot
+    // never came near the box in 12 s and its avoider never held control.
     let demo = std::fs::read_to_string(support::repo_root().join("config/demo.xml")).unwrap();
     let rust_avoider = "../guest-components/rust/target/wasm32-wasip2/release/avoider.wasm";
     assert!(demo.contains(rust_avoider), "the demo's avoider moved");
@@ -344,7 +347,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         let trial = subsume()
             .arg("run")
             .arg(dir.join("robot.xml"))
-            .args(["--duration", "12", "--report"])
+            .args(["--speed", "max", "--duration", "12", "--report"])
             .arg(&report)
             .stderr(std::process::Stdio::piped())
             .spawn()
@@ -361,7 +364,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         let run = subsume()
             .arg("run")
             .arg(copy.path())
-            .args(["--duration", "4", "--report"])
+            .args(["--speed", "max", "--duration", "4", "--report"])
             .arg(&report)
             .args(FREE_TELEOP_PORTS)
             .stderr(std::process::Stdio::piped())
