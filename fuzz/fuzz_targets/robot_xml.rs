@@ -1,6 +1,6 @@
 //! Robot files, stage 1 (the file as written): any text yields diagnostics
 //! or a tree, never a panic, and every diagnostic points inside the text.
-//! (Stage 2 needs the component runtime; its cases are in host/tests/config.)
+//! (Stage 2 needs the component runtime; its cases are in tests/config.)
 #![no_main]
 // The parser modules are shared with the host; not every item is used here.
 #![allow(dead_code)]

@@ -11,7 +11,7 @@
 //!
 //! Run: `cargo bench --bench blocking` (BENCHMARKS.md records the figures).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::io::Read as _;

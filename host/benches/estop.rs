@@ -20,7 +20,7 @@
 //! the figures; `--profile dev` measures the debug binary). `SAMPLES`
 //! sets the number of samples (default 200; 50 from the browser).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::io::{BufRead, BufReader, Write};

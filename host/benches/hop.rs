@@ -14,7 +14,7 @@
 //!
 //! Run: `cargo bench --bench hop` (BENCHMARKS.md records the figures).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::sync::Arc;

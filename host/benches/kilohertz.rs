@@ -35,7 +35,7 @@
 //! Run: `KHZ_SECONDS=60 cargo bench --bench kilohertz` (BENCHMARKS.md records
 //! the figures).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::sync::Arc;

@@ -16,7 +16,7 @@
 //! or `cargo bench --bench languages -- FILE.wasm ...` for other components
 //! with a vector input 0 and one output (the avoider's ports).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::path::PathBuf;

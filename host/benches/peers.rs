@@ -37,7 +37,7 @@
 //! Run: `taskset -c 1 cargo bench --bench peers` (BENCHMARKS.md records the
 //! figures).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::hint::black_box;

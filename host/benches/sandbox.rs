@@ -10,7 +10,7 @@
 //! Run: `cargo bench --bench sandbox`; loaded: `scripts/with-load cargo
 //! bench --bench sandbox` (BENCHMARKS.md records the figures).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::time::{Duration, Instant};

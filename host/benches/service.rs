@@ -14,7 +14,7 @@
 //!
 //! `cargo bench --bench service` (SERVICE_BENCH_SECONDS for the two periods)
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::io::{Read, Write};

@@ -6,7 +6,7 @@
 //! The binary (`main.rs`, one file per subcommand in `commands/`) parses
 //! the command line and calls [`run::run`], the composition root. `ARCHITECTURE.md` maps the modules below, the
 //! invariants each keeps, and the import rules between them (checked by
-//! `host/tests/architecture.rs`). From the bottom up:
+//! `tests/all/architecture.rs`). From the bottom up:
 //!
 //! - [`contract`], [`fsutil`], [`tls`], [`admission`]: the WIT contract's
 //!   host side; atomic writes; TLS identities and the plain-text rule for

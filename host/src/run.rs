@@ -20,7 +20,7 @@ use crate::lab::verdict::Criteria;
 use crate::lab::{Lab, LabOptions};
 use crate::portal::{self, logs::LogRing};
 use crate::record::control::{RecordingError, Recordings};
-use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder};
+use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder, Timeline};
 use crate::report::{self, Report};
 use crate::robot::serial::HALT_WAIT;
 use crate::runtime::control_loop::{self, Clock, CycleHook, Shutdown, StopReason};
@@ -251,7 +251,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     if let Some(address) = record.live {
         options.tls.check_plain("foxglove live view", address)?;
     }
-    let recorder = Recorder::start(record, Layout::of(&config), epoch_unix_ns(&clock))?;
+    let recorder = Recorder::start(record, Layout::of(&config), Timeline::of(&clock))?;
     graph.set_tap(recorder.tap());
     let hook = recorder.hook(watch);
     let (mut graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;
@@ -310,12 +310,6 @@ fn judge_run(
             .map_err(|e| RunError::Verdict { path: path.clone(), reason: e.to_string() })?;
     }
     Ok(())
-}
-
-/// The wall-clock time of the clock's zero, in ns since the Unix epoch.
-fn epoch_unix_ns(clock: &Clock) -> u64 {
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
-    now.saturating_sub(clock.now_ns())
 }
 
 fn log_recording(summary: &RecordSummary) {
@@ -509,7 +503,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let recordings = Arc::new(Recordings::new(
         store.root().join("recordings"),
         portal.record_max_file_bytes,
-        epoch_unix_ns(&clock),
+        Timeline::of(&clock),
         options.record.is_some(),
     )?);
     let services = services.with(recordings.clone());
@@ -594,7 +588,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     if let Some(address) = record.live {
         options.tls.check_plain("foxglove live view", address)?;
     }
-    let recorder = Recorder::start(record, Layout::of(hook.config()), epoch_unix_ns(&clock))?;
+    let recorder = Recorder::start(record, Layout::of(hook.config()), Timeline::of(&clock))?;
     graph.set_tap(recorder.tap());
     let hook = recorder.swapping_hook(hook, |hook| Layout::of(hook.config()));
     let (mut graph, hook, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, hook)?;

@@ -3,7 +3,11 @@ here wrote, and prints what it found as one JSON object on stdout:
 
     {"complete": bool, "channels": {topic: {"schema": name, "schema_encoding": ...,
      "message_encoding": ..., "count": n}}, "in_order_per_channel": bool,
+     "out_of_order": [{"topic": ..., "message": n, "log_time": t, "after": t}],
      "messages": n, "summary": {...} | null, "first": {topic: message}, "last": {...}}
+
+"out_of_order" names the first few messages whose log time is earlier than
+the one before it on the same channel (n counts the file's messages from 0).
 
 Usage: mcap_reader.py FILE.mcap [--truncated] [--values TOPIC]...
 
@@ -30,6 +34,7 @@ def main() -> None:
     channels = {}
     last_time = {}
     in_order = True
+    out_of_order = []
     messages = 0
     first = {}
     last = {}
@@ -74,6 +79,15 @@ def main() -> None:
                     values[channel.topic].append(decoded)
                 if message.log_time < last_time.get(channel.topic, 0):
                     in_order = False
+                    if len(out_of_order) < 5:
+                        out_of_order.append(
+                            {
+                                "topic": channel.topic,
+                                "message": messages,
+                                "log_time": message.log_time,
+                                "after": last_time[channel.topic],
+                            }
+                        )
                 last_time[channel.topic] = message.log_time
                 messages += 1
         except (McapError, EOFError, ValueError) as e:
@@ -87,6 +101,7 @@ def main() -> None:
                 "complete": complete,
                 "channels": channels,
                 "in_order_per_channel": in_order,
+                "out_of_order": out_of_order,
                 "messages": messages,
                 "summary": summary,
                 "first": first,

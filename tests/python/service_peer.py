@@ -1,4 +1,4 @@
-"""The other side of subsume's TLS listeners and /metrics, for tests/service.rs.
+"""The other side of subsume's TLS listeners and /metrics, for tests/all/service.rs.
 
 Every connection verifies the host's certificate against the test CA with
 Python's own ssl module (OpenSSL), and /metrics is parsed by the text parser

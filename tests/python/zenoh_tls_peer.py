@@ -1,5 +1,5 @@
 """A Zenoh peer over TLS with user/password authentication, built on the
-eclipse-zenoh package (tests/zenoh.rs drives it).
+eclipse-zenoh package (tests/all/zenoh.rs drives it).
 
     zenoh_tls_peer.py ENDPOINT PKI_DIR
 

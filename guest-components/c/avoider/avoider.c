@@ -1,7 +1,7 @@
 // Obstacle avoider (subsumption layer, default priority 3), in C.
 //
 // The same component as guest-components/rust/avoider: the same ports,
-// parameters, description and commands (tests/languages.rs checks it).
+// parameters, description and commands (tests/all/languages.rs checks it).
 // Reads a range scan whose rays are spread evenly from -fov/2 (right) to
 // +fov/2 (left) of the heading. While an obstacle inside the front cone is
 // nearer than `threshold`, it emits `VEL <creep> <turn>` on every tick,

@@ -1,7 +1,7 @@
 """Obstacle avoider (subsumption layer, default priority 3), in Python.
 
 The same component as guest-components/rust/avoider: the same ports,
-parameters, description and commands (tests/languages.rs checks it), built
+parameters, description and commands (tests/all/languages.rs checks it), built
 like it against the contract subsume:robot@0.2.0: `on_input` and `tick`
 return nothing, and a problem goes to `host.report`.
 Reads a range scan whose rays are spread evenly from -fov/2 (right) to

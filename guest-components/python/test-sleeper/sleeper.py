@@ -1,4 +1,4 @@
-"""A test component for the hostile-component suite (tests/hostile.rs).
+"""A test component for the hostile-component suite (tests/all/hostile.rs).
 
 The obstacle avoider's shape (a `ranges` input, a `cmd` output, priority 3)
 that drives (`VEL 0.3 0` on every tick) for `after` ticks and then sleeps

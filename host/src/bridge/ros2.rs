@@ -6,7 +6,7 @@
 //!
 //! The hashes are the ones `rosidl` generates for ROS 2 Jazzy/Kilted; the
 //! tests check them against `rosbags`' own computation from the message
-//! definitions (`tests/ros2.rs`) and against the examples of the design
+//! definitions (`tests/all/ros2.rs`) and against the examples of the design
 //! document. Humble has no type hashes: its key expressions carry
 //! `TypeHashNotSupported`.
 

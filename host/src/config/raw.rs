@@ -499,7 +499,7 @@ mod tests {
     #[test]
     fn a_written_robot_reads_back_the_same() {
         let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-        let mut files: Vec<_> = ["config", "host/tests/config", "tests/worlds"]
+        let mut files: Vec<_> = ["config", "tests/config", "tests/worlds"]
             .iter()
             .filter_map(|dir| std::fs::read_dir(root.join(dir)).ok())
             .flatten()

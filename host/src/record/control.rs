@@ -21,7 +21,7 @@ use std::sync::{Arc, Mutex};
 use serde::Serialize;
 use thiserror::Error;
 
-use super::{Event, Layout, RecordError, RecordOptions, RecordTap, Recorder, Sink, sample_status};
+use super::{Event, Layout, RecordError, RecordOptions, RecordTap, Recorder, Sink, Timeline, sample_status};
 use crate::runtime::Graph;
 use crate::runtime::control_loop::CycleHook;
 
@@ -121,7 +121,7 @@ struct Running {
 pub struct Recordings {
     dir: PathBuf,
     max_file_bytes: u64,
-    epoch_unix_ns: u64,
+    timeline: Timeline,
     /// `--record` runs: the graph's tap is taken.
     command_line: bool,
     running: Mutex<Option<Running>>,
@@ -172,13 +172,12 @@ pub fn is_recording_name(name: &str) -> bool {
 
 impl Recordings {
     /// The recordings in `dir` (created if missing), each file at most
-    /// `max_file_bytes` before rotating; `epoch_unix_ns` is the wall-clock
-    /// time of graph time 0. `command_line`: `--record` runs, so none may
-    /// start here.
+    /// `max_file_bytes` before rotating, on `timeline` (the graph's clock).
+    /// `command_line`: `--record` runs, so none may start here.
     pub fn new(
         dir: PathBuf,
         max_file_bytes: u64,
-        epoch_unix_ns: u64,
+        timeline: Timeline,
         command_line: bool,
     ) -> Result<Recordings, RecordingError> {
         std::fs::create_dir_all(&dir).map_err(|source| RecordingError::Io { path: dir.clone(), source })?;
@@ -187,7 +186,7 @@ impl Recordings {
         Ok(Recordings {
             dir,
             max_file_bytes,
-            epoch_unix_ns,
+            timeline,
             command_line,
             running: Mutex::new(None),
             request: Arc::new(Mutex::new(Request::None)),
@@ -277,7 +276,7 @@ impl Recordings {
             },
         };
         let options = RecordOptions { path: Some(path.clone()), max_file_bytes: self.max_file_bytes, live: None };
-        let recorder = Recorder::start(&options, layout, self.epoch_unix_ns)?;
+        let recorder = Recorder::start(&options, layout, self.timeline.clone())?;
         let sink = recorder.sink.clone();
         self.ask(match after_swap {
             None => Request::Attach(sink),

@@ -2,8 +2,11 @@
 //! `tracing` layer the binary installs once, which forwards info-and-above
 //! lines to the recording in progress, if there is one.
 //!
-//! Invariant: logging never blocks: a full recording queue drops the line
-//! and counts it, like any other event.
+//! Invariants: logging never blocks: a full recording queue drops the line
+//! and counts it, like any other event. A line's time is read from the
+//! recording's time line ([`super::Timeline`], never the wall clock) while
+//! the recording is held, so the lines reach the writer in the order of
+//! their times.
 
 use std::sync::Mutex;
 
@@ -15,6 +18,11 @@ use super::{Event, Sink, schema};
 
 /// The recording in progress, if any.
 static SINK: Mutex<Option<Sink>> = Mutex::new(None);
+
+/// Held by the unit tests that start a recording: the recording in
+/// progress is one per process.
+#[cfg(test)]
+pub(crate) static TEST_RECORDING: Mutex<()> = Mutex::new(());
 
 pub(super) fn install(sink: Sink) {
     if let Ok(mut slot) = SINK.lock() {
@@ -45,10 +53,7 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RecordLogLayer {
         let Ok(slot) = SINK.lock() else { return };
         let Some(sink) = slot.as_ref() else { return };
         let fields = LogFields::of(event);
-        let unix_ns = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map(|d| d.as_nanos() as u64)
-            .unwrap_or(0);
+        let unix_ns = sink.timeline.now_unix_ns();
         let name = fields.component.unwrap_or_else(|| metadata.target().to_string());
         sink.send(Event::Log {
             unix_ns,
@@ -56,5 +61,82 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RecordLogLayer {
             name,
             message: fields.message + &fields.extra,
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use tracing_subscriber::layer::SubscriberExt as _;
+
+    use super::*;
+    use crate::contract::{Value, ValueKind};
+    use crate::record::{ComponentLayout, Layout, PortLayout, RecordOptions, Recorder, Timeline};
+    use crate::runtime::control_loop::{self, Clock, Shutdown};
+    use crate::runtime::lockstep::Pace;
+    use crate::runtime::{CallError, Component, Graph, Outbox};
+
+    /// Logs the graph time of each tick (and emits it).
+    struct Talker;
+
+    impl Component for Talker {
+        fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
+            tracing::info!(component = "talker", "tick at {now_ns}");
+            out.push((0, Value::Scalar(now_ns as f64)));
+            Ok(())
+        }
+    }
+
+    /// A log line is stamped on the recording's time line, the time of the
+    /// call that wrote it, not by the wall clock: ten simulated seconds in
+    /// lock-step (a few real milliseconds) give ten lines a simulated
+    /// second apart, each at its tick's log time. Stamped by the wall
+    /// clock, they were milliseconds apart, off the other channels' times,
+    /// and out of log-time order whenever the wall clock was set back
+    /// during the run.
+    #[test]
+    fn log_lines_are_stamped_on_the_recordings_time_line() {
+        let _alone = TEST_RECORDING.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("talk.mcap");
+        let clock = Clock::simulated(Pace::Lockstep);
+        let epoch = 1_700_000_000_000_000_000;
+        let layout = Layout {
+            robot: "talk".into(),
+            components: vec![ComponentLayout {
+                name: "talker".into(),
+                inputs: vec![],
+                outputs: vec![PortLayout { name: "t".into(), kind: ValueKind::Scalar }],
+            }],
+        };
+        let recorder =
+            Recorder::start(&RecordOptions::new(path.clone()), layout, Timeline::new(epoch, clock.clone())).unwrap();
+        let mut graph = Graph::new();
+        graph.add("talker", Box::new(Talker), 1, 1.0, 0);
+        graph.set_tap(recorder.tap());
+        let subscriber = tracing_subscriber::registry().with(layer());
+        tracing::subscriber::with_default(subscriber, || {
+            control_loop::run(&mut graph, &clock, &Shutdown::new(), Some(9_500_000_000));
+        });
+        graph.take_tap();
+        recorder.finish().unwrap();
+
+        let bytes = std::fs::read(&path).unwrap();
+        let (mut ticks, mut lines) = (Vec::new(), Vec::new());
+        for message in mcap::MessageStream::new(&bytes).unwrap() {
+            let message = message.unwrap();
+            let json: serde_json::Value = serde_json::from_slice(&message.data).unwrap();
+            match message.channel.topic.as_str() {
+                "/talker/t" => ticks.push(message.log_time),
+                "/subsume/log" if json["name"] == "talker" => {
+                    let said = json["message"].as_str().unwrap().to_string();
+                    lines.push((message.log_time, said));
+                }
+                _ => {}
+            }
+        }
+        assert_eq!(ticks.len(), 10, "{ticks:?}");
+        let expected: Vec<(u64, String)> = ticks.iter().map(|&t| (t, format!("tick at {}", t - epoch))).collect();
+        assert_eq!(lines, expected);
+        assert_eq!(ticks.last().map(|t| t - epoch), Some(9_000_000_000));
     }
 }

@@ -36,7 +36,7 @@ use thiserror::Error;
 
 use crate::config::RobotConfig;
 use crate::contract::{Value, ValueKind};
-use crate::runtime::control_loop::CycleHook;
+use crate::runtime::control_loop::{Clock, CycleHook};
 use crate::runtime::{Call, Graph, Tap};
 
 /// Events waiting for the writer. A disk slower than the robot must not
@@ -190,6 +190,43 @@ pub fn is_pose(port: &PortLayout) -> bool {
     port.kind == ValueKind::Vector && port.name == "pose"
 }
 
+/// The recording's one time line: the host's [`Clock`] (graph time) on the
+/// wall clock's scale, `epoch_unix_ns + clock.now_ns()`, the wall clock
+/// read once, when the time line is made. Every message's log time is on
+/// it, the log's lines too: a wall clock set back mid-run (NTP, a resumed
+/// virtual machine) cannot put a channel out of log-time order, and on a
+/// simulated clock a log line sits at the simulated time of the call that
+/// wrote it.
+#[derive(Clone, Debug)]
+pub struct Timeline {
+    epoch_unix_ns: u64,
+    clock: Clock,
+}
+
+impl Timeline {
+    /// `clock`'s time line, its zero at the wall-clock time now less
+    /// `clock`'s reading.
+    pub fn of(clock: &Clock) -> Timeline {
+        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        Timeline { epoch_unix_ns: now.saturating_sub(clock.now_ns()), clock: clock.clone() }
+    }
+
+    /// `clock`'s time line with its zero at `epoch_unix_ns`.
+    pub fn new(epoch_unix_ns: u64, clock: Clock) -> Timeline {
+        Timeline { epoch_unix_ns, clock }
+    }
+
+    /// The wall-clock time of graph time 0, in ns since the Unix epoch.
+    pub fn epoch_unix_ns(&self) -> u64 {
+        self.epoch_unix_ns
+    }
+
+    /// Now on the time line, in ns since the Unix epoch.
+    pub fn now_unix_ns(&self) -> u64 {
+        self.epoch_unix_ns.saturating_add(self.clock.now_ns())
+    }
+}
+
 /// What the control thread (and the log) hands the writer.
 #[derive(Debug)]
 enum Event {
@@ -237,6 +274,8 @@ enum Event {
 struct Sink {
     sender: SyncSender<Event>,
     dropped: Arc<AtomicU64>,
+    /// When the log's lines happen (the tap's events carry graph time).
+    timeline: Timeline,
 }
 
 impl Sink {
@@ -272,14 +311,13 @@ pub struct Recorder {
 }
 
 impl Recorder {
-    /// Creates the first file and starts the writer thread. `epoch_unix_ns`
-    /// is the wall-clock time of graph time 0 (messages' log times are
-    /// `epoch_unix_ns + t`).
-    pub fn start(options: &RecordOptions, layout: Layout, epoch_unix_ns: u64) -> Result<Recorder, RecordError> {
+    /// Creates the first file and starts the writer thread. Messages' log
+    /// times are on `timeline`: `epoch_unix_ns + t` for graph time `t`.
+    pub fn start(options: &RecordOptions, layout: Layout, timeline: Timeline) -> Result<Recorder, RecordError> {
         options.check()?;
         let (sender, receiver) = std::sync::mpsc::sync_channel(QUEUE_DEPTH);
         let dropped = Arc::new(AtomicU64::new(0));
-        let mut writer = writer::Writer::create(options.clone(), Arc::new(layout), epoch_unix_ns)?;
+        let mut writer = writer::Writer::create(options.clone(), Arc::new(layout), timeline.epoch_unix_ns())?;
         let counted = dropped.clone();
         let handle = std::thread::Builder::new()
             .name("subsume-record".into())
@@ -294,7 +332,7 @@ impl Recorder {
         if let Some(path) = &options.path {
             tracing::info!("recording to {}", path.display());
         }
-        let sink = Sink { sender, dropped };
+        let sink = Sink { sender, dropped, timeline };
         log::install(sink.clone());
         Ok(Recorder { sink, writer: Some(handle) })
     }

@@ -497,7 +497,8 @@ mod tests {
 
     use super::*;
     use crate::contract::ValueKind;
-    use crate::record::{PortLayout, RecordOptions, Recorder};
+    use crate::record::{PortLayout, RecordOptions, Recorder, Timeline};
+    use crate::runtime::control_loop::Clock;
     use crate::runtime::{CallError, Component, Graph, Outbox, Policy};
 
     /// Ticks at 100 Hz and emits the number of the tick.
@@ -552,6 +553,7 @@ mod tests {
     /// it: checked on a real graph recorded by the real recorder.
     #[test]
     fn outputs_pair_with_the_call_that_emitted_them_in_log_order() {
+        let _alone = crate::record::log::TEST_RECORDING.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("pairs.mcap");
         let mut graph = Graph::new();
@@ -561,7 +563,7 @@ mod tests {
         let recorder = Recorder::start(
             &RecordOptions::new(path.clone()),
             Layout { robot: "pairs".into(), components: layouts(), about: Default::default() },
-            0,
+            Timeline::new(0, Clock::new()),
         )
         .unwrap();
         graph.set_tap(recorder.tap());

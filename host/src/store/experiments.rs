@@ -222,11 +222,8 @@ pub struct ExperimentRecord {
 
 impl ExperimentRecord {
     pub(super) fn parse(bytes: &[u8]) -> Result<ExperimentRecord, String> {
-        let record: ExperimentRecord = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
-        if record.format > LAB_FORMAT {
-            return Err(format!("format {} is newer than this host's {LAB_FORMAT}", record.format));
-        }
-        Ok(record)
+        check_format(bytes)?;
+        serde_json::from_slice(bytes).map_err(|e| e.to_string())
     }
 
     /// Moves it to `state`, now, for `cause`.
@@ -380,6 +377,21 @@ impl Default for LabSettings {
     }
 }
 
+/// Refuses a file of a newer format before reading its fields (a newer
+/// host may have changed them; the refusal says so rather than naming a
+/// missing field).
+fn check_format(bytes: &[u8]) -> Result<(), String> {
+    #[derive(Deserialize)]
+    struct Format {
+        format: u32,
+    }
+    let Format { format } = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
+    if format > LAB_FORMAT {
+        return Err(format!("format {format} is newer than this host's {LAB_FORMAT}"));
+    }
+    Ok(())
+}
+
 /// `lab.json`: the lab's own state.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LabState {
@@ -410,10 +422,8 @@ impl Default for LabState {
 
 impl LabState {
     pub(super) fn parse(bytes: &[u8]) -> Result<LabState, String> {
+        check_format(bytes)?;
         let mut state: LabState = serde_json::from_slice(bytes).map_err(|e| e.to_string())?;
-        if state.format > LAB_FORMAT {
-            return Err(format!("format {} is newer than this host's {LAB_FORMAT}", state.format));
-        }
         state.next_experiment = state.next_experiment.max(1);
         state.next_reservation = state.next_reservation.max(1);
         Ok(state)
@@ -446,8 +456,9 @@ mod tests {
 
     #[test]
     fn newer_formats_are_refused_and_counters_start_at_one() {
-        let newer = br#"{"format": 2, "next_experiment": 1}"#;
-        assert!(LabState::parse(newer).is_err_and(|e| e.contains("format 2 is newer")));
+        let newer = format!(r#"{{"format": {}, "next_experiment": 1}}"#, LAB_FORMAT + 1);
+        let refusal = format!("format {} is newer", LAB_FORMAT + 1);
+        assert!(LabState::parse(newer.as_bytes()).is_err_and(|e| e.contains(&refusal)));
         let mut state = LabState { next_experiment: 0, ..LabState::default() };
         state.next_reservation = 0;
         let bytes = serde_json::to_vec(&state).unwrap_or_default();

@@ -1,0 +1,711 @@
+//! `subsume deploy` end to end: the built binary against a real `subsume
+//! run` with the portal, over real HTTP. A component replaced in the
+//! running robot in one command; a robot file and its component in one
+//! command; a bad robot file answered with located errors and nothing
+//! changed; a component the running robot does not have refused before
+//! anything is uploaded.
+//!
+//! `subsume lab` end to end the same way (docs/lab.md, the command line): a
+//! submission with a component and one with a robot file, each followed
+//! through every state to `done`, its results unpacked and read by the
+//! `mcap` package; refusals (a robot file that does not read, one the
+//! portal finds wrong, located in the file; a preflight that fails); show,
+//! list and cancel between two researchers; the lab kit's verdict equal to
+//! the lab's preflight's on the same set.
+
+use std::path::Path;
+use std::time::Duration;
+
+use crate::support::{self, HostProcess, http, subsume};
+
+const PASSWORD: &str = "deploy-test-password";
+
+/// A running `subsume run` and its portal's address.
+struct Host {
+    _process: HostProcess,
+    address: String,
+}
+
+fn add_admin(store: &Path) {
+    support::add_user(store, "admin", "admin", &[], PASSWORD);
+}
+
+/// `subsume run ROBOT` with the portal on a free port.
+fn start(store: &Path, robot: &Path) -> Host {
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "run"]).arg(robot).args(["--http", "127.0.0.1:0"]);
+    let process = HostProcess::spawn(command);
+    let address = process.portal_address();
+    Host { _process: process, address }
+}
+
+fn token(address: &str) -> String {
+    support::login(address, "admin", PASSWORD)
+}
+
+/// The active set: (id, robot name, the sha256 of the component `name` runs).
+fn active(address: &str, name: &str) -> (u64, String, Option<String>) {
+    let token = token(address);
+    let (_, status) = http(address, "GET", "/api/v1/status", Some(&token), b"");
+    let set = status["set"].as_u64().unwrap();
+    let (_, record) = http(address, "GET", &format!("/api/v1/sets/{set}"), Some(&token), b"");
+    let config = record["config"].as_str().unwrap();
+    let source = config.split(&format!("name=\"{name}\" source=\"")).nth(1).map(|s| s.split('"').next().unwrap());
+    let sha = source.and_then(|s| record["set"]["sources"][s].as_str()).map(str::to_string);
+    (set, status["robot"].as_str().unwrap().to_string(), sha)
+}
+
+/// `subsume deploy ARGS... ADDRESS` as admin: (success, stdout, stderr).
+fn deploy(address: &str, args: &[&str]) -> (bool, String, String) {
+    deploy_as("admin", address, args)
+}
+
+/// `subsume deploy ARGS... ADDRESS` as `user`: (success, stdout, stderr).
+fn deploy_as(user: &str, address: &str, args: &[&str]) -> (bool, String, String) {
+    let output = subsume()
+        .arg("deploy")
+        .args(args)
+        .arg(address)
+        .env("SUBSUME_USER", user)
+        .env("SUBSUME_PASSWORD", PASSWORD)
+        .output()
+        .unwrap();
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    (output.status.success(), text(&output.stdout), text(&output.stderr))
+}
+
+/// The relay's bytes with a custom section: a component no one uploaded.
+fn unique_relay(dir: &Path, tag: &str) -> std::path::PathBuf {
+    unique_guest(dir, "test-relay", tag)
+}
+
+/// Guest `guest`'s bytes with a custom section: a component no one uploaded.
+fn unique_guest(dir: &Path, guest: &str, tag: &str) -> std::path::PathBuf {
+    let mut wasm = std::fs::read(support::guest(guest)).unwrap();
+    let name = b"test";
+    wasm.extend_from_slice(&[0, (1 + name.len() + tag.len()) as u8, name.len() as u8]);
+    wasm.extend_from_slice(name);
+    wasm.extend_from_slice(tag.as_bytes());
+    let path = dir.join(format!("{guest}-{tag}.wasm"));
+    std::fs::write(&path, wasm).unwrap();
+    path
+}
+
+fn sha256(path: &Path) -> String {
+    use sha2::Digest;
+    hex::encode(sha2::Sha256::digest(std::fs::read(path).unwrap()))
+}
+
+fn robot(name: &str, relay_source: &str) -> String {
+    format!(
+        r#"<robot name="{name}">
+  <platform name="control">
+    <component name="source" source="builtin:publish" rate="20"><param name="value" value="1"/></component>
+    <component name="relay" source="{relay_source}" rate="0"/>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="source.out" to="relay.scalar-in"/>
+    <connect from="relay.scalar-out" to="sink.in"/>
+  </platform>
+</robot>
+"#
+    )
+}
+
+#[test]
+fn deploy_replaces_a_component_or_a_whole_robot_in_one_step_and_changes_nothing_on_failure() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    let boot = dir.path().join("boot.xml");
+    std::fs::write(&boot, robot("boot", &support::guest("test-relay").display().to_string())).unwrap();
+    let host = start(&store, &boot);
+    let (first, name, _) = active(&host.address, "relay");
+    assert_eq!(name, "boot");
+
+    // One component of the running robot, replaced in one command.
+    let v2 = unique_relay(dir.path(), "v2");
+    let (ok, stdout, stderr) = deploy(&host.address, &["--component", &format!("relay={}", v2.display())]);
+    assert!(ok, "{stderr}");
+    let (second, name, sha) = active(&host.address, "relay");
+    assert!(second > first, "{stdout}");
+    assert_eq!(stdout.trim(), format!("deployed: set {second} is running"));
+    assert_eq!((name.as_str(), sha.as_deref()), ("boot", Some(sha256(&v2).as_str())));
+    assert!(stderr.contains("deploy: uploaded relay in "), "{stderr}");
+
+    // A robot file and a component in one command.
+    let v3 = unique_relay(dir.path(), "v3");
+    let next = dir.path().join("next.xml");
+    std::fs::write(&next, robot("next", "relay.wasm")).unwrap();
+    let relay_arg = format!("relay={}", v3.display());
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &relay_arg, "--robot", next.to_str().unwrap()]);
+    assert!(ok, "{stderr}");
+    let (third, name, sha) = active(&host.address, "relay");
+    assert!(third > second);
+    assert_eq!((name.as_str(), sha.as_deref()), ("next", Some(sha256(&v3).as_str())));
+
+    // A bad robot file: located errors (the local path), nothing changed.
+    let bad = dir.path().join("bad.xml");
+    std::fs::write(&bad, robot("bad", "relay.wasm").replace("relay.scalar-in", "relay.nothing")).unwrap();
+    let (ok, _, stderr) = deploy(&host.address, &["--robot", bad.to_str().unwrap()]);
+    assert!(!ok);
+    let located = format!("{}:6:36: unknown input port 'nothing' on component 'relay'", bad.display());
+    assert!(stderr.contains(&located), "{stderr}");
+    assert!(stderr.contains("nothing was changed"), "{stderr}");
+    assert_eq!(active(&host.address, "relay"), (third, "next".to_string(), Some(sha256(&v3))));
+
+    // A component the running robot does not have: refused before any upload.
+    let ghost = unique_relay(dir.path(), "ghost");
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("ghost={}", ghost.display())]);
+    assert!(!ok);
+    assert!(
+        stderr.contains("the running robot file next.xml has no component 'ghost' (it has: source, relay, sink)"),
+        "{stderr}"
+    );
+    let (status, _) = http(&host.address, "GET", "/api/v1/components/ghost", Some(&token(&host.address)), b"");
+    assert_eq!(status, 404);
+    assert_eq!(active(&host.address, "relay").0, third);
+
+    // A file that is not a component: the portal's check, nothing changed.
+    let junk = dir.path().join("junk.wasm");
+    std::fs::write(&junk, b"not wasm").unwrap();
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("relay={}", junk.display())]);
+    assert!(!ok);
+    assert!(stderr.contains("component relay: the portal answered 415"), "{stderr}");
+    assert_eq!(active(&host.address, "relay").0, third);
+}
+
+/// The sha256 of `owner`'s stored upload `name`, if any.
+fn stored(address: &str, owner: &str, name: &str) -> Option<String> {
+    let (status, record) =
+        http(address, "GET", &format!("/api/v1/components/{owner}/{name}"), Some(&token(address)), b"");
+    (status == 200).then(|| record["sha256"].as_str().unwrap().to_string())
+}
+
+/// The source the active robot file gives component `name`.
+fn active_source(address: &str, name: &str) -> String {
+    let token = token(address);
+    let (_, status) = http(address, "GET", "/api/v1/status", Some(&token), b"");
+    let (_, record) = http(address, "GET", &format!("/api/v1/sets/{}", status["set"]), Some(&token), b"");
+    let config = record["config"].as_str().unwrap();
+    let source = config.split(&format!("name=\"{name}\" source=\"")).nth(1).unwrap();
+    source.split('"').next().unwrap().to_string()
+}
+
+#[test]
+fn a_second_users_deploy_of_the_same_name_does_not_overwrite_the_first_users_upload() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    add_admin(&store);
+    support::add_user(&store, "bob", "developer", &["control"], PASSWORD);
+    let boot = dir.path().join("boot.xml");
+    std::fs::write(&boot, robot("boot", &support::guest("test-relay").display().to_string())).unwrap();
+    let host = start(&store, &boot);
+
+    // The admin replaces the running relay: the file now names the admin's upload.
+    let first = unique_relay(dir.path(), "admin-1");
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("relay={}", first.display())]);
+    assert!(ok, "{stderr}");
+    assert_eq!(active_source(&host.address, "relay"), "admin/relay.wasm");
+    assert_eq!(stored(&host.address, "admin", "relay"), Some(sha256(&first)));
+
+    // Bob deploys his own relay under the same name: it runs, named as his,
+    // and the admin's stored upload is untouched.
+    let second = unique_relay(dir.path(), "bob-1");
+    let (ok, stdout, stderr) =
+        deploy_as("bob", &host.address, &["--component", &format!("relay={}", second.display())]);
+    assert!(ok, "{stderr}");
+    assert!(stderr.contains("with relay -> bob/relay.wasm"), "{stderr}");
+    let (set, _, sha) = active(&host.address, "relay");
+    assert_eq!(stdout.trim(), format!("deployed: set {set} is running"));
+    assert_eq!(sha, Some(sha256(&second)));
+    assert_eq!(active_source(&host.address, "relay"), "bob/relay.wasm");
+    assert_eq!(stored(&host.address, "bob", "relay"), Some(sha256(&second)));
+    assert_eq!(
+        stored(&host.address, "admin", "relay"),
+        Some(sha256(&first)),
+        "bob's deploy replaced the admin's upload"
+    );
+
+    // A robot file of Bob's may run the admin's by owner and name (read-only).
+    let shared = dir.path().join("shared.xml");
+    std::fs::write(&shared, robot("shared", "admin/relay.wasm")).unwrap();
+    let (ok, _, stderr) = deploy_as("bob", &host.address, &["--robot", shared.to_str().unwrap()]);
+    assert!(ok, "{stderr}");
+    assert_eq!(active(&host.address, "relay").2, Some(sha256(&first)));
+    assert_eq!(stored(&host.address, "admin", "relay"), Some(sha256(&first)));
+    assert_eq!(stored(&host.address, "bob", "relay"), Some(sha256(&second)));
+}
+
+/// `subsume dev ROBOT` with the portal on a free port.
+fn start_dev(store: &Path, robot: &Path) -> HostProcess {
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "dev"]).arg(robot).args([
+        "--http",
+        "127.0.0.1:0",
+        "--poll",
+        "0.05",
+    ]);
+    HostProcess::spawn(command)
+}
+
+/// The host's log lines after the `seen` ones until one contains `what`
+/// (all of them, that one last); counts them into `seen`.
+fn until(host: &HostProcess, seen: &mut usize, what: &str) -> Vec<String> {
+    let lines = host.lines_until(*seen, what, Duration::from_secs(120));
+    *seen += lines.len();
+    lines
+}
+
+fn sim_robot(name: &str, relay_to: &str) -> String {
+    let world = support::repo_root().join("config/worlds/demo.world");
+    format!(
+        r#"<robot name="{name}">
+  <platform name="control">
+    <component name="robot-sim" source="builtin:sim"><param name="world" value="{world}"/></component>
+    <component name="motors" source="builtin:serial" rate="50"><param name="device" value="sim:robot-sim"/></component>
+    <component name="relay" source="relay.wasm" rate="0"/>
+    <component name="sink" source="builtin:log" rate="0"/>
+    <connect from="motors.ranges" to="relay.{relay_to}"/>
+    <connect from="relay.vector-out" to="sink.in"/>
+  </platform>
+</robot>
+"#,
+        world = world.display()
+    )
+}
+
+#[test]
+fn dev_swaps_a_changed_component_in_and_keeps_the_running_set_when_the_robot_file_breaks() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let robot = dir.path().join("robot.xml");
+    let relay = dir.path().join("relay.wasm");
+    std::fs::copy(support::guest("test-relay"), &relay).unwrap();
+    std::fs::write(&robot, sim_robot("dev", "vector-in")).unwrap();
+    let host = start_dev(&store, &robot);
+    let mut seen = 0;
+    let watching = until(&host, &mut seen, "dev: watching 2 file(s) every 50 ms");
+    assert!(watching.last().unwrap().contains(&relay.display().to_string()), "{watching:?}");
+
+    // A new build of the component: swapped in, the simulated robot and
+    // its link carried across.
+    std::fs::copy(unique_relay(dir.path(), "edit1"), &relay).unwrap();
+    let swapped = until(&host, &mut seen, "dev: set 2 is running");
+    let text = swapped.join("\n");
+    assert!(text.contains(&format!("dev: changed: {}", relay.display())), "{text}");
+    assert!(text.contains("kept running") && text.contains("robot-sim"), "{text}");
+    eprintln!("edit -> running (Rust relay): {}", swapped.last().unwrap());
+
+    // A broken robot file: located errors, the running set stays.
+    std::fs::write(&robot, sim_robot("dev", "nothing")).unwrap();
+    let refused = until(&host, &mut seen, "the running set is unchanged");
+    let text = refused.join("\n");
+    assert!(text.contains(&format!("dev: {}:7:", robot.display())), "{text}");
+    assert!(text.contains("unknown input port 'nothing' on component 'relay'"), "{text}");
+    assert!(!text.contains("is running"), "{text}");
+
+    // Fixed again: the next set runs.
+    std::fs::write(&robot, sim_robot("dev2", "vector-in")).unwrap();
+    until(&host, &mut seen, "dev: set 3 is running");
+}
+
+// ---- subsume lab ----
+
+const RESEARCHER_PASSWORD: &str = "lab-test-password";
+
+/// A robot in `dir` (beside a copy of `wall-ahead.world`): a driver
+/// (`driver_source`, with `driver_params`) at priority 1 through the
+/// arbiter and `envelope` to a simulated robot 4 m from a wall.
+fn lab_robot(dir: &Path, file: &str, driver_source: &str, driver_params: &str, envelope: &str) -> std::path::PathBuf {
+    std::fs::copy(support::repo_root().join("tests/worlds/wall-ahead.world"), dir.join("wall.world")).unwrap();
+    let xml = format!(
+        r#"<robot name="lab">
+  <platform name="control">
+    <component name="sim" source="builtin:sim"><param name="world" value="wall.world"/></component>
+    <component name="motors" source="builtin:serial" rate="50"><param name="device" value="sim:sim"/></component>
+    <component name="driver" source="{driver_source}" rate="10" timeout="300ms">{driver_params}</component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    {envelope}
+    <connect from="driver.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+</robot>
+"#
+    );
+    let path = dir.join(file);
+    std::fs::write(&path, xml).unwrap();
+    path
+}
+
+/// The owner's envelope with its sensors wired in.
+const WATCHFUL: &str = r#"<component name="envelope" source="builtin:envelope" rate="20"/>
+    <connect from="motors.ranges" to="envelope.ranges"/>
+    <connect from="motors.pose" to="envelope.pose"/>"#;
+
+fn commander(command: &str, ticks: u64) -> String {
+    format!(r#"<param name="command" value="{command}"/><param name="ticks" value="{ticks}"/>"#)
+}
+
+/// A host on `boot` with researchers `ada` and `bob` (platform control).
+fn lab_host(dir: &Path, boot: &Path) -> Host {
+    let store = dir.join("store");
+    for name in ["ada", "bob"] {
+        support::add_user(&store, name, "researcher", &["control"], RESEARCHER_PASSWORD);
+    }
+    start(&store, boot)
+}
+
+/// A host whose robot drives gently for 1.5 s (its preflight passes),
+/// with researchers `ada` and `bob`.
+fn gentle_lab(dir: &Path) -> Host {
+    let commander_path = support::guest("test-commander").display().to_string();
+    let boot = lab_robot(dir, "boot.xml", &commander_path, &commander("VEL 0.2 0", 15), WATCHFUL);
+    lab_host(dir, &boot)
+}
+
+/// `subsume lab ARGS...` as `user` (by the environment).
+fn lab(user: &str, args: &[&str]) -> std::process::Output {
+    subsume()
+        .arg("lab")
+        .args(args)
+        .env("SUBSUME_USER", user)
+        .env("SUBSUME_PASSWORD", RESEARCHER_PASSWORD)
+        .output()
+        .unwrap()
+}
+
+fn out(output: &std::process::Output) -> (String, String) {
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    (text(&output.stdout), text(&output.stderr))
+}
+
+/// The states `subsume lab submit` told for experiment `id`, in order,
+/// each once (a queue place is told as `queued` too).
+fn told_states(stdout: &str, id: u64) -> Vec<String> {
+    let mut states: Vec<String> = Vec::new();
+    for line in stdout.lines() {
+        let Some(rest) = line.strip_prefix(&format!("experiment {id}: ")) else { continue };
+        let state = rest.split(':').next().unwrap().to_string();
+        if states.last() != Some(&state) {
+            states.push(state);
+        }
+    }
+    states
+}
+
+/// What the `mcap` package (PyPI) reads in `file`.
+fn read_mcap(file: &Path) -> serde_json::Value {
+    let output = Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/mcap_reader.py"))
+        .arg(file)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "the mcap package cannot read {}: {stderr}", file.display());
+    serde_json::from_str(&stdout).unwrap()
+}
+
+/// Checks an unpacked bundle against its SHA256SUMS independently of the
+/// client: every file listed matches, every file is listed.
+fn check_sums(dir: &Path) {
+    let sums = std::fs::read_to_string(dir.join("SHA256SUMS")).unwrap();
+    let mut listed = std::collections::BTreeSet::new();
+    for line in sums.lines() {
+        let (sum, name) = line.split_once("  ").unwrap();
+        assert_eq!(sha256(&dir.join(name)), sum, "{name}");
+        listed.insert(name.to_string());
+    }
+    let mut files = std::collections::BTreeSet::new();
+    let mut dirs = vec![dir.to_path_buf()];
+    while let Some(d) = dirs.pop() {
+        for entry in std::fs::read_dir(&d).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                dirs.push(path);
+            } else if path.file_name().unwrap() != "SHA256SUMS" {
+                files.insert(path.strip_prefix(dir).unwrap().to_str().unwrap().to_string());
+            }
+        }
+    }
+    assert_eq!(files, listed);
+}
+
+const DONE: [&str; 6] = ["checking", "preflight", "queued", "running", "finishing", "done"];
+
+#[test]
+fn lab_submit_follows_an_experiment_to_done_and_unpacks_results_the_mcap_package_reads() {
+    let dir = tempfile::tempdir().unwrap();
+    let host = gentle_lab(dir.path());
+
+    // A component of the running robot replaced, by the environment's
+    // credentials.
+    let v2 = unique_guest(dir.path(), "test-commander", "v2");
+    let results = dir.path().join("results/first");
+    let output = lab(
+        "ada",
+        &[
+            "submit",
+            "--component",
+            &format!("driver={}", v2.display()),
+            "--duration",
+            "2",
+            "--label",
+            "first try",
+            "--results",
+            results.to_str().unwrap(),
+            &host.address,
+        ],
+    );
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stdout}\n{stderr}");
+    let first = stdout.lines().next().unwrap();
+    assert!(first.starts_with("experiment 1 submitted: set "), "{stdout}");
+    assert!(first.contains(", 2 s, \"first try\"; follow it with `subsume lab show 1 "), "{stdout}");
+    assert_eq!(told_states(&stdout, 1), DONE, "{stdout}");
+    assert!(stdout.contains("experiment 1: running: started on the robot") && stdout.contains("(ends at "), "{stdout}");
+    assert!(stderr.contains("lab: uploaded driver in "), "{stderr}");
+    assert!(stdout.trim_end().ends_with("sha256 checked)"), "{stdout}");
+    check_sums(&results);
+    assert_eq!(sha256(&results.join("components/driver.wasm")), sha256(&v2));
+    let record: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(results.join("experiment.json")).unwrap()).unwrap();
+    assert_eq!((record["state"].as_str(), record["submitter"].as_str()), (Some("done"), Some("ada")), "{record}");
+    for recording in ["run.mcap", "preflight.mcap"] {
+        let read = read_mcap(&results.join(recording));
+        assert_eq!(read["complete"], true, "{recording}: {read}");
+        assert!(read["messages"].as_u64().unwrap() > 10, "{recording}: {read}");
+    }
+
+    // A robot file of the researcher's own, its driver built locally:
+    // pointed at the upload; the credentials as flags.
+    let v3 = unique_guest(dir.path(), "test-commander", "v3");
+    let own = lab_robot(dir.path(), "own.xml", "build/driver.wasm", &commander("VEL 0.15 0", 15), WATCHFUL);
+    let results = dir.path().join("results/second");
+    let output = subsume()
+        .args(["lab", "submit", "--robot", own.to_str().unwrap(), "--component"])
+        .arg(format!("driver={}", v3.display()))
+        .args(["--duration", "2", "--user", "ada", "--password", RESEARCHER_PASSWORD, "--results"])
+        .arg(&results)
+        .arg(&host.address)
+        .env_remove("SUBSUME_USER")
+        .env_remove("SUBSUME_PASSWORD")
+        .output()
+        .unwrap();
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stdout}\n{stderr}");
+    assert_eq!(told_states(&stdout, 2), DONE, "{stdout}");
+    check_sums(&results);
+    assert_eq!(sha256(&results.join("components/driver.wasm")), sha256(&v3));
+    assert!(std::fs::read_to_string(results.join("robot.xml")).unwrap().contains("VEL 0.15 0"));
+    assert_eq!(read_mcap(&results.join("run.mcap"))["complete"], true);
+}
+
+#[test]
+fn a_refused_submission_says_why_in_the_robot_files_own_lines_and_exits_1() {
+    let dir = tempfile::tempdir().unwrap();
+    let host = gentle_lab(dir.path());
+    let store = dir.path().join("store");
+    let sets = || subsume::store::Store::open(&store).unwrap().sets().unwrap().len();
+    let before = sets();
+    let submit = |robot: &Path, component: &str| {
+        lab(
+            "ada",
+            &["submit", "--robot", robot.to_str().unwrap(), "--component", component, "--duration", "3", &host.address],
+        )
+    };
+    let driver = format!("driver={}", support::guest("test-commander").display());
+
+    // Not even XML: found here, nothing sent.
+    let broken = dir.path().join("broken.xml");
+    std::fs::write(&broken, "<robot name=\"x\">\n  <platform name=\"control\">\n</robot>\n").unwrap();
+    let output = submit(&broken, &driver);
+    let (_, stderr) = out(&output);
+    assert!(!output.status.success());
+    assert!(stderr.contains(&format!("{}:3:1: malformed xml", broken.display())), "{stderr}");
+    assert!(stderr.contains("nothing was sent"), "{stderr}");
+
+    // Wrong where only the portal can tell: its diagnostics, at the
+    // positions of the file as written (the source that was pointed at
+    // the upload comes before the bad value on its line).
+    let bad = lab_robot(
+        dir.path(),
+        "bad.xml",
+        "build/a/long/way/to/driver.wasm\" priority=\"x1",
+        &commander("VEL 0.2 0", 15),
+        WATCHFUL,
+    )
+    .to_str()
+    .unwrap()
+    .to_string();
+    let text = std::fs::read_to_string(&bad).unwrap().replace("to=\"envelope.cmd\"", "to=\"envelope.nothing\"");
+    std::fs::write(&bad, &text).unwrap();
+    let position = |needle: &str| {
+        let (line, l) = text.lines().enumerate().find(|(_, l)| l.contains(needle)).unwrap();
+        format!("{}:{}", line + 1, l[..l.find(needle).unwrap()].chars().count() + 1)
+    };
+    let output = submit(Path::new(&bad), &driver);
+    let (stdout, stderr) = out(&output);
+    assert!(!output.status.success());
+    assert!(stderr.contains(&format!("{bad}:{}: priority 'x1' is not a whole number", position("x1\""))), "{stderr}");
+    assert!(
+        stderr.contains(&format!("{bad}:{}: unknown input port 'nothing'", position("envelope.nothing"))),
+        "{stderr}"
+    );
+    assert!(!stdout.contains("submitted"), "{stdout}");
+    assert_eq!(sets(), before, "nothing was staged");
+
+    // Staged and submitted, refused by its preflight: the fault named.
+    let faulty = unique_guest(dir.path(), "test-faulty", "trap");
+    let params =
+        r#"<param name="mode" value="trap-on-tick"/><param name="after" value="10"/><param name="drive" value="yes"/>"#;
+    let trap = lab_robot(dir.path(), "trap.xml", "driver.wasm", params, WATCHFUL);
+    let output = submit(&trap, &format!("driver={}", faulty.display()));
+    let (stdout, stderr) = out(&output);
+    assert_eq!(output.status.code(), Some(1), "{stdout}\n{stderr}");
+    assert_eq!(told_states(&stdout, 1), ["checking", "preflight", "refused"], "{stdout}");
+    assert!(stdout.contains("experiment 1: refused: refused by its preflight"), "{stdout}");
+    assert!(stdout.contains("\n  preflight: component 'driver' faulted at "), "{stdout}");
+}
+
+#[test]
+fn lab_show_list_and_cancel_act_on_ones_own_experiments_only() {
+    let dir = tempfile::tempdir().unwrap();
+    let host = gentle_lab(dir.path());
+
+    // A long experiment (the running robot file as it is), followed by a
+    // submit in the background.
+    let results = dir.path().join("results/long");
+    let mut follower = subsume()
+        .args(["lab", "submit", "--duration", "60", "--label", "long", "--results"])
+        .arg(&results)
+        .arg(&host.address)
+        .env("SUBSUME_USER", "ada")
+        .env("SUBSUME_PASSWORD", RESEARCHER_PASSWORD)
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap();
+    let lines = BufReader::new(follower.stdout.take().unwrap()).lines();
+    let (tx, told) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in lines.map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let mut followed = Vec::new();
+    while !followed.iter().any(|l: &String| l.starts_with("experiment 1: running:")) {
+        followed.push(told.recv_timeout(Duration::from_secs(120)).expect("experiment 1 did not start"));
+    }
+
+    // A second one waits behind it.
+    let ada = support::login(&host.address, "ada", RESEARCHER_PASSWORD);
+    let (_, one) = http(&host.address, "GET", "/api/v1/experiments/1", Some(&ada), b"");
+    let set = one["experiment"]["set"].as_u64().unwrap();
+    let body = serde_json::json!({ "set": set, "duration_s": 5, "label": "next" }).to_string();
+    let (status, json) = http(&host.address, "POST", "/api/v1/experiments", Some(&ada), body.as_bytes());
+    assert_eq!(status, 201, "{json}");
+    let deadline = std::time::Instant::now() + Duration::from_secs(60);
+    let shown = loop {
+        let output = lab("ada", &["show", "2", &host.address]);
+        let (stdout, stderr) = out(&output);
+        assert!(output.status.success(), "{stderr}");
+        if stdout.starts_with("experiment 2: queued #1\n") {
+            break stdout;
+        }
+        assert!(std::time::Instant::now() < deadline, "experiment 2 was not queued: {stdout}");
+        std::thread::sleep(Duration::from_millis(200));
+    };
+    assert!(shown.contains("  queue      place 1 in the queue, starts in about "), "{shown}");
+    assert!(shown.contains("  label      next\n") && shown.contains("checking   submitted by ada"), "{shown}");
+    let output = lab("ada", &["list", &host.address]);
+    let (listed, _) = out(&output);
+    let rows: Vec<Vec<&str>> = listed.lines().map(|l| l.split_whitespace().collect()).collect();
+    assert_eq!(rows[0], ["ID", "STATE", "SUBMITTER", "SET", "DURATION", "SUBMITTED", "LABEL"], "{listed}");
+    assert_eq!(&rows[1][..4], ["2", "queued", "#1", "ada"], "{listed}");
+    assert_eq!(&rows[2][..3], ["1", "running", "ada"], "{listed}");
+    assert_eq!((rows[1].last(), rows[2].last(), rows.len()), (Some(&"next"), Some(&"long"), 3), "{listed}");
+    let output = lab("ada", &["list", "--json", &host.address]);
+    let json: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(json.as_array().map(Vec::len), Some(2), "{json}");
+
+    // Another researcher sees neither, and cannot cancel them.
+    assert_eq!(out(&lab("bob", &["list", &host.address])).0, "no experiments\n");
+    for args in [["show", "1"], ["cancel", "1"]] {
+        let output = lab("bob", &[args[0], args[1], &host.address]);
+        assert!(!output.status.success());
+        assert!(out(&output).1.contains(": the portal answered 404: no experiment 1"), "{:?}", out(&output));
+    }
+
+    // Cancelled waiting, then running: the follower tells it and exits 1
+    // with what the run left.
+    let output = lab("ada", &["cancel", "2", &host.address]);
+    assert_eq!(out(&output).0, "experiment 2: cancelled: cancelled by ada\n", "{:?}", out(&output));
+    let output = lab("ada", &["cancel", "1", &host.address]);
+    assert_eq!(out(&output).0, "experiment 1: cancelled: cancelled by ada\n", "{:?}", out(&output));
+    let status = follower.wait().unwrap();
+    followed.extend(told.iter());
+    let followed = followed.join("\n");
+    assert_eq!(status.code(), Some(1), "{followed}");
+    assert!(followed.contains("experiment 1: cancelled: cancelled by ada"), "{followed}");
+    check_sums(&results);
+    assert!(read_mcap(&results.join("run.mcap"))["messages"].as_u64().unwrap() > 0);
+    let output = lab("ada", &["show", "1", &host.address]);
+    assert!(out(&output).0.starts_with("experiment 1: cancelled\n"), "{:?}", out(&output));
+
+    // Its results again, by `lab results`; never into a folder with files.
+    let again = dir.path().join("again");
+    let output = lab("ada", &["results", "1", &host.address, "-o", again.to_str().unwrap()]);
+    assert!(output.status.success(), "{:?}", out(&output));
+    assert_eq!(sha256(&again.join("run.mcap")), sha256(&results.join("run.mcap")));
+    let output = lab("ada", &["results", "1", &host.address, "-o", again.to_str().unwrap()]);
+    assert!(!output.status.success());
+    assert!(out(&output).1.contains("is not empty; give a new or empty folder"), "{:?}", out(&output));
+}
+
+#[test]
+fn the_lab_kit_run_locally_gives_the_verdict_the_labs_preflight_gave() {
+    let dir = tempfile::tempdir().unwrap();
+    // The lab's robot drives blind at the wall, its envelope loosened by
+    // the owner: its preflight finds the collision.
+    let blind = r#"<component name="envelope" source="builtin:envelope" rate="20">
+      <param name="max-speed" value="10"/><param name="max-reverse" value="10"/><param name="max-turn" value="20"/>
+      <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
+    </component>"#;
+    let commander_path = support::guest("test-commander").display().to_string();
+    let boot = lab_robot(dir.path(), "boot.xml", &commander_path, &commander("VEL 0.45 0", 100_000_000), blind);
+    let host = lab_host(dir.path(), &boot);
+    let results = dir.path().join("results");
+    let output = lab("ada", &["submit", "--duration", "60", "--results", results.to_str().unwrap(), &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert_eq!(output.status.code(), Some(1), "{stdout}\n{stderr}");
+    assert_eq!(told_states(&stdout, 1), ["checking", "preflight", "refused"], "{stdout}");
+    let reason = stdout.lines().find_map(|l| l.strip_prefix("  preflight: collision at ")).expect(&stdout).to_string();
+    assert!(reason.ends_with("while 'driver' held control"), "{reason}");
+
+    let kit = dir.path().join("kit");
+    let output = lab("ada", &["kit", &host.address, "-o", kit.to_str().unwrap()]);
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stdout.contains(&format!("subsume run {}/robot.xml --http off --speed max --duration 60", kit.display())));
+    check_sums(&kit);
+    let verdict = kit.join("verdict.json");
+    let output = subsume()
+        .arg("--cache-dir")
+        .arg(support::cache_dir())
+        .arg("run")
+        .arg(kit.join("robot.xml"))
+        .args(["--http", "off", "--speed", "max", "--duration", "60", "--criteria"])
+        .arg(kit.join("criteria.json"))
+        .arg("--verdict")
+        .arg(&verdict)
+        .output()
+        .unwrap();
+    let (_, stderr) = out(&output);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stderr.contains(&format!("preflight verdict: refused\n  preflight: collision at {reason}")), "{stderr}");
+    let read = |path: &Path| serde_json::from_slice::<serde_json::Value>(&std::fs::read(path).unwrap()).unwrap();
+    let (local, lab) = (read(&verdict), read(&results.join("preflight-verdict.json")));
+    assert_eq!(local["passed"], false, "{local}");
+    assert_eq!(local, lab, "the kit's verdict differs from the lab's preflight's");
+}

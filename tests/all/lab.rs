@@ -1,0 +1,858 @@
+//! The remote lab end to end (docs/lab.md): the real binary with its portal,
+//! over real HTTP. Three researchers submit six experiments at once; one is
+//! refused by its preflight (a collision, named with its time), one is
+//! cancelled while queued, one while running, one is aborted by an
+//! emergency stop and two are done. Every state change is checked in
+//! order, every bundle is read by the `mcap` package from PyPI and its
+//! recording replays identical with `subsume replay`, and the baseline runs
+//! between experiments and after the last. A host killed with SIGKILL
+//! during an experiment starts again on the baseline, the experiment
+//! aborted with what it recorded, and the queue goes on.
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+use crate::support::{HostProcess, http};
+
+const PASSWORD: &str = "lab-test-password";
+const RESEARCHERS: [&str; 3] = ["ana", "ben", "cy"];
+
+/// The baseline: the demo's behaviours in an open arena, the envelope
+/// without a geofence; the planner drives to a goal in a straight line.
+const BASELINE: &str = r#"<robot name="lab">
+  <platform name="control">
+    <component name="robot-sim" source="builtin:sim">
+      <param name="world" value="lab.world"/>
+      <param name="rays" value="9"/>
+      <param name="fov" value="3.14159"/>
+    </component>
+    <component name="motors" source="builtin:serial" rate="100">
+      <param name="device" value="sim:robot-sim"/>
+      <param name="min-interval" value="0.02"/>
+      <param name="watchdog" value="0.3"/>
+    </component>
+    <component name="filter" source="GUEST(range-filter)" rate="0" budget="5ms" memory="16MiB"/>
+    <component name="avoid" source="GUEST(avoider)" rate="20" budget="5ms" memory="16MiB" timeout="400ms"/>
+    <component name="planner" source="GUEST(planner)" rate="10" budget="5ms" memory="16MiB" timeout="400ms">
+      <param name="goal-x" value="GOAL_X"/>
+      <param name="goal-y" value="1.0"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="envelope" source="builtin:envelope" rate="20">
+      <param name="fov" value="3.14159"/>
+    </component>
+    EXTRA
+    <connect from="motors.ranges" to="filter.ranges"/>
+    <connect from="filter.filtered" to="avoid.ranges"/>
+    <connect from="motors.pose" to="planner.pose"/>
+    <connect from="avoid.cmd" to="arbiter.commands"/>
+    <connect from="planner.cmd" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="motors.ranges" to="envelope.ranges"/>
+    <connect from="motors.pose" to="envelope.pose"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+  <platform name="network">
+    <component name="teleop" source="builtin:teleop" rate="50" timeout="300ms">
+      <param name="listen" value="127.0.0.1:0"/>
+    </component>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+  </platform>
+</robot>
+"#;
+
+/// A source that reverses blindly (the rays look ahead) into the wall
+/// behind the start: a collision the preflight must catch.
+const REVERSE: &str = r#"<component name="reverse" source="builtin:publish" rate="10" priority="2">
+      <param name="kind" value="command"/>
+      <param name="value" value="VEL -0.1 0"/>
+    </component>
+    <connect from="reverse.out" to="arbiter.commands"/>"#;
+
+const WORLD: &str = "bounds 0 0 10 8\nstart 1 1 0\ngoal 8 1 0.3\ncircle 8 6 0.4\n";
+
+fn robot(goal_x: f64, extra: &str) -> String {
+    let mut xml = BASELINE.replace("GOAL_X", &goal_x.to_string()).replace("EXTRA", extra);
+    for name in ["avoider", "planner", "range-filter"] {
+        xml = xml.replace(&format!("GUEST({name})"), &crate::support::guest(name).display().to_string());
+    }
+    xml
+}
+
+struct Lab {
+    host: HostProcess,
+    address: String,
+}
+
+/// `subsume run` of the baseline in `dir` with its portal on a free port,
+/// on the store in `dir/store`.
+fn start(dir: &Path) -> Lab {
+    crate::support::guest_dir();
+    let mut command = crate::support::subsume();
+    command
+        .arg("--store")
+        .arg(dir.join("store"))
+        .arg("run")
+        .arg(dir.join("robot.xml"))
+        .args(["--http", "127.0.0.1:0"])
+        .env_remove("SUBSUME_HTTP");
+    let host = HostProcess::spawn(command);
+    let address = host.word_after("portal on http://", Duration::from_secs(120)).trim_end_matches('/').to_string();
+    Lab { host, address }
+}
+
+fn setup(dir: &Path) {
+    std::fs::write(dir.join("robot.xml"), robot(8.0, "")).unwrap();
+    std::fs::write(dir.join("lab.world"), WORLD).unwrap();
+    let store = dir.join("store");
+    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
+    for name in RESEARCHERS {
+        crate::support::add_user(&store, name, "researcher", &["control"], PASSWORD);
+    }
+}
+
+impl Lab {
+    fn token(&self, user: &str) -> String {
+        crate::support::login(&self.address, user, PASSWORD)
+    }
+
+    fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
+        http(&self.address, method, path, Some(token), body.as_bytes())
+    }
+
+    /// Stages `xml` as `user`'s robot file for the control platform: the
+    /// set's id.
+    fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
+        self.stage_for(token, "control", file, xml)
+    }
+
+    fn stage_for(&self, token: &str, platform: &str, file: &str, xml: &str) -> u64 {
+        let (status, json) = self.call(token, "PUT", &format!("/api/v1/platforms/{platform}/configs/{file}"), xml);
+        assert_eq!(status, 201, "{json}");
+        json["set"]["id"].as_u64().unwrap()
+    }
+
+    fn experiment(&self, token: &str, id: u64) -> Json {
+        let (status, json) = self.call(token, "GET", &format!("/api/v1/experiments/{id}"), "");
+        assert_eq!(status, 200, "{json}");
+        json["experiment"].clone()
+    }
+
+    /// Waits until experiment `id` is in `state` (or any final state when
+    /// `state` is final), up to `timeout`; returns it.
+    fn wait_for(&self, token: &str, id: u64, state: &str, timeout: Duration) -> Json {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let experiment = self.experiment(token, id);
+            if experiment["state"] == state {
+                return experiment;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "experiment {id} never reached {state}: {experiment:#}\n{}",
+                self.host.log()
+            );
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    }
+
+    fn active_set(&self, token: &str) -> u64 {
+        let (status, json) = self.call(token, "GET", "/api/v1/status", "");
+        assert_eq!(status, 200, "{json}");
+        json["set"].as_u64().unwrap()
+    }
+
+    /// Downloads experiment `id`'s results and unpacks them into `into`:
+    /// the bundle's folder.
+    fn results(&self, token: &str, id: u64, into: &Path) -> PathBuf {
+        let archive = into.join(format!("experiment-{id}.tar"));
+        let status = Command::new("curl")
+            .args(["-s", "-f", "-o"])
+            .arg(&archive)
+            .args(["-H", &format!("Authorization: Bearer {token}")])
+            .arg(format!("http://{}/api/v1/experiments/{id}/results", self.address))
+            .status()
+            .unwrap();
+        assert!(status.success(), "downloading experiment {id}'s results failed");
+        // Python's tarfile: an archive reader no one here wrote.
+        let unpacked = Command::new(crate::support::python())
+            .args(["-c", "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')"])
+            .arg(&archive)
+            .arg(into)
+            .output()
+            .unwrap();
+        assert!(unpacked.status.success(), "{}", String::from_utf8_lossy(&unpacked.stderr));
+        let folder = into.join(format!("experiment-{id}"));
+        let sums = Command::new("sha256sum").arg("-c").arg("--quiet").arg("SHA256SUMS").current_dir(&folder).output();
+        let sums = sums.unwrap();
+        assert!(sums.status.success(), "{}", String::from_utf8_lossy(&sums.stdout));
+        folder
+    }
+}
+
+/// The states an experiment went through, in order.
+fn states(experiment: &Json) -> Vec<String> {
+    experiment["history"].as_array().unwrap().iter().map(|c| c["state"].as_str().unwrap().to_string()).collect()
+}
+
+/// When experiment `e` entered `state` (ms), if it did.
+fn entered(experiment: &Json, state: &str) -> Option<u64> {
+    experiment["history"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .rev()
+        .find(|c| c["state"] == state)
+        .map(|c| c["at_ms"].as_u64().unwrap())
+}
+
+/// What the `mcap` package reads in `file`.
+fn read_mcap(file: &Path, truncated: bool) -> Json {
+    let mut command = Command::new(crate::support::python());
+    command.arg(crate::support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
+    if truncated {
+        command.arg("--truncated");
+    }
+    let output = command.output().unwrap();
+    assert!(
+        output.status.success(),
+        "mcap reader failed on {}: {}",
+        file.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).unwrap()
+}
+
+/// `subsume replay` of the bundle's run against its own robot file.
+fn replays_identical(bundle: &Path) {
+    let output =
+        crate::support::subsume().arg("replay").arg(bundle.join("run.mcap")).arg(bundle.join("robot.xml")).output().unwrap();
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(
+        output.status.success() && stdout.contains("identical"),
+        "replay of {}: {stdout}\n{}",
+        bundle.display(),
+        String::from_utf8_lossy(&output.stderr)
+    );
+}
+
+#[test]
+fn six_experiments_of_three_researchers_end_as_they_should_and_the_baseline_runs_between() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let tokens: Vec<String> = RESEARCHERS.iter().map(|r| lab.token(r)).collect();
+    let boss = lab.token("boss");
+    let baseline = lab.active_set(&boss);
+    // Each researcher stages two robot files: ana's first reverses into a
+    // wall; the others drive the planner to goals of their own.
+    let mut plans = Vec::new();
+    for (r, token) in tokens.iter().enumerate() {
+        for n in 0..2 {
+            let extra = if r == 0 && n == 0 { REVERSE } else { "" };
+            let duration = if extra.is_empty() { 3.0 } else { 12.0 };
+            let set = lab.stage(token, &format!("{}-{n}.xml", RESEARCHERS[r]), &robot(6.0 + n as f64, extra));
+            plans.push((r, set, duration, !extra.is_empty()));
+        }
+    }
+    // All six at once.
+    let submitted: Vec<(usize, u64, bool)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = plans
+            .iter()
+            .map(|&(r, set, duration, collides)| {
+                let (lab, token) = (&lab, &tokens[r]);
+                scope.spawn(move || {
+                    let body = serde_json::json!({ "set": set, "duration_s": duration, "label": format!("set {set}") });
+                    let (status, json) = lab.call(token, "POST", "/api/v1/experiments", &body.to_string());
+                    assert_eq!(status, 201, "{json}");
+                    (r, json["experiment"]["id"].as_u64().unwrap(), collides)
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    let token_of = |id: u64| &tokens[submitted.iter().find(|(_, e, _)| *e == id).unwrap().0];
+    // A researcher sees only their own experiments; someone else's is as
+    // if it did not exist.
+    let (_, mine) = lab.call(&tokens[1], "GET", "/api/v1/experiments", "");
+    let listed: Vec<u64> = mine["experiments"].as_array().unwrap().iter().map(|e| e["id"].as_u64().unwrap()).collect();
+    let bens: Vec<u64> = submitted.iter().filter(|(r, _, _)| *r == 1).map(|(_, e, _)| *e).collect();
+    assert_eq!(listed.len(), 2, "{mine}");
+    assert!(listed.iter().all(|id| bens.contains(id)), "{mine}");
+    let anas = submitted.iter().find(|(r, _, _)| *r == 0).unwrap().1;
+    let (status, theirs) = lab.call(&tokens[1], "GET", &format!("/api/v1/experiments/{anas}"), "");
+    let (missing_status, missing) = lab.call(&tokens[1], "GET", "/api/v1/experiments/9999", "");
+    assert_eq!(
+        (status, &theirs["error"]),
+        (missing_status, &Json::String(format!("no experiment {anas}"))),
+        "{theirs} {missing}"
+    );
+
+    // The collision is refused in preflight, naming when and where.
+    let collider = submitted.iter().find(|(_, _, c)| *c).unwrap().1;
+    let refused = lab.wait_for(&tokens[0], collider, "refused", Duration::from_secs(120));
+    assert_eq!(states(&refused), ["checking", "preflight", "refused"], "{refused:#}");
+    let reason = refused["reasons"][0].as_str().unwrap();
+    assert!(
+        reason.starts_with("preflight: collision at ")
+            && reason.contains(" s at (")
+            && reason.contains("while 'reverse' held control"),
+        "{reason}"
+    );
+
+    // The other five in queue order (first in, first out: by id).
+    let mut queue: Vec<u64> = submitted.iter().filter(|(_, _, c)| !*c).map(|(_, e, _)| *e).collect();
+    queue.sort_unstable();
+    let (first, to_cancel_running, to_abort, last, to_cancel_queued) =
+        (queue[0], queue[1], queue[2], queue[3], queue[4]);
+    // Cancelled while queued (it passes its preflight first, or is
+    // cancelled before it: either way it never runs).
+    lab.wait_for(token_of(to_cancel_queued), to_cancel_queued, "queued", Duration::from_secs(120));
+    let (status, json) =
+        lab.call(token_of(to_cancel_queued), "POST", &format!("/api/v1/experiments/{to_cancel_queued}/cancel"), "");
+    assert_eq!((status, json["experiment"]["state"].as_str()), (200, Some("cancelled")), "{json}");
+
+    let done_first = lab.wait_for(token_of(first), first, "done", Duration::from_secs(120));
+    // Cancelled while running: the answer comes once the baseline is back.
+    lab.wait_for(token_of(to_cancel_running), to_cancel_running, "running", Duration::from_secs(60));
+    let (status, json) =
+        lab.call(token_of(to_cancel_running), "POST", &format!("/api/v1/experiments/{to_cancel_running}/cancel"), "");
+    assert_eq!((status, json["experiment"]["state"].as_str()), (200, Some("cancelled")), "{json}");
+    // Aborted by an emergency stop (any user may press it); the lock stays
+    // engaged, the baseline comes back under it, and the queue waits for
+    // the release.
+    lab.wait_for(token_of(to_abort), to_abort, "running", Duration::from_secs(60));
+    let (status, json) = lab.call(&tokens[2], "POST", "/api/v1/estop", "");
+    assert_eq!(status, 200, "{json}");
+    let aborted = lab.wait_for(token_of(to_abort), to_abort, "aborted", Duration::from_secs(30));
+    assert!(aborted["reasons"][0].as_str().unwrap().starts_with("aborted: emergency stop by cy"), "{aborted:#}");
+    assert_eq!(lab.active_set(&boss), baseline, "the baseline runs under the lock");
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(lab.experiment(token_of(last), last)["state"], "queued", "the queue waits while a lock is engaged");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/release", "");
+    assert_eq!(status, 200, "{json}");
+    let done_last = lab.wait_for(token_of(last), last, "done", Duration::from_secs(60));
+
+    // Every state, in order.
+    let passed = ["checking", "preflight", "queued"];
+    let ran = |end: &'static str| [&passed[..], &["running", "finishing", end]].concat();
+    assert_eq!(states(&done_first), ran("done"), "{done_first:#}");
+    assert_eq!(states(&done_last), ran("done"), "{done_last:#}");
+    let cancelled_running = lab.experiment(token_of(to_cancel_running), to_cancel_running);
+    assert_eq!(states(&cancelled_running), ran("cancelled"), "{cancelled_running:#}");
+    assert_eq!(states(&aborted), ran("aborted"), "{aborted:#}");
+    let cancelled_queued = lab.experiment(token_of(to_cancel_queued), to_cancel_queued);
+    assert_eq!(states(&cancelled_queued), [&passed[..], &["cancelled"]].concat(), "{cancelled_queued:#}");
+    // One at a time, first in, first out.
+    let ran_ones = [&done_first, &cancelled_running, &aborted, &done_last];
+    for pair in ran_ones.windows(2) {
+        let (before, after) = (pair[0], pair[1]);
+        assert!(
+            entered(before, "done").or(entered(before, "cancelled")).or(entered(before, "aborted")).unwrap()
+                <= entered(after, "running").unwrap()
+        );
+    }
+    assert_eq!(lab.active_set(&boss), baseline, "the baseline runs after the last");
+    // The baseline came back after each run: the audit log says so.
+    let (_, audit) = lab.call(&boss, "GET", "/api/v1/audit", "");
+    let ends: Vec<&Json> =
+        audit["entries"].as_array().unwrap().iter().filter(|e| e["action"] == "experiment-end").collect();
+    assert_eq!(ends.len(), 4, "{audit:#}");
+    assert!(
+        ends.iter().all(|e| e["result"] == "ok"
+            && e["detail"].as_str().unwrap().contains(&format!("the baseline (set {baseline}) runs"))),
+        "{ends:#?}"
+    );
+
+    // Each bundle reads with the `mcap` package and replays identical.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    for experiment in ran_ones {
+        let id = experiment["id"].as_u64().unwrap();
+        let bundle = lab.results(token_of(id), id, &out);
+        let read = read_mcap(&bundle.join("run.mcap"), false);
+        assert!(read["complete"].as_bool().unwrap() && read["in_order_per_channel"].as_bool().unwrap(), "{read:#}");
+        if experiment["state"] == "done" {
+            assert!(read["channels"]["/planner/cmd"]["count"].as_u64().is_some_and(|n| n > 10), "{read:#}");
+        }
+        replays_identical(&bundle);
+        let record: Json = serde_json::from_slice(&std::fs::read(bundle.join("experiment.json")).unwrap()).unwrap();
+        assert_eq!(record["id"], id);
+        assert!(bundle.join("report.json").is_file() && bundle.join("log.txt").is_file());
+        let preflight = read_mcap(&bundle.join("preflight.mcap"), false);
+        assert!(preflight["complete"].as_bool().unwrap(), "{preflight:#}");
+    }
+    // The refused one's bundle has its preflight, which shows the collision.
+    let bundle = lab.results(&tokens[0], collider, &out);
+    let verdict: Json = serde_json::from_slice(&std::fs::read(bundle.join("preflight-verdict.json")).unwrap()).unwrap();
+    assert!(verdict["observed"]["collisions"].as_u64().unwrap() >= 1, "{verdict:#}");
+    assert!(read_mcap(&bundle.join("preflight.mcap"), false)["complete"].as_bool().unwrap());
+}
+
+#[test]
+fn a_host_killed_during_an_experiment_starts_again_on_the_baseline_and_the_queue_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let mut lab = start(dir.path());
+    let ana = lab.token("ana");
+    let boss = lab.token("boss");
+    let baseline = lab.active_set(&boss);
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let submit = |lab: &Lab, duration: f64| {
+        let body = serde_json::json!({ "set": set, "duration_s": duration }).to_string();
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        json["experiment"]["id"].as_u64().unwrap()
+    };
+    let long = submit(&lab, 60.0);
+    let next = submit(&lab, 3.0);
+    lab.wait_for(&ana, long, "running", Duration::from_secs(120));
+    lab.wait_for(&ana, next, "queued", Duration::from_secs(120));
+    // Paused, the queue starts nothing after the restart until it resumes:
+    // what runs then is what the host started on.
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!((status, &json["paused"]), (200, &Json::Bool(true)), "{json}");
+    // Let it record a while (chunks reach the file every 500 ms).
+    std::thread::sleep(Duration::from_secs(2));
+    assert_ne!(lab.active_set(&boss), baseline, "the experiment's set runs");
+    lab.host.child.kill().unwrap();
+    lab.host.child.wait().unwrap();
+
+    lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    assert_eq!(
+        lab.active_set(&boss),
+        baseline,
+        "the host starts again on the baseline: {}\n{}",
+        std::fs::read_to_string(dir.path().join("store/audit.log")).unwrap_or_default(),
+        lab.host.log()
+    );
+    let aborted = lab.experiment(&ana, long);
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}");
+    assert!(aborted["reasons"].as_array().unwrap().iter().any(|r| r == "aborted: host stopped"), "{aborted:#}");
+    // What it recorded until the kill is in its bundle.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, long, &out);
+    let read = read_mcap(&bundle.join("run.mcap"), true);
+    assert!(read["messages"].as_u64().unwrap() > 100, "{read:#}");
+    // The queue goes on.
+    assert_eq!(lab.experiment(&ana, next)["state"], "queued");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/resume", "");
+    assert_eq!((status, &json["paused"]), (200, &Json::Bool(false)), "{json}");
+    let done = lab.wait_for(&ana, next, "done", Duration::from_secs(120));
+    assert_eq!(done["reasons"].as_array().map(Vec::len), Some(0), "{done:#}");
+    assert_eq!(lab.active_set(&boss), baseline);
+}
+
+/// `subsume run` for the refusal cases: the baseline, a researcher of each
+/// platform, a developer and an admin.
+fn start_with_users(dir: &Path) -> Lab {
+    setup(dir);
+    let store = dir.join("store");
+    crate::support::add_user(&store, "nora", "researcher", &["network"], PASSWORD);
+    crate::support::add_user(&store, "dev", "developer", &["control"], PASSWORD);
+    start(dir)
+}
+
+/// Uploads `guest` as `user`'s component `name`.
+fn upload(lab: &Lab, token: &str, name: &str, guest: &str) {
+    let bytes = std::fs::read(crate::support::guest(guest)).unwrap();
+    let (status, json) =
+        http(&lab.address, "PUT", &format!("/api/v1/platforms/control/components/{name}"), Some(token), &bytes);
+    assert_eq!(status, 201, "{json}");
+}
+
+/// A component that misbehaves in the preflight: test-faulty in `mode`
+/// after a few good ticks, unconnected.
+fn faulty(mode: &str) -> String {
+    format!(
+        r#"<component name="bad" source="faulty.wasm" rate="10" budget="5ms" memory="16MiB">
+      <param name="mode" value="{mode}"/>
+      <param name="after" value="5"/>
+    </component>"#
+    )
+}
+
+/// Each bad submission is refused with the status and words it should
+/// have, at once or by its preflight, and nothing runs.
+#[test]
+fn bad_submissions_are_refused_with_their_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let ana = lab.token("ana");
+    let nora = lab.token("nora");
+    let good = lab.stage(&ana, "good.xml", &robot(7.0, ""));
+    // Nora's set changes the network platform, which ana does not hold.
+    let network = lab.stage_for(&nora, "network", "net.xml", &robot(8.0, "").replace("rate=\"50\"", "rate=\"40\""));
+    // A set whose world file goes away after it was staged.
+    std::fs::write(dir.path().join("gone.world"), WORLD).unwrap();
+    let gone = lab.stage(&ana, "gone.xml", &robot(7.0, "").replace("lab.world", "gone.world"));
+    std::fs::remove_file(dir.path().join("gone.world")).unwrap();
+    upload(&lab, &ana, "faulty", "test-faulty");
+    let mut faults = Vec::new();
+    for (mode, words) in [
+        ("loop-on-tick", "exceeded its cpu-time budget"),
+        ("trap-on-tick", "trapped"),
+        ("sleep-on-tick", "blocking calls are not allowed"),
+    ] {
+        let set = lab.stage(&ana, &format!("{mode}.xml"), &robot(7.0, &faulty(mode)));
+        faults.push((mode, set, words));
+    }
+    let body = |set: u64, duration: f64| serde_json::json!({ "set": set, "duration_s": duration }).to_string();
+    // (case, body, status, words of the error)
+    let at_once: Vec<(&str, String, u16, &str)> = vec![
+        ("over the max duration", body(good, 121.0), 400, "max-duration of 120 s"),
+        ("no duration", body(good, 0.0), 400, "duration_s must be from 1"),
+        ("not json", "{set: 1".into(), 400, "expected {\"set\": ID"),
+        ("an unknown field", r#"{"set": 1, "duration_s": 5, "robot": "x"}"#.into(), 400, "unknown field"),
+        (
+            "a label too long",
+            serde_json::json!({"set": good, "duration_s": 5, "label": "x".repeat(200)}).to_string(),
+            400,
+            "at most 120 characters",
+        ),
+        ("no such set", body(9999, 5.0), 404, "no set 9999"),
+        ("another platform's set", body(network, 5.0), 403, "staged for platform network, which ana does not hold"),
+        ("a set that no longer validates", body(gone, 5.0), 422, "problem(s) in the set's robot file"),
+    ];
+    for (case, body, status, words) in &at_once {
+        let (got, json) = lab.call(&ana, "POST", "/api/v1/experiments", body);
+        assert_eq!(got, *status, "{case}: {json}");
+        assert!(json["error"].as_str().unwrap().contains(words), "{case}: {json}");
+        if *status == 422 {
+            let diagnostic = json["diagnostics"][0]["text"].as_str().unwrap();
+            assert!(diagnostic.starts_with("gone.xml:") && diagnostic.contains("gone.world"), "{case}: {json}");
+        }
+    }
+    let (_, listed) = lab.call(&ana, "GET", "/api/v1/experiments", "");
+    assert_eq!(listed["experiments"].as_array().unwrap().len(), 0, "a refused submission leaves nothing: {listed}");
+    // Guests that loop, trap or sleep are refused by their preflight,
+    // naming the fault.
+    for (mode, set, words) in faults {
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body(set, 5.0));
+        assert_eq!(status, 201, "{mode}: {json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(120));
+        let reasons = refused["reasons"].to_string();
+        assert!(reasons.contains("component 'bad' faulted at") && reasons.contains(words), "{mode}: {refused:#}");
+        assert!(entered(&refused, "running").is_none(), "{mode}: {refused:#}");
+    }
+}
+
+/// While an experiment runs, a developer's activation is refused naming
+/// it; an admin's ends it first, says so, and pauses the queue.
+#[test]
+fn nobody_else_changes_what_runs_during_an_experiment_but_an_admin_who_ends_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let (ana, dev, boss) = (lab.token("ana"), lab.token("dev"), lab.token("boss"));
+    let baseline = lab.active_set(&boss);
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let other = lab.stage(&dev, "dev.xml", &robot(6.5, ""));
+    let (status, json) =
+        lab.call(&ana, "POST", "/api/v1/experiments", &serde_json::json!({"set": set, "duration_s": 60}).to_string());
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "running", Duration::from_secs(120));
+    for (what, path) in
+        [("activate", format!("/api/v1/sets/{other}/activate")), ("roll back", "/api/v1/rollback".into())]
+    {
+        let (status, json) = lab.call(&dev, "POST", &path, "");
+        let error = json["error"].as_str().unwrap_or_default();
+        assert_eq!(status, 409, "{what}: {json}");
+        assert!(
+            error.starts_with(&format!("experiment {id} by ana runs until ")) && error.contains(" s from now"),
+            "{what}: {json}"
+        );
+    }
+    let (status, json) = lab.call(&ana, "POST", &format!("/api/v1/sets/{other}/activate"), "");
+    assert_eq!(status, 403, "a researcher never activates: {json}");
+    assert_eq!(lab.experiment(&ana, id)["state"], "running");
+    let (status, json) = lab.call(&boss, "POST", &format!("/api/v1/sets/{other}/activate"), "");
+    assert_eq!(status, 200, "{json}");
+    let note = json["note"].as_str().unwrap();
+    assert_eq!(note, format!("it cancelled experiment {id} (by ana) first; the queue is paused"), "{json}");
+    let cancelled = lab.experiment(&ana, id);
+    assert_eq!(cancelled["state"], "cancelled", "{cancelled:#}");
+    assert!(
+        cancelled["reasons"][0]
+            .as_str()
+            .unwrap()
+            .starts_with(&format!("cancelled: admin boss is about to activate set {other}"))
+    );
+    assert_eq!(lab.active_set(&boss), other);
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert_eq!(overview["lab"]["paused"], true, "{overview}");
+    assert_eq!(overview["lab"]["baseline"].as_u64(), Some(baseline));
+}
+
+/// Four users submit 20 experiments each at once, many times: the limits
+/// hold exactly (experiments waiting, then robot-minutes), and no
+/// experiment is lost or duplicated.
+#[test]
+fn concurrent_submissions_never_pass_the_limits_nor_lose_an_experiment() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let store = dir.path().join("store");
+    let users = ["ana", "ben", "cy", "dev"];
+    let tokens: Vec<String> = users.iter().map(|u| lab.token(u)).collect();
+    let boss = lab.token("boss");
+    let sets: Vec<u64> =
+        tokens.iter().enumerate().map(|(i, t)| lab.stage(t, &format!("s{i}.xml"), &robot(7.0, ""))).collect();
+    // Paused, nothing starts: an experiment waits until it is cancelled.
+    let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200);
+    let settings = |max_queued: u32, minutes: f64| {
+        serde_json::json!({
+            "max_duration_s": 120.0,
+            "limits": {"max_queued": max_queued, "robot_minutes_per_day": minutes, "max_reservation_s": 1800, "reservation_per_day_s": 3600},
+            "criteria": {"max_collisions": 0, "allow_faults": false, "allow_geofence": false, "allow_stop_zone": false},
+            "reset": "sim", "preflight_world": null, "reference_recording": null, "retention_bytes": 10737418240_u64, "kit": true
+        })
+        .to_string()
+    };
+    let mut seen = std::collections::BTreeSet::new();
+    // (max queued, robot minutes a day, each experiment's seconds, accepted per user)
+    let rounds = [(3, 30.0, 5.0, 3), (100, 1.0, 10.0, 6), (2, 30.0, 5.0, 2), (100, 0.5, 10.0, 3)];
+    for (round, (max_queued, minutes, duration, expected)) in rounds.iter().enumerate() {
+        let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings(*max_queued, *minutes));
+        assert_eq!(status, 200, "{json}");
+        let outcomes: Vec<Vec<(u16, Json)>> = std::thread::scope(|scope| {
+            let handles: Vec<_> = (0..users.len())
+                .map(|u| {
+                    let (lab, token, set) = (&lab, &tokens[u], sets[u]);
+                    scope.spawn(move || {
+                        let inner: Vec<_> = (0..20)
+                            .map(|_| {
+                                scope.spawn(move || {
+                                    let body = serde_json::json!({ "set": set, "duration_s": duration }).to_string();
+                                    lab.call(token, "POST", "/api/v1/experiments", &body)
+                                })
+                            })
+                            .collect();
+                        inner.into_iter().map(|h| h.join().unwrap()).collect::<Vec<_>>()
+                    })
+                })
+                .collect();
+            handles.into_iter().map(|h| h.join().unwrap()).collect()
+        });
+        for (u, results) in outcomes.iter().enumerate() {
+            let accepted: Vec<u64> = results
+                .iter()
+                .filter(|(s, _)| *s == 201)
+                .map(|(_, j)| j["experiment"]["id"].as_u64().unwrap())
+                .collect();
+            let refused = results.iter().filter(|(s, _)| *s == 429).count();
+            assert_eq!(
+                (accepted.len(), refused),
+                (*expected, 20 - expected),
+                "round {round}, {}: {results:?}",
+                users[u]
+            );
+            for (_, json) in results.iter().filter(|(s, _)| *s == 429) {
+                let error = json["error"].as_str().unwrap();
+                assert!(
+                    error.contains(users[u]) && (error.contains("waiting") || error.contains("robot-minutes")),
+                    "{error}"
+                );
+            }
+            for id in accepted {
+                assert!(seen.insert(id), "experiment {id} was handed out twice");
+            }
+        }
+        // Everything accepted is listed, once, and on disk; then it is
+        // cancelled, which frees the limits for the next round.
+        let (_, all) = lab.call(&boss, "GET", "/api/v1/experiments", "");
+        let listed: Vec<u64> =
+            all["experiments"].as_array().unwrap().iter().map(|e| e["id"].as_u64().unwrap()).collect();
+        assert_eq!(listed.iter().copied().collect::<std::collections::BTreeSet<_>>(), seen, "round {round}");
+        assert_eq!(listed.len(), seen.len(), "round {round}: a duplicate in the list");
+        for id in &listed {
+            assert!(store.join(format!("experiments/{id}/experiment.json")).is_file(), "experiment {id}");
+        }
+        for experiment in all["experiments"].as_array().unwrap() {
+            let id = experiment["id"].as_u64().unwrap();
+            if !["cancelled", "refused"].contains(&experiment["state"].as_str().unwrap()) {
+                let (status, json) = lab.call(&boss, "POST", &format!("/api/v1/experiments/{id}/cancel"), "");
+                assert_eq!(status, 200, "{json}");
+            }
+        }
+    }
+    // Ids were handed out in order, none skipped: nothing refused left a record.
+    let max = *seen.iter().max().unwrap();
+    assert_eq!(seen.len() as u64, max, "ids 1..={max}");
+}
+
+/// A cancel that races the start of the experiment: one outcome, recorded
+/// once, and the baseline runs after it.
+#[test]
+fn a_cancel_racing_the_start_has_one_outcome() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let baseline = lab.active_set(&boss);
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let mut ran = 0;
+    for round in 0..8 {
+        let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+        assert_eq!(status, 200);
+        let (status, json) = lab.call(
+            &ana,
+            "POST",
+            "/api/v1/experiments",
+            &serde_json::json!({"set": set, "duration_s": 30}).to_string(),
+        );
+        assert_eq!(status, 201, "{json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        lab.wait_for(&ana, id, "queued", Duration::from_secs(120));
+        // Resume and cancel at once, the cancel a little later each round.
+        let (resumed, cancelled) = std::thread::scope(|scope| {
+            let resume = scope.spawn(|| lab.call(&boss, "POST", "/api/v1/lab/resume", ""));
+            let cancel = scope.spawn(|| {
+                std::thread::sleep(Duration::from_millis(round * 15));
+                lab.call(&ana, "POST", &format!("/api/v1/experiments/{id}/cancel"), "")
+            });
+            (resume.join().unwrap(), cancel.join().unwrap())
+        });
+        assert_eq!(resumed.0, 200);
+        assert_eq!(cancelled.0, 200, "{}", cancelled.1);
+        let experiment = lab.experiment(&ana, id);
+        let history = states(&experiment);
+        assert_eq!(experiment["state"], "cancelled", "round {round}: {experiment:#}");
+        let finals = history
+            .iter()
+            .filter(|s| ["done", "cancelled", "aborted", "failed", "refused"].contains(&s.as_str()))
+            .count();
+        assert_eq!(finals, 1, "round {round}: {history:?}");
+        if history.contains(&"running".to_string()) {
+            ran += 1;
+            assert_eq!(&history[history.len() - 3..], ["running", "finishing", "cancelled"], "round {round}");
+        } else {
+            assert_eq!(&history[history.len() - 2..], ["queued", "cancelled"], "round {round}");
+        }
+    }
+    let (_, audit) = lab.call(&boss, "GET", "/api/v1/audit", "");
+    let entries = audit["entries"].as_array().unwrap();
+    let cancels = entries.iter().filter(|e| e["action"] == "cancel-experiment").count();
+    let starts = entries.iter().filter(|e| e["action"] == "experiment-start").count();
+    let ends = entries.iter().filter(|e| e["action"] == "experiment-end").count();
+    assert_eq!((cancels, starts, ends), (8, ran, ran), "each cancel and each run recorded once");
+    let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200);
+    assert_eq!(lab.active_set(&boss), baseline);
+}
+
+/// A robot with a real motor controller (here the far end of a PTY): its
+/// experiments' preflight runs against a simulated controller of the same
+/// protocol in the owner's preflight world, the manual reset waits for an
+/// admin, the run drives the real device, and the lab kit runs the same
+/// preflight form on a researcher's machine with the same verdict.
+#[test]
+fn a_real_robot_is_preflighted_against_a_simulated_controller() {
+    let dir = tempfile::tempdir().unwrap();
+    let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
+    let real = |goal_x: f64| {
+        robot(goal_x, "")
+            .replace(
+                r#"<component name="robot-sim" source="builtin:sim">
+      <param name="world" value="lab.world"/>
+      <param name="rays" value="9"/>
+      <param name="fov" value="3.14159"/>
+    </component>"#,
+                "",
+            )
+            .replace("sim:robot-sim", &device)
+    };
+    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
+    let store = dir.path().join("store");
+    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
+    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
+    let reading = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+    let keep_reading = reading.clone();
+    let recorder = std::thread::spawn(move || {
+        motors.read_while(|| keep_reading.load(std::sync::atomic::Ordering::Relaxed));
+        motors
+    });
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    // The owner's preflight world, and a manual reset (nothing simulated
+    // on the robot to reset).
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
+    assert_eq!(status, 201, "{json}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["preflight_world"] = Json::String("arena.world".into());
+    settings["reset"] = Json::String("manual".into());
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &real(7.0));
+    let body = serde_json::json!({ "set": set, "duration_s": 3 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(120));
+    // The preflight drove a simulated robot: the planner moved it.
+    let preflight = queued["preflight"].clone();
+    assert_eq!(preflight["passed"], true, "{queued:#}");
+    // The manual reset: it waits for an admin.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while !lab.experiment(&ana, id)["awaiting_reset"].as_bool().unwrap() {
+        assert!(Instant::now() < deadline, "never waited for the reset");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let (_, overview) = lab.call(&ana, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["held"].as_str().unwrap().contains("waits for the robot to be reset"), "{overview}");
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/lab/reset", "");
+    assert_eq!(status, 403, "only an admin confirms: {json}");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
+    assert_eq!((status, json["confirmed_for"].as_u64()), (200, Some(id)), "{json}");
+    lab.wait_for(&ana, id, "done", Duration::from_secs(60));
+    reading.store(false, std::sync::atomic::Ordering::Relaxed);
+    let motors = recorder.join().unwrap();
+    // No feedback comes from this controller, so the envelope holds the
+    // robot (stale sensors): the frames on the wire are the ascii STOP.
+    assert!(motors.lines.iter().any(|(_, l)| l == "S"), "the real device got frames: {:?}", motors.lines);
+    // The bundle's robot file is the preflight form: a simulated controller
+    // stands in for the device, in the owner's world.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, id, &out);
+    let written = std::fs::read_to_string(bundle.join("robot.xml")).unwrap();
+    assert!(
+        written.contains(r#"<component name="preflight-sim-motors" source="builtin:sim">"#)
+            && written.contains(r#"<param name="device" value="sim:preflight-sim-motors"/>"#)
+            && !written.contains(&device),
+        "{written}"
+    );
+    // The kit: the baseline in its preflight form, which `subsume run`
+    // judges as the lab does.
+    let kit = out.join("kit.tar");
+    let fetched = Command::new("curl")
+        .args(["-s", "-f", "-o"])
+        .arg(&kit)
+        .args(["-H", &format!("Authorization: Bearer {ana}")])
+        .arg(format!("http://{}/api/v1/lab/kit", lab.address))
+        .status()
+        .unwrap();
+    assert!(fetched.success());
+    let unpacked = Command::new("tar").arg("-xf").arg(&kit).arg("-C").arg(&out).status().unwrap();
+    assert!(unpacked.success());
+    let verdict = out.join("kit-verdict.json");
+    let run = crate::support::subsume()
+        .arg("run")
+        .arg(out.join("lab-kit/robot.xml"))
+        .args(["--http", "off", "--speed", "max", "--duration", "3", "--criteria"])
+        .arg(out.join("lab-kit/criteria.json"))
+        .arg("--verdict")
+        .arg(&verdict)
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(run.status.success(), "{stderr}");
+    assert!(stderr.contains("preflight verdict: passed"), "{stderr}");
+    let verdict: Json = serde_json::from_slice(&std::fs::read(&verdict).unwrap()).unwrap();
+    assert_eq!(verdict["passed"], preflight["passed"], "{verdict:#}");
+}

@@ -1,0 +1,95 @@
+//! Simulated time, end to end: the built `subsume` binary runs the demo on
+//! a simulated clock (`--speed N`, `--speed max`), faster than real time and
+//! with the same result for the same inputs.
+
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+
+use crate::support::{FREE_TELEOP_PORTS, read_report, subsume};
+
+/// Runs the demo on simulated time; returns the report and the wall time.
+fn run_demo(dir: &Path, label: &str, speed: &str, seconds: &str) -> (Json, Duration) {
+    run_robot(dir, "config/demo.xml", label, speed, seconds)
+}
+
+fn run_robot(dir: &Path, robot: &str, label: &str, speed: &str, seconds: &str) -> (Json, Duration) {
+    let report = dir.join(format!("{label}.json"));
+    let started = Instant::now();
+    let output = subsume()
+        .args(["run", robot, "--speed", speed, "--duration", seconds])
+        .args(["--report", report.to_str().unwrap()])
+        .args(FREE_TELEOP_PORTS)
+        .output()
+        .unwrap();
+    let wall = started.elapsed();
+    let log = String::from_utf8_lossy(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    assert!(log.contains("simulated time:"), "{log}");
+    assert!(!log.contains("no longer deterministic"), "a lock-step wait ran out:\n{log}");
+    (read_report(&report), wall)
+}
+
+/// What must not differ between two runs with the same inputs: the
+/// simulated robot's state (pose, distance, collisions, goal, ranges), the
+/// link's counters and the graph's message counts, as bytes.
+fn outcome(report: &Json) -> String {
+    let mut sim = report["sim"].clone();
+    sim.as_object_mut().unwrap().remove("pty");
+    let mut serial = report["serial"].clone();
+    serial.as_object_mut().unwrap().remove("device");
+    serde_json::to_string(&(sim, serial, &report["messages"], &report["cycles"], &report["duration_s"])).unwrap()
+}
+
+#[test]
+fn two_lockstep_runs_of_the_demo_give_byte_identical_outcomes_faster_than_real_time() {
+    let dir = tempfile::tempdir().unwrap();
+    let (first, wall) = run_demo(dir.path(), "first", "max", "60");
+    let (second, _) = run_demo(dir.path(), "second", "max", "60");
+    assert_eq!(outcome(&first), outcome(&second));
+    // The demo does what it does in real time: it reaches its goal unharmed.
+    assert_eq!(first["sim"]["goal_reached"], true, "{}", first["sim"]);
+    assert_eq!(first["sim"]["collisions"], 0);
+    assert_eq!(first["duration_s"], 60.0);
+    // Measured: 60 simulated seconds take about 1 s here; half real time is a
+    // bound no loaded machine comes near.
+    assert!(wall < Duration::from_secs(30), "60 simulated seconds took {wall:?}");
+}
+
+#[test]
+fn speed_n_paces_simulated_time_and_gives_the_lockstep_result() {
+    let dir = tempfile::tempdir().unwrap();
+    let (paced, wall) = run_demo(dir.path(), "paced", "4", "4");
+    let (free, _) = run_demo(dir.path(), "free", "max", "4");
+    // 4 simulated seconds at 4x real time cannot take less than 1 s.
+    assert!(wall >= Duration::from_secs(1), "{wall:?}");
+    assert_eq!(outcome(&paced), outcome(&free));
+}
+
+#[test]
+fn the_demo_as_a_create2_is_repeatable_in_lockstep_too() {
+    // The Create 2 translator polls its sensor stream: polls are frames the
+    // lock-step waits for like commands.
+    let dir = tempfile::tempdir().unwrap();
+    let (first, _) = run_robot(dir.path(), "config/demo-create2.xml", "first", "max", "30");
+    let (second, _) = run_robot(dir.path(), "config/demo-create2.xml", "second", "max", "30");
+    assert_eq!(outcome(&first), outcome(&second));
+    assert!(first["sim"]["distance_travelled_m"].as_f64().unwrap() > 1.0, "{}", first["sim"]);
+}
+
+#[test]
+fn a_bad_speed_is_refused_and_nothing_runs() {
+    for bad in ["0", "fast", "1e9"] {
+        let output = subsume().args(["run", "config/demo.xml", "--speed", bad, "--duration", "1"]).output().unwrap();
+        let stderr = String::from_utf8_lossy(&output.stderr);
+        assert!(!output.status.success());
+        assert!(
+            stderr.contains(&format!(
+                "error: invalid value '{bad}' for '--speed <N|max>': --speed must be a number of times real time (more than 0, at most 10000) or 'max', got '{bad}'"
+            )),
+            "{stderr}"
+        );
+        assert!(!stderr.contains("simulated robot on"), "{stderr}");
+    }
+}
