@@ -4,7 +4,7 @@
 // The parser modules are shared with the host; not every item is used here.
 #![allow(dead_code)]
 
-#[path = "../../host/src/robot/control.rs"]
+#[path = "../../host/src/contract/control.rs"]
 mod control;
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {

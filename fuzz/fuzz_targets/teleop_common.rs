@@ -2,7 +2,7 @@
 // it names, compiled on their own; included by the teleop_line and
 // teleop_json targets.
 
-#[path = "../../host/src/robot/control.rs"]
+#[path = "../../host/src/contract/control.rs"]
 mod control_impl;
 #[path = "../../host/src/teleop/mode.rs"]
 mod mode_impl;

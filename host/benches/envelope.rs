@@ -27,7 +27,7 @@ use subsume::arbiter::{ArbiterComponent, Source};
 use subsume::contract::Value;
 use subsume::envelope::logic::{Envelope, Settings};
 use subsume::envelope::{EnvelopeComponent, INPUT_CMD, INPUT_POSE, INPUT_RANGES};
-use subsume::robot::control::ControlCommand;
+use subsume::contract::control::ControlCommand;
 use subsume::robot::protocol::Profile;
 use subsume::robot::serial::{LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator};
@@ -238,7 +238,7 @@ fn hostile_run(world: &Path, seed: u64) -> (u64, f64, f64, u64) {
         }
         envelope.tick(now, &mut out).unwrap();
         if let Some((_, Value::Command(text))) = out.last() {
-            wheels = match subsume::robot::control::parse(text).unwrap() {
+            wheels = match subsume::contract::control::parse(text).unwrap() {
                 ControlCommand::Vel { linear, angular } => geometry.wheels(linear, angular),
                 _ => (0.0, 0.0),
             };

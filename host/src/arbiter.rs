@@ -35,7 +35,7 @@ use crate::builtin::{
 };
 use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
-use crate::robot::control::{self, ControlCommand};
+use crate::contract::control::{Command, ControlCommand};
 use crate::runtime::locks::unix_now_ms;
 use crate::runtime::{
     CallError, Component, Engagement, Family, LockEvent, Locks, NamedSection, Outbox, PriorityCell, Sample, Standing,
@@ -70,7 +70,7 @@ pub struct Source {
 #[derive(Clone, Debug)]
 struct SourceState {
     source: Source,
-    last: Option<(ControlCommand, u64)>,
+    last: Option<(Command, u64)>,
     faulted: bool,
     held_ns: u64,
 }
@@ -80,8 +80,9 @@ struct SourceState {
 pub struct Decision {
     /// Index of the winning source, `None` when no source is active.
     pub holder: Option<usize>,
-    /// The command for the motors: the holder's latest, or STOP.
-    pub command: ControlCommand,
+    /// The command for the motors: the holder's latest (as it entered), or
+    /// STOP.
+    pub command: Command,
 }
 
 /// What the rest of the host sees of the arbiter.
@@ -230,10 +231,10 @@ impl Arbiter {
 
     /// Records `command` from the source whose component is `component`.
     /// Returns false when `component` is not a source or has faulted.
-    pub fn offer(&mut self, component: usize, command: ControlCommand, now_ns: u64) -> bool {
+    pub fn offer(&mut self, component: usize, command: impl Into<Command>, now_ns: u64) -> bool {
         match self.sources.iter_mut().find(|s| s.source.component == component) {
             Some(state) if !state.faulted => {
-                state.last = Some((command, now_ns));
+                state.last = Some((command.into(), now_ns));
                 true
             }
             _ => false,
@@ -261,7 +262,7 @@ impl Arbiter {
     }
 
     fn is_active(state: &SourceState, now_ns: u64) -> bool {
-        !state.faulted && state.last.is_some_and(|(_, at)| now_ns.saturating_sub(at) <= state.source.timeout_ns)
+        !state.faulted && state.last.as_ref().is_some_and(|(_, at)| now_ns.saturating_sub(*at) <= state.source.timeout_ns)
     }
 
     /// Decides at `now_ns`; counts switches, held time and stops.
@@ -283,11 +284,11 @@ impl Arbiter {
             self.switches += 1;
             self.holder = winner;
         }
-        let command = match winner.and_then(|w| self.sources[w].last) {
-            Some((command, _)) => command,
+        let command = match winner.and_then(|w| self.sources[w].last.as_ref()) {
+            Some((command, _)) => command.clone(),
             None => {
                 self.stops_sent += 1;
-                ControlCommand::Stop
+                Command::from(ControlCommand::Stop)
             }
         };
         Decision { holder: winner, command }
@@ -358,7 +359,7 @@ impl Arbiter {
 pub struct ArbiterComponent {
     name: String,
     arbiter: Arbiter,
-    last_sent: Option<(Option<usize>, ControlCommand)>,
+    last_sent: Option<(Option<usize>, Option<ControlCommand>)>,
     now_ns: u64,
     standings: Standings,
     /// Each source's standing as last written to `standings`.
@@ -464,9 +465,9 @@ impl ArbiterComponent {
         if previous_holder != Some(decision.holder) {
             self.log_change(decision.holder, now_ns);
         }
-        let output = (decision.holder, decision.command);
+        let output = (decision.holder, decision.command.motion());
         if always || self.last_sent != Some(output) {
-            out.push((0, Value::Command(decision.command.to_string())));
+            out.push((0, Value::Command(decision.command)));
         }
         self.last_sent = Some(output);
     }
@@ -524,13 +525,13 @@ impl Component for ArbiterComponent {
         if port == LOCK_PORT {
             return self.on_lock_feed(value, from, now_ns, out);
         }
-        let Value::Command(text) = value else {
+        let Value::Command(command) = value else {
             self.arbiter.reject();
             return Err(CallError::Reported("commands: expected a control string".into()));
         };
-        match control::parse(text) {
-            Ok(command) => {
-                if self.arbiter.offer(from, command, now_ns) {
+        match command.parsed() {
+            Ok(_) => {
+                if self.arbiter.offer(from, command.clone(), now_ns) {
                     self.decide_and_emit(now_ns, false, out);
                 }
                 Ok(())
@@ -809,7 +810,7 @@ mod tests {
                 Decide => {}
             }
             let decision = arbiter.decide(now);
-            assert_eq!((decision.holder, decision.command), (holder, command), "at {ms} ms");
+            assert_eq!((decision.holder, decision.command), (holder, Command::from(command)), "at {ms} ms");
         }
         let status = arbiter.status(901 * MS);
         assert_eq!(status.holder, None);
@@ -944,7 +945,7 @@ mod tests {
                 LockEvent_::Decide => {}
             }
             let decision = arbiter.decide(now);
-            assert_eq!((decision.holder, decision.command), (holder, command), "at {ms} ms");
+            assert_eq!((decision.holder, decision.command), (holder, Command::from(command)), "at {ms} ms");
         }
     }
 

@@ -21,7 +21,7 @@ use std::time::Duration;
 
 use serde_json::Value as Json;
 use subsume::contract::Param;
-use subsume::robot::control::ControlCommand;
+use subsume::contract::control::ControlCommand;
 use subsume::robot::protocol::Feedback;
 use subsume::robot::translator::Translator;
 use subsume::sandbox::{GuestLimits, Sandbox, WasmTranslator};

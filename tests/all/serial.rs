@@ -8,7 +8,7 @@ use std::time::{Duration, Instant};
 
 use serialport::{SerialPort, TTYPort};
 use subsume::contract::Value;
-use subsume::robot::control::ControlCommand;
+use subsume::contract::control::ControlCommand;
 use subsume::robot::protocol::{Feedback, Profile};
 use subsume::robot::serial::{LinkError, LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, LinkPlan, ProfileTranslator, TranslateError, Translator};

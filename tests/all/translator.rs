@@ -7,7 +7,7 @@ use std::time::{Duration, Instant};
 
 use serialport::SerialPort;
 use subsume::contract::{Param, Value};
-use subsume::robot::control::ControlCommand;
+use subsume::contract::control::ControlCommand;
 use subsume::robot::protocol::{Feedback, Profile};
 use subsume::robot::serial::{LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator, TranslateError, Translator};

@@ -30,7 +30,7 @@ use crate::builtin::{
 };
 use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
-use crate::robot::control::{self, ControlCommand};
+use crate::contract::control::ControlCommand;
 use crate::runtime::halt::{self, Halt};
 use crate::runtime::{CallError, Component, MotorStop, Outbox, StatusSection, StopOutcome};
 use zenoh::Wait;
@@ -324,7 +324,7 @@ impl Ros2Publisher {
     fn payload(&self, value: &Value) -> Result<Vec<u8>, String> {
         let header = || Header { stamp: Time::from_unix_ns(unix_ns()), frame_id: self.frame_id.clone() };
         match (self.ty, value) {
-            (MessageType::Twist, Value::Command(text)) => match control::parse(text) {
+            (MessageType::Twist, Value::Command(command)) => match command.parsed() {
                 Ok(ControlCommand::Stop) => Ok(Twist::default().encode()),
                 Ok(ControlCommand::Vel { linear, angular }) => {
                     Ok(Twist { linear: [linear, 0.0, 0.0], angular: [0.0, 0.0, angular] }.encode())
@@ -362,7 +362,8 @@ impl Ros2Publisher {
             .encode()),
             (MessageType::Log, value) => {
                 let msg = match value {
-                    Value::Text(t) | Value::Command(t) => clip(t),
+                    Value::Text(t) => clip(t),
+                    Value::Command(c) => clip(&c.text()),
                     Value::Scalar(x) => x.to_string(),
                     Value::Flag(b) => b.to_string(),
                     other => clip(&format!("{other:?}")),
@@ -482,7 +483,7 @@ fn decode(ty: MessageType, payload: &[u8], attachment: Option<&[u8]>) -> Result<
     let value = match ty {
         MessageType::Twist => {
             let t = Twist::decode(payload).map_err(|e| e.to_string())?;
-            Value::Command(ControlCommand::Vel { linear: t.linear[0], angular: t.angular[2] }.to_string())
+            Value::Command(ControlCommand::Vel { linear: t.linear[0], angular: t.angular[2] }.into())
         }
         MessageType::Odometry => {
             let o = Odometry::decode(payload).map_err(|e| e.to_string())?;

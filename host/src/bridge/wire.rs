@@ -18,7 +18,7 @@
 use thiserror::Error;
 
 use crate::contract::{Scan, Value, ValueKind};
-use crate::robot::control;
+use crate::contract::control::Command;
 
 /// Largest encoded value a peer may send (a scan of 8k rays fits): a peer
 /// cannot make the host allocate or route more per message.
@@ -81,7 +81,7 @@ pub fn encode(value: &Value) -> Vec<u8> {
         Value::Scalar(x) => out.extend_from_slice(&x.to_le_bytes()),
         Value::Vector(v) => put_f64s(&mut out, v),
         Value::Text(t) => put_bytes(&mut out, t.as_bytes()),
-        Value::Command(c) => put_bytes(&mut out, c.as_bytes()),
+        Value::Command(c) => put_bytes(&mut out, c.text().as_bytes()),
         Value::Bytes(b) => put_bytes(&mut out, b),
         Value::Scan(s) => {
             for x in [s.angle_min, s.angle_increment, s.range_min, s.range_max] {
@@ -154,9 +154,9 @@ pub fn decode(bytes: &[u8]) -> Result<Value, WireError> {
         3 => Value::Vector(c.f64s()?),
         4 => Value::Text(c.text()?),
         5 => {
-            let text = c.text()?;
-            control::parse(&text).map_err(|e| WireError::BadCommand(e.to_string()))?;
-            Value::Command(text)
+            let command = Command::parse(&c.text()?);
+            command.parsed().map_err(|e| WireError::BadCommand(e.to_string()))?;
+            Value::Command(command)
         }
         6 => Value::Bytes(c.blob()?.to_vec()),
         7 => {

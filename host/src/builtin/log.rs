@@ -106,7 +106,7 @@ pub fn format_value(value: &Value) -> String {
             s
         }
         Value::Text(t) => format!("text {:?}", clip(t)),
-        Value::Command(c) => format!("command '{}'", clip(c)),
+        Value::Command(c) => format!("command '{}'", clip(&c.text())),
         Value::Bytes(b) => format!("bytes ({} bytes)", b.len()),
         Value::Scan(s) => format!(
             "scan of {} rays from {:.3} rad by {:.3} rad: {}",

@@ -100,7 +100,7 @@ fn parse_value(kind: ValueKind, text: &str) -> Result<Value, String> {
             .map(Value::Vector)
             .ok_or_else(|| format!("expects numbers separated by spaces or commas, got '{}'", clip(text))),
         ValueKind::Text => Ok(Value::Text(text.to_string())),
-        ValueKind::Command => Ok(Value::Command(trimmed.to_string())),
+        ValueKind::Command => Ok(Value::Command(trimmed.into())),
         ValueKind::Bytes => hex::decode(trimmed.replace(' ', ""))
             .map(Value::Bytes)
             .map_err(|_| format!("expects hex bytes like '0a ff', got '{}'", clip(text))),

@@ -38,7 +38,7 @@ use std::fmt;
 
 use serde::Serialize;
 
-use crate::robot::control::ControlCommand;
+use crate::contract::control::ControlCommand;
 
 /// Step of the march along the commanded arc: the collision monitor's
 /// resolution. Contact is reported one step early, never late.

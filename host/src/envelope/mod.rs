@@ -35,7 +35,7 @@ use crate::builtin::{
 };
 use crate::config::{ComponentSource, ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind, clip};
-use crate::robot::control::{self, ControlCommand};
+use crate::contract::control::{Command, ControlCommand};
 use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
 
 /// Fastest speed (m/s) and turn (rad/s) an envelope may allow.
@@ -377,8 +377,8 @@ pub struct EnvelopeStatus {
 pub struct EnvelopeComponent {
     name: String,
     envelope: Envelope,
-    /// The arbiter's latest command (a review re-judges it).
-    last_command: Option<ControlCommand>,
+    /// The arbiter's latest command, as it entered (a review re-judges it).
+    last_command: Option<(Command, ControlCommand)>,
     status: EnvelopeStatus,
     logged: BTreeMap<&'static str, u64>,
     /// What `interventions` has said and owes.
@@ -416,8 +416,14 @@ impl EnvelopeComponent {
         &self.status
     }
 
-    fn record(&mut self, command: ControlCommand, verdict: &Verdict, now_ns: u64, out: &mut Outbox) {
-        out.push((OUTPUT_CMD, Value::Command(verdict.command.to_string())));
+    /// Sends the verdict on `command` (`entered` is its text as it came in:
+    /// a passed command goes on as it entered, a changed one is the host's).
+    fn record(&mut self, entered: &Command, command: ControlCommand, verdict: &Verdict, now_ns: u64, out: &mut Outbox) {
+        let output = match verdict.action {
+            Action::Passed => entered.clone(),
+            Action::Scaled | Action::Stopped => Command::from(verdict.command),
+        };
+        out.push((OUTPUT_CMD, Value::Command(output)));
         let notice = self.notices.note(command, verdict, now_ns);
         Self::say(notice, out);
         self.status.reaction_max_s = self.status.reaction_max_s.max(self.envelope.reaction_s());
@@ -432,13 +438,13 @@ impl EnvelopeComponent {
         let Some(cause) = &verdict.cause else { return };
         *self.status.causes.entry(cause.kind()).or_default() += 1;
         let verb = match verdict.action {
-            Action::Scaled => format!("scaled {command} to {}", verdict.command),
-            _ => format!("stopped {command}"),
+            Action::Scaled => format!("scaled {entered} to {}", verdict.command),
+            _ => format!("stopped {entered}"),
         };
         let intervention = Intervention {
             at_s: now_ns as f64 / 1e9,
             action: verdict.action,
-            command: command.to_string(),
+            command: entered.to_string(),
             output: verdict.command.to_string(),
             cause: cause.to_string(),
             text: format!("{verb}: {cause}"),
@@ -469,10 +475,10 @@ impl EnvelopeComponent {
     /// Re-judges the latest command after new data or on a tick; emits
     /// only a more restrictive output.
     fn review(&mut self, now_ns: u64, out: &mut Outbox) {
-        if let Some(command) = self.last_command
+        if let Some((entered, command)) = self.last_command.clone()
             && let Some(verdict) = self.envelope.review(command, now_ns)
         {
-            self.record(command, &verdict, now_ns, out);
+            self.record(&entered, command, &verdict, now_ns, out);
         }
     }
 }
@@ -487,19 +493,20 @@ impl Component for EnvelopeComponent {
         out: &mut Outbox,
     ) -> Result<(), CallError> {
         match (port, value) {
-            (INPUT_CMD, Value::Command(text)) => match control::parse(text) {
+            (INPUT_CMD, Value::Command(entered)) => match entered.parsed() {
                 Ok(command) => {
-                    self.last_command = Some(command);
+                    self.last_command = Some((entered.clone(), command));
                     let verdict = self.envelope.decide(command, now_ns);
-                    self.record(command, &verdict, now_ns, out);
+                    self.record(entered, command, &verdict, now_ns, out);
                     Ok(())
                 }
                 Err(err) => {
                     // Whatever was meant, nothing unchecked moves the robot.
                     self.status.rejected += 1;
-                    self.last_command = Some(ControlCommand::Stop);
-                    let verdict = self.envelope.decide(ControlCommand::Stop, now_ns);
-                    out.push((OUTPUT_CMD, Value::Command(verdict.command.to_string())));
+                    let stop = ControlCommand::Stop;
+                    self.last_command = Some((Command::from(stop), stop));
+                    let verdict = self.envelope.decide(stop, now_ns);
+                    out.push((OUTPUT_CMD, Value::Command(Command::from(verdict.command))));
                     Err(CallError::Reported(format!("stopped an invalid control string: {err}")))
                 }
             },

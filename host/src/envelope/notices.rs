@@ -13,7 +13,7 @@
 use serde::Serialize;
 
 use super::logic::{Action, Cause, Verdict};
-use crate::robot::control::ControlCommand;
+use crate::contract::control::ControlCommand;
 
 /// Least time between two messages on `interventions`: a command that
 /// flips between passed and scaled every cycle (a driver at the edge of

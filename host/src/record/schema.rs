@@ -65,7 +65,7 @@ pub fn value_json(value: &Value) -> Json {
         Value::Scalar(x) => json!({ "scalar": number(*x) }),
         Value::Vector(v) => json!({ "vector": numbers(v) }),
         Value::Text(t) => json!({ "text": t }),
-        Value::Command(c) => json!({ "command": c }),
+        Value::Command(c) => json!({ "command": c.text() }),
         Value::Bytes(b) => json!({ "bytes": hex::encode(b) }),
         Value::Scan(s) => json!({ "scan": {
             "angle_min": number(s.angle_min),
@@ -86,7 +86,7 @@ pub fn value_from_json(json: &Json) -> Option<Value> {
         "scalar" => Value::Scalar(read_number(inner)?),
         "vector" => Value::Vector(read_numbers(inner)?),
         "text" => Value::Text(inner.as_str()?.to_string()),
-        "command" => Value::Command(inner.as_str()?.to_string()),
+        "command" => Value::Command(inner.as_str()?.into()),
         "bytes" => Value::Bytes(hex::decode(inner.as_str()?).ok()?),
         "scan" => Value::Scan(Scan {
             angle_min: read_number(inner.get("angle_min")?)?,

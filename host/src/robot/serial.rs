@@ -44,7 +44,7 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use super::control::{self, ControlCommand};
+use crate::contract::control::ControlCommand;
 use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
 use crate::contract::{Scan, Value};
@@ -607,11 +607,11 @@ impl Component for SerialLink {
         now_ns: u64,
         _out: &mut Outbox,
     ) -> Result<(), CallError> {
-        let Value::Command(text) = value else {
+        let Value::Command(command) = value else {
             return Err(CallError::Reported("cmd: expected a control string".into()));
         };
         let command =
-            control::parse(text).map_err(|e| CallError::Reported(format!("ignored an invalid control string: {e}")))?;
+            command.parsed().map_err(|e| CallError::Reported(format!("ignored an invalid control string: {e}")))?;
         self.follow_outside_stops(now_ns);
         self.stats.commands_in += 1;
         self.latest_at = Some(now_ns);

@@ -4,7 +4,7 @@
 //! translator (a built-in profile here, or a WASM translator component),
 //! nothing else.
 
-use super::control::ControlCommand;
+use crate::contract::control::ControlCommand;
 use super::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
 use crate::contract::bindings::subsume::robot::types::Feedback as WitFeedback;
 use crate::sandbox::{TranslatorCallError, WasmTranslator};

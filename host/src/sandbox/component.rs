@@ -10,7 +10,7 @@ use super::SandboxError;
 use super::artifact::{ComponentPre, WasmArtifact};
 use super::guest::{GuestLimits, GuestState, arm, call_error, new_store};
 use super::limits::{INIT_BUDGET, MAX_GUEST_MESSAGE_BYTES};
-use crate::contract::{Param, Value, ValueKind, clip_to};
+use crate::contract::{GuestValue, Param, Value, ValueKind, clip_to};
 use crate::contract::{bindings, v1};
 use crate::runtime::{CallError, Component, Outbox};
 
@@ -133,9 +133,9 @@ impl Component for WasmComponent {
         let result = match &self.instance {
             Instance::V2(instance) => match value {
                 Value::Scan(scan) if self.inputs.get(port as usize) == Some(&ValueKind::Vector) => {
-                    instance.call_on_input(&mut self.store, port, &Value::Vector(scan.ranges.clone())).map(Ok)
+                    instance.call_on_input(&mut self.store, port, &GuestValue::Vector(scan.ranges.clone())).map(Ok)
                 }
-                _ => instance.call_on_input(&mut self.store, port, value).map(Ok),
+                _ => instance.call_on_input(&mut self.store, port, &value.to_guest()).map(Ok),
             },
             Instance::V1(instance) => instance.call_on_input(&mut self.store, port, &v1::value_to_v1(value)),
         };

@@ -25,7 +25,7 @@ use super::limits::{
 use crate::contract::bindings::subsume::robot as wit;
 use crate::contract::v1;
 use crate::contract::v1::bindings::subsume::robot as old;
-use crate::contract::{LogLevel, Value, ValueKind, clip_to, kind_of};
+use crate::contract::{GuestValue, LogLevel, Value, ValueKind, clip_to, kind_of};
 use crate::runtime::Outbox;
 
 /// State of one component's store.
@@ -65,8 +65,8 @@ impl WasiView for GuestState {
 impl wit::types::Host for GuestState {}
 
 impl wit::host::Host for GuestState {
-    fn emit(&mut self, port: u32, value: Value) -> wasmtime::Result<()> {
-        self.take_emit(port, value)
+    fn emit(&mut self, port: u32, value: GuestValue) -> wasmtime::Result<()> {
+        self.take_emit(port, Value::from_guest(value))
     }
 
     fn log(&mut self, level: LogLevel, message: String) -> wasmtime::Result<()> {
@@ -201,7 +201,8 @@ fn value_bytes(value: &Value) -> u64 {
         Value::Flag(_) => 1,
         Value::Scalar(_) => 8,
         Value::Vector(v) => 8 * v.len() as u64,
-        Value::Text(t) | Value::Command(t) => t.len() as u64,
+        Value::Text(t) => t.len() as u64,
+        Value::Command(c) => c.text().len() as u64,
         Value::Bytes(b) => b.len() as u64,
         Value::Scan(s) => 32 + 8 * s.ranges.len() as u64,
     }

@@ -38,7 +38,7 @@ use self::protocol::{ModeChange, ServerMessage};
 use self::session::Measurement;
 use crate::builtin::BuiltinError;
 use crate::contract::{Value, is_valid_name};
-use crate::robot::control::ControlCommand;
+use crate::contract::control::{Command, ControlCommand};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::{
     CallError, Component, Family, Locks, MetricKind, NamedSection, Outbox, PriorityCell, RunningRobot, Sample,
@@ -160,7 +160,7 @@ fn load_operators(path: &Path) -> Result<Vec<(String, String)>, String> {
 #[derive(Debug)]
 pub enum NetEvent {
     Connected { session: u64, notices: tokio::sync::mpsc::Sender<ServerMessage> },
-    Command { session: u64, seq: u64, time_ms: u64, command: ControlCommand, arrival_ns: u64 },
+    Command { session: u64, seq: u64, time_ms: u64, command: Command, arrival_ns: u64 },
     Mode { session: u64, mode: Option<Mode> },
     Disconnected { session: u64 },
 }
@@ -543,7 +543,7 @@ impl ServerContext {
 
 /// The control-loop side of one session.
 struct SessionControl {
-    buffer: DelayBuffer<ControlCommand>,
+    buffer: DelayBuffer<Command>,
     notices: tokio::sync::mpsc::Sender<ServerMessage>,
 }
 
@@ -867,7 +867,7 @@ impl Component for TeleopComponent {
                 }
                 NetEvent::Command { session, seq, time_ms, command, arrival_ns } => {
                     let Some(control) = self.sessions.get_mut(&session) else { continue };
-                    if let ControlCommand::Goto { x, y } = command {
+                    if let Some(ControlCommand::Goto { x, y }) = command.motion() {
                         out.push((1, Value::Vector(vec![x, y])));
                         continue;
                     }
@@ -895,7 +895,7 @@ impl Component for TeleopComponent {
         self.end_sessions_heard_of_no_more();
         for control in self.sessions.values_mut() {
             if let Some(command) = control.buffer.pop_ready(now_ns) {
-                out.push((0, Value::Command(command.to_string())));
+                out.push((0, Value::Command(command)));
             }
         }
         self.tell_standing();
@@ -1066,14 +1066,14 @@ mod tests {
         let mut out = Vec::new();
         let (notices, notice_rx) = tokio::sync::mpsc::channel(session::NOTICE_QUEUE);
         ctx.open_session(7, "127.0.0.1:1", notices);
-        let command = ControlCommand::Vel { linear: 0.2, angular: 0.0 };
+        let command = Command::parse("VEL 0.2 0");
         let now = clock.now_ns();
-        ctx.send(NetEvent::Command { session: 7, seq: 1, time_ms: 0, command, arrival_ns: now }).ok();
+        ctx.send(NetEvent::Command { session: 7, seq: 1, time_ms: 0, command: command.clone(), arrival_ns: now }).ok();
         teleop.poll(now, &mut out);
         assert_eq!(teleop.sessions.len(), 1);
         // A flood fills the queue; the session's end is then lost.
         for seq in 0..EVENT_QUEUE as u64 {
-            let flood = NetEvent::Command { session: 99, seq, time_ms: 0, command, arrival_ns: now };
+            let flood = NetEvent::Command { session: 99, seq, time_ms: 0, command: command.clone(), arrival_ns: now };
             assert!(ctx.send(flood).is_ok());
         }
         ctx.close_session(7, &None);

@@ -6,7 +6,7 @@ use serde::Serialize;
 use serde_json::json;
 
 use crate::contract::clip;
-use crate::robot::control::{self, ControlCommand};
+use crate::contract::control::Command;
 use crate::runtime::Standing;
 use crate::teleop::mode::Mode;
 
@@ -27,7 +27,8 @@ pub enum ClientMessage {
     Cmd {
         seq: u64,
         time_ms: u64,
-        command: ControlCommand,
+        /// Parsed here, once, and carried with the operator's text.
+        command: Command,
     },
     Pong {
         nonce: u64,
@@ -100,7 +101,7 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
             let time_ms = time
                 .parse::<u64>()
                 .map_err(|_| format!("time '{}' is not a whole number of milliseconds", clip(time)))?;
-            let command = control::parse(command).map_err(|e| format!("bad control string: {e}"))?;
+            let command = checked(Command::parse(command))?;
             Ok(ClientMessage::Cmd { seq, time_ms, command })
         }
         "PONG" => match words.as_slice() {
@@ -125,6 +126,14 @@ pub(super) fn parse_line(line: &str) -> Result<ClientMessage, String> {
     }
 }
 
+/// `command` if its text parsed; an operator's bad line is refused here.
+fn checked(command: Command) -> Result<Command, String> {
+    match command.parsed() {
+        Ok(_) => Ok(command),
+        Err(e) => Err(format!("bad control string: {e}")),
+    }
+}
+
 /// Parses one JSON message: `{"type": "auth", "name": .., "token": ..}`,
 /// `{"type": "mode", "mode": ..}`, `{"type": "cmd", "seq": .., "time_ms": ..,
 /// "command": ..}`, `{"type": "pong", "nonce": ..}`, `{"type": "estop"}`,
@@ -146,7 +155,7 @@ pub(super) fn parse_json(text: &str) -> Result<ClientMessage, String> {
                 .ok_or_else(|| format!("unknown mode '{}': expected direct, shared or supervisory", clip(&mode)))
         }
         Some("cmd") => {
-            let command = control::parse(&text_field("command")?).map_err(|e| format!("bad control string: {e}"))?;
+            let command = checked(Command::parse(&text_field("command")?))?;
             Ok(ClientMessage::Cmd { seq: number_field("seq")?, time_ms: number_field("time_ms")?, command })
         }
         Some("pong") => Ok(ClientMessage::Pong { nonce: number_field("nonce")? }),
@@ -266,7 +275,7 @@ mod tests {
                 ClientMessage::Cmd {
                     seq: 7,
                     time_ms: 1234,
-                    command: ControlCommand::Vel { linear: 0.2, angular: -0.1 },
+                    command: "VEL 0.2 -0.1".into(),
                 },
             ),
             ("PONG 42", ClientMessage::Pong { nonce: 42 }),
@@ -302,7 +311,7 @@ mod tests {
     fn json_messages_mirror_the_lines() {
         assert_eq!(
             parse_json(r#"{"type":"cmd","seq":3,"time_ms":10,"command":"STOP"}"#),
-            Ok(ClientMessage::Cmd { seq: 3, time_ms: 10, command: ControlCommand::Stop })
+            Ok(ClientMessage::Cmd { seq: 3, time_ms: 10, command: "STOP".into() })
         );
         assert_eq!(parse_json(r#"{"type":"mode","mode":"direct"}"#), Ok(ClientMessage::Mode(Mode::Direct)));
         assert_eq!(parse_json(r#"{"type":"pong"}"#), Err("missing field 'nonce'".into()));

@@ -13,8 +13,17 @@
 //! Keywords are case-insensitive; [`ControlCommand`]'s `Display` writes the
 //! canonical form (upper case, single spaces, shortest exact numbers), which
 //! parses back to the same command.
+//!
+//! Between components a command travels as a [`Command`]: parsed once where
+//! it enters (a guest's emit, an operator's line, a recording, a bridge),
+//! carried with the text it entered as, and formatted only where a guest or a
+//! log reads a command the host made (the arbiter's STOP, the envelope's
+//! scaled speed). The grammar lives in the contract because the host's
+//! `Value` carries it.
 
+use std::borrow::Cow;
 use std::fmt;
+use std::sync::Arc;
 
 use crate::contract::clip;
 
@@ -50,6 +59,83 @@ impl fmt::Display for ControlCommand {
             ControlCommand::Vel { linear, angular } => write!(f, "VEL {linear:?} {angular:?}"),
             ControlCommand::Goto { x, y } => write!(f, "GOTO {x:?} {y:?}"),
         }
+    }
+}
+
+/// A motion command as it travels between components: the parsed command
+/// (or why the text did not parse), and the text it entered as. Cloning is
+/// cheap (the text is shared).
+#[derive(Clone, Debug)]
+pub struct Command {
+    parsed: Result<ControlCommand, Arc<ControlParseError>>,
+    /// The text as it entered; `None` for a command the host made.
+    text: Option<Arc<str>>,
+}
+
+impl Command {
+    /// Parses `text` once; an invalid text travels as such, so each reader
+    /// decides what it means (the arbiter ignores it, the envelope stops).
+    pub fn parse(text: &str) -> Command {
+        Command { parsed: parse(text).map_err(Arc::new), text: Some(Arc::from(text)) }
+    }
+
+    /// The command, or why its text did not parse.
+    pub fn parsed(&self) -> Result<ControlCommand, &ControlParseError> {
+        self.parsed.as_ref().map(|c| *c).map_err(|e| e.as_ref())
+    }
+
+    /// The command when its text parsed.
+    pub fn motion(&self) -> Option<ControlCommand> {
+        self.parsed.as_ref().ok().copied()
+    }
+
+    /// The text as it entered, or the canonical form of a command the host
+    /// made (formatted here, when a guest or a log reads it).
+    pub fn text(&self) -> Cow<'_, str> {
+        match (&self.text, &self.parsed) {
+            (Some(text), _) => Cow::Borrowed(text),
+            (None, Ok(command)) => Cow::Owned(command.to_string()),
+            // A command without text is always one the host made: valid.
+            (None, Err(_)) => Cow::Borrowed(""),
+        }
+    }
+}
+
+impl From<ControlCommand> for Command {
+    /// A command the host made: its text is formatted when it is read.
+    fn from(command: ControlCommand) -> Command {
+        Command { parsed: Ok(command), text: None }
+    }
+}
+
+impl From<&str> for Command {
+    fn from(text: &str) -> Command {
+        Command::parse(text)
+    }
+}
+
+impl From<String> for Command {
+    fn from(text: String) -> Command {
+        Command::parse(&text)
+    }
+}
+
+/// Two commands are equal when they read the same: the same text.
+impl PartialEq for Command {
+    fn eq(&self, other: &Command) -> bool {
+        self.text() == other.text()
+    }
+}
+
+impl PartialEq<ControlCommand> for Command {
+    fn eq(&self, other: &ControlCommand) -> bool {
+        self.motion().as_ref() == Some(other)
+    }
+}
+
+impl fmt::Display for Command {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(&self.text())
     }
 }
 
@@ -203,5 +289,19 @@ mod tests {
             let text = command.to_string();
             assert_eq!(parse(&text), Ok(command), "{text}");
         }
+    }
+
+    /// A command keeps the text it entered as; one the host made is
+    /// formatted when read; an invalid one keeps its text and its error.
+    #[test]
+    fn a_command_reads_as_it_entered() {
+        let entered = Command::parse("VEL 0.2 0");
+        assert_eq!((entered.text().as_ref(), entered.motion()), ("VEL 0.2 0", Some(ControlCommand::Vel { linear: 0.2, angular: 0.0 })));
+        assert_eq!(entered.to_string(), "VEL 0.2 0");
+        assert_eq!(Command::from(ControlCommand::Vel { linear: 0.2, angular: 0.0 }).text(), "VEL 0.2 0.0");
+        let invalid = Command::parse("FLY 1");
+        assert_eq!(invalid.text(), "FLY 1");
+        assert!(invalid.parsed().is_err_and(|e| e.column == 1));
+        assert!(entered == ControlCommand::Vel { linear: 0.2, angular: 0.0 } && invalid != ControlCommand::Stop);
     }
 }
