@@ -25,9 +25,9 @@ use std::time::{Duration, Instant};
 use serialport::{SerialPort, TTYPort};
 use subsume::arbiter::{ArbiterComponent, Source};
 use subsume::contract::Value;
+use subsume::contract::control::ControlCommand;
 use subsume::envelope::logic::{Envelope, Settings};
 use subsume::envelope::{EnvelopeComponent, INPUT_CMD, INPUT_POSE, INPUT_RANGES};
-use subsume::contract::control::ControlCommand;
 use subsume::robot::protocol::Profile;
 use subsume::robot::serial::{LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator};
@@ -229,7 +229,7 @@ fn hostile_run(world: &Path, seed: u64) -> (u64, f64, f64, u64) {
                 *plan = (rng.range(-0.3, 1.0), rng.range(-3.0, 3.0), now + (rng.range(0.5, 6.0) * 1e9) as u64);
             }
             let text = format!("VEL {} {}", plan.0, plan.1);
-            arbiter.on_input(0, &Value::Command(text), 10 + d, now, &mut Vec::new()).ok();
+            arbiter.on_input(0, &Value::Command(text.into()), 10 + d, now, &mut Vec::new()).ok();
         }
         let mut decided = Vec::new();
         arbiter.tick(now, &mut decided).unwrap();
@@ -237,8 +237,8 @@ fn hostile_run(world: &Path, seed: u64) -> (u64, f64, f64, u64) {
             envelope.on_input(INPUT_CMD, &value, 0, now, &mut out).unwrap();
         }
         envelope.tick(now, &mut out).unwrap();
-        if let Some((_, Value::Command(text))) = out.last() {
-            wheels = match subsume::contract::control::parse(text).unwrap() {
+        if let Some((_, Value::Command(command))) = out.last() {
+            wheels = match command.parsed().unwrap() {
                 ControlCommand::Vel { linear, angular } => geometry.wheels(linear, angular),
                 _ => (0.0, 0.0),
             };

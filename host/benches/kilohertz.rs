@@ -76,7 +76,7 @@ fn param(name: &str, value: &str) -> Param {
 enum Native {
     Counter(f64),
     Relay,
-    Commander(String),
+    Commander(subsume::contract::control::Command),
 }
 
 impl Component for Native {
@@ -109,7 +109,7 @@ fn build(sandbox: &Sandbox, artifacts: &Artifacts, start_ns: u64) -> (Graph, usi
             return Box::new(match name {
                 "counter" => Native::Counter(0.0),
                 "relay" => Native::Relay,
-                _ => Native::Commander(params[0].value.clone()),
+                _ => Native::Commander(params[0].value.as_str().into()),
             });
         }
         Box::new(sandbox.instantiate(artifact, name, &limits(), params).unwrap())

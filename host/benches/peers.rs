@@ -48,7 +48,7 @@ use std::time::Instant;
 use subsume::bridge::wire;
 use subsume::config::Policy;
 use subsume::contract::bindings;
-use subsume::contract::{LogLevel, Value};
+use subsume::contract::{GuestValue, LogLevel, Value};
 use subsume::runtime::{CallError, Component, Graph, Outbox, Vacant};
 use subsume::sandbox::{GuestLimits, Sandbox};
 use wasmtime::component::{HasSelf, Linker, ResourceTable};
@@ -135,7 +135,7 @@ fn native_call(overhead: u64) -> (u64, u64) {
 struct Bare {
     wasi: WasiCtx,
     table: ResourceTable,
-    emitted: Option<(u32, Value)>,
+    emitted: Option<(u32, GuestValue)>,
 }
 
 impl WasiView for Bare {
@@ -147,7 +147,7 @@ impl WasiView for Bare {
 impl bindings::subsume::robot::types::Host for Bare {}
 
 impl bindings::subsume::robot::host::Host for Bare {
-    fn emit(&mut self, port: u32, value: Value) -> wasmtime::Result<()> {
+    fn emit(&mut self, port: u32, value: GuestValue) -> wasmtime::Result<()> {
         self.emitted = Some((port, value));
         Ok(())
     }
@@ -197,7 +197,7 @@ impl BareRelay {
         Ok(BareRelay { store, instance })
     }
 
-    fn call(&mut self, value: &Value) {
+    fn call(&mut self, value: &GuestValue) {
         self.instance.call_on_input(&mut self.store, 0, value).unwrap();
         let emitted = self.store.data_mut().emitted.take();
         assert!(matches!(emitted, Some((0, _))), "the relay guest did not emit");
@@ -206,7 +206,7 @@ impl BareRelay {
 }
 
 fn bare_call(relay: &mut BareRelay, overhead: u64) -> (u64, u64) {
-    let value = Value::Scalar(1.5);
+    let value = GuestValue::Scalar(1.5);
     sample(overhead, || relay.call(&value))
 }
 
@@ -215,7 +215,7 @@ fn bare_call(relay: &mut BareRelay, overhead: u64) -> (u64, u64) {
 /// (its memory and tables no longer in the cache), unlike (b)'s one hot
 /// instance.
 fn bare_round_robin(relays: &mut [BareRelay], overhead: u64) -> (u64, u64) {
-    let value = Value::Scalar(1.5);
+    let value = GuestValue::Scalar(1.5);
     let mut next = 0;
     sample(overhead, || {
         relays[next].call(&value);

@@ -34,8 +34,8 @@ use crate::builtin::{
     self, BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, number_in,
 };
 use crate::config::{ParamProblem, RobotProblem, RobotView};
-use crate::contract::{Value, ValueKind};
 use crate::contract::control::{Command, ControlCommand};
+use crate::contract::{Value, ValueKind};
 use crate::runtime::locks::unix_now_ms;
 use crate::runtime::{
     CallError, Component, Engagement, Family, LockEvent, Locks, NamedSection, Outbox, PriorityCell, Sample, Standing,
@@ -262,7 +262,8 @@ impl Arbiter {
     }
 
     fn is_active(state: &SourceState, now_ns: u64) -> bool {
-        !state.faulted && state.last.as_ref().is_some_and(|(_, at)| now_ns.saturating_sub(*at) <= state.source.timeout_ns)
+        !state.faulted
+            && state.last.as_ref().is_some_and(|(_, at)| now_ns.saturating_sub(*at) <= state.source.timeout_ns)
     }
 
     /// Decides at `now_ns`; counts switches, held time and stops.
@@ -848,7 +849,8 @@ mod tests {
         let mut out = Vec::new();
         component.on_input(0, &Value::Command("VEL 0.2 0".into()), 20, 0, &mut out).ok();
         component.on_input(0, &Value::Command("VEL 0.2 0".into()), 20, MS, &mut out).ok();
-        assert_eq!(out, vec![(0, Value::Command("VEL 0.2 0.0".into()))], "unchanged output is not re-sent on input");
+        // The winner's command goes on as it came in, not reformatted.
+        assert_eq!(out, vec![(0, Value::Command("VEL 0.2 0".into()))], "unchanged output is not re-sent on input");
         component.tick(2 * MS, &mut out).ok();
         assert_eq!(out.len(), 2, "a tick always re-sends");
         let err = component.on_input(0, &Value::Command("FLY".into()), 20, 3 * MS, &mut out);

@@ -8,8 +8,8 @@
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
-use subsume::contract::{Param, Scan, Value, ValueKind};
 use subsume::contract::control::ControlCommand;
+use subsume::contract::{Param, Scan, Value, ValueKind};
 use subsume::robot::protocol::Profile;
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator, Translator};
 use subsume::runtime::{CallError, Component, Convert, Graph, Outbox, Policy};

@@ -386,6 +386,30 @@ fn when_the_operator_disconnects_stop_reaches_the_motors_within_the_timeout() {
     assert!(stop.0.duration_since(gone) < Duration::from_millis(400), "STOP after {:?}", stop.0.duration_since(gone));
 }
 
+/// An operator's command reaches what reads it past the arbiter and the
+/// envelope as the operator wrote it: `VEL 0.2 0`, not reformatted to
+/// `VEL 0.2 0.0` (it is parsed once, where it enters, and carried typed).
+#[test]
+fn an_operators_command_reads_downstream_as_it_was_written() {
+    let components = format!(
+        r#"<component name="arbiter" source="builtin:arbiter" rate="50"/>
+    <connect from="teleop.cmd" to="arbiter.commands"/>
+    {PASS_ENVELOPE}
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <component name="sink" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
+    <connect from="envelope.cmd" to="sink.in"/>"#
+    );
+    let host = start("", &components, 30);
+    let mut alice = connect(&host);
+    alice.login("alice", TOKEN);
+    alice.send("MODE direct");
+    assert!(alice.reply().starts_with("MODE direct granted"));
+    alice.command("VEL 0.2 0");
+    let lines = host.process.lines_until(0, "received command 'VEL 0.2 ", Duration::from_secs(10));
+    let last = lines.last().map(String::as_str).unwrap_or_default();
+    assert!(last.contains("received command 'VEL 0.2 0'"), "{last}");
+}
+
 #[test]
 fn the_same_protocol_works_over_websocket_as_json() {
     let host = start(r#"<param name="websocket" value="127.0.0.1:0"/>"#, SINK, 30);

@@ -6,8 +6,8 @@ use std::io::Read;
 use std::time::{Duration, Instant};
 
 use serialport::SerialPort;
-use subsume::contract::{Param, Value};
 use subsume::contract::control::ControlCommand;
+use subsume::contract::{Param, Value};
 use subsume::robot::protocol::{Feedback, Profile};
 use subsume::robot::serial::{LinkSettings, SerialLink};
 use subsume::robot::translator::{DriveGeometry, ProfileTranslator, TranslateError, Translator};

@@ -29,8 +29,8 @@ use crate::builtin::{
     BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, port,
 };
 use crate::config::{ParamProblem, RobotProblem, RobotView};
-use crate::contract::{Value, ValueKind, clip};
 use crate::contract::control::ControlCommand;
+use crate::contract::{Value, ValueKind, clip};
 use crate::runtime::halt::{self, Halt};
 use crate::runtime::{CallError, Component, MotorStop, Outbox, StatusSection, StopOutcome};
 use zenoh::Wait;

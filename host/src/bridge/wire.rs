@@ -17,8 +17,8 @@
 
 use thiserror::Error;
 
-use crate::contract::{Scan, Value, ValueKind};
 use crate::contract::control::Command;
+use crate::contract::{Scan, Value, ValueKind};
 
 /// Largest encoded value a peer may send (a scan of 8k rays fits): a peer
 /// cannot make the host allocate or route more per message.

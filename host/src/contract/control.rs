@@ -296,7 +296,10 @@ mod tests {
     #[test]
     fn a_command_reads_as_it_entered() {
         let entered = Command::parse("VEL 0.2 0");
-        assert_eq!((entered.text().as_ref(), entered.motion()), ("VEL 0.2 0", Some(ControlCommand::Vel { linear: 0.2, angular: 0.0 })));
+        assert_eq!(
+            (entered.text().as_ref(), entered.motion()),
+            ("VEL 0.2 0", Some(ControlCommand::Vel { linear: 0.2, angular: 0.0 }))
+        );
         assert_eq!(entered.to_string(), "VEL 0.2 0");
         assert_eq!(Command::from(ControlCommand::Vel { linear: 0.2, angular: 0.0 }).text(), "VEL 0.2 0.0");
         let invalid = Command::parse("FLY 1");

@@ -34,8 +34,8 @@ use crate::builtin::{
     positive_up_to,
 };
 use crate::config::{ComponentSource, ParamProblem, RobotProblem, RobotView};
-use crate::contract::{Value, ValueKind, clip};
 use crate::contract::control::{Command, ControlCommand};
+use crate::contract::{Value, ValueKind, clip};
 use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
 
 /// Fastest speed (m/s) and turn (rad/s) an envelope may allow.
@@ -609,7 +609,8 @@ mod tests {
         let mut out = Vec::new();
         envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0, 4.0, 4.0]), 0, 0, &mut out).ok();
         envelope.on_input(INPUT_CMD, &cmd("VEL 0.45 0"), 0, 10 * MS, &mut out).ok();
-        assert_eq!(last_cmd(&out), Some(&cmd("VEL 0.45 0.0")));
+        // A passed command goes on as it came in (not reformatted).
+        assert_eq!(last_cmd(&out), Some(&cmd("VEL 0.45 0")));
         // A reading in the stop zone: STOP goes out on the reading itself.
         envelope.on_input(INPUT_RANGES, &Value::Vector(vec![4.0, 0.36, 4.0]), 0, 20 * MS, &mut out).ok();
         assert_eq!(last_cmd(&out), Some(&cmd("STOP")));
@@ -617,7 +618,7 @@ mod tests {
         assert_eq!((status.passed, status.stopped), (1, 1));
         assert_eq!(
             status.last.as_ref().map(|i| i.text.as_str()),
-            Some("stopped VEL 0.45 0.0: obstacle 0.18 m ahead, stop zone 0.25 m")
+            Some("stopped VEL 0.45 0: obstacle 0.18 m ahead, stop zone 0.25 m")
         );
         assert_eq!(status.causes.get("stop-zone"), Some(&1));
         assert!(status.closest_ever_m.is_some_and(|c| (c - 0.18).abs() < 1e-9));

@@ -44,9 +44,9 @@ use std::time::{Duration, Instant};
 
 use serde::Serialize;
 
-use crate::contract::control::ControlCommand;
 use super::protocol::Feedback;
 use super::translator::{LinkPlan, TranslateError, Translator};
+use crate::contract::control::ControlCommand;
 use crate::contract::{Scan, Value};
 use crate::runtime::lockstep::{Lockstep, LockstepLink, wait_until};
 use crate::runtime::{

@@ -4,9 +4,9 @@
 //! translator (a built-in profile here, or a WASM translator component),
 //! nothing else.
 
-use crate::contract::control::ControlCommand;
 use super::protocol::{Decoder, Feedback, Message, MotorCommand, Profile};
 use crate::contract::bindings::subsume::robot::types::Feedback as WitFeedback;
+use crate::contract::control::ControlCommand;
 use crate::sandbox::{TranslatorCallError, WasmTranslator};
 
 /// Why a translator produced no bytes.

@@ -37,8 +37,8 @@ use self::mode::{Mode, ModePolicy};
 use self::protocol::{ModeChange, ServerMessage};
 use self::session::Measurement;
 use crate::builtin::BuiltinError;
-use crate::contract::{Value, is_valid_name};
 use crate::contract::control::{Command, ControlCommand};
+use crate::contract::{Value, is_valid_name};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::{
     CallError, Component, Family, Locks, MetricKind, NamedSection, Outbox, PriorityCell, RunningRobot, Sample,

@@ -270,14 +270,7 @@ mod tests {
         let cases = [
             ("AUTH alice s3cret", ClientMessage::Auth { name: "alice".into(), token: "s3cret".into() }),
             ("mode shared", ClientMessage::Mode(Mode::Shared)),
-            (
-                "CMD 7 1234 VEL 0.2 -0.1",
-                ClientMessage::Cmd {
-                    seq: 7,
-                    time_ms: 1234,
-                    command: "VEL 0.2 -0.1".into(),
-                },
-            ),
+            ("CMD 7 1234 VEL 0.2 -0.1", ClientMessage::Cmd { seq: 7, time_ms: 1234, command: "VEL 0.2 -0.1".into() }),
             ("PONG 42", ClientMessage::Pong { nonce: 42 }),
             ("QUIT", ClientMessage::Quit),
             ("ESTOP", ClientMessage::Estop),
