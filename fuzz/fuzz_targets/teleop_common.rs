@@ -11,7 +11,7 @@ mod protocol;
 #[path = "../../host/src/runtime/standing.rs"]
 mod standing;
 
-mod robot {
+mod contract {
     pub(crate) use crate::control_impl as control;
 }
 mod teleop {

@@ -66,37 +66,40 @@ impl fmt::Display for ControlCommand {
 /// (or why the text did not parse), and the text it entered as. Cloning is
 /// cheap (the text is shared).
 #[derive(Clone, Debug)]
-pub struct Command {
-    parsed: Result<ControlCommand, Arc<ControlParseError>>,
-    /// The text as it entered; `None` for a command the host made.
-    text: Option<Arc<str>>,
+pub enum Command {
+    /// A command the host made (the arbiter's STOP, the envelope's scaled
+    /// speed): its text is formatted when a guest or a log reads it.
+    Made(ControlCommand),
+    /// A command as it entered the host, parsed there once.
+    Entered { text: Arc<str>, parsed: Result<ControlCommand, Arc<ControlParseError>> },
 }
 
 impl Command {
     /// Parses `text` once; an invalid text travels as such, so each reader
     /// decides what it means (the arbiter ignores it, the envelope stops).
     pub fn parse(text: &str) -> Command {
-        Command { parsed: parse(text).map_err(Arc::new), text: Some(Arc::from(text)) }
+        Command::Entered { text: Arc::from(text), parsed: parse(text).map_err(Arc::new) }
     }
 
     /// The command, or why its text did not parse.
     pub fn parsed(&self) -> Result<ControlCommand, &ControlParseError> {
-        self.parsed.as_ref().map(|c| *c).map_err(|e| e.as_ref())
+        match self {
+            Command::Made(command) => Ok(*command),
+            Command::Entered { parsed, .. } => parsed.as_ref().map(|c| *c).map_err(|e| e.as_ref()),
+        }
     }
 
     /// The command when its text parsed.
     pub fn motion(&self) -> Option<ControlCommand> {
-        self.parsed.as_ref().ok().copied()
+        self.parsed().ok()
     }
 
     /// The text as it entered, or the canonical form of a command the host
     /// made (formatted here, when a guest or a log reads it).
     pub fn text(&self) -> Cow<'_, str> {
-        match (&self.text, &self.parsed) {
-            (Some(text), _) => Cow::Borrowed(text),
-            (None, Ok(command)) => Cow::Owned(command.to_string()),
-            // A command without text is always one the host made: valid.
-            (None, Err(_)) => Cow::Borrowed(""),
+        match self {
+            Command::Made(command) => Cow::Owned(command.to_string()),
+            Command::Entered { text, .. } => Cow::Borrowed(text),
         }
     }
 }
@@ -104,7 +107,7 @@ impl Command {
 impl From<ControlCommand> for Command {
     /// A command the host made: its text is formatted when it is read.
     fn from(command: ControlCommand) -> Command {
-        Command { parsed: Ok(command), text: None }
+        Command::Made(command)
     }
 }
 
