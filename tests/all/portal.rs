@@ -8,6 +8,7 @@
 //! the robot-file editor).
 
 use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
@@ -191,9 +192,22 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
                 .into_iter()
                 .map(|request| {
                     let (barrier, address, token) = (barrier.clone(), &host.address, &tokens[request.user]);
+                    // Each user from an address of their own, as people
+                    // are: one address's connections are bounded
+                    // (admission::MAX_HTTP_CONNECTIONS_PER_ADDRESS).
+                    let at = users.iter().position(|(name, _, _)| *name == request.user).unwrap_or(0);
+                    let from: std::net::IpAddr = format!("127.0.0.{}", 10 + at).parse().unwrap();
                     scope.spawn(move || {
+                        let stream = support::flood::connect_from(from, address.parse().unwrap()).unwrap();
                         barrier.wait();
-                        let (status, json) = http(address, request.method, &request.path, Some(token), &request.body);
+                        let (status, json) = support::http_on(
+                            stream,
+                            address,
+                            request.method,
+                            &request.path,
+                            Some(token),
+                            &request.body,
+                        );
                         (request, status, json)
                     })
                 })
@@ -315,13 +329,8 @@ fn a_first_run_at_a_terminal_prints_a_login_that_works_and_a_pipe_gets_a_hint() 
     let robot = dir.path().join("first.xml");
     std::fs::write(&robot, light_robot("first", 1, 2, None)).unwrap();
     let run = |store: &Path| {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-        command
-            .current_dir(support::repo_root())
-            .env("NO_COLOR", "1")
-            .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-            .arg(&robot)
-            .args(["--http", "127.0.0.1:0"]);
+        let mut command = subsume();
+        command.args(["--store", store.to_str().unwrap(), "run"]).arg(&robot).args(["--http", "127.0.0.1:0"]);
         command
     };
     let portal = |host: &support::HostProcess| {
