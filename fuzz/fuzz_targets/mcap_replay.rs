@@ -1,7 +1,7 @@
 //! Recordings read for replay (`subsume replay`, host/src/record/replay.rs):
 //! any bytes after the MCAP magic to the MCAP reader with replay's options
 //! (the `mcap` crate, the end magic not required: a cut file still
-//! replays), and every message's JSON to the schema readers replay uses
+//! replays; given only the records whose lengths fit, `record/readable.rs`), and every message's JSON to the schema readers replay uses
 //! (host/src/record/schema.rs): a recorded call's value, a `foxglove.LaserScan`,
 //! a `foxglove.PoseInFrame`, a `subsume.Value`. No panic; what a reader
 //! takes back is what writing it gives (`value_json`, `laser_scan`).
@@ -13,6 +13,8 @@
 
 include!("contract_mirror.rs");
 
+#[path = "../../host/src/record/readable.rs"]
+mod readable;
 #[path = "../../host/src/record/schema.rs"]
 mod schema;
 
@@ -55,7 +57,13 @@ fn pose_in_frame(value: &contract::Value) -> Json {
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {
     let bytes = [mcap::MAGIC, data].concat();
-    let Ok(stream) = mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into()) else {
+    // What replay gives the reader (host/src/record/readable.rs).
+    let readable = readable::readable(&bytes);
+    if let Some(at) = readable.cut_at {
+        assert_eq!(readable.bytes, &bytes[..at]);
+    }
+    let Ok(stream) = mcap::MessageStream::new_with_options(readable.bytes, mcap::read::Options::IgnoreEndMagic.into())
+    else {
         return;
     };
     for message in stream.take(MAX_MESSAGES) {
