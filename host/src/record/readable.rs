@@ -1,15 +1,17 @@
 //! What of a recording the `mcap` crate may be given: the bytes up to the
-//! first record whose length runs past what holds it. `mcap` 0.26's reader
-//! adds a record's length to its header size without a check, so a length
-//! near `u64::MAX` (a corrupt or crafted file) wraps and panics, and a panic
-//! ends `subsume run` (`run::stop_motors_on_panic`). Found by the
-//! `mcap_replay` fuzz target. Pure (the fuzz target compiles it).
+//! first record it would panic on, and a panic ends `subsume run`
+//! (`run::stop_motors_on_panic`). Both found by the `mcap_replay` fuzz
+//! target in `mcap` 0.26: a record's length is added to its header size
+//! without a check, so a length near `u64::MAX` wraps; an attachment whose
+//! body is shorter than its header and CRC is sliced backwards. Pure (the
+//! fuzz target compiles it).
 
 /// An MCAP file's first bytes.
 const MAGIC: &[u8] = b"\x89MCAP0\r\n";
 /// A record's opcode (1 byte) and length (8 bytes, little-endian).
 const RECORD_HEADER: usize = 1 + 8;
 const CHUNK: u8 = 0x06;
+const ATTACHMENT: u8 = 0x09;
 
 /// The part of a recording `mcap` may read.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -28,7 +30,7 @@ pub fn readable(bytes: &[u8]) -> Readable<'_> {
     let mut at = MAGIC.len().min(bytes.len());
     while at < bytes.len() {
         let sound = match record(bytes, at) {
-            Some((opcode, body)) => opcode != CHUNK || chunk_is_sound(body),
+            Some((opcode, body)) => is_sound(opcode, body),
             // Only part of a header left: the file ends early there, as the
             // reader says by itself.
             None if bytes.len() - at < RECORD_HEADER => break,
@@ -48,6 +50,27 @@ fn record(bytes: &[u8], at: usize) -> Option<(u8, &[u8])> {
     let len = usize::try_from(u64::from_le_bytes(header[1..].try_into().ok()?)).ok()?;
     let start = at + RECORD_HEADER;
     Some((header[0], bytes.get(start..start.checked_add(len)?)?))
+}
+
+/// Whether `mcap` reads the record without a panic (its length fits: the
+/// caller checked that).
+fn is_sound(opcode: u8, body: &[u8]) -> bool {
+    match opcode {
+        CHUNK => chunk_is_sound(body),
+        ATTACHMENT => attachment_is_sound(body),
+        _ => true,
+    }
+}
+
+/// Whether an attachment's body holds its header (log and create time,
+/// name, media type, data length) and its CRC.
+fn attachment_is_sound(body: &[u8]) -> bool {
+    let text_end = |at: usize| -> Option<usize> {
+        let len = body.get(at..at.checked_add(4)?)?;
+        at.checked_add(4)?.checked_add(usize::try_from(u32::from_le_bytes(len.try_into().ok()?)).ok()?)
+    };
+    let header_len = text_end(8 + 8).and_then(text_end).and_then(|at| at.checked_add(8));
+    header_len.and_then(|len| len.checked_add(4)).is_some_and(|len| len <= body.len())
 }
 
 /// Whether every record of an uncompressed chunk fits in it (a compressed
@@ -71,7 +94,10 @@ fn chunk_is_sound(body: &[u8]) -> bool {
     }
     let mut at = 0;
     while at < records.len() {
-        let Some((_, inner)) = record(records, at) else { return false };
+        let Some((opcode, inner)) = record(records, at) else { return false };
+        if !is_sound(opcode, inner) {
+            return false;
+        }
         at += RECORD_HEADER + inner.len();
     }
     true
@@ -108,6 +134,17 @@ mod tests {
         let start = MAGIC.len() + header.len();
         let bad_chunk = [MAGIC, &header, &chunk(&[&message[..], &huge].concat()), &message].concat();
         assert_eq!(readable(&bad_chunk), Readable { bytes: &bad_chunk[..start], cut_at: Some(start) });
+        // An attachment too short for its header and CRC, at the top and
+        // in a chunk.
+        let short = record_bytes(ATTACHMENT, &[0; 8 + 8 + 4 + 4 + 8]);
+        let attachment = record_bytes(ATTACHMENT, &[0; 8 + 8 + 4 + 4 + 8 + 4]);
+        let with = [&good[..], &attachment, &short].concat();
+        assert_eq!(
+            readable(&with),
+            Readable { bytes: &with[..good.len() + attachment.len()], cut_at: Some(good.len() + attachment.len()) }
+        );
+        let in_chunk = [MAGIC, &header, &chunk(&short)].concat();
+        assert_eq!(readable(&in_chunk).cut_at, Some(start));
         // A file cut inside a record header is left to the reader.
         let cut = &good[..good.len() - message.len() + 3];
         assert_eq!(readable(cut).cut_at, None);
