@@ -490,6 +490,12 @@ async fn answers_name_the_servers_folders_instead_of_showing_them() {
         if uri == "/api/v1/sets" {
             assert_eq!(json["sets"][0]["base_dir"], "<robot file folder>", "{json}");
         }
+        if uri == "/api/v1/sets/1" {
+            // The robot file itself is its author's text, as stored: a
+            // client stages it again (the deploy and lab clients do).
+            assert_eq!(json["set"]["base_dir"], "<robot file folder>", "{json}");
+            assert_eq!(json["config"], ROBOT, "{json}");
+        }
     }
 }
 
