@@ -4,6 +4,10 @@
 
 #[path = "../../host/src/contract/control.rs"]
 mod control_impl;
+// The text clipper the parsers quote their input with (pure: the rest of
+// `contract` is wasmtime bindgen output).
+#[path = "../../host/src/contract/clip.rs"]
+mod clip_impl;
 #[path = "../../host/src/teleop/mode.rs"]
 mod mode_impl;
 #[path = "../../host/src/teleop/protocol.rs"]
@@ -12,6 +16,7 @@ mod protocol;
 mod standing;
 
 mod contract {
+    pub(crate) use crate::clip_impl::*;
     pub(crate) use crate::control_impl as control;
 }
 mod teleop {
