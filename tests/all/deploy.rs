@@ -13,7 +13,9 @@
 //! list and cancel between two researchers; the lab kit's verdict equal to
 //! the lab's preflight's on the same set.
 
+use std::io::{BufRead, BufReader};
 use std::path::Path;
+use std::process::{Command, Stdio};
 use std::time::Duration;
 
 use crate::support::{self, HostProcess, http, subsume};
@@ -679,7 +681,7 @@ fn the_lab_kit_run_locally_gives_the_verdict_the_labs_preflight_gave() {
     let output = lab("ada", &["submit", "--duration", "60", "--results", results.to_str().unwrap(), &host.address]);
     let (stdout, stderr) = out(&output);
     assert_eq!(output.status.code(), Some(1), "{stdout}\n{stderr}");
-    assert_eq!(told_states(&stdout, 1), ["checking", "preflight", "refused"], "{stdout}");
+    assert_eq!(told_states(&stdout, 1), ["checking", "preflight", "refused"], "{stdout}\n{stderr}");
     let reason = stdout.lines().find_map(|l| l.strip_prefix("  preflight: collision at ")).expect(&stdout).to_string();
     assert!(reason.ends_with("while 'driver' held control"), "{reason}");
 

@@ -8,6 +8,7 @@
 //! the robot-file editor).
 
 use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 use serde_json::Value;
@@ -191,9 +192,22 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
                 .into_iter()
                 .map(|request| {
                     let (barrier, address, token) = (barrier.clone(), &host.address, &tokens[request.user]);
+                    // Each user from an address of their own, as people
+                    // are: one address's connections are bounded
+                    // (admission::MAX_HTTP_CONNECTIONS_PER_ADDRESS).
+                    let at = users.iter().position(|(name, _, _)| *name == request.user).unwrap_or(0);
+                    let from: std::net::IpAddr = format!("127.0.0.{}", 10 + at).parse().unwrap();
                     scope.spawn(move || {
+                        let stream = support::flood::connect_from(from, address.parse().unwrap()).unwrap();
                         barrier.wait();
-                        let (status, json) = http(address, request.method, &request.path, Some(token), &request.body);
+                        let (status, json) = support::http_on(
+                            stream,
+                            address,
+                            request.method,
+                            &request.path,
+                            Some(token),
+                            &request.body,
+                        );
                         (request, status, json)
                     })
                 })

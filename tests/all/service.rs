@@ -7,7 +7,7 @@
 //! `prometheus_client` package's OpenMetrics parser and counts what
 //! happened; the systemd unit passes `systemd-analyze verify`.
 
-use std::io::Write;
+use std::io::{BufRead, BufReader, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Command, Output, Stdio};
 use std::time::Duration;

@@ -40,6 +40,7 @@ pub const PASS_ENVELOPE: &str = r#"<component name="envelope" source="builtin:en
       <param name="max-accel" value="100"/><param name="max-turn-accel" value="100"/>
     </component>"#;
 
+#[path = "support/flood.rs"]
 pub mod flood;
 
 /// The repository root.
@@ -516,7 +517,14 @@ pub fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: 
 }
 
 /// [`http`] on a connection the caller opened.
-pub fn http_on(stream: TcpStream, address: &str, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, Json) {
+pub fn http_on(
+    stream: TcpStream,
+    address: &str,
+    method: &str,
+    path: &str,
+    token: Option<&str>,
+    body: &[u8],
+) -> (u16, Json) {
     let (status, body) = http_bytes_on(stream, address, method, path, token, body);
     (status, serde_json::from_slice(&body).unwrap_or(Json::Null))
 }

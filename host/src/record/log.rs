@@ -107,6 +107,7 @@ mod tests {
                 inputs: vec![],
                 outputs: vec![PortLayout { name: "t".into(), kind: ValueKind::Scalar }],
             }],
+            about: Default::default(),
         };
         let recorder =
             Recorder::start(&RecordOptions::new(path.clone()), layout, Timeline::new(epoch, clock.clone())).unwrap();
