@@ -94,6 +94,7 @@ async fn portal_over(over_tls: bool) -> Portal {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: Some(support::cache_dir()),
             },
+            role: subsume::lab::LabRole::Alone,
         },
     )
     .unwrap();

@@ -105,7 +105,7 @@ impl Cli {
             Command::New(command) => command.execute(&context),
             Command::Dev(command) => command.execute(&context),
             Command::Deploy(command) => command.execute(&context),
-            Command::Lab(command) => command.execute(),
+            Command::Lab(command) => command.execute(&context),
         }
     }
 }

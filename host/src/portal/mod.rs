@@ -54,6 +54,8 @@ const OPENAPI: &str = include_str!("openapi.json");
 const INDEX_HTML: &str = include_str!("../../../web/index.html");
 const APP_JS: &str = include_str!("../../../web/app.js");
 const STYLE_CSS: &str = include_str!("../../../web/style.css");
+const LAB_HTML: &str = include_str!("../../../web/lab.html");
+const LAB_JS: &str = include_str!("../../../web/lab.js");
 
 /// Largest JSON answer the API rewrites to hide server paths (a set's view
 /// with its robot file is at most about `MAX_CONFIG_UPLOAD_BYTES` twice).
@@ -179,6 +181,66 @@ async fn api_answers(
     let mut parts = parts;
     parts.headers.remove(header::CONTENT_LENGTH);
     axum::response::Response::from_parts(parts, axum::body::Body::from(text))
+}
+
+/// The lab server's portal (`subsume lab serve`, docs/lab.md "Several
+/// robots"): login, uploads, staging, the experiments and the lab as on a
+/// robot, the robots with their live status and the lab's STOP; no route
+/// that drives or activates, since it runs no robot.
+pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
+    use routes::*;
+    let api = axum::Router::new()
+        .route("/login", post(auth::login).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/logout", post(auth::logout))
+        .route("/session", get(auth::session))
+        .route("/components", get(list_components))
+        .route("/components/{name}", get(get_component))
+        .route(
+            "/platforms/{platform}/components/{name}",
+            put(upload_component).layer(DefaultBodyLimit::max(MAX_UPLOAD_BYTES)),
+        )
+        .route(
+            "/platforms/{platform}/configs/{file}",
+            put(upload_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
+        )
+        .route(
+            "/platforms/{platform}/validate/{file}",
+            post(validate_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
+        )
+        .route("/worlds", get(list_worlds))
+        .route("/worlds/{file}", put(upload_world).layer(DefaultBodyLimit::max(MAX_WORLD_UPLOAD_BYTES as usize)))
+        .route("/sets", get(list_sets))
+        .route("/sets/{id}", get(get_set))
+        .route("/logs", get(recent_logs))
+        .route("/audit", get(audit_log))
+        .route(
+            "/experiments",
+            get(lab::list_experiments).post(lab::submit_experiment).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
+        )
+        .route("/experiments/{id}", get(lab::get_experiment))
+        .route("/experiments/{id}/cancel", post(lab::cancel_experiment))
+        .route("/experiments/{id}/results", get(lab::experiment_results))
+        .route("/lab", get(lab::overview))
+        .route("/lab/events", get(lab::events))
+        .route("/lab/settings", put(lab::put_settings).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/lab/baseline", put(lab::put_baseline).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/lab/pause", post(lab::pause))
+        .route("/lab/resume", post(lab::resume))
+        .route("/lab/kit", get(lab::kit))
+        .route("/robots", get(lab::robots))
+        .route("/robots/stop", post(lab::stop_all))
+        .route("/robots/{name}/live", get(lab::robot_live))
+        .route("/robots/{name}/stop", post(lab::stop_robot))
+        .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
+        .fallback(|| async {
+            ApiError::new(StatusCode::NOT_FOUND, "no such API route on a lab server (see /api/v1/openapi.json)")
+        });
+    axum::Router::new()
+        .nest("/api/v1", api)
+        .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], LAB_HTML) }))
+        .route("/lab.js", get(|| async { ([(header::CONTENT_TYPE, "text/javascript; charset=utf-8")], LAB_JS) }))
+        .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE_CSS) }))
+        .with_state(state)
 }
 
 /// The portal: API routes, the teleoperation WebSocket and the web files.
