@@ -1,0 +1,362 @@
+//! A lab of several robots end to end (docs/lab.md, "Several robots"): the
+//! real binary as a lab server (`subsume lab serve`) and as three robot
+//! hosts (`subsume run ... --lab NAME`, simulated robots), joined over real
+//! Zenoh sessions on loopback. Each robot reaches the lab through a TCP
+//! relay this test owns, so the test can cut one robot's link and bring it
+//! back.
+//!
+//! - Three researchers submit six experiments to the lab server; they spread
+//!   over the robots and all end `done`, with bundles the independent `mcap`
+//!   package reads.
+//! - Cutting a robot's link mid-run: the lab marks its experiment `aborted:
+//!   robot lost`, and the robot, on its own, aborts it and goes back to its
+//!   baseline within its `--lab-lost` setting.
+
+use std::io::{Read, Write};
+use std::net::{Shutdown, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+
+use crate::lab::{WORLD, download_results, read_mcap, robot};
+use crate::support::{self, HostProcess, free_port, http};
+
+const PASSWORD: &str = "labnet-test-password";
+const RESEARCHERS: [&str; 3] = ["ana", "ben", "cy"];
+const LAB: &str = "testlab";
+/// The robots' `--lab-lost`: how long a robot runs the lab's experiment
+/// without hearing its lab.
+const LOST_AFTER_S: f64 = 2.0;
+
+/// A TCP relay between one robot and the lab server's Zenoh listener: the
+/// robot's link, which the test cuts (every connection closed, new ones
+/// refused) and restores (listening again on the same port).
+struct Relay {
+    port: u16,
+    upstream: u16,
+    open: Arc<AtomicBool>,
+    streams: Arc<Mutex<Vec<TcpStream>>>,
+}
+
+impl Relay {
+    fn new(upstream: u16) -> Relay {
+        let relay = Relay {
+            port: free_port(),
+            upstream,
+            open: Arc::new(AtomicBool::new(false)),
+            streams: Arc::new(Mutex::new(Vec::new())),
+        };
+        relay.restore();
+        relay
+    }
+
+    fn restore(&self) {
+        let listener = TcpListener::bind(("127.0.0.1", self.port)).unwrap();
+        listener.set_nonblocking(true).unwrap();
+        self.open.store(true, Ordering::SeqCst);
+        let (open, streams, upstream) = (self.open.clone(), self.streams.clone(), self.upstream);
+        std::thread::spawn(move || {
+            while open.load(Ordering::SeqCst) {
+                let Ok((client, _)) = listener.accept() else {
+                    std::thread::sleep(Duration::from_millis(10));
+                    continue;
+                };
+                client.set_nonblocking(false).unwrap();
+                let Ok(server) = TcpStream::connect(("127.0.0.1", upstream)) else { continue };
+                let _ = client.set_nodelay(true);
+                let _ = server.set_nodelay(true);
+                let mut held = streams.lock().unwrap();
+                held.push(client.try_clone().unwrap());
+                held.push(server.try_clone().unwrap());
+                pipe(client.try_clone().unwrap(), server.try_clone().unwrap());
+                pipe(server, client);
+            }
+        });
+    }
+
+    /// Cuts the link: closes every connection and stops listening.
+    fn cut(&self) {
+        self.open.store(false, Ordering::SeqCst);
+        for stream in self.streams.lock().unwrap().drain(..) {
+            let _ = stream.shutdown(Shutdown::Both);
+        }
+        // The accept loop polls every 10 ms: let it drop the listener.
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn pipe(mut from: TcpStream, mut to: TcpStream) {
+    std::thread::spawn(move || {
+        let mut buffer = [0u8; 16 << 10];
+        while let Ok(n) = from.read(&mut buffer) {
+            if n == 0 || to.write_all(&buffer[..n]).is_err() {
+                break;
+            }
+        }
+        let _ = to.shutdown(Shutdown::Both);
+    });
+}
+
+struct Robot {
+    name: String,
+    host: HostProcess,
+    address: String,
+    relay: Relay,
+}
+
+struct LabNet {
+    dir: PathBuf,
+    server: HostProcess,
+    address: String,
+    robots: Vec<Robot>,
+}
+
+impl LabNet {
+    /// A lab server and `robots` robot hosts, each robot joined through its
+    /// own relay; returns once the lab lists every robot idle.
+    fn start(dir: &Path, robots: usize) -> LabNet {
+        support::guest_dir();
+        let store = dir.join("lab").join("store");
+        support::add_user(&store, "boss", "admin", &[], PASSWORD);
+        for name in RESEARCHERS {
+            support::add_user(&store, name, "researcher", &["control"], PASSWORD);
+        }
+        let zenoh_port = free_port();
+        let mut command = support::subsume();
+        command
+            .arg("--store")
+            .arg(&store)
+            .args(["lab", "serve", "--http", "127.0.0.1:0", "--lab", LAB])
+            .args(["--listen", &format!("tcp/127.0.0.1:{zenoh_port}")])
+            .env_remove("SUBSUME_HTTP");
+        let server = HostProcess::spawn(command);
+        let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
+        let secret = store.join("lab.secret");
+        let robots = (1..=robots)
+            .map(|n| {
+                let name = format!("r{n}");
+                let home = dir.join(&name);
+                std::fs::create_dir_all(&home).unwrap();
+                std::fs::write(home.join("robot.xml"), robot(8.0, "")).unwrap();
+                std::fs::write(home.join("lab.world"), WORLD).unwrap();
+                support::add_user(&home.join("store"), "owner", "admin", &[], PASSWORD);
+                let relay = Relay::new(zenoh_port);
+                let mut command = support::subsume();
+                command
+                    .arg("--store")
+                    .arg(home.join("store"))
+                    .arg("run")
+                    .arg(home.join("robot.xml"))
+                    .args(["--http", "127.0.0.1:0", "--lab", LAB, "--lab-robot", &name])
+                    .arg("--lab-secret")
+                    .arg(&secret)
+                    .args(["--lab-connect", &format!("tcp/127.0.0.1:{}", relay.port)])
+                    .args(["--lab-lost", &LOST_AFTER_S.to_string()])
+                    .env_remove("SUBSUME_HTTP");
+                let host = HostProcess::spawn(command);
+                let address = host.portal_address();
+                Robot { name, host, address, relay }
+            })
+            .collect();
+        let lab = LabNet { dir: dir.to_path_buf(), server, address, robots };
+        let boss = lab.token("boss");
+        lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
+            robots.len() == lab.robots.len()
+                && robots.iter().all(|r| r["state"] == "idle" && r["baseline_set"].as_u64().is_some())
+        });
+        lab
+    }
+
+    fn token(&self, user: &str) -> String {
+        support::login(&self.address, user, PASSWORD)
+    }
+
+    fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
+        http(&self.address, method, path, Some(token), body.as_bytes())
+    }
+
+    fn robots(&self, token: &str) -> Vec<Json> {
+        let (status, json) = self.call(token, "GET", "/api/v1/robots", "");
+        assert_eq!(status, 200, "{json}");
+        json["robots"].as_array().unwrap().clone()
+    }
+
+    /// Waits until the lab's robots satisfy `done`; returns them.
+    fn wait_robots(&self, token: &str, timeout: Duration, done: impl Fn(&[Json]) -> bool) -> Vec<Json> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let robots = self.robots(token);
+            if done(&robots) {
+                return robots;
+            }
+            assert!(Instant::now() < deadline, "the robots never got there: {robots:#?}\n{}", self.logs());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    fn logs(&self) -> String {
+        let mut text = format!("--- lab server:\n{}\n", self.server.log());
+        for robot in &self.robots {
+            text += &format!("--- {}:\n{}\n", robot.name, robot.host.log());
+        }
+        text
+    }
+
+    /// Stages `xml` as the user's robot file on the lab server; the set.
+    fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
+        let (status, json) = self.call(token, "PUT", &format!("/api/v1/platforms/control/configs/{file}"), xml);
+        assert_eq!(status, 201, "{json}\n{}", self.logs());
+        json["set"]["id"].as_u64().unwrap()
+    }
+
+    fn submit(&self, token: &str, set: u64, duration_s: f64, target: Option<&str>) -> u64 {
+        let mut body = serde_json::json!({ "set": set, "duration_s": duration_s, "label": "several robots" });
+        if let Some(robot) = target {
+            body["target"] = serde_json::json!({ "robot": robot });
+        }
+        let (status, json) = self.call(token, "POST", "/api/v1/experiments", &body.to_string());
+        assert_eq!(status, 201, "{json}\n{}", self.logs());
+        json["experiment"]["id"].as_u64().unwrap()
+    }
+
+    fn experiment(&self, token: &str, id: u64) -> Json {
+        let (status, json) = self.call(token, "GET", &format!("/api/v1/experiments/{id}"), "");
+        assert_eq!(status, 200, "{json}");
+        json["experiment"].clone()
+    }
+
+    /// Waits until experiment `id` is in `state` (or has ended), up to
+    /// `timeout`.
+    fn wait_for(&self, token: &str, id: u64, state: &str, timeout: Duration) -> Json {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let experiment = self.experiment(token, id);
+            let ended = ["done", "refused", "cancelled", "aborted", "failed"].contains(&experiment["state"].as_str().unwrap());
+            if experiment["state"] == state || ended {
+                return experiment;
+            }
+            assert!(Instant::now() < deadline, "experiment {id} never reached {state}: {experiment:#}\n{}", self.logs());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    fn robot(&self, name: &str) -> &Robot {
+        self.robots.iter().find(|r| r.name == name).unwrap()
+    }
+}
+
+/// The robot's active set, as its own portal says.
+fn active_set(robot: &Robot) -> u64 {
+    let token = support::login(&robot.address, "owner", PASSWORD);
+    let (status, json) = http(&robot.address, "GET", "/api/v1/status", Some(&token), b"");
+    assert_eq!(status, 200, "{json}");
+    json["set"].as_u64().unwrap()
+}
+
+#[test]
+fn experiments_of_three_researchers_spread_over_three_robots_and_end_done_with_bundles() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 3);
+    let tokens: Vec<String> = RESEARCHERS.iter().map(|r| lab.token(r)).collect();
+    let baselines: Vec<u64> = lab.robots.iter().map(active_set).collect();
+    // Every researcher stages their own robot file and submits it twice, all
+    // at once.
+    let ids: Vec<(usize, u64)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = tokens
+            .iter()
+            .enumerate()
+            .map(|(r, token)| {
+                let lab = &lab;
+                scope.spawn(move || {
+                    let set = lab.stage(token, &format!("{}.xml", RESEARCHERS[r]), &robot(6.0 + r as f64, ""));
+                    (0..2).map(|_| (r, lab.submit(token, set, 3.0, None))).collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap()).collect()
+    });
+    assert_eq!(ids.len(), 6);
+    let mut ran_on = std::collections::BTreeSet::new();
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    for (r, id) in &ids {
+        let experiment = lab.wait_for(&tokens[*r], *id, "done", Duration::from_secs(300));
+        assert_eq!(experiment["state"], "done", "{experiment:#}\n{}", lab.logs());
+        let robot = experiment["placement"]["robot"].as_str().unwrap().to_string();
+        ran_on.insert(robot);
+        let bundle = download_results(&lab.address, &tokens[*r], *id, &out);
+        let read = read_mcap(&bundle.join("run.mcap"), false);
+        assert!(read["complete"].as_bool().unwrap() && read["in_order_per_channel"].as_bool().unwrap(), "{read:#}");
+        assert!(read["channels"]["/planner/cmd"]["count"].as_u64().is_some_and(|n| n > 10), "{read:#}");
+        let preflight = read_mcap(&bundle.join("preflight.mcap"), false);
+        assert!(preflight["complete"].as_bool().unwrap(), "{preflight:#}");
+    }
+    assert!(ran_on.len() >= 2, "six experiments ran on {ran_on:?} only");
+    // Every robot runs its baseline again, and the lab sees them idle.
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["state"] == "idle"));
+    let after: Vec<u64> = lab.robots.iter().map(active_set).collect();
+    assert_eq!(after, baselines);
+}
+
+#[test]
+fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 60.0, Some("r1"));
+    let running = lab.wait_for(&ana, id, "running", Duration::from_secs(180));
+    assert_eq!(running["state"], "running", "{running:#}");
+    let r1 = lab.robot("r1");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "running")
+    });
+    let baseline = {
+        let token = support::login(&r1.address, "owner", PASSWORD);
+        let (_, json) = http(&r1.address, "GET", "/api/v1/lab", Some(&token), b"");
+        json["baseline"].as_u64()
+    };
+    let from = r1.host.log().lines().count();
+    r1.relay.cut();
+    let cut_at = Instant::now();
+    // The lab: the robot's token went with its link.
+    let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
+    assert_eq!(lost["state"], "aborted", "{lost:#}");
+    let cause = lost["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+    assert!(cause.contains("robot lost"), "{cause}");
+    // The robot, on its own: the experiment aborted, the baseline back.
+    r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    let noticed = cut_at.elapsed();
+    assert!(noticed >= Duration::from_secs_f64(LOST_AFTER_S * 0.9), "it aborted after {noticed:?}");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let token = support::login(&r1.address, "owner", PASSWORD);
+    loop {
+        let (_, json) = http(&r1.address, "GET", "/api/v1/experiments", Some(&token), b"");
+        let local = json["experiments"].as_array().unwrap().first().cloned().unwrap_or_default();
+        if local["state"] == "aborted" {
+            let cause = local["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+            assert!(cause.contains("lost its lab"), "{cause}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the robot's experiment never ended: {local:#}\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    if let Some(baseline) = baseline {
+        assert_eq!(active_set(r1), baseline);
+    }
+    // The other robot ran on, and takes work.
+    let ben = lab.token("ben");
+    let other = lab.stage(&ben, "ben.xml", &robot(6.0, ""));
+    let next = lab.submit(&ben, other, 2.0, Some("r2"));
+    assert_eq!(lab.wait_for(&ben, next, "done", Duration::from_secs(180))["state"], "done");
+    // The link back: the robot shows its token again, idle.
+    r1.relay.restore();
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
+    });
+}
