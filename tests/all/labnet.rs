@@ -8,6 +8,8 @@
 //! - Three researchers submit six experiments to the lab server; they spread
 //!   over the robots and all end `done`, with bundles the independent `mcap`
 //!   package reads.
+//! - An independent Zenoh client (the `eclipse-zenoh` package) sees each
+//!   robot's liveliness token with its name, state and profile.
 //! - Cutting a robot's link mid-run: the lab marks its experiment `aborted:
 //!   robot lost`, and the robot, on its own, aborts it and goes back to its
 //!   baseline within its `--lab-lost` setting.
@@ -111,6 +113,8 @@ struct LabNet {
     dir: PathBuf,
     server: HostProcess,
     address: String,
+    /// The lab server's Zenoh listener.
+    zenoh: String,
     robots: Vec<Robot>,
 }
 
@@ -133,6 +137,7 @@ impl LabNet {
             .args(["--listen", &format!("tcp/127.0.0.1:{zenoh_port}")])
             .env_remove("SUBSUME_HTTP");
         let server = HostProcess::spawn(command);
+        let zenoh = format!("tcp/127.0.0.1:{zenoh_port}");
         let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
         let secret = store.join("lab.secret");
         let robots = (1..=robots)
@@ -161,7 +166,7 @@ impl LabNet {
                 Robot { name, host, address, relay }
             })
             .collect();
-        let lab = LabNet { dir: dir.to_path_buf(), server, address, robots };
+        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots };
         let boss = lab.token("boss");
         lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
             robots.len() == lab.robots.len()
@@ -359,4 +364,30 @@ fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost(
     lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
         robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
     });
+}
+
+#[test]
+fn an_independent_zenoh_client_sees_each_robots_token_with_its_name_state_and_profile() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let output = std::process::Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/lab_tokens.py"))
+        .args([&lab.zenoh, LAB])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let tokens: Vec<Json> =
+        String::from_utf8_lossy(&output.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let mut names: Vec<&str> = tokens.iter().map(|t| t["name"].as_str().unwrap()).collect();
+    names.sort();
+    assert_eq!(names, ["r1", "r2"], "{tokens:#?}");
+    let boss = lab.token("boss");
+    let listed = lab.robots(&boss);
+    for token in &tokens {
+        assert_eq!(token["state"], "idle");
+        assert_eq!(token["body"]["name"], token["name"]);
+        let robot = listed.iter().find(|r| r["name"] == token["name"]).unwrap();
+        assert_eq!(token["body"]["profile"], robot["profile"], "{token:#}");
+        assert_eq!(token["body"]["profile"]["baseline"].as_str().unwrap().len(), 64, "{token:#}");
+    }
 }

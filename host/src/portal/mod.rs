@@ -183,18 +183,18 @@ async fn api_answers(
     axum::response::Response::from_parts(parts, axum::body::Body::from(text))
 }
 
-/// The lab server's portal (`subsume lab serve`, docs/lab.md "Several
-/// robots"): login, uploads, staging, the experiments and the lab as on a
-/// robot, the robots with their live status and the lab's STOP; no route
-/// that drives or activates, since it runs no robot.
-pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
+/// The routes a robot's portal and a lab server's share: login, uploads,
+/// staging, the sets, the log, the experiments, the lab and its robots (on
+/// a robot, `/robots` answers that it is no lab server), the document.
+fn shared_api() -> axum::Router<Arc<PortalState>> {
     use routes::*;
-    let api = axum::Router::new()
+    axum::Router::new()
         .route("/login", post(auth::login).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/logout", post(auth::logout))
         .route("/session", get(auth::session))
         .route("/components", get(list_components))
-        .route("/components/{name}", get(get_component))
+        .route("/components/{name}", get(get_own_component))
+        .route("/components/{owner}/{name}", get(get_component))
         .route(
             "/platforms/{platform}/components/{name}",
             put(upload_component).layer(DefaultBodyLimit::max(MAX_UPLOAD_BYTES)),
@@ -232,9 +232,17 @@ pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
         .route("/robots/{name}/live", get(lab::robot_live))
         .route("/robots/{name}/stop", post(lab::stop_robot))
         .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
+}
+
+/// The lab server's portal (`subsume lab serve`, docs/lab.md "Several
+/// robots"): the shared routes, its own page; no route that drives or
+/// activates, since it runs no robot.
+pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
+    let api = shared_api()
         .fallback(|| async {
             ApiError::new(StatusCode::NOT_FOUND, "no such API route on a lab server (see /api/v1/openapi.json)")
-        });
+        })
+        .layer(axum::middleware::from_fn_with_state(state.clone(), api_answers));
     axum::Router::new()
         .nest("/api/v1", api)
         .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], LAB_HTML) }))
@@ -246,29 +254,7 @@ pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
 /// The portal: API routes, the teleoperation WebSocket and the web files.
 pub fn app(state: Arc<PortalState>) -> axum::Router {
     use routes::*;
-    let api = axum::Router::new()
-        .route("/login", post(auth::login).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
-        .route("/logout", post(auth::logout))
-        .route("/session", get(auth::session))
-        .route("/components", get(list_components))
-        .route("/components/{name}", get(get_own_component))
-        .route("/components/{owner}/{name}", get(get_component))
-        .route(
-            "/platforms/{platform}/components/{name}",
-            put(upload_component).layer(DefaultBodyLimit::max(MAX_UPLOAD_BYTES)),
-        )
-        .route(
-            "/platforms/{platform}/configs/{file}",
-            put(upload_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
-        )
-        .route(
-            "/platforms/{platform}/validate/{file}",
-            post(validate_config).layer(DefaultBodyLimit::max(MAX_CONFIG_UPLOAD_BYTES as usize)),
-        )
-        .route("/worlds", get(list_worlds))
-        .route("/worlds/{file}", put(upload_world).layer(DefaultBodyLimit::max(MAX_WORLD_UPLOAD_BYTES as usize)))
-        .route("/sets", get(list_sets))
-        .route("/sets/{id}", get(get_set))
+    let api = shared_api()
         .route("/sets/{id}/activate", post(activate))
         .route("/sets/{id}/replay", post(replay_set).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/rollback", post(rollback))
@@ -277,8 +263,6 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/events", get(events))
         .route("/world", get(world))
         .route("/sim/{action}", post(sim_control))
-        .route("/logs", get(recent_logs))
-        .route("/audit", get(audit_log))
         .route("/estop", post(estop))
         .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/locks", get(locks))
@@ -286,26 +270,11 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/recordings/start", post(start_recording).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/recordings/stop", post(stop_recording))
         .route("/recordings/{name}", get(download_recording).delete(delete_recording))
-        .route(
-            "/experiments",
-            get(lab::list_experiments).post(lab::submit_experiment).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
-        )
-        .route("/experiments/{id}", get(lab::get_experiment))
-        .route("/experiments/{id}/cancel", post(lab::cancel_experiment))
-        .route("/experiments/{id}/results", get(lab::experiment_results))
-        .route("/lab", get(lab::overview))
-        .route("/lab/events", get(lab::events))
-        .route("/lab/settings", put(lab::put_settings).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
-        .route("/lab/baseline", put(lab::put_baseline).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
-        .route("/lab/pause", post(lab::pause))
-        .route("/lab/resume", post(lab::resume))
         .route("/lab/reset", post(lab::confirm_reset))
         .route("/lab/reservations", post(lab::book).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/lab/reservations/{id}", axum::routing::delete(lab::unbook))
-        .route("/lab/kit", get(lab::kit))
         .route("/teleop/ticket", post(teleop_ticket))
         .route("/teleop", get(teleop_socket))
-        .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such API route (see /api/v1/openapi.json)") })
         .layer(axum::middleware::from_fn_with_state(state.clone(), api_answers));
     axum::Router::new()
