@@ -18,7 +18,7 @@
 //! Settings (environment): `LAB_SECONDS` (default 30): each half of part 2.
 //! Run: `taskset -c 0,1 cargo bench --bench lab` (BENCHMARKS.md).
 
-#[path = "../tests/support/mod.rs"]
+#[path = "../../tests/all/support.rs"]
 mod support;
 
 use std::path::{Path, PathBuf};

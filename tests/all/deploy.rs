@@ -693,8 +693,6 @@ fn the_lab_kit_run_locally_gives_the_verdict_the_labs_preflight_gave() {
     check_sums(&kit);
     let verdict = kit.join("verdict.json");
     let output = subsume()
-        .arg("--cache-dir")
-        .arg(support::cache_dir())
         .arg("run")
         .arg(kit.join("robot.xml"))
         .args(["--http", "off", "--speed", "max", "--duration", "60", "--criteria"])

@@ -329,13 +329,8 @@ fn a_first_run_at_a_terminal_prints_a_login_that_works_and_a_pipe_gets_a_hint() 
     let robot = dir.path().join("first.xml");
     std::fs::write(&robot, light_robot("first", 1, 2, None)).unwrap();
     let run = |store: &Path| {
-        let mut command = Command::new(env!("CARGO_BIN_EXE_subsume"));
-        command
-            .current_dir(support::repo_root())
-            .env("NO_COLOR", "1")
-            .args(["--cache-dir", support::cache_dir().to_str().unwrap(), "--store", store.to_str().unwrap(), "run"])
-            .arg(&robot)
-            .args(["--http", "127.0.0.1:0"]);
+        let mut command = subsume();
+        command.args(["--store", store.to_str().unwrap(), "run"]).arg(&robot).args(["--http", "127.0.0.1:0"]);
         command
     };
     let portal = |host: &support::HostProcess| {

@@ -349,7 +349,7 @@ fn idle_connections_and_a_reconnect_loop_never_keep_an_operator_out() {
     let mut host = host;
     wait_for_exit(&mut host.process.child, Duration::from_secs(run_s as u64 + 20));
     let report = read_report(&host.report);
-    assert_eq!(report["network"]["commands"]["received"], u64::from(attempts), "{}", report["network"]);
+    assert_eq!(report["teleop"]["commands"]["received"], u64::from(attempts), "{}", report["teleop"]);
     let teleop = report["components"].as_array().unwrap().iter().find(|c| c["name"] == "teleop").unwrap();
     support::kept_its_rate(&report, teleop, 100.0, 0.05, 0.0, "the network platform under the flood");
 }

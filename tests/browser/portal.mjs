@@ -105,7 +105,7 @@ try {
   await page.mouse.up();
   const released = await page.evaluate(async () => {
     const status = await (await fetch('/api/v1/status')).json();
-    return status.network.commands.released;
+    return status.teleop.commands.released;
   });
   if (!(released > 0)) throw new Error(`the pad's commands were not released: ${released}`);
   await shot('5-drive');

@@ -318,6 +318,75 @@ pub fn enforce_retention<'r>(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::experiments::{AppliedSettings, ExperimentState, LAB_FORMAT, ResetPolicy};
+
+    /// Experiment `id` in `state` with a report of 100 bytes and a
+    /// recording of 1000, both written in its folder.
+    fn experiment(store: &Store, id: u64, state: ExperimentState) -> ExperimentRecord {
+        let dir = store.experiment_dir(id);
+        std::fs::create_dir_all(&dir).unwrap();
+        std::fs::write(dir.join(REPORT), vec![b'r'; 100]).unwrap();
+        std::fs::write(dir.join(RUN_RECORDING), vec![b'm'; 1000]).unwrap();
+        ExperimentRecord {
+            format: LAB_FORMAT,
+            id,
+            submitter: "ana".into(),
+            set: 1,
+            label: String::new(),
+            duration_s: 1.0,
+            submitted_ms: id,
+            state,
+            history: Vec::new(),
+            reasons: Vec::new(),
+            settings: AppliedSettings {
+                max_duration_s: 120.0,
+                limits: Default::default(),
+                criteria: Default::default(),
+                reset: ResetPolicy::Sim,
+                preflight_world: None,
+                baseline: None,
+            },
+            components: Vec::new(),
+            preflight: None,
+            run: None,
+            results: vec![
+                ResultFile { name: REPORT.into(), bytes: 100 },
+                ResultFile { name: RUN_RECORDING.into(), bytes: 1000 },
+            ],
+            recording_expired: false,
+        }
+    }
+
+    /// (cap in bytes, the experiments whose recordings expire): four
+    /// finished experiments (1, 2, 4, 5: 4,400 bytes) and a running one (3).
+    #[test]
+    fn retention_removes_the_oldest_finished_recordings_first_and_keeps_the_records() {
+        let cases: [(u64, &[u64]); 5] =
+            [(10_000, &[]), (4_400, &[]), (4_399, &[1]), (2_400, &[1, 2]), (0, &[1, 2, 4, 5])];
+        for (cap, expired) in cases {
+            let dir = tempfile::tempdir().unwrap();
+            let store = Store::open(dir.path()).unwrap();
+            let states = [
+                ExperimentState::Done,
+                ExperimentState::Aborted,
+                ExperimentState::Running,
+                ExperimentState::Cancelled,
+                ExperimentState::Done,
+            ];
+            let mut records: Vec<ExperimentRecord> =
+                states.into_iter().zip(1..).map(|(state, id)| experiment(&store, id, state)).collect();
+            let changed = enforce_retention(&store, records.iter_mut(), cap);
+            assert_eq!(changed, expired, "cap {cap}");
+            for record in &records {
+                let gone = expired.contains(&record.id);
+                let dir = store.experiment_dir(record.id);
+                assert_eq!(record.recording_expired, gone, "cap {cap}, experiment {}", record.id);
+                assert_eq!(!dir.join(RUN_RECORDING).exists(), gone, "cap {cap}, experiment {}", record.id);
+                assert!(dir.join(REPORT).exists(), "cap {cap}: experiment {}'s report went", record.id);
+                assert_eq!(record.results.len(), if gone { 1 } else { 2 }, "cap {cap}");
+            }
+        }
+    }
 
     #[test]
     fn only_known_result_files_are_kept() {

@@ -108,6 +108,10 @@ pub fn write_preflight_form(
         }
         None => None,
     };
+    // The simulator's source text, as the registry names its kind.
+    let sim_source = registry::kind_of(&crate::sim::builtin::SimBuiltin)
+        .map(|kind| format!("builtin:{kind}"))
+        .ok_or_else(|| damaged("the simulator is not a registered built-in".into()))?;
     let mut components = Vec::new();
     for platform in &mut robot.platforms {
         let mut added = Vec::new();
@@ -163,7 +167,7 @@ pub fn write_preflight_form(
                 let mut sim = RawComponent {
                     offset: component.offset,
                     name: spanned(&ctx.sim_name),
-                    source: spanned("builtin:sim"),
+                    source: spanned(&sim_source),
                     priority: None,
                     rate: None,
                     budget: None,
@@ -179,7 +183,7 @@ pub fn write_preflight_form(
                 for (param, value) in sim_params {
                     set_param(&mut sim, param, &value);
                 }
-                components.push((ctx.sim_name.clone(), "builtin:sim".into(), None));
+                components.push((ctx.sim_name.clone(), sim_source.clone(), None));
                 added.push(sim);
             }
         }

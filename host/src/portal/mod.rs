@@ -23,7 +23,8 @@
 //!   only;
 //! - every answer of the API that refuses is JSON, and no answer shows a
 //!   server folder (the store, the cache, the robot file's folder: each is
-//!   replaced by a name on the way out, `api_answers`).
+//!   replaced by a name on the way out, `api_answers`), but for a stored
+//!   robot file, answered as its author wrote it so it can be staged again.
 
 pub mod auth;
 pub mod client;
@@ -147,7 +148,14 @@ async fn api_answers(
     next: axum::middleware::Next,
 ) -> axum::response::Response {
     use axum::response::IntoResponse as _;
+    // A stored robot file is answered as stored: its text is its author's,
+    // and a client edits it and stages it again byte for byte (a path in it
+    // replaced by a name would no longer resolve).
+    let as_stored = request.method() == axum::http::Method::GET && names_a_set(request.uri().path());
     let response = next.run(request).await;
+    if as_stored && response.status().is_success() {
+        return response;
+    }
     let content_type = response.headers().get(header::CONTENT_TYPE).map(|v| v.as_bytes().to_vec());
     let json = content_type.as_deref().is_some_and(|t| t.starts_with(b"application/json"));
     let refused_in_text = !json && response.status().as_u16() >= 400;
@@ -181,6 +189,14 @@ async fn api_answers(
     let mut parts = parts;
     parts.headers.remove(header::CONTENT_LENGTH);
     axum::response::Response::from_parts(parts, axum::body::Body::from(text))
+}
+
+/// Whether `path` is one set's (`.../sets/ID`), whose answer holds a robot
+/// file as stored.
+fn names_a_set(path: &str) -> bool {
+    let mut segments = path.trim_end_matches('/').rsplit('/');
+    let id = segments.next().unwrap_or_default();
+    segments.next() == Some("sets") && !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit())
 }
 
 /// The routes a robot's portal and a lab server's share: login, uploads,
@@ -284,4 +300,25 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/metrics", get(metrics))
         .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE_CSS) }))
         .with_state(state)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::names_a_set;
+
+    #[test]
+    fn only_one_sets_answer_is_a_robot_file_as_stored() {
+        let cases = [
+            ("/sets/12", true),
+            ("/api/v1/sets/3", true),
+            ("/api/v1/sets/3/", true),
+            ("/api/v1/sets", false),
+            ("/api/v1/sets/3/activate", false),
+            ("/api/v1/sets/x", false),
+            ("/api/v1/experiments/3", false),
+        ];
+        for (path, expected) in cases {
+            assert_eq!(names_a_set(path), expected, "{path}");
+        }
+    }
 }

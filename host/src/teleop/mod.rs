@@ -122,6 +122,19 @@ impl TeleopSettings {
         }
         found
     }
+
+    /// Whether `name` drives only by a grant (a portal user whose role may
+    /// not drive, and who is not in the operators file).
+    pub fn drives_by_grant(&self, name: &str) -> bool {
+        let Some(directory) = &self.directory else { return false };
+        !self.operators.iter().any(|(operator, _)| operator == name)
+            && directory.users.get(name).is_some_and(|user| !user.may_drive())
+    }
+
+    /// Whether `name`'s grant holds now.
+    pub fn grant_holds(&self, name: &str) -> bool {
+        self.directory.as_ref().is_some_and(|d| d.grants.allows(name, crate::runtime::locks::unix_now_ms()))
+    }
 }
 
 /// Reads an operators file: one `NAME TOKEN` per line, `#` comments.

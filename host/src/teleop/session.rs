@@ -202,6 +202,10 @@ impl<R: AsyncRead + Unpin> LineReader<R> {
 }
 
 /// Everything a session knows about its operator.
+/// What an operator who drove inside their reservation is told when it
+/// ends.
+pub const GRANT_ENDED: &str = "your reservation has ended: you may no longer drive; closing";
+
 struct Session {
     id: u64,
     framing: Framing,
@@ -218,6 +222,9 @@ struct Session {
     /// Where the host's orders to this session go (kept with its
     /// operator's place once it logs in).
     orders: mpsc::Sender<SessionOrder>,
+    /// Its operator drives only by a grant (a reservation in effect,
+    /// docs/lab.md), not by their role: the session ends with the grant.
+    by_grant: bool,
 }
 
 /// A connection admitted among the unauthenticated ones.
@@ -360,7 +367,20 @@ impl Session {
             ticket: Some(entry.ticket),
             auth_deadline: entry.deadline,
             orders,
+            by_grant: false,
         }
+    }
+
+    /// The close of a session whose operator drove by a grant that has
+    /// ended (their reservation is over or was cancelled): checked at each
+    /// message and probe, so their commands stop at once.
+    fn grant_ended(&self, ctx: &ServerContext) -> Option<Reply> {
+        let operator = self.operator.as_deref().filter(|_| self.by_grant)?;
+        if ctx.settings.grant_holds(operator) {
+            return None;
+        }
+        tracing::info!(operator = %operator, session = self.id, "the operator's reservation ended: closing");
+        Some(Reply::Close(vec![ServerMessage::Error(GRANT_ENDED.into())]))
     }
 
     /// Carries out what the host ordered from outside the session.
@@ -385,6 +405,9 @@ impl Session {
             }
         };
         let now = Instant::now();
+        if let Some(ended) = self.grant_ended(ctx) {
+            return ended;
+        }
         if self.operator.is_some() && !matches!(message, ClientMessage::Pong { .. }) {
             ctx.touch(self.id, now);
         }
@@ -405,6 +428,7 @@ impl Session {
                     }
                     // A logged-in operator leaves the unauthenticated pool.
                     self.ticket = None;
+                    self.by_grant = ctx.settings.drives_by_grant(&name);
                     self.operator = Some(name.clone());
                     ctx.authenticated(self.id, &name);
                     tracing::info!(operator = %name, session = self.id, "operator authenticated");
@@ -488,6 +512,9 @@ impl Session {
     fn on_timer(&mut self, ctx: &ServerContext) -> Reply {
         if self.operator.is_none() {
             return Reply::Close(vec![ServerMessage::Error("no authentication in time: closing".into())]);
+        }
+        if let Some(ended) = self.grant_ended(ctx) {
+            return ended;
         }
         let (ping, measurement) = self.probe.on_timer(Instant::now());
         Reply::Send(self.after_probe(ping, measurement, ctx))
