@@ -12,7 +12,10 @@
 //!   robot's liveliness token with its name, state and profile.
 //! - Cutting a robot's link mid-run: the lab marks its experiment `aborted:
 //!   robot lost`, and the robot, on its own, aborts it and goes back to its
-//!   baseline within its `--lab-lost` setting.
+//!   baseline within its `--lab-lost` setting; with the link back, the lab
+//!   fetches what it recorded.
+//! - A lab server killed with SIGKILL and started again keeps its users,
+//!   results and queue, and relearns its robots from their tokens.
 
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
@@ -102,6 +105,21 @@ fn pipe(mut from: TcpStream, mut to: TcpStream) {
     });
 }
 
+/// `subsume lab serve` on `store`, its Zenoh listener on `zenoh_port`: the
+/// process and its portal's address.
+fn spawn_server(store: &Path, zenoh_port: u16) -> (HostProcess, String) {
+    let mut command = support::subsume();
+    command
+        .arg("--store")
+        .arg(store)
+        .args(["lab", "serve", "--http", "127.0.0.1:0", "--lab", LAB])
+        .args(["--listen", &format!("tcp/127.0.0.1:{zenoh_port}")])
+        .env_remove("SUBSUME_HTTP");
+    let server = HostProcess::spawn(command);
+    let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
+    (server, address)
+}
+
 struct Robot {
     name: String,
     host: HostProcess,
@@ -129,16 +147,8 @@ impl LabNet {
             support::add_user(&store, name, "researcher", &["control"], PASSWORD);
         }
         let zenoh_port = free_port();
-        let mut command = support::subsume();
-        command
-            .arg("--store")
-            .arg(&store)
-            .args(["lab", "serve", "--http", "127.0.0.1:0", "--lab", LAB])
-            .args(["--listen", &format!("tcp/127.0.0.1:{zenoh_port}")])
-            .env_remove("SUBSUME_HTTP");
-        let server = HostProcess::spawn(command);
+        let (server, address) = spawn_server(&store, zenoh_port);
         let zenoh = format!("tcp/127.0.0.1:{zenoh_port}");
-        let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
         let secret = store.join("lab.secret");
         let robots = (1..=robots)
             .map(|n| {
@@ -177,6 +187,20 @@ impl LabNet {
 
     fn token(&self, user: &str) -> String {
         support::login(&self.address, user, PASSWORD)
+    }
+
+    /// Kills the lab server with SIGKILL.
+    fn kill_server(&mut self) {
+        support::signal(self.server.child.id(), "KILL");
+        support::wait_for_exit(&mut self.server.child, Duration::from_secs(20));
+    }
+
+    /// Starts the lab server again on its store and its Zenoh port.
+    fn restart_server(&mut self) {
+        let port: u16 = self.zenoh.rsplit(':').next().unwrap().parse().unwrap();
+        let (server, address) = spawn_server(&self.dir.join("lab").join("store"), port);
+        self.server = server;
+        self.address = address;
     }
 
     fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
@@ -359,11 +383,66 @@ fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost(
     let other = lab.stage(&ben, "ben.xml", &robot(6.0, ""));
     let next = lab.submit(&ben, other, 2.0, Some("r2"));
     assert_eq!(lab.wait_for(&ben, next, "done", Duration::from_secs(180))["state"], "done");
-    // The link back: the robot shows its token again, idle.
+    // The link back: the robot shows its token again, idle, and the lab
+    // fetches what it recorded before the cut.
     r1.relay.restore();
     lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
         robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
     });
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let experiment = lab.experiment(&ana, id);
+        let reasons = experiment["reasons"].to_string();
+        if reasons.contains("came back: what it recorded was fetched") {
+            assert_eq!(experiment["state"], "aborted", "{experiment:#}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "its recording was never fetched: {experiment:#}\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, id, &out);
+    let read = read_mcap(&bundle.join("run.mcap"), true);
+    assert!(read["channels"]["/planner/cmd"]["count"].as_u64().is_some_and(|n| n > 0), "{read:#}");
+}
+
+#[test]
+fn a_lab_server_killed_and_restarted_loses_nothing_and_relearns_its_robots() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut lab = LabNet::start(dir.path(), 2);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let done = lab.submit(&ana, set, 2.0, None);
+    assert_eq!(lab.wait_for(&ana, done, "done", Duration::from_secs(180))["state"], "done");
+    // One runs on r1 and one waits for r1 when the server is killed.
+    let running = lab.submit(&ana, set, 30.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, running, "running", Duration::from_secs(180))["state"], "running");
+    let waiting = lab.submit(&ana, set, 2.0, Some("r1"));
+    assert_eq!(lab.experiment(&ana, waiting)["state"], "queued");
+    let before = lab.experiment(&ana, done);
+    let from = lab.robot("r1").host.log().lines().count();
+    lab.kill_server();
+    // r1 hears its lab no more: it aborts on its own and runs its baseline.
+    lab.robot("r1").host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    lab.restart_server();
+    // The users, the results and the queue are all there.
+    let ana = lab.token("ana");
+    assert_eq!(lab.experiment(&ana, done)["history"], before["history"]);
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, done, &out);
+    assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    // It relearns the robots from their tokens. r1 lost its lab while the
+    // server was down and aborted on its own; the lab learns that from it.
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.len() == 2 && robots.iter().all(|r| r["online"] == true)
+    });
+    let ended = lab.wait_for(&ana, running, "aborted", Duration::from_secs(120));
+    assert_eq!(ended["state"], "aborted", "{ended:#}");
+    assert!(ended.to_string().contains("lost its lab"), "{ended:#}");
+    assert_eq!(lab.wait_for(&ana, waiting, "done", Duration::from_secs(180))["state"], "done");
 }
 
 #[test]
