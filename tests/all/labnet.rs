@@ -419,7 +419,7 @@ fn a_lab_server_killed_and_restarted_loses_nothing_and_relearns_its_robots() {
     let running = lab.submit(&ana, set, 30.0, Some("r1"));
     assert_eq!(lab.wait_for(&ana, running, "running", Duration::from_secs(180))["state"], "running");
     let waiting = lab.submit(&ana, set, 2.0, Some("r1"));
-    assert_eq!(lab.experiment(&ana, waiting)["state"], "queued");
+    assert_eq!(lab.wait_for(&ana, waiting, "queued", Duration::from_secs(120))["state"], "queued");
     let before = lab.experiment(&ana, done);
     let from = lab.robot("r1").host.log().lines().count();
     lab.kill_server();

@@ -50,6 +50,9 @@ struct GlobalFlags {
     store: Option<PathBuf>,
 }
 
+// Parsed once per process: the size of `run`'s variant (its host and lab
+// flags) costs nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 enum Command {
     Run(run::RunCommand),

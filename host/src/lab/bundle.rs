@@ -354,6 +354,8 @@ mod tests {
                 ResultFile { name: RUN_RECORDING.into(), bytes: 1000 },
             ],
             recording_expired: false,
+            origin: None,
+            placement: None,
         }
     }
 
