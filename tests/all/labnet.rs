@@ -14,6 +14,8 @@
 //!   robot lost`, and the robot, on its own, aborts it and goes back to its
 //!   baseline within its `--lab-lost` setting; with the link back, the lab
 //!   fetches what it recorded.
+//! - A second lab server of the same name and another secret sees no robot,
+//!   and its heartbeats keep no robot's experiment alive.
 //! - A lab server killed with SIGKILL and started again keeps its users,
 //!   results and queue, and relearns its robots from their tokens.
 
@@ -140,6 +142,12 @@ impl LabNet {
     /// A lab server and `robots` robot hosts, each robot joined through its
     /// own relay; returns once the lab lists every robot idle.
     fn start(dir: &Path, robots: usize) -> LabNet {
+        LabNet::start_with(dir, robots, None)
+    }
+
+    /// As [`LabNet::start`]; with `also`, every robot also connects to
+    /// that Zenoh endpoint, with that Zenoh config file.
+    fn start_with(dir: &Path, robots: usize, also: Option<(&str, &Path)>) -> LabNet {
         support::guest_dir();
         let store = dir.join("lab").join("store");
         support::add_user(&store, "boss", "admin", &[], PASSWORD);
@@ -159,16 +167,18 @@ impl LabNet {
                 std::fs::write(home.join("lab.world"), WORLD).unwrap();
                 support::add_user(&home.join("store"), "owner", "admin", &[], PASSWORD);
                 let relay = Relay::new(zenoh_port);
+                let mut connect = format!("tcp/127.0.0.1:{}", relay.port);
                 let mut command = support::subsume();
+                command.arg("--store").arg(home.join("store")).arg("run").arg(home.join("robot.xml"));
+                if let Some((endpoint, config)) = also {
+                    connect = format!("{connect},{endpoint}");
+                    command.arg("--lab-zenoh-config").arg(config);
+                }
                 command
-                    .arg("--store")
-                    .arg(home.join("store"))
-                    .arg("run")
-                    .arg(home.join("robot.xml"))
                     .args(["--http", "127.0.0.1:0", "--lab", LAB, "--lab-robot", &name])
                     .arg("--lab-secret")
                     .arg(&secret)
-                    .args(["--lab-connect", &format!("tcp/127.0.0.1:{}", relay.port)])
+                    .args(["--lab-connect", &connect])
                     .args(["--lab-lost", &LOST_AFTER_S.to_string()])
                     .env_remove("SUBSUME_HTTP");
                 let host = HostProcess::spawn(command);
@@ -469,4 +479,39 @@ fn an_independent_zenoh_client_sees_each_robots_token_with_its_name_state_and_pr
         assert_eq!(token["body"]["profile"], robot["profile"], "{token:#}");
         assert_eq!(token["body"]["profile"]["baseline"].as_str().unwrap().len(), 64, "{token:#}");
     }
+}
+
+#[test]
+fn a_robot_obeys_only_its_own_lab_and_a_second_server_of_the_same_name_keeps_nothing_alive() {
+    let dir = tempfile::tempdir().unwrap();
+    // A second lab server under the same name, with a secret of its own; r1
+    // connects to it too (no gossip: the links stay the ones the test made).
+    let rogue_store = dir.path().join("rogue").join("store");
+    support::add_user(&rogue_store, "mallory", "admin", &[], PASSWORD);
+    let rogue_port = free_port();
+    let (rogue, rogue_address) = spawn_server(&rogue_store, rogue_port);
+    let config = dir.path().join("robot-zenoh.json5");
+    std::fs::write(&config, r#"{ mode: "peer", scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#)
+        .unwrap();
+    let rogue_endpoint = format!("tcp/127.0.0.1:{rogue_port}");
+    let lab = LabNet::start_with(dir.path(), 1, Some((&rogue_endpoint, &config)));
+    // The rogue hears r1's token, signed with another secret, and ignores it:
+    // it knows no robot to send work to.
+    rogue.lines_until(0, &format!("lab '{LAB}': a robot token was ignored"), Duration::from_secs(60));
+    let mallory = support::login(&rogue_address, "mallory", PASSWORD);
+    let (status, json) = http(&rogue_address, "GET", "/api/v1/robots", Some(&mallory), b"");
+    assert_eq!((status, json["robots"].as_array().map(Vec::len)), (200, Some(0)), "{json}");
+    // r1 runs its own lab's experiment; cut from its lab, it aborts it on
+    // its own although the rogue's heartbeats still reach it.
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 60.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(180))["state"], "running");
+    let r1 = lab.robot("r1");
+    let from = r1.host.log().lines().count();
+    r1.relay.cut();
+    r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
+    assert!(lost.to_string().contains("robot lost"), "{lost:#}");
+    assert!(!rogue.log().contains("robot 'r1' is"), "{}", rogue.log());
 }
