@@ -273,11 +273,16 @@ impl LabNet {
         let deadline = Instant::now() + timeout;
         loop {
             let experiment = self.experiment(token, id);
-            let ended = ["done", "refused", "cancelled", "aborted", "failed"].contains(&experiment["state"].as_str().unwrap());
+            let ended =
+                ["done", "refused", "cancelled", "aborted", "failed"].contains(&experiment["state"].as_str().unwrap());
             if experiment["state"] == state || ended {
                 return experiment;
             }
-            assert!(Instant::now() < deadline, "experiment {id} never reached {state}: {experiment:#}\n{}", self.logs());
+            assert!(
+                Instant::now() < deadline,
+                "experiment {id} never reached {state}: {experiment:#}\n{}",
+                self.logs()
+            );
             std::thread::sleep(Duration::from_millis(100));
         }
     }
@@ -491,8 +496,11 @@ fn a_robot_obeys_only_its_own_lab_and_a_second_server_of_the_same_name_keeps_not
     let rogue_port = free_port();
     let (rogue, rogue_address) = spawn_server(&rogue_store, rogue_port);
     let config = dir.path().join("robot-zenoh.json5");
-    std::fs::write(&config, r#"{ mode: "peer", scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#)
-        .unwrap();
+    std::fs::write(
+        &config,
+        r#"{ mode: "peer", scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#,
+    )
+    .unwrap();
     let rogue_endpoint = format!("tcp/127.0.0.1:{rogue_port}");
     let lab = LabNet::start_with(dir.path(), 1, Some((&rogue_endpoint, &config)));
     // The rogue hears r1's token, signed with another secret, and ignores it:

@@ -125,7 +125,9 @@ impl RunCommand {
         let report = self.robot.report.clone();
         let link = self.join.link(context.store_dir.as_deref())?;
         if link.is_some() && portal.is_none() {
-            anyhow::bail!("--lab needs the portal and its store (the lab's experiments run through them): not --http off");
+            anyhow::bail!(
+                "--lab needs the portal and its store (the lab's experiments run through them): not --http off"
+            );
         }
         let mut options = run_options(self.config, self.robot, self.host, portal, context)?;
         if let Some(portal) = &mut options.portal {

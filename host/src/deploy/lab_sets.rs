@@ -141,7 +141,8 @@ impl Deployer {
             };
             let worlds = |source: &str| import.sources.get(source).cloned();
             let lookup = |source: &str| {
-                worlds(source).ok_or_else(|| format!("unknown source '{}': not sent with the set", crate::contract::clip(source)))
+                worlds(source)
+                    .ok_or_else(|| format!("unknown source '{}': not sent with the set", crate::contract::clip(source)))
             };
             let mut loader = Loader::new(&self.sandbox);
             let (config, sources) = stage::validate_text(

@@ -263,12 +263,26 @@ pub enum NamedContent {
     StandIn(Vec<u8>),
 }
 
-/// The file parameters whose files hold a robot's secrets, never sent:
-/// (built-in kind, parameter, the stand-in sent instead).
-pub const SECRET_FILES: [(&str, &str, &str); 2] = [
-    ("teleop", "operators", "# stands in for the robot's operators file: nobody drives from the lab server\n"),
-    ("zenoh", "zenoh-config", "// stands in for the robot's Zenoh config: the lab server never opens it\n{}\n"),
-];
+/// The stand-in sent in place of the file that parameter `param` of a
+/// component of built-in `builtin` names, when that file holds the robot's
+/// secrets (its operators, its Zenoh config): it validates, and nobody can
+/// use it. The built-ins are named through the registry.
+fn stand_in(builtin: &dyn crate::builtin::Builtin, param: &str) -> Option<&'static str> {
+    let kind = registry::kind_of(builtin)?;
+    let secrets: [(&dyn crate::builtin::Builtin, &str, &'static str); 2] = [
+        (
+            &crate::teleop::builtin::TeleopBuiltin,
+            "operators",
+            "# stands in for the robot's operators file: nobody drives from the lab server\n",
+        ),
+        (
+            &crate::bridge::ports::ZenohSession,
+            "zenoh-config",
+            "// stands in for the robot's Zenoh config: the lab server never opens it\n{}\n",
+        ),
+    ];
+    secrets.into_iter().find(|(b, p, _)| registry::kind_of(*b) == Some(kind) && *p == param).map(|(_, _, text)| text)
+}
 
 /// Every file the built-ins of `set` name (a relative path each; an
 /// absolute one or one with `..` cannot travel and is left out), with
@@ -298,8 +312,8 @@ pub fn named_files(store: &Store, set: &SetRecord) -> Result<Vec<NamedFile>, Mat
             if relative.is_absolute() || relative.components().any(|c| !matches!(c, std::path::Component::Normal(_))) {
                 continue;
             }
-            let content = match SECRET_FILES.iter().find(|(k, p, _)| *k == kind && *p == decl.name) {
-                Some((_, _, stand_in)) => NamedContent::StandIn(stand_in.as_bytes().to_vec()),
+            let content = match stand_in(builtin, decl.name) {
+                Some(text) => NamedContent::StandIn(text.as_bytes().to_vec()),
                 None => match set.sources.get(path) {
                     Some(sha) => NamedContent::Blob(sha.clone()),
                     None => NamedContent::File(set.base_dir.join(path)),

@@ -494,7 +494,7 @@ impl Lab {
             }
             (Some(fleet), target) => {
                 let target = target.clone().unwrap_or_default();
-                baseline = fleet.baseline_for(&target, &baselines, baseline).map_err(LabError::BadRequest)?;
+                baseline = fleet.baseline_for(&target, &baselines, baseline)?;
                 if baseline == 0 {
                     return Err(LabError::Conflict(
                         "the lab knows no robot yet: experiments are checked against a robot's baseline".into(),

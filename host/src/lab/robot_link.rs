@@ -822,7 +822,7 @@ fn package(lab: &Lab, set: u64) -> Result<Package, LinkError> {
         if wire::named_path_ok(&file.path).is_err() {
             continue;
         }
-        if (file.kind.as_str(), file.param) == ("sim", "world") {
+        if crate::assemble::registry::find(&file.kind).and_then(|b| b.world_param()) == Some(file.param) {
             worlds.extend(std::path::Path::new(&file.path).file_name().map(|n| n.to_string_lossy().into_owned()));
         }
         let blob = match &file.content {

@@ -408,25 +408,34 @@ impl Fleet {
         target: &Target,
         baselines: &BTreeMap<String, u64>,
         reference: u64,
-    ) -> Result<u64, String> {
+    ) -> Result<u64, LabError> {
         let robots = lock(&self.robots);
         let hash = match target {
             Target::Any => return Ok(reference),
             Target::Robot(name) => {
-                let token =
-                    robots.get(name).and_then(|r| r.current.as_ref().or_else(|| r.tokens.values().next())).ok_or_else(
-                        || format!("no robot '{}' has joined lab '{}'", crate::contract::clip(name), self.key.lab()),
-                    )?;
+                let token = robots
+                    .get(name)
+                    .and_then(|r| r.current.as_ref().or_else(|| r.tokens.values().next()))
+                    .ok_or_else(|| {
+                        LabError::BadRequest(format!(
+                            "no robot '{}' has joined lab '{}'",
+                            crate::contract::clip(name),
+                            self.key.lab()
+                        ))
+                    })?;
                 token.profile.baseline.clone()
             }
             Target::Profile(id) => {
-                let token = robots
-                    .values()
-                    .filter_map(|r| r.current.as_ref())
-                    .find(|t| t.profile.id == *id)
-                    .ok_or_else(|| {
-                        format!("no robot of profile '{}' is in lab '{}'", crate::contract::clip(id), self.key.lab())
-                    })?;
+                let token =
+                    robots.values().filter_map(|r| r.current.as_ref()).find(|t| t.profile.id == *id).ok_or_else(
+                        || {
+                            LabError::BadRequest(format!(
+                                "no robot of profile '{}' is in lab '{}'",
+                                crate::contract::clip(id),
+                                self.key.lab()
+                            ))
+                        },
+                    )?;
                 token.profile.baseline.clone()
             }
         };
@@ -1008,7 +1017,7 @@ fn import_baseline(lab: &Lab, fleet: &Fleet, robot: &str) -> Result<u64, String>
     }
     let dir = store.root().join("baselines").join(&baseline.hash);
     for (path, blob) in &baseline.files {
-        wire::named_path_ok(path)?;
+        wire::named_path_ok(path).map_err(|b| b.0)?;
         let dest = dir.join(path);
         if transfer::digest_file(&dest).is_ok_and(|d| d.sha256 == blob.sha256) {
             continue;

@@ -162,6 +162,22 @@ pub enum WireError {
     Stale { skew_ms: u64 },
 }
 
+/// A broken bound of a message's header: what is wrong.
+#[derive(Debug, Error, PartialEq, Eq)]
+#[error("{0}")]
+pub struct Broken(pub String);
+
+impl From<&str> for Broken {
+    fn from(text: &str) -> Broken {
+        Broken(text.to_string())
+    }
+}
+
+/// `Broken(format!(...))`.
+macro_rules! broken {
+    ($($arg:tt)*) => { Broken(format!($($arg)*)) };
+}
+
 /// Why a lab's key could not be made.
 #[derive(Debug, Error)]
 pub enum KeyError {
@@ -297,7 +313,7 @@ impl LabKey {
             return Err(WireError::Version { got: version.v });
         }
         let message: M = serde_json::from_slice(header).map_err(|e| WireError::Header(clip(&e.to_string())))?;
-        message.check().map_err(WireError::Invalid)?;
+        message.check().map_err(|b| WireError::Invalid(b.0))?;
         Ok((message, attachment))
     }
 
@@ -328,7 +344,7 @@ struct Versioned {
 pub trait Message: Serialize + DeserializeOwned {
     const KIND: Kind;
     /// Every bound of the header; `Err` says which is broken.
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         Ok(())
     }
 }
@@ -343,30 +359,30 @@ pub fn is_name(name: &str) -> bool {
         && name.bytes().all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
 }
 
-fn name_ok(what: &str, name: &str) -> Result<(), String> {
-    if is_name(name) { Ok(()) } else { Err(format!("{what} '{}' is not a plain name", clip(name))) }
+fn name_ok(what: &str, name: &str) -> Result<(), Broken> {
+    if is_name(name) { Ok(()) } else { Err(broken!("{what} '{}' is not a plain name", clip(name))) }
 }
 
-fn text_ok(what: &str, text: &str) -> Result<(), String> {
+fn text_ok(what: &str, text: &str) -> Result<(), Broken> {
     if text.len() <= MAX_TEXT_LEN {
         Ok(())
     } else {
-        Err(format!("{what} is {} bytes; at most {MAX_TEXT_LEN}", text.len()))
+        Err(broken!("{what} is {} bytes; at most {MAX_TEXT_LEN}", text.len()))
     }
 }
 
-fn texts_ok(what: &str, texts: &[String]) -> Result<(), String> {
+fn texts_ok(what: &str, texts: &[String]) -> Result<(), Broken> {
     if texts.len() > MAX_REASONS {
-        return Err(format!("{what} lists {}; at most {MAX_REASONS}", texts.len()));
+        return Err(broken!("{what} lists {}; at most {MAX_REASONS}", texts.len()));
     }
     texts.iter().try_for_each(|t| text_ok(what, t))
 }
 
-fn sha_ok(sha: &str) -> Result<(), String> {
+fn sha_ok(sha: &str) -> Result<(), Broken> {
     if sha.len() == 64 && sha.bytes().all(|b| b.is_ascii_hexdigit() && !b.is_ascii_uppercase()) {
         Ok(())
     } else {
-        Err(format!("'{}' is not a sha256 in hex", clip(sha)))
+        Err(broken!("'{}' is not a sha256 in hex", clip(sha)))
     }
 }
 
@@ -510,14 +526,14 @@ impl Profile {
         Profile { id, baseline, worlds, translators }
     }
 
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         if self.id.len() != PROFILE_ID_LEN || !self.id.bytes().all(|b| b.is_ascii_hexdigit()) {
-            return Err(format!("profile id '{}' is not {PROFILE_ID_LEN} hex digits", clip(&self.id)));
+            return Err(broken!("profile id '{}' is not {PROFILE_ID_LEN} hex digits", clip(&self.id)));
         }
         sha_ok(&self.baseline)?;
         for list in [&self.worlds, &self.translators] {
             if list.len() > MAX_PROFILE_ITEMS {
-                return Err(format!("a profile lists at most {MAX_PROFILE_ITEMS} worlds or translators"));
+                return Err(broken!("a profile lists at most {MAX_PROFILE_ITEMS} worlds or translators"));
             }
             list.iter().try_for_each(|n| name_ok("a profile's item", n))?;
         }
@@ -545,7 +561,7 @@ pub struct TokenBody {
 
 impl Message for TokenBody {
     const KIND: Kind = Kind::Token;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         name_ok("robot", &self.name)?;
         if let RobotState::Stopped { by } = &self.state {
             text_ok("who stopped it", by)?;
@@ -587,7 +603,7 @@ impl LabKey {
             return Err(WireError::Version { got: version.v });
         }
         let token: TokenBody = serde_json::from_slice(&json).map_err(|e| WireError::Header(clip(&e.to_string())))?;
-        token.check().map_err(WireError::Invalid)?;
+        token.check().map_err(|b| WireError::Invalid(b.0))?;
         if token.name != name || token.state.word() != word {
             return Err(WireError::Invalid("the key's name or state differs from its body".into()));
         }
@@ -611,7 +627,7 @@ pub struct Heartbeat {
 
 impl Message for Heartbeat {
     const KIND: Kind = Kind::Heartbeat;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         text_ok("server", &self.server)
     }
 }
@@ -636,7 +652,7 @@ pub struct Status {
 
 impl Message for Status {
     const KIND: Kind = Kind::Status;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         name_ok("robot", &self.name)?;
         texts_ok("locks", &self.locks)?;
         if let RobotState::Stopped { by } = &self.state {
@@ -672,21 +688,21 @@ pub struct SetManifest {
 pub const MAX_BLOB_BYTES: u64 = 256 << 20;
 
 impl SetManifest {
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         name_ok("the robot file's name", &self.config_name)?;
         if self.config_text.len() as u64 > crate::config::limits::MAX_CONFIG_BYTES {
             return Err("the robot file is too large".into());
         }
         if self.sources.len() > MAX_SOURCES {
-            return Err(format!("the set names {} sources; at most {MAX_SOURCES}", self.sources.len()));
+            return Err(broken!("the set names {} sources; at most {MAX_SOURCES}", self.sources.len()));
         }
         for (key, blob) in &self.sources {
             if key.is_empty() || key.len() > 1024 || key.chars().any(char::is_control) {
-                return Err(format!("source '{}' is not a source name", clip(key)));
+                return Err(broken!("source '{}' is not a source name", clip(key)));
             }
             sha_ok(&blob.sha256)?;
             if blob.bytes > MAX_BLOB_BYTES {
-                return Err(format!("source '{}' is {} bytes; at most {MAX_BLOB_BYTES}", clip(key), blob.bytes));
+                return Err(broken!("source '{}' is {} bytes; at most {MAX_BLOB_BYTES}", clip(key), blob.bytes));
             }
         }
         if let Some(platform) = &self.platform {
@@ -713,7 +729,7 @@ pub struct Dispatch {
 
 impl Message for Dispatch {
     const KIND: Kind = Kind::Dispatch;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         name_ok("submitter", &self.submitter)?;
         text_ok("label", &self.label)?;
         if self.platforms.len() > 8 {
@@ -721,7 +737,7 @@ impl Message for Dispatch {
         }
         self.platforms.iter().try_for_each(|p| name_ok("platform", p))?;
         if !self.duration_s.is_finite() || self.duration_s <= 0.0 {
-            return Err(format!("duration {} is not a positive number of seconds", self.duration_s));
+            return Err(broken!("duration {} is not a positive number of seconds", self.duration_s));
         }
         self.set.check()
     }
@@ -747,7 +763,7 @@ pub struct DispatchReply {
 
 impl Message for DispatchReply {
     const KIND: Kind = Kind::DispatchReply;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         match &self.outcome {
             DispatchOutcome::Refused { reasons } => texts_ok("reasons", reasons),
             DispatchOutcome::Started { .. } => Ok(()),
@@ -766,7 +782,7 @@ pub struct Stop {
 
 impl Message for Stop {
     const KIND: Kind = Kind::Stop;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         name_ok("who", &self.by)
     }
 }
@@ -781,7 +797,7 @@ pub struct Estop {
 
 impl Message for Estop {
     const KIND: Kind = Kind::Estop;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         name_ok("who", &self.by)
     }
 }
@@ -796,7 +812,7 @@ pub struct Ack {
 
 impl Message for Ack {
     const KIND: Kind = Kind::Ack;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         text_ok("message", &self.message)
     }
 }
@@ -839,18 +855,18 @@ pub struct Results {
 
 impl Message for Results {
     const KIND: Kind = Kind::Results;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         texts_ok("reasons", &self.reasons)?;
         if self.history.len() > MAX_REASONS {
-            return Err(format!("the history lists {}; at most {MAX_REASONS}", self.history.len()));
+            return Err(broken!("the history lists {}; at most {MAX_REASONS}", self.history.len()));
         }
         self.history.iter().try_for_each(|c| text_ok("a cause", &c.cause))?;
         if self.files.len() > MAX_RESULT_FILES {
-            return Err(format!("{} result files; at most {MAX_RESULT_FILES}", self.files.len()));
+            return Err(broken!("{} result files; at most {MAX_RESULT_FILES}", self.files.len()));
         }
         for file in &self.files {
             if !crate::lab::bundle::is_result_file(&file.name) {
-                return Err(format!("'{}' is not a result file", clip(&file.name)));
+                return Err(broken!("'{}' is not a result file", clip(&file.name)));
             }
             sha_ok(&file.sha256)?;
         }
@@ -882,13 +898,13 @@ pub struct FileRequest {
 
 impl Message for FileRequest {
     const KIND: Kind = Kind::FileRequest;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         if self.len > MAX_CHUNK_BYTES as u64 {
-            return Err(format!("a chunk is at most {MAX_CHUNK_BYTES} bytes"));
+            return Err(broken!("a chunk is at most {MAX_CHUNK_BYTES} bytes"));
         }
         match &self.source {
             FileSource::Result { name, .. } if !crate::lab::bundle::is_result_file(name) => {
-                Err(format!("'{}' is not a result file", clip(name)))
+                Err(broken!("'{}' is not a result file", clip(name)))
             }
             FileSource::Result { .. } => Ok(()),
             FileSource::Blob { sha256 } => sha_ok(sha256),
@@ -899,10 +915,10 @@ impl Message for FileRequest {
 
 /// Whether `path` is a relative path of plain names (a baseline's named
 /// file): never absolute, never `..`.
-pub fn named_path_ok(path: &str) -> Result<(), String> {
+pub fn named_path_ok(path: &str) -> Result<(), Broken> {
     let parts: Vec<&str> = path.split('/').collect();
     if path.len() > 256 || parts.len() > 4 || !parts.iter().all(|p| is_name(p)) {
-        return Err(format!("'{}' is not a relative path of plain names", clip(path)));
+        return Err(broken!("'{}' is not a relative path of plain names", clip(path)));
     }
     Ok(())
 }
@@ -920,7 +936,7 @@ pub struct Chunk {
 
 impl Message for Chunk {
     const KIND: Kind = Kind::Chunk;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         self.missing.as_deref().map_or(Ok(()), |m| text_ok("why", m))
     }
 }
@@ -950,11 +966,11 @@ pub struct Baseline {
 
 impl Message for Baseline {
     const KIND: Kind = Kind::Baseline;
-    fn check(&self) -> Result<(), String> {
+    fn check(&self) -> Result<(), Broken> {
         sha_ok(&self.hash)?;
         self.set.check()?;
         if self.files.len() > MAX_NAMED_FILES {
-            return Err(format!("a baseline names at most {MAX_NAMED_FILES} files"));
+            return Err(broken!("a baseline names at most {MAX_NAMED_FILES} files"));
         }
         for (path, blob) in &self.files {
             named_path_ok(path)?;
@@ -1076,10 +1092,13 @@ mod tests {
         let cases: Vec<(&str, Dispatch, &str)> = vec![
             ("a path as submitter", Dispatch { submitter: "../x".into(), ..dispatch() }, "submitter '../x'"),
             ("no duration", Dispatch { duration_s: 0.0, ..dispatch() }, "duration 0"),
-            ("a NaN duration", Dispatch { duration_s: f64::NAN, ..dispatch() }, "duration NaN"),
+            ("a negative duration", Dispatch { duration_s: -1.0, ..dispatch() }, "duration -1"),
             ("too many sources", too_many, "at most 64"),
             ("a long label", Dispatch { label: "x".repeat(MAX_TEXT_LEN + 1), ..dispatch() }, "label is"),
         ];
+        // JSON has no NaN: serde writes null, refused as it is read.
+        let nan = Dispatch { duration_s: f64::NAN, ..dispatch() };
+        assert!(matches!(lab.open::<Dispatch>(&lab.seal(&nan, b"")), Err(WireError::Header(_))));
         for (case, message, words) in cases {
             match lab.open::<Dispatch>(&lab.seal(&message, b"")) {
                 Err(WireError::Invalid(why)) => assert!(why.contains(words), "{case}: {why}"),
