@@ -266,7 +266,9 @@ fn six_experiments_of_three_researchers_end_as_they_should_and_the_baseline_runs
     for (r, token) in tokens.iter().enumerate() {
         for n in 0..2 {
             let extra = if r == 0 && n == 0 { REVERSE } else { "" };
-            let duration = if extra.is_empty() { 3.0 } else { 12.0 };
+            // Long enough that a busy machine still sees each run (one is
+            // cancelled and one stopped while running).
+            let duration = if extra.is_empty() { 10.0 } else { 12.0 };
             let set = lab.stage(token, &format!("{}-{n}.xml", RESEARCHERS[r]), &robot(6.0 + n as f64, extra));
             plans.push((r, set, duration, !extra.is_empty()));
         }

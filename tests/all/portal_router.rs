@@ -452,6 +452,32 @@ async fn the_openapi_document_lists_exactly_the_routes() {
         assert_eq!(response.status(), StatusCode::OK, "{path}");
     }
     assert!(support::repo_root().join("host/src/portal/openapi.json").is_file());
+    // Every success answer says what it carries (a 204 carries nothing):
+    // schemathesis checks each answer against it, so a renamed or missing
+    // field of an answer fails the test command.
+    let schemas = &doc["components"]["schemas"];
+    for (path, methods) in doc["paths"].as_object().unwrap() {
+        for (method, operation) in methods.as_object().unwrap() {
+            for (code, answer) in operation["responses"].as_object().unwrap() {
+                if !code.starts_with('2') || code == "204" {
+                    continue;
+                }
+                let content = answer["content"].as_object();
+                let schema = content.and_then(|c| c.values().next()).map(|c| &c["schema"]);
+                let schema = match schema.and_then(|s| s["$ref"].as_str()) {
+                    Some(name) => &schemas[name.trim_start_matches("#/components/schemas/")],
+                    None => schema.unwrap_or(&Value::Null),
+                };
+                assert!(schema.is_object(), "{method} {path} {code} documents no schema: {answer}");
+                if content.is_some_and(|c| c.contains_key("application/json")) && path != "/api/v1/openapi.json" {
+                    assert!(
+                        schema["required"].as_array().is_some_and(|r| !r.is_empty()),
+                        "{method} {path} {code}: a JSON answer names the fields it always has: {schema}"
+                    );
+                }
+            }
+        }
+    }
 }
 
 /// What the API fuzzer (schemathesis, tests/python/api_fuzz.py) found, one
@@ -496,6 +522,12 @@ async fn answers_name_the_servers_folders_instead_of_showing_them() {
         assert!(!text.contains(&root), "{uri} shows {root}: {text}");
         if uri == "/api/v1/sets" {
             assert_eq!(json["sets"][0]["base_dir"], "<robot file folder>", "{json}");
+        }
+        if uri == "/api/v1/sets/1" {
+            // The robot file itself is its author's text, as stored: a
+            // client stages it again (the deploy and lab clients do).
+            assert_eq!(json["set"]["base_dir"], "<robot file folder>", "{json}");
+            assert_eq!(json["config"], ROBOT, "{json}");
         }
     }
 }

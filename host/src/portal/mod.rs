@@ -23,8 +23,9 @@
 //!   only;
 //! - every answer of the API that refuses is JSON, and no answer shows a
 //!   server folder (the store, the cache, the robot file's folder: each is
-//!   replaced by a name on the way out, `api_answers`), but for a stored
-//!   robot file, answered as its author wrote it so it can be staged again.
+//!   replaced by a name on the way out, `api_answers`), but for the text
+//!   of a stored robot file, answered as its author wrote it so it can be
+//!   staged again.
 
 pub mod auth;
 pub mod client;
@@ -148,14 +149,12 @@ async fn api_answers(
     next: axum::middleware::Next,
 ) -> axum::response::Response {
     use axum::response::IntoResponse as _;
-    // A stored robot file is answered as stored: its text is its author's,
-    // and a client edits it and stages it again byte for byte (a path in it
-    // replaced by a name would no longer resolve).
+    // A stored robot file (a set's `config`) is answered as stored: its
+    // text is its author's, and a client edits it and stages it again byte
+    // for byte (a path in it replaced by a name would no longer resolve).
+    // The rest of the answer hides server folders as every answer does.
     let as_stored = request.method() == axum::http::Method::GET && names_a_set(request.uri().path());
     let response = next.run(request).await;
-    if as_stored && response.status().is_success() {
-        return response;
-    }
     let content_type = response.headers().get(header::CONTENT_TYPE).map(|v| v.as_bytes().to_vec());
     let json = content_type.as_deref().is_some_and(|t| t.starts_with(b"application/json"));
     let refused_in_text = !json && response.status().as_u16() >= 400;
@@ -167,10 +166,21 @@ async fn api_answers(
         return ApiError::internal("an answer too large to send").into_response();
     };
     let mut text = String::from_utf8_lossy(&bytes).into_owned();
+    let mut robot_file = None;
+    if as_stored && json && parts.status.is_success() {
+        let mut answer: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+        robot_file = answer.get_mut("config").map(serde_json::Value::take);
+        text = answer.to_string();
+    }
     for (path, shown) in &state.hidden_paths {
         if text.contains(path.as_str()) {
             text = text.replace(path.as_str(), shown);
         }
+    }
+    if let Some(robot_file) = robot_file {
+        let mut answer: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
+        answer["config"] = robot_file;
+        text = answer.to_string();
     }
     if refused_in_text {
         let why = if text.trim().is_empty() {
