@@ -477,6 +477,20 @@ fn an_independent_zenoh_client_sees_each_robots_token_with_its_name_state_and_pr
     assert_eq!(names, ["r1", "r2"], "{tokens:#?}");
     let boss = lab.token("boss");
     let listed = lab.robots(&boss);
+    // Each robot as the lab lists it has the fields openapi.json documents.
+    let doc: Json = serde_json::from_str(
+        &std::fs::read_to_string(support::repo_root().join("host/src/portal/openapi.json")).unwrap(),
+    )
+    .unwrap();
+    let schema = &doc["paths"]["/api/v1/robots"]["get"]["responses"]["200"]["content"]["application/json"]["schema"];
+    let required = schema["properties"]["robots"]["items"]["required"].as_array().unwrap();
+    for robot in &listed {
+        let mut fields: Vec<&String> = robot.as_object().unwrap().keys().collect();
+        let mut documented: Vec<&str> = required.iter().map(|f| f.as_str().unwrap()).collect();
+        fields.sort();
+        documented.sort();
+        assert_eq!(fields, documented, "{robot:#}");
+    }
     for token in &tokens {
         assert_eq!(token["state"], "idle");
         assert_eq!(token["body"]["name"], token["name"]);
