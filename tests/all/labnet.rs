@@ -16,6 +16,10 @@
 //!   fetches what it recorded.
 //! - A second lab server of the same name and another secret sees no robot,
 //!   and its heartbeats keep no robot's experiment alive.
+//! - The same cut in network namespaces the test makes (each host in its
+//!   own, veth links into a hub's bridge; the cut is `ip link set ... down`):
+//!   the robot aborts by itself, and the other robots run the other
+//!   researchers' experiments to `done`.
 //! - A lab server killed with SIGKILL and started again keeps its users,
 //!   results and queue, and relearns its robots from their tokens.
 
@@ -110,23 +114,148 @@ fn pipe(mut from: TcpStream, mut to: TcpStream) {
 /// `subsume lab serve` on `store`, its Zenoh listener on `zenoh_port`: the
 /// process and its portal's address.
 fn spawn_server(store: &Path, zenoh_port: u16) -> (HostProcess, String) {
+    spawn_server_at(store, "127.0.0.1", &format!("tcp/127.0.0.1:{zenoh_port}"), None)
+}
+
+/// `subsume lab serve` on `store`, its portal on `ip`, its Zenoh listener
+/// on `listen`, in namespace 0 of `namespaces` when given.
+fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Namespaces>) -> (HostProcess, String) {
     let mut command = support::subsume();
     command
         .arg("--store")
         .arg(store)
-        .args(["lab", "serve", "--http", "127.0.0.1:0", "--lab", LAB])
-        .args(["--listen", &format!("tcp/127.0.0.1:{zenoh_port}")])
+        .args(["lab", "serve", "--http", &format!("{ip}:0"), "--lab", LAB, "--allow-plain-http"])
+        .args(["--listen", listen])
         .env_remove("SUBSUME_HTTP");
+    let command = match namespaces {
+        Some(namespaces) => namespaces.inside(0, &command),
+        None => command,
+    };
     let server = HostProcess::spawn(command);
     let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
     (server, address)
+}
+
+/// `ip ARGS`, which must succeed.
+fn ip(args: &[&str]) {
+    let output = std::process::Command::new("ip").args(args).output().unwrap();
+    assert!(output.status.success(), "ip {}: {}", args.join(" "), String::from_utf8_lossy(&output.stderr));
+}
+
+/// Network namespaces this test made: one per host (0 the lab server), each
+/// with a veth link into a hub namespace's bridge, and one veth from the
+/// test's own namespace into the hub so the test reaches the portals.
+/// Removed on drop.
+struct Namespaces {
+    prefix: String,
+    subnet: String,
+    hosts: usize,
+}
+
+impl Namespaces {
+    fn new(hosts: usize) -> Namespaces {
+        static MADE: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let made = MADE.fetch_add(1, Ordering::SeqCst);
+        let pid = std::process::id();
+        let namespaces = Namespaces {
+            prefix: format!("ln{:x}{made}", pid & 0xffff),
+            subnet: format!("10.{}.{}", 100 + pid % 100, made % 250),
+            hosts,
+        };
+        let hub = namespaces.hub();
+        ip(&["netns", "add", &hub]);
+        ip(&["-n", &hub, "link", "add", "br0", "type", "bridge"]);
+        ip(&["-n", &hub, "link", "set", "br0", "up"]);
+        for i in 0..hosts {
+            let (ns, inner, outer) = (namespaces.ns(i), format!("{}n{i}", namespaces.prefix), namespaces.hub_device(i));
+            ip(&["netns", "add", &ns]);
+            ip(&["link", "add", &inner, "type", "veth", "peer", "name", &outer]);
+            ip(&["link", "set", &inner, "netns", &ns]);
+            ip(&["link", "set", &outer, "netns", &hub]);
+            ip(&["-n", &hub, "link", "set", &outer, "master", "br0", "up"]);
+            ip(&["-n", &ns, "addr", "add", &format!("{}/24", namespaces.address(i)), "dev", &inner]);
+            ip(&["-n", &ns, "link", "set", &inner, "up"]);
+            ip(&["-n", &ns, "link", "set", "lo", "up"]);
+        }
+        let (root, outer) = (format!("{}r", namespaces.prefix), format!("{}rh", namespaces.prefix));
+        ip(&["link", "add", &root, "type", "veth", "peer", "name", &outer]);
+        ip(&["link", "set", &outer, "netns", &hub]);
+        ip(&["-n", &hub, "link", "set", &outer, "master", "br0", "up"]);
+        ip(&["addr", "add", &format!("{}.254/24", namespaces.subnet), "dev", &root]);
+        ip(&["link", "set", &root, "up"]);
+        namespaces
+    }
+
+    fn hub(&self) -> String {
+        format!("{}-hub", self.prefix)
+    }
+
+    fn ns(&self, i: usize) -> String {
+        format!("{}-{i}", self.prefix)
+    }
+
+    /// Host `i`'s link as the hub sees it: setting it down cuts the host off.
+    fn hub_device(&self, i: usize) -> String {
+        format!("{}h{i}", self.prefix)
+    }
+
+    fn address(&self, i: usize) -> String {
+        format!("{}.{}", self.subnet, i + 1)
+    }
+
+    /// `command` run inside host `i`'s namespace (`ip netns exec`).
+    fn inside(&self, i: usize, command: &std::process::Command) -> std::process::Command {
+        let mut wrapped = std::process::Command::new("ip");
+        wrapped.args(["netns", "exec"]).arg(self.ns(i)).arg(command.get_program()).args(command.get_args());
+        for (key, value) in command.get_envs() {
+            match value {
+                Some(value) => wrapped.env(key, value),
+                None => wrapped.env_remove(key),
+            };
+        }
+        if let Some(dir) = command.get_current_dir() {
+            wrapped.current_dir(dir);
+        }
+        wrapped
+    }
+}
+
+impl Drop for Namespaces {
+    fn drop(&mut self) {
+        for i in 0..self.hosts {
+            let _ = std::process::Command::new("ip").args(["netns", "del", &self.ns(i)]).status();
+        }
+        let _ = std::process::Command::new("ip").args(["netns", "del", &self.hub()]).status();
+    }
+}
+
+/// How a robot reaches its lab: a relay on loopback, or its veth link.
+enum Link {
+    Relay(Relay),
+    Veth { hub: String, device: String },
+}
+
+impl Link {
+    fn cut(&self) {
+        match self {
+            Link::Relay(relay) => relay.cut(),
+            Link::Veth { hub, device } => ip(&["-n", hub, "link", "set", device, "down"]),
+        }
+    }
+
+    fn restore(&self) {
+        match self {
+            Link::Relay(relay) => relay.restore(),
+            Link::Veth { hub, device } => ip(&["-n", hub, "link", "set", device, "up"]),
+        }
+    }
 }
 
 struct Robot {
     name: String,
     host: HostProcess,
     address: String,
-    relay: Relay,
+    link: Link,
 }
 
 struct LabNet {
@@ -136,6 +265,8 @@ struct LabNet {
     /// The lab server's Zenoh listener.
     zenoh: String,
     robots: Vec<Robot>,
+    /// Last: removed after every host has stopped.
+    namespaces: Option<Namespaces>,
 }
 
 impl LabNet {
@@ -148,6 +279,16 @@ impl LabNet {
     /// As [`LabNet::start`]; with `also`, every robot also connects to
     /// that Zenoh endpoint, with that Zenoh config file.
     fn start_with(dir: &Path, robots: usize, also: Option<(&str, &Path)>) -> LabNet {
+        LabNet::start_on(dir, robots, also, None)
+    }
+
+    /// As [`LabNet::start`], each host in its own network namespace (0 the
+    /// lab server), joined by veth links into a hub.
+    fn start_in_namespaces(dir: &Path, robots: usize) -> LabNet {
+        LabNet::start_on(dir, robots, None, Some(Namespaces::new(robots + 1)))
+    }
+
+    fn start_on(dir: &Path, robots: usize, also: Option<(&str, &Path)>, namespaces: Option<Namespaces>) -> LabNet {
         support::guest_dir();
         let store = dir.join("lab").join("store");
         support::add_user(&store, "boss", "admin", &[], PASSWORD);
@@ -155,8 +296,9 @@ impl LabNet {
             support::add_user(&store, name, "researcher", &["control"], PASSWORD);
         }
         let zenoh_port = free_port();
-        let (server, address) = spawn_server(&store, zenoh_port);
-        let zenoh = format!("tcp/127.0.0.1:{zenoh_port}");
+        let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
+        let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
+        let (server, address) = spawn_server_at(&store, &server_ip, &zenoh, namespaces.as_ref());
         let secret = store.join("lab.secret");
         let robots = (1..=robots)
             .map(|n| {
@@ -166,8 +308,18 @@ impl LabNet {
                 std::fs::write(home.join("robot.xml"), robot(8.0, "")).unwrap();
                 std::fs::write(home.join("lab.world"), WORLD).unwrap();
                 support::add_user(&home.join("store"), "owner", "admin", &[], PASSWORD);
-                let relay = Relay::new(zenoh_port);
-                let mut connect = format!("tcp/127.0.0.1:{}", relay.port);
+                let (link, mut connect, robot_ip) = match &namespaces {
+                    Some(namespaces) => (
+                        Link::Veth { hub: namespaces.hub(), device: namespaces.hub_device(n) },
+                        zenoh.clone(),
+                        namespaces.address(n),
+                    ),
+                    None => {
+                        let relay = Relay::new(zenoh_port);
+                        let connect = format!("tcp/127.0.0.1:{}", relay.port);
+                        (Link::Relay(relay), connect, "127.0.0.1".to_string())
+                    }
+                };
                 let mut command = support::subsume();
                 command.arg("--store").arg(home.join("store")).arg("run").arg(home.join("robot.xml"));
                 if let Some((endpoint, config)) = also {
@@ -175,18 +327,23 @@ impl LabNet {
                     command.arg("--lab-zenoh-config").arg(config);
                 }
                 command
-                    .args(["--http", "127.0.0.1:0", "--lab", LAB, "--lab-robot", &name])
+                    .args(["--http", &format!("{robot_ip}:0"), "--allow-plain-http"])
+                    .args(["--lab", LAB, "--lab-robot", &name])
                     .arg("--lab-secret")
                     .arg(&secret)
                     .args(["--lab-connect", &connect])
                     .args(["--lab-lost", &LOST_AFTER_S.to_string()])
                     .env_remove("SUBSUME_HTTP");
+                let command = match &namespaces {
+                    Some(namespaces) => namespaces.inside(n, &command),
+                    None => command,
+                };
                 let host = HostProcess::spawn(command);
                 let address = host.portal_address();
-                Robot { name, host, address, relay }
+                Robot { name, host, address, link }
             })
             .collect();
-        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots };
+        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots, namespaces };
         let boss = lab.token("boss");
         lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
             robots.len() == lab.robots.len()
@@ -207,8 +364,9 @@ impl LabNet {
 
     /// Starts the lab server again on its store and its Zenoh port.
     fn restart_server(&mut self) {
-        let port: u16 = self.zenoh.rsplit(':').next().unwrap().parse().unwrap();
-        let (server, address) = spawn_server(&self.dir.join("lab").join("store"), port);
+        let ip = self.namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
+        let store = self.dir.join("lab").join("store");
+        let (server, address) = spawn_server_at(&store, &ip, &self.zenoh, self.namespaces.as_ref());
         self.server = server;
         self.address = address;
     }
@@ -366,7 +524,7 @@ fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost(
         json["baseline"].as_u64()
     };
     let from = r1.host.log().lines().count();
-    r1.relay.cut();
+    r1.link.cut();
     let cut_at = Instant::now();
     // The lab: the robot's token went with its link.
     let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
@@ -400,7 +558,7 @@ fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost(
     assert_eq!(lab.wait_for(&ben, next, "done", Duration::from_secs(180))["state"], "done");
     // The link back: the robot shows its token again, idle, and the lab
     // fetches what it recorded before the cut.
-    r1.relay.restore();
+    r1.link.restore();
     lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
         robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
     });
@@ -531,9 +689,50 @@ fn a_robot_obeys_only_its_own_lab_and_a_second_server_of_the_same_name_keeps_not
     assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(180))["state"], "running");
     let r1 = lab.robot("r1");
     let from = r1.host.log().lines().count();
-    r1.relay.cut();
+    r1.link.cut();
     r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
     let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
     assert!(lost.to_string().contains("robot lost"), "{lost:#}");
     assert!(!rogue.log().contains("robot 'r1' is"), "{}", rogue.log());
+}
+
+#[test]
+fn in_network_namespaces_a_robot_whose_link_goes_down_aborts_by_itself_and_the_others_run_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start_in_namespaces(dir.path(), 3);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let long = lab.submit(&ana, set, 60.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");
+    // Two more researchers' experiments, for any robot.
+    let others: Vec<(String, u64)> = ["ben", "cy"]
+        .iter()
+        .flat_map(|user| {
+            let token = lab.token(user);
+            let set = lab.stage(&token, &format!("{user}.xml"), &robot(6.5, ""));
+            (0..2).map(|_| (token.clone(), lab.submit(&token, set, 2.0, None))).collect::<Vec<_>>()
+        })
+        .collect();
+    let r1 = lab.robot("r1");
+    let from = r1.host.log().lines().count();
+    r1.link.cut();
+    let cut_at = Instant::now();
+    let lost = lab.wait_for(&ana, long, "aborted", Duration::from_secs(30));
+    assert!(lost.to_string().contains("robot lost"), "{lost:#}");
+    r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    assert!(cut_at.elapsed() >= Duration::from_secs_f64(LOST_AFTER_S * 0.9));
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    for (token, id) in &others {
+        let experiment = lab.wait_for(token, *id, "done", Duration::from_secs(300));
+        assert_eq!(experiment["state"], "done", "{experiment:#}\n{}", lab.logs());
+        assert_ne!(experiment["placement"]["robot"], "r1", "{experiment:#}");
+        let bundle = download_results(&lab.address, token, *id, &out);
+        assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    }
+    r1.link.restore();
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
+    });
 }
