@@ -5,9 +5,10 @@
 //! relay this test owns, so the test can cut one robot's link and bring it
 //! back.
 //!
-//! - Three researchers submit six experiments to the lab server; they spread
-//!   over the robots and all end `done`, with bundles the independent `mcap`
-//!   package reads.
+//! - In network namespaces the test makes (each host in its own, veth links
+//!   into a hub's bridge), three researchers submit nine experiments to the
+//!   lab server; they spread over the three robots and all end `done`, with
+//!   bundles the independent `mcap` package reads.
 //! - An independent Zenoh client (the `eclipse-zenoh` package) sees each
 //!   robot's liveliness token with its name, state and profile.
 //! - Cutting a robot's link mid-run: the lab marks its experiment `aborted:
@@ -459,13 +460,13 @@ fn active_set(robot: &Robot) -> u64 {
 }
 
 #[test]
-fn experiments_of_three_researchers_spread_over_three_robots_and_end_done_with_bundles() {
+fn nine_experiments_of_three_researchers_spread_over_three_robots_in_namespaces_and_end_done() {
     let dir = tempfile::tempdir().unwrap();
-    let lab = LabNet::start(dir.path(), 3);
+    let lab = LabNet::start_in_namespaces(dir.path(), 3);
     let tokens: Vec<String> = RESEARCHERS.iter().map(|r| lab.token(r)).collect();
     let baselines: Vec<u64> = lab.robots.iter().map(active_set).collect();
-    // Every researcher stages their own robot file and submits it twice, all
-    // at once.
+    // Every researcher stages their own robot file and submits it three
+    // times, all at once.
     let ids: Vec<(usize, u64)> = std::thread::scope(|scope| {
         let handles: Vec<_> = tokens
             .iter()
@@ -474,13 +475,13 @@ fn experiments_of_three_researchers_spread_over_three_robots_and_end_done_with_b
                 let lab = &lab;
                 scope.spawn(move || {
                     let set = lab.stage(token, &format!("{}.xml", RESEARCHERS[r]), &robot(6.0 + r as f64, ""));
-                    (0..2).map(|_| (r, lab.submit(token, set, 3.0, None))).collect::<Vec<_>>()
+                    (0..3).map(|_| (r, lab.submit(token, set, 3.0, None))).collect::<Vec<_>>()
                 })
             })
             .collect();
         handles.into_iter().flat_map(|h| h.join().unwrap()).collect()
     });
-    assert_eq!(ids.len(), 6);
+    assert_eq!(ids.len(), 9);
     let mut ran_on = std::collections::BTreeSet::new();
     let out = lab.dir.join("results");
     std::fs::create_dir_all(&out).unwrap();
@@ -496,7 +497,7 @@ fn experiments_of_three_researchers_spread_over_three_robots_and_end_done_with_b
         let preflight = read_mcap(&bundle.join("preflight.mcap"), false);
         assert!(preflight["complete"].as_bool().unwrap(), "{preflight:#}");
     }
-    assert!(ran_on.len() >= 2, "six experiments ran on {ran_on:?} only");
+    assert!(ran_on.len() >= 2, "nine experiments ran on {ran_on:?} only");
     // Every robot runs its baseline again, and the lab sees them idle.
     let boss = lab.token("boss");
     lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["state"] == "idle"));
