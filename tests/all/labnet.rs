@@ -21,6 +21,8 @@
 //!   own, veth links into a hub's bridge; the cut is `ip link set ... down`):
 //!   the robot aborts by itself, and the other robots run the other
 //!   researchers' experiments to `done`.
+//! - A robot that refuses an experiment (over its owner's `max-duration`)
+//!   gets it back in the queue once; the second refusal ends it `refused`.
 //! - A lab server killed with SIGKILL and started again keeps its users,
 //!   results and queue, and relearns its robots from their tokens.
 
@@ -736,4 +738,34 @@ fn in_network_namespaces_a_robot_whose_link_goes_down_aborts_by_itself_and_the_o
     lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
         robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
     });
+}
+
+#[test]
+fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    // The robot's owner allows 10 s at most; the lab allows more.
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let (status, json) = http(&r1.address, "GET", "/api/v1/lab", Some(&owner), b"");
+    assert_eq!(status, 200, "{json}");
+    let mut settings = json["lab"]["settings"].clone();
+    settings["max_duration_s"] = serde_json::json!(10.0);
+    let (status, json) =
+        http(&r1.address, "PUT", "/api/v1/lab/settings", Some(&owner), settings.to_string().as_bytes());
+    assert_eq!(status, 200, "{json}");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["max_duration_s"] == 10.0));
+    // No robot allows 20 s: it goes to r1 anyway, which refuses it twice.
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 20.0, None);
+    let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(180));
+    assert_eq!(refused["state"], "refused", "{refused:#}");
+    let causes: Vec<&str> =
+        refused["history"].as_array().unwrap().iter().map(|c| c["cause"].as_str().unwrap()).collect();
+    assert_eq!(causes.iter().filter(|c| c.contains("back in the queue once")).count(), 1, "{causes:#?}");
+    assert!(causes.last().unwrap().contains("refused it a second time"), "{causes:#?}");
+    assert!(refused["reasons"].to_string().contains("max-duration of 10 s"), "{refused:#}");
+    assert_eq!(refused["placement"]["refusals"], 2, "{refused:#}");
 }
