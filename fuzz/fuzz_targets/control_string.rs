@@ -6,6 +6,10 @@
 
 #[path = "../../host/src/robot/control.rs"]
 mod control;
+// The text clipper the parsers quote their input with (pure: the rest of
+// `contract` is wasmtime bindgen output).
+#[path = "../../host/src/contract/clip.rs"]
+mod contract;
 
 libfuzzer_sys::fuzz_target!(|data: &[u8]| {
     let Ok(text) = std::str::from_utf8(data) else { return };

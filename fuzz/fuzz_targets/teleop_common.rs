@@ -4,6 +4,10 @@
 
 #[path = "../../host/src/robot/control.rs"]
 mod control_impl;
+// The text clipper the parsers quote their input with (pure: the rest of
+// `contract` is wasmtime bindgen output).
+#[path = "../../host/src/contract/clip.rs"]
+mod contract;
 #[path = "../../host/src/teleop/mode.rs"]
 mod mode_impl;
 #[path = "../../host/src/teleop/protocol.rs"]

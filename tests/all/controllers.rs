@@ -343,6 +343,25 @@ fn odrive_lines_follow_the_ascii_protocol_document() {
     assert_eq!(plan.poll_period_ns, 100_000_000);
 }
 
+/// Found by the `translator_odrive` fuzz target (fuzz/regressions/translator_odrive):
+/// positions 2e308 turns apart made the travel infinite and every later
+/// pose NaN. Such a step is now malformed and the pose stays a number.
+#[test]
+fn odrive_positions_too_far_apart_for_a_number_are_malformed_and_the_pose_stays_finite() {
+    let sandbox = sandbox();
+    let params = [("wheel-base", "0.3"), ("max-wheel-speed", "2"), ("turns-per-metre", "1")];
+    let mut odrive = translator(&sandbox, "translator-odrive", &params);
+    for _ in 0..3 {
+        poll(&mut odrive);
+    }
+    assert_eq!(decode(&mut odrive, b"1e308 0\n1e308 0\n"), vec![Feedback::Odometry { x: 0.0, y: 0.0, heading: 0.0 }]);
+    assert_eq!(decode(&mut odrive, b"-1e308 0\n-1e308 0\n"), vec![]);
+    assert_eq!(Translator::malformed(&odrive), 1);
+    // The next step starts from the refused positions, the pose from where
+    // it was.
+    assert_eq!(decode(&mut odrive, b"-1e308 0\n-1e308 0\n"), vec![Feedback::Odometry { x: 0.0, y: 0.0, heading: 0.0 }]);
+}
+
 #[test]
 fn odrive_checksums_are_the_documents_and_bad_ones_are_refused() {
     let sandbox = sandbox();

@@ -116,7 +116,9 @@ pub fn log_of(path: &Path) -> String {
         return format!("(the recording is {size} bytes, more than the {MAX_LOG_SOURCE_BYTES} read for the log)\n");
     }
     let Ok(bytes) = std::fs::read(path) else { return String::new() };
-    let Ok(stream) = mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into()) else {
+    let readable = crate::record::readable::readable(&bytes);
+    let Ok(stream) = mcap::MessageStream::new_with_options(readable.bytes, mcap::read::Options::IgnoreEndMagic.into())
+    else {
         return String::new();
     };
     let mut out = String::new();

@@ -8,7 +8,8 @@
 //! ([`RecordTap`], `try_send`: what does not fit is dropped and counted);
 //! the writer thread ([`writer`]) turns them into JSON messages and MCAP
 //! chunks. [`schema`] is the messages' form; [`replay`] reads a recording
-//! back and feeds chosen components their recorded inputs.
+//! back and feeds chosen components their recorded inputs; [`readable`] is
+//! what of a file the MCAP reader may be given.
 //!
 //! Invariants: nothing here blocks the control thread; a finished chunk is
 //! flushed to the file at least every [`FLUSH_INTERVAL`], so a killed host
@@ -19,6 +20,7 @@
 pub mod control;
 pub mod live;
 pub mod log;
+pub mod readable;
 pub mod replay;
 
 pub mod schema;

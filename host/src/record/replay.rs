@@ -403,7 +403,8 @@ fn read_recording(
     if !bytes.starts_with(mcap::MAGIC) {
         return Err(ReplayError::NotMcap(path.into()));
     }
-    let stream = mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into())
+    let readable = super::readable::readable(&bytes);
+    let stream = mcap::MessageStream::new_with_options(readable.bytes, mcap::read::Options::IgnoreEndMagic.into())
         .map_err(|source| ReplayError::Mcap { path: path.into(), source })?;
     let mut calls: Vec<RecordedCall> = Vec::new();
     // Each component's last call so far (an index into `calls`).
@@ -482,6 +483,15 @@ fn read_recording(
             }
         }
     }
+    if let Some(at) = readable.cut_at
+        && !truncated
+    {
+        tracing::warn!(
+            "{}: the recording ends early (the record at byte {at} runs past the file); replaying what came before",
+            path.display()
+        );
+        truncated = true;
+    }
     // The file's last call may have lost outputs to a stop (the recording
     // is detached between cycles, but its writer may stop mid-call) or to
     // a kill: it is fed, not compared.
@@ -546,6 +556,22 @@ mod tests {
                 outputs: vec![port("odd", ValueKind::Scalar), port("beat", ValueKind::Text)],
             },
         ]
+    }
+
+    /// Found by the `mcap_replay` fuzz target: a record whose length is
+    /// near `u64::MAX` made the `mcap` reader's arithmetic wrap and panic
+    /// (which ends `subsume run`). The file now ends early there.
+    #[test]
+    fn a_record_length_past_the_file_ends_it_early_and_panics_nothing() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("huge.mcap");
+        let header = [&[0x01][..], &8u64.to_le_bytes(), &[0; 8]].concat();
+        for len in [u64::MAX, u64::MAX - 8, 1 << 40] {
+            let huge = [&[0x05][..], &len.to_le_bytes(), b"body"].concat();
+            std::fs::write(&path, [mcap::MAGIC, &header, &huge].concat()).unwrap();
+            let (calls, truncated) = read_recording(&path, &layouts(), MAX_RECORDING_BYTES).unwrap();
+            assert!(calls.is_empty() && truncated, "length {len}");
+        }
     }
 
     /// What the graph tells its tap reaches the file in the order it

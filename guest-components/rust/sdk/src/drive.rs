@@ -89,14 +89,21 @@ impl Odometry {
     }
 
     /// Moves by the wheels' travel since the last call (metres, forward
-    /// positive), along an arc approximated at its mid heading.
-    pub fn advance(&mut self, left: f64, right: f64) {
+    /// positive), along an arc approximated at its mid heading. A step that
+    /// would leave the pose not finite (a controller reporting absurd
+    /// positions, which would poison every later pose) is refused: the pose
+    /// stays where it was and the answer is `false`.
+    pub fn advance(&mut self, left: f64, right: f64) -> bool {
         let distance = (left + right) / 2.0;
         let turn = (right - left) / self.wheel_base;
         let mid = self.heading + turn / 2.0;
-        self.x += distance * mid.cos();
-        self.y += distance * mid.sin();
-        self.heading = wrap(self.heading + turn);
+        let (x, y) = (self.x + distance * mid.cos(), self.y + distance * mid.sin());
+        let heading = wrap(self.heading + turn);
+        if !(x.is_finite() && y.is_finite() && heading.is_finite()) {
+            return false;
+        }
+        (self.x, self.y, self.heading) = (x, y, heading);
+        true
     }
 
     pub fn pose(&self) -> crate::Pose {

@@ -261,18 +261,23 @@ pub trait Translator: Sized + 'static {
 }
 
 /// Exports `$translator` (a type implementing [`Translator`]) as the
-/// component's implementation of the `subsume:robot/translator` world.
+/// component's implementation of the `subsume:robot/translator` world. In a
+/// fuzz build (`--cfg fuzzing`, see docs/fuzzing.md) it exports nothing and
+/// defines `fuzzing_translator`, the translator's `init` as a plain function.
 #[macro_export]
 macro_rules! translator {
     ($translator:ty) => {
+        #[cfg(not(fuzzing))]
         #[doc(hidden)]
         struct __SubsumeTranslatorExport;
 
+        #[cfg(not(fuzzing))]
         ::std::thread_local! {
             static __SUBSUME_TRANSLATOR: ::core::cell::RefCell<::core::option::Option<$translator>> =
                 const { ::core::cell::RefCell::new(::core::option::Option::None) };
         }
 
+        #[cfg(not(fuzzing))]
         impl $crate::translator_bindings::Guest for __SubsumeTranslatorExport {
             fn init(
                 params: ::std::vec::Vec<$crate::translator_bindings::subsume::robot::types::Param>,
@@ -314,6 +319,17 @@ macro_rules! translator {
             }
         }
 
+        #[cfg(not(fuzzing))]
         $crate::translator_bindings::__export_translator!(__SubsumeTranslatorExport with_types_in $crate::translator_bindings);
+
+        /// The translator built natively, for the fuzz targets (`fuzz/`,
+        /// built with `--cfg fuzzing`), which include the translator's
+        /// source and feed its decoder bytes with no component around it.
+        #[cfg(fuzzing)]
+        pub fn fuzzing_translator(
+            params: &$crate::Params,
+        ) -> ::core::result::Result<impl $crate::Translator + use<>, ::std::string::String> {
+            <$translator as $crate::Translator>::init(params)
+        }
     };
 }

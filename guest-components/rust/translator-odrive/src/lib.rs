@@ -127,13 +127,17 @@ impl ODrive {
                 if let [Some(a0), Some(a1)] = self.fresh {
                     self.fresh = [None, None];
                     let positions = [a0, a1];
-                    if let Some(last) = self.last {
+                    let last = self.last.replace(positions);
+                    if let Some(last) = last {
                         let travel =
                             |axis: usize| (positions[axis] - last[axis]) * self.signs[axis] / self.turns_per_metre;
                         let right_axis = 1 - self.left_axis;
-                        self.odometry.advance(travel(self.left_axis), travel(right_axis));
+                        // Absurd positions (the pose would stop being a
+                        // number) are garbage; the next step starts from them.
+                        if !self.odometry.advance(travel(self.left_axis), travel(right_axis)) {
+                            return false;
+                        }
                     }
-                    self.last = Some(positions);
                     out.push(Feedback::Odometry(self.odometry.pose()));
                 }
             }
