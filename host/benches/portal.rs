@@ -133,6 +133,7 @@ fn main() -> Result<(), String> {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: None,
             },
+            role: subsume::lab::LabRole::Alone,
         },
     )
     .map_err(|e| e.to_string())?;

@@ -16,8 +16,10 @@ use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::lab::preflight::{HolderWatch, PreflightCommand};
+use crate::lab::robot_link::{LinkError, RobotLink, RobotLinkOptions};
+use crate::lab::server::{Fleet, FleetOptions, ServerError};
 use crate::lab::verdict::Criteria;
-use crate::lab::{Lab, LabOptions};
+use crate::lab::{Lab, LabOptions, LabRole};
 use crate::portal::{self, logs::LogRing};
 use crate::record::control::{RecordingError, Recordings};
 use crate::record::{Layout, RecordError, RecordOptions, RecordSummary, Recorder, Timeline};
@@ -142,6 +144,9 @@ pub struct PortalOptions {
     pub watch: Option<Duration>,
     /// What a store with no users gets at start.
     pub first_user: FirstUser,
+    /// Join a lab of several robots (`--lab NAME`, docs/lab.md): its
+    /// experiments come from that lab's server only.
+    pub lab: Option<RobotLinkOptions>,
 }
 
 /// What the portal does when its store has no users yet.
@@ -154,6 +159,17 @@ pub enum FirstUser {
     /// Nobody may read it (a service unit, a pipe into a log): make no user;
     /// the log says how to add one.
     Hint,
+}
+
+/// What `subsume lab serve` was asked to do.
+#[derive(Clone, Debug)]
+pub struct LabServeOptions {
+    pub listen: std::net::SocketAddr,
+    pub store_dir: PathBuf,
+    pub logs: Arc<LogRing>,
+    pub cache_dir: Option<PathBuf>,
+    pub tls: HostTls,
+    pub fleet: FleetOptions,
 }
 
 #[derive(Debug, Error)]
@@ -190,6 +206,10 @@ pub enum RunError {
     Verdict { path: PathBuf, reason: String },
     #[error(transparent)]
     Lab(#[from] crate::lab::LabError),
+    #[error("the lab's link: {0}")]
+    LabLink(#[from] LinkError),
+    #[error("the lab server: {0}")]
+    LabServer(#[from] ServerError),
     #[error(
         "the stall limit must be between {} and {} ms, got {} ms",
         MIN_STALL_LIMIT.as_millis(),
@@ -518,10 +538,15 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     })?;
     let deploy::Boot { deployer, graph, hook } = boot;
     let exe = std::env::current_exe().map_err(|e| RunError::ControlLoop(format!("cannot find this program: {e}")))?;
+    let role = match &portal.lab {
+        Some(link) => LabRole::Joined { lab: link.key.lab().to_string() },
+        None => LabRole::Alone,
+    };
     let lab = Lab::start(
         deployer.clone(),
-        LabOptions { preflight: PreflightCommand { exe, cache_dir: options.cache_dir.clone() } },
+        LabOptions { preflight: PreflightCommand { exe, cache_dir: options.cache_dir.clone() }, role },
     )?;
+    let link = portal.lab.clone().map(|o| RobotLink::start(lab.clone(), o)).transpose()?;
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
@@ -581,6 +606,9 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
             None => {}
         }
         let report = final_report(hook.inner().config(), &graph, stopped_by, ran_ns);
+        if let Some(link) = &link {
+            link.shut_down();
+        }
         lab.shut_down(Some(&report));
         return Ok(report);
     };
@@ -596,7 +624,76 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     graph.take_tap();
     let summary = recorder.finish()?;
     let report = final_report(hook.inner().config(), &graph, stopped_by, ran_ns);
+    if let Some(link) = &link {
+        link.shut_down();
+    }
     lab.shut_down(Some(&report));
     log_recording(&summary);
     Ok(report)
+}
+
+/// `subsume lab serve` (docs/lab.md, "Several robots"): a lab server with
+/// no robot: its store (users, uploads, sets, experiments), the preflights,
+/// the dispatcher over the lab's Zenoh session, and its portal; until
+/// `shutdown`.
+pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), RunError> {
+    let sandbox = Arc::new(Sandbox::new(options.cache_dir.clone())?);
+    let store = Arc::new(Store::open(&options.store_dir)?);
+    let directory = Arc::new(Directory::new(store.users().clone()));
+    match directory.users.all() {
+        Ok(users) if users.is_empty() => tracing::warn!(
+            "the lab has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+            store.root().display()
+        ),
+        Ok(_) => {}
+        Err(e) => return Err(StoreError::from(e).into()),
+    }
+    if options.tls.identity.is_none() {
+        options.tls.check_plain("lab portal", options.listen)?;
+    }
+    let services = Services::default().with(directory.clone()).with(Arc::new(options.tls.clone()));
+    let deployer = Deployer::headless(store.clone(), sandbox, services);
+    let fleet = Fleet::start(store.clone(), options.fleet.clone())?;
+    let exe = std::env::current_exe().map_err(|e| RunError::ControlLoop(format!("cannot find this program: {e}")))?;
+    let lab = Lab::start(
+        deployer.clone(),
+        LabOptions {
+            preflight: PreflightCommand { exe, cache_dir: options.cache_dir.clone() },
+            role: LabRole::Server(fleet.clone()),
+        },
+    )?;
+    let listener = std::net::TcpListener::bind(options.listen)
+        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+        .map_err(|source| RunError::Listen { address: options.listen, source })?;
+    let address = listener.local_addr().map_err(|source| RunError::Listen { address: options.listen, source })?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name("portal")
+        .enable_all()
+        .build()
+        .map_err(RunError::PortalRuntime)?;
+    let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
+    let state = match acceptor {
+        Some(_) => portal::PortalState::over_tls(deployer, lab.clone(), directory, options.logs.clone()),
+        None => portal::PortalState::new(deployer, lab.clone(), directory, options.logs.clone()),
+    };
+    let scheme = if acceptor.is_some() { "https" } else { "http" };
+    runtime.spawn(async move {
+        let listener = match tokio::net::TcpListener::from_std(listener) {
+            Ok(listener) => listener,
+            Err(e) => return tracing::error!("the lab portal cannot serve: {e}"),
+        };
+        let app = portal::lab_server_app(state);
+        crate::admission::serve_http(listener, acceptor, app, crate::admission::HttpLimits::default()).await;
+    });
+    tracing::info!(
+        "lab server '{}' on {scheme}://{address}/ (store {})",
+        fleet.lab_name(),
+        options.store_dir.display()
+    );
+    while !shutdown.wait(Duration::from_secs(1)) {}
+    runtime.shutdown_timeout(Duration::from_secs(1));
+    lab.shut_down(None);
+    fleet.shut_down();
+    Ok(())
 }

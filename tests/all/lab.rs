@@ -71,9 +71,9 @@ const REVERSE: &str = r#"<component name="reverse" source="builtin:publish" rate
     </component>
     <connect from="reverse.out" to="arbiter.commands"/>"#;
 
-const WORLD: &str = "bounds 0 0 10 8\nstart 1 1 0\ngoal 8 1 0.3\ncircle 8 6 0.4\n";
+pub(crate) const WORLD: &str = "bounds 0 0 10 8\nstart 1 1 0\ngoal 8 1 0.3\ncircle 8 6 0.4\n";
 
-fn robot(goal_x: f64, extra: &str) -> String {
+pub(crate) fn robot(goal_x: f64, extra: &str) -> String {
     let mut xml = BASELINE.replace("GOAL_X", &goal_x.to_string()).replace("EXTRA", extra);
     for name in ["avoider", "planner", "range-filter"] {
         xml = xml.replace(&format!("GUEST({name})"), &crate::support::guest(name).display().to_string());
@@ -170,29 +170,36 @@ impl Lab {
     /// Downloads experiment `id`'s results and unpacks them into `into`:
     /// the bundle's folder.
     fn results(&self, token: &str, id: u64, into: &Path) -> PathBuf {
-        let archive = into.join(format!("experiment-{id}.tar"));
-        let status = Command::new("curl")
-            .args(["-s", "-f", "-o"])
-            .arg(&archive)
-            .args(["-H", &format!("Authorization: Bearer {token}")])
-            .arg(format!("http://{}/api/v1/experiments/{id}/results", self.address))
-            .status()
-            .unwrap();
-        assert!(status.success(), "downloading experiment {id}'s results failed");
-        // Python's tarfile: an archive reader no one here wrote.
-        let unpacked = Command::new(crate::support::python())
-            .args(["-c", "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')"])
-            .arg(&archive)
-            .arg(into)
-            .output()
-            .unwrap();
-        assert!(unpacked.status.success(), "{}", String::from_utf8_lossy(&unpacked.stderr));
-        let folder = into.join(format!("experiment-{id}"));
-        let sums = Command::new("sha256sum").arg("-c").arg("--quiet").arg("SHA256SUMS").current_dir(&folder).output();
-        let sums = sums.unwrap();
-        assert!(sums.status.success(), "{}", String::from_utf8_lossy(&sums.stdout));
-        folder
+        download_results(&self.address, token, id, into)
     }
+}
+
+/// Downloads experiment `id`'s results from the portal at `address` and
+/// unpacks them into `into` (Python's tarfile), every file checked by
+/// `sha256sum -c`: the bundle's folder.
+pub(crate) fn download_results(address: &str, token: &str, id: u64, into: &Path) -> PathBuf {
+    let archive = into.join(format!("experiment-{id}.tar"));
+    let status = Command::new("curl")
+        .args(["-s", "-f", "-o"])
+        .arg(&archive)
+        .args(["-H", &format!("Authorization: Bearer {token}")])
+        .arg(format!("http://{}/api/v1/experiments/{id}/results", address))
+        .status()
+        .unwrap();
+    assert!(status.success(), "downloading experiment {id}'s results failed");
+    // Python's tarfile: an archive reader no one here wrote.
+    let unpacked = Command::new(crate::support::python())
+        .args(["-c", "import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2], filter='data')"])
+        .arg(&archive)
+        .arg(into)
+        .output()
+        .unwrap();
+    assert!(unpacked.status.success(), "{}", String::from_utf8_lossy(&unpacked.stderr));
+    let folder = into.join(format!("experiment-{id}"));
+    let sums = Command::new("sha256sum").arg("-c").arg("--quiet").arg("SHA256SUMS").current_dir(&folder).output();
+    let sums = sums.unwrap();
+    assert!(sums.status.success(), "{}", String::from_utf8_lossy(&sums.stdout));
+    folder
 }
 
 /// The states an experiment went through, in order.
@@ -212,7 +219,7 @@ fn entered(experiment: &Json, state: &str) -> Option<u64> {
 }
 
 /// What the `mcap` package reads in `file`.
-fn read_mcap(file: &Path, truncated: bool) -> Json {
+pub(crate) fn read_mcap(file: &Path, truncated: bool) -> Json {
     let mut command = Command::new(crate::support::python());
     command.arg(crate::support::repo_root().join("tests/python/mcap_reader.py")).arg(file);
     if truncated {

@@ -26,6 +26,7 @@ mod e2e;
 mod estop;
 mod hostile;
 mod lab;
+mod labnet;
 mod languages;
 mod memory;
 mod portal;

@@ -94,6 +94,7 @@ async fn portal_over(over_tls: bool) -> Portal {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: Some(support::cache_dir()),
             },
+            role: subsume::lab::LabRole::Alone,
         },
     )
     .unwrap();
@@ -224,6 +225,12 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/lab/reservations", br#"{"start_unix_ms": 0, "end_unix_ms": 1}"#, Allowed::Submit),
         ("DELETE", "/api/v1/lab/reservations/999", b"", Allowed::AnyUser),
         ("GET", "/api/v1/lab/kit", b"", Allowed::Submit),
+        // A lab server's robots: on a robot, any user hears it is no lab
+        // server (tests/all/labnet.rs drives them on a lab server).
+        ("GET", "/api/v1/robots", b"", Allowed::AnyUser),
+        ("POST", "/api/v1/robots/stop", b"", Allowed::AnyUser),
+        ("GET", "/api/v1/robots/none/live", b"", Allowed::AnyUser),
+        ("POST", "/api/v1/robots/none/stop", b"", Allowed::AnyUser),
         ("POST", "/api/v1/logout", b"", Allowed::AnyUser),
     ]
 }

@@ -57,6 +57,94 @@ impl LoginFlags {
     }
 }
 
+/// `subsume run`'s settings for joining a lab of several robots
+/// (docs/lab.md, "Several robots").
+#[derive(clap::Args, Clone, Debug, Default, PartialEq)]
+pub struct LabJoinFlags {
+    /// Join this lab: its experiments come from its lab server only.
+    #[arg(long, value_name = "NAME")]
+    pub lab: Option<String>,
+    /// The lab's shared secret (its first line) [default: STORE/lab.secret].
+    #[arg(long, value_name = "FILE")]
+    pub lab_secret: Option<PathBuf>,
+    /// The Zenoh config (JSON5: TLS, user/password) of the lab's session.
+    #[arg(long, value_name = "FILE")]
+    pub lab_zenoh_config: Option<PathBuf>,
+    /// Zenoh endpoints to connect to for the lab, comma-separated.
+    #[arg(long, value_name = "ENDPOINTS", default_value = "")]
+    pub lab_connect: String,
+    /// Zenoh endpoints to listen on for the lab, comma-separated.
+    #[arg(long, value_name = "ENDPOINTS", default_value = "")]
+    pub lab_listen: String,
+    /// This robot's name in the lab [default: the machine's host name].
+    #[arg(long, value_name = "NAME")]
+    pub lab_robot: Option<String>,
+    /// Abort the lab's experiment and go back to the baseline after
+    /// hearing nothing of the lab for this long (1 to 600).
+    #[arg(long, value_name = "SECONDS", default_value = "5", value_parser = lab_lost)]
+    pub lab_lost: Duration,
+    /// How often the robot publishes its status to the lab (0.1 to 10).
+    #[arg(long, value_name = "HZ", default_value = "1", value_parser = status_hz)]
+    pub lab_status_hz: f64,
+}
+
+/// The Zenoh session of a lab's link: a config file and endpoints, as the
+/// `zenoh` built-in takes them (docs/distributed.md).
+pub fn lab_session(
+    config: Option<PathBuf>,
+    connect: &str,
+    listen: &str,
+) -> anyhow::Result<subsume::bridge::session::SessionSettings> {
+    let split = |text: &str| text.split(',').map(str::trim).filter(|s| !s.is_empty()).map(str::to_string).collect();
+    let settings = subsume::bridge::session::SessionSettings { connect: split(connect), listen: split(listen), config };
+    settings.zenoh_config()?;
+    Ok(settings)
+}
+
+impl LabJoinFlags {
+    /// The robot's link to its lab, when `--lab` was given.
+    pub fn link(
+        self,
+        store_dir: Option<&std::path::Path>,
+    ) -> anyhow::Result<Option<subsume::lab::robot_link::RobotLinkOptions>> {
+        use anyhow::Context as _;
+        let Some(lab) = self.lab else { return Ok(None) };
+        let secret = self
+            .lab_secret
+            .or_else(|| store_dir.map(|d| d.join("lab.secret")))
+            .context("--lab needs the lab's secret: --lab-secret FILE")?;
+        let key = subsume::lab::wire::LabKey::from_file(&lab, &secret)?;
+        let session = lab_session(self.lab_zenoh_config, &self.lab_connect, &self.lab_listen)?;
+        let robot = match self.lab_robot {
+            Some(name) => name,
+            None => std::fs::read_to_string("/proc/sys/kernel/hostname")
+                .map(|h| h.trim().to_string())
+                .context("cannot read the host name for the robot's name: give --lab-robot NAME")?,
+        };
+        Ok(Some(subsume::lab::robot_link::RobotLinkOptions {
+            key,
+            session,
+            robot,
+            lost_after: self.lab_lost,
+            status_period: Duration::from_secs_f64(1.0 / self.lab_status_hz),
+        }))
+    }
+}
+
+/// `--lab-lost`: within the robot link's limits.
+pub(super) fn lab_lost(text: &str) -> Result<Duration, String> {
+    use subsume::lab::robot_link::{MAX_LOST_AFTER, MIN_LOST_AFTER};
+    seconds_within(text, MIN_LOST_AFTER, MAX_LOST_AFTER)
+}
+
+/// `--lab-status-hz`: 0.1 to 10 per second.
+pub(super) fn status_hz(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(hz) if hz.is_finite() && (0.1..=10.0).contains(&hz) => Ok(hz),
+        _ => Err(format!("must be between 0.1 and 10 per second, got '{text}'")),
+    }
+}
+
 /// A listening address, or `off`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Listen {

@@ -22,6 +22,10 @@ pub struct LabCommand {
 
 #[derive(clap::Subcommand)]
 enum LabAction {
+    /// Serve a lab of several robots: its users, queue, results and
+    /// portal, on no robot of its own; robots join with `subsume run ...
+    /// --lab NAME` (docs/lab.md, "Several robots").
+    Serve(ServeArgs),
     /// Upload components and/or a robot file, stage them and submit them as
     /// an experiment, then print each state it enters until it ends: exit 0
     /// when it is `done`, 1 otherwise (with the reasons).
@@ -79,6 +83,69 @@ enum LabAction {
 }
 
 #[derive(clap::Args)]
+struct ServeArgs {
+    /// Where the lab's portal listens.
+    #[arg(long, value_name = "ADDRESS", default_value = "127.0.0.1:8080")]
+    http: std::net::SocketAddr,
+    /// The lab's name (robots join it by this name).
+    #[arg(long, value_name = "NAME", default_value = "lab")]
+    lab: String,
+    /// The lab's shared secret; made when missing [default:
+    /// STORE/lab.secret]. Copy it to each robot.
+    #[arg(long, value_name = "FILE")]
+    secret: Option<PathBuf>,
+    /// The Zenoh config (JSON5: TLS, user/password) of the lab's session.
+    #[arg(long, value_name = "FILE")]
+    zenoh_config: Option<PathBuf>,
+    /// Zenoh endpoints to connect to, comma-separated.
+    #[arg(long, value_name = "ENDPOINTS", default_value = "")]
+    connect: String,
+    /// Zenoh endpoints to listen on, comma-separated.
+    #[arg(long, value_name = "ENDPOINTS", default_value = "")]
+    listen: String,
+    /// How long robots have to show their tokens after a start before the
+    /// experiments they ran are marked lost (0 to 3600).
+    #[arg(long, value_name = "SECONDS", default_value = "15",
+          value_parser = |t: &str| super::flags::seconds_within(t, std::time::Duration::ZERO, std::time::Duration::from_secs(3600)))]
+    relearn: std::time::Duration,
+    /// The certificate chain (PEM) the portal serves TLS with.
+    #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_CERT")]
+    tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_KEY")]
+    tls_key: Option<PathBuf>,
+    /// Allow plain HTTP on addresses other than loopback.
+    #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
+    allow_plain_http: bool,
+}
+
+impl ServeArgs {
+    fn execute(self, context: &super::Context) -> anyhow::Result<ExitCode> {
+        use anyhow::Context as _;
+        let store_dir = context.store_dir()?;
+        std::fs::create_dir_all(&store_dir).with_context(|| format!("cannot make {}", store_dir.display()))?;
+        let secret = self.secret.unwrap_or_else(|| store_dir.join("lab.secret"));
+        let key = subsume::lab::wire::LabKey::from_file_or_new(&self.lab, &secret)?;
+        let session = super::flags::lab_session(self.zenoh_config, &self.connect, &self.listen)?;
+        let identity = subsume::tls::TlsIdentity::from_options(self.tls_cert.as_deref(), self.tls_key.as_deref())?;
+        let options = subsume::run::LabServeOptions {
+            listen: self.http,
+            store_dir,
+            logs: context.logs.clone(),
+            cache_dir: context.cache_dir.clone(),
+            tls: subsume::tls::HostTls { identity, allow_plain_remote: self.allow_plain_http },
+            fleet: subsume::lab::server::FleetOptions { key, session, relearn: self.relearn },
+        };
+        let shutdown = subsume::runtime::control_loop::Shutdown::new();
+        let signals = crate::install_signal_handlers(shutdown.clone())?;
+        let result = subsume::run::serve_lab(&options, shutdown);
+        signals.close();
+        result?;
+        Ok(ExitCode::SUCCESS)
+    }
+}
+
+#[derive(clap::Args)]
 struct SubmitArgs {
     /// A component of the robot and its file: uploaded under NAME
     /// (repeatable); the robot file's component NAME runs it.
@@ -117,8 +184,9 @@ fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {
 }
 
 impl LabCommand {
-    pub fn execute(self) -> anyhow::Result<ExitCode> {
+    pub fn execute(self, context: &super::Context) -> anyhow::Result<ExitCode> {
         match self.action {
+            LabAction::Serve(args) => args.execute(context),
             LabAction::Submit(args) => {
                 let request = SubmitRequest {
                     login: to_login(args.login),

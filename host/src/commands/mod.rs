@@ -50,6 +50,9 @@ struct GlobalFlags {
     store: Option<PathBuf>,
 }
 
+// Parsed once per process: the size of `run`'s variant (its host and lab
+// flags) costs nothing.
+#[allow(clippy::large_enum_variant)]
 #[derive(Subcommand)]
 enum Command {
     Run(run::RunCommand),
@@ -105,7 +108,7 @@ impl Cli {
             Command::New(command) => command.execute(&context),
             Command::Dev(command) => command.execute(&context),
             Command::Deploy(command) => command.execute(&context),
-            Command::Lab(command) => command.execute(),
+            Command::Lab(command) => command.execute(&context),
         }
     }
 }

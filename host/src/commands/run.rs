@@ -36,6 +36,8 @@ pub struct RunCommand {
     http: Listen,
     #[command(flatten)]
     host: HostFlags,
+    #[command(flatten)]
+    join: flags::LabJoinFlags,
 }
 
 /// How the host runs a robot: the watchdog, the control thread, TLS,
@@ -121,7 +123,17 @@ impl RunCommand {
     pub fn execute(self, context: &Context) -> anyhow::Result<ExitCode> {
         let portal = self.http.address().map(|listen| PortalFlags { listen, watch: None });
         let report = self.robot.report.clone();
-        launch(run_options(self.config, self.robot, self.host, portal, context)?, report)
+        let link = self.join.link(context.store_dir.as_deref())?;
+        if link.is_some() && portal.is_none() {
+            anyhow::bail!(
+                "--lab needs the portal and its store (the lab's experiments run through them): not --http off"
+            );
+        }
+        let mut options = run_options(self.config, self.robot, self.host, portal, context)?;
+        if let Some(portal) = &mut options.portal {
+            portal.lab = link;
+        }
+        launch(options, report)
     }
 }
 
@@ -150,6 +162,7 @@ pub fn run_options(
             } else {
                 subsume::run::FirstUser::Hint
             },
+            lab: None,
         }),
     };
     let live = host.foxglove.address();

@@ -146,6 +146,7 @@ impl Deployer {
         report: Option<ReportRequest>,
         experiment: Option<std::sync::Arc<crate::report::ExperimentTag>>,
     ) -> Result<(), DeployError> {
+        self.refuse_headless("swap a set in")?;
         let (done, old_graph) = std::sync::mpsc::sync_channel(1);
         let request = SwapRequest {
             graph: ready.built.graph,

@@ -29,6 +29,7 @@ pub mod dev;
 mod estop;
 mod experiment;
 mod history;
+mod lab_sets;
 mod recordings;
 mod replay;
 mod sim;
@@ -48,6 +49,7 @@ pub use self::experiment::{
     CheckedSet, Ended, ExperimentGate, LAB_LOCK, LAB_USER, Preempt, PreemptError, RunningExperiment, utc_time,
 };
 pub use self::history::{HISTORY_PERIOD_NS, HISTORY_SAMPLES, HistorySample, MAX_SAMPLE_SERIES, PlotHistory};
+pub use self::lab_sets::SetImport;
 pub use self::recordings::RecordingsView;
 pub use self::replay::{
     MAX_CONCURRENT_REPLAYS, MAX_REPLAY_COMPONENTS, MAX_REPLAY_DURATION, MAX_REPLAY_RECORDING_BYTES,
@@ -191,6 +193,8 @@ pub struct Deployer {
     experiments: ExperimentGate,
     /// The set the host started with.
     boot_set: u64,
+    /// It runs no robot (the lab server): every activation is refused.
+    headless: bool,
 }
 
 /// Where a run starts: the deployer, the first graph, and the hook to run
@@ -273,6 +277,7 @@ impl Deployer {
             replays: Mutex::new(()),
             experiments: ExperimentGate::default(),
             boot_set,
+            headless: false,
         };
         Ok(Boot { deployer: Arc::new(deployer), graph: built.graph, hook })
     }

@@ -123,6 +123,12 @@ impl Deployer {
         let text = std::str::from_utf8(bytes)
             .map_err(|e| DeployError::BadRequest(format!("{file_name} is not utf-8: {e}")))?;
         let (active_set, active_config) = self.active()?;
+        if self.is_headless() && active_set.id == 0 {
+            return Err(DeployError::Conflict(
+                "the lab knows no robot yet: robot files are staged against a robot's baseline, and none has joined"
+                    .into(),
+            ));
+        }
         let components = self.store.components()?;
         // The stager's own upload (or the one of the user it names), then
         // what the active set pinned under that source.
@@ -257,7 +263,7 @@ fn unknown_component(components: &BTreeMap<String, ComponentRecord>, stager: &st
 /// simulator worlds through `worlds`; returns
 /// the robot (sources and pinned worlds as blob paths) and the sources and
 /// worlds it used, by name.
-fn validate_text(
+pub(super) fn validate_text(
     store: &Store,
     set: &SetRecord,
     text: &str,

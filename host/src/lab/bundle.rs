@@ -68,7 +68,7 @@ pub struct Contents {
 
 /// Whether `name` is a file the results keep: the known names, and the
 /// rotations of the run's recording (`run.1.mcap`, ...).
-fn is_result_file(name: &str) -> bool {
+pub fn is_result_file(name: &str) -> bool {
     const KEPT: [&str; 8] = [
         REPORT,
         LOG,
@@ -356,6 +356,8 @@ mod tests {
                 ResultFile { name: RUN_RECORDING.into(), bytes: 1000 },
             ],
             recording_expired: false,
+            origin: None,
+            placement: None,
         }
     }
 

@@ -237,6 +237,100 @@ fn named_file(store: &Store, set: &SetRecord, file: &str) -> Result<Vec<u8>, Mat
     Ok(bytes)
 }
 
+/// A file a built-in of a set names (a world, a translator), as a robot
+/// sends it to its lab server with its baseline.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct NamedFile {
+    /// The component and the parameter naming it.
+    pub component: String,
+    pub param: &'static str,
+    /// The built-in's kind (`sim`, `serial`, ...).
+    pub kind: String,
+    /// The path as the robot file writes it (relative to its folder).
+    pub path: String,
+    pub content: NamedContent,
+}
+
+/// Where a named file's bytes come from.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum NamedContent {
+    /// An uploaded file, stored as this blob.
+    Blob(String),
+    /// The file in the set's folder.
+    File(PathBuf),
+    /// A stand-in for a file that holds the robot's secrets (its
+    /// operators, its Zenoh config): it validates, and nobody can use it.
+    StandIn(Vec<u8>),
+}
+
+/// The stand-in sent in place of the file that parameter `param` of a
+/// component of built-in `builtin` names, when that file holds the robot's
+/// secrets (its operators, its Zenoh config): it validates, and nobody can
+/// use it. The built-ins are named through the registry.
+fn stand_in(builtin: &dyn crate::builtin::Builtin, param: &str) -> Option<&'static str> {
+    let kind = registry::kind_of(builtin)?;
+    let secrets: [(&dyn crate::builtin::Builtin, &str, &'static str); 2] = [
+        (
+            &crate::teleop::builtin::TeleopBuiltin,
+            "operators",
+            "# stands in for the robot's operators file: nobody drives from the lab server\n",
+        ),
+        (
+            &crate::bridge::ports::ZenohSession,
+            "zenoh-config",
+            "// stands in for the robot's Zenoh config: the lab server never opens it\n{}\n",
+        ),
+    ];
+    secrets.into_iter().find(|(b, p, _)| registry::kind_of(*b) == Some(kind) && *p == param).map(|(_, _, text)| text)
+}
+
+/// Every file the built-ins of `set` name (a relative path each; an
+/// absolute one or one with `..` cannot travel and is left out), with
+/// where its bytes come from.
+pub fn named_files(store: &Store, set: &SetRecord) -> Result<Vec<NamedFile>, MaterializeError> {
+    let damaged = |reason: String| MaterializeError::Damaged { set: set.id, reason };
+    let text = String::from_utf8(store.blob(&set.config_sha256)?)
+        .map_err(|e| damaged(format!("the robot file is not utf-8: {e}")))?;
+    let map = SourceMap::new(Path::new(&set.config_name), &text);
+    let mut errors = Vec::new();
+    let robot = raw::parse(&map, &text, &mut errors);
+    if !errors.is_empty() || !robot.complete {
+        let first = errors.first().map_or_else(|| "incomplete".to_string(), ToString::to_string);
+        return Err(damaged(format!("the stored robot file does not read: {first}")));
+    }
+    let mut files = Vec::new();
+    for component in robot.platforms.iter().flat_map(|p| p.components.iter()) {
+        let Some(kind) = component.source.value.strip_prefix("builtin:") else { continue };
+        let Some(builtin) = registry::find(kind) else { continue };
+        for decl in builtin.params() {
+            let Some(value) = component.params.iter().find(|p| p.name.value == decl.name).map(|p| &p.value.value)
+            else {
+                continue;
+            };
+            let Some(path) = decl.file(value) else { continue };
+            let relative = Path::new(path);
+            if relative.is_absolute() || relative.components().any(|c| !matches!(c, std::path::Component::Normal(_))) {
+                continue;
+            }
+            let content = match stand_in(builtin, decl.name) {
+                Some(text) => NamedContent::StandIn(text.as_bytes().to_vec()),
+                None => match set.sources.get(path) {
+                    Some(sha) => NamedContent::Blob(sha.clone()),
+                    None => NamedContent::File(set.base_dir.join(path)),
+                },
+            };
+            files.push(NamedFile {
+                component: component.name.value.clone(),
+                param: decl.name,
+                kind: kind.to_string(),
+                path: path.to_string(),
+                content,
+            });
+        }
+    }
+    Ok(files)
+}
+
 /// The folder being written, and what was written.
 struct Folder<'a> {
     dir: &'a Path,

@@ -33,10 +33,14 @@ pub mod bundle;
 pub mod materialize;
 pub mod preflight;
 pub mod queue;
+pub mod robot_link;
 mod runner;
+pub mod server;
+pub mod transfer;
 pub mod verdict;
+pub mod wire;
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
@@ -52,7 +56,7 @@ use crate::deploy::{DeployError, Deployer, Diagnostics, RunningExperiment, utc_t
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{
     AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, LAB_FORMAT, LabSettings, LabState,
-    MAX_EXPERIMENT_RECORDS, MAX_LABEL_LEN, MAX_RESERVATIONS, Reservation,
+    MAX_EXPERIMENT_RECORDS, MAX_LABEL_LEN, MAX_RESERVATIONS, Placement, Reservation, Target,
 };
 use crate::store::users::{Role, User};
 use crate::store::{Outcome, Store, StoreError};
@@ -121,6 +125,23 @@ impl LabError {
 #[derive(Clone, Debug)]
 pub struct LabOptions {
     pub preflight: PreflightCommand,
+    /// What this host is in a lab of several robots.
+    pub role: LabRole,
+}
+
+/// What a host is in a lab of several robots (docs/lab.md, "Several
+/// robots").
+#[derive(Clone, Debug, Default)]
+pub enum LabRole {
+    /// One robot, its own lab: experiments are submitted on its portal.
+    #[default]
+    Alone,
+    /// A robot of lab `lab`: its experiments come from that lab's server
+    /// only ([`robot_link`]).
+    Joined { lab: String },
+    /// The lab server: no robot; experiments are dispatched to the lab's
+    /// robots ([`server`]).
+    Server(Arc<server::Fleet>),
 }
 
 /// The lab's state in memory: the records as stored, and what only this
@@ -137,6 +158,12 @@ struct Book {
     /// The queued experiment the runner is starting (its graph is being
     /// built): a cancel waits for it to run, then ends it.
     starting: Option<u64>,
+    /// On a lab server: the experiments being handed to a robot (a cancel
+    /// waits for the answer, then ends it).
+    dispatching: BTreeSet<u64>,
+    /// Experiments to abort (not cancel) on the robot: id -> cause (a lab
+    /// that was lost).
+    aborts: BTreeMap<u64, String>,
     /// The experiment an admin confirmed the robot was reset for.
     reset_confirmed: Option<u64>,
     /// The queued experiment waiting for a manual reset, if any.
@@ -190,6 +217,9 @@ pub struct LabView {
     pub reservations: Vec<Reservation>,
     /// The reservation in effect now.
     pub reserved_now: Option<Reservation>,
+    /// On a lab server: every robot it knows.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robots: Option<Vec<server::RobotView>>,
     /// The owner's settings (admins only).
     pub settings: Option<LabSettings>,
     /// The host's clock when this view was made (ms since the Unix epoch):
@@ -206,6 +236,10 @@ pub struct Submission {
     pub duration_s: f64,
     #[serde(default)]
     pub label: String,
+    /// On a lab server: which robots may run it (`{"robot": NAME}`,
+    /// `{"profile": ID}`); the first free robot when missing.
+    #[serde(default)]
+    pub target: Option<Target>,
 }
 
 fn visible(user: &User, record: &ExperimentRecord) -> bool {
@@ -230,9 +264,15 @@ impl Lab {
         let mut experiments = store.experiments()?;
         let lab = store.lab_state()?;
         let now = unix_now_ms();
+        let is_server = matches!(options.role, LabRole::Server(_));
         {
             let writer = store.lock()?;
             for record in experiments.values_mut() {
+                // A lab server's experiments on robots ran on without it:
+                // it learns what became of them from the robots.
+                if is_server && matches!(record.state, ExperimentState::Running | ExperimentState::Finishing) {
+                    continue;
+                }
                 let cause = match record.state {
                     ExperimentState::Running | ExperimentState::Finishing => "the host stopped while it ran",
                     ExperimentState::Preflight => "the host stopped during its preflight; it is checked again",
@@ -259,6 +299,8 @@ impl Lab {
                 preempt: None,
                 running: None,
                 starting: None,
+                dispatching: BTreeSet::new(),
+                aborts: BTreeMap::new(),
                 reset_confirmed: None,
                 awaiting_reset: None,
                 held: None,
@@ -271,7 +313,10 @@ impl Lab {
         });
         let preempt: Arc<dyn crate::deploy::Preempt> = lab.clone();
         deployer.experiments().on_preempt(Arc::downgrade(&preempt));
-        runner::spawn(&lab)?;
+        match &lab.options.role {
+            LabRole::Server(fleet) => server::spawn(&lab, fleet.clone())?,
+            _ => runner::spawn(&lab)?,
+        }
         Ok(lab)
     }
 
@@ -294,9 +339,18 @@ impl Lab {
         self.generation.subscribe()
     }
 
-    /// The baseline: the owner's choice, else the set the host started with.
+    /// The baseline: the owner's choice, else the set the host started with
+    /// (on a lab server: the reference, the first robot baseline it learned).
     fn baseline(&self, lab: &LabState) -> u64 {
         lab.baseline.unwrap_or_else(|| self.deployer.boot_set())
+    }
+
+    /// The lab server's fleet, if this is one.
+    pub fn fleet(&self) -> Option<&Arc<server::Fleet>> {
+        match &self.options.role {
+            LabRole::Server(fleet) => Some(fleet),
+            _ => None,
+        }
     }
 
     /// Moves experiment `id` to `state` for `cause` (and `reasons`),
@@ -364,6 +418,11 @@ impl Lab {
                 run: None,
                 results: Vec::new(),
                 recording_expired: false,
+                origin: None,
+                placement: self.fleet().map(|_| Placement {
+                    target: submission.target.clone().unwrap_or_default(),
+                    ..Placement::default()
+                }),
             };
             let writer = self.store().lock()?;
             let mut record = writer.add_experiment(&mut book.lab, record)?;
@@ -418,10 +477,32 @@ impl Lab {
                 "the label must be at most {MAX_LABEL_LEN} characters, without control characters"
             )));
         }
-        let (settings, baseline) = {
+        if let LabRole::Joined { lab } = &self.options.role {
+            return Err(LabError::Conflict(format!(
+                "this robot takes its experiments from lab '{lab}': submit them to the lab's server"
+            )));
+        }
+        let (settings, mut baseline, baselines) = {
             let book = self.lock()?;
-            (book.lab.settings.clone(), self.baseline(&book.lab))
+            (book.lab.settings.clone(), self.baseline(&book.lab), book.lab.baselines.clone())
         };
+        match (self.fleet(), &submission.target) {
+            (None, Some(_)) => {
+                return Err(LabError::BadRequest(
+                    "this host is one robot: a target is for a lab server (subsume lab serve)".into(),
+                ));
+            }
+            (Some(fleet), target) => {
+                let target = target.clone().unwrap_or_default();
+                baseline = fleet.baseline_for(&target, &baselines, baseline)?;
+                if baseline == 0 {
+                    return Err(LabError::Conflict(
+                        "the lab knows no robot yet: experiments are checked against a robot's baseline".into(),
+                    ));
+                }
+            }
+            (None, None) => {}
+        }
         let duration = submission.duration_s;
         if !duration.is_finite() || duration < MIN_DURATION_S || duration > settings.max_duration_s {
             return Err(LabError::BadRequest(format!(
@@ -560,6 +641,7 @@ impl Lab {
             reserved_now: queue::reservation_at(&book.lab.reservations, now).cloned(),
             settings: (user.role == Role::Admin).then(|| book.lab.settings.clone()),
             now_unix_ms: now,
+            robots: self.fleet().map(|f| f.robots_with(now, &book.lab.baselines)),
         })
     }
 
@@ -586,7 +668,9 @@ impl Lab {
         let cause = format!("cancelled by {}", user.name);
         match record.state {
             s if s.is_final() => Err(LabError::Conflict(format!("experiment {id} has ended already ({})", s.name()))),
-            ExperimentState::Queued if book.starting == Some(id) => self.cancel_when_it_runs(book, id, &user.name),
+            ExperimentState::Queued if book.starting == Some(id) || book.dispatching.contains(&id) => {
+                self.cancel_when_it_runs(book, id, &user.name)
+            }
             ExperimentState::Checking | ExperimentState::Queued => {
                 let record = self.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])?;
                 Ok(record)
@@ -629,8 +713,13 @@ impl Lab {
     /// Marks set `set` as the baseline (admins); it must validate.
     pub fn set_baseline(&self, user: &User, set: u64) -> Result<u64, LabError> {
         let checked = self.deployer.check_experiment_set(user, set, set);
+        let reference = match (&checked, self.fleet()) {
+            (Ok(_), Some(_)) if user.role == Role::Admin => self.deployer.set_reference(set).map_err(LabError::from),
+            _ => Ok(()),
+        };
         self.admin_change(user, "lab-baseline", &format!("set {set}"), |lab| {
             checked.map_err(LabError::from)?;
+            reference?;
             lab.baseline = Some(set);
             Ok(format!("the baseline is set {set}"))
         })
@@ -686,6 +775,11 @@ impl Lab {
             }
             if for_user != user.name && user.role != Role::Admin {
                 return Err(LabError::Forbidden(format!("{} may book only for themselves", user.name)));
+            }
+            if self.fleet().is_some() {
+                return Err(LabError::Conflict(
+                    "reservations are for one robot: book on that robot's own portal".into(),
+                ));
             }
             let mut book = self.lock()?;
             let now = unix_now_ms();
@@ -892,6 +986,55 @@ impl Lab {
         }
     }
 
+    fn fleet_or_refuse(&self) -> Result<&Arc<server::Fleet>, LabError> {
+        self.fleet().ok_or_else(|| {
+            LabError::NotFound("this host is one robot, not a lab server: GET /api/v1/status shows it".into())
+        })
+    }
+
+    /// The lab server's robots (any logged-in user).
+    pub fn robots(&self) -> Result<Vec<server::RobotView>, LabError> {
+        let fleet = self.fleet_or_refuse()?;
+        let book = self.lock()?;
+        Ok(fleet.robots_with(unix_now_ms(), &book.lab.baselines))
+    }
+
+    /// Robot `name`'s live status, asked of it now (any logged-in user).
+    pub fn robot_live(&self, name: &str) -> Result<serde_json::Value, LabError> {
+        self.fleet_or_refuse()?.live(name)
+    }
+
+    /// The lab's STOP: engages the emergency stop of robot `name`, or of
+    /// every robot when `None` (any logged-in user); each robot's answer.
+    pub fn stop_robots(&self, user: &User, name: Option<&str>) -> Result<Vec<RobotStop>, LabError> {
+        let target = name.map_or_else(|| "every robot".to_string(), |n| format!("robot {}", clip(n)));
+        let result = self.fleet_or_refuse().and_then(|fleet| fleet.estop(user, name));
+        match &result {
+            Ok(answers) => {
+                if let Ok(writer) = self.store().lock() {
+                    for (robot, answer) in answers {
+                        let (detail, outcome) = match answer {
+                            Ok(said) => (said.clone(), true),
+                            Err(why) => (why.clone(), false),
+                        };
+                        let outcome = if outcome { Outcome::Ok(&detail) } else { Outcome::Failed(&detail) };
+                        writer.record(&user.name, "lab-estop", &format!("robot {robot}"), outcome);
+                    }
+                }
+            }
+            Err(e) => self.audit_refusal(&user.name, "lab-estop", &target, e),
+        }
+        result.map(|answers| {
+            answers
+                .into_iter()
+                .map(|(robot, answer)| match answer {
+                    Ok(said) => RobotStop { robot, engaged: true, message: said },
+                    Err(why) => RobotStop { robot, engaged: false, message: why },
+                })
+                .collect()
+        })
+    }
+
     /// Stops the lab's threads as the host stops; an experiment that ran
     /// is aborted (`host stopped`) with what it recorded and `report`, the
     /// run's final report (the experiment's graph was the last one).
@@ -929,6 +1072,14 @@ impl crate::deploy::Preempt for Lab {
         let submitter = book.experiments.get(&id).map(|r| r.submitter.clone()).unwrap_or_default();
         Ok(format!("it cancelled experiment {id} (by {submitter}) first; the queue is paused"))
     }
+}
+
+/// A robot's answer to the lab's STOP.
+#[derive(Clone, Debug, Serialize)]
+pub struct RobotStop {
+    pub robot: String,
+    pub engaged: bool,
+    pub message: String,
 }
 
 /// What /metrics shows of the lab.

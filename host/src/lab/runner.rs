@@ -73,7 +73,7 @@ pub(super) fn spawn(lab: &Arc<Lab>) -> Result<(), LabError> {
     Ok(())
 }
 
-fn checks(lab: &Lab) {
+pub(super) fn checks(lab: &Lab) {
     while !lab.is_stopping() {
         let next = {
             let Ok(book) = lab.book.lock() else { return };
@@ -113,6 +113,20 @@ fn refuse(lab: &Lab, id: u64, cause: &str, reasons: Vec<String>) -> Result<(), L
 
 fn user(lab: &Lab, name: &str) -> Option<User> {
     lab.store().users().get(name)
+}
+
+/// Who submitted `record`: a user of this host, or, for a lab's
+/// experiment, the lab's user with the rights the lab vouched for.
+fn submitter(lab: &Lab, record: &ExperimentRecord) -> Option<User> {
+    match &record.origin {
+        Some(origin) => Some(User {
+            name: record.submitter.clone(),
+            role: origin.role,
+            platforms: origin.platforms.clone(),
+            hash: String::new(),
+        }),
+        None => user(lab, &record.submitter),
+    }
 }
 
 /// Checks experiment `id` again and runs its preflight.
@@ -333,6 +347,9 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 pause: false,
             });
         }
+        if let Some(cause) = book.aborts.get(&id) {
+            return Next::End(Ending { id, state: ExperimentState::Aborted, cause: cause.clone(), pause: false });
+        }
         if let Some(lock) = engaged {
             return Next::End(Ending {
                 id,
@@ -433,7 +450,7 @@ fn start_on_robot(
 ) -> Result<OnRobot, (ExperimentState, String)> {
     let refused = |why: String| (ExperimentState::Refused, why);
     let failed = |why: String| (ExperimentState::Failed, why);
-    let submitter = user(lab, &record.submitter)
+    let submitter = submitter(lab, record)
         .ok_or_else(|| refused(format!("the submitter '{}' is no longer a user", record.submitter)))?;
     let reset_sim = reset == ResetPolicy::Sim;
     if reset_sim && !lab.deployer.has_simulated_robot().map_err(|e| failed(e.to_string()))? {
@@ -512,6 +529,7 @@ fn end(lab: &Lab, ending: &Ending) {
     }
     book.running = None;
     book.cancels.remove(&id);
+    book.aborts.remove(&id);
     if book.preempt.as_ref().is_some_and(|(p, _, _)| *p == id) {
         book.preempt = None;
     }
@@ -530,7 +548,7 @@ fn end(lab: &Lab, ending: &Ending) {
 }
 
 /// Applies the owner's retention cap to the finished experiments.
-fn retain(lab: &Lab, book: &mut Book) {
+pub(super) fn retain(lab: &Lab, book: &mut Book) {
     let cap = book.lab.settings.retention_bytes;
     let changed = bundle::enforce_retention(lab.store(), book.experiments.values_mut(), cap);
     if changed.is_empty() {

@@ -288,3 +288,46 @@ pub(super) async fn unbook(
     blocking(move || lab.unbook(&user, id)).await?;
     Ok(Json(json!({ "cancelled": id })))
 }
+
+/// The lab server's robots (any logged-in user): name, profile, state,
+/// the experiment each runs and its time left.
+pub(super) async fn robots(
+    State(state): State<Arc<PortalState>>,
+    Authed(_user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let robots = blocking(move || lab.robots()).await?;
+    Ok(Json(json!({ "robots": robots })))
+}
+
+/// One robot's live status, asked of it now (any logged-in user).
+pub(super) async fn robot_live(
+    State(state): State<Arc<PortalState>>,
+    Authed(_user): Authed,
+    Path(name): Path<String>,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let status = blocking(move || lab.robot_live(&name)).await?;
+    Ok(Json(json!({ "status": status })))
+}
+
+/// The lab's STOP for one robot (any logged-in user).
+pub(super) async fn stop_robot(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(name): Path<String>,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let answers = blocking(move || lab.stop_robots(&user, Some(&name))).await?;
+    Ok(Json(json!({ "stopped": answers })))
+}
+
+/// The lab's STOP for every robot (any logged-in user).
+pub(super) async fn stop_all(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let answers = blocking(move || lab.stop_robots(&user, None)).await?;
+    Ok(Json(json!({ "stopped": answers })))
+}

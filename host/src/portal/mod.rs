@@ -56,6 +56,8 @@ const OPENAPI: &str = include_str!("openapi.json");
 const INDEX_HTML: &str = include_str!("../../../web/index.html");
 const APP_JS: &str = include_str!("../../../web/app.js");
 const STYLE_CSS: &str = include_str!("../../../web/style.css");
+const LAB_HTML: &str = include_str!("../../../web/lab.html");
+const LAB_JS: &str = include_str!("../../../web/lab.js");
 
 /// Largest JSON answer the API rewrites to hide server paths (a set's view
 /// with its robot file is at most about `MAX_CONFIG_UPLOAD_BYTES` twice).
@@ -207,10 +209,12 @@ fn names_a_set(path: &str) -> bool {
     segments.next() == Some("sets") && !id.is_empty() && id.bytes().all(|b| b.is_ascii_digit())
 }
 
-/// The portal: API routes, the teleoperation WebSocket and the web files.
-pub fn app(state: Arc<PortalState>) -> axum::Router {
+/// The routes a robot's portal and a lab server's share: login, uploads,
+/// staging, the sets, the log, the experiments, the lab and its robots (on
+/// a robot, `/robots` answers that it is no lab server), the document.
+fn shared_api() -> axum::Router<Arc<PortalState>> {
     use routes::*;
-    let api = axum::Router::new()
+    axum::Router::new()
         .route("/login", post(auth::login).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/logout", post(auth::logout))
         .route("/session", get(auth::session))
@@ -233,23 +237,8 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/worlds/{file}", put(upload_world).layer(DefaultBodyLimit::max(MAX_WORLD_UPLOAD_BYTES as usize)))
         .route("/sets", get(list_sets))
         .route("/sets/{id}", get(get_set))
-        .route("/sets/{id}/activate", post(activate))
-        .route("/sets/{id}/replay", post(replay_set).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
-        .route("/rollback", post(rollback))
-        .route("/status", get(status))
-        .route("/history", get(history))
-        .route("/events", get(events))
-        .route("/world", get(world))
-        .route("/sim/{action}", post(sim_control))
         .route("/logs", get(recent_logs))
         .route("/audit", get(audit_log))
-        .route("/estop", post(estop))
-        .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
-        .route("/locks", get(locks))
-        .route("/recordings", get(list_recordings))
-        .route("/recordings/start", post(start_recording).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
-        .route("/recordings/stop", post(stop_recording))
-        .route("/recordings/{name}", get(download_recording).delete(delete_recording))
         .route(
             "/experiments",
             get(lab::list_experiments).post(lab::submit_experiment).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
@@ -263,13 +252,55 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/lab/baseline", put(lab::put_baseline).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/lab/pause", post(lab::pause))
         .route("/lab/resume", post(lab::resume))
+        .route("/lab/kit", get(lab::kit))
+        .route("/robots", get(lab::robots))
+        .route("/robots/stop", post(lab::stop_all))
+        .route("/robots/{name}/live", get(lab::robot_live))
+        .route("/robots/{name}/stop", post(lab::stop_robot))
+        .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
+}
+
+/// The lab server's portal (`subsume lab serve`, docs/lab.md "Several
+/// robots"): the shared routes, its own page; no route that drives or
+/// activates, since it runs no robot.
+pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
+    let api = shared_api()
+        .fallback(|| async {
+            ApiError::new(StatusCode::NOT_FOUND, "no such API route on a lab server (see /api/v1/openapi.json)")
+        })
+        .layer(axum::middleware::from_fn_with_state(state.clone(), api_answers));
+    axum::Router::new()
+        .nest("/api/v1", api)
+        .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], LAB_HTML) }))
+        .route("/lab.js", get(|| async { ([(header::CONTENT_TYPE, "text/javascript; charset=utf-8")], LAB_JS) }))
+        .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE_CSS) }))
+        .with_state(state)
+}
+
+/// The portal: API routes, the teleoperation WebSocket and the web files.
+pub fn app(state: Arc<PortalState>) -> axum::Router {
+    use routes::*;
+    let api = shared_api()
+        .route("/sets/{id}/activate", post(activate))
+        .route("/sets/{id}/replay", post(replay_set).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/rollback", post(rollback))
+        .route("/status", get(status))
+        .route("/history", get(history))
+        .route("/events", get(events))
+        .route("/world", get(world))
+        .route("/sim/{action}", post(sim_control))
+        .route("/estop", post(estop))
+        .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/locks", get(locks))
+        .route("/recordings", get(list_recordings))
+        .route("/recordings/start", post(start_recording).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
+        .route("/recordings/stop", post(stop_recording))
+        .route("/recordings/{name}", get(download_recording).delete(delete_recording))
         .route("/lab/reset", post(lab::confirm_reset))
         .route("/lab/reservations", post(lab::book).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/lab/reservations/{id}", axum::routing::delete(lab::unbook))
-        .route("/lab/kit", get(lab::kit))
         .route("/teleop/ticket", post(teleop_ticket))
         .route("/teleop", get(teleop_socket))
-        .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
         .fallback(|| async { ApiError::new(StatusCode::NOT_FOUND, "no such API route (see /api/v1/openapi.json)") })
         .layer(axum::middleware::from_fn_with_state(state.clone(), api_answers));
     axum::Router::new()

@@ -218,6 +218,50 @@ pub struct ExperimentRecord {
     /// Its recordings were removed by the retention cap; the record stays.
     #[serde(default)]
     pub recording_expired: bool,
+    /// On a robot of a lab: the lab that dispatched it (docs/lab.md,
+    /// "Several robots").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub origin: Option<Origin>,
+    /// On a lab server: which robots may run it, and which does.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub placement: Option<Placement>,
+}
+
+/// Where a robot's experiment came from: lab `lab`'s experiment `id`,
+/// submitted by a user with these rights in the lab.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Origin {
+    pub lab: String,
+    pub id: u64,
+    pub role: crate::store::users::Role,
+    pub platforms: Vec<String>,
+}
+
+/// Which robots may run an experiment of a lab server.
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Target {
+    /// The first free robot.
+    #[default]
+    Any,
+    /// This robot.
+    Robot(String),
+    /// The first free robot of this profile (its id).
+    Profile(String),
+}
+
+/// Where a lab server's experiment is, among its robots.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Placement {
+    pub target: Target,
+    /// The robot it was given to (while it is dispatched, runs, or after).
+    pub robot: Option<String>,
+    /// Its id on that robot.
+    pub local_id: Option<u64>,
+    /// Times a robot refused it (a second refusal ends it).
+    pub refusals: u32,
+    /// What the robot recorded is still to be fetched (it was lost).
+    pub fetch_pending: bool,
 }
 
 impl ExperimentRecord {
@@ -404,6 +448,10 @@ pub struct LabState {
     pub baseline: Option<u64>,
     pub paused: bool,
     pub reservations: Vec<Reservation>,
+    /// On a lab server: the robots' baselines it imported, by their hash
+    /// (set ids in this store).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub baselines: BTreeMap<String, u64>,
 }
 
 impl Default for LabState {
@@ -416,6 +464,7 @@ impl Default for LabState {
             baseline: None,
             paused: false,
             reservations: Vec::new(),
+            baselines: BTreeMap::new(),
         }
     }
 }

@@ -1,0 +1,868 @@
+//! A robot's link to its lab (docs/lab.md, "Several robots"): `subsume run
+//! ... --lab NAME`. The robot declares a liveliness token carrying its
+//! name, state and profile ([`wire::TokenBody`]), publishes a low-rate
+//! status, and answers its lab server's queries: a dispatch, a stop, the
+//! lab's emergency stop, the results of an experiment and their files,
+//! its baseline, its live status.
+//!
+//! Safety stays here. A dispatched experiment is checked again (it
+//! validates, it changes only the platforms its submitter holds in the
+//! lab, never the envelope, its duration is within this robot's
+//! `max-duration`) and runs through this host's own lab, like one of its
+//! own: from a fresh start, recording, its time enforced here, the
+//! baseline back after it, the envelope and the emergency stop throughout.
+//! A robot that has heard no heartbeat of its lab for `lost_after` while
+//! it runs the lab's experiment aborts it on its own and goes back to its
+//! baseline.
+//!
+//! Who the robot obeys: only messages signed with its lab's secret
+//! ([`wire::LabKey`]): a second lab server, under any name or secret,
+//! gets refusals, and its heartbeats count for nothing.
+//!
+//! Threads: one per kind of query (dispatches, which take seconds; stops
+//! and emergency stops, which must not wait behind one; files), and one
+//! that keeps the token, the status and the lost-lab watch.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard};
+use std::time::{Duration, Instant};
+
+use thiserror::Error;
+use zenoh::Wait;
+
+use super::materialize::{self, NamedContent};
+use super::transfer::{self, TransferError};
+use super::wire::{
+    self, Ack, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop, FileRequest,
+    FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, ResultsRequest, RobotState, SetManifest,
+    Status, Stop, TokenBody, WIRE_VERSION,
+};
+use super::{Lab, LabError, bundle};
+use crate::bridge::session::{self, SessionSettings, Shared};
+use crate::deploy::SetImport;
+use crate::runtime::Locks;
+use crate::runtime::locks::unix_now_ms;
+use crate::store::experiments::{
+    AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, LAB_FORMAT, Origin,
+};
+use crate::store::users::{Role, User};
+use crate::store::{Outcome, SetRecord};
+
+/// How long a robot runs the lab's experiment without hearing its lab
+/// before it aborts it on its own, by default.
+pub const DEFAULT_LOST_AFTER: Duration = Duration::from_secs(5);
+/// The bounds of that setting: shorter than two heartbeats would abort on
+/// a late one; longer than ten minutes leaves an experiment nobody can
+/// stop from the lab.
+pub const MIN_LOST_AFTER: Duration = Duration::from_secs(1);
+pub const MAX_LOST_AFTER: Duration = Duration::from_secs(600);
+
+/// How often the robot publishes its status, by default (the lab's list).
+pub const DEFAULT_STATUS_PERIOD: Duration = Duration::from_secs(1);
+/// Most often it may: a robot must not flood its lab server.
+pub const MIN_STATUS_PERIOD: Duration = Duration::from_millis(100);
+
+/// How long a dispatch waits for the experiment to start here before it
+/// answers (the reset and the activation).
+pub const START_WAIT: Duration = Duration::from_secs(60);
+
+/// How often the token, the status and the lost-lab watch are looked at.
+const WATCH: Duration = Duration::from_millis(100);
+
+/// Why the link could not start.
+#[derive(Debug, Error)]
+pub enum LinkError {
+    #[error(transparent)]
+    Session(#[from] session::SessionError),
+    #[error(transparent)]
+    Transfer(#[from] TransferError),
+    #[error("the robot's name '{0}' is not a plain name (letters, digits, '-', '_', at most 64)")]
+    Name(String),
+    #[error("{0}")]
+    Settings(String),
+    #[error("the robot's baseline cannot be sent to its lab: {0}")]
+    Baseline(String),
+    #[error(transparent)]
+    Lab(#[from] LabError),
+}
+
+/// What joining a lab needs.
+#[derive(Clone, Debug)]
+pub struct RobotLinkOptions {
+    pub key: LabKey,
+    pub session: SessionSettings,
+    /// The robot's name in the lab.
+    pub robot: String,
+    pub lost_after: Duration,
+    pub status_period: Duration,
+}
+
+/// The robot's baseline as its lab server gets it.
+#[derive(Clone, Debug)]
+struct Package {
+    set: u64,
+    message: Baseline,
+    profile: Profile,
+    /// Where each named file's bytes are here.
+    files: BTreeMap<String, NamedContent>,
+}
+
+/// The robot's side of its lab.
+pub struct RobotLink {
+    lab: Arc<Lab>,
+    options: RobotLinkOptions,
+    keys: Keys,
+    shared: Arc<Shared>,
+    boot_ms: u64,
+    /// When the lab was last heard (a heartbeat or a dispatch).
+    heard: Mutex<Option<Instant>>,
+    package: Mutex<Option<Package>>,
+    stopping: Arc<AtomicBool>,
+    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    _heartbeats: Mutex<Option<zenoh::pubsub::Subscriber<()>>>,
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+/// The lab's name on this robot's records.
+fn lab_user(options: &RobotLinkOptions, submitter: &str) -> String {
+    format!("{submitter}@{}", options.key.lab())
+}
+
+impl RobotLink {
+    /// Joins the lab: opens the session, answers the lab's queries,
+    /// declares the robot's token.
+    pub fn start(lab: Arc<Lab>, options: RobotLinkOptions) -> Result<Arc<RobotLink>, LinkError> {
+        if !wire::is_name(&options.robot) {
+            return Err(LinkError::Name(crate::contract::clip(&options.robot)));
+        }
+        if !(MIN_LOST_AFTER..=MAX_LOST_AFTER).contains(&options.lost_after) {
+            return Err(LinkError::Settings(format!(
+                "--lab-lost must be from {} to {} s",
+                MIN_LOST_AFTER.as_secs(),
+                MAX_LOST_AFTER.as_secs()
+            )));
+        }
+        if options.status_period < MIN_STATUS_PERIOD {
+            return Err(LinkError::Settings(format!(
+                "the lab status is published at most every {} ms",
+                MIN_STATUS_PERIOD.as_millis()
+            )));
+        }
+        let shared = session::session(&options.session)?;
+        let link = Arc::new(RobotLink {
+            keys: Keys::new(&options.key),
+            lab,
+            options,
+            shared,
+            boot_ms: unix_now_ms(),
+            heard: Mutex::new(None),
+            package: Mutex::new(None),
+            stopping: Arc::new(AtomicBool::new(false)),
+            threads: Mutex::new(Vec::new()),
+            _heartbeats: Mutex::new(None),
+        });
+        link.refresh_package()?;
+        let weak = Arc::downgrade(&link);
+        let key = link.options.key.clone();
+        let subscriber = link
+            .shared
+            .session
+            .declare_subscriber(link.keys.heartbeat())
+            .callback(move |sample: zenoh::sample::Sample| {
+                let Some(link) = weak.upgrade() else { return };
+                let bytes = sample.payload().to_bytes();
+                match key.open::<Heartbeat>(&bytes) {
+                    Ok((beat, _)) if wire::fresh(beat.at_unix_ms, unix_now_ms()).is_ok() => link.heard_lab(),
+                    Ok(_) => tracing::debug!("lab heartbeat too old or too new: ignored"),
+                    Err(e) => tracing::debug!("a heartbeat on the lab's key was refused: {e}"),
+                }
+            })
+            .wait()
+            .map_err(|e| TransferError::Zenoh(e.to_string()))?;
+        *lock(&link._heartbeats) = Some(subscriber);
+        let mut threads = Vec::new();
+        for (op, name) in [(Op::Dispatch, "lab-dispatch"), (Op::Stop, "lab-stop"), (Op::Estop, "lab-estop")] {
+            threads.push(link.serve(op, name)?);
+        }
+        for (op, name) in [(Op::Results, "lab-results"), (Op::File, "lab-files"), (Op::Baseline, "lab-baseline")] {
+            threads.push(link.serve(op, name)?);
+        }
+        threads.push(link.serve(Op::Live, "lab-live")?);
+        let watched = link.clone();
+        threads.push(
+            std::thread::Builder::new()
+                .name("lab-link".into())
+                .spawn(move || watched.watch())
+                .map_err(|e| LinkError::Settings(format!("cannot start the lab link's thread: {e}")))?,
+        );
+        *lock(&link.threads) = threads;
+        tracing::info!(
+            "robot '{}' joined lab '{}' (zenoh session {})",
+            link.options.robot,
+            link.options.key.lab(),
+            link.shared.id
+        );
+        Ok(link)
+    }
+
+    fn serve(self: &Arc<Self>, op: Op, name: &str) -> Result<std::thread::JoinHandle<()>, LinkError> {
+        let weak = Arc::downgrade(self);
+        let key_expr = self.keys.rpc(&self.options.robot, op);
+        Ok(transfer::serve(self.shared.clone(), key_expr, name, self.stopping.clone(), move |payload| {
+            match weak.upgrade() {
+                Some(link) => link.answer(op, payload),
+                None => Vec::new(),
+            }
+        })?)
+    }
+
+    /// Leaves the lab: the token goes, the threads end.
+    pub fn shut_down(&self) {
+        self.stopping.store(true, Ordering::Release);
+        let threads = std::mem::take(&mut *lock(&self.threads));
+        for thread in threads {
+            let _ = thread.join();
+        }
+        *lock(&self._heartbeats) = None;
+    }
+
+    fn heard_lab(&self) {
+        *lock(&self.heard) = Some(Instant::now());
+    }
+
+    fn refresh_package(&self) -> Result<(), LinkError> {
+        let baseline = {
+            let book = self.lab.lock()?;
+            self.lab.baseline(&book.lab)
+        };
+        if lock(&self.package).as_ref().is_some_and(|p| p.set == baseline) {
+            return Ok(());
+        }
+        let package = package(&self.lab, baseline)?;
+        tracing::info!("robot '{}': profile {} (baseline set {baseline})", self.options.robot, package.profile.id);
+        *lock(&self.package) = Some(package);
+        Ok(())
+    }
+
+    fn answer(&self, op: Op, payload: &[u8]) -> Vec<u8> {
+        let key = &self.options.key;
+        match op {
+            Op::Dispatch => {
+                let (lab_id, outcome) = match key.open::<Dispatch>(payload) {
+                    Ok((dispatch, _)) => (dispatch.lab_id, self.dispatch(&dispatch)),
+                    Err(e) => {
+                        let reason = format!("refused: {e}");
+                        self.lab.deployer.audit("lab", "lab-dispatch", "a dispatch", Outcome::Refused(&reason));
+                        tracing::warn!("lab '{}': a dispatch was {reason}", key.lab());
+                        (0, DispatchOutcome::Refused { reasons: vec![reason] })
+                    }
+                };
+                key.seal(&DispatchReply { v: WIRE_VERSION, lab_id, outcome }, &[])
+            }
+            Op::Stop => {
+                let ack = match key.open::<Stop>(payload) {
+                    Ok((stop, _)) => self.stop(&stop),
+                    Err(e) => Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") },
+                };
+                key.seal(&ack, &[])
+            }
+            Op::Estop => {
+                let ack = match key.open::<Estop>(payload) {
+                    Ok((estop, _)) => self.estop(&estop),
+                    Err(e) => Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") },
+                };
+                key.seal(&ack, &[])
+            }
+            Op::Results => match key.open::<ResultsRequest>(payload) {
+                Ok((request, _)) => key.seal(&self.results(request.lab_id), &[]),
+                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
+            },
+            Op::File => match key.open::<FileRequest>(payload) {
+                Ok((request, _)) => {
+                    if let FileSource::Named { path } = &request.source
+                        && let Some(NamedContent::StandIn(bytes)) =
+                            lock(&self.package).as_ref().and_then(|p| p.files.get(path)).cloned()
+                    {
+                        return transfer::chunk_of_bytes(key, &bytes, &request);
+                    }
+                    let path = self.file_path(&request.source);
+                    transfer::chunk_of(key, path.as_deref(), &request)
+                }
+                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
+            },
+            Op::Baseline => match key.open::<BaselineRequest>(payload) {
+                Ok(_) => {
+                    let _ = self.refresh_package();
+                    match lock(&self.package).as_ref() {
+                        Some(package) => key.seal(&package.message, &[]),
+                        None => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: "no baseline".into() }, &[]),
+                    }
+                }
+                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
+            },
+            Op::Live => match key.open::<LiveRequest>(payload) {
+                Ok(_) => key.seal(&Live { v: WIRE_VERSION, status: self.live_status() }, &[]),
+                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
+            },
+        }
+    }
+
+    /// The robot's state as its token says it.
+    fn state(&self) -> (RobotState, Option<(u64, u64)>) {
+        let Ok(book) = self.lab.lock() else { return (RobotState::Maintenance, None) };
+        if let Some(running) = &book.running
+            && let Some(origin) = book.experiments.get(&running.id).and_then(|r| r.origin.as_ref())
+        {
+            let times = Some((running.started_unix_ms, running.ends_unix_ms));
+            return (RobotState::Running { experiment: origin.id }, times);
+        }
+        let locks = self.lab.deployer.services.get::<Locks>();
+        if let Some(lock) = locks.and_then(|l| l.engaged().into_iter().next()) {
+            return (RobotState::Stopped { by: crate::contract::clip(&lock.by) }, None);
+        }
+        if book.lab.paused {
+            return (RobotState::Maintenance, None);
+        }
+        (RobotState::Idle, None)
+    }
+
+    /// Keeps the token and the status, and watches for a lost lab.
+    fn watch(&self) {
+        let mut seq = 0u64;
+        let mut token: Option<(String, zenoh::liveliness::LivelinessToken)> = None;
+        let mut last_status = Instant::now() - self.options.status_period;
+        let publisher = self.shared.session.declare_publisher(self.keys.status(&self.options.robot)).wait();
+        let publisher = match publisher {
+            Ok(publisher) => Some(publisher),
+            Err(e) => {
+                tracing::error!("the lab status cannot be published: {e}");
+                None
+            }
+        };
+        while !self.stopping.load(Ordering::Acquire) {
+            if let Err(e) = self.refresh_package() {
+                tracing::warn!("{e}");
+            }
+            let (state, times) = self.state();
+            let Some(package) = lock(&self.package).clone() else {
+                std::thread::sleep(WATCH);
+                continue;
+            };
+            let max_duration_s = self.lab.lock().map(|b| b.lab.settings.max_duration_s).unwrap_or(0.0);
+            let body = |seq| TokenBody {
+                v: WIRE_VERSION,
+                name: self.options.robot.clone(),
+                seq,
+                boot_ms: self.boot_ms,
+                state: state.clone(),
+                profile: package.profile.clone(),
+                max_duration_s,
+            };
+            let stale = token.as_ref().is_none_or(|(key, _)| {
+                self.options.key.read_token(key).map(|t| TokenBody { seq: 0, ..t }).ok() != Some(body(0))
+            });
+            if stale {
+                seq += 1;
+                let key = self.options.key.token_key(&body(seq));
+                match self.shared.session.liveliness().declare_token(key.clone()).wait() {
+                    // The new token first, then the old one goes: the lab
+                    // never sees the robot without one.
+                    Ok(new) => {
+                        tracing::info!(
+                            "lab '{}': robot '{}' is {}",
+                            self.options.key.lab(),
+                            self.options.robot,
+                            state.word()
+                        );
+                        token = Some((key, new));
+                    }
+                    Err(e) => tracing::error!("the robot's liveliness token was not declared: {e}"),
+                }
+            }
+            if let RobotState::Running { experiment } = &state {
+                let silent = lock(&self.heard).map_or(Duration::MAX, |at| at.elapsed());
+                if silent > self.options.lost_after {
+                    self.abort_lost(*experiment, silent);
+                }
+            }
+            if last_status.elapsed() >= self.options.status_period
+                && let Some(publisher) = &publisher
+            {
+                last_status = Instant::now();
+                let locks = self.lab.deployer.services.get::<Locks>();
+                let status = Status {
+                    v: WIRE_VERSION,
+                    name: self.options.robot.clone(),
+                    at_unix_ms: unix_now_ms(),
+                    state: state.clone(),
+                    started_unix_ms: times.map(|t| t.0),
+                    ends_unix_ms: times.map(|t| t.1),
+                    locks: locks.map(|l| l.engaged().into_iter().map(|e| e.lock).collect()).unwrap_or_default(),
+                    set: self.lab.deployer.active().ok().map(|(set, _)| set.id),
+                };
+                if let Err(e) = publisher.put(self.options.key.seal(&status, &[])).wait() {
+                    tracing::debug!("the lab status was not published: {e}");
+                }
+            }
+            std::thread::sleep(WATCH);
+        }
+        drop(token);
+    }
+
+    /// Aborts the lab's experiment `lab_id`: the lab was not heard for
+    /// `silent`.
+    fn abort_lost(&self, lab_id: u64, silent: Duration) {
+        let Ok(mut book) = self.lab.lock() else { return };
+        let Some(id) = local_id(&book.experiments, self.options.key.lab(), lab_id) else { return };
+        if book.aborts.contains_key(&id) {
+            return;
+        }
+        let cause = format!(
+            "aborted: lost its lab '{}' for more than {} s",
+            self.options.key.lab(),
+            self.options.lost_after.as_secs_f64()
+        );
+        tracing::warn!(
+            "experiment {id} (lab {lab_id}): {cause} (silent {:.1} s); back to the baseline",
+            silent.as_secs_f64()
+        );
+        book.aborts.insert(id, cause);
+        drop(book);
+        self.lab.notify();
+    }
+
+    /// Takes the lab's experiment, checks it again, runs it through this
+    /// host's lab, and says how it went (or why not).
+    fn dispatch(&self, dispatch: &Dispatch) -> DispatchOutcome {
+        let refused = |reasons: Vec<String>| DispatchOutcome::Refused { reasons };
+        if let Err(e) = wire::fresh(dispatch.issued_unix_ms, unix_now_ms()) {
+            return refused(vec![format!("refused: {e}")]);
+        }
+        self.heard_lab();
+        let target = format!("lab experiment {}", dispatch.lab_id);
+        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id));
+        let outcome = match outcome {
+            Ok(outcome) => outcome,
+            Err(reasons) => refused(reasons),
+        };
+        let (text, result) = match &outcome {
+            DispatchOutcome::Started { local_id, .. } => (format!("runs as experiment {local_id}"), true),
+            DispatchOutcome::Refused { reasons } => (reasons.join("; "), false),
+        };
+        let outcome_line = if result { Outcome::Ok(&text) } else { Outcome::Refused(&text) };
+        self.lab.deployer.audit(&lab_user(&self.options, &dispatch.submitter), "lab-dispatch", &target, outcome_line);
+        outcome
+    }
+
+    /// Checks and queues `dispatch` here: the local experiment's id.
+    fn take(&self, dispatch: &Dispatch) -> Result<u64, Vec<String>> {
+        let lab_name = self.options.key.lab().to_string();
+        if let Some(id) = self.lab.lock().ok().and_then(|b| local_id(&b.experiments, &lab_name, dispatch.lab_id)) {
+            return Ok(id);
+        }
+        self.busy(dispatch.duration_s).map_err(|why| vec![why])?;
+        let baseline_dir = lock(&self.package)
+            .as_ref()
+            .and_then(|p| self.lab.store().set(p.set).ok())
+            .map(|s| s.base_dir)
+            .ok_or_else(|| vec!["the robot has no baseline".to_string()])?;
+        self.fetch_sources(&dispatch.set).map_err(|e| vec![format!("the set's files did not come: {e}")])?;
+        let sources: BTreeMap<String, String> =
+            dispatch.set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();
+        let by = lab_user(&self.options, &dispatch.submitter);
+        let import = SetImport {
+            by: &by,
+            config_name: &dispatch.set.config_name,
+            config_text: &dispatch.set.config_text,
+            platform: dispatch.set.platform.as_deref(),
+            sources: &sources,
+            base_dir: &baseline_dir,
+        };
+        let set = self.lab.deployer.import_set(&import).map_err(|e| check_reasons(e.into()))?;
+        let user = User {
+            name: dispatch.submitter.clone(),
+            role: dispatch.role,
+            platforms: dispatch.platforms.clone(),
+            hash: String::new(),
+        };
+        let (baseline, settings) = {
+            let book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
+            (self.lab.baseline(&book.lab), book.lab.settings.clone())
+        };
+        let checked =
+            self.lab.deployer.check_experiment_set(&user, set.id, baseline).map_err(|e| check_reasons(e.into()))?;
+        self.queue(dispatch, &set, baseline, settings, checked.components)
+    }
+
+    /// Why this robot cannot take an experiment of `duration_s` now.
+    fn busy(&self, duration_s: f64) -> Result<(), String> {
+        let (state, _) = self.state();
+        match state {
+            RobotState::Idle => {}
+            RobotState::Running { experiment } => {
+                return Err(format!("busy: it runs the lab's experiment {experiment}"));
+            }
+            RobotState::Stopped { by } => return Err(format!("its emergency stop is engaged (by {by})")),
+            RobotState::Maintenance => return Err("it is in maintenance: its owner paused its queue".into()),
+        }
+        let book = self.lab.lock().map_err(|e| e.to_string())?;
+        let other = book
+            .running
+            .as_ref()
+            .map(|r| r.id)
+            .or(book.starting)
+            .or_else(|| book.experiments.values().find(|r| r.state.is_waiting()).map(|r| r.id));
+        if let Some(other) = other.and_then(|id| book.experiments.get(&id)) {
+            return Err(format!("busy: its experiment {} is {}", other.id, other.state.name()));
+        }
+        let max = book.lab.settings.max_duration_s;
+        if duration_s > max {
+            return Err(format!("its duration of {duration_s} s is over this robot's max-duration of {max} s"));
+        }
+        Ok(())
+    }
+
+    /// Fetches the blobs of `set` this robot does not hold yet from the
+    /// lab server, each checked by its sha256.
+    fn fetch_sources(&self, set: &SetManifest) -> Result<(), TransferError> {
+        let store = self.lab.store();
+        for blob in set.sources.values() {
+            if store.blob_path(&blob.sha256).is_file() {
+                continue;
+            }
+            let source = FileSource::Blob { sha256: blob.sha256.clone() };
+            let bytes = transfer::fetch_blob(&self.shared, &self.options.key, &self.keys.blobs(), &source, blob)?;
+            let writer = store.lock().map_err(|e| TransferError::Missing(e.to_string()))?;
+            writer.put_blob(&bytes).map_err(|e| TransferError::Missing(e.to_string()))?;
+        }
+        Ok(())
+    }
+
+    /// Queues the checked experiment in this host's lab, as the lab's.
+    fn queue(
+        &self,
+        dispatch: &Dispatch,
+        set: &SetRecord,
+        baseline: u64,
+        settings: crate::store::experiments::LabSettings,
+        components: Vec<(String, String, Option<String>)>,
+    ) -> Result<u64, Vec<String>> {
+        // Checked again after the checks: nothing else came in meanwhile
+        // (this thread is the only one that queues here).
+        self.busy(dispatch.duration_s).map_err(|why| vec![why])?;
+        let mut book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
+        let now = unix_now_ms();
+        let record = ExperimentRecord {
+            format: LAB_FORMAT,
+            id: 0,
+            submitter: dispatch.submitter.clone(),
+            set: set.id,
+            label: dispatch.label.clone(),
+            duration_s: dispatch.duration_s,
+            submitted_ms: now,
+            state: ExperimentState::Queued,
+            history: Vec::new(),
+            reasons: Vec::new(),
+            settings: AppliedSettings {
+                max_duration_s: settings.max_duration_s,
+                limits: settings.limits,
+                criteria: settings.criteria,
+                reset: settings.reset,
+                preflight_world: settings.preflight_world.clone(),
+                baseline: Some(baseline),
+            },
+            components: components
+                .into_iter()
+                .map(|(name, source, sha256)| ComponentHash { name, source, sha256 })
+                .collect(),
+            preflight: None,
+            run: None,
+            results: Vec::new(),
+            recording_expired: false,
+            origin: Some(Origin {
+                lab: self.options.key.lab().to_string(),
+                id: dispatch.lab_id,
+                role: dispatch.role,
+                platforms: dispatch.platforms.clone(),
+            }),
+            placement: None,
+        };
+        let stored = (|| {
+            let writer = self.lab.store().lock()?;
+            let mut record = writer.add_experiment(&mut book.lab, record)?;
+            let cause = format!(
+                "dispatched by lab '{}' as its experiment {} (its preflight ran there); checked again here",
+                self.options.key.lab(),
+                dispatch.lab_id
+            );
+            record.enter(ExperimentState::Queued, now, &cause);
+            writer.put_experiment(&record)?;
+            Ok::<_, crate::store::StoreError>(record)
+        })();
+        let record = stored.map_err(|e| vec![format!("failed: {e}")])?;
+        let id = record.id;
+        book.experiments.insert(id, record);
+        drop(book);
+        tracing::info!("lab experiment {} by {} queued here as experiment {id}", dispatch.lab_id, dispatch.submitter);
+        self.lab.notify();
+        Ok(id)
+    }
+
+    /// Waits (at most [`START_WAIT`]) for local experiment `id` to run.
+    fn wait_start(&self, id: u64) -> Result<DispatchOutcome, Vec<String>> {
+        let book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
+        let (book, _) = self
+            .lab
+            .changed
+            .wait_timeout_while(book, START_WAIT, |b| {
+                b.running.as_ref().is_none_or(|r| r.id != id)
+                    && b.experiments.get(&id).is_some_and(|r| !r.state.is_final())
+            })
+            .map_err(|_| vec!["the lab's state is unusable".to_string()])?;
+        if let Some(running) = book.running.as_ref().filter(|r| r.id == id) {
+            return Ok(DispatchOutcome::Started {
+                local_id: id,
+                started_unix_ms: running.started_unix_ms,
+                ends_unix_ms: running.ends_unix_ms,
+            });
+        }
+        match book.experiments.get(&id) {
+            Some(record) if record.state.is_final() => {
+                let mut reasons = record.reasons.clone();
+                if reasons.is_empty() {
+                    reasons.push(format!("it ended here as {}", record.state.name()));
+                }
+                Err(reasons)
+            }
+            _ => Err(vec![format!("it did not start here within {} s", START_WAIT.as_secs())]),
+        }
+    }
+
+    fn stop(&self, stop: &Stop) -> Ack {
+        let ack = |ok, message: String| Ack { v: WIRE_VERSION, ok, message };
+        if let Err(e) = wire::fresh(stop.issued_unix_ms, unix_now_ms()) {
+            return ack(false, format!("refused: {e}"));
+        }
+        self.heard_lab();
+        let by = lab_user(&self.options, &stop.by);
+        let Ok(mut book) = self.lab.lock() else { return ack(false, "the lab's state is unusable".into()) };
+        let Some(id) = local_id(&book.experiments, self.options.key.lab(), stop.lab_id) else {
+            return ack(false, format!("no lab experiment {} here", stop.lab_id));
+        };
+        let state = book.experiments.get(&id).map(|r| r.state);
+        let message = match state {
+            Some(s) if s.is_final() => format!("it ended already ({})", s.name()),
+            Some(ExperimentState::Queued) if book.starting != Some(id) => {
+                let cause = format!("cancelled by {by}");
+                match self.lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()]) {
+                    Ok(_) => "cancelled before it started".into(),
+                    Err(e) => return ack(false, e.to_string()),
+                }
+            }
+            _ => {
+                book.cancels.insert(id, by.clone());
+                drop(book);
+                self.lab.notify();
+                "stopping it; the baseline comes back".into()
+            }
+        };
+        self.lab.deployer.audit(&by, "lab-stop", &format!("lab experiment {}", stop.lab_id), Outcome::Ok(&message));
+        ack(true, message)
+    }
+
+    fn estop(&self, estop: &Estop) -> Ack {
+        if let Err(e) = wire::fresh(estop.issued_unix_ms, unix_now_ms()) {
+            return Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") };
+        }
+        self.heard_lab();
+        let user = User {
+            name: lab_user(&self.options, &estop.by),
+            role: Role::Viewer,
+            platforms: Vec::new(),
+            hash: String::new(),
+        };
+        match self.lab.deployer.engage_lock(&user, &format!("lab '{}'", self.options.key.lab())) {
+            Ok(engaged) => Ack {
+                v: WIRE_VERSION,
+                ok: true,
+                message: if engaged.newly { "engaged".into() } else { "engaged already".into() },
+            },
+            Err(e) => Ack { v: WIRE_VERSION, ok: false, message: e.to_string() },
+        }
+    }
+
+    fn results(&self, lab_id: u64) -> wire::Results {
+        let empty = wire::Results {
+            v: WIRE_VERSION,
+            lab_id,
+            found: false,
+            state: None,
+            history: Vec::new(),
+            reasons: Vec::new(),
+            run: None,
+            files: Vec::new(),
+        };
+        let Ok(book) = self.lab.lock() else { return empty };
+        let Some(record) = local_id(&book.experiments, self.options.key.lab(), lab_id)
+            .and_then(|id| book.experiments.get(&id))
+            .cloned()
+        else {
+            return empty;
+        };
+        drop(book);
+        let dir = self.lab.store().experiment_dir(record.id);
+        let files = if record.state.is_final() {
+            record
+                .results
+                .iter()
+                .filter(|f| f.name.ends_with(".mcap") || f.name == bundle::REPORT || f.name == bundle::LOG)
+                .filter_map(|f| {
+                    let digest = transfer::digest_file(&dir.join(&f.name)).ok()?;
+                    Some(wire::FileRef { name: f.name.clone(), bytes: digest.bytes, sha256: digest.sha256 })
+                })
+                .take(wire::MAX_RESULT_FILES)
+                .collect()
+        } else {
+            Vec::new()
+        };
+        let skip = record.history.len().saturating_sub(wire::MAX_REASONS);
+        wire::Results {
+            v: WIRE_VERSION,
+            lab_id,
+            found: true,
+            state: Some(record.state),
+            history: record.history.into_iter().skip(skip).collect(),
+            reasons: record.reasons.into_iter().take(wire::MAX_REASONS).collect(),
+            run: record.run,
+            files,
+        }
+    }
+
+    /// Where the file a request names is, if it may be given.
+    fn file_path(&self, source: &FileSource) -> Option<PathBuf> {
+        match source {
+            FileSource::Result { lab_id, name } => {
+                let book = self.lab.lock().ok()?;
+                let id = local_id(&book.experiments, self.options.key.lab(), *lab_id)?;
+                let record = book.experiments.get(&id)?;
+                record.results.iter().any(|f| f.name == *name).then(|| self.lab.store().experiment_dir(id).join(name))
+            }
+            FileSource::Blob { sha256 } => {
+                let package = lock(&self.package);
+                package
+                    .as_ref()?
+                    .message
+                    .set
+                    .sources
+                    .values()
+                    .any(|b| b.sha256 == *sha256)
+                    .then(|| self.lab.store().blob_path(sha256))
+            }
+            FileSource::Named { path } => match lock(&self.package).as_ref()?.files.get(path)? {
+                NamedContent::File(file) => Some(file.clone()),
+                NamedContent::Blob(sha) => Some(self.lab.store().blob_path(sha)),
+                NamedContent::StandIn(_) => None,
+            },
+        }
+    }
+
+    /// The live status of this robot (its portal's `/api/v1/status`): the
+    /// next one the control loop publishes, or the last within a second.
+    fn live_status(&self) -> serde_json::Value {
+        let mut live = self.lab.deployer.live().subscribe();
+        live.borrow_and_update();
+        let deadline = Instant::now() + Duration::from_secs(1);
+        while Instant::now() < deadline && !live.has_changed().unwrap_or(true) {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        let status = live.borrow().clone();
+        let value = serde_json::to_value(&*status).unwrap_or_default();
+        if serde_json::to_vec(&value).map(|b| b.len()).unwrap_or(0) > wire::MAX_LIVE_BYTES {
+            return serde_json::json!({ "error": "the live status is larger than the lab link carries" });
+        }
+        value
+    }
+}
+
+/// The local id of lab `lab`'s experiment `lab_id`, if it came here.
+fn local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str, lab_id: u64) -> Option<u64> {
+    experiments.values().rev().find(|r| r.origin.as_ref().is_some_and(|o| o.lab == lab && o.id == lab_id)).map(|r| r.id)
+}
+
+/// A check's refusal as the reasons a dispatch answer carries.
+fn check_reasons(e: LabError) -> Vec<String> {
+    match e {
+        LabError::Invalid(diagnostics) => diagnostics.0.iter().map(|d| format!("check: {d}")).collect(),
+        other => vec![format!("check: {other}")],
+    }
+}
+
+/// The robot's baseline (set `set`) as its lab server gets it, with its
+/// profile.
+fn package(lab: &Lab, set: u64) -> Result<Package, LinkError> {
+    let store = lab.store();
+    let record = store.set(set).map_err(|e| LinkError::Baseline(e.to_string()))?;
+    let text = store.blob(&record.config_sha256).map_err(|e| LinkError::Baseline(e.to_string()))?;
+    let config_text = String::from_utf8(text).map_err(|e| LinkError::Baseline(e.to_string()))?;
+    let mut sources = BTreeMap::new();
+    for (key, sha) in &record.sources {
+        let bytes = std::fs::metadata(store.blob_path(sha)).map(|m| m.len()).unwrap_or(0);
+        sources.insert(key.clone(), BlobRef { sha256: sha.clone(), bytes });
+    }
+    let named = materialize::named_files(store, &record).map_err(|e| LinkError::Baseline(e.to_string()))?;
+    let mut files = BTreeMap::new();
+    let mut contents = BTreeMap::new();
+    let (mut worlds, mut translators) = (Vec::new(), Vec::new());
+    for file in named {
+        if wire::named_path_ok(&file.path).is_err() {
+            continue;
+        }
+        if crate::assemble::registry::find(&file.kind).and_then(|b| b.world_param()) == Some(file.param) {
+            worlds.extend(std::path::Path::new(&file.path).file_name().map(|n| n.to_string_lossy().into_owned()));
+        }
+        let blob = match &file.content {
+            NamedContent::Blob(_) => continue,
+            NamedContent::File(path) => {
+                transfer::digest_file(path).map_err(|e| LinkError::Baseline(format!("{}: {e}", path.display())))?
+            }
+            NamedContent::StandIn(bytes) => {
+                BlobRef { sha256: crate::store::sha256_hex(bytes), bytes: bytes.len() as u64 }
+            }
+        };
+        files.insert(file.path.clone(), blob);
+        contents.insert(file.path, file.content);
+    }
+    // Uploaded worlds and translators the robot holds count too.
+    if let Ok(stored) = store.worlds() {
+        worlds.extend(stored.into_keys());
+    }
+    // A serial link's translator: a built-in profile's name, or a WASM
+    // translator's file name.
+    if let Ok((_, config)) = lab.deployer.active() {
+        for param in config.components.iter().flat_map(|c| c.params.iter()).filter(|p| p.name == "translator") {
+            let value = param.value.trim();
+            let name = std::path::Path::new(value).file_name().map(|n| n.to_string_lossy().into_owned());
+            translators.extend(name.filter(|n| !n.is_empty()));
+        }
+    }
+    let set_manifest = SetManifest {
+        config_name: record.config_name.clone(),
+        config_text,
+        platform: record.platform.clone(),
+        sources,
+    };
+    let canonical = serde_json::json!({
+        "config": record.config_sha256,
+        "sources": set_manifest.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect::<BTreeMap<_, _>>(),
+        "files": files.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect::<BTreeMap<_, _>>(),
+    });
+    let hash = crate::store::sha256_hex(canonical.to_string().as_bytes());
+    let profile = Profile::new(hash.clone(), worlds, translators);
+    let message = Baseline { v: WIRE_VERSION, hash, set: set_manifest, files };
+    Ok(Package { set, message, profile, files: contents })
+}

@@ -1,0 +1,1058 @@
+//! The lab server's side of a lab of several robots (docs/lab.md, "Several
+//! robots"): `subsume lab serve`. It runs no robot. It keeps the lab's
+//! users, queue and results in its store as a robot's lab does ([`Lab`]
+//! with [`super::LabRole::Server`]: the same records, states, checks and
+//! preflights), learns its robots from their liveliness tokens
+//! ([`Fleet`]), and, in place of a robot's runner, dispatches: the first
+//! queued experiment goes to the first free robot that fits its target.
+//!
+//! - **Robots.** A robot's token says its name, state and profile; the
+//!   newest token of a robot wins while its old one is undeclared; a robot
+//!   without a token is lost. The first time a baseline hash is seen, the
+//!   lab fetches that baseline (its robot file, its components, the files
+//!   it names, secrets replaced by stand-ins) and stores it as a set: what
+//!   researchers stage against and experiments are checked against.
+//! - **Dispatch.** The set as staged, signed; the robot fetches the blobs
+//!   it lacks from this server (`subsume/lab/LAB/blobs`), checks the set
+//!   again and answers `started` or `refused` with its reasons. A refusal
+//!   puts the experiment back in the queue once; the second ends it
+//!   `refused`.
+//! - **Ends.** When a robot's token no longer says it runs the
+//!   experiment, the lab fetches its results (the robot's final state and
+//!   cause, its recording, report and log) into the experiment's folder.
+//! - **Faults.** A robot whose token drops while it runs an experiment:
+//!   `aborted: robot lost` at once, and its results are fetched when it
+//!   comes back. A lab server restarted (even after `kill -9`) keeps every
+//!   record and relearns each robot's state from its token, giving them
+//!   [`FleetOptions::relearn`] to come back first.
+//!
+//! Lock order: the lab's book, then the fleet's robots; Zenoh's callbacks
+//! take only the robots, then wake the dispatcher.
+
+use std::collections::{BTreeMap, BTreeSet};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, MutexGuard, Weak};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use thiserror::Error;
+use zenoh::Wait;
+
+use super::transfer::{self, TransferError};
+use super::wire::{
+    self, Ack, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop, FileRequest,
+    FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, Results, ResultsRequest, RobotState,
+    SetManifest, Status, Stop, TokenBody, WIRE_VERSION,
+};
+use super::{Book, Lab, LabError, bundle};
+use crate::bridge::session::{self, SessionSettings, Shared};
+use crate::deploy::{SetImport, utc_time};
+use crate::runtime::locks::unix_now_ms;
+use crate::store::experiments::{ExperimentState, Target};
+use crate::store::users::User;
+use crate::store::{Outcome, Store};
+
+/// How often the lab server says it is there.
+pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(500);
+
+/// How long the dispatcher waits for nothing before it looks again.
+pub const POLL: Duration = Duration::from_millis(50);
+
+/// How long a robot may take to answer a dispatch: it fetches the set's
+/// blobs, checks the set and starts it (`robot_link::START_WAIT`).
+pub const DISPATCH_TIMEOUT: Duration = Duration::from_secs(150);
+
+/// How long the lab gives its robots to show their tokens after it
+/// starts, before an experiment whose robot has none is lost, by default.
+pub const DEFAULT_RELEARN: Duration = Duration::from_secs(15);
+
+/// How long after a failed fetch of results or a baseline the lab tries
+/// again.
+pub const RETRY: Duration = Duration::from_secs(2);
+
+/// Most robots one lab server tracks: a peer declaring tokens under
+/// made-up names cannot grow its memory without bound.
+pub const MAX_ROBOTS: usize = 1024;
+
+/// Why the lab server could not start.
+#[derive(Debug, Error)]
+pub enum ServerError {
+    #[error(transparent)]
+    Session(#[from] session::SessionError),
+    #[error(transparent)]
+    Transfer(#[from] TransferError),
+    #[error("{0}")]
+    Start(String),
+}
+
+/// What starting the lab server's link needs.
+#[derive(Clone, Debug)]
+pub struct FleetOptions {
+    pub key: LabKey,
+    pub session: SessionSettings,
+    /// How long robots have to show their tokens after a start.
+    pub relearn: Duration,
+}
+
+/// One robot as the lab knows it.
+#[derive(Debug, Default)]
+struct Robot {
+    /// Its live tokens (key -> body): the newest is its state.
+    tokens: BTreeMap<String, TokenBody>,
+    current: Option<TokenBody>,
+    /// When its current token came.
+    token_at: Option<Instant>,
+    status: Option<(Status, Instant)>,
+    /// When it was last seen with a token (ms since the Unix epoch).
+    seen_ms: u64,
+    /// The experiment being dispatched to it.
+    dispatching: Option<u64>,
+    /// Experiments it accepted, and when (an end is concluded only from a
+    /// token newer than that).
+    accepted: BTreeMap<u64, Instant>,
+    fetching: bool,
+    retry_at: Option<Instant>,
+    /// Experiments a stop was sent to it for.
+    stops_sent: BTreeSet<u64>,
+    fetching_baseline: bool,
+    baseline_error: Option<String>,
+}
+
+impl Robot {
+    fn online(&self) -> bool {
+        self.current.is_some()
+    }
+
+    fn may_retry(&self) -> bool {
+        self.retry_at.is_none_or(|at| Instant::now() >= at)
+    }
+}
+
+/// A robot as the portal lists it.
+#[derive(Clone, Debug, Serialize)]
+pub struct RobotView {
+    pub name: String,
+    /// `idle`, `running`, `stopped`, `maintenance`, or `lost`.
+    pub state: String,
+    pub online: bool,
+    /// The lab's experiment it runs.
+    pub experiment: Option<u64>,
+    pub ends_unix_ms: Option<u64>,
+    pub time_left_s: Option<f64>,
+    pub stopped_by: Option<String>,
+    pub locks: Vec<String>,
+    pub profile: Profile,
+    pub max_duration_s: f64,
+    /// The set its baseline is stored as here, once fetched.
+    pub baseline_set: Option<u64>,
+    pub baseline_error: Option<String>,
+    pub last_seen_unix_ms: u64,
+}
+
+/// Counters of the lab's link (the benchmark reads them; the log names
+/// the refused).
+#[derive(Debug, Default)]
+pub struct LinkCounters {
+    pub statuses: AtomicU64,
+    pub tokens: AtomicU64,
+    /// Tokens and statuses not signed with this lab's key (another lab,
+    /// or an impostor), ignored.
+    pub foreign: AtomicU64,
+}
+
+/// The lab server's robots and its Zenoh side.
+pub struct Fleet {
+    key: LabKey,
+    keys: Keys,
+    shared: Arc<Shared>,
+    store: Arc<Store>,
+    started: Instant,
+    relearn: Duration,
+    robots: Mutex<BTreeMap<String, Robot>>,
+    lab: Mutex<Weak<Lab>>,
+    pub counters: LinkCounters,
+    stopping: Arc<AtomicBool>,
+    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    subscribers: Mutex<Vec<zenoh::pubsub::Subscriber<()>>>,
+    _token: Mutex<Option<zenoh::liveliness::LivelinessToken>>,
+}
+
+impl std::fmt::Debug for Fleet {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Fleet").field("lab", &self.key.lab()).field("session", &self.shared.id).finish_non_exhaustive()
+    }
+}
+
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
+impl Fleet {
+    /// Opens the lab's session: watches the robots' tokens and statuses,
+    /// serves the sets' blobs to the robots, says it is there.
+    pub fn start(store: Arc<Store>, options: FleetOptions) -> Result<Arc<Fleet>, ServerError> {
+        let shared = session::session(&options.session)?;
+        let fleet = Arc::new(Fleet {
+            keys: Keys::new(&options.key),
+            key: options.key,
+            shared,
+            store,
+            started: Instant::now(),
+            relearn: options.relearn,
+            robots: Mutex::new(BTreeMap::new()),
+            lab: Mutex::new(Weak::new()),
+            counters: LinkCounters::default(),
+            stopping: Arc::new(AtomicBool::new(false)),
+            threads: Mutex::new(Vec::new()),
+            subscribers: Mutex::new(Vec::new()),
+            _token: Mutex::new(None),
+        });
+        let zenoh = |e: zenoh::Error| ServerError::Start(format!("zenoh: {e}"));
+        let weak = Arc::downgrade(&fleet);
+        let tokens = fleet
+            .shared
+            .session
+            .liveliness()
+            .declare_subscriber(fleet.keys.robot_tokens())
+            .history(true)
+            .callback(move |sample: zenoh::sample::Sample| {
+                if let Some(fleet) = weak.upgrade() {
+                    let put = sample.kind() == zenoh::sample::SampleKind::Put;
+                    fleet.token_event(sample.key_expr().as_str(), put);
+                }
+            })
+            .wait()
+            .map_err(zenoh)?;
+        let weak = Arc::downgrade(&fleet);
+        let statuses = fleet
+            .shared
+            .session
+            .declare_subscriber(fleet.keys.statuses())
+            .callback(move |sample: zenoh::sample::Sample| {
+                if let Some(fleet) = weak.upgrade() {
+                    fleet.status_event(&sample.payload().to_bytes());
+                }
+            })
+            .wait()
+            .map_err(zenoh)?;
+        *lock(&fleet.subscribers) = vec![tokens, statuses];
+        let token = fleet.shared.session.liveliness().declare_token(fleet.keys.server_token(&fleet.shared.id)).wait();
+        *lock(&fleet._token) = Some(token.map_err(zenoh)?);
+        let weak = Arc::downgrade(&fleet);
+        let blobs = transfer::serve(
+            fleet.shared.clone(),
+            fleet.keys.blobs(),
+            "lab-blobs",
+            fleet.stopping.clone(),
+            move |payload| weak.upgrade().map(|f| f.serve_blob(payload)).unwrap_or_default(),
+        )?;
+        let beating = fleet.clone();
+        let heartbeat = std::thread::Builder::new()
+            .name("lab-heartbeat".into())
+            .spawn(move || beating.heartbeat())
+            .map_err(|e| ServerError::Start(format!("cannot start the heartbeat: {e}")))?;
+        lock(&fleet.threads).extend([blobs, heartbeat]);
+        tracing::info!("lab '{}' serves its robots (zenoh session {})", fleet.key.lab(), fleet.shared.id);
+        Ok(fleet)
+    }
+
+    /// Stops the link's threads.
+    pub fn shut_down(&self) {
+        self.stopping.store(true, Ordering::Release);
+        for thread in std::mem::take(&mut *lock(&self.threads)) {
+            let _ = thread.join();
+        }
+        lock(&self.subscribers).clear();
+    }
+
+    pub fn lab_name(&self) -> &str {
+        self.key.lab()
+    }
+
+    fn wake(&self) {
+        if let Some(lab) = lock(&self.lab).upgrade() {
+            lab.notify();
+        }
+    }
+
+    fn heartbeat(&self) {
+        let publisher = match self.shared.session.declare_publisher(self.keys.heartbeat()).wait() {
+            Ok(publisher) => publisher,
+            Err(e) => return tracing::error!("the lab's heartbeat cannot be published: {e}"),
+        };
+        while !self.stopping.load(Ordering::Acquire) {
+            let beat = Heartbeat { v: WIRE_VERSION, server: self.shared.id.clone(), at_unix_ms: unix_now_ms() };
+            if let Err(e) = publisher.put(self.key.seal(&beat, &[])).wait() {
+                tracing::debug!("a heartbeat was not published: {e}");
+            }
+            std::thread::sleep(HEARTBEAT_PERIOD);
+        }
+    }
+
+    fn token_event(&self, key: &str, put: bool) {
+        let token = match self.key.read_token(key) {
+            Ok(token) => token,
+            Err(e) => {
+                if self.counters.foreign.fetch_add(1, Ordering::Relaxed) < 10 {
+                    tracing::warn!("lab '{}': a robot token was ignored: {e}", self.key.lab());
+                }
+                return;
+            }
+        };
+        self.counters.tokens.fetch_add(1, Ordering::Relaxed);
+        let mut robots = lock(&self.robots);
+        if !robots.contains_key(&token.name) && robots.len() >= MAX_ROBOTS {
+            tracing::warn!("lab '{}' tracks {MAX_ROBOTS} robots already: '{}' ignored", self.key.lab(), token.name);
+            return;
+        }
+        let name = token.name.clone();
+        let robot = robots.entry(name.clone()).or_default();
+        if put {
+            robot.tokens.insert(key.to_string(), token);
+        } else {
+            robot.tokens.remove(key);
+        }
+        let newest = robot.tokens.values().max_by_key(|t| (t.boot_ms, t.seq)).cloned();
+        let changed = newest != robot.current;
+        let was_online = robot.online();
+        robot.current = newest;
+        if changed {
+            robot.token_at = Some(Instant::now());
+        }
+        if robot.online() {
+            robot.seen_ms = unix_now_ms();
+        }
+        match (&robot.current, was_online) {
+            (Some(t), _) if changed => tracing::info!("lab '{}': robot '{name}' is {}", self.key.lab(), t.state.word()),
+            (None, true) => tracing::warn!("lab '{}': robot '{name}' is lost (its token went)", self.key.lab()),
+            _ => {}
+        }
+        drop(robots);
+        self.wake();
+    }
+
+    fn status_event(&self, bytes: &[u8]) {
+        let status = match self.key.open::<Status>(bytes) {
+            Ok((status, _)) => status,
+            Err(_) => {
+                self.counters.foreign.fetch_add(1, Ordering::Relaxed);
+                return;
+            }
+        };
+        self.counters.statuses.fetch_add(1, Ordering::Relaxed);
+        let mut robots = lock(&self.robots);
+        if let Some(robot) = robots.get_mut(&status.name) {
+            robot.status = Some((status, Instant::now()));
+        }
+    }
+
+    /// A chunk of a blob a robot asks for: the blobs of this store only.
+    fn serve_blob(&self, payload: &[u8]) -> Vec<u8> {
+        match self.key.open::<FileRequest>(payload) {
+            Ok((request, _)) => {
+                let path = match &request.source {
+                    FileSource::Blob { sha256 } => Some(self.store.blob_path(sha256)).filter(|p| p.is_file()),
+                    _ => None,
+                };
+                transfer::chunk_of(&self.key, path.as_deref(), &request)
+            }
+            Err(e) => self.key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
+        }
+    }
+
+    /// Every robot the lab knows, as the portal lists them, with the set
+    /// each one's baseline is stored as (`baselines`: the lab's).
+    pub fn robots_with(&self, now_ms: u64, baselines: &BTreeMap<String, u64>) -> Vec<RobotView> {
+        let robots = lock(&self.robots);
+        robots
+            .iter()
+            .filter_map(|(name, robot)| {
+                let token = robot.current.clone().or_else(|| robot.tokens.values().next().cloned());
+                let (profile, max_duration_s) = match &robot.current {
+                    Some(t) => (t.profile.clone(), t.max_duration_s),
+                    None => (token.as_ref()?.profile.clone(), token.as_ref()?.max_duration_s),
+                };
+                let status = robot.status.as_ref().map(|(s, _)| s);
+                let (state, experiment, stopped_by) = match &robot.current {
+                    None => ("lost".to_string(), None, None),
+                    Some(t) => match &t.state {
+                        RobotState::Running { experiment } => ("running".into(), Some(*experiment), None),
+                        RobotState::Stopped { by } => ("stopped".into(), None, Some(by.clone())),
+                        other => (other.word(), None, None),
+                    },
+                };
+                let ends = status.filter(|_| experiment.is_some()).and_then(|s| s.ends_unix_ms);
+                Some(RobotView {
+                    name: name.clone(),
+                    state,
+                    online: robot.online(),
+                    experiment,
+                    ends_unix_ms: ends,
+                    time_left_s: ends.map(|e| e.saturating_sub(now_ms) as f64 / 1000.0),
+                    stopped_by,
+                    locks: status.map(|s| s.locks.clone()).unwrap_or_default(),
+                    baseline_set: baselines.get(&profile.baseline).copied(),
+                    profile,
+                    max_duration_s,
+                    baseline_error: robot.baseline_error.clone(),
+                    last_seen_unix_ms: robot.seen_ms,
+                })
+            })
+            .collect()
+    }
+
+    /// The baseline set experiments for `target` are checked against:
+    /// the baseline of the robot or profile it names, else `reference`.
+    pub fn baseline_for(
+        &self,
+        target: &Target,
+        baselines: &BTreeMap<String, u64>,
+        reference: u64,
+    ) -> Result<u64, LabError> {
+        let robots = lock(&self.robots);
+        let hash = match target {
+            Target::Any => return Ok(reference),
+            Target::Robot(name) => {
+                let token = robots
+                    .get(name)
+                    .and_then(|r| r.current.as_ref().or_else(|| r.tokens.values().next()))
+                    .ok_or_else(|| {
+                        LabError::BadRequest(format!(
+                            "no robot '{}' has joined lab '{}'",
+                            crate::contract::clip(name),
+                            self.key.lab()
+                        ))
+                    })?;
+                token.profile.baseline.clone()
+            }
+            Target::Profile(id) => {
+                let token =
+                    robots.values().filter_map(|r| r.current.as_ref()).find(|t| t.profile.id == *id).ok_or_else(
+                        || {
+                            LabError::BadRequest(format!(
+                                "no robot of profile '{}' is in lab '{}'",
+                                crate::contract::clip(id),
+                                self.key.lab()
+                            ))
+                        },
+                    )?;
+                token.profile.baseline.clone()
+            }
+        };
+        Ok(baselines.get(&hash).copied().unwrap_or(reference))
+    }
+
+    /// Engages the emergency stop of robot `name` (every online robot
+    /// when `None`) for `user`: each robot's answer.
+    pub fn estop(&self, user: &User, name: Option<&str>) -> Result<Vec<RobotAnswer>, LabError> {
+        let names: Vec<String> = {
+            let robots = lock(&self.robots);
+            match name {
+                Some(name) => {
+                    if !robots.get(name).is_some_and(Robot::online) {
+                        return Err(LabError::NotFound(format!(
+                            "no robot '{}' is online in lab '{}'",
+                            crate::contract::clip(name),
+                            self.key.lab()
+                        )));
+                    }
+                    vec![name.to_string()]
+                }
+                None => robots.iter().filter(|(_, r)| r.online()).map(|(n, _)| n.clone()).collect(),
+            }
+        };
+        let estop = Estop { v: WIRE_VERSION, by: user.name.clone(), issued_unix_ms: unix_now_ms() };
+        // Every robot at once: a STOP for all must not wait robot by robot.
+        let answers = std::thread::scope(|scope| {
+            let asks: Vec<_> = names
+                .iter()
+                .map(|robot| {
+                    let (estop, key_expr) = (&estop, self.keys.rpc(robot, Op::Estop));
+                    scope.spawn(move || {
+                        match transfer::ask::<Estop, Ack>(
+                            &self.shared,
+                            &self.key,
+                            &key_expr,
+                            estop,
+                            transfer::QUERY_TIMEOUT,
+                        ) {
+                            Ok((ack, _)) if ack.ok => Ok(ack.message),
+                            Ok((ack, _)) => Err(ack.message),
+                            Err(e) => Err(e.to_string()),
+                        }
+                    })
+                })
+                .collect();
+            asks.into_iter().map(|a| a.join().unwrap_or_else(|_| Err("the request failed".into()))).collect::<Vec<_>>()
+        });
+        Ok(names.into_iter().zip(answers).collect())
+    }
+
+    /// Robot `name`'s live status (its portal's `/api/v1/status`).
+    pub fn live(&self, name: &str) -> Result<serde_json::Value, LabError> {
+        if !lock(&self.robots).get(name).is_some_and(Robot::online) {
+            return Err(LabError::NotFound(format!("no robot '{}' is online", crate::contract::clip(name))));
+        }
+        let request = LiveRequest { v: WIRE_VERSION };
+        let key_expr = self.keys.rpc(name, Op::Live);
+        transfer::ask::<LiveRequest, Live>(&self.shared, &self.key, &key_expr, &request, transfer::QUERY_TIMEOUT)
+            .map(|(live, _)| live.status)
+            .map_err(|e| LabError::Host(format!("robot '{name}': {e}")))
+    }
+}
+
+/// A robot's name and its answer (what it said, or why it failed).
+pub type RobotAnswer = (String, Result<String, String>);
+
+/// What the dispatcher does next.
+enum Action {
+    Dispatch { id: u64, robot: String },
+    Fetch { id: u64, robot: String },
+    Stop { id: u64, robot: String, by: String },
+    Baseline { robot: String },
+}
+
+/// Starts the dispatcher of `lab` over `fleet`.
+pub(super) fn spawn(lab: &Arc<Lab>, fleet: Arc<Fleet>) -> Result<(), LabError> {
+    *lock(&fleet.lab) = Arc::downgrade(lab);
+    let reference = lab.lock()?.lab.baseline;
+    if let Some(set) = reference
+        && let Err(e) = lab.deployer.set_reference(set)
+    {
+        tracing::error!("the lab's reference (set {set}) does not validate: {e}");
+    }
+    let mut threads = lab.threads.lock().map_err(|_| LabError::Host("the lab's threads are unusable".into()))?;
+    let checker = lab.clone();
+    threads.push(
+        std::thread::Builder::new()
+            .name("lab-checks".into())
+            .spawn(move || super::runner::checks(&checker))
+            .map_err(|e| LabError::Host(format!("cannot start the lab's checks: {e}")))?,
+    );
+    let dispatcher = lab.clone();
+    threads.push(
+        std::thread::Builder::new()
+            .name("lab-dispatch".into())
+            .spawn(move || dispatch_loop(&dispatcher, &fleet))
+            .map_err(|e| LabError::Host(format!("cannot start the lab's dispatcher: {e}")))?,
+    );
+    Ok(())
+}
+
+fn dispatch_loop(lab: &Arc<Lab>, fleet: &Arc<Fleet>) {
+    while !lab.is_stopping() {
+        let actions = match lab.lock() {
+            Ok(mut book) => {
+                let actions = plan(lab, fleet, &mut book);
+                if actions.is_empty() {
+                    let _ = lab.changed.wait_timeout(book, POLL);
+                    continue;
+                }
+                actions
+            }
+            Err(_) => return,
+        };
+        for action in actions {
+            let (lab, fleet) = (lab.clone(), fleet.clone());
+            let spawned = std::thread::Builder::new().name("lab-dispatch-job".into()).spawn(move || match action {
+                Action::Dispatch { id, robot } => dispatch(&lab, &fleet, id, &robot),
+                Action::Fetch { id, robot } => fetch(&lab, &fleet, id, &robot),
+                Action::Stop { id, robot, by } => stop(&fleet, id, &robot, &by),
+                Action::Baseline { robot } => fetch_baseline(&lab, &fleet, &robot),
+            });
+            if let Err(e) = spawned {
+                tracing::error!("the lab cannot start a job: {e}");
+            }
+        }
+    }
+    fleet.shut_down();
+}
+
+/// Whether robot `name` with `token` is one `target` names.
+fn targets(name: &str, token: &TokenBody, target: &Target) -> bool {
+    match target {
+        Target::Any => true,
+        Target::Robot(robot) => robot == name,
+        Target::Profile(id) => token.profile.id == *id,
+    }
+}
+
+/// Whether robot `name` with `token` may take an experiment for `target`
+/// of `duration_s`.
+fn fits(name: &str, token: &TokenBody, target: &Target, duration_s: f64) -> bool {
+    targets(name, token, target) && duration_s <= token.max_duration_s
+}
+
+/// Looks at every experiment on or for a robot and every robot, and
+/// decides what to do (under the book's lock and the robots').
+fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
+    let mut actions = Vec::new();
+    let mut robots = lock(&fleet.robots);
+    let relearned = fleet.started.elapsed() >= fleet.relearn;
+    // Baselines not seen before are fetched once.
+    for (name, robot) in robots.iter_mut() {
+        if let Some(token) = &robot.current
+            && !book.lab.baselines.contains_key(&token.profile.baseline)
+            && !robot.fetching_baseline
+            && robot.may_retry()
+        {
+            robot.fetching_baseline = true;
+            actions.push(Action::Baseline { robot: name.clone() });
+        }
+    }
+    let placed: Vec<(u64, ExperimentState, String, bool)> = book
+        .experiments
+        .values()
+        .filter_map(|r| {
+            let p = r.placement.as_ref()?;
+            Some((r.id, r.state, p.robot.clone()?, p.fetch_pending))
+        })
+        .collect();
+    let mut busy: BTreeSet<String> = BTreeSet::new();
+    for (id, state, name, pending) in placed {
+        let robot = robots.entry(name.clone()).or_default();
+        let running_here = matches!(&robot.current, Some(t) if t.state == RobotState::Running { experiment: id });
+        match state {
+            ExperimentState::Running | ExperimentState::Finishing => {
+                busy.insert(name.clone());
+                if !robot.online() {
+                    if relearned {
+                        lost(lab, book, id, &name);
+                    }
+                    continue;
+                }
+                if running_here {
+                    if let Some(by) = book.cancels.get(&id).cloned()
+                        && robot.stops_sent.insert(id)
+                    {
+                        actions.push(Action::Stop { id, robot: name.clone(), by });
+                    }
+                    continue;
+                }
+                // Its token no longer says it runs it: it ended there,
+                // once the token is newer than the robot's acceptance.
+                let newer = match (robot.accepted.get(&id), robot.token_at) {
+                    (Some(accepted), Some(token_at)) => token_at > *accepted,
+                    (None, _) => true,
+                    (Some(accepted), None) => accepted.elapsed() > transfer::QUERY_TIMEOUT,
+                };
+                if newer && !robot.fetching && robot.may_retry() {
+                    if state == ExperimentState::Running {
+                        let cause = format!("it ended on robot {name}; the lab fetches what it recorded");
+                        let _ = lab.transition(book, id, ExperimentState::Finishing, &cause, vec![]);
+                    }
+                    robot.fetching = true;
+                    actions.push(Action::Fetch { id, robot: name.clone() });
+                }
+            }
+            ExperimentState::Queued if !book.dispatching.contains(&id) => {
+                // Dispatched when the server stopped: the robot's token
+                // says whether it took it.
+                if running_here {
+                    busy.insert(name.clone());
+                    robot.accepted.insert(id, Instant::now());
+                    let cause = format!("runs on robot {name} (its token says so)");
+                    let _ = lab.transition(book, id, ExperimentState::Running, &cause, vec![]);
+                } else if (relearned || robot.online())
+                    && let Some(record) = book.experiments.get_mut(&id)
+                    && let Some(placement) = record.placement.as_mut()
+                {
+                    placement.robot = None;
+                    let record = record.clone();
+                    if let Ok(writer) = lab.store().lock() {
+                        let _ = writer.put_experiment(&record);
+                    }
+                }
+            }
+            ExperimentState::Queued => {
+                busy.insert(name.clone());
+            }
+            s if s.is_final() && pending && robot.online() && !robot.fetching && robot.may_retry() => {
+                robot.fetching = true;
+                actions.push(Action::Fetch { id, robot: name.clone() });
+            }
+            _ => {}
+        }
+    }
+    // A robot that runs an experiment this lab ended (lost, then back
+    // before it noticed) is told to stop it.
+    for (name, robot) in robots.iter_mut() {
+        if let Some(TokenBody { state: RobotState::Running { experiment }, .. }) = &robot.current {
+            let experiment = *experiment;
+            let ours = book.experiments.get(&experiment);
+            let elsewhere = |r: &crate::store::experiments::ExperimentRecord| {
+                r.placement.as_ref().and_then(|p| p.robot.as_deref()) != Some(name.as_str())
+            };
+            let ended = ours.is_none_or(|r| r.state.is_final() || elsewhere(r));
+            if ended && robot.stops_sent.insert(experiment) {
+                actions.push(Action::Stop { id: experiment, robot: name.clone(), by: "lab".into() });
+            }
+            busy.insert(name.clone());
+        }
+    }
+    if book.lab.paused {
+        return actions;
+    }
+    // The queue, first in, first out: each experiment to the first free
+    // robot that fits it.
+    let queued: Vec<(u64, Target, f64)> = book
+        .experiments
+        .values()
+        .filter(|r| r.state == ExperimentState::Queued && !book.dispatching.contains(&r.id))
+        .filter_map(|r| {
+            let p = r.placement.as_ref()?;
+            p.robot.is_none().then(|| (r.id, p.target.clone(), r.duration_s))
+        })
+        .collect();
+    for (id, target, duration_s) in queued {
+        // A robot whose max-duration is too short is not sent it, unless
+        // no robot of its target allows it: then it goes to one, which
+        // refuses it with its reason, rather than waiting for ever.
+        let anyone_allows =
+            robots.iter().any(|(name, r)| r.current.as_ref().is_some_and(|t| fits(name, t, &target, duration_s)));
+        let free = robots.iter().find(|(name, robot)| {
+            !busy.contains(*name)
+                && robot.dispatching.is_none()
+                && matches!(&robot.current, Some(t) if t.state == RobotState::Idle
+                    && targets(name, t, &target)
+                    && (fits(name, t, &target, duration_s) || !anyone_allows))
+        });
+        let Some((name, _)) = free else { continue };
+        let name = name.clone();
+        busy.insert(name.clone());
+        if let Some(robot) = robots.get_mut(&name) {
+            robot.dispatching = Some(id);
+        }
+        book.dispatching.insert(id);
+        if let Some(record) = book.experiments.get_mut(&id)
+            && let Some(placement) = record.placement.as_mut()
+        {
+            placement.robot = Some(name.clone());
+            let record = record.clone();
+            if let Ok(writer) = lab.store().lock()
+                && let Err(e) = writer.put_experiment(&record)
+            {
+                tracing::error!("experiment {id}: {e}");
+            }
+        }
+        actions.push(Action::Dispatch { id, robot: name });
+    }
+    actions
+}
+
+/// Experiment `id`'s robot `robot` is lost: `aborted: robot lost`, and
+/// what it recorded is fetched when it comes back.
+fn lost(lab: &Lab, book: &mut Book, id: u64, robot: &str) {
+    if let Some(record) = book.experiments.get_mut(&id)
+        && let Some(placement) = record.placement.as_mut()
+    {
+        placement.fetch_pending = true;
+    }
+    let cause = "aborted: robot lost";
+    let reasons = vec![format!("aborted: robot lost ('{robot}' left the lab while it ran)")];
+    if let Err(e) = lab.transition(book, id, ExperimentState::Aborted, cause, reasons) {
+        tracing::error!("experiment {id}: {e}");
+    }
+}
+
+/// The set of experiment `record` as a robot gets it.
+fn manifest(store: &Store, set: u64) -> Result<SetManifest, String> {
+    let set = store.set(set).map_err(|e| e.to_string())?;
+    let text = store.blob(&set.config_sha256).map_err(|e| e.to_string())?;
+    let config_text = String::from_utf8(text).map_err(|e| format!("the robot file is not utf-8: {e}"))?;
+    let mut sources = BTreeMap::new();
+    for (key, sha) in &set.sources {
+        let bytes = std::fs::metadata(store.blob_path(sha)).map_err(|e| format!("blob {sha}: {e}"))?.len();
+        sources.insert(key.clone(), BlobRef { sha256: sha.clone(), bytes });
+    }
+    Ok(SetManifest { config_name: set.config_name, config_text, platform: set.platform, sources })
+}
+
+fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
+    let prepared = (|| {
+        let record = lab.lock().map_err(|e| e.to_string())?.experiments.get(&id).cloned().ok_or("no record")?;
+        let user = lab
+            .store()
+            .users()
+            .get(&record.submitter)
+            .ok_or_else(|| format!("the submitter '{}' is no longer a user", record.submitter))?;
+        let set = manifest(lab.store(), record.set)?;
+        Ok::<_, String>(Dispatch {
+            v: WIRE_VERSION,
+            lab_id: id,
+            issued_unix_ms: unix_now_ms(),
+            submitter: record.submitter.clone(),
+            role: user.role,
+            platforms: user.platforms.clone(),
+            label: record.label.clone(),
+            duration_s: record.duration_s,
+            set,
+        })
+    })();
+    let answer = match prepared {
+        Ok(message) => {
+            let key_expr = fleet.keys.rpc(robot, Op::Dispatch);
+            tracing::info!("experiment {id}: dispatched to robot {robot}");
+            transfer::ask::<Dispatch, DispatchReply>(&fleet.shared, &fleet.key, &key_expr, &message, DISPATCH_TIMEOUT)
+                .map(|(reply, _)| reply.outcome)
+                .unwrap_or_else(|e| DispatchOutcome::Refused { reasons: vec![format!("no answer: {e}")] })
+        }
+        Err(why) => DispatchOutcome::Refused { reasons: vec![format!("the lab could not send it: {why}")] },
+    };
+    let Ok(mut book) = lab.lock() else { return };
+    book.dispatching.remove(&id);
+    let mut robots = lock(&fleet.robots);
+    let entry = robots.entry(robot.to_string()).or_default();
+    entry.dispatching = None;
+    match answer {
+        DispatchOutcome::Started { local_id, ends_unix_ms, .. } => {
+            entry.accepted.insert(id, Instant::now());
+            drop(robots);
+            if let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) {
+                placement.local_id = Some(local_id);
+            }
+            let cause = format!("runs on robot {robot} (its experiment {local_id}) until {}", utc_time(ends_unix_ms));
+            if let Err(e) = lab.transition(&mut book, id, ExperimentState::Running, &cause, vec![]) {
+                tracing::error!("experiment {id}: {e}");
+            }
+        }
+        DispatchOutcome::Refused { reasons } => {
+            drop(robots);
+            refused(lab, &mut book, id, robot, reasons);
+        }
+    }
+}
+
+/// Robot `robot` refused experiment `id`: back in the queue the first
+/// time, `refused` the second.
+fn refused(lab: &Lab, book: &mut Book, id: u64, robot: &str, reasons: Vec<String>) {
+    let Some(record) = book.experiments.get_mut(&id) else { return };
+    if record.state != ExperimentState::Queued {
+        return;
+    }
+    let said = reasons.join("; ");
+    let reasons: Vec<String> = reasons.into_iter().map(|r| format!("robot {robot} refused it: {r}")).collect();
+    if let Some(by) = book.cancels.remove(&id) {
+        let cause = format!("cancelled by {by}");
+        let _ = lab.transition(book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()]);
+        return;
+    }
+    let refusals = {
+        let placement = record.placement.get_or_insert_with(Default::default);
+        placement.refusals += 1;
+        placement.robot = None;
+        placement.refusals
+    };
+    tracing::warn!("experiment {id}: robot {robot} refused it: {said}");
+    let result = if refusals < 2 {
+        let cause = format!("robot {robot} refused it ({said}); back in the queue once");
+        lab.transition(book, id, ExperimentState::Queued, &cause, reasons)
+    } else {
+        let cause = format!("refused: robot {robot} refused it a second time ({said})");
+        lab.transition(book, id, ExperimentState::Refused, &cause, reasons)
+    };
+    if let Err(e) = result {
+        tracing::error!("experiment {id}: {e}");
+    }
+}
+
+fn stop(fleet: &Fleet, id: u64, robot: &str, by: &str) {
+    let message = Stop { v: WIRE_VERSION, lab_id: id, by: by.to_string(), issued_unix_ms: unix_now_ms() };
+    let key_expr = fleet.keys.rpc(robot, Op::Stop);
+    match transfer::ask::<Stop, Ack>(&fleet.shared, &fleet.key, &key_expr, &message, transfer::QUERY_TIMEOUT) {
+        Ok((ack, _)) => tracing::info!("experiment {id} on robot {robot}: stop by {by}: {}", ack.message),
+        Err(e) => {
+            tracing::warn!("experiment {id} on robot {robot}: the stop was not answered: {e}");
+            // Sent again at the next look.
+            lock(&fleet.robots).entry(robot.to_string()).or_default().stops_sent.remove(&id);
+        }
+    }
+}
+
+/// Fetches what robot `robot` kept of experiment `id`, and gives the
+/// experiment its final state there (unless it ended here already).
+fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
+    let outcome = fetch_results(lab, fleet, id, robot);
+    let Ok(mut book) = lab.lock() else { return };
+    {
+        let mut robots = lock(&fleet.robots);
+        let entry = robots.entry(robot.to_string()).or_default();
+        entry.fetching = false;
+        if outcome.is_err() {
+            entry.retry_at = Some(Instant::now() + RETRY);
+        }
+    }
+    let results = match outcome {
+        Ok(Some(results)) => results,
+        // Still running there: looked at again with its next token.
+        Ok(None) => {
+            let mut robots = lock(&fleet.robots);
+            robots.entry(robot.to_string()).or_default().retry_at = Some(Instant::now() + RETRY);
+            return;
+        }
+        Err(e) => return tracing::warn!("experiment {id}: its results on robot {robot} did not come: {e}"),
+    };
+    let store = lab.store().clone();
+    let Some(record) = book.experiments.get_mut(&id) else { return };
+    record.results = bundle::scan(&store, id);
+    if let Some(run) = results.run.clone() {
+        record.run = Some(run);
+    }
+    if let Some(placement) = record.placement.as_mut() {
+        placement.fetch_pending = false;
+    }
+    let state = record.state;
+    let robot_state = results.state.unwrap_or(ExperimentState::Failed);
+    let robot_cause = results.history.last().map(|c| c.cause.clone()).unwrap_or_default();
+    if matches!(state, ExperimentState::Running | ExperimentState::Finishing) {
+        let cause = format!("on robot {robot}: {robot_cause}");
+        let reasons = if robot_state == ExperimentState::Done { Vec::new() } else { results.reasons.clone() };
+        if let Err(e) = lab.transition(&mut book, id, robot_state, &cause, reasons) {
+            tracing::error!("experiment {id}: {e}");
+        }
+    } else {
+        record.add_reason(format!(
+            "robot {robot} came back: what it recorded was fetched (there it ended {}: {robot_cause})",
+            robot_state.name()
+        ));
+        let record = record.clone();
+        if let Ok(writer) = store.lock() {
+            let _ = writer.put_experiment(&record);
+        }
+        drop(book);
+        lab.notify();
+        return;
+    }
+    super::runner::retain(lab, &mut book);
+}
+
+/// The results of experiment `id` on `robot`, their files fetched into
+/// its folder; `None` while it still runs there.
+fn fetch_results(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) -> Result<Option<Results>, TransferError> {
+    let request = ResultsRequest { v: WIRE_VERSION, lab_id: id };
+    let key_expr = fleet.keys.rpc(robot, Op::Results);
+    let (results, _) = transfer::ask::<ResultsRequest, Results>(
+        &fleet.shared,
+        &fleet.key,
+        &key_expr,
+        &request,
+        transfer::QUERY_TIMEOUT,
+    )?;
+    if !results.found {
+        return Ok(Some(Results {
+            state: Some(ExperimentState::Aborted),
+            reasons: vec![format!("aborted: robot {robot} does not know it (it was lost before it kept it)")],
+            history: vec![crate::store::experiments::StateChange {
+                state: ExperimentState::Aborted,
+                at_ms: unix_now_ms(),
+                cause: "aborted: the robot does not know it".into(),
+            }],
+            ..results
+        }));
+    }
+    if !results.state.is_some_and(ExperimentState::is_final) {
+        return Ok(None);
+    }
+    let dir = lab.store().experiment_dir(id);
+    let file_key = fleet.keys.rpc(robot, Op::File);
+    for file in &results.files {
+        let dest = dir.join(&file.name);
+        if transfer::digest_file(&dest).is_ok_and(|d| d.sha256 == file.sha256) {
+            continue;
+        }
+        let source = FileSource::Result { lab_id: id, name: file.name.clone() };
+        let expected = BlobRef { sha256: file.sha256.clone(), bytes: file.bytes };
+        transfer::fetch_file(&fleet.shared, &fleet.key, &file_key, &source, &expected, &dest)?;
+    }
+    tracing::info!("experiment {id}: {} result files fetched from robot {robot}", results.files.len());
+    Ok(Some(results))
+}
+
+/// Fetches robot `robot`'s baseline and stores it as a set (the first
+/// becomes the lab's reference).
+fn fetch_baseline(lab: &Lab, fleet: &Fleet, robot: &str) {
+    let outcome = import_baseline(lab, fleet, robot);
+    let mut robots = lock(&fleet.robots);
+    let entry = robots.entry(robot.to_string()).or_default();
+    entry.fetching_baseline = false;
+    match outcome {
+        Ok(set) => {
+            entry.baseline_error = None;
+            drop(robots);
+            tracing::info!("lab '{}': robot {robot}'s baseline is set {set} here", fleet.key.lab());
+        }
+        Err(e) => {
+            tracing::warn!("lab '{}': robot {robot}'s baseline did not come: {e}", fleet.key.lab());
+            entry.baseline_error = Some(crate::contract::clip(&e));
+            entry.retry_at = Some(Instant::now() + RETRY * 5);
+        }
+    }
+    lab.notify();
+}
+
+fn import_baseline(lab: &Lab, fleet: &Fleet, robot: &str) -> Result<u64, String> {
+    let request = BaselineRequest { v: WIRE_VERSION };
+    let key_expr = fleet.keys.rpc(robot, Op::Baseline);
+    let (baseline, _) = transfer::ask::<BaselineRequest, Baseline>(
+        &fleet.shared,
+        &fleet.key,
+        &key_expr,
+        &request,
+        transfer::QUERY_TIMEOUT,
+    )
+    .map_err(|e| e.to_string())?;
+    if let Some(set) = lab.lock().map_err(|e| e.to_string())?.lab.baselines.get(&baseline.hash) {
+        return Ok(*set);
+    }
+    let store = lab.store();
+    let file_key = fleet.keys.rpc(robot, Op::File);
+    for blob in baseline.set.sources.values() {
+        if store.blob_path(&blob.sha256).is_file() {
+            continue;
+        }
+        let source = FileSource::Blob { sha256: blob.sha256.clone() };
+        let bytes =
+            transfer::fetch_blob(&fleet.shared, &fleet.key, &file_key, &source, blob).map_err(|e| e.to_string())?;
+        store.lock().and_then(|w| w.put_blob(&bytes)).map_err(|e| e.to_string())?;
+    }
+    let dir = store.root().join("baselines").join(&baseline.hash);
+    for (path, blob) in &baseline.files {
+        wire::named_path_ok(path).map_err(|b| b.0)?;
+        let dest = dir.join(path);
+        if transfer::digest_file(&dest).is_ok_and(|d| d.sha256 == blob.sha256) {
+            continue;
+        }
+        let source = FileSource::Named { path: path.clone() };
+        transfer::fetch_file(&fleet.shared, &fleet.key, &file_key, &source, blob, &dest).map_err(|e| e.to_string())?;
+    }
+    let sources: BTreeMap<String, String> =
+        baseline.set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();
+    let by = format!("robot:{robot}");
+    let import = SetImport {
+        by: &by,
+        config_name: &baseline.set.config_name,
+        config_text: &baseline.set.config_text,
+        platform: baseline.set.platform.as_deref(),
+        sources: &sources,
+        base_dir: &dir,
+    };
+    let set = lab.deployer.import_set(&import).map_err(|e| e.to_string())?;
+    let mut book = lab.lock().map_err(|e| e.to_string())?;
+    let mut state = book.lab.clone();
+    state.baselines.insert(baseline.hash.clone(), set.id);
+    let first = state.baseline.is_none();
+    if first {
+        state.baseline = Some(set.id);
+    }
+    store.lock().and_then(|w| w.put_lab_state(&state)).map_err(|e| e.to_string())?;
+    book.lab = state;
+    drop(book);
+    if first {
+        lab.deployer.set_reference(set.id).map_err(|e| e.to_string())?;
+        if let Ok(writer) = store.lock() {
+            let detail = format!("robot {robot}'s baseline (set {}) is the lab's reference", set.id);
+            writer.record(super::LAB_AUDIT_USER, "lab-reference", &format!("set {}", set.id), Outcome::Ok(&detail));
+        }
+    }
+    Ok(set.id)
+}

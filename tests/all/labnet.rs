@@ -1,0 +1,771 @@
+//! A lab of several robots end to end (docs/lab.md, "Several robots"): the
+//! real binary as a lab server (`subsume lab serve`) and as three robot
+//! hosts (`subsume run ... --lab NAME`, simulated robots), joined over real
+//! Zenoh sessions on loopback. Each robot reaches the lab through a TCP
+//! relay this test owns, so the test can cut one robot's link and bring it
+//! back.
+//!
+//! - In network namespaces the test makes (each host in its own, veth links
+//!   into a hub's bridge), three researchers submit nine experiments to the
+//!   lab server; they spread over the three robots and all end `done`, with
+//!   bundles the independent `mcap` package reads.
+//! - An independent Zenoh client (the `eclipse-zenoh` package) sees each
+//!   robot's liveliness token with its name, state and profile.
+//! - Cutting a robot's link mid-run: the lab marks its experiment `aborted:
+//!   robot lost`, and the robot, on its own, aborts it and goes back to its
+//!   baseline within its `--lab-lost` setting; with the link back, the lab
+//!   fetches what it recorded.
+//! - A second lab server of the same name and another secret sees no robot,
+//!   and its heartbeats keep no robot's experiment alive.
+//! - The same cut in network namespaces the test makes (each host in its
+//!   own, veth links into a hub's bridge; the cut is `ip link set ... down`):
+//!   the robot aborts by itself, and the other robots run the other
+//!   researchers' experiments to `done`.
+//! - A robot that refuses an experiment (over its owner's `max-duration`)
+//!   gets it back in the queue once; the second refusal ends it `refused`.
+//! - A lab server killed with SIGKILL and started again keeps its users,
+//!   results and queue, and relearns its robots from their tokens.
+
+use std::io::{Read, Write};
+use std::net::{Shutdown, TcpListener, TcpStream};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde_json::Value as Json;
+
+use crate::lab::{WORLD, download_results, read_mcap, robot};
+use crate::support::{self, HostProcess, free_port, http};
+
+const PASSWORD: &str = "labnet-test-password";
+const RESEARCHERS: [&str; 3] = ["ana", "ben", "cy"];
+const LAB: &str = "testlab";
+/// The robots' `--lab-lost`: how long a robot runs the lab's experiment
+/// without hearing its lab.
+const LOST_AFTER_S: f64 = 2.0;
+
+/// A TCP relay between one robot and the lab server's Zenoh listener: the
+/// robot's link, which the test cuts (every connection closed, new ones
+/// refused) and restores (listening again on the same port).
+struct Relay {
+    port: u16,
+    upstream: u16,
+    open: Arc<AtomicBool>,
+    streams: Arc<Mutex<Vec<TcpStream>>>,
+}
+
+impl Relay {
+    fn new(upstream: u16) -> Relay {
+        let relay = Relay {
+            port: free_port(),
+            upstream,
+            open: Arc::new(AtomicBool::new(false)),
+            streams: Arc::new(Mutex::new(Vec::new())),
+        };
+        relay.restore();
+        relay
+    }
+
+    fn restore(&self) {
+        let listener = TcpListener::bind(("127.0.0.1", self.port)).unwrap();
+        listener.set_nonblocking(true).unwrap();
+        self.open.store(true, Ordering::SeqCst);
+        let (open, streams, upstream) = (self.open.clone(), self.streams.clone(), self.upstream);
+        std::thread::spawn(move || {
+            while open.load(Ordering::SeqCst) {
+                let Ok((client, _)) = listener.accept() else {
+                    std::thread::sleep(Duration::from_millis(10));
+                    continue;
+                };
+                client.set_nonblocking(false).unwrap();
+                let Ok(server) = TcpStream::connect(("127.0.0.1", upstream)) else { continue };
+                let _ = client.set_nodelay(true);
+                let _ = server.set_nodelay(true);
+                let mut held = streams.lock().unwrap();
+                held.push(client.try_clone().unwrap());
+                held.push(server.try_clone().unwrap());
+                pipe(client.try_clone().unwrap(), server.try_clone().unwrap());
+                pipe(server, client);
+            }
+        });
+    }
+
+    /// Cuts the link: closes every connection and stops listening.
+    fn cut(&self) {
+        self.open.store(false, Ordering::SeqCst);
+        for stream in self.streams.lock().unwrap().drain(..) {
+            let _ = stream.shutdown(Shutdown::Both);
+        }
+        // The accept loop polls every 10 ms: let it drop the listener.
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn pipe(mut from: TcpStream, mut to: TcpStream) {
+    std::thread::spawn(move || {
+        let mut buffer = [0u8; 16 << 10];
+        while let Ok(n) = from.read(&mut buffer) {
+            if n == 0 || to.write_all(&buffer[..n]).is_err() {
+                break;
+            }
+        }
+        let _ = to.shutdown(Shutdown::Both);
+    });
+}
+
+/// `subsume lab serve` on `store`, its Zenoh listener on `zenoh_port`: the
+/// process and its portal's address.
+fn spawn_server(store: &Path, zenoh_port: u16) -> (HostProcess, String) {
+    spawn_server_at(store, "127.0.0.1", &format!("tcp/127.0.0.1:{zenoh_port}"), None)
+}
+
+/// `subsume lab serve` on `store`, its portal on `ip`, its Zenoh listener
+/// on `listen`, in namespace 0 of `namespaces` when given.
+fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Namespaces>) -> (HostProcess, String) {
+    let mut command = support::subsume();
+    command
+        .arg("--store")
+        .arg(store)
+        .args(["lab", "serve", "--http", &format!("{ip}:0"), "--lab", LAB, "--allow-plain-http"])
+        .args(["--listen", listen])
+        .env_remove("SUBSUME_HTTP");
+    let command = match namespaces {
+        Some(namespaces) => namespaces.inside(0, &command),
+        None => command,
+    };
+    let server = HostProcess::spawn(command);
+    let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
+    (server, address)
+}
+
+/// `ip ARGS`, which must succeed.
+fn ip(args: &[&str]) {
+    let output = std::process::Command::new("ip").args(args).output().unwrap();
+    assert!(output.status.success(), "ip {}: {}", args.join(" "), String::from_utf8_lossy(&output.stderr));
+}
+
+/// Network namespaces this test made: one per host (0 the lab server), each
+/// with a veth link into a hub namespace's bridge, and one veth from the
+/// test's own namespace into the hub so the test reaches the portals.
+/// Removed on drop.
+struct Namespaces {
+    prefix: String,
+    subnet: String,
+    hosts: usize,
+}
+
+impl Namespaces {
+    fn new(hosts: usize) -> Namespaces {
+        static MADE: std::sync::atomic::AtomicU32 = std::sync::atomic::AtomicU32::new(0);
+        let made = MADE.fetch_add(1, Ordering::SeqCst);
+        let pid = std::process::id();
+        let namespaces = Namespaces {
+            prefix: format!("ln{:x}{made}", pid & 0xffff),
+            subnet: format!("10.{}.{}", 100 + pid % 100, made % 250),
+            hosts,
+        };
+        let hub = namespaces.hub();
+        ip(&["netns", "add", &hub]);
+        ip(&["-n", &hub, "link", "add", "br0", "type", "bridge"]);
+        ip(&["-n", &hub, "link", "set", "br0", "up"]);
+        for i in 0..hosts {
+            let (ns, inner, outer) = (namespaces.ns(i), format!("{}n{i}", namespaces.prefix), namespaces.hub_device(i));
+            ip(&["netns", "add", &ns]);
+            ip(&["link", "add", &inner, "type", "veth", "peer", "name", &outer]);
+            ip(&["link", "set", &inner, "netns", &ns]);
+            ip(&["link", "set", &outer, "netns", &hub]);
+            ip(&["-n", &hub, "link", "set", &outer, "master", "br0", "up"]);
+            ip(&["-n", &ns, "addr", "add", &format!("{}/24", namespaces.address(i)), "dev", &inner]);
+            ip(&["-n", &ns, "link", "set", &inner, "up"]);
+            ip(&["-n", &ns, "link", "set", "lo", "up"]);
+        }
+        let (root, outer) = (format!("{}r", namespaces.prefix), format!("{}rh", namespaces.prefix));
+        ip(&["link", "add", &root, "type", "veth", "peer", "name", &outer]);
+        ip(&["link", "set", &outer, "netns", &hub]);
+        ip(&["-n", &hub, "link", "set", &outer, "master", "br0", "up"]);
+        ip(&["addr", "add", &format!("{}.254/24", namespaces.subnet), "dev", &root]);
+        ip(&["link", "set", &root, "up"]);
+        namespaces
+    }
+
+    fn hub(&self) -> String {
+        format!("{}-hub", self.prefix)
+    }
+
+    fn ns(&self, i: usize) -> String {
+        format!("{}-{i}", self.prefix)
+    }
+
+    /// Host `i`'s link as the hub sees it: setting it down cuts the host off.
+    fn hub_device(&self, i: usize) -> String {
+        format!("{}h{i}", self.prefix)
+    }
+
+    fn address(&self, i: usize) -> String {
+        format!("{}.{}", self.subnet, i + 1)
+    }
+
+    /// `command` run inside host `i`'s namespace (`ip netns exec`).
+    fn inside(&self, i: usize, command: &std::process::Command) -> std::process::Command {
+        let mut wrapped = std::process::Command::new("ip");
+        wrapped.args(["netns", "exec"]).arg(self.ns(i)).arg(command.get_program()).args(command.get_args());
+        for (key, value) in command.get_envs() {
+            match value {
+                Some(value) => wrapped.env(key, value),
+                None => wrapped.env_remove(key),
+            };
+        }
+        if let Some(dir) = command.get_current_dir() {
+            wrapped.current_dir(dir);
+        }
+        wrapped
+    }
+}
+
+impl Drop for Namespaces {
+    fn drop(&mut self) {
+        for i in 0..self.hosts {
+            let _ = std::process::Command::new("ip").args(["netns", "del", &self.ns(i)]).status();
+        }
+        let _ = std::process::Command::new("ip").args(["netns", "del", &self.hub()]).status();
+    }
+}
+
+/// How a robot reaches its lab: a relay on loopback, or its veth link.
+enum Link {
+    Relay(Relay),
+    Veth { hub: String, device: String },
+}
+
+impl Link {
+    fn cut(&self) {
+        match self {
+            Link::Relay(relay) => relay.cut(),
+            Link::Veth { hub, device } => ip(&["-n", hub, "link", "set", device, "down"]),
+        }
+    }
+
+    fn restore(&self) {
+        match self {
+            Link::Relay(relay) => relay.restore(),
+            Link::Veth { hub, device } => ip(&["-n", hub, "link", "set", device, "up"]),
+        }
+    }
+}
+
+struct Robot {
+    name: String,
+    host: HostProcess,
+    address: String,
+    link: Link,
+}
+
+struct LabNet {
+    dir: PathBuf,
+    server: HostProcess,
+    address: String,
+    /// The lab server's Zenoh listener.
+    zenoh: String,
+    robots: Vec<Robot>,
+    /// Last: removed after every host has stopped.
+    namespaces: Option<Namespaces>,
+}
+
+impl LabNet {
+    /// A lab server and `robots` robot hosts, each robot joined through its
+    /// own relay; returns once the lab lists every robot idle.
+    fn start(dir: &Path, robots: usize) -> LabNet {
+        LabNet::start_with(dir, robots, None)
+    }
+
+    /// As [`LabNet::start`]; with `also`, every robot also connects to
+    /// that Zenoh endpoint, with that Zenoh config file.
+    fn start_with(dir: &Path, robots: usize, also: Option<(&str, &Path)>) -> LabNet {
+        LabNet::start_on(dir, robots, also, None)
+    }
+
+    /// As [`LabNet::start`], each host in its own network namespace (0 the
+    /// lab server), joined by veth links into a hub.
+    fn start_in_namespaces(dir: &Path, robots: usize) -> LabNet {
+        LabNet::start_on(dir, robots, None, Some(Namespaces::new(robots + 1)))
+    }
+
+    fn start_on(dir: &Path, robots: usize, also: Option<(&str, &Path)>, namespaces: Option<Namespaces>) -> LabNet {
+        support::guest_dir();
+        let store = dir.join("lab").join("store");
+        support::add_user(&store, "boss", "admin", &[], PASSWORD);
+        for name in RESEARCHERS {
+            support::add_user(&store, name, "researcher", &["control"], PASSWORD);
+        }
+        let zenoh_port = free_port();
+        let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
+        let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
+        let (server, address) = spawn_server_at(&store, &server_ip, &zenoh, namespaces.as_ref());
+        let secret = store.join("lab.secret");
+        let robots = (1..=robots)
+            .map(|n| {
+                let name = format!("r{n}");
+                let home = dir.join(&name);
+                std::fs::create_dir_all(&home).unwrap();
+                std::fs::write(home.join("robot.xml"), robot(8.0, "")).unwrap();
+                std::fs::write(home.join("lab.world"), WORLD).unwrap();
+                support::add_user(&home.join("store"), "owner", "admin", &[], PASSWORD);
+                let (link, mut connect, robot_ip) = match &namespaces {
+                    Some(namespaces) => (
+                        Link::Veth { hub: namespaces.hub(), device: namespaces.hub_device(n) },
+                        zenoh.clone(),
+                        namespaces.address(n),
+                    ),
+                    None => {
+                        let relay = Relay::new(zenoh_port);
+                        let connect = format!("tcp/127.0.0.1:{}", relay.port);
+                        (Link::Relay(relay), connect, "127.0.0.1".to_string())
+                    }
+                };
+                let mut command = support::subsume();
+                command.arg("--store").arg(home.join("store")).arg("run").arg(home.join("robot.xml"));
+                if let Some((endpoint, config)) = also {
+                    connect = format!("{connect},{endpoint}");
+                    command.arg("--lab-zenoh-config").arg(config);
+                }
+                command
+                    .args(["--http", &format!("{robot_ip}:0"), "--allow-plain-http"])
+                    .args(["--lab", LAB, "--lab-robot", &name])
+                    .arg("--lab-secret")
+                    .arg(&secret)
+                    .args(["--lab-connect", &connect])
+                    .args(["--lab-lost", &LOST_AFTER_S.to_string()])
+                    .env_remove("SUBSUME_HTTP");
+                let command = match &namespaces {
+                    Some(namespaces) => namespaces.inside(n, &command),
+                    None => command,
+                };
+                let host = HostProcess::spawn(command);
+                let address = host.portal_address();
+                Robot { name, host, address, link }
+            })
+            .collect();
+        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots, namespaces };
+        let boss = lab.token("boss");
+        lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
+            robots.len() == lab.robots.len()
+                && robots.iter().all(|r| r["state"] == "idle" && r["baseline_set"].as_u64().is_some())
+        });
+        lab
+    }
+
+    fn token(&self, user: &str) -> String {
+        support::login(&self.address, user, PASSWORD)
+    }
+
+    /// Kills the lab server with SIGKILL.
+    fn kill_server(&mut self) {
+        support::signal(self.server.child.id(), "KILL");
+        support::wait_for_exit(&mut self.server.child, Duration::from_secs(20));
+    }
+
+    /// Starts the lab server again on its store and its Zenoh port.
+    fn restart_server(&mut self) {
+        let ip = self.namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
+        let store = self.dir.join("lab").join("store");
+        let (server, address) = spawn_server_at(&store, &ip, &self.zenoh, self.namespaces.as_ref());
+        self.server = server;
+        self.address = address;
+    }
+
+    fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
+        http(&self.address, method, path, Some(token), body.as_bytes())
+    }
+
+    fn robots(&self, token: &str) -> Vec<Json> {
+        let (status, json) = self.call(token, "GET", "/api/v1/robots", "");
+        assert_eq!(status, 200, "{json}");
+        json["robots"].as_array().unwrap().clone()
+    }
+
+    /// Waits until the lab's robots satisfy `done`; returns them.
+    fn wait_robots(&self, token: &str, timeout: Duration, done: impl Fn(&[Json]) -> bool) -> Vec<Json> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let robots = self.robots(token);
+            if done(&robots) {
+                return robots;
+            }
+            assert!(Instant::now() < deadline, "the robots never got there: {robots:#?}\n{}", self.logs());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    fn logs(&self) -> String {
+        let mut text = format!("--- lab server:\n{}\n", self.server.log());
+        for robot in &self.robots {
+            text += &format!("--- {}:\n{}\n", robot.name, robot.host.log());
+        }
+        text
+    }
+
+    /// Stages `xml` as the user's robot file on the lab server; the set.
+    fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
+        let (status, json) = self.call(token, "PUT", &format!("/api/v1/platforms/control/configs/{file}"), xml);
+        assert_eq!(status, 201, "{json}\n{}", self.logs());
+        json["set"]["id"].as_u64().unwrap()
+    }
+
+    fn submit(&self, token: &str, set: u64, duration_s: f64, target: Option<&str>) -> u64 {
+        let mut body = serde_json::json!({ "set": set, "duration_s": duration_s, "label": "several robots" });
+        if let Some(robot) = target {
+            body["target"] = serde_json::json!({ "robot": robot });
+        }
+        let (status, json) = self.call(token, "POST", "/api/v1/experiments", &body.to_string());
+        assert_eq!(status, 201, "{json}\n{}", self.logs());
+        json["experiment"]["id"].as_u64().unwrap()
+    }
+
+    fn experiment(&self, token: &str, id: u64) -> Json {
+        let (status, json) = self.call(token, "GET", &format!("/api/v1/experiments/{id}"), "");
+        assert_eq!(status, 200, "{json}");
+        json["experiment"].clone()
+    }
+
+    /// Waits until experiment `id` is in `state` (or has ended), up to
+    /// `timeout`.
+    fn wait_for(&self, token: &str, id: u64, state: &str, timeout: Duration) -> Json {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let experiment = self.experiment(token, id);
+            let ended =
+                ["done", "refused", "cancelled", "aborted", "failed"].contains(&experiment["state"].as_str().unwrap());
+            if experiment["state"] == state || ended {
+                return experiment;
+            }
+            assert!(
+                Instant::now() < deadline,
+                "experiment {id} never reached {state}: {experiment:#}\n{}",
+                self.logs()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
+    fn robot(&self, name: &str) -> &Robot {
+        self.robots.iter().find(|r| r.name == name).unwrap()
+    }
+}
+
+/// The robot's active set, as its own portal says.
+fn active_set(robot: &Robot) -> u64 {
+    let token = support::login(&robot.address, "owner", PASSWORD);
+    let (status, json) = http(&robot.address, "GET", "/api/v1/status", Some(&token), b"");
+    assert_eq!(status, 200, "{json}");
+    json["set"].as_u64().unwrap()
+}
+
+#[test]
+fn nine_experiments_of_three_researchers_spread_over_three_robots_in_namespaces_and_end_done() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start_in_namespaces(dir.path(), 3);
+    let tokens: Vec<String> = RESEARCHERS.iter().map(|r| lab.token(r)).collect();
+    let baselines: Vec<u64> = lab.robots.iter().map(active_set).collect();
+    // Every researcher stages their own robot file and submits it three
+    // times, all at once.
+    let ids: Vec<(usize, u64)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = tokens
+            .iter()
+            .enumerate()
+            .map(|(r, token)| {
+                let lab = &lab;
+                scope.spawn(move || {
+                    let set = lab.stage(token, &format!("{}.xml", RESEARCHERS[r]), &robot(6.0 + r as f64, ""));
+                    (0..3).map(|_| (r, lab.submit(token, set, 3.0, None))).collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        handles.into_iter().flat_map(|h| h.join().unwrap()).collect()
+    });
+    assert_eq!(ids.len(), 9);
+    let mut ran_on = std::collections::BTreeSet::new();
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    for (r, id) in &ids {
+        let experiment = lab.wait_for(&tokens[*r], *id, "done", Duration::from_secs(300));
+        assert_eq!(experiment["state"], "done", "{experiment:#}\n{}", lab.logs());
+        let robot = experiment["placement"]["robot"].as_str().unwrap().to_string();
+        ran_on.insert(robot);
+        let bundle = download_results(&lab.address, &tokens[*r], *id, &out);
+        let read = read_mcap(&bundle.join("run.mcap"), false);
+        assert!(read["complete"].as_bool().unwrap() && read["in_order_per_channel"].as_bool().unwrap(), "{read:#}");
+        assert!(read["channels"]["/planner/cmd"]["count"].as_u64().is_some_and(|n| n > 10), "{read:#}");
+        let preflight = read_mcap(&bundle.join("preflight.mcap"), false);
+        assert!(preflight["complete"].as_bool().unwrap(), "{preflight:#}");
+    }
+    assert!(ran_on.len() >= 2, "nine experiments ran on {ran_on:?} only");
+    // Every robot runs its baseline again, and the lab sees them idle.
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["state"] == "idle"));
+    let after: Vec<u64> = lab.robots.iter().map(active_set).collect();
+    assert_eq!(after, baselines);
+}
+
+#[test]
+fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 60.0, Some("r1"));
+    let running = lab.wait_for(&ana, id, "running", Duration::from_secs(180));
+    assert_eq!(running["state"], "running", "{running:#}");
+    let r1 = lab.robot("r1");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "running")
+    });
+    let baseline = {
+        let token = support::login(&r1.address, "owner", PASSWORD);
+        let (_, json) = http(&r1.address, "GET", "/api/v1/lab", Some(&token), b"");
+        json["baseline"].as_u64()
+    };
+    let from = r1.host.log().lines().count();
+    r1.link.cut();
+    let cut_at = Instant::now();
+    // The lab: the robot's token went with its link.
+    let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
+    assert_eq!(lost["state"], "aborted", "{lost:#}");
+    let cause = lost["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+    assert!(cause.contains("robot lost"), "{cause}");
+    // The robot, on its own: the experiment aborted, the baseline back.
+    r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    let noticed = cut_at.elapsed();
+    assert!(noticed >= Duration::from_secs_f64(LOST_AFTER_S * 0.9), "it aborted after {noticed:?}");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let token = support::login(&r1.address, "owner", PASSWORD);
+    loop {
+        let (_, json) = http(&r1.address, "GET", "/api/v1/experiments", Some(&token), b"");
+        let local = json["experiments"].as_array().unwrap().first().cloned().unwrap_or_default();
+        if local["state"] == "aborted" {
+            let cause = local["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+            assert!(cause.contains("lost its lab"), "{cause}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the robot's experiment never ended: {local:#}\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    if let Some(baseline) = baseline {
+        assert_eq!(active_set(r1), baseline);
+    }
+    // The other robot ran on, and takes work.
+    let ben = lab.token("ben");
+    let other = lab.stage(&ben, "ben.xml", &robot(6.0, ""));
+    let next = lab.submit(&ben, other, 2.0, Some("r2"));
+    assert_eq!(lab.wait_for(&ben, next, "done", Duration::from_secs(180))["state"], "done");
+    // The link back: the robot shows its token again, idle, and the lab
+    // fetches what it recorded before the cut.
+    r1.link.restore();
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
+    });
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let experiment = lab.experiment(&ana, id);
+        let reasons = experiment["reasons"].to_string();
+        if reasons.contains("came back: what it recorded was fetched") {
+            assert_eq!(experiment["state"], "aborted", "{experiment:#}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "its recording was never fetched: {experiment:#}\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, id, &out);
+    let read = read_mcap(&bundle.join("run.mcap"), true);
+    assert!(read["channels"]["/planner/cmd"]["count"].as_u64().is_some_and(|n| n > 0), "{read:#}");
+}
+
+#[test]
+fn a_lab_server_killed_and_restarted_loses_nothing_and_relearns_its_robots() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut lab = LabNet::start(dir.path(), 2);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let done = lab.submit(&ana, set, 2.0, None);
+    assert_eq!(lab.wait_for(&ana, done, "done", Duration::from_secs(180))["state"], "done");
+    // One runs on r1 and one waits for r1 when the server is killed.
+    let running = lab.submit(&ana, set, 30.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, running, "running", Duration::from_secs(180))["state"], "running");
+    let waiting = lab.submit(&ana, set, 2.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, waiting, "queued", Duration::from_secs(120))["state"], "queued");
+    let before = lab.experiment(&ana, done);
+    let from = lab.robot("r1").host.log().lines().count();
+    lab.kill_server();
+    // r1 hears its lab no more: it aborts on its own and runs its baseline.
+    lab.robot("r1").host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    lab.restart_server();
+    // The users, the results and the queue are all there.
+    let ana = lab.token("ana");
+    assert_eq!(lab.experiment(&ana, done)["history"], before["history"]);
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, done, &out);
+    assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    // It relearns the robots from their tokens. r1 lost its lab while the
+    // server was down and aborted on its own; the lab learns that from it.
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.len() == 2 && robots.iter().all(|r| r["online"] == true)
+    });
+    let ended = lab.wait_for(&ana, running, "aborted", Duration::from_secs(120));
+    assert_eq!(ended["state"], "aborted", "{ended:#}");
+    assert!(ended.to_string().contains("lost its lab"), "{ended:#}");
+    assert_eq!(lab.wait_for(&ana, waiting, "done", Duration::from_secs(180))["state"], "done");
+}
+
+#[test]
+fn an_independent_zenoh_client_sees_each_robots_token_with_its_name_state_and_profile() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let output = std::process::Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/lab_tokens.py"))
+        .args([&lab.zenoh, LAB])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let tokens: Vec<Json> =
+        String::from_utf8_lossy(&output.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let mut names: Vec<&str> = tokens.iter().map(|t| t["name"].as_str().unwrap()).collect();
+    names.sort();
+    assert_eq!(names, ["r1", "r2"], "{tokens:#?}");
+    let boss = lab.token("boss");
+    let listed = lab.robots(&boss);
+    // Each robot as the lab lists it has the fields openapi.json documents.
+    let doc: Json = serde_json::from_str(
+        &std::fs::read_to_string(support::repo_root().join("host/src/portal/openapi.json")).unwrap(),
+    )
+    .unwrap();
+    let schema = &doc["paths"]["/api/v1/robots"]["get"]["responses"]["200"]["content"]["application/json"]["schema"];
+    let required = schema["properties"]["robots"]["items"]["required"].as_array().unwrap();
+    for robot in &listed {
+        let mut fields: Vec<&String> = robot.as_object().unwrap().keys().collect();
+        let mut documented: Vec<&str> = required.iter().map(|f| f.as_str().unwrap()).collect();
+        fields.sort();
+        documented.sort();
+        assert_eq!(fields, documented, "{robot:#}");
+    }
+    for token in &tokens {
+        assert_eq!(token["state"], "idle");
+        assert_eq!(token["body"]["name"], token["name"]);
+        let robot = listed.iter().find(|r| r["name"] == token["name"]).unwrap();
+        assert_eq!(token["body"]["profile"], robot["profile"], "{token:#}");
+        assert_eq!(token["body"]["profile"]["baseline"].as_str().unwrap().len(), 64, "{token:#}");
+    }
+}
+
+#[test]
+fn a_robot_obeys_only_its_own_lab_and_a_second_server_of_the_same_name_keeps_nothing_alive() {
+    let dir = tempfile::tempdir().unwrap();
+    // A second lab server under the same name, with a secret of its own; r1
+    // connects to it too (no gossip: the links stay the ones the test made).
+    let rogue_store = dir.path().join("rogue").join("store");
+    support::add_user(&rogue_store, "mallory", "admin", &[], PASSWORD);
+    let rogue_port = free_port();
+    let (rogue, rogue_address) = spawn_server(&rogue_store, rogue_port);
+    let config = dir.path().join("robot-zenoh.json5");
+    std::fs::write(
+        &config,
+        r#"{ mode: "peer", scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#,
+    )
+    .unwrap();
+    let rogue_endpoint = format!("tcp/127.0.0.1:{rogue_port}");
+    let lab = LabNet::start_with(dir.path(), 1, Some((&rogue_endpoint, &config)));
+    // The rogue hears r1's token, signed with another secret, and ignores it:
+    // it knows no robot to send work to.
+    rogue.lines_until(0, &format!("lab '{LAB}': a robot token was ignored"), Duration::from_secs(60));
+    let mallory = support::login(&rogue_address, "mallory", PASSWORD);
+    let (status, json) = http(&rogue_address, "GET", "/api/v1/robots", Some(&mallory), b"");
+    assert_eq!((status, json["robots"].as_array().map(Vec::len)), (200, Some(0)), "{json}");
+    // r1 runs its own lab's experiment; cut from its lab, it aborts it on
+    // its own although the rogue's heartbeats still reach it.
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 60.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(180))["state"], "running");
+    let r1 = lab.robot("r1");
+    let from = r1.host.log().lines().count();
+    r1.link.cut();
+    r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
+    assert!(lost.to_string().contains("robot lost"), "{lost:#}");
+    assert!(!rogue.log().contains("robot 'r1' is"), "{}", rogue.log());
+}
+
+#[test]
+fn in_network_namespaces_a_robot_whose_link_goes_down_aborts_by_itself_and_the_others_run_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start_in_namespaces(dir.path(), 3);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let long = lab.submit(&ana, set, 60.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");
+    // Two more researchers' experiments, for any robot.
+    let others: Vec<(String, u64)> = ["ben", "cy"]
+        .iter()
+        .flat_map(|user| {
+            let token = lab.token(user);
+            let set = lab.stage(&token, &format!("{user}.xml"), &robot(6.5, ""));
+            (0..2).map(|_| (token.clone(), lab.submit(&token, set, 2.0, None))).collect::<Vec<_>>()
+        })
+        .collect();
+    let r1 = lab.robot("r1");
+    let from = r1.host.log().lines().count();
+    r1.link.cut();
+    let cut_at = Instant::now();
+    let lost = lab.wait_for(&ana, long, "aborted", Duration::from_secs(30));
+    assert!(lost.to_string().contains("robot lost"), "{lost:#}");
+    r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
+    assert!(cut_at.elapsed() >= Duration::from_secs_f64(LOST_AFTER_S * 0.9));
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    for (token, id) in &others {
+        let experiment = lab.wait_for(token, *id, "done", Duration::from_secs(300));
+        assert_eq!(experiment["state"], "done", "{experiment:#}\n{}", lab.logs());
+        assert_ne!(experiment["placement"]["robot"], "r1", "{experiment:#}");
+        let bundle = download_results(&lab.address, token, *id, &out);
+        assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    }
+    r1.link.restore();
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "idle" && r["online"] == true)
+    });
+}
+
+#[test]
+fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    // The robot's owner allows 10 s at most; the lab allows more.
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let (status, json) = http(&r1.address, "GET", "/api/v1/lab", Some(&owner), b"");
+    assert_eq!(status, 200, "{json}");
+    let mut settings = json["lab"]["settings"].clone();
+    settings["max_duration_s"] = serde_json::json!(10.0);
+    let (status, json) =
+        http(&r1.address, "PUT", "/api/v1/lab/settings", Some(&owner), settings.to_string().as_bytes());
+    assert_eq!(status, 200, "{json}");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["max_duration_s"] == 10.0));
+    // No robot allows 20 s: it goes to r1 anyway, which refuses it twice.
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 20.0, None);
+    let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(180));
+    assert_eq!(refused["state"], "refused", "{refused:#}");
+    let causes: Vec<&str> =
+        refused["history"].as_array().unwrap().iter().map(|c| c["cause"].as_str().unwrap()).collect();
+    assert_eq!(causes.iter().filter(|c| c.contains("back in the queue once")).count(), 1, "{causes:#?}");
+    assert!(causes.last().unwrap().contains("refused it a second time"), "{causes:#?}");
+    assert!(refused["reasons"].to_string().contains("max-duration of 10 s"), "{refused:#}");
+    assert_eq!(refused["placement"]["refusals"], 2, "{refused:#}");
+}

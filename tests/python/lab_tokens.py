@@ -1,0 +1,37 @@
+"""Lists a subsume lab's robots from their Zenoh liveliness tokens, with the
+eclipse-zenoh package (tests/all/labnet.rs drives it).
+
+    lab_tokens.py ENDPOINT LAB
+
+Opens a client session to ENDPOINT (the lab server's tcp/HOST:PORT), asks
+for the liveliness tokens under subsume/lab/LAB/robot/**, and prints each
+one's key expression and the JSON body it carries (hex in the key), one
+JSON object per line.
+"""
+
+import json
+import sys
+
+import zenoh
+
+
+def main():
+    endpoint, lab = sys.argv[1], sys.argv[2]
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    session = zenoh.open(conf)
+    try:
+        for reply in session.liveliness().get(f"subsume/lab/{lab}/robot/**", timeout=5.0):
+            key = str(reply.ok.key_expr)
+            parts = key.split("/")
+            # subsume/lab/LAB/robot/NAME/STATE/HEX/TAG
+            body = json.loads(bytes.fromhex(parts[6]))
+            print(json.dumps({"key": key, "name": parts[4], "state": parts[5], "body": body}), flush=True)
+    finally:
+        session.close()
+
+
+if __name__ == "__main__":
+    main()
