@@ -12,8 +12,8 @@
 //! Child side: [`HolderWatch`] (who held control when, from the arbiter's
 //! standings, one atomic load a cycle) and [`observe`] (what the run saw, read
 //! from the graph, the simulated robots and the report when it ends).
-//! Parent side: [`run`] starts the child, bounds its wall-clock time, and
-//! reads its verdict.
+//! Parent side: [`run`] starts the child, bounds the CPU time it uses (and how long a
+//! host too busy to run it makes the lab wait), and reads its verdict.
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -31,11 +31,17 @@ use crate::runtime::graph::ComponentState;
 use crate::runtime::{Standing, Standings};
 use crate::sim::SimSection;
 
-/// Longest wall-clock time a preflight may take, beyond its simulated
-/// duration: a preflight whose components use their whole budgets on every
-/// call runs slower than real time, and must not hold the lab's checks
-/// forever.
-pub const PREFLIGHT_WALL_GRACE: Duration = Duration::from_secs(60);
+/// Most CPU time a preflight may use, beyond its simulated duration: a
+/// preflight whose components use their whole budgets on every call runs
+/// slower than real time, and must not hold the lab's checks forever. It is
+/// CPU time, not wall-clock time, so a preflight the robot's own work
+/// starved (it runs at idle priority) is not blamed on the submitter.
+pub const PREFLIGHT_CPU_GRACE: Duration = Duration::from_secs(60);
+
+/// Longest wall-clock time the lab waits for a preflight beyond its CPU
+/// bound: a host too busy to give it the CPU fails the experiment as the
+/// host's problem rather than holding the lab's checks forever.
+pub const PREFLIGHT_STARVED_AFTER: Duration = Duration::from_secs(600);
 
 /// The `nice` value of a preflight process: it only gets the CPU the robot
 /// does not use.
@@ -171,8 +177,12 @@ pub enum Outcome {
     /// The robot file did not start in the simulator: the submitter's
     /// problem, with what `subsume run` said.
     DidNotStart(Vec<String>),
-    /// It took longer than its wall-clock bound and was killed.
+    /// It used more CPU time than its bound and was killed.
     TooSlow { limit: Duration },
+    /// The host gave it too little CPU to finish within
+    /// [`PREFLIGHT_STARVED_AFTER`] of its bound (the host's problem): it
+    /// was killed having used `cpu` in `waited`.
+    Starved { cpu: Duration, waited: Duration },
 }
 
 /// Why a preflight could not be carried out (the host's problem).
@@ -253,7 +263,7 @@ pub fn run(
     };
     background(&mut child);
     let started = Instant::now();
-    let limit = duration + PREFLIGHT_WALL_GRACE;
+    let limit = duration + PREFLIGHT_CPU_GRACE;
     let mut process = child.spawn().map_err(|source| PreflightError::Spawn { exe: command.exe.clone(), source })?;
     let status = loop {
         match process.try_wait() {
@@ -261,13 +271,19 @@ pub fn run(
             Ok(None) => {}
             Err(e) => return Err(PreflightError::Crashed { status: e.to_string(), last: String::new() }),
         }
-        if cancelled() || started.elapsed() > limit {
+        let cpu = cpu_time(process.id());
+        let too_slow = cpu.is_some_and(|cpu| cpu > limit);
+        let starved = started.elapsed() > limit + PREFLIGHT_STARVED_AFTER;
+        if cancelled() || too_slow || starved {
             let _ = process.kill();
             let _ = process.wait();
             if cancelled() {
                 return Err(PreflightError::Cancelled);
             }
-            return Ok(Outcome::TooSlow { limit });
+            if too_slow {
+                return Ok(Outcome::TooSlow { limit });
+            }
+            return Ok(Outcome::Starved { cpu: cpu.unwrap_or_default(), waited: started.elapsed() });
         }
         std::thread::sleep(Duration::from_millis(20));
     };
@@ -295,6 +311,28 @@ pub fn run(
     Err(PreflightError::Crashed { status: status.to_string(), last: crate::contract::clip(&last) })
 }
 
+/// The CPU time process `pid` has used so far, user and system, from
+/// `/proc/PID/stat`; `None` when it cannot be read.
+fn cpu_time(pid: u32) -> Option<Duration> {
+    let stat = std::fs::read_to_string(format!("/proc/{pid}/stat")).ok()?;
+    cpu_time_of(&stat, clock_ticks_per_second()?)
+}
+
+/// The user and system time in a `/proc/PID/stat` line (fields 14 and 15;
+/// the command name in parentheses may hold spaces).
+fn cpu_time_of(stat: &str, ticks_per_second: u64) -> Option<Duration> {
+    let fields: Vec<&str> = stat.rsplit_once(')')?.1.split_whitespace().collect();
+    let user: u64 = fields.get(11)?.parse().ok()?;
+    let system: u64 = fields.get(12)?.parse().ok()?;
+    Some(Duration::from_secs_f64((user + system) as f64 / ticks_per_second.max(1) as f64))
+}
+
+fn clock_ticks_per_second() -> Option<u64> {
+    // SAFETY: sysconf only reads a configuration value.
+    let ticks = unsafe { libc::sysconf(libc::_SC_CLK_TCK) };
+    u64::try_from(ticks).ok().filter(|t| *t > 0)
+}
+
 /// The child runs at `nice` [`PREFLIGHT_NICE`] under `SCHED_IDLE`: it gets
 /// only what the robot's threads leave.
 fn background(command: &mut Command) {
@@ -310,5 +348,30 @@ fn background(command: &mut Command) {
             libc::sched_setscheduler(0, libc::SCHED_IDLE, &param);
             Ok(())
         });
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// (a `/proc/PID/stat` line, ticks per second, the CPU time read).
+    #[test]
+    fn the_cpu_time_is_read_past_a_command_name_with_spaces_and_parentheses() {
+        let cases = [
+            ("4242 (subsume) S 1 4242 4242 0 -1 4194560 100 0 0 0 250 50 0 0 39 19 8 0", 100, Some(3.0)),
+            ("7 (a (b) c) R 1 7 7 0 -1 0 0 0 0 0 10 5 0 0 20 0 1 0", 100, Some(0.15)),
+            ("7 (x) R 1 7", 100, None),
+            ("no parenthesis", 100, None),
+        ];
+        for (stat, ticks, expected) in cases {
+            assert_eq!(cpu_time_of(stat, ticks).map(|d| d.as_secs_f64()), expected, "{stat}");
+        }
+    }
+
+    #[test]
+    fn this_process_has_used_some_cpu() {
+        let spent = cpu_time(std::process::id());
+        assert!(spent.is_some(), "cannot read this process's cpu time");
     }
 }

@@ -256,9 +256,17 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
                 errors,
             )?;
         }
+        Ok(Outcome::Starved { cpu, waited }) => {
+            let reason = format!(
+                "failed: the host was too busy to run its preflight (it got {:.1} s of cpu in {} s); submit it again",
+                cpu.as_secs_f64(),
+                waited.as_secs()
+            );
+            lab.transition(&mut book, id, ExperimentState::Failed, &reason, vec![reason.clone()])?;
+        }
         Ok(Outcome::TooSlow { limit }) => {
             let reason = format!(
-                "preflight: it did not finish within {} s of wall-clock time (its components use most of their budgets)",
+                "preflight: it used more than {} s of cpu without finishing (its components use most of their budgets)",
                 limit.as_secs()
             );
             lab.transition(
