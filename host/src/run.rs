@@ -662,8 +662,7 @@ pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), Ru
             role: LabRole::Server(fleet.clone()),
         },
     )?;
-    let listener = std::net::TcpListener::bind(options.listen)
-        .and_then(|l| l.set_nonblocking(true).map(|()| l))
+    let listener = crate::admission::listen(options.listen)
         .map_err(|source| RunError::Listen { address: options.listen, source })?;
     let address = listener.local_addr().map_err(|source| RunError::Listen { address: options.listen, source })?;
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -568,14 +568,7 @@ impl RobotLink {
             state: ExperimentState::Queued,
             history: Vec::new(),
             reasons: Vec::new(),
-            settings: AppliedSettings {
-                max_duration_s: settings.max_duration_s,
-                limits: settings.limits,
-                criteria: settings.criteria,
-                reset: settings.reset,
-                preflight_world: settings.preflight_world.clone(),
-                baseline: Some(baseline),
-            },
+            settings: AppliedSettings::of(&settings, baseline),
             components: components
                 .into_iter()
                 .map(|(name, source, sha256)| ComponentHash { name, source, sha256 })

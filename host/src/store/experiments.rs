@@ -264,6 +264,21 @@ pub struct Placement {
     pub fetch_pending: bool,
 }
 
+impl AppliedSettings {
+    /// The owner's `settings` as an experiment submitted now runs under,
+    /// with the lab's `baseline`.
+    pub fn of(settings: &LabSettings, baseline: u64) -> AppliedSettings {
+        AppliedSettings {
+            max_duration_s: settings.max_duration_s,
+            limits: settings.limits,
+            criteria: settings.criteria,
+            reset: settings.reset,
+            preflight_world: settings.preflight_world.clone(),
+            baseline: Some(baseline),
+        }
+    }
+}
+
 impl ExperimentRecord {
     pub(super) fn parse(bytes: &[u8]) -> Result<ExperimentRecord, String> {
         check_format(bytes)?;
