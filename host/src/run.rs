@@ -147,6 +147,9 @@ pub struct PortalOptions {
     /// Join a lab of several robots (`--lab NAME`, docs/lab.md): its
     /// experiments come from that lab's server only.
     pub lab: Option<RobotLinkOptions>,
+    /// How the lab's preflights are scheduled beside the robot
+    /// (`--preflight-priority`).
+    pub preflight_priority: crate::lab::preflight::Priority,
 }
 
 /// What the portal does when its store has no users yet.
@@ -170,6 +173,8 @@ pub struct LabServeOptions {
     pub cache_dir: Option<PathBuf>,
     pub tls: HostTls,
     pub fleet: FleetOptions,
+    /// How the lab's preflights are scheduled (`--preflight-priority`).
+    pub preflight_priority: crate::lab::preflight::Priority,
 }
 
 #[derive(Debug, Error)]
@@ -544,7 +549,14 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     };
     let lab = Lab::start(
         deployer.clone(),
-        LabOptions { preflight: PreflightCommand { exe, cache_dir: options.cache_dir.clone() }, role },
+        LabOptions {
+            preflight: PreflightCommand {
+                exe,
+                cache_dir: options.cache_dir.clone(),
+                priority: portal.preflight_priority,
+            },
+            role,
+        },
     )?;
     let link = portal.lab.clone().map(|o| RobotLink::start(lab.clone(), o)).transpose()?;
     if let Some(poll) = portal.watch {
@@ -658,7 +670,11 @@ pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), Ru
     let lab = Lab::start(
         deployer.clone(),
         LabOptions {
-            preflight: PreflightCommand { exe, cache_dir: options.cache_dir.clone() },
+            preflight: PreflightCommand {
+                exe,
+                cache_dir: options.cache_dir.clone(),
+                priority: options.preflight_priority,
+            },
             role: LabRole::Server(fleet.clone()),
         },
     )?;

@@ -117,6 +117,10 @@ struct ServeArgs {
     /// Allow plain HTTP on addresses other than loopback.
     #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
     allow_plain_http: bool,
+    /// How the preflights run: `background` (nice 10, behind the lab's
+    /// portal and dispatch) or `idle` (only the CPU nothing else wants).
+    #[arg(long, value_name = "idle|background", default_value = "background")]
+    preflight_priority: subsume::lab::preflight::Priority,
 }
 
 impl ServeArgs {
@@ -135,6 +139,7 @@ impl ServeArgs {
             cache_dir: context.cache_dir.clone(),
             tls: subsume::tls::HostTls { identity, allow_plain_remote: self.allow_plain_http },
             fleet: subsume::lab::server::FleetOptions { key, session, relearn: self.relearn },
+            preflight_priority: self.preflight_priority,
         };
         let shutdown = subsume::runtime::control_loop::Shutdown::new();
         let signals = crate::install_signal_handlers(shutdown.clone())?;

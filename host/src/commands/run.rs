@@ -11,6 +11,7 @@ use std::time::Duration;
 
 use anyhow::Context as _;
 use subsume::fsutil;
+use subsume::lab::preflight::Priority;
 use subsume::record::RecordOptions;
 use subsume::run::{FaultInjection, PortalOptions, RunError, RunOptions};
 use subsume::runtime::control_loop::Shutdown;
@@ -91,6 +92,11 @@ pub struct HostFlags {
     /// the lab's defaults when not given.
     #[arg(long, value_name = "FILE.json")]
     criteria: Option<PathBuf>,
+    /// How the lab's preflights run beside the robot: `idle` (only the CPU
+    /// the robot leaves) or `background` (nice 10, as a compile; for a
+    /// robot whose own work keeps the machine busy). docs/lab.md.
+    #[arg(long, value_name = "idle|background", default_value = "idle")]
+    preflight_priority: Priority,
 }
 
 impl Default for HostFlags {
@@ -108,6 +114,7 @@ impl Default for HostFlags {
             foxglove: Listen::Off,
             verdict: None,
             criteria: None,
+            preflight_priority: Priority::Idle,
         }
     }
 }
@@ -163,6 +170,7 @@ pub fn run_options(
                 subsume::run::FirstUser::Hint
             },
             lab: None,
+            preflight_priority: host.preflight_priority,
         }),
     };
     let live = host.foxglove.address();

@@ -2,8 +2,8 @@
 //! for its whole duration, before it may drive the robot (docs/lab.md).
 //!
 //! It is `subsume run` on the set's robot file in its preflight form
-//! ([`super::materialize`]), in a process of its own at background priority
-//! (`nice` 19 and `SCHED_IDLE`): its own sandbox instances, its own memory,
+//! ([`super::materialize`]), in a process of its own at a low priority
+//! ([`Priority`]): its own sandbox instances, its own memory,
 //! and a crash or a runaway guest of its own never reaches the robot's
 //! control loop. It runs on simulated time as fast as the machine allows,
 //! records to MCAP, writes the run report, and judges what it saw
@@ -43,9 +43,42 @@ pub const PREFLIGHT_CPU_GRACE: Duration = Duration::from_secs(60);
 /// host's problem rather than holding the lab's checks forever.
 pub const PREFLIGHT_STARVED_AFTER: Duration = Duration::from_secs(600);
 
-/// The `nice` value of a preflight process: it only gets the CPU the robot
-/// does not use.
+/// The `nice` value of a preflight process at [`Priority::Idle`]: it only
+/// gets the CPU the robot does not use.
 pub const PREFLIGHT_NICE: i32 = 19;
+
+/// How a preflight process is scheduled beside the host that starts it
+/// (`--preflight-priority`, docs/lab.md).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Priority {
+    /// `nice` [`PREFLIGHT_NICE`] under `SCHED_IDLE`: only the CPU every
+    /// other thread leaves. A robot's default: its control loop and portal
+    /// come first, always; a busy robot makes the lab wait (up to
+    /// [`PREFLIGHT_STARVED_AFTER`]) instead.
+    #[default]
+    Idle,
+    /// `nice` [`crate::runtime::scheduling::BACKGROUND_NICE`], as a
+    /// component's compile: a share of a busy CPU, behind the host's own
+    /// threads. The lab server's default (it drives no robot), and a
+    /// robot's choice when its own work keeps the machine busy.
+    Background,
+}
+
+impl Priority {
+    /// The setting's spelling.
+    pub const NAMES: [&str; 2] = ["idle", "background"];
+}
+
+impl std::str::FromStr for Priority {
+    type Err = String;
+    fn from_str(text: &str) -> Result<Priority, String> {
+        match text {
+            "idle" => Ok(Priority::Idle),
+            "background" => Ok(Priority::Background),
+            other => Err(format!("unknown preflight priority '{other}': expected idle or background")),
+        }
+    }
+}
 
 /// Notes who holds control, on the control thread, between cycles: one
 /// atomic load a cycle, a look at each source's standing only when an
@@ -209,13 +242,15 @@ pub struct PreflightCommand {
     pub exe: PathBuf,
     /// The compile cache to share with the host (no cache when `None`).
     pub cache_dir: Option<PathBuf>,
+    /// How the process is scheduled.
+    pub priority: Priority,
 }
 
 /// Lines of the child's output kept as a reason when the robot did not start.
 const LAST_WORDS: usize = 12;
 
 /// Runs the preflight of the robot file `robot` for `duration` in a
-/// process of its own at background priority, writing `files`; `cancelled`
+/// process of its own at `command.priority`, writing `files`; `cancelled`
 /// is polled to stop it early.
 pub fn run(
     command: &PreflightCommand,
@@ -261,7 +296,7 @@ pub fn run(
         Some(dir) => child.arg("--cache-dir").arg(dir),
         None => child.arg("--no-cache"),
     };
-    background(&mut child);
+    lowered(&mut child, command.priority);
     let started = Instant::now();
     let limit = duration + PREFLIGHT_CPU_GRACE;
     let mut process = child.spawn().map_err(|source| PreflightError::Spawn { exe: command.exe.clone(), source })?;
@@ -333,19 +368,36 @@ fn clock_ticks_per_second() -> Option<u64> {
     u64::try_from(ticks).ok().filter(|t| *t > 0)
 }
 
-/// The child runs at `nice` [`PREFLIGHT_NICE`] under `SCHED_IDLE`: it gets
-/// only what the robot's threads leave.
-fn background(command: &mut Command) {
+/// The child runs at `priority`, and is killed when the thread that
+/// started it ends: a host killed mid-preflight (`kill -9`, a panic that
+/// exits) leaves no orphan running on its CPU and holding its files.
+fn lowered(command: &mut Command, priority: Priority) {
     use std::os::unix::process::CommandExt;
+    let parent = std::process::id() as libc::pid_t;
     // SAFETY: between fork and exec only async-signal-safe calls are made
-    // (setpriority and sched_setscheduler are system calls), nothing
-    // allocates, and the results are ignored: a refused setting leaves the
-    // child at normal priority, which is still a separate process.
+    // (prctl, getppid, setpriority and sched_setscheduler are system
+    // calls), and nothing allocates (`from_raw_os_error` does not). A
+    // refused priority leaves the child at the host's, which is still a
+    // separate process.
     unsafe {
-        command.pre_exec(|| {
-            libc::setpriority(libc::PRIO_PROCESS, 0, PREFLIGHT_NICE);
-            let param = libc::sched_param { sched_priority: 0 };
-            libc::sched_setscheduler(0, libc::SCHED_IDLE, &param);
+        command.pre_exec(move || {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            // The parent may have died before the prctl took hold.
+            if libc::getppid() != parent {
+                return Err(std::io::Error::from_raw_os_error(libc::ESRCH));
+            }
+            match priority {
+                Priority::Idle => {
+                    libc::setpriority(libc::PRIO_PROCESS, 0, PREFLIGHT_NICE);
+                    let param = libc::sched_param { sched_priority: 0 };
+                    libc::sched_setscheduler(0, libc::SCHED_IDLE, &param);
+                }
+                Priority::Background => {
+                    libc::setpriority(libc::PRIO_PROCESS, 0, crate::runtime::scheduling::BACKGROUND_NICE);
+                }
+            }
             Ok(())
         });
     }
@@ -367,6 +419,48 @@ mod tests {
         for (stat, ticks, expected) in cases {
             assert_eq!(cpu_time_of(stat, ticks).map(|d| d.as_secs_f64()), expected, "{stat}");
         }
+    }
+
+    /// (priority, the child's nice value, its scheduling policy), read
+    /// from `/proc/PID/stat` (fields 19 and 41).
+    #[test]
+    fn a_preflight_process_runs_at_its_priority() {
+        let cases =
+            [(Priority::Idle, 19, libc::SCHED_IDLE as i64), (Priority::Background, 10, libc::SCHED_OTHER as i64)];
+        for (priority, nice, policy) in cases {
+            let mut command = Command::new("sleep");
+            command.arg("30");
+            lowered(&mut command, priority);
+            let mut child = command.spawn().unwrap();
+            let stat = std::fs::read_to_string(format!("/proc/{}/stat", child.id())).unwrap();
+            let _ = child.kill();
+            let _ = child.wait();
+            let fields: Vec<i64> =
+                stat.rsplit_once(')').unwrap().1.split_whitespace().skip(1).map(|f| f.parse().unwrap_or(-1)).collect();
+            // Fields are counted from 1 and the list starts at field 4.
+            assert_eq!((fields[19 - 4], fields[41 - 4]), (nice, policy), "{priority:?}: {stat}");
+        }
+        let names: Vec<Priority> = Priority::NAMES.iter().map(|n| n.parse().unwrap()).collect();
+        assert_eq!(names, [Priority::Idle, Priority::Background]);
+        assert!("fast".parse::<Priority>().unwrap_err().contains("'fast'"));
+    }
+
+    /// A preflight dies with the thread that started it (a host killed
+    /// mid-preflight leaves no orphan): the child of a thread that ended
+    /// was killed by SIGKILL, not left to sleep its 30 s.
+    #[test]
+    fn a_preflight_process_dies_with_the_thread_that_started_it() {
+        use std::os::unix::process::ExitStatusExt;
+        let mut child = std::thread::spawn(|| {
+            let mut command = Command::new("sleep");
+            command.arg("30");
+            lowered(&mut command, Priority::Background);
+            command.spawn().unwrap()
+        })
+        .join()
+        .unwrap();
+        let status = child.wait().unwrap();
+        assert_eq!(status.signal(), Some(libc::SIGKILL), "{status}");
     }
 
     #[test]
