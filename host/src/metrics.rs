@@ -137,9 +137,14 @@ pub fn encode(status: &LiveStatus) -> String {
 
 /// [`encode`], with `more` families after the live status's (the lab's).
 pub fn encode_with(status: &LiveStatus, more: Vec<Family>) -> String {
-    let mut registry = Registry::default();
     let mut all = families(status);
     all.extend(more);
+    encode_families(all)
+}
+
+/// The OpenMetrics text of `all` (a lab server's, which runs no robot).
+pub fn encode_families(all: Vec<Family>) -> String {
+    let mut registry = Registry::default();
     registry.register_collector(Box::new(Scrape(all)));
     let mut text = String::new();
     // Writing to a String cannot fail; an encoder error would leave a

@@ -659,6 +659,25 @@ fn an_independent_zenoh_client_sees_each_robots_token_with_its_name_state_and_pr
         assert_eq!(token["body"]["profile"], robot["profile"], "{token:#}");
         assert_eq!(token["body"]["profile"]["baseline"].as_str().unwrap().len(), 64, "{token:#}");
     }
+    // The lab server's /metrics (from loopback): its robots, and the
+    // statuses it accepted from them (one a second each, by default).
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let (status, body) = support::http_bytes(&lab.address, "GET", "/metrics", None, b"");
+        let text = support::text(&body);
+        assert_eq!(status, 200, "{text}");
+        let value = |name: &str| {
+            text.lines().find_map(|l| l.strip_prefix(name)?.trim().parse::<f64>().ok()).unwrap_or_default()
+        };
+        let online = value("subsume_lab_robots{online=\"true\"}");
+        if online == 2.0 && value("subsume_lab_statuses_total") >= 4.0 && value("subsume_lab_tokens_total") >= 2.0 {
+            assert_eq!(value("subsume_lab_foreign_messages_total"), 0.0, "{text}");
+            assert_eq!(value("subsume_experiment_queue_length"), 0.0, "{text}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the lab server's metrics never counted its robots' statuses:\n{text}");
+        std::thread::sleep(Duration::from_millis(250));
+    }
 }
 
 #[test]

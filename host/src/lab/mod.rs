@@ -972,10 +972,12 @@ impl Lab {
                 preflight_s.push(p.wall_s);
             }
         }
+        let link = self.fleet().map(|fleet| fleet.link_figures());
         LabMetrics {
             by_state,
             queued: book.experiments.values().filter(|r| r.state == ExperimentState::Queued).count() as u64,
             preflight_wall_s: preflight_s,
+            link,
         }
     }
 
@@ -1081,6 +1083,8 @@ pub struct LabMetrics {
     pub by_state: BTreeMap<&'static str, u64>,
     pub queued: u64,
     pub preflight_wall_s: Vec<f64>,
+    /// A lab server's link to its robots.
+    pub link: Option<server::LinkFigures>,
 }
 
 /// The bounds (seconds) of the preflight-duration histogram's buckets.
@@ -1114,7 +1118,43 @@ impl LabMetrics {
         let sum = self.preflight_wall_s.iter().sum();
         let count = self.preflight_wall_s.len() as u64;
         preflight.samples.push((vec![], Sample::Buckets { buckets, sum, count }));
-        vec![states, queue, preflight]
+        let mut families = vec![states, queue, preflight];
+        if let Some(link) = &self.link {
+            families.push(
+                Family::new(
+                    "subsume_lab_robots",
+                    "robots the lab server knows, by whether a token shows them",
+                    MetricKind::Gauge,
+                )
+                .gauge(vec![("online", "true".into())], link.online as f64)
+                .gauge(vec![("online", "false".into())], (link.known - link.online) as f64),
+            );
+            families.push(
+                Family::new(
+                    "subsume_lab_statuses",
+                    "robot statuses the lab server received and accepted",
+                    MetricKind::Counter,
+                )
+                .counter(vec![], link.statuses),
+            );
+            families.push(
+                Family::new(
+                    "subsume_lab_tokens",
+                    "robot token changes the lab server received and accepted",
+                    MetricKind::Counter,
+                )
+                .counter(vec![], link.tokens),
+            );
+            families.push(
+                Family::new(
+                    "subsume_lab_foreign_messages",
+                    "tokens and statuses not signed with this lab's key, ignored",
+                    MetricKind::Counter,
+                )
+                .counter(vec![], link.foreign),
+            );
+        }
+        families
     }
 }
 

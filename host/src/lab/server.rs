@@ -160,6 +160,17 @@ pub struct LinkCounters {
     pub foreign: AtomicU64,
 }
 
+/// The link's counters and robots at one moment (for /metrics).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct LinkFigures {
+    pub statuses: u64,
+    pub tokens: u64,
+    pub foreign: u64,
+    /// Robots tracked, and those a live token shows.
+    pub known: usize,
+    pub online: usize,
+}
+
 /// The lab server's robots and its Zenoh side.
 pub struct Fleet {
     key: LabKey,
@@ -263,6 +274,18 @@ impl Fleet {
             let _ = thread.join();
         }
         lock(&self.subscribers).clear();
+    }
+
+    /// The link's counters and how many robots it tracks.
+    pub fn link_figures(&self) -> LinkFigures {
+        let robots = lock(&self.robots);
+        LinkFigures {
+            statuses: self.counters.statuses.load(Ordering::Relaxed),
+            tokens: self.counters.tokens.load(Ordering::Relaxed),
+            foreign: self.counters.foreign.load(Ordering::Relaxed),
+            known: robots.len(),
+            online: robots.values().filter(|r| r.online()).count(),
+        }
     }
 
     pub fn lab_name(&self) -> &str {

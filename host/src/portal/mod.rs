@@ -273,6 +273,7 @@ pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
         .nest("/api/v1", api)
         .route("/", get(|| async { ([(header::CONTENT_TYPE, "text/html; charset=utf-8")], LAB_HTML) }))
         .route("/lab.js", get(|| async { ([(header::CONTENT_TYPE, "text/javascript; charset=utf-8")], LAB_JS) }))
+        .route("/metrics", get(routes::metrics))
         .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE_CSS) }))
         .with_state(state)
 }

@@ -312,6 +312,12 @@ pub(super) async fn metrics(
         )
         .into_response();
     }
+    if state.lab.fleet().is_some() {
+        // A lab server runs no robot: the lab's families alone, with its
+        // link's counters.
+        let text = crate::metrics::encode_families(state.lab.metrics().families());
+        return ([(axum::http::header::CONTENT_TYPE, crate::metrics::CONTENT_TYPE)], text).into_response();
+    }
     let current = fresh_live_status(&state).await;
     let Some(status) = current.as_ref() else {
         return ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "the control loop has not published a status yet")
