@@ -82,6 +82,13 @@ impl RunOptions {
             None => Clock::new(),
         }
     }
+
+    /// The sandbox the run's guests live in: on simulated time, without
+    /// wall-clock caps.
+    fn sandbox(&self) -> Result<Sandbox, SandboxError> {
+        let sandbox = Sandbox::new(self.cache_dir.clone())?;
+        Ok(if self.pace.is_some() { sandbox.on_simulated_time() } else { sandbox })
+    }
 }
 
 /// A fault the tests cause in the real binary, to check that every way out
@@ -244,7 +251,7 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     if let Some(portal) = &options.portal {
         return run_with_portal(options, portal, shutdown);
     }
-    let sandbox = Sandbox::new(options.cache_dir.clone())?;
+    let sandbox = options.sandbox()?;
     let mut loader = Loader::new(&sandbox);
     let config = config::load_with(&options.config_path, &mut loader, &options.overrides).map_err(RunError::Config)?;
     tracing::info!(
@@ -504,7 +511,7 @@ fn first_user(store: &Store, first: FirstUser, url: &str) {
 /// [`Deployer::boot`]), serves the portal on its own runtime, and lets it
 /// activate sets while the control loop runs.
 fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutdown) -> Result<Report, RunError> {
-    let sandbox = Arc::new(Sandbox::new(options.cache_dir.clone())?);
+    let sandbox = Arc::new(options.sandbox()?);
     let store = Arc::new(Store::open(&portal.store_dir)?);
     let directory = Arc::new(Directory::new(store.users().clone()));
     let no_users = directory.users.all().map_err(StoreError::from)?.is_empty();
