@@ -360,7 +360,10 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
     mut hook: H,
 ) -> Result<(Graph, H, StopReason, u64), RunError> {
     let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
-    let heartbeat = Heartbeat::new(options.stall_limit);
+    let heartbeat = match options.pace {
+        Some(_) => Heartbeat::on_simulated_time(options.stall_limit),
+        None => Heartbeat::new(options.stall_limit),
+    };
     let watchdog = StallWatchdog::start(heartbeat.clone(), Box::new(|_| {}))
         .map_err(|e| RunError::ControlLoop(format!("cannot start the stall watchdog: {e}")))?;
     let injected = options.fault_injection;
