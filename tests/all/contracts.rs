@@ -24,6 +24,7 @@ const LIMITS: GuestLimits = GuestLimits {
     max_emits: 256,
     max_message_bytes: 1 << 20,
     max_logs_per_s: 100,
+    wall_capped: true,
 };
 
 fn artifact(sandbox: &Sandbox, name: &str) -> Arc<WasmArtifact> {

@@ -93,6 +93,7 @@ async fn portal_over(over_tls: bool) -> Portal {
             preflight: subsume::lab::preflight::PreflightCommand {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: Some(support::cache_dir()),
+                priority: subsume::lab::preflight::Priority::Background,
             },
             role: subsume::lab::LabRole::Alone,
         },

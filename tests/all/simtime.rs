@@ -78,6 +78,66 @@ fn the_demo_as_a_create2_is_repeatable_in_lockstep_too() {
     assert!(first["sim"]["distance_travelled_m"].as_f64().unwrap() > 1.0, "{}", first["sim"]);
 }
 
+/// A run on simulated time that the machine keeps stopping (here `SIGSTOP`
+/// and `SIGCONT`, as a preflight at idle priority is preempted by the
+/// robot's work) has the outcome of one that ran straight: no call of a
+/// component busy for most of its budget is faulted for the wall time it
+/// spent stopped (on simulated time a call has no wall-clock cap).
+#[test]
+fn a_run_on_simulated_time_stopped_and_continued_gives_the_outcome_of_one_that_ran_straight() {
+    let dir = tempfile::tempdir().unwrap();
+    let faulty = crate::support::guest("test-faulty");
+    let robot = dir.path().join("busy.xml");
+    std::fs::write(
+        &robot,
+        format!(
+            r#"<robot name="busy">
+  <platform name="control">
+    <component name="busy" source="{}" rate="100" budget="20ms" memory="16MiB">
+      <param name="mode" value="busy-on-tick"/>
+      <param name="spins" value="2000000"/>
+    </component>
+  </platform>
+</robot>
+"#,
+            faulty.display()
+        ),
+    )
+    .unwrap();
+    let run = |label: &str, stop_and_continue: bool| {
+        let report = dir.path().join(format!("{label}.json"));
+        let mut child = subsume()
+            .args(["run", robot.to_str().unwrap(), "--http", "off", "--speed", "max", "--duration", "30"])
+            .args(["--report", report.to_str().unwrap()])
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let pid = child.id().to_string();
+        let mut stops = 0;
+        while stop_and_continue && child.try_wait().unwrap().is_none() {
+            // Each stop is many times the 200 ms wall-clock cap a 20 ms
+            // budget has in real time.
+            let _ = std::process::Command::new("kill").args(["-STOP", &pid]).status();
+            std::thread::sleep(Duration::from_millis(400));
+            let _ = std::process::Command::new("kill").args(["-CONT", &pid]).status();
+            stops += 1;
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        let output = child.wait_with_output().unwrap();
+        let log = String::from_utf8_lossy(&output.stderr).into_owned();
+        assert!(output.status.success(), "{log}");
+        (read_report(&report), stops, log)
+    };
+    let (straight, _, _) = run("straight", false);
+    let (stopped, stops, log) = run("stopped", true);
+    assert!(stops >= 5, "the run was stopped only {stops} times: too short to mean anything\n{log}");
+    let component =
+        |report: &Json| report["components"].as_array().unwrap().iter().find(|c| c["name"] == "busy").cloned().unwrap();
+    assert_eq!(component(&stopped)["faults"], 0, "{:#}\n{log}", component(&stopped));
+    assert_eq!(component(&stopped)["state"], "running");
+    assert_eq!((&stopped["messages"], &stopped["cycles"]), (&straight["messages"], &straight["cycles"]),);
+}
+
 #[test]
 fn a_bad_speed_is_refused_and_nothing_runs() {
     for bad in ["0", "fast", "1e9"] {

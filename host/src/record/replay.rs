@@ -211,7 +211,8 @@ impl Default for ReplayLimits {
 
 /// Replays `options.only` (or every WASM component) against the recording.
 pub fn replay(options: &ReplayOptions) -> Result<ReplayReport, ReplayError> {
-    let sandbox = Sandbox::new(options.cache_dir.clone())?;
+    // Replay reads the recording's time, not the wall clock's.
+    let sandbox = Sandbox::new(options.cache_dir.clone())?.on_simulated_time();
     let mut loader = Loader::new(&sandbox);
     let config =
         config::load_with(&options.config_path, &mut loader, &options.overrides).map_err(ReplayError::Config)?;

@@ -11,6 +11,12 @@
 //! cap, faults the call with the figures when one is broken, and otherwise
 //! sets the next deadline where the budget could run out at the earliest.
 //!
+//! On simulated time ([`crate::sandbox::Sandbox::on_simulated_time`]) a call
+//! has no wall-clock cap: a run there must give the same results on a busy
+//! machine as on an idle one (a preflight at idle priority is preempted for
+//! seconds at a time), and no motor waits on it; the CPU budget still stops
+//! a runaway call.
+//!
 //! Invariants: a call is never stopped before it used its whole budget of
 //! CPU time (the time before the first check, at most one epoch tick, is
 //! not counted: it is the guest's); a runaway call is stopped within about
@@ -39,20 +45,25 @@ pub const WALL_CAP_FACTOR: u32 = 10;
 pub(super) struct CallBudget {
     /// CPU time the call may use.
     pub(super) budget: Duration,
-    /// Wall time the call may take.
+    /// Wall time the call may take (`Duration::MAX`: no cap).
     pub(super) wall_cap: Duration,
+    /// Whether calls have a wall-clock cap at all.
+    capped: bool,
     /// The thread's CPU clock and the wall clock at the call's first check.
     mark: Option<(Duration, Instant)>,
 }
 
 impl CallBudget {
-    pub(super) fn new(budget: Duration) -> CallBudget {
-        CallBudget { budget, wall_cap: wall_cap(budget), mark: None }
+    /// A call under `budget`, with the wall-clock cap that goes with it
+    /// when `capped`.
+    pub(super) fn new(budget: Duration, capped: bool) -> CallBudget {
+        let wall_cap = if capped { wall_cap(budget) } else { Duration::MAX };
+        CallBudget { budget, wall_cap, capped, mark: None }
     }
 
     /// Starts a new call under `budget`.
     pub(super) fn reset(&mut self, budget: Duration) {
-        *self = CallBudget::new(budget);
+        *self = CallBudget::new(budget, self.capped);
     }
 }
 
@@ -136,7 +147,7 @@ mod tests {
 
     #[test]
     fn the_first_check_only_marks_and_waits_for_the_budget() {
-        let mut call = CallBudget::new(Duration::from_millis(5));
+        let mut call = CallBudget::new(Duration::from_millis(5), true);
         let next = check(&mut call).unwrap();
         assert!(matches!(next, UpdateDeadline::Continue(5)));
         assert!(call.mark.is_some());
@@ -146,7 +157,7 @@ mod tests {
 
     #[test]
     fn a_call_that_used_its_cpu_budget_is_stopped_naming_the_figures() {
-        let mut call = CallBudget::new(Duration::from_millis(3));
+        let mut call = CallBudget::new(Duration::from_millis(3), true);
         check(&mut call).unwrap();
         spin_cpu(Duration::from_millis(3));
         let err = check(&mut call).err().expect("over budget");
@@ -165,7 +176,7 @@ mod tests {
 
     #[test]
     fn sleeping_uses_no_cpu_budget_but_meets_the_wall_cap() {
-        let mut call = CallBudget::new(Duration::from_millis(2));
+        let mut call = CallBudget::new(Duration::from_millis(2), true);
         check(&mut call).unwrap();
         // Off the CPU for longer than the budget: not a cpu overrun.
         std::thread::sleep(Duration::from_millis(4));
@@ -175,6 +186,22 @@ mod tests {
         let err = check(&mut call).err().expect("over the wall cap");
         let text = err.to_string();
         assert!(text.starts_with("exceeded its wall-clock cap of 20 ms (10 x its 2 ms budget; used "), "{text}");
+    }
+
+    /// On simulated time a call off the CPU for many times its budget is
+    /// not stopped (and keeps no cap across calls); its CPU budget holds.
+    #[test]
+    fn without_a_wall_cap_only_the_cpu_budget_stops_a_call() {
+        let mut call = CallBudget::new(Duration::from_millis(2), false);
+        check(&mut call).unwrap();
+        std::thread::sleep(wall_cap(Duration::from_millis(2)) * 2);
+        assert!(matches!(check(&mut call), Ok(UpdateDeadline::Continue(n)) if n >= 1));
+        call.reset(Duration::from_millis(2));
+        assert_eq!(call.wall_cap, Duration::MAX);
+        check(&mut call).unwrap();
+        spin_cpu(Duration::from_millis(2));
+        let err = check(&mut call).err().expect("over budget");
+        assert!(matches!(err.downcast_ref::<OverBudget>(), Some(OverBudget::Cpu { .. })), "{err}");
     }
 
     #[test]

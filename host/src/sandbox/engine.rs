@@ -35,6 +35,8 @@ pub struct Sandbox {
     linker: Linker<GuestState>,
     cache: CompileCache,
     pooling: bool,
+    /// Calls have no wall-clock cap ([`Sandbox::on_simulated_time`]).
+    simulated_time: bool,
     _ticker: EpochTicker,
 }
 
@@ -49,6 +51,19 @@ impl Sandbox {
     /// in `cache_dir` when given.
     pub fn new(cache_dir: Option<PathBuf>) -> Result<Sandbox, SandboxError> {
         Sandbox::with_epochs(cache_dir, true)
+    }
+
+    /// This sandbox's guests run on simulated time: their calls have no
+    /// wall-clock cap, only their CPU budgets (the module doc of
+    /// `sandbox::budget` says why).
+    pub fn on_simulated_time(mut self) -> Sandbox {
+        self.simulated_time = true;
+        self
+    }
+
+    /// `limits` as this sandbox applies them.
+    fn applied(&self, limits: &GuestLimits) -> GuestLimits {
+        GuestLimits { wall_capped: limits.wall_capped && !self.simulated_time, ..*limits }
     }
 
     /// A sandbox whose engine has no epoch interruption: calls cannot be
@@ -93,7 +108,7 @@ impl Sandbox {
             .map_err(|e| SandboxError::Engine(e.to_string()))?;
         let cache = CompileCache::new(&engine, cache_dir, functions);
         let ticker = EpochTicker::start(engine.clone());
-        Ok(Sandbox { engine, linker, cache, pooling, _ticker: ticker })
+        Ok(Sandbox { engine, linker, cache, pooling, simulated_time: false, _ticker: ticker })
     }
 
     /// What the function cache (cranelift's incremental cache) served since
@@ -163,7 +178,7 @@ impl Sandbox {
         limits: &GuestLimits,
         params: &[Param],
     ) -> Result<WasmTranslator, SandboxError> {
-        let store = self.new_store(format!("{name}/translator").into(), limits, Arc::from([]));
+        let store = self.new_store(format!("{name}/translator").into(), &self.applied(limits), Arc::from([]));
         WasmTranslator::start(store, &artifact.pre, limits.budget, params)
     }
 
@@ -195,7 +210,7 @@ impl Sandbox {
         limits: &GuestLimits,
         params: &[Param],
     ) -> Result<WasmComponent, SandboxError> {
-        instantiate_component(&self.engine, artifact, name, limits, params)
+        instantiate_component(&self.engine, artifact, name, &self.applied(limits), params)
     }
 
     /// Builds fresh instances of `artifact` (its cached, pre-linked form)
@@ -209,6 +224,7 @@ impl Sandbox {
     ) -> crate::runtime::Restarter {
         let engine = self.engine.clone();
         let name = name.to_string();
+        let limits = self.applied(&limits);
         Box::new(move || {
             instantiate_component(&engine, &artifact, &name, &limits, &params)
                 .map(|c| Box::new(c) as Box<dyn Component>)

@@ -157,6 +157,9 @@ pub struct GuestLimits {
     pub max_emits: u32,
     pub max_message_bytes: u64,
     pub max_logs_per_s: u32,
+    /// Whether a call has a wall-clock cap besides its CPU budget
+    /// ([`super::budget`]); not on simulated time.
+    pub wall_capped: bool,
 }
 
 impl Default for GuestLimits {
@@ -168,6 +171,7 @@ impl Default for GuestLimits {
             max_emits: limits::DEFAULT_EMITS_PER_CALL,
             max_message_bytes: limits::DEFAULT_MESSAGE_BYTES,
             max_logs_per_s: limits::DEFAULT_LOG_LINES_PER_S,
+            wall_capped: true,
         }
     }
 }
@@ -181,6 +185,7 @@ impl GuestLimits {
             max_emits: config.max_emits,
             max_message_bytes: config.max_message_bytes,
             max_logs_per_s: config.max_logs_per_s,
+            wall_capped: true,
         }
     }
 }
@@ -248,7 +253,7 @@ pub(super) fn new_store(
         outbox: Vec::new(),
         now_ns: 0,
         wall_at_call: None,
-        call: CallBudget::new(guest.budget),
+        call: CallBudget::new(guest.budget, guest.wall_capped),
         emits: 0,
         max_emits: guest.max_emits,
         max_message_bytes: guest.max_message_bytes,

@@ -28,6 +28,8 @@
 //! - `exit-on-tick`: calls `exit(3)` (WASI 0.2 carries it as status 1);
 //! - `random-probe`: returns as its `err` a hash with the std library's
 //!   random keys (from `wasi:random`): the same for the same seed;
+//! - `busy-on-tick`: behaves, but each tick first spins `spins` times on
+//!   the CPU (a component that uses much of its budget);
 //! - `none`: behaves.
 //!
 //! With `drive` = `yes`, every good tick also emits `VEL 0.3 0` on `cmd`.
@@ -86,6 +88,7 @@ struct Faulty {
     mode: String,
     after: i64,
     drive: bool,
+    spins: u64,
     ticks: i64,
     hoard: Vec<&'static mut [u8]>,
 }
@@ -114,6 +117,7 @@ impl Component for Faulty {
             .param(param("mode", ParamKind::Text, "none", "how to misbehave"))
             .param(param("after", ParamKind::Integer, "0", "good ticks before misbehaving"))
             .param(param("drive", ParamKind::Text, "no", "yes: every good tick emits VEL 0.3 0 on cmd"))
+            .param(param("spins", ParamKind::Integer, "1000000", "busy-on-tick's spins per tick"))
             .priority(2)
     }
 
@@ -126,7 +130,8 @@ impl Component for Faulty {
             _ => {}
         }
         let drive = params.text("drive").unwrap_or("no") == "yes";
-        Ok(Faulty { mode, after: params.integer("after")?, drive, ticks: 0, hoard: Vec::new() })
+        let spins = u64::try_from(params.integer("spins")?).map_err(|_| "spins must not be negative".to_string())?;
+        Ok(Faulty { mode, after: params.integer("after")?, drive, spins, ticks: 0, hoard: Vec::new() })
     }
 
     fn on_input(&mut self, _port: u32, _value: Value) -> Result<(), String> {
@@ -139,7 +144,13 @@ impl Component for Faulty {
     }
 
     fn tick(&mut self, _now_ns: u64) -> Result<(), String> {
-        if self.ticks < self.after || matches!(self.mode.as_str(), "none" | "sleep-on-input") {
+        if self.mode == "busy-on-tick" {
+            let mut spun: u64 = 0;
+            for _ in 0..self.spins {
+                spun = std::hint::black_box(spun.wrapping_add(1));
+            }
+        }
+        if self.ticks < self.after || matches!(self.mode.as_str(), "none" | "sleep-on-input" | "busy-on-tick") {
             self.ticks += 1;
             emit(0, &Value::Scalar(self.ticks as f64));
             if self.mode == "command-then-loop" || self.drive {
