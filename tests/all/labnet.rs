@@ -41,6 +41,8 @@ use crate::support::{self, HostProcess, free_port, http};
 const PASSWORD: &str = "labnet-test-password";
 const RESEARCHERS: [&str; 3] = ["ana", "ben", "cy"];
 const LAB: &str = "testlab";
+/// A user of the lab who only watches.
+const VIEWER: &str = "vic";
 /// The robots' `--lab-lost`: how long a robot runs the lab's experiment
 /// without hearing its lab.
 const LOST_AFTER_S: f64 = 2.0;
@@ -298,6 +300,7 @@ impl LabNet {
         for name in RESEARCHERS {
             support::add_user(&store, name, "researcher", &["control"], PASSWORD);
         }
+        support::add_user(&store, VIEWER, "viewer", &[], PASSWORD);
         let zenoh_port = free_port();
         let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
         let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
@@ -768,4 +771,167 @@ fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_re
     assert!(causes.last().unwrap().contains("refused it a second time"), "{causes:#?}");
     assert!(refused["reasons"].to_string().contains("max-duration of 10 s"), "{refused:#}");
     assert_eq!(refused["placement"]["refusals"], 2, "{refused:#}");
+}
+
+/// Robot `robot`'s live status, as its own portal gives it to its owner.
+fn robot_status(robot: &Robot) -> Json {
+    let token = support::login(&robot.address, "owner", PASSWORD);
+    let (status, json) = http(&robot.address, "GET", "/api/v1/status", Some(&token), b"");
+    assert_eq!(status, 200, "{json}");
+    json
+}
+
+/// Waits until `robot`'s motors stand still under its engaged lock: its
+/// arbiter holds the lock `by` engaged, and two looks, the loop having run
+/// at least 100 cycles between them, see the simulated robot where it was.
+fn wait_stopped_by(robot: &Robot, by: &str) -> Json {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut before = robot_status(robot);
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let now = robot_status(robot);
+        let locked = now["arbiter"]["engaged"].as_array().is_some_and(|e| e.iter().any(|l| l["by"] == by));
+        let ran = now["cycles"].as_u64().unwrap_or(0) >= before["cycles"].as_u64().unwrap_or(u64::MAX) + 100;
+        let still = now["sim"]["distance_travelled_m"] == before["sim"]["distance_travelled_m"]
+            && now["sim"]["x"] == before["sim"]["x"]
+            && now["sim"]["y"] == before["sim"]["y"];
+        if locked && ran && still {
+            return now;
+        }
+        assert!(Instant::now() < deadline, "robot {} never stood still under {by}'s lock: {now:#}", robot.name);
+        if ran {
+            before = now;
+        }
+    }
+}
+
+#[test]
+fn the_submitter_watches_their_robot_live_and_any_user_stops_one_robot_or_all() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let (ana, ben, cy, vic) = (lab.token("ana"), lab.token("ben"), lab.token("cy"), lab.token(VIEWER));
+    let baselines: Vec<u64> = lab.robots.iter().map(active_set).collect();
+    let ana_set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let ben_set = lab.stage(&ben, "ben.xml", &robot(6.0, ""));
+    let on_r1 = lab.submit(&ana, ana_set, 110.0, Some("r1"));
+    let on_r2 = lab.submit(&ben, ben_set, 110.0, Some("r2"));
+    for (token, id) in [(&ana, on_r1), (&ben, on_r2)] {
+        assert_eq!(lab.wait_for(token, id, "running", Duration::from_secs(240))["state"], "running");
+    }
+    let local_r1 = lab.experiment(&ana, on_r1)["placement"]["local_id"].as_u64().unwrap();
+
+    // The submitter's live view of r1: r1's own status, asked of it now,
+    // with ana's experiment in it, and changing while it runs.
+    let live =
+        |token: Option<&str>, name: &str| http(&lab.address, "GET", &format!("/api/v1/robots/{name}/live"), token, b"");
+    let (status, first) = live(Some(&ana), "r1");
+    assert_eq!(status, 200, "{first}");
+    let first = &first["status"];
+    assert_eq!(first["experiment"]["id"], local_r1, "{first:#}");
+    assert_eq!(first["experiment"]["submitter"], "ana", "{first:#}");
+    assert_ne!(first["set"].as_u64(), Some(baselines[0]), "r1 runs ana's set, not its baseline: {first:#}");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let (status, json) = live(Some(&ana), "r1");
+        assert_eq!(status, 200, "{json}");
+        let now = &json["status"];
+        assert_eq!(now["experiment"]["id"], local_r1, "{now:#}");
+        let later = |field: &str| now[field].as_f64().unwrap() > first[field].as_f64().unwrap();
+        if later("cycles") && now["sim"]["time_s"].as_f64().unwrap() > first["sim"]["time_s"].as_f64().unwrap() {
+            assert!(later("duration_s"), "{now:#}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "r1's live status never changed: {first:#}\n{now:#}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // r2's live view is r2's, with ben's experiment.
+    let (status, json) = live(Some(&ben), "r2");
+    assert_eq!((status, &json["status"]["experiment"]["submitter"]), (200, &Json::from("ben")), "{json}");
+    // Who may not see it, as the portal's matrix says (any logged-in
+    // user may): nobody without a session, and no robot the lab lacks.
+    for (token, name, expected) in
+        [(None, "r1", 401), (Some("not-a-session"), "r1", 401), (Some(ana.as_str()), "r9", 404)]
+    {
+        let (status, json) = live(token, name);
+        assert_eq!(status, expected, "{name} with {token:?}: {json}");
+        assert!(json["status"].is_null(), "{json}");
+    }
+    let (status, _) = live(Some(&vic), "r1");
+    assert_eq!(status, 200, "a viewer may watch");
+
+    // STOP for r1, by a user who submitted nothing: r1's emergency stop.
+    let (status, json) = lab.call(&cy, "POST", "/api/v1/robots/r1/stop", "");
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["stopped"], serde_json::json!([{"robot": "r1", "engaged": true, "message": "engaged"}]));
+    let stopped_by_cy = format!("cy@{LAB}");
+    let aborted = lab.wait_for(&ana, on_r1, "aborted", Duration::from_secs(120));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}\n{}", lab.logs());
+    let cause = aborted["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+    assert!(cause.contains(&format!("on robot r1: aborted: emergency stop by {stopped_by_cy}")), "{cause}");
+    // On r1 itself: its experiment aborted with that cause, the baseline
+    // back, the motors standing still under cy's lock.
+    let r1 = lab.robot("r1");
+    let stopped = wait_stopped_by(r1, &stopped_by_cy);
+    assert_eq!(stopped["set"].as_u64(), Some(baselines[0]), "{stopped:#}");
+    assert!(stopped["experiment"].is_null(), "{stopped:#}");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let (_, json) = http(&r1.address, "GET", &format!("/api/v1/experiments/{local_r1}"), Some(&owner), b"");
+    assert_eq!(json["experiment"]["state"], "aborted", "{json:#}");
+    assert!(json["experiment"]["reasons"].to_string().contains(&format!("emergency stop by {stopped_by_cy}")));
+    // The lab lists r1 stopped by cy; r2 runs on.
+    lab.wait_robots(&cy, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "stopped" && r["stopped_by"] == stopped_by_cy.as_str())
+    });
+    assert_eq!(lab.experiment(&ben, on_r2)["state"], "running", "r2 runs on after r1's STOP");
+    // The live view of r1 shows it stopped, too.
+    let (status, json) = live(Some(&ana), "r1");
+    assert_eq!(status, 200, "{json}");
+    assert!(json["status"]["arbiter"]["engaged"].to_string().contains(&stopped_by_cy), "{json:#}");
+
+    // STOP for all, by a viewer: every robot answers; r2's experiment ends.
+    let (status, json) = lab.call(&vic, "POST", "/api/v1/robots/stop", "");
+    assert_eq!(status, 200, "{json}");
+    let mut answers: Vec<(String, bool, String)> = json["stopped"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| (a["robot"].as_str().unwrap().into(), a["engaged"] == true, a["message"].as_str().unwrap().into()))
+        .collect();
+    answers.sort();
+    assert_eq!(
+        answers,
+        [("r1".into(), true, "engaged already".into()), ("r2".into(), true, "engaged".into())],
+        "{json}"
+    );
+    let stopped_by_vic = format!("{VIEWER}@{LAB}");
+    let aborted = lab.wait_for(&ben, on_r2, "aborted", Duration::from_secs(120));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}\n{}", lab.logs());
+    assert!(aborted.to_string().contains(&format!("emergency stop by {stopped_by_vic}")), "{aborted:#}");
+    let stopped = wait_stopped_by(lab.robot("r2"), &stopped_by_vic);
+    assert_eq!(stopped["set"].as_u64(), Some(baselines[1]), "{stopped:#}");
+    lab.wait_robots(&vic, Duration::from_secs(60), |robots| {
+        robots.len() == 2 && robots.iter().all(|r| r["state"] == "stopped")
+    });
+    // The lab's audit log names who pressed which STOP.
+    let (status, audit) = lab.call(&lab.token("boss"), "GET", "/api/v1/audit", "");
+    assert_eq!(status, 200, "{audit}");
+    let mut presses: Vec<(String, String, String)> = audit["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["action"] == "lab-estop")
+        .map(|e| (e["user"].as_str().unwrap().into(), e["target"].as_str().unwrap().into(), e["result"].to_string()))
+        .collect();
+    presses.sort();
+    let ok = Json::from("ok").to_string();
+    let expected = [("cy", "robot r1"), (VIEWER, "robot r1"), (VIEWER, "robot r2")]
+        .map(|(user, target)| (user.to_string(), target.to_string(), ok.clone()));
+    assert_eq!(presses, expected, "{audit:#}");
+    // The lock is released on each robot, as always: the lab lists them idle.
+    for robot in &lab.robots {
+        let owner = support::login(&robot.address, "owner", PASSWORD);
+        let (status, json) = http(&robot.address, "POST", "/api/v1/release", Some(&owner), b"");
+        assert_eq!(status, 200, "{json}");
+    }
+    lab.wait_robots(&vic, Duration::from_secs(60), |robots| robots.iter().all(|r| r["state"] == "idle"));
 }
