@@ -935,3 +935,80 @@ fn the_submitter_watches_their_robot_live_and_any_user_stops_one_robot_or_all() 
     }
     lab.wait_robots(&vic, Duration::from_secs(60), |robots| robots.iter().all(|r| r["state"] == "idle"));
 }
+
+#[test]
+fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_and_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let on_robot = |path: &str| {
+        let (status, json) = http(&r1.address, "GET", path, Some(&owner), b"");
+        assert_eq!(status, 200, "{path}: {json}");
+        json
+    };
+    let before = (active_set(r1), on_robot("/api/v1/sets")["sets"].clone(), on_robot("/api/v1/experiments"));
+    let secret = std::fs::read_to_string(dir.path().join("lab").join("store").join("lab.secret")).unwrap();
+    let secret = secret.trim();
+    let other = "0f".repeat(32);
+    let xml = robot(7.0, "");
+    // What a forger on the lab's Zenoh network sends r1 (an
+    // `eclipse-zenoh` client, the envelope written from the format), and
+    // what r1 must answer. The last two are signed with the lab's secret:
+    // they show the forger's messages are well made, so the refusals
+    // above them are the signature's.
+    let cases = [
+        (serde_json::json!({"op": "dispatch", "secret": other, "config_text": xml}), "not signed by lab 'testlab'"),
+        (serde_json::json!({"op": "estop", "secret": other}), "not signed by lab 'testlab'"),
+        (
+            serde_json::json!({"op": "dispatch", "secret": secret, "config_text": xml, "skew_ms": -120_000}),
+            "ms from this host's clock",
+        ),
+        (
+            serde_json::json!({"op": "dispatch", "secret": secret, "config_text": xml, "duration_s": 1000.0}),
+            "over this robot's max-duration",
+        ),
+    ];
+    let list: Vec<&Json> = cases.iter().map(|(case, _)| case).collect();
+    let output = std::process::Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/lab_forge.py"))
+        .args([&lab.zenoh, LAB, "r1", &serde_json::to_string(&list).unwrap()])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let answers: Vec<Json> =
+        String::from_utf8_lossy(&output.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(answers.len(), cases.len(), "{answers:#?}");
+    for ((case, expected), answer) in cases.iter().zip(&answers) {
+        let replies = answer["answers"].as_array().unwrap();
+        assert_eq!(replies.len(), 1, "{case}: {answer:#}");
+        let reply = &replies[0];
+        let refused = match case["op"].as_str().unwrap() {
+            "dispatch" => reply["outcome"] == "refused",
+            _ => reply["ok"] == false,
+        };
+        assert!(refused, "{case}: {reply:#}");
+        assert!(reply.to_string().contains(expected), "{case}: expected '{expected}' in {reply:#}");
+    }
+    // Nothing changed on r1: no experiment, no new set, the same set runs,
+    // no lock; the refusals are in its audit log. The lab lists it idle.
+    let after = (active_set(r1), on_robot("/api/v1/sets")["sets"].clone(), on_robot("/api/v1/experiments"));
+    assert_eq!(after, before);
+    assert_eq!(before.2["experiments"].as_array().map(Vec::len), Some(0), "{:#}", before.2);
+    let status = robot_status(r1);
+    assert_eq!(status["arbiter"]["engaged"], serde_json::json!([]), "{status:#}");
+    let audit = on_robot("/api/v1/audit");
+    let refusals: Vec<&Json> = audit["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["action"] == "lab-dispatch" && e["result"] == "refused")
+        .collect();
+    let dispatches = cases.iter().filter(|(case, _)| case["op"] == "dispatch");
+    assert_eq!(refusals.len(), dispatches.clone().count(), "{audit:#}");
+    for ((_, expected), refusal) in dispatches.zip(&refusals) {
+        assert!(refusal["detail"].as_str().unwrap().contains(expected), "{expected}: {refusal:#}");
+    }
+    let boss = lab.token("boss");
+    assert!(lab.robots(&boss).iter().all(|r| r["state"] == "idle" && r["experiment"].is_null()));
+}

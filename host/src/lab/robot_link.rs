@@ -439,16 +439,17 @@ impl RobotLink {
     /// Takes the lab's experiment, checks it again, runs it through this
     /// host's lab, and says how it went (or why not).
     fn dispatch(&self, dispatch: &Dispatch) -> DispatchOutcome {
-        let refused = |reasons: Vec<String>| DispatchOutcome::Refused { reasons };
-        if let Err(e) = wire::fresh(dispatch.issued_unix_ms, unix_now_ms()) {
-            return refused(vec![format!("refused: {e}")]);
-        }
-        self.heard_lab();
         let target = format!("lab experiment {}", dispatch.lab_id);
-        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id));
+        // A stale one is refused before anything, and audited like any.
+        let outcome = wire::fresh(dispatch.issued_unix_ms, unix_now_ms())
+            .map_err(|e| vec![format!("refused: {e}")])
+            .and_then(|()| {
+                self.heard_lab();
+                self.take(dispatch).and_then(|id| self.wait_start(id))
+            });
         let outcome = match outcome {
             Ok(outcome) => outcome,
-            Err(reasons) => refused(reasons),
+            Err(reasons) => DispatchOutcome::Refused { reasons },
         };
         let (text, result) = match &outcome {
             DispatchOutcome::Started { local_id, .. } => (format!("runs as experiment {local_id}"), true),
