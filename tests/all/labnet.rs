@@ -1012,3 +1012,68 @@ fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_
     let boss = lab.token("boss");
     assert!(lab.robots(&boss).iter().all(|r| r["state"] == "idle" && r["experiment"].is_null()));
 }
+
+#[test]
+fn a_robot_whose_baseline_differs_refuses_an_envelope_or_platform_change_back_to_the_queue_once_then_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let boss = lab.token("boss");
+    let ana = lab.token("ana");
+    let running = active_set(r1);
+    let reference = lab.robots(&boss)[0]["baseline_set"].as_u64().unwrap();
+    // The lab checks ana's experiments against r1's first baseline (its
+    // reference); r1's owner then marks another baseline, which the
+    // experiment, checked again on r1, changes in a way ana may not.
+    let cases = [
+        (
+            "envelope",
+            r#"source="builtin:envelope" rate="20""#,
+            r#"source="builtin:envelope" rate="10""#,
+            "changes the rate of envelope 'envelope' from 10 to 20: an experiment runs with the robot's own envelope settings",
+        ),
+        (
+            "network",
+            r#"source="builtin:teleop" rate="50""#,
+            r#"source="builtin:teleop" rate="40""#,
+            "changes platform network of the baseline, which ana does not hold",
+        ),
+    ];
+    for (n, (what, from, to, expected)) in cases.iter().enumerate() {
+        let previous = lab.robots(&boss)[0]["profile"]["baseline"].clone();
+        let xml = robot(8.0, "").replace(from, to);
+        assert_ne!(xml, robot(8.0, ""), "{what}");
+        let path = format!("/api/v1/platforms/control/configs/owner-{n}.xml");
+        let (status, json) = http(&r1.address, "PUT", &path, Some(&owner), xml.as_bytes());
+        assert_eq!(status, 201, "{what}: {json}");
+        let set = json["set"]["id"].as_u64().unwrap();
+        let body = serde_json::json!({ "set": set }).to_string();
+        let (status, json) = http(&r1.address, "PUT", "/api/v1/lab/baseline", Some(&owner), body.as_bytes());
+        assert_eq!(status, 200, "{what}: {json}");
+        // The lab sees r1's new profile and stores its baseline.
+        lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
+            robots[0]["profile"]["baseline"] != previous
+                && robots[0]["baseline_set"].as_u64().is_some_and(|s| s != reference)
+                && robots[0]["state"] == "idle"
+        });
+        let staged = lab.stage(&ana, &format!("ana-{n}.xml"), &robot(7.0, ""));
+        let id = lab.submit(&ana, staged, 5.0, None);
+        let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(240));
+        assert_eq!(refused["state"], "refused", "{what}: {refused:#}\n{}", lab.logs());
+        let causes: Vec<&str> =
+            refused["history"].as_array().unwrap().iter().map(|c| c["cause"].as_str().unwrap()).collect();
+        assert_eq!(causes.iter().filter(|c| c.contains("back in the queue once")).count(), 1, "{what}: {causes:#?}");
+        assert!(causes.last().unwrap().contains("refused it a second time"), "{what}: {causes:#?}");
+        assert!(
+            causes.iter().filter(|c| c.contains("refused it")).all(|c| c.contains(expected)),
+            "{what}: {causes:#?}"
+        );
+        assert!(refused["reasons"].to_string().contains(expected), "{what}: {refused:#}");
+        assert_eq!(refused["placement"]["refusals"], 2, "{what}: {refused:#}");
+        // Nothing ran on r1: no experiment there, its set runs on.
+        let (_, json) = http(&r1.address, "GET", "/api/v1/experiments", Some(&owner), b"");
+        assert_eq!(json["experiments"], serde_json::json!([]), "{what}: {json:#}");
+        assert_eq!(active_set(r1), running, "{what}");
+    }
+}
