@@ -1077,3 +1077,58 @@ fn a_robot_whose_baseline_differs_refuses_an_envelope_or_platform_change_back_to
         assert_eq!(active_set(r1), running, "{what}");
     }
 }
+
+/// The lab server's page in Chromium (tests/browser/labserver.mjs): a
+/// viewer sees both robots with their name, profile, state, the experiment
+/// one runs and its time left; watches it live; its STOP stops that robot
+/// only, STOP ALL the other too. The experiment ends aborted by the
+/// viewer, and each robot's motors stand still under the viewer's lock.
+#[test]
+fn the_lab_servers_page_lists_every_robot_and_its_stop_buttons_work_in_a_real_browser() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let duration_s = 100.0;
+    let id = lab.submit(&ana, set, duration_s, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(240))["state"], "running");
+    let vic = lab.token(VIEWER);
+    let listed = lab.wait_robots(&vic, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["experiment"] == id && r["time_left_s"].is_f64())
+    });
+    let expected: Vec<Json> = ["r1", "r2"]
+        .iter()
+        .map(|name| {
+            let robot = listed.iter().find(|r| r["name"] == *name).unwrap();
+            let running = *name == "r1";
+            serde_json::json!({
+                "name": name,
+                "profile": robot["profile"]["id"],
+                "state": if running { "running" } else { "idle" },
+                "experiment": if running { Json::from(id) } else { Json::Null },
+                "duration_s": duration_s,
+            })
+        })
+        .collect();
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let url = format!("http://{}/", lab.address);
+    let robots = serde_json::to_string(&expected).unwrap();
+    let stdout = support::browser("labserver.mjs", &artifacts, &[], &[&url, &VIEWER, &PASSWORD, &robots]);
+    assert!(stdout.contains("ok: r1, r2 listed and stopped"), "{stdout}");
+    for shot in ["1-robots", "2-live", "3-stopped-one", "4-stopped-all"] {
+        assert!(artifacts.join(format!("labserver-{shot}.png")).is_file(), "{shot}");
+    }
+    // What the clicks did: the experiment aborted by the viewer, both
+    // robots' motors still under the viewer's lock, each press audited.
+    let by = format!("{VIEWER}@{LAB}");
+    let aborted = lab.wait_for(&ana, id, "aborted", Duration::from_secs(120));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}\n{}", lab.logs());
+    assert!(aborted.to_string().contains(&format!("emergency stop by {by}")), "{aborted:#}");
+    for robot in &lab.robots {
+        wait_stopped_by(robot, &by);
+    }
+    let (_, audit) = lab.call(&lab.token("boss"), "GET", "/api/v1/audit", "");
+    let presses =
+        audit["entries"].as_array().unwrap().iter().filter(|e| e["action"] == "lab-estop" && e["user"] == VIEWER);
+    assert_eq!(presses.count(), 3, "r1, then r1 and r2: {audit:#}");
+}
