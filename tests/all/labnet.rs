@@ -25,6 +25,22 @@
 //!   gets it back in the queue once; the second refusal ends it `refused`.
 //! - A lab server killed with SIGKILL and started again keeps its users,
 //!   results and queue, and relearns its robots from their tokens.
+//! - The lab's STOP, pressed by users who submitted nothing (a researcher
+//!   for one robot, a viewer for all): each robot's experiment ends
+//!   `aborted: emergency stop by USER@LAB`, the robot runs its baseline
+//!   with its motors still under the lock, the presses are audited, and
+//!   the lock is released on the robot. Before it, the submitter's live
+//!   view of their robot is that robot's own status, changing while it
+//!   runs; without a session it is refused (401).
+//! - Messages forged with another secret by an `eclipse-zenoh` client
+//!   (`tests/python/lab_forge.py`) straight to a robot's queryables, a
+//!   dispatch and an emergency stop, are refused and change nothing there.
+//! - A robot whose owner marked another baseline refuses an experiment the
+//!   lab passed (an envelope difference; a platform its submitter does not
+//!   hold): back in the queue once with the reason, then `refused`.
+//! - The lab server's page in Chromium (`tests/browser/labserver.mjs`):
+//!   every robot with its name, profile, state, experiment and time left;
+//!   its STOP buttons stop the robots.
 
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
