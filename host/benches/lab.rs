@@ -29,7 +29,7 @@ use std::time::{Duration, Instant};
 use subsume::assemble::{self, Loader};
 use subsume::builtin::Services;
 use subsume::config::{self, ParamOverride};
-use subsume::lab::preflight::{self, Outcome, PreflightCommand, PreflightFiles};
+use subsume::lab::preflight::{self, Outcome, PreflightCommand, PreflightFiles, Priority};
 use subsume::lab::verdict::Criteria;
 use subsume::runtime::Graph;
 use subsume::runtime::control_loop::{Clock, CycleHook, Shutdown, run_with};
@@ -102,7 +102,12 @@ fn preflights_beside_the_robot(seconds: f64) {
     std::thread::sleep(Duration::from_secs_f64(seconds + 1.0));
     busy.store(true, Ordering::Relaxed);
     let command =
-        PreflightCommand { exe: PathBuf::from(env!("CARGO_BIN_EXE_subsume")), cache_dir: Some(support::cache_dir()) };
+        // A robot's preflight, at a robot's default priority.
+        PreflightCommand {
+            exe: PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
+            cache_dir: Some(support::cache_dir()),
+            priority: Priority::Idle,
+        };
     let started = Instant::now();
     let mut speeds = Vec::new();
     let mut n = 0;

@@ -132,6 +132,7 @@ fn main() -> Result<(), String> {
             preflight: subsume::lab::preflight::PreflightCommand {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: None,
+                priority: subsume::lab::preflight::Priority::Idle,
             },
             role: subsume::lab::LabRole::Alone,
         },

@@ -507,6 +507,65 @@ fn first_user(store: &Store, first: FirstUser, url: &str) {
     }
 }
 
+/// What a portal serves from.
+struct PortalParts {
+    deployer: Arc<Deployer>,
+    lab: Arc<Lab>,
+    directory: Arc<Directory>,
+    logs: Arc<LogRing>,
+}
+
+/// A portal being served on its own runtime.
+struct ServedPortal {
+    runtime: tokio::runtime::Runtime,
+    scheme: &'static str,
+    address: std::net::SocketAddr,
+}
+
+/// Serves `app` over `parts` on `listen` (TLS when the host has an
+/// identity) on a runtime of its own. No answer shows a server path: the
+/// `hidden` folders, the compile cache and the working folder are named,
+/// never spelled out.
+fn serve_portal(
+    listen: std::net::SocketAddr,
+    tls: &HostTls,
+    hidden: &[(&Path, &'static str)],
+    parts: PortalParts,
+    app: fn(Arc<portal::PortalState>) -> axum::Router,
+) -> Result<ServedPortal, RunError> {
+    let listener = crate::admission::listen(listen).map_err(|source| RunError::Listen { address: listen, source })?;
+    let address = listener.local_addr().map_err(|source| RunError::Listen { address: listen, source })?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .thread_name("portal")
+        .enable_all()
+        .build()
+        .map_err(RunError::PortalRuntime)?;
+    let acceptor = tls.identity.as_ref().map(|identity| identity.http_acceptor());
+    let cache = parts.deployer.sandbox.cache_dir().map(Path::to_path_buf);
+    let working_dir = std::env::current_dir().unwrap_or_default();
+    let mut hidden = hidden.to_vec();
+    hidden.push((working_dir.as_path(), "<working folder>"));
+    if let Some(cache) = &cache {
+        hidden.push((cache.as_path(), "<cache>"));
+    }
+    let PortalParts { deployer, lab, directory, logs } = parts;
+    let state = match acceptor {
+        Some(_) => portal::PortalState::over_tls(deployer, lab, directory, logs),
+        None => portal::PortalState::new(deployer, lab, directory, logs),
+    }
+    .hiding(&hidden);
+    let scheme = if acceptor.is_some() { "https" } else { "http" };
+    runtime.spawn(async move {
+        let listener = match tokio::net::TcpListener::from_std(listener) {
+            Ok(listener) => listener,
+            Err(e) => return tracing::error!("the portal cannot serve: {e}"),
+        };
+        crate::admission::serve_http(listener, acceptor, app(state), crate::admission::HttpLimits::default()).await;
+    });
+    Ok(ServedPortal { runtime, scheme, address })
+}
+
 /// [`run`] with the portal: starts from the store (see
 /// [`Deployer::boot`]), serves the portal on its own runtime, and lets it
 /// activate sets while the control loop runs.
@@ -569,41 +628,15 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
-    let listener = crate::admission::listen(portal.listen)
-        .map_err(|source| RunError::Listen { address: portal.listen, source })?;
-    let address = listener.local_addr().map_err(|source| RunError::Listen { address: portal.listen, source })?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .thread_name("portal")
-        .enable_all()
-        .build()
-        .map_err(RunError::PortalRuntime)?;
-    let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
-    let cache = deployer.sandbox.cache_dir().map(Path::to_path_buf);
     let robot_dir = options.config_path.parent().map(Path::to_path_buf).unwrap_or_default();
-    let working_dir = std::env::current_dir().unwrap_or_default();
-    let mut hidden: Vec<(&Path, &'static str)> = vec![
-        (portal.store_dir.as_path(), "<store>"),
-        (robot_dir.as_path(), "<robot file folder>"),
-        (working_dir.as_path(), "<working folder>"),
-    ];
-    if let Some(cache) = &cache {
-        hidden.push((cache.as_path(), "<cache>"));
-    }
-    let state = match acceptor {
-        Some(_) => portal::PortalState::over_tls(deployer, lab.clone(), directory, portal.logs.clone()),
-        None => portal::PortalState::new(deployer, lab.clone(), directory, portal.logs.clone()),
-    }
-    .hiding(&hidden);
-    let scheme = if acceptor.is_some() { "https" } else { "http" };
-    runtime.spawn(async move {
-        let listener = match tokio::net::TcpListener::from_std(listener) {
-            Ok(listener) => listener,
-            Err(e) => return tracing::error!("the portal cannot serve: {e}"),
-        };
-        crate::admission::serve_http(listener, acceptor, portal::app(state), crate::admission::HttpLimits::default())
-            .await;
-    });
+    let served = serve_portal(
+        portal.listen,
+        &options.tls,
+        &[(portal.store_dir.as_path(), "<store>"), (robot_dir.as_path(), "<robot file folder>")],
+        PortalParts { deployer, lab: lab.clone(), directory, logs: portal.logs.clone() },
+        portal::app,
+    )?;
+    let (runtime, scheme, address) = (served.runtime, served.scheme, served.address);
     // Before the portal's line: whoever waits for that line has the login.
     if no_users {
         first_user(&first_store, portal.first_user, &format!("{scheme}://{address}/"));
@@ -685,29 +718,14 @@ pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), Ru
             role: LabRole::Server(fleet.clone()),
         },
     )?;
-    let listener = crate::admission::listen(options.listen)
-        .map_err(|source| RunError::Listen { address: options.listen, source })?;
-    let address = listener.local_addr().map_err(|source| RunError::Listen { address: options.listen, source })?;
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(1)
-        .thread_name("portal")
-        .enable_all()
-        .build()
-        .map_err(RunError::PortalRuntime)?;
-    let acceptor = options.tls.identity.as_ref().map(|identity| identity.http_acceptor());
-    let state = match acceptor {
-        Some(_) => portal::PortalState::over_tls(deployer, lab.clone(), directory, options.logs.clone()),
-        None => portal::PortalState::new(deployer, lab.clone(), directory, options.logs.clone()),
-    };
-    let scheme = if acceptor.is_some() { "https" } else { "http" };
-    runtime.spawn(async move {
-        let listener = match tokio::net::TcpListener::from_std(listener) {
-            Ok(listener) => listener,
-            Err(e) => return tracing::error!("the lab portal cannot serve: {e}"),
-        };
-        let app = portal::lab_server_app(state);
-        crate::admission::serve_http(listener, acceptor, app, crate::admission::HttpLimits::default()).await;
-    });
+    let served = serve_portal(
+        options.listen,
+        &options.tls,
+        &[(options.store_dir.as_path(), "<store>")],
+        PortalParts { deployer, lab: lab.clone(), directory, logs: options.logs.clone() },
+        portal::lab_server_app,
+    )?;
+    let (runtime, scheme, address) = (served.runtime, served.scheme, served.address);
     tracing::info!(
         "lab server '{}' on {scheme}://{address}/ (store {})",
         fleet.lab_name(),

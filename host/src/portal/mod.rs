@@ -86,16 +86,7 @@ impl PortalState {
         directory: Arc<Directory>,
         logs: Arc<LogRing>,
     ) -> Arc<PortalState> {
-        Arc::new(PortalState {
-            deployer,
-            lab,
-            directory,
-            logs,
-            sessions: Sessions::default(),
-            limiter: LoginLimiter::default(),
-            secure_cookies: false,
-            hidden_paths: Vec::new(),
-        })
+        PortalState::with_cookies(deployer, lab, directory, logs, false)
     }
 
     /// The state of a portal served over TLS: its cookies carry `Secure`,
@@ -106,6 +97,16 @@ impl PortalState {
         directory: Arc<Directory>,
         logs: Arc<LogRing>,
     ) -> Arc<PortalState> {
+        PortalState::with_cookies(deployer, lab, directory, logs, true)
+    }
+
+    fn with_cookies(
+        deployer: Arc<Deployer>,
+        lab: Arc<Lab>,
+        directory: Arc<Directory>,
+        logs: Arc<LogRing>,
+        secure_cookies: bool,
+    ) -> Arc<PortalState> {
         Arc::new(PortalState {
             deployer,
             lab,
@@ -113,7 +114,7 @@ impl PortalState {
             logs,
             sessions: Sessions::default(),
             limiter: LoginLimiter::default(),
-            secure_cookies: true,
+            secure_cookies,
             hidden_paths: Vec::new(),
         })
     }

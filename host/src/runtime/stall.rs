@@ -6,11 +6,18 @@
 //! which call runs now (or that the loop sleeps), rewritten before every
 //! call (one relaxed store; the hot path pays nothing else). The
 //! [`StallWatchdog`] samples it every quarter of the limit. When the same
-//! call has been running for the whole limit, it marks that call stalled
+//! call has been running for the whole limit, and the watchdog saw it at
+//! every sample of it, it marks that call stalled
 //! (the graph faults the component when the call returns, and discards what
 //! it emitted), asks every [`MotorStop`] the graph holds to send its stop
 //! frame now (the serial link writes it from this thread, past the loop's
 //! queue), and logs the stall with the component and the call.
+//!
+//! Counting samples, not only the clock, is what keeps a process that was
+//! frozen as a whole (stopped, or starved of every CPU: a preflight at idle
+//! priority on a busy robot) from blaming the call it happened to be in: the
+//! watchdog was frozen too, and wakes to a call that then has to hold the
+//! loop for a whole limit more, with the watchdog watching, to be a stall.
 //!
 //! Invariants: the watchdog never touches the graph, only the heartbeat and
 //! the motor stops the graph handed it; a stall is declared no sooner than
@@ -282,15 +289,20 @@ fn sleep(stop: &(Mutex<bool>, Condvar), period: Duration) -> bool {
     }
 }
 
+/// Samples of one call, after the first, that make a stall: one limit of
+/// watching at the sampling period (`limit / SAMPLES_PER_LIMIT`).
+const SAMPLES_PER_LIMIT: u32 = 4;
+
 fn watch(heartbeat: &Heartbeat, stop: &(Mutex<bool>, Condvar), stats: &WatchStats, on_stall: &dyn Fn(&Stall)) {
-    let period = (heartbeat.limit / 4).max(Duration::from_millis(1));
-    // The word last seen, when it was first seen, and whether it stalled.
-    let mut seen: Option<(u64, Instant, bool)> = None;
+    let period = (heartbeat.limit / SAMPLES_PER_LIMIT).max(Duration::from_millis(1));
+    // The word last seen, when it was first seen, how many samples saw it
+    // since, and whether it stalled.
+    let mut seen: Option<(u64, Instant, u32, bool)> = None;
     while !sleep(stop, period) {
         let word = heartbeat.word.load(Ordering::Acquire);
         let (node, activity) = unpack(word);
         if activity == Activity::Asleep {
-            if let Some((_, since, true)) = seen {
+            if let Some((_, since, _, true)) = seen {
                 heartbeat.verdict.store(0, Ordering::Release);
                 tracing::warn!("the control loop is moving again after {} ms", since.elapsed().as_millis());
             }
@@ -298,10 +310,12 @@ fn watch(heartbeat: &Heartbeat, stop: &(Mutex<bool>, Condvar), stats: &WatchStat
             continue;
         }
         match seen {
-            Some((last, since, stalled)) if last == word => {
+            Some((last, since, samples, stalled)) if last == word => {
                 let held = since.elapsed();
-                if !stalled && held >= heartbeat.limit {
-                    seen = Some((word, since, true));
+                let samples = samples + 1;
+                seen = Some((word, since, samples, stalled));
+                if !stalled && held >= heartbeat.limit && samples >= SAMPLES_PER_LIMIT {
+                    seen = Some((word, since, samples, true));
                     stats.stalls.fetch_add(1, Ordering::Relaxed);
                     let stall = declare(heartbeat, word, node, activity, held);
                     tracing::error!("the control loop is stalled: {stall}");
@@ -309,12 +323,12 @@ fn watch(heartbeat: &Heartbeat, stop: &(Mutex<bool>, Condvar), stats: &WatchStat
                 }
             }
             _ => {
-                if let Some((_, since, true)) = seen {
+                if let Some((_, since, _, true)) = seen {
                     // The graph read the verdict before it moved on.
                     heartbeat.verdict.store(0, Ordering::Release);
                     tracing::warn!("the control loop is moving again after {} ms", since.elapsed().as_millis());
                 }
-                seen = Some((word, Instant::now(), false));
+                seen = Some((word, Instant::now(), 0, false));
             }
         }
     }
