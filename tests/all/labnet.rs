@@ -846,6 +846,11 @@ fn the_submitter_watches_their_robot_live_and_any_user_stops_one_robot_or_all() 
     assert_eq!(first["experiment"]["id"], local_r1, "{first:#}");
     assert_eq!(first["experiment"]["submitter"], "ana", "{first:#}");
     assert_ne!(first["set"].as_u64(), Some(baselines[0]), "r1 runs ana's set, not its baseline: {first:#}");
+    // It names r1's folders (its store, its robot file's), as r1's own
+    // portal does, never spells them out.
+    let folders = dir.path().to_str().unwrap();
+    assert!(!first.to_string().contains(folders), "{first:#}");
+    assert!(first.to_string().contains("<store>/blobs/"), "{first:#}");
     let deadline = Instant::now() + Duration::from_secs(120);
     loop {
         let (status, json) = live(Some(&ana), "r1");

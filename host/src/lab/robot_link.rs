@@ -42,6 +42,7 @@ use super::wire::{
 use super::{Lab, LabError, bundle};
 use crate::bridge::session::{self, SessionSettings, Shared};
 use crate::deploy::SetImport;
+use crate::fsutil::HiddenPaths;
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{
@@ -122,6 +123,9 @@ pub struct RobotLink {
     stopping: Arc<AtomicBool>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
     _heartbeats: Mutex<Option<zenoh::pubsub::Subscriber<()>>>,
+    /// The robot's folders its live status must not spell out to the lab
+    /// (its portal hides the same).
+    hidden: HiddenPaths,
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -135,8 +139,9 @@ fn lab_user(options: &RobotLinkOptions, submitter: &str) -> String {
 
 impl RobotLink {
     /// Joins the lab: opens the session, answers the lab's queries,
-    /// declares the robot's token.
-    pub fn start(lab: Arc<Lab>, options: RobotLinkOptions) -> Result<Arc<RobotLink>, LinkError> {
+    /// declares the robot's token. The live status it gives the lab names
+    /// the `hidden` folders, never spells them out.
+    pub fn start(lab: Arc<Lab>, options: RobotLinkOptions, hidden: HiddenPaths) -> Result<Arc<RobotLink>, LinkError> {
         if !wire::is_name(&options.robot) {
             return Err(LinkError::Name(crate::contract::clip(&options.robot)));
         }
@@ -165,6 +170,7 @@ impl RobotLink {
             stopping: Arc::new(AtomicBool::new(false)),
             threads: Mutex::new(Vec::new()),
             _heartbeats: Mutex::new(None),
+            hidden,
         });
         link.refresh_package()?;
         let weak = Arc::downgrade(&link);
@@ -775,11 +781,12 @@ impl RobotLink {
             std::thread::sleep(Duration::from_millis(20));
         }
         let status = live.borrow().clone();
-        let value = serde_json::to_value(&*status).unwrap_or_default();
-        if serde_json::to_vec(&value).map(|b| b.len()).unwrap_or(0) > wire::MAX_LIVE_BYTES {
+        let mut text = serde_json::to_string(&*status).unwrap_or_default();
+        self.hidden.hide(&mut text);
+        if text.len() > wire::MAX_LIVE_BYTES {
             return serde_json::json!({ "error": "the live status is larger than the lab link carries" });
         }
-        value
+        serde_json::from_str(&text).unwrap_or_default()
     }
 }
 
