@@ -23,7 +23,7 @@ import struct
 import sys
 import time
 
-import zenoh
+from lab_tokens import client
 
 MAGIC = b"SLB1"
 KINDS = {"dispatch": 4, "dispatch-reply": 5, "estop": 7, "ack": 8}
@@ -68,11 +68,7 @@ def message(case, lab_id):
 
 def main():
     endpoint, lab, robot, cases = sys.argv[1], sys.argv[2], sys.argv[3], json.loads(sys.argv[4])
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("client"))
-    conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    session = client(endpoint)
     try:
         for n, case in enumerate(cases):
             header = json.dumps(message(case, 9000 + n)).encode()
