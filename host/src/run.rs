@@ -180,6 +180,8 @@ pub struct LabServeOptions {
     pub cache_dir: Option<PathBuf>,
     pub tls: HostTls,
     pub fleet: FleetOptions,
+    /// What a store with no users gets at start.
+    pub first_user: FirstUser,
     /// How the lab's preflights are scheduled (`--preflight-priority`).
     pub preflight_priority: crate::lab::preflight::Priority,
 }
@@ -360,7 +362,10 @@ fn run_control_thread<H: CycleHook + Send + 'static>(
     mut hook: H,
 ) -> Result<(Graph, H, StopReason, u64), RunError> {
     let until_ns = options.duration.map(|d| clock.now_ns().saturating_add(d.as_nanos() as u64));
-    let heartbeat = Heartbeat::new(options.stall_limit);
+    let heartbeat = match options.pace {
+        Some(_) => Heartbeat::on_simulated_time(options.stall_limit),
+        None => Heartbeat::new(options.stall_limit),
+    };
     let watchdog = StallWatchdog::start(heartbeat.clone(), Box::new(|_| {}))
         .map_err(|e| RunError::ControlLoop(format!("cannot start the stall watchdog: {e}")))?;
     let injected = options.fault_injection;
@@ -483,10 +488,10 @@ fn final_report(config: &RobotConfig, graph: &Graph, stopped_by: StopReason, ran
 /// A store with no users at start: makes the first admin and prints its
 /// login on standard output, once (never into the log, which the portal
 /// and recordings show), or says how to add a user.
-fn first_user(store: &Store, first: FirstUser, url: &str) {
+fn first_user(store: &Store, what: &str, first: FirstUser, url: &str) {
     let hint = || {
         tracing::warn!(
-            "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+            "the {what} has no users yet: add one with `subsume user add NAME --role admin --store {}`",
             store.root().display()
         );
     };
@@ -656,7 +661,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let (runtime, scheme, address) = (served.runtime, served.scheme, served.address);
     // Before the portal's line: whoever waits for that line has the login.
     if no_users {
-        first_user(&first_store, portal.first_user, &format!("{scheme}://{address}/"));
+        first_user(&first_store, "portal", portal.first_user, &format!("{scheme}://{address}/"));
     }
     tracing::info!("portal on {scheme}://{address}/ (store {})", portal.store_dir.display());
     let Some(record) = &options.record else {
@@ -709,14 +714,7 @@ pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), Ru
     let sandbox = Arc::new(Sandbox::new(options.cache_dir.clone())?);
     let store = Arc::new(Store::open(&options.store_dir)?);
     let directory = Arc::new(Directory::new(store.users().clone()));
-    match directory.users.all() {
-        Ok(users) if users.is_empty() => tracing::warn!(
-            "the lab has no users yet: add one with `subsume user add NAME --role admin --store {}`",
-            store.root().display()
-        ),
-        Ok(_) => {}
-        Err(e) => return Err(StoreError::from(e).into()),
-    }
+    let no_users = directory.users.all().map_err(StoreError::from)?.is_empty();
     if options.tls.identity.is_none() {
         options.tls.check_plain("lab portal", options.listen)?;
     }
@@ -743,6 +741,10 @@ pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), Ru
         portal::lab_server_app,
     )?;
     let (runtime, scheme, address) = (served.runtime, served.scheme, served.address);
+    // Before the server's line: whoever waits for that line has the login.
+    if no_users {
+        first_user(&store, "lab", options.first_user, &format!("{scheme}://{address}/"));
+    }
     tracing::info!(
         "lab server '{}' on {scheme}://{address}/ (store {})",
         fleet.lab_name(),

@@ -322,74 +322,89 @@ fn a_kill_during_uploads_and_activations_leaves_a_consistent_store_that_restarts
 /// portal's address and a password once; that password logs in over HTTP,
 /// and neither the store nor the log holds it. The next start prints none.
 /// With standard output a pipe (a service unit, a log file) no user is
-/// made and the log says how to add one.
+/// made and the log says how to add one. So for a robot's portal
+/// (`subsume run`) and a lab server's (`subsume lab serve`).
 #[test]
 fn a_first_run_at_a_terminal_prints_a_login_that_works_and_a_pipe_gets_a_hint() {
     let dir = tempfile::tempdir().unwrap();
     let robot = dir.path().join("first.xml");
     std::fs::write(&robot, light_robot("first", 1, 2, None)).unwrap();
-    let run = |store: &Path| {
-        let mut command = subsume();
-        command.args(["--store", store.to_str().unwrap(), "run"]).arg(&robot).args(["--http", "127.0.0.1:0"]);
-        command
-    };
-    let portal = |host: &support::HostProcess| {
-        let address = host.word_after("portal on http://", Duration::from_secs(60));
-        address.trim_end_matches('/').to_string()
-    };
+    // (what, the arguments after `--store STORE`, the line before the
+    // portal's address, what the hint calls it).
+    let robot_args: Vec<&str> = vec!["run", robot.to_str().unwrap(), "--http", "127.0.0.1:0"];
+    let lab_args: Vec<&str> = vec!["lab", "serve", "--http", "127.0.0.1:0", "--lab", "first"];
+    let cases = [
+        ("robot", robot_args, "portal on http://", "portal"),
+        ("lab", lab_args, "lab server 'first' on http://", "lab"),
+    ];
+    for (what, args, line, hint_name) in cases {
+        let run = |store: &Path| {
+            let mut command = subsume();
+            command.args(["--store", store.to_str().unwrap()]).args(&args).env_remove("SUBSUME_HTTP");
+            command
+        };
+        let portal = |host: &support::HostProcess| {
+            let address = host.word_after(line, Duration::from_secs(60));
+            address.trim_end_matches('/').to_string()
+        };
 
-    let store = dir.path().join("store");
-    let mut terminal = support::Pty::new();
-    let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
-    let address = portal(&host);
-    // Printed before the portal's line: all there by now.
-    assert!(terminal.read_until(Duration::from_secs(10), |t| t.contains("shown this once")), "{}", terminal.text);
-    let shown = terminal.text.clone();
-    assert!(shown.contains(&format!("http://{address}/")), "{shown}");
-    let password = shown.split("user admin  password ").nth(1).and_then(|rest| rest.split_whitespace().next());
-    let password = password.unwrap_or_else(|| panic!("no password in:\n{shown}")).to_string();
-    assert!(password.len() >= 16, "{password}");
-    let body = serde_json::json!({ "name": "admin", "password": password }).to_string();
-    let (status, json) = http(&address, "POST", "/api/v1/login", None, body.as_bytes());
-    assert_eq!((status, json["user"]["role"].as_str()), (200, Some("admin")), "{json}");
-    let (status, _) = http(&address, "GET", "/api/v1/audit", json["token"].as_str(), b"");
-    assert_eq!(status, 200, "the first admin may read what only admins may");
-    for (path, bytes) in support::store_snapshot(&[], &store) {
+        let store = dir.path().join(format!("{what}-store"));
+        let mut terminal = support::Pty::new();
+        let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
+        let address = portal(&host);
+        // Printed before the portal's line: all there by now.
         assert!(
-            !bytes.windows(password.len()).any(|w| w == password.as_bytes()),
-            "{} holds the password",
-            path.display()
+            terminal.read_until(Duration::from_secs(10), |t| t.contains("shown this once")),
+            "{what}: {}",
+            terminal.text
         );
+        let shown = terminal.text.clone();
+        assert!(shown.contains(&format!("http://{address}/")), "{what}: {shown}");
+        let password = shown.split("user admin  password ").nth(1).and_then(|rest| rest.split_whitespace().next());
+        let password = password.unwrap_or_else(|| panic!("{what}: no password in:\n{shown}")).to_string();
+        assert!(password.len() >= 16, "{password}");
+        let body = serde_json::json!({ "name": "admin", "password": password }).to_string();
+        let (status, json) = http(&address, "POST", "/api/v1/login", None, body.as_bytes());
+        assert_eq!((status, json["user"]["role"].as_str()), (200, Some("admin")), "{what}: {json}");
+        let (status, _) = http(&address, "GET", "/api/v1/audit", json["token"].as_str(), b"");
+        assert_eq!(status, 200, "{what}: the first admin may read what only admins may");
+        for (path, bytes) in support::store_snapshot(&[], &store) {
+            assert!(
+                !bytes.windows(password.len()).any(|w| w == password.as_bytes()),
+                "{} holds the password",
+                path.display()
+            );
+        }
+        assert!(!host.log().contains(&password), "{what}: the log holds the password");
+        drop(host);
+
+        // The next start, at a terminal too: the admin stays, no new password.
+        let mut terminal = support::Pty::new();
+        let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
+        let address = portal(&host);
+        terminal.read_until(Duration::from_millis(200), |_| false);
+        assert!(!terminal.text.contains("password"), "{what}: {}", terminal.text);
+        assert!(!host.log().contains("no users yet"), "{what}: {}", host.log());
+        support::login(&address, "admin", &password);
+        drop(host);
+
+        // Standard output a pipe: no user, a hint in the log, nothing printed.
+        let piped = dir.path().join(format!("{what}-piped"));
+        let mut host = support::HostProcess::spawn_with_stdout(run(&piped), Stdio::piped());
+        portal(&host);
+        let hint = format!(
+            "the {hint_name} has no users yet: add one with `subsume user add NAME --role admin --store {}`",
+            piped.display()
+        );
+        assert!(host.log().contains(&hint), "{what}: {}", host.log());
+        let mut stdout = host.child.stdout.take().unwrap();
+        let _ = host.child.kill();
+        let _ = host.child.wait();
+        let mut printed = String::new();
+        std::io::Read::read_to_string(&mut stdout, &mut printed).unwrap();
+        assert!(!printed.contains("password"), "{what}: {printed}");
+        assert!(!piped.join("users.json").exists(), "{what}: a user was made with stdout a pipe");
     }
-    assert!(!host.log().contains(&password), "the log holds the password");
-    drop(host);
-
-    // The next start, at a terminal too: the admin stays, no new password.
-    let mut terminal = support::Pty::new();
-    let host = support::HostProcess::spawn_with_stdout(run(&store), terminal.stdio());
-    let address = portal(&host);
-    terminal.read_until(Duration::from_millis(200), |_| false);
-    assert!(!terminal.text.contains("password"), "{}", terminal.text);
-    assert!(!host.log().contains("no users yet"), "{}", host.log());
-    support::login(&address, "admin", &password);
-    drop(host);
-
-    // Standard output a pipe: no user, a hint in the log, nothing printed.
-    let piped = dir.path().join("piped");
-    let mut host = support::HostProcess::spawn_with_stdout(run(&piped), Stdio::piped());
-    portal(&host);
-    let hint = format!(
-        "the portal has no users yet: add one with `subsume user add NAME --role admin --store {}`",
-        piped.display()
-    );
-    assert!(host.log().contains(&hint), "{}", host.log());
-    let mut stdout = host.child.stdout.take().unwrap();
-    let _ = host.child.kill();
-    let _ = host.child.wait();
-    let mut printed = String::new();
-    std::io::Read::read_to_string(&mut stdout, &mut printed).unwrap();
-    assert!(!printed.contains("password"), "{printed}");
-    assert!(!piped.join("users.json").exists(), "a user was made with stdout a pipe");
 }
 
 #[test]

@@ -140,6 +140,13 @@ impl ServeArgs {
             tls: subsume::tls::HostTls { identity, allow_plain_remote: self.allow_plain_http },
             fleet: subsume::lab::server::FleetOptions { key, session, relearn: self.relearn },
             preflight_priority: self.preflight_priority,
+            // As `subsume run`: a first admin for a person at a terminal,
+            // a hint for a service unit or a pipe.
+            first_user: if std::io::IsTerminal::is_terminal(&std::io::stdout()) {
+                subsume::run::FirstUser::MakeAdmin
+            } else {
+                subsume::run::FirstUser::Hint
+            },
         };
         let shutdown = subsume::runtime::control_loop::Shutdown::new();
         let signals = crate::install_signal_handlers(shutdown.clone())?;

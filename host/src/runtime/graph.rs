@@ -486,7 +486,7 @@ impl Graph {
         self.mark = Some(ended);
         // A call that held the loop past the limit is faulted even when the
         // watchdog's verdict came too late for it (or it slept through it).
-        if !stalled && self.heartbeat.as_ref().is_some_and(|h| held >= h.limit()) {
+        if !stalled && self.heartbeat.as_ref().is_some_and(|h| h.after_the_call(held)) {
             let reason = self.stall_reason(activity, Some(held));
             self.fault(index, reason, now_ns);
         }
@@ -508,7 +508,7 @@ impl Graph {
             let max_restarts = policy.max_restarts;
             let mut restarted = restarter();
             let held = started.elapsed();
-            if self.stalled(word) || self.heartbeat.as_ref().is_some_and(|h| held >= h.limit()) {
+            if self.stalled(word) || self.heartbeat.as_ref().is_some_and(|h| h.after_the_call(held)) {
                 restarted = Err(RestartError(self.stall_reason(Activity::Restart, Some(held))));
             }
             let node = &mut self.nodes[index];

@@ -153,6 +153,12 @@ pub struct Heartbeat {
     /// The word the watchdog declared stalled (0: none).
     verdict: AtomicU64,
     limit: Duration,
+    /// Whether the graph also faults a call that held the loop for the
+    /// limit on the wall clock though the watchdog never declared it (it
+    /// may have been late). Not on simulated time: there a call's wall time
+    /// says how busy the machine was, not what the call did, and the same
+    /// inputs must give the same results.
+    judge_after: bool,
     attached: Mutex<Attached>,
 }
 
@@ -165,12 +171,30 @@ impl fmt::Debug for Heartbeat {
 impl Heartbeat {
     /// A heartbeat whose loop stalls when one call runs for `limit`.
     pub fn new(limit: Duration) -> Arc<Heartbeat> {
+        Heartbeat::judging_after(limit, true)
+    }
+
+    /// The heartbeat of a loop on simulated time: only the watchdog's own
+    /// verdict faults a call (see [`Heartbeat::after_the_call`]).
+    pub fn on_simulated_time(limit: Duration) -> Arc<Heartbeat> {
+        Heartbeat::judging_after(limit, false)
+    }
+
+    fn judging_after(limit: Duration, judge_after: bool) -> Arc<Heartbeat> {
         Arc::new(Heartbeat {
             word: AtomicU64::new(pack(0, NO_NODE, Activity::Asleep)),
             verdict: AtomicU64::new(0),
             limit,
+            judge_after,
             attached: Mutex::new(Attached::default()),
         })
+    }
+
+    /// Whether a call that held the loop for `held` (wall clock, measured
+    /// by the graph when it returned) is a stall the watchdog missed: on
+    /// real time when `held` reached the limit, never on simulated time.
+    pub fn after_the_call(&self, held: Duration) -> bool {
+        self.judge_after && held >= self.limit
     }
 
     /// The stall limit.

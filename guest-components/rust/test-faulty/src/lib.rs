@@ -130,7 +130,12 @@ impl Component for Faulty {
             _ => {}
         }
         let drive = params.text("drive").unwrap_or("no") == "yes";
-        let spins = u64::try_from(params.integer("spins")?).map_err(|_| "spins must not be negative".to_string())?;
+        // Optional: a host that instantiates without the declared defaults
+        // (the runtime tests) gives only what it names.
+        let spins = match params.text("spins") {
+            None => 1_000_000,
+            Some(_) => u64::try_from(params.integer("spins")?).map_err(|_| "spins must not be negative".to_string())?,
+        };
         Ok(Faulty { mode, after: params.integer("after")?, drive, spins, ticks: 0, hoard: Vec::new() })
     }
 
