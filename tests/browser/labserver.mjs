@@ -4,7 +4,8 @@
 // the lab's experiment it runs and its time left (counting down); watches
 // a running robot's live status; presses one robot's STOP and sees that
 // robot stopped by them, the others not; then STOP ALL, and every robot
-// stopped. Screenshots go to $ARTIFACTS (labserver-*.png).
+// stopped. The submit form shows only to a role that may submit.
+// Screenshots go to $ARTIFACTS (labserver-*.png).
 // Usage: node labserver.mjs URL USER PASSWORD ROBOTS_JSON
 // ROBOTS_JSON: [{"name", "profile", "state", "experiment", "duration_s"}]
 // (the first one is stopped alone; `experiment` null when idle).
@@ -34,6 +35,9 @@ try {
   await page.click('#login-button');
   await page.waitForSelector('#app:not([hidden])');
   await page.waitForSelector('#stop-all:visible');
+  const role = (await page.textContent('#whoami')).match(/\((\w+)\)/)[1];
+  const submits = ['researcher', 'developer', 'admin'].includes(role);
+  check(await page.isVisible('#submit-section') === submits, `a ${role} ${submits ? 'does not see' : 'sees'} the submit form`);
 
   step('every robot: name, profile, state, experiment, time left');
   const left = {};
