@@ -1018,16 +1018,17 @@ fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_
     assert_eq!(before.2["experiments"].as_array().map(Vec::len), Some(0), "{:#}", before.2);
     let status = robot_status(r1);
     assert_eq!(status["arbiter"]["engaged"], serde_json::json!([]), "{status:#}");
+    // Every refusal, in the order sent, each under its op's action.
     let audit = on_robot("/api/v1/audit");
     let refusals: Vec<&Json> = audit["entries"]
         .as_array()
         .unwrap()
         .iter()
-        .filter(|e| e["action"] == "lab-dispatch" && e["result"] == "refused")
+        .filter(|e| e["action"].as_str().is_some_and(|a| a.starts_with("lab-")) && e["result"] == "refused")
         .collect();
-    let dispatches = cases.iter().filter(|(case, _)| case["op"] == "dispatch");
-    assert_eq!(refusals.len(), dispatches.clone().count(), "{audit:#}");
-    for ((_, expected), refusal) in dispatches.zip(&refusals) {
+    assert_eq!(refusals.len(), cases.len(), "{audit:#}");
+    for ((case, expected), refusal) in cases.iter().zip(&refusals) {
+        assert_eq!(refusal["action"], format!("lab-{}", case["op"].as_str().unwrap()), "{refusal:#}");
         assert!(refusal["detail"].as_str().unwrap().contains(expected), "{expected}: {refusal:#}");
     }
     let boss = lab.token("boss");

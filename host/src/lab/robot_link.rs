@@ -273,14 +273,14 @@ impl RobotLink {
             Op::Stop => {
                 let ack = match key.open::<Stop>(payload) {
                     Ok((stop, _)) => self.stop(&stop),
-                    Err(e) => Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") },
+                    Err(e) => self.refuse("lab-stop", "a stop", format!("refused: {e}")),
                 };
                 key.seal(&ack, &[])
             }
             Op::Estop => {
                 let ack = match key.open::<Estop>(payload) {
                     Ok((estop, _)) => self.estop(&estop),
-                    Err(e) => Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") },
+                    Err(e) => self.refuse("lab-estop", "an emergency stop", format!("refused: {e}")),
                 };
                 key.seal(&ack, &[])
             }
@@ -643,10 +643,19 @@ impl RobotLink {
         }
     }
 
+    /// Refuses a message that would change what runs (a stop, an
+    /// emergency stop), in the audit log as dispatches are: who tried is
+    /// not known, so the lab is named.
+    fn refuse(&self, action: &str, what: &str, reason: String) -> Ack {
+        self.lab.deployer.audit("lab", action, what, Outcome::Refused(&reason));
+        tracing::warn!("lab '{}': {what} was {reason}", self.options.key.lab());
+        Ack { v: WIRE_VERSION, ok: false, message: reason }
+    }
+
     fn stop(&self, stop: &Stop) -> Ack {
         let ack = |ok, message: String| Ack { v: WIRE_VERSION, ok, message };
         if let Err(e) = wire::fresh(stop.issued_unix_ms, unix_now_ms()) {
-            return ack(false, format!("refused: {e}"));
+            return self.refuse("lab-stop", &format!("lab experiment {}", stop.lab_id), format!("refused: {e}"));
         }
         self.heard_lab();
         let by = lab_user(&self.options, &stop.by);
@@ -677,7 +686,7 @@ impl RobotLink {
 
     fn estop(&self, estop: &Estop) -> Ack {
         if let Err(e) = wire::fresh(estop.issued_unix_ms, unix_now_ms()) {
-            return Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") };
+            return self.refuse("lab-estop", "an emergency stop", format!("refused: {e}"));
         }
         self.heard_lab();
         let user = User {
