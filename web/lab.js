@@ -127,6 +127,8 @@ function listen() {
   }, 1000);
 }
 
+const ROLES_THAT_SUBMIT = ["researcher", "developer", "admin"];
+
 async function start() {
   try {
     me = await api("GET", "/session");
@@ -137,6 +139,9 @@ async function start() {
   $("app").hidden = false;
   $("stop-bar").hidden = false;
   $("whoami").textContent = `${me.name} (${me.role})`;
+  // Only the roles that may submit see the form (the robot portal's
+  // ROLE_MAY `lab` column; the API refuses the others with 403).
+  $("submit-section").hidden = !ROLES_THAT_SUBMIT.includes(me.role);
   listen();
 }
 

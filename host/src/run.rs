@@ -527,6 +527,17 @@ struct ServedPortal {
     address: std::net::SocketAddr,
 }
 
+/// The folders no answer to a remote user shows: `hidden`, the compile
+/// cache and the working folder.
+fn answer_hidden(deployer: &Deployer, hidden: &[(&Path, &'static str)]) -> Vec<(PathBuf, &'static str)> {
+    let mut all: Vec<(PathBuf, &'static str)> = hidden.iter().map(|(p, shown)| (p.to_path_buf(), *shown)).collect();
+    all.push((std::env::current_dir().unwrap_or_default(), "<working folder>"));
+    if let Some(cache) = deployer.sandbox.cache_dir() {
+        all.push((cache.to_path_buf(), "<cache>"));
+    }
+    all
+}
+
 /// Serves `app` over `parts` on `listen` (TLS when the host has an
 /// identity) on a runtime of its own. No answer shows a server path: the
 /// `hidden` folders, the compile cache and the working folder are named,
@@ -547,13 +558,8 @@ fn serve_portal(
         .build()
         .map_err(RunError::PortalRuntime)?;
     let acceptor = tls.identity.as_ref().map(|identity| identity.http_acceptor());
-    let cache = parts.deployer.sandbox.cache_dir().map(Path::to_path_buf);
-    let working_dir = std::env::current_dir().unwrap_or_default();
-    let mut hidden = hidden.to_vec();
-    hidden.push((working_dir.as_path(), "<working folder>"));
-    if let Some(cache) = &cache {
-        hidden.push((cache.as_path(), "<cache>"));
-    }
+    let hidden = answer_hidden(&parts.deployer, hidden);
+    let hidden: Vec<(&Path, &'static str)> = hidden.iter().map(|(p, shown)| (p.as_path(), *shown)).collect();
     let PortalParts { deployer, lab, directory, logs } = parts;
     let state = match acceptor {
         Some(_) => portal::PortalState::over_tls(deployer, lab, directory, logs),
@@ -629,15 +635,26 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
             role,
         },
     )?;
-    let link = portal.lab.clone().map(|o| RobotLink::start(lab.clone(), o)).transpose()?;
+    let robot_dir = options.config_path.parent().map(Path::to_path_buf).unwrap_or_default();
+    let hidden = [(portal.store_dir.as_path(), "<store>"), (robot_dir.as_path(), "<robot file folder>")];
+    // The robot's live status reaches the lab's users through the lab
+    // server: it hides the robot's folders as the robot's own portal does.
+    let link = portal
+        .lab
+        .clone()
+        .map(|o| {
+            let folders = answer_hidden(&deployer, &hidden);
+            let folders: Vec<(&Path, &'static str)> = folders.iter().map(|(p, shown)| (p.as_path(), *shown)).collect();
+            RobotLink::start(lab.clone(), o, crate::fsutil::HiddenPaths::new(&folders))
+        })
+        .transpose()?;
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }
-    let robot_dir = options.config_path.parent().map(Path::to_path_buf).unwrap_or_default();
     let served = serve_portal(
         portal.listen,
         &options.tls,
-        &[(portal.store_dir.as_path(), "<store>"), (robot_dir.as_path(), "<robot file folder>")],
+        &hidden,
         PortalParts { deployer, lab: lab.clone(), directory, logs: portal.logs.clone() },
         portal::app,
     )?;

@@ -25,6 +25,22 @@
 //!   gets it back in the queue once; the second refusal ends it `refused`.
 //! - A lab server killed with SIGKILL and started again keeps its users,
 //!   results and queue, and relearns its robots from their tokens.
+//! - The lab's STOP, pressed by users who submitted nothing (a researcher
+//!   for one robot, a viewer for all): each robot's experiment ends
+//!   `aborted: emergency stop by USER@LAB`, the robot runs its baseline
+//!   with its motors still under the lock, the presses are audited, and
+//!   the lock is released on the robot. Before it, the submitter's live
+//!   view of their robot is that robot's own status, changing while it
+//!   runs; without a session it is refused (401).
+//! - Messages forged with another secret by an `eclipse-zenoh` client
+//!   (`tests/python/lab_forge.py`) straight to a robot's queryables, a
+//!   dispatch and an emergency stop, are refused and change nothing there.
+//! - A robot whose owner marked another baseline refuses an experiment the
+//!   lab passed (an envelope difference; a platform its submitter does not
+//!   hold): back in the queue once with the reason, then `refused`.
+//! - The lab server's page in Chromium (`tests/browser/labserver.mjs`):
+//!   every robot with its name, profile, state, experiment and time left;
+//!   its STOP buttons stop the robots.
 
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
@@ -41,6 +57,8 @@ use crate::support::{self, HostProcess, free_port, http};
 const PASSWORD: &str = "labnet-test-password";
 const RESEARCHERS: [&str; 3] = ["ana", "ben", "cy"];
 const LAB: &str = "testlab";
+/// A user of the lab who only watches.
+const VIEWER: &str = "vic";
 /// The robots' `--lab-lost`: how long a robot runs the lab's experiment
 /// without hearing its lab.
 const LOST_AFTER_S: f64 = 2.0;
@@ -298,6 +316,7 @@ impl LabNet {
         for name in RESEARCHERS {
             support::add_user(&store, name, "researcher", &["control"], PASSWORD);
         }
+        support::add_user(&store, VIEWER, "viewer", &[], PASSWORD);
         let zenoh_port = free_port();
         let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
         let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
@@ -787,4 +806,370 @@ fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_re
     assert!(causes.last().unwrap().contains("refused it a second time"), "{causes:#?}");
     assert!(refused["reasons"].to_string().contains("max-duration of 10 s"), "{refused:#}");
     assert_eq!(refused["placement"]["refusals"], 2, "{refused:#}");
+}
+
+/// Robot `robot`'s live status, as its own portal gives it to its owner.
+fn robot_status(robot: &Robot) -> Json {
+    let token = support::login(&robot.address, "owner", PASSWORD);
+    let (status, json) = http(&robot.address, "GET", "/api/v1/status", Some(&token), b"");
+    assert_eq!(status, 200, "{json}");
+    json
+}
+
+/// Waits until `robot`'s motors stand still under its engaged lock: its
+/// arbiter holds the lock `by` engaged, and two looks, the loop having run
+/// at least 100 cycles between them, see the simulated robot where it was.
+fn wait_stopped_by(robot: &Robot, by: &str) -> Json {
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut before = robot_status(robot);
+    loop {
+        std::thread::sleep(Duration::from_millis(500));
+        let now = robot_status(robot);
+        let locked = now["arbiter"]["engaged"].as_array().is_some_and(|e| e.iter().any(|l| l["by"] == by));
+        let ran = now["cycles"].as_u64().unwrap_or(0) >= before["cycles"].as_u64().unwrap_or(u64::MAX) + 100;
+        let still = now["sim"]["distance_travelled_m"] == before["sim"]["distance_travelled_m"]
+            && now["sim"]["x"] == before["sim"]["x"]
+            && now["sim"]["y"] == before["sim"]["y"];
+        if locked && ran && still {
+            return now;
+        }
+        assert!(Instant::now() < deadline, "robot {} never stood still under {by}'s lock: {now:#}", robot.name);
+        if ran {
+            before = now;
+        }
+    }
+}
+
+#[test]
+fn the_submitter_watches_their_robot_live_and_any_user_stops_one_robot_or_all() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let (ana, ben, cy, vic) = (lab.token("ana"), lab.token("ben"), lab.token("cy"), lab.token(VIEWER));
+    let baselines: Vec<u64> = lab.robots.iter().map(active_set).collect();
+    let ana_set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let ben_set = lab.stage(&ben, "ben.xml", &robot(6.0, ""));
+    let on_r1 = lab.submit(&ana, ana_set, 110.0, Some("r1"));
+    let on_r2 = lab.submit(&ben, ben_set, 110.0, Some("r2"));
+    for (token, id) in [(&ana, on_r1), (&ben, on_r2)] {
+        assert_eq!(lab.wait_for(token, id, "running", Duration::from_secs(240))["state"], "running");
+    }
+    let local_r1 = lab.experiment(&ana, on_r1)["placement"]["local_id"].as_u64().unwrap();
+
+    // The submitter's live view of r1: r1's own status, asked of it now,
+    // with ana's experiment in it, and changing while it runs.
+    let live =
+        |token: Option<&str>, name: &str| http(&lab.address, "GET", &format!("/api/v1/robots/{name}/live"), token, b"");
+    let (status, first) = live(Some(&ana), "r1");
+    assert_eq!(status, 200, "{first}");
+    let first = &first["status"];
+    assert_eq!(first["experiment"]["id"], local_r1, "{first:#}");
+    assert_eq!(first["experiment"]["submitter"], "ana", "{first:#}");
+    assert_ne!(first["set"].as_u64(), Some(baselines[0]), "r1 runs ana's set, not its baseline: {first:#}");
+    // It names r1's folders (its store, its robot file's), as r1's own
+    // portal does, never spells them out.
+    let folders = dir.path().to_str().unwrap();
+    assert!(!first.to_string().contains(folders), "{first:#}");
+    assert!(first.to_string().contains("<store>/blobs/"), "{first:#}");
+    let deadline = Instant::now() + Duration::from_secs(120);
+    loop {
+        let (status, json) = live(Some(&ana), "r1");
+        assert_eq!(status, 200, "{json}");
+        let now = &json["status"];
+        assert_eq!(now["experiment"]["id"], local_r1, "{now:#}");
+        let later = |field: &str| now[field].as_f64().unwrap() > first[field].as_f64().unwrap();
+        if later("cycles") && now["sim"]["time_s"].as_f64().unwrap() > first["sim"]["time_s"].as_f64().unwrap() {
+            assert!(later("duration_s"), "{now:#}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "r1's live status never changed: {first:#}\n{now:#}");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    // r2's live view is r2's, with ben's experiment.
+    let (status, json) = live(Some(&ben), "r2");
+    assert_eq!((status, &json["status"]["experiment"]["submitter"]), (200, &Json::from("ben")), "{json}");
+    // Who may not see it, as the portal's matrix says (any logged-in
+    // user may): nobody without a session, and no robot the lab lacks.
+    for (token, name, expected) in
+        [(None, "r1", 401), (Some("not-a-session"), "r1", 401), (Some(ana.as_str()), "r9", 404)]
+    {
+        let (status, json) = live(token, name);
+        assert_eq!(status, expected, "{name} with {token:?}: {json}");
+        assert!(json["status"].is_null(), "{json}");
+    }
+    let (status, _) = live(Some(&vic), "r1");
+    assert_eq!(status, 200, "a viewer may watch");
+
+    // STOP for r1, by a user who submitted nothing: r1's emergency stop.
+    let (status, json) = lab.call(&cy, "POST", "/api/v1/robots/r1/stop", "");
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["stopped"], serde_json::json!([{"robot": "r1", "engaged": true, "message": "engaged"}]));
+    let stopped_by_cy = format!("cy@{LAB}");
+    let aborted = lab.wait_for(&ana, on_r1, "aborted", Duration::from_secs(120));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}\n{}", lab.logs());
+    let cause = aborted["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+    assert!(cause.contains(&format!("on robot r1: aborted: emergency stop by {stopped_by_cy}")), "{cause}");
+    // On r1 itself: its experiment aborted with that cause, the baseline
+    // back, the motors standing still under cy's lock.
+    let r1 = lab.robot("r1");
+    let stopped = wait_stopped_by(r1, &stopped_by_cy);
+    assert_eq!(stopped["set"].as_u64(), Some(baselines[0]), "{stopped:#}");
+    assert!(stopped["experiment"].is_null(), "{stopped:#}");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let (_, json) = http(&r1.address, "GET", &format!("/api/v1/experiments/{local_r1}"), Some(&owner), b"");
+    assert_eq!(json["experiment"]["state"], "aborted", "{json:#}");
+    assert!(json["experiment"]["reasons"].to_string().contains(&format!("emergency stop by {stopped_by_cy}")));
+    // The lab lists r1 stopped by cy; r2 runs on.
+    lab.wait_robots(&cy, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "stopped" && r["stopped_by"] == stopped_by_cy.as_str())
+    });
+    assert_eq!(lab.experiment(&ben, on_r2)["state"], "running", "r2 runs on after r1's STOP");
+    // The live view of r1 shows it stopped, too.
+    let (status, json) = live(Some(&ana), "r1");
+    assert_eq!(status, 200, "{json}");
+    assert!(json["status"]["arbiter"]["engaged"].to_string().contains(&stopped_by_cy), "{json:#}");
+
+    // STOP for all, by a viewer: every robot answers; r2's experiment ends.
+    let (status, json) = lab.call(&vic, "POST", "/api/v1/robots/stop", "");
+    assert_eq!(status, 200, "{json}");
+    let mut answers: Vec<(String, bool, String)> = json["stopped"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| (a["robot"].as_str().unwrap().into(), a["engaged"] == true, a["message"].as_str().unwrap().into()))
+        .collect();
+    answers.sort();
+    assert_eq!(
+        answers,
+        [("r1".into(), true, "engaged already".into()), ("r2".into(), true, "engaged".into())],
+        "{json}"
+    );
+    let stopped_by_vic = format!("{VIEWER}@{LAB}");
+    let aborted = lab.wait_for(&ben, on_r2, "aborted", Duration::from_secs(120));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}\n{}", lab.logs());
+    assert!(aborted.to_string().contains(&format!("emergency stop by {stopped_by_vic}")), "{aborted:#}");
+    let stopped = wait_stopped_by(lab.robot("r2"), &stopped_by_vic);
+    assert_eq!(stopped["set"].as_u64(), Some(baselines[1]), "{stopped:#}");
+    lab.wait_robots(&vic, Duration::from_secs(60), |robots| {
+        robots.len() == 2 && robots.iter().all(|r| r["state"] == "stopped")
+    });
+    // The lab's audit log names who pressed which STOP.
+    let (status, audit) = lab.call(&lab.token("boss"), "GET", "/api/v1/audit", "");
+    assert_eq!(status, 200, "{audit}");
+    let mut presses: Vec<(String, String, String)> = audit["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["action"] == "lab-estop")
+        .map(|e| (e["user"].as_str().unwrap().into(), e["target"].as_str().unwrap().into(), e["result"].to_string()))
+        .collect();
+    presses.sort();
+    let ok = Json::from("ok").to_string();
+    let expected = [("cy", "robot r1"), (VIEWER, "robot r1"), (VIEWER, "robot r2")]
+        .map(|(user, target)| (user.to_string(), target.to_string(), ok.clone()));
+    assert_eq!(presses, expected, "{audit:#}");
+    // The lock is released on each robot, as always: the lab lists them idle.
+    for robot in &lab.robots {
+        let owner = support::login(&robot.address, "owner", PASSWORD);
+        let (status, json) = http(&robot.address, "POST", "/api/v1/release", Some(&owner), b"");
+        assert_eq!(status, 200, "{json}");
+    }
+    lab.wait_robots(&vic, Duration::from_secs(60), |robots| robots.iter().all(|r| r["state"] == "idle"));
+}
+
+#[test]
+fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_and_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let on_robot = |path: &str| {
+        let (status, json) = http(&r1.address, "GET", path, Some(&owner), b"");
+        assert_eq!(status, 200, "{path}: {json}");
+        json
+    };
+    let before = (active_set(r1), on_robot("/api/v1/sets")["sets"].clone(), on_robot("/api/v1/experiments"));
+    let secret = std::fs::read_to_string(dir.path().join("lab").join("store").join("lab.secret")).unwrap();
+    let secret = secret.trim();
+    let other = "0f".repeat(32);
+    let xml = robot(7.0, "");
+    // What a forger on the lab's Zenoh network sends r1 (an
+    // `eclipse-zenoh` client, the envelope written from the format), and
+    // what r1 must answer. The last two are signed with the lab's secret:
+    // they show the forger's messages are well made, so the refusals
+    // above them are the signature's.
+    let cases = [
+        (serde_json::json!({"op": "dispatch", "secret": other, "config_text": xml}), "not signed by lab 'testlab'"),
+        (serde_json::json!({"op": "estop", "secret": other}), "not signed by lab 'testlab'"),
+        (
+            serde_json::json!({"op": "dispatch", "secret": secret, "config_text": xml, "skew_ms": -120_000}),
+            "ms from this host's clock",
+        ),
+        (
+            serde_json::json!({"op": "dispatch", "secret": secret, "config_text": xml, "duration_s": 1000.0}),
+            "over this robot's max-duration",
+        ),
+    ];
+    let list: Vec<&Json> = cases.iter().map(|(case, _)| case).collect();
+    let output = std::process::Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/lab_forge.py"))
+        .args([&lab.zenoh, LAB, "r1", &serde_json::to_string(&list).unwrap()])
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    let answers: Vec<Json> =
+        String::from_utf8_lossy(&output.stdout).lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert_eq!(answers.len(), cases.len(), "{answers:#?}");
+    for ((case, expected), answer) in cases.iter().zip(&answers) {
+        let replies = answer["answers"].as_array().unwrap();
+        assert_eq!(replies.len(), 1, "{case}: {answer:#}");
+        let reply = &replies[0];
+        let refused = match case["op"].as_str().unwrap() {
+            "dispatch" => reply["outcome"] == "refused",
+            _ => reply["ok"] == false,
+        };
+        assert!(refused, "{case}: {reply:#}");
+        assert!(reply.to_string().contains(expected), "{case}: expected '{expected}' in {reply:#}");
+    }
+    // Nothing changed on r1: no experiment, no new set, the same set runs,
+    // no lock; the refusals are in its audit log. The lab lists it idle.
+    let after = (active_set(r1), on_robot("/api/v1/sets")["sets"].clone(), on_robot("/api/v1/experiments"));
+    assert_eq!(after, before);
+    assert_eq!(before.2["experiments"].as_array().map(Vec::len), Some(0), "{:#}", before.2);
+    let status = robot_status(r1);
+    assert_eq!(status["arbiter"]["engaged"], serde_json::json!([]), "{status:#}");
+    // Every refusal, in the order sent, each under its op's action.
+    let audit = on_robot("/api/v1/audit");
+    let refusals: Vec<&Json> = audit["entries"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|e| e["action"].as_str().is_some_and(|a| a.starts_with("lab-")) && e["result"] == "refused")
+        .collect();
+    assert_eq!(refusals.len(), cases.len(), "{audit:#}");
+    for ((case, expected), refusal) in cases.iter().zip(&refusals) {
+        assert_eq!(refusal["action"], format!("lab-{}", case["op"].as_str().unwrap()), "{refusal:#}");
+        assert!(refusal["detail"].as_str().unwrap().contains(expected), "{expected}: {refusal:#}");
+    }
+    let boss = lab.token("boss");
+    assert!(lab.robots(&boss).iter().all(|r| r["state"] == "idle" && r["experiment"].is_null()));
+}
+
+#[test]
+fn a_robot_whose_baseline_differs_refuses_an_envelope_or_platform_change_back_to_the_queue_once_then_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let boss = lab.token("boss");
+    let ana = lab.token("ana");
+    let running = active_set(r1);
+    let reference = lab.robots(&boss)[0]["baseline_set"].as_u64().unwrap();
+    // The lab checks ana's experiments against r1's first baseline (its
+    // reference); r1's owner then marks another baseline, which the
+    // experiment, checked again on r1, changes in a way ana may not.
+    let cases = [
+        (
+            "envelope",
+            r#"source="builtin:envelope" rate="20""#,
+            r#"source="builtin:envelope" rate="10""#,
+            "changes the rate of envelope 'envelope' from 10 to 20: an experiment runs with the robot's own envelope settings",
+        ),
+        (
+            "network",
+            r#"source="builtin:teleop" rate="50""#,
+            r#"source="builtin:teleop" rate="40""#,
+            "changes platform network of the baseline, which ana does not hold",
+        ),
+    ];
+    for (n, (what, from, to, expected)) in cases.iter().enumerate() {
+        let previous = lab.robots(&boss)[0]["profile"]["baseline"].clone();
+        let xml = robot(8.0, "").replace(from, to);
+        assert_ne!(xml, robot(8.0, ""), "{what}");
+        let path = format!("/api/v1/platforms/control/configs/owner-{n}.xml");
+        let (status, json) = http(&r1.address, "PUT", &path, Some(&owner), xml.as_bytes());
+        assert_eq!(status, 201, "{what}: {json}");
+        let set = json["set"]["id"].as_u64().unwrap();
+        let body = serde_json::json!({ "set": set }).to_string();
+        let (status, json) = http(&r1.address, "PUT", "/api/v1/lab/baseline", Some(&owner), body.as_bytes());
+        assert_eq!(status, 200, "{what}: {json}");
+        // The lab sees r1's new profile and stores its baseline.
+        lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
+            robots[0]["profile"]["baseline"] != previous
+                && robots[0]["baseline_set"].as_u64().is_some_and(|s| s != reference)
+                && robots[0]["state"] == "idle"
+        });
+        let staged = lab.stage(&ana, &format!("ana-{n}.xml"), &robot(7.0, ""));
+        let id = lab.submit(&ana, staged, 5.0, None);
+        let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(240));
+        assert_eq!(refused["state"], "refused", "{what}: {refused:#}\n{}", lab.logs());
+        let causes: Vec<&str> =
+            refused["history"].as_array().unwrap().iter().map(|c| c["cause"].as_str().unwrap()).collect();
+        assert_eq!(causes.iter().filter(|c| c.contains("back in the queue once")).count(), 1, "{what}: {causes:#?}");
+        assert!(causes.last().unwrap().contains("refused it a second time"), "{what}: {causes:#?}");
+        assert!(
+            causes.iter().filter(|c| c.contains("refused it")).all(|c| c.contains(expected)),
+            "{what}: {causes:#?}"
+        );
+        assert!(refused["reasons"].to_string().contains(expected), "{what}: {refused:#}");
+        assert_eq!(refused["placement"]["refusals"], 2, "{what}: {refused:#}");
+        // Nothing ran on r1: no experiment there, its set runs on.
+        let (_, json) = http(&r1.address, "GET", "/api/v1/experiments", Some(&owner), b"");
+        assert_eq!(json["experiments"], serde_json::json!([]), "{what}: {json:#}");
+        assert_eq!(active_set(r1), running, "{what}");
+    }
+}
+
+/// The lab server's page in Chromium (tests/browser/labserver.mjs): a
+/// viewer sees both robots with their name, profile, state, the experiment
+/// one runs and its time left; watches it live; its STOP stops that robot
+/// only, STOP ALL the other too. The experiment ends aborted by the
+/// viewer, and each robot's motors stand still under the viewer's lock.
+#[test]
+fn the_lab_servers_page_lists_every_robot_and_its_stop_buttons_work_in_a_real_browser() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let duration_s = 100.0;
+    let id = lab.submit(&ana, set, duration_s, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(240))["state"], "running");
+    let vic = lab.token(VIEWER);
+    let listed = lab.wait_robots(&vic, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["experiment"] == id && r["time_left_s"].is_f64())
+    });
+    let expected: Vec<Json> = ["r1", "r2"]
+        .iter()
+        .map(|name| {
+            let robot = listed.iter().find(|r| r["name"] == *name).unwrap();
+            let running = *name == "r1";
+            serde_json::json!({
+                "name": name,
+                "profile": robot["profile"]["id"],
+                "state": if running { "running" } else { "idle" },
+                "experiment": if running { Json::from(id) } else { Json::Null },
+                "duration_s": duration_s,
+            })
+        })
+        .collect();
+    let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
+    let url = format!("http://{}/", lab.address);
+    let robots = serde_json::to_string(&expected).unwrap();
+    let stdout = support::browser("labserver.mjs", &artifacts, &[], &[&url, &VIEWER, &PASSWORD, &robots]);
+    assert!(stdout.contains("ok: r1, r2 listed and stopped"), "{stdout}");
+    for shot in ["1-robots", "2-live", "3-stopped-one", "4-stopped-all"] {
+        assert!(artifacts.join(format!("labserver-{shot}.png")).is_file(), "{shot}");
+    }
+    // What the clicks did: the experiment aborted by the viewer, both
+    // robots' motors still under the viewer's lock, each press audited.
+    let by = format!("{VIEWER}@{LAB}");
+    let aborted = lab.wait_for(&ana, id, "aborted", Duration::from_secs(120));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}\n{}", lab.logs());
+    assert!(aborted.to_string().contains(&format!("emergency stop by {by}")), "{aborted:#}");
+    for robot in &lab.robots {
+        wait_stopped_by(robot, &by);
+    }
+    let (_, audit) = lab.call(&lab.token("boss"), "GET", "/api/v1/audit", "");
+    let presses =
+        audit["entries"].as_array().unwrap().iter().filter(|e| e["action"] == "lab-estop" && e["user"] == VIEWER);
+    assert_eq!(presses.count(), 3, "r1, then r1 and r2: {audit:#}");
 }

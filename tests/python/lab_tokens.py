@@ -15,13 +15,18 @@ import sys
 import zenoh
 
 
-def main():
-    endpoint, lab = sys.argv[1], sys.argv[2]
+def client(endpoint):
+    """A Zenoh client session to `endpoint` only (no scouting)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(conf)
+    return zenoh.open(conf)
+
+
+def main():
+    endpoint, lab = sys.argv[1], sys.argv[2]
+    session = client(endpoint)
     try:
         for reply in session.liveliness().get(f"subsume/lab/{lab}/robot/**", timeout=5.0):
             key = str(reply.ok.key_expr)

@@ -42,6 +42,7 @@ use super::wire::{
 use super::{Lab, LabError, bundle};
 use crate::bridge::session::{self, SessionSettings, Shared};
 use crate::deploy::SetImport;
+use crate::fsutil::HiddenPaths;
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{
@@ -122,6 +123,9 @@ pub struct RobotLink {
     stopping: Arc<AtomicBool>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
     _heartbeats: Mutex<Option<zenoh::pubsub::Subscriber<()>>>,
+    /// The robot's folders its live status must not spell out to the lab
+    /// (its portal hides the same).
+    hidden: HiddenPaths,
 }
 
 fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -135,8 +139,9 @@ fn lab_user(options: &RobotLinkOptions, submitter: &str) -> String {
 
 impl RobotLink {
     /// Joins the lab: opens the session, answers the lab's queries,
-    /// declares the robot's token.
-    pub fn start(lab: Arc<Lab>, options: RobotLinkOptions) -> Result<Arc<RobotLink>, LinkError> {
+    /// declares the robot's token. The live status it gives the lab names
+    /// the `hidden` folders, never spells them out.
+    pub fn start(lab: Arc<Lab>, options: RobotLinkOptions, hidden: HiddenPaths) -> Result<Arc<RobotLink>, LinkError> {
         if !wire::is_name(&options.robot) {
             return Err(LinkError::Name(crate::contract::clip(&options.robot)));
         }
@@ -165,6 +170,7 @@ impl RobotLink {
             stopping: Arc::new(AtomicBool::new(false)),
             threads: Mutex::new(Vec::new()),
             _heartbeats: Mutex::new(None),
+            hidden,
         });
         link.refresh_package()?;
         let weak = Arc::downgrade(&link);
@@ -267,14 +273,14 @@ impl RobotLink {
             Op::Stop => {
                 let ack = match key.open::<Stop>(payload) {
                     Ok((stop, _)) => self.stop(&stop),
-                    Err(e) => Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") },
+                    Err(e) => self.refuse("lab-stop", "a stop", format!("refused: {e}")),
                 };
                 key.seal(&ack, &[])
             }
             Op::Estop => {
                 let ack = match key.open::<Estop>(payload) {
                     Ok((estop, _)) => self.estop(&estop),
-                    Err(e) => Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") },
+                    Err(e) => self.refuse("lab-estop", "an emergency stop", format!("refused: {e}")),
                 };
                 key.seal(&ack, &[])
             }
@@ -439,16 +445,17 @@ impl RobotLink {
     /// Takes the lab's experiment, checks it again, runs it through this
     /// host's lab, and says how it went (or why not).
     fn dispatch(&self, dispatch: &Dispatch) -> DispatchOutcome {
-        let refused = |reasons: Vec<String>| DispatchOutcome::Refused { reasons };
-        if let Err(e) = wire::fresh(dispatch.issued_unix_ms, unix_now_ms()) {
-            return refused(vec![format!("refused: {e}")]);
-        }
-        self.heard_lab();
         let target = format!("lab experiment {}", dispatch.lab_id);
-        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id));
+        // A stale one is refused before anything, and audited like any.
+        let outcome = wire::fresh(dispatch.issued_unix_ms, unix_now_ms())
+            .map_err(|e| vec![format!("refused: {e}")])
+            .and_then(|()| {
+                self.heard_lab();
+                self.take(dispatch).and_then(|id| self.wait_start(id))
+            });
         let outcome = match outcome {
             Ok(outcome) => outcome,
-            Err(reasons) => refused(reasons),
+            Err(reasons) => DispatchOutcome::Refused { reasons },
         };
         let (text, result) = match &outcome {
             DispatchOutcome::Started { local_id, .. } => (format!("runs as experiment {local_id}"), true),
@@ -636,10 +643,19 @@ impl RobotLink {
         }
     }
 
+    /// Refuses a message that would change what runs (a stop, an
+    /// emergency stop), in the audit log as dispatches are: who tried is
+    /// not known, so the lab is named.
+    fn refuse(&self, action: &str, what: &str, reason: String) -> Ack {
+        self.lab.deployer.audit("lab", action, what, Outcome::Refused(&reason));
+        tracing::warn!("lab '{}': {what} was {reason}", self.options.key.lab());
+        Ack { v: WIRE_VERSION, ok: false, message: reason }
+    }
+
     fn stop(&self, stop: &Stop) -> Ack {
         let ack = |ok, message: String| Ack { v: WIRE_VERSION, ok, message };
         if let Err(e) = wire::fresh(stop.issued_unix_ms, unix_now_ms()) {
-            return ack(false, format!("refused: {e}"));
+            return self.refuse("lab-stop", &format!("lab experiment {}", stop.lab_id), format!("refused: {e}"));
         }
         self.heard_lab();
         let by = lab_user(&self.options, &stop.by);
@@ -670,7 +686,7 @@ impl RobotLink {
 
     fn estop(&self, estop: &Estop) -> Ack {
         if let Err(e) = wire::fresh(estop.issued_unix_ms, unix_now_ms()) {
-            return Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") };
+            return self.refuse("lab-estop", "an emergency stop", format!("refused: {e}"));
         }
         self.heard_lab();
         let user = User {
@@ -774,11 +790,12 @@ impl RobotLink {
             std::thread::sleep(Duration::from_millis(20));
         }
         let status = live.borrow().clone();
-        let value = serde_json::to_value(&*status).unwrap_or_default();
-        if serde_json::to_vec(&value).map(|b| b.len()).unwrap_or(0) > wire::MAX_LIVE_BYTES {
+        let mut text = serde_json::to_string(&*status).unwrap_or_default();
+        self.hidden.hide(&mut text);
+        if text.len() > wire::MAX_LIVE_BYTES {
             return serde_json::json!({ "error": "the live status is larger than the lab link carries" });
         }
-        value
+        serde_json::from_str(&text).unwrap_or_default()
     }
 }
 

@@ -76,7 +76,7 @@ pub struct PortalState {
     /// Server folders no answer shows, each with what it shows instead
     /// (longest first): the store, the compile cache, the robot file's
     /// folder, the working directory.
-    hidden_paths: Vec<(String, &'static str)>,
+    hidden_paths: crate::fsutil::HiddenPaths,
 }
 
 impl PortalState {
@@ -115,27 +115,15 @@ impl PortalState {
             sessions: Sessions::default(),
             limiter: LoginLimiter::default(),
             secure_cookies,
-            hidden_paths: Vec::new(),
+            hidden_paths: crate::fsutil::HiddenPaths::default(),
         })
     }
 
     /// The same state, hiding `paths` (folder, what to show instead) in
-    /// every answer of the API. Folders shorter than two components are
-    /// left alone: hiding `/` would rewrite every path-like text.
+    /// every answer of the API ([`crate::fsutil::HiddenPaths`]).
     pub fn hiding(mut self: Arc<Self>, paths: &[(&std::path::Path, &'static str)]) -> Arc<PortalState> {
-        let mut hidden: Vec<(String, &'static str)> = paths
-            .iter()
-            .flat_map(|(path, shown)| {
-                let canonical = std::fs::canonicalize(path).ok();
-                [Some(path.to_path_buf()), canonical].into_iter().flatten().map(move |p| (p, *shown))
-            })
-            .filter(|(p, _)| p.is_absolute() && p.components().count() > 2)
-            .map(|(p, shown)| (p.display().to_string().trim_end_matches('/').to_string(), shown))
-            .collect();
-        hidden.sort_by(|a, b| b.0.len().cmp(&a.0.len()).then_with(|| a.0.cmp(&b.0)));
-        hidden.dedup();
         if let Some(state) = Arc::get_mut(&mut self) {
-            state.hidden_paths = hidden;
+            state.hidden_paths = crate::fsutil::HiddenPaths::new(paths);
         }
         self
     }
@@ -173,11 +161,7 @@ async fn api_answers(
         robot_file = answer.get_mut("config").map(serde_json::Value::take);
         text = answer.to_string();
     }
-    for (path, shown) in &state.hidden_paths {
-        if text.contains(path.as_str()) {
-            text = text.replace(path.as_str(), shown);
-        }
-    }
+    state.hidden_paths.hide(&mut text);
     if let Some(robot_file) = robot_file {
         let mut answer: serde_json::Value = serde_json::from_str(&text).unwrap_or_default();
         answer["config"] = robot_file;
