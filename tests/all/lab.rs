@@ -829,9 +829,13 @@ fn a_real_robot_is_preflighted_against_a_simulated_controller() {
     let preflight = queued["preflight"].clone();
     assert_eq!(preflight["passed"], true, "{queued:#}");
     // The manual reset: it waits for an admin.
-    let deadline = Instant::now() + Duration::from_secs(30);
-    while !lab.experiment(&ana, id)["awaiting_reset"].as_bool().unwrap() {
-        assert!(Instant::now() < deadline, "never waited for the reset");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let experiment = lab.experiment(&ana, id);
+        if experiment["awaiting_reset"] == true {
+            break;
+        }
+        assert!(Instant::now() < deadline, "never waited for the reset: {experiment:#}");
         std::thread::sleep(Duration::from_millis(50));
     }
     let (_, overview) = lab.call(&ana, "GET", "/api/v1/lab", "");
