@@ -425,10 +425,17 @@ impl LabNet {
     }
 
     /// Stages `xml` as the user's robot file on the lab server; the set.
+    /// The set's answer names the lab server's store, never spells it out.
     fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
         let (status, json) = self.call(token, "PUT", &format!("/api/v1/platforms/control/configs/{file}"), xml);
         assert_eq!(status, 201, "{json}\n{}", self.logs());
-        json["set"]["id"].as_u64().unwrap()
+        let set = json["set"]["id"].as_u64().unwrap();
+        let (status, shown) = self.call(token, "GET", &format!("/api/v1/sets/{set}"), "");
+        assert_eq!(status, 200, "{shown}");
+        let text = shown.to_string();
+        let store = self.dir.join("lab").join("store");
+        assert!(text.contains("<store>/") && !text.contains(store.to_str().unwrap()), "{shown:#}");
+        set
     }
 
     fn submit(&self, token: &str, set: u64, duration_s: f64, target: Option<&str>) -> u64 {
