@@ -195,7 +195,18 @@ mod tests {
         let mut call = CallBudget::new(Duration::from_millis(2), false);
         check(&mut call).unwrap();
         std::thread::sleep(wall_cap(Duration::from_millis(2)) * 2);
-        assert!(matches!(check(&mut call), Ok(UpdateDeadline::Continue(n)) if n >= 1));
+        // Twice the wall-clock cap later: not stopped for the wall clock.
+        // (It once failed on a loaded machine, where only the CPU budget
+        // can have stopped it: the CPU clock must have charged the thread
+        // 2 ms across the sleep. That stop is the CPU budget's to make.)
+        match check(&mut call) {
+            Ok(UpdateDeadline::Continue(n)) => assert!(n >= 1),
+            Ok(_) => panic!("the check neither continued nor stopped the call"),
+            Err(e) => assert!(
+                matches!(e.downcast_ref::<OverBudget>(), Some(OverBudget::Cpu { .. })),
+                "stopped for the wall clock: {e}"
+            ),
+        }
         call.reset(Duration::from_millis(2));
         assert_eq!(call.wall_cap, Duration::MAX);
         check(&mut call).unwrap();
