@@ -800,6 +800,7 @@ fn the_api_holds_against_schemathesis_for_every_role() {
         ("viewer", "viewer", &[]),
         ("operator", "operator", &[]),
         ("developer", "developer", &["control"]),
+        ("researcher", "researcher", &["control"]),
     ];
     for (name, role, platforms) in users {
         add_user(&store, name, role, platforms);
