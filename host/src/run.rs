@@ -15,6 +15,7 @@ use crate::assemble::{self, Loader, StartError};
 use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
+use crate::fsutil::HiddenPaths;
 use crate::lab::preflight::{HolderWatch, PreflightCommand};
 use crate::lab::robot_link::{LinkError, RobotLink, RobotLinkOptions};
 use crate::lab::server::{Fleet, FleetOptions, ServerError};
@@ -529,13 +530,14 @@ struct ServedPortal {
 
 /// The folders no answer to a remote user shows: `hidden`, the compile
 /// cache and the working folder.
-fn answer_hidden(deployer: &Deployer, hidden: &[(&Path, &'static str)]) -> Vec<(PathBuf, &'static str)> {
-    let mut all: Vec<(PathBuf, &'static str)> = hidden.iter().map(|(p, shown)| (p.to_path_buf(), *shown)).collect();
-    all.push((std::env::current_dir().unwrap_or_default(), "<working folder>"));
+fn answer_hidden(deployer: &Deployer, hidden: &[(&Path, &'static str)]) -> HiddenPaths {
+    let working_dir = std::env::current_dir().unwrap_or_default();
+    let mut all = hidden.to_vec();
+    all.push((working_dir.as_path(), "<working folder>"));
     if let Some(cache) = deployer.sandbox.cache_dir() {
-        all.push((cache.to_path_buf(), "<cache>"));
+        all.push((cache, "<cache>"));
     }
-    all
+    HiddenPaths::new(&all)
 }
 
 /// Serves `app` over `parts` on `listen` (TLS when the host has an
@@ -559,13 +561,12 @@ fn serve_portal(
         .map_err(RunError::PortalRuntime)?;
     let acceptor = tls.identity.as_ref().map(|identity| identity.http_acceptor());
     let hidden = answer_hidden(&parts.deployer, hidden);
-    let hidden: Vec<(&Path, &'static str)> = hidden.iter().map(|(p, shown)| (p.as_path(), *shown)).collect();
     let PortalParts { deployer, lab, directory, logs } = parts;
     let state = match acceptor {
         Some(_) => portal::PortalState::over_tls(deployer, lab, directory, logs),
         None => portal::PortalState::new(deployer, lab, directory, logs),
     }
-    .hiding(&hidden);
+    .hiding(hidden);
     let scheme = if acceptor.is_some() { "https" } else { "http" };
     runtime.spawn(async move {
         let listener = match tokio::net::TcpListener::from_std(listener) {
@@ -639,15 +640,8 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let hidden = [(portal.store_dir.as_path(), "<store>"), (robot_dir.as_path(), "<robot file folder>")];
     // The robot's live status reaches the lab's users through the lab
     // server: it hides the robot's folders as the robot's own portal does.
-    let link = portal
-        .lab
-        .clone()
-        .map(|o| {
-            let folders = answer_hidden(&deployer, &hidden);
-            let folders: Vec<(&Path, &'static str)> = folders.iter().map(|(p, shown)| (p.as_path(), *shown)).collect();
-            RobotLink::start(lab.clone(), o, crate::fsutil::HiddenPaths::new(&folders))
-        })
-        .transpose()?;
+    let link =
+        portal.lab.clone().map(|o| RobotLink::start(lab.clone(), o, answer_hidden(&deployer, &hidden))).transpose()?;
     if let Some(poll) = portal.watch {
         deploy::dev::watch(&deployer, options.config_path.clone(), poll).map_err(RunError::Watch)?;
     }

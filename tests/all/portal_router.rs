@@ -104,7 +104,11 @@ async fn portal_over(over_tls: bool) -> Portal {
     } else {
         PortalState::new(boot.deployer, lab, directory, portal::logs::LogRing::new())
     };
-    let state = state.hiding(&[(dir.path(), "<robot file folder>"), (&dir.path().join("store"), "<store>")]);
+    let store = dir.path().join("store");
+    let state = state.hiding(subsume::fsutil::HiddenPaths::new(&[
+        (dir.path(), "<robot file folder>"),
+        (store.as_path(), "<store>"),
+    ]));
     let app = portal::app(state);
     let mut tokens = std::collections::HashMap::new();
     for (name, _, _) in USERS {

@@ -119,11 +119,10 @@ impl PortalState {
         })
     }
 
-    /// The same state, hiding `paths` (folder, what to show instead) in
-    /// every answer of the API ([`crate::fsutil::HiddenPaths`]).
-    pub fn hiding(mut self: Arc<Self>, paths: &[(&std::path::Path, &'static str)]) -> Arc<PortalState> {
+    /// The same state, hiding `hidden` in every answer of the API.
+    pub fn hiding(mut self: Arc<Self>, hidden: crate::fsutil::HiddenPaths) -> Arc<PortalState> {
         if let Some(state) = Arc::get_mut(&mut self) {
-            state.hidden_paths = crate::fsutil::HiddenPaths::new(paths);
+            state.hidden_paths = hidden;
         }
         self
     }

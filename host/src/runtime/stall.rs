@@ -13,11 +13,14 @@
 //! frame now (the serial link writes it from this thread, past the loop's
 //! queue), and logs the stall with the component and the call.
 //!
-//! Counting samples, not only the clock, is what keeps a process that was
-//! frozen as a whole (stopped, or starved of every CPU: a preflight at idle
-//! priority on a busy robot) from blaming the call it happened to be in: the
-//! watchdog was frozen too, and wakes to a call that then has to hold the
-//! loop for a whole limit more, with the watchdog watching, to be a stall.
+//! Counting samples, not only the clock, keeps the watchdog of a process
+//! that was frozen as a whole (stopped, or starved of every CPU: a preflight
+//! at idle priority on a busy robot) from declaring the call it happened to
+//! be in: the watchdog was frozen too, and wakes to a call that then has to
+//! hold the loop for a whole limit more, with the watchdog watching, to be
+//! a stall. On simulated time that is the only judge
+//! ([`Heartbeat::on_simulated_time`]); on real time the graph also faults a
+//! call that took the limit on the wall clock, after it returns.
 //!
 //! Invariants: the watchdog never touches the graph, only the heartbeat and
 //! the motor stops the graph handed it; a stall is declared no sooner than
