@@ -104,10 +104,10 @@ async fn portal_over(over_tls: bool) -> Portal {
     } else {
         PortalState::new(boot.deployer, lab, directory, portal::logs::LogRing::new())
     };
-    let store = dir.path().join("store");
+    let store_dir = dir.path().join("store");
     let state = state.hiding(subsume::fsutil::HiddenPaths::new(&[
         (dir.path(), "<robot file folder>"),
-        (store.as_path(), "<store>"),
+        (store_dir.as_path(), "<store>"),
     ]));
     let app = portal::app(state);
     let mut tokens = std::collections::HashMap::new();
