@@ -32,10 +32,13 @@ fn add_admin(store: &Path) {
     support::add_user(store, "admin", "admin", &[], PASSWORD);
 }
 
-/// `subsume run ROBOT` with the portal on a free port.
+/// `subsume run ROBOT` with its portal on a free port; the lab's
+/// preflights at `normal` priority (at `idle` the tests beside it starve
+/// them).
 fn start(store: &Path, robot: &Path) -> Host {
     let mut command = subsume();
     command.args(["--store", store.to_str().unwrap(), "run"]).arg(robot).args(["--http", "127.0.0.1:0"]);
+    command.args(["--preflight-priority", "normal"]);
     let process = HostProcess::spawn(command);
     let address = process.portal_address();
     Host { _process: process, address }

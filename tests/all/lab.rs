@@ -87,9 +87,9 @@ struct Lab {
 }
 
 /// `subsume run` of the baseline in `dir` with its portal on a free port,
-/// on the store in `dir/store`. Its preflights run at `background`
-/// priority: at the default (`idle`) the tests running beside this one
-/// would starve them (the default is `lab::preflight`'s unit test).
+/// on the store in `dir/store`. Its preflights run at `normal` priority:
+/// at the default (`idle`), or at `background`, the tests running beside
+/// this one starve them (the priorities are `lab::preflight`'s unit test).
 fn start(dir: &Path) -> Lab {
     crate::support::guest_dir();
     let mut command = crate::support::subsume();
@@ -98,7 +98,7 @@ fn start(dir: &Path) -> Lab {
         .arg(dir.join("store"))
         .arg("run")
         .arg(dir.join("robot.xml"))
-        .args(["--http", "127.0.0.1:0", "--preflight-priority", "background"])
+        .args(["--http", "127.0.0.1:0", "--preflight-priority", "normal"])
         .env_remove("SUBSUME_HTTP");
     let host = HostProcess::spawn(command);
     let address = host.word_after("portal on http://", Duration::from_secs(120)).trim_end_matches('/').to_string();

@@ -146,6 +146,9 @@ fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Nam
         .arg("--store")
         .arg(store)
         .args(["lab", "serve", "--http", &format!("{ip}:0"), "--lab", LAB, "--allow-plain-http"])
+        // Its preflights at `normal`: at `background` the tests beside it
+        // starve them.
+        .args(["--preflight-priority", "normal"])
         .args(["--listen", listen])
         .env_remove("SUBSUME_HTTP");
     let command = match namespaces {

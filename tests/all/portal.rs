@@ -483,12 +483,12 @@ fn the_lab_tab_works_in_a_real_browser() {
     <connect from="reverse.out" to="arbiter.commands"/>
     <connect from="avoid.cmd" to="arbiter.commands"/>"#;
     std::fs::write(&reverse, demo.replace(r#"<connect from="avoid.cmd" to="arbiter.commands"/>"#, reversing)).unwrap();
-    // Preflights at `background`: at the default (`idle`) the tests running
+    // Preflights at `normal`: at the default (`idle`) the tests running
     // beside this one starve them past the page's waits.
     let host = start_with(
         &store,
         &support::repo_root().join("config/demo.xml"),
-        &["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=", "--preflight-priority", "background"],
+        &["--param", "teleop.listen=127.0.0.1:0", "--param", "teleop.websocket=", "--preflight-priority", "normal"],
     );
     let artifacts: PathBuf = support::repo_root().join("target/browser-artifacts");
     let tar = artifacts.join("lab-results.tar");

@@ -118,8 +118,9 @@ struct ServeArgs {
     #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
     allow_plain_http: bool,
     /// How the preflights run: `background` (nice 10, behind the lab's
-    /// portal and dispatch) or `idle` (only the CPU nothing else wants).
-    #[arg(long, value_name = "idle|background", default_value = "background")]
+    /// portal and dispatch), `idle` (only the CPU nothing else wants) or
+    /// `normal` (a machine that does nothing else).
+    #[arg(long, value_name = "idle|background|normal", default_value = "background")]
     preflight_priority: subsume::lab::preflight::Priority,
 }
 

@@ -93,9 +93,9 @@ pub struct HostFlags {
     #[arg(long, value_name = "FILE.json")]
     criteria: Option<PathBuf>,
     /// How the lab's preflights run beside the robot: `idle` (only the CPU
-    /// the robot leaves) or `background` (nice 10, as a compile; for a
-    /// robot whose own work keeps the machine busy). docs/lab.md.
-    #[arg(long, value_name = "idle|background", default_value = "idle")]
+    /// the robot leaves), `background` (nice 10, as a compile; for a robot
+    /// whose own work keeps the machine busy) or `normal`. docs/lab.md.
+    #[arg(long, value_name = "idle|background|normal", default_value = "idle")]
     preflight_priority: Priority,
 }
 
