@@ -10,7 +10,7 @@ use super::{DeployError, Deployer, Deployment, Permission, authorise, stage};
 use crate::assemble::{self, Built, Carry, Loader};
 use crate::config::RobotConfig;
 use crate::runtime::RunningRobot;
-use crate::store::users::{Role, User};
+use crate::store::users::{Principal, Role};
 use crate::store::{SetRecord, StoreError};
 
 /// A set whose graph is built and waits for the swap.
@@ -25,24 +25,24 @@ pub(super) struct Ready {
 
 impl Deployer {
     /// Activates set `id`: see the module's invariants.
-    pub fn activate(&self, user: &User, id: u64) -> Result<SetRecord, DeployError> {
+    pub fn activate(&self, user: &Principal, id: u64) -> Result<SetRecord, DeployError> {
         self.switch(user, Some(id), false).map(|(set, _)| set)
     }
 
     /// [`Deployer::activate`], and what an admin's activation did first
     /// (it ends a running experiment: docs/lab.md), for the answer.
-    pub fn activate_noting(&self, user: &User, id: u64) -> Result<(SetRecord, Option<String>), DeployError> {
+    pub fn activate_noting(&self, user: &Principal, id: u64) -> Result<(SetRecord, Option<String>), DeployError> {
         self.switch(user, Some(id), false)
     }
 
     /// Activates the set that was active before the current one.
-    pub fn rollback(&self, user: &User) -> Result<SetRecord, DeployError> {
+    pub fn rollback(&self, user: &Principal) -> Result<SetRecord, DeployError> {
         self.switch(user, None, true).map(|(set, _)| set)
     }
 
     /// [`Deployer::rollback`], and what it did first (see
     /// [`Deployer::activate_noting`]).
-    pub fn rollback_noting(&self, user: &User) -> Result<(SetRecord, Option<String>), DeployError> {
+    pub fn rollback_noting(&self, user: &Principal) -> Result<(SetRecord, Option<String>), DeployError> {
         self.switch(user, None, true)
     }
 
@@ -53,7 +53,12 @@ impl Deployer {
     }
 
     /// Activates `id`, or the previous set when rolling back.
-    fn switch(&self, user: &User, id: Option<u64>, rollback: bool) -> Result<(SetRecord, Option<String>), DeployError> {
+    fn switch(
+        &self,
+        user: &Principal,
+        id: Option<u64>,
+        rollback: bool,
+    ) -> Result<(SetRecord, Option<String>), DeployError> {
         // An experiment that runs refuses the change, or, for an admin, is
         // ended first (before the active set's lock, which ending it takes).
         let what = match id {
@@ -170,7 +175,7 @@ impl Deployer {
         Ok(())
     }
 
-    fn prepare_switch(&self, user: &User, id: u64, active: &Deployment) -> Result<Ready, DeployError> {
+    fn prepare_switch(&self, user: &Principal, id: u64, active: &Deployment) -> Result<Ready, DeployError> {
         if active.set.id == id {
             return Err(DeployError::Conflict(format!("set {id} is active already")));
         }
@@ -186,7 +191,12 @@ impl Deployer {
     /// and the unchanged device and socket built-ins to be carried over:
     /// what an activation swaps in. Refused when it changes a platform the
     /// user may not change, or the envelope for anyone but an admin.
-    pub(super) fn build_beside(&self, user: &User, set: SetRecord, active: &Deployment) -> Result<Ready, DeployError> {
+    pub(super) fn build_beside(
+        &self,
+        user: &Principal,
+        set: SetRecord,
+        active: &Deployment,
+    ) -> Result<Ready, DeployError> {
         let id = set.id;
         let mut loader = Loader::new(&self.sandbox);
         let config = stage::validate_set(&self.store, &set, &mut loader, &self.overrides)?;

@@ -15,7 +15,7 @@ use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant, SystemTime};
 
 use super::{DeployError, Deployer, Import, import};
-use crate::store::users::{Role, User};
+use crate::store::users::Principal;
 
 /// The user `subsume dev`'s imports and activations are made as (in the
 /// audit log and the sets' `created_by`); the person at the terminal
@@ -139,7 +139,7 @@ impl Deployer {
                 self.compiles.lock().map_err(|_| DeployError::Host("the compile lock is unusable".into()))?;
             import(&self.store, &self.sandbox, path, &text, &self.overrides, Import::Dev)?
         };
-        let user = User { name: DEV_USER.into(), role: Role::Admin, platforms: Vec::new(), hash: String::new() };
+        let user = Principal::host(DEV_USER);
         self.activate(&user, set.id).map(|record| record.id)
     }
 }

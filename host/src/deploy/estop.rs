@@ -17,7 +17,7 @@ use serde::Serialize;
 use super::{DeployError, Deployer};
 use crate::runtime::locks::unix_now_ms;
 use crate::runtime::{DEFAULT_LOCK, Engagement, LockEvent, Locks};
-use crate::store::users::User;
+use crate::store::users::Principal;
 use crate::store::{Outcome, Store};
 
 /// Lock events waiting for the audit log: engages and releases are
@@ -56,7 +56,7 @@ impl Deployer {
     }
 
     /// Engages the emergency stop for `user`, through `how`.
-    pub fn engage_lock(&self, user: &User, how: &str) -> Result<Engaged, DeployError> {
+    pub fn engage_lock(&self, user: &Principal, how: &str) -> Result<Engaged, DeployError> {
         let locks = self.locks()?;
         let newly = locks.engage(DEFAULT_LOCK, &user.name, how, unix_now_ms());
         if newly {
@@ -67,7 +67,7 @@ impl Deployer {
 
     /// Releases `lock` (or every engaged lock) for `user`, who must be
     /// allowed to drive.
-    pub fn release_lock(&self, user: &User, lock: Option<&str>, how: &str) -> Result<Vec<Released>, DeployError> {
+    pub fn release_lock(&self, user: &Principal, lock: Option<&str>, how: &str) -> Result<Vec<Released>, DeployError> {
         let target = lock.unwrap_or("every lock");
         if let Err(refused) = self.authorise_drive(user) {
             let detail = format!("over {how}: {refused}");

@@ -30,7 +30,7 @@ use crate::record::control::{Recordings, Stopped};
 use crate::report::{ExperimentTag, Report};
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
-use crate::store::users::{Role, User};
+use crate::store::users::{Principal, Role};
 use crate::store::{Outcome, SetRecord};
 
 /// The user the lab's own activations are made as (in the audit log).
@@ -94,7 +94,7 @@ impl ExperimentGate {
     /// when no experiment runs; a 409 naming the experiment and when it
     /// ends for anyone but an admin; for an admin, the experiment is ended
     /// first and the answer says so.
-    pub(super) fn admit(&self, user: &User, what: &str) -> Result<Option<String>, DeployError> {
+    pub(super) fn admit(&self, user: &Principal, what: &str) -> Result<Option<String>, DeployError> {
         let Some(running) = self.running() else { return Ok(None) };
         if user.role != Role::Admin {
             let left_s = running.ends_unix_ms.saturating_sub(unix_now_ms()).div_ceil(1000);
@@ -144,8 +144,8 @@ fn simulated_robots(config: &RobotConfig) -> impl Iterator<Item = &crate::config
     config.components.iter().filter(move |c| matches!(c.source, ComponentSource::Builtin(k) if Some(k) == sim))
 }
 
-fn lab_user() -> User {
-    User { name: LAB_USER.into(), role: Role::Admin, platforms: Vec::new(), hash: String::new() }
+fn lab_user() -> Principal {
+    Principal::host(LAB_USER)
 }
 
 /// The components of `config` with their sha256 (the stored blob a WASM
@@ -183,7 +183,7 @@ impl Deployer {
     /// whose baseline is set `baseline`: it validates (422 with the
     /// diagnostics `subsume check` prints), it changes only platforms
     /// `user` holds (403) and never the envelope (403, admins included).
-    pub fn check_experiment_set(&self, user: &User, id: u64, baseline: u64) -> Result<CheckedSet, DeployError> {
+    pub fn check_experiment_set(&self, user: &Principal, id: u64, baseline: u64) -> Result<CheckedSet, DeployError> {
         let set = self.store.set(id)?;
         if let Some(platform) = set.platform.as_deref()
             && let Ok(platform) = crate::config::Platform::parse(platform)
@@ -231,7 +231,7 @@ impl Deployer {
     /// recording tap).
     pub fn start_experiment(
         &self,
-        user: &User,
+        user: &Principal,
         tag: RunningExperiment,
         recording: PathBuf,
         about: BTreeMap<String, String>,

@@ -69,7 +69,7 @@ use crate::runtime::wiring::PriorityCell;
 use crate::runtime::{Graph, RunningRobot};
 use crate::sandbox::{Sandbox, read_component_file};
 pub use crate::sim::world::MAX_WORLD_BYTES as MAX_WORLD_UPLOAD_BYTES;
-use crate::store::users::User;
+use crate::store::users::Principal;
 use crate::store::{Outcome, STORE_FORMAT, SetRecord, Store, StoreError, StoreWriter, sha256_hex, unix_now};
 
 /// Why a use case did not happen. The running set is untouched in every case.
@@ -140,7 +140,7 @@ pub enum Permission {
 }
 
 /// The one permission check of every use case.
-pub fn authorise(user: &User, permission: Permission) -> Result<(), DeployError> {
+pub fn authorise(user: &Principal, permission: Permission) -> Result<(), DeployError> {
     let allowed = match permission {
         Permission::Change(platform) => user.may_change(platform),
         Permission::Activate | Permission::ReadAudit | Permission::Record => user.is_developer(),
@@ -285,7 +285,7 @@ impl Deployer {
     /// [`authorise`] for [`Permission::Drive`], with the grants of the
     /// portal's directory: a researcher drives inside their reservation
     /// (docs/lab.md) with an operator's rights.
-    pub fn authorise_drive(&self, user: &User) -> Result<(), DeployError> {
+    pub fn authorise_drive(&self, user: &Principal) -> Result<(), DeployError> {
         let granted = self.services.get::<crate::store::users::Directory>().is_some_and(|d| d.may_drive(user));
         if granted { Ok(()) } else { authorise(user, Permission::Drive) }
     }

@@ -21,7 +21,7 @@ use super::{DeployError, Deployer, Permission, authorise};
 use crate::record::Layout;
 use crate::record::control::{RecordingError, RecordingFile, RecordingInfo, Recordings, Stopped};
 use crate::store::Outcome;
-use crate::store::users::User;
+use crate::store::users::Principal;
 
 impl From<RecordingError> for DeployError {
     fn from(e: RecordingError) -> DeployError {
@@ -57,7 +57,7 @@ impl Deployer {
     /// Starts recording the running robot into the host's recordings
     /// folder; `fresh_start`: from a re-activation of the active set (see
     /// the module's docs).
-    pub fn start_recording(&self, user: &User, fresh_start: bool) -> Result<RecordingInfo, DeployError> {
+    pub fn start_recording(&self, user: &Principal, fresh_start: bool) -> Result<RecordingInfo, DeployError> {
         if fresh_start {
             return self.start_recording_fresh(user);
         }
@@ -76,7 +76,7 @@ impl Deployer {
         )
     }
 
-    fn start_recording_fresh(&self, user: &User) -> Result<RecordingInfo, DeployError> {
+    fn start_recording_fresh(&self, user: &Principal) -> Result<RecordingInfo, DeployError> {
         let admitted = self.experiments.admit(user, "start a recording from a fresh start");
         // Held through the whole re-activation, as an activation holds it.
         let mut active = self.lock_active()?;
@@ -114,7 +114,7 @@ impl Deployer {
 
     /// Stops the running recording; its files are complete (summary and
     /// footer written).
-    pub fn stop_recording(&self, user: &User) -> Result<Stopped, DeployError> {
+    pub fn stop_recording(&self, user: &Principal) -> Result<Stopped, DeployError> {
         let prepared = authorise(user, Permission::Record).and_then(|()| self.recordings());
         self.commit(
             &user.name,
@@ -136,20 +136,20 @@ impl Deployer {
     }
 
     /// The running recording and the stored files.
-    pub fn list_recordings(&self, user: &User) -> Result<RecordingsView, DeployError> {
+    pub fn list_recordings(&self, user: &Principal) -> Result<RecordingsView, DeployError> {
         authorise(user, Permission::Record)?;
         let recordings = self.recordings()?;
         Ok(RecordingsView { recording: recordings.current(), files: recordings.list()? })
     }
 
     /// The path and size of recording file `name`, for a download.
-    pub fn recording_file(&self, user: &User, name: &str) -> Result<(PathBuf, u64), DeployError> {
+    pub fn recording_file(&self, user: &Principal, name: &str) -> Result<(PathBuf, u64), DeployError> {
         authorise(user, Permission::Record)?;
         Ok(self.recordings()?.file(name)?)
     }
 
     /// Deletes recording file `name`.
-    pub fn delete_recording(&self, user: &User, name: &str) -> Result<(), DeployError> {
+    pub fn delete_recording(&self, user: &Principal, name: &str) -> Result<(), DeployError> {
         let target = crate::contract::clip(name);
         let prepared = authorise(user, Permission::Record).and_then(|()| self.recordings());
         self.commit(

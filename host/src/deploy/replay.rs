@@ -12,7 +12,7 @@ use super::{DeployError, Deployer, Permission, authorise, stage};
 use crate::assemble::Loader;
 use crate::record::control::Recordings;
 use crate::record::replay::{ReplayError, ReplayLimits, ReplayReport, replay_robot};
-use crate::store::users::User;
+use crate::store::users::Principal;
 
 /// Replays at once: a replay runs the set's components as fast as the CPU
 /// allows, so a few developers clicking must not take the host's cores from
@@ -58,7 +58,7 @@ impl Deployer {
     /// duration: call it off the async runtime.
     pub fn replay_set(
         &self,
-        user: &User,
+        user: &Principal,
         id: u64,
         recording: &str,
         only: &[String],

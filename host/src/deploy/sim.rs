@@ -10,7 +10,7 @@ use crate::sim::builtin::{SimBuiltin, WORLD_PARAM};
 use crate::sim::physics::SimStatus;
 use crate::sim::world::{self, World};
 use crate::sim::{SimError, SimRegistry};
-use crate::store::users::User;
+use crate::store::users::Principal;
 
 /// The simulated robot of the active set, for the portal's map.
 #[derive(Clone, Debug, serde::Serialize)]
@@ -77,7 +77,7 @@ impl Deployer {
     /// Resets, poses, pauses, resumes or steps the active set's simulated
     /// robot; for those who may drive (it moves the robot). Returns the
     /// simulation's state after it.
-    pub fn sim_control(&self, user: &User, action: SimAction) -> Result<SimStatus, DeployError> {
+    pub fn sim_control(&self, user: &Principal, action: SimAction) -> Result<SimStatus, DeployError> {
         let prepared = self.authorise_drive(user).and_then(|()| {
             let (_, config) = self.active()?;
             let name = simulator(&config)?.name.clone();

@@ -16,7 +16,7 @@ use crate::config::{
     Resolver, RobotConfig, RobotProblem, RobotView, limits,
 };
 use crate::contract::{Description, clip, is_valid_name};
-use crate::store::users::{Role, User};
+use crate::store::users::{Principal, Role};
 use crate::store::{
     ComponentRecord, STORE_FORMAT, SetRecord, Store, WiringComponent, WiringConnection, WiringGraph, component_key,
     unix_now,
@@ -53,7 +53,7 @@ impl Deployer {
     /// components (and the active set's) and stages it as a new set.
     pub fn stage(
         &self,
-        user: &User,
+        user: &Principal,
         platform: Platform,
         file_name: &str,
         bytes: &[u8],
@@ -85,7 +85,7 @@ impl Deployer {
     /// meanwhile is refused as busy.
     pub fn validate(
         &self,
-        user: &User,
+        user: &Principal,
         platform: Platform,
         file_name: &str,
         bytes: &[u8],
@@ -107,7 +107,7 @@ impl Deployer {
 
     fn prepare_stage(
         &self,
-        user: &User,
+        user: &Principal,
         platform: Platform,
         file_name: &str,
         bytes: &[u8],

@@ -7,7 +7,7 @@
 use super::{DeployError, Deployer, Permission, Platform, authorise};
 use crate::contract::{DescriptionDoc, clip, is_valid_name};
 use crate::sandbox::{MAX_COMPONENT_BYTES, preamble};
-use crate::store::users::User;
+use crate::store::users::Principal;
 use crate::store::{ComponentRecord, MAX_COMPONENTS_PER_USER, World, component_key, unix_now};
 
 /// Largest component upload: Python and JavaScript components are ~20 MB.
@@ -21,7 +21,7 @@ impl Deployer {
     /// `platform`.
     pub fn upload_component(
         &self,
-        user: &User,
+        user: &Principal,
         platform: Platform,
         name: &str,
         bytes: &[u8],
@@ -54,7 +54,7 @@ impl Deployer {
 
     fn prepare_upload(
         &self,
-        user: &User,
+        user: &Principal,
         platform: Platform,
         name: &str,
         bytes: &[u8],

@@ -9,7 +9,7 @@ use std::path::Path;
 use super::{DeployError, Deployer, Permission, Platform, authorise};
 use crate::contract::clip;
 use crate::sim::world::{self, MAX_WORLD_BYTES};
-use crate::store::users::User;
+use crate::store::users::Principal;
 use crate::store::{WorldRecord, unix_now};
 
 /// How an uploaded world's name must end (robot files name it so).
@@ -18,7 +18,7 @@ pub const WORLD_SUFFIX: &str = ".world";
 impl Deployer {
     /// Checks and stores `bytes` as world file `name`. Worlds belong to the
     /// simulated robot, which is on the control platform.
-    pub fn upload_world(&self, user: &User, name: &str, bytes: &[u8]) -> Result<WorldRecord, DeployError> {
+    pub fn upload_world(&self, user: &Principal, name: &str, bytes: &[u8]) -> Result<WorldRecord, DeployError> {
         let target = format!("world '{}'", clip(name));
         let prepared =
             authorise(user, Permission::Change(Platform::Control)).and_then(|()| prepare_world(user, name, bytes));
@@ -43,7 +43,7 @@ impl Deployer {
     }
 }
 
-fn prepare_world(user: &User, name: &str, bytes: &[u8]) -> Result<WorldRecord, DeployError> {
+fn prepare_world(user: &Principal, name: &str, bytes: &[u8]) -> Result<WorldRecord, DeployError> {
     super::stage::check_file_name(name)?;
     if !name.ends_with(WORLD_SUFFIX) || name.len() == WORLD_SUFFIX.len() {
         return Err(DeployError::BadRequest(format!(

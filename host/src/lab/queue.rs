@@ -14,9 +14,15 @@
 //!    preflight or queued) and at most `robot_minutes_per_day` minutes of
 //!    robot time in any 24 hours (what ran, runs or waits to run);
 //! 5. reservations never overlap, each lasts at most `max_reservation`,
-//!    and a user books at most `reservation_per_day` per UTC day.
+//!    and a user books at most `reservation_per_day` per UTC day;
+//! 6. on a lab server ([`place`]): first in, first out, each queued
+//!    experiment goes to the first free robot its target names whose
+//!    `max-duration` allows it; when no online robot of its target allows
+//!    it, to the first free one of its target, which refuses it with its
+//!    reason rather than leave it waiting for ever; a robot takes one
+//!    experiment at a time.
 
-pub use crate::store::experiments::{Limits, Reservation};
+pub use crate::store::experiments::{Limits, Reservation, Target};
 
 /// One day, ms: the window of the robot-minutes limit.
 pub const DAY_MS: u64 = 24 * 3600 * 1000;
@@ -229,6 +235,62 @@ pub fn check_booking(
     Ok(())
 }
 
+/// A lab server's robot as the placement sees it.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Seat {
+    pub name: String,
+    /// Its profile's id.
+    pub profile: String,
+    pub max_duration_s: f64,
+    /// It may take an experiment now: online, idle, running nothing of the
+    /// lab's and being sent nothing.
+    pub free: bool,
+}
+
+impl Seat {
+    fn targeted_by(&self, target: &Target) -> bool {
+        match target {
+            Target::Any => true,
+            Target::Robot(robot) => *robot == self.name,
+            Target::Profile(id) => *id == self.profile,
+        }
+    }
+
+    fn fits(&self, target: &Target, duration_s: f64) -> bool {
+        self.targeted_by(target) && duration_s <= self.max_duration_s
+    }
+}
+
+/// A queued experiment no robot has yet.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Unplaced {
+    pub id: u64,
+    pub target: Target,
+    pub duration_s: f64,
+}
+
+/// Which robot each queued experiment goes to now (rule 6): `(experiment,
+/// robot)` pairs. `queued` in submission order, `online` every robot with
+/// a live token, by name.
+pub fn place(queued: &[Unplaced], online: &[Seat]) -> Vec<(u64, String)> {
+    let mut taken: Vec<&str> = Vec::new();
+    let mut placed = Vec::new();
+    for experiment in queued {
+        let anyone_allows = online.iter().any(|seat| seat.fits(&experiment.target, experiment.duration_s));
+        let free = online.iter().find(|seat| {
+            seat.free
+                && !taken.contains(&seat.name.as_str())
+                && seat.targeted_by(&experiment.target)
+                && (seat.fits(&experiment.target, experiment.duration_s) || !anyone_allows)
+        });
+        if let Some(seat) = free {
+            taken.push(&seat.name);
+            placed.push((experiment.id, seat.name.clone()));
+        }
+    }
+    placed
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -356,6 +418,70 @@ mod tests {
         ];
         for (case, user, start_s, end_s, expected) in cases {
             assert_eq!(check_booking(&limits, &booked, user, start_s * S, end_s * S, 100 * S), expected, "{case}");
+        }
+    }
+
+    fn seat(name: &str, profile: &str, max_duration_s: f64, free: bool) -> super::Seat {
+        super::Seat { name: name.into(), profile: profile.into(), max_duration_s, free }
+    }
+
+    fn unplaced(id: u64, target: super::Target, duration_s: f64) -> super::Unplaced {
+        super::Unplaced { id, target, duration_s }
+    }
+
+    #[test]
+    fn each_queued_experiment_goes_to_the_first_free_robot_that_fits() {
+        use super::Target::{Any, Profile, Robot};
+        let fleet = || vec![seat("r1", "pa", 60.0, true), seat("r2", "pa", 600.0, true), seat("r3", "pb", 600.0, true)];
+        let busy = |name: &str| {
+            let mut seats = fleet();
+            seats.iter_mut().filter(|s| s.name == name).for_each(|s| s.free = false);
+            seats
+        };
+        type Case = (&'static str, Vec<super::Unplaced>, Vec<super::Seat>, Vec<(u64, &'static str)>);
+        let cases: Vec<Case> = vec![
+            ("nothing queued", vec![], fleet(), vec![]),
+            ("no robot online", vec![unplaced(1, Any, 30.0)], vec![], vec![]),
+            (
+                "first in, first free",
+                vec![unplaced(1, Any, 30.0), unplaced(2, Any, 30.0)],
+                fleet(),
+                vec![(1, "r1"), (2, "r2")],
+            ),
+            (
+                "one each, the rest wait",
+                (1..=4).map(|i| unplaced(i, Any, 30.0)).collect(),
+                fleet(),
+                vec![(1, "r1"), (2, "r2"), (3, "r3")],
+            ),
+            ("a busy robot is passed", vec![unplaced(1, Any, 30.0)], busy("r1"), vec![(1, "r2")]),
+            ("a named robot only", vec![unplaced(1, Robot("r3".into()), 30.0)], fleet(), vec![(1, "r3")]),
+            ("a named robot that is busy: it waits", vec![unplaced(1, Robot("r3".into()), 30.0)], busy("r3"), vec![]),
+            ("a profile", vec![unplaced(1, Profile("pb".into()), 30.0)], fleet(), vec![(1, "r3")]),
+            ("too long for r1: the next that allows it", vec![unplaced(1, Any, 120.0)], fleet(), vec![(1, "r2")]),
+            (
+                "the one that allows it is busy: it waits",
+                vec![unplaced(1, Profile("pa".into()), 120.0)],
+                busy("r2"),
+                vec![],
+            ),
+            (
+                "no robot of its target allows it: the first free one refuses it",
+                vec![unplaced(1, Profile("pa".into()), 900.0)],
+                fleet(),
+                vec![(1, "r1")],
+            ),
+            (
+                "the head waits, the next goes",
+                vec![unplaced(1, Robot("r1".into()), 30.0), unplaced(2, Any, 30.0)],
+                busy("r1"),
+                vec![(2, "r2")],
+            ),
+            ("an unknown robot: it waits", vec![unplaced(1, Robot("r9".into()), 30.0)], fleet(), vec![]),
+        ];
+        for (case, queued, online, expected) in cases {
+            let expected: Vec<(u64, String)> = expected.into_iter().map(|(id, r)| (id, r.to_string())).collect();
+            assert_eq!(super::place(&queued, &online), expected, "{case}");
         }
     }
 }

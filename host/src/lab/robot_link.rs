@@ -46,9 +46,9 @@ use crate::fsutil::HiddenPaths;
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{
-    AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, LAB_FORMAT, Origin,
+    AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, NewExperiment, Origin,
 };
-use crate::store::users::{Role, User};
+use crate::store::users::{Principal, Role};
 use crate::store::{Outcome, SetRecord};
 
 /// How long a robot runs the lab's experiment without hearing its lab
@@ -491,12 +491,8 @@ impl RobotLink {
             base_dir: &baseline_dir,
         };
         let set = self.lab.deployer.import_set(&import).map_err(|e| check_reasons(e.into()))?;
-        let user = User {
-            name: dispatch.submitter.clone(),
-            role: dispatch.role,
-            platforms: dispatch.platforms.clone(),
-            hash: String::new(),
-        };
+        let user =
+            Principal { name: dispatch.submitter.clone(), role: dispatch.role, platforms: dispatch.platforms.clone() };
         let (baseline, settings) = {
             let book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
             (self.lab.baseline(&book.lab), book.lab.settings.clone())
@@ -564,46 +560,31 @@ impl RobotLink {
         self.busy(dispatch.duration_s).map_err(|why| vec![why])?;
         let mut book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
         let now = unix_now_ms();
-        let record = ExperimentRecord {
-            format: LAB_FORMAT,
-            id: 0,
+        let new = NewExperiment {
             submitter: dispatch.submitter.clone(),
             set: set.id,
             label: dispatch.label.clone(),
             duration_s: dispatch.duration_s,
             submitted_ms: now,
-            state: ExperimentState::Queued,
-            history: Vec::new(),
-            reasons: Vec::new(),
             settings: AppliedSettings::of(&settings, baseline),
             components: components
                 .into_iter()
                 .map(|(name, source, sha256)| ComponentHash { name, source, sha256 })
                 .collect(),
-            preflight: None,
-            run: None,
-            results: Vec::new(),
-            recording_expired: false,
-            origin: Some(Origin {
-                lab: self.options.key.lab().to_string(),
-                id: dispatch.lab_id,
-                role: dispatch.role,
-                platforms: dispatch.platforms.clone(),
-            }),
-            placement: None,
         };
-        let stored = (|| {
-            let writer = self.lab.store().lock()?;
-            let mut record = writer.add_experiment(&mut book.lab, record)?;
-            let cause = format!(
-                "dispatched by lab '{}' as its experiment {} (its preflight ran there); checked again here",
-                self.options.key.lab(),
-                dispatch.lab_id
-            );
-            record.enter(ExperimentState::Queued, now, &cause);
-            writer.put_experiment(&record)?;
-            Ok::<_, crate::store::StoreError>(record)
-        })();
+        let cause = format!(
+            "dispatched by lab '{}' as its experiment {} (its preflight ran there); checked again here",
+            self.options.key.lab(),
+            dispatch.lab_id
+        );
+        let mut record = ExperimentRecord::new(new, ExperimentState::Queued, &cause);
+        record.origin = Some(Origin {
+            lab: self.options.key.lab().to_string(),
+            id: dispatch.lab_id,
+            role: dispatch.role,
+            platforms: dispatch.platforms.clone(),
+        });
+        let stored = self.lab.store().lock().and_then(|writer| writer.add_experiment(&mut book.lab, record));
         let record = stored.map_err(|e| vec![format!("failed: {e}")])?;
         let id = record.id;
         book.experiments.insert(id, record);
@@ -689,12 +670,7 @@ impl RobotLink {
             return self.refuse("lab-estop", "an emergency stop", format!("refused: {e}"));
         }
         self.heard_lab();
-        let user = User {
-            name: lab_user(&self.options, &estop.by),
-            role: Role::Viewer,
-            platforms: Vec::new(),
-            hash: String::new(),
-        };
+        let user = Principal { name: lab_user(&self.options, &estop.by), role: Role::Viewer, platforms: Vec::new() };
         match self.lab.deployer.engage_lock(&user, &format!("lab '{}'", self.options.key.lab())) {
             Ok(engaged) => Ack {
                 v: WIRE_VERSION,

@@ -22,7 +22,7 @@ use crate::deploy::{DeployError, RunningExperiment};
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy};
-use crate::store::users::User;
+use crate::store::users::Principal;
 
 /// How often the runner looks at the robot and the queue when nothing
 /// wakes it.
@@ -111,20 +111,17 @@ fn refuse(lab: &Lab, id: u64, cause: &str, reasons: Vec<String>) -> Result<(), L
     Ok(())
 }
 
-fn user(lab: &Lab, name: &str) -> Option<User> {
-    lab.store().users().get(name)
+fn user(lab: &Lab, name: &str) -> Option<Principal> {
+    lab.store().users().get(name).map(|u| u.principal)
 }
 
 /// Who submitted `record`: a user of this host, or, for a lab's
 /// experiment, the lab's user with the rights the lab vouched for.
-fn submitter(lab: &Lab, record: &ExperimentRecord) -> Option<User> {
+fn submitter(lab: &Lab, record: &ExperimentRecord) -> Option<Principal> {
     match &record.origin {
-        Some(origin) => Some(User {
-            name: record.submitter.clone(),
-            role: origin.role,
-            platforms: origin.platforms.clone(),
-            hash: String::new(),
-        }),
+        Some(origin) => {
+            Some(Principal { name: record.submitter.clone(), role: origin.role, platforms: origin.platforms.clone() })
+        }
         None => user(lab, &record.submitter),
     }
 }
@@ -195,12 +192,7 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
     // The replay against the owner's reference recording is information,
     // never a refusal.
     let replay = settings.reference_recording.as_deref().map(|reference| {
-        let admin = User {
-            name: crate::deploy::LAB_USER.into(),
-            role: crate::store::users::Role::Admin,
-            platforms: vec![],
-            hash: String::new(),
-        };
+        let admin = Principal::host(crate::deploy::LAB_USER);
         match lab.deployer.replay_set(&admin, record.set, reference, &[]) {
             Ok(report) => serde_json::json!({ "reference": reference, "report": report }),
             Err(e) => serde_json::json!({ "reference": reference, "error": e.to_string() }),
@@ -226,35 +218,61 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
     if let Some(record) = book.experiments.get_mut(&id) {
         record.results = bundle::scan(lab.store(), id);
     }
+    if let Ok(Outcome::Judged { verdict, wall_s }) = &outcome
+        && let Some(record) = book.experiments.get_mut(&id)
+    {
+        record.preflight = Some(PreflightResult {
+            passed: verdict.passed,
+            reasons: verdict.reasons.clone(),
+            simulated_s: verdict.observed.simulated_s,
+            wall_s: *wall_s,
+            replay,
+        });
+    }
+    match after_preflight(outcome, lab.is_stopping()) {
+        AfterPreflight::Enter { state, cause, reasons } => {
+            lab.transition(&mut book, id, state, &cause, reasons)?;
+        }
+        AfterPreflight::Cancelled => {
+            let by = book.cancels.remove(&id).unwrap_or_default();
+            let cause = format!("cancelled by {by} during its preflight");
+            lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])?;
+        }
+        AfterPreflight::Stays => {}
+    }
+    book.cancels.remove(&id);
+    Ok(())
+}
+
+/// What a preflight's outcome makes of its experiment.
+#[derive(Debug, PartialEq)]
+enum AfterPreflight {
+    /// It goes to `state` for `cause`, with `reasons`.
+    Enter { state: ExperimentState, cause: String, reasons: Vec<String> },
+    /// Its cancel was asked for: cancelled, naming who asked.
+    Cancelled,
+    /// The host stops: it stays in its preflight and is checked again when
+    /// the host starts.
+    Stays,
+}
+
+/// The preflight outcome's mapping to a state, pure: passed -> queued;
+/// judged and failed, did not start, or too slow -> refused (the
+/// submitter's); starved or broken -> failed (the host's); cancelled ->
+/// cancelled, unless the host is `stopping`.
+fn after_preflight(outcome: Result<Outcome, PreflightError>, stopping: bool) -> AfterPreflight {
+    let enter = |state, cause: String, reasons| AfterPreflight::Enter { state, cause, reasons };
     match outcome {
-        Ok(Outcome::Judged { verdict, wall_s }) => {
-            if let Some(record) = book.experiments.get_mut(&id) {
-                record.preflight = Some(PreflightResult {
-                    passed: verdict.passed,
-                    reasons: verdict.reasons.clone(),
-                    simulated_s: verdict.observed.simulated_s,
-                    wall_s,
-                    replay,
-                });
-            }
-            if verdict.passed {
-                let cause = format!(
-                    "passed its preflight ({:.0} s simulated in {wall_s:.1} s); queued",
-                    verdict.observed.simulated_s
-                );
-                lab.transition(&mut book, id, ExperimentState::Queued, &cause, vec![])?;
-            } else {
-                lab.transition(&mut book, id, ExperimentState::Refused, "refused by its preflight", verdict.reasons)?;
-            }
+        Ok(Outcome::Judged { verdict, wall_s }) if verdict.passed => enter(
+            ExperimentState::Queued,
+            format!("passed its preflight ({:.0} s simulated in {wall_s:.1} s); queued", verdict.observed.simulated_s),
+            vec![],
+        ),
+        Ok(Outcome::Judged { verdict, .. }) => {
+            enter(ExperimentState::Refused, "refused by its preflight".into(), verdict.reasons)
         }
         Ok(Outcome::DidNotStart(errors)) => {
-            lab.transition(
-                &mut book,
-                id,
-                ExperimentState::Refused,
-                "refused: it did not start in the simulator",
-                errors,
-            )?;
+            enter(ExperimentState::Refused, "refused: it did not start in the simulator".into(), errors)
         }
         Ok(Outcome::Starved { cpu, waited }) => {
             let reason = format!(
@@ -262,34 +280,22 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
                 cpu.as_secs_f64(),
                 waited.as_secs()
             );
-            lab.transition(&mut book, id, ExperimentState::Failed, &reason, vec![reason.clone()])?;
+            enter(ExperimentState::Failed, reason.clone(), vec![reason])
         }
         Ok(Outcome::TooSlow { limit }) => {
             let reason = format!(
                 "preflight: it used more than {} s of cpu without finishing (its components use most of their budgets)",
                 limit.as_secs()
             );
-            lab.transition(
-                &mut book,
-                id,
-                ExperimentState::Refused,
-                "refused: its preflight was too slow",
-                vec![reason],
-            )?;
+            enter(ExperimentState::Refused, "refused: its preflight was too slow".into(), vec![reason])
         }
-        Err(PreflightError::Cancelled) if lab.is_stopping() => {}
-        Err(PreflightError::Cancelled) => {
-            let by = book.cancels.remove(&id).unwrap_or_default();
-            let cause = format!("cancelled by {by} during its preflight");
-            lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])?;
-        }
+        Err(PreflightError::Cancelled) if stopping => AfterPreflight::Stays,
+        Err(PreflightError::Cancelled) => AfterPreflight::Cancelled,
         Err(e) => {
             let reason = format!("failed: {e}");
-            lab.transition(&mut book, id, ExperimentState::Failed, &reason, vec![reason.clone()])?;
+            enter(ExperimentState::Failed, reason.clone(), vec![reason])
         }
     }
-    book.cancels.remove(&id);
-    Ok(())
 }
 
 fn robot(lab: &Lab) {
@@ -587,5 +593,100 @@ pub(super) fn host_stopped(lab: &Lab, report: Option<&crate::report::Report>) {
     let cause = "aborted: host stopped";
     if let Err(e) = lab.transition(&mut book, id, ExperimentState::Aborted, cause, vec![cause.into()]) {
         tracing::error!("experiment {id}: {e}");
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::time::Duration;
+
+    use super::{AfterPreflight, after_preflight};
+    use crate::lab::preflight::{Outcome, PreflightError};
+    use crate::lab::verdict::{Observations, Verdict};
+    use crate::store::experiments::{Criteria, ExperimentState};
+
+    fn judged(passed: bool, reasons: &[&str]) -> Outcome {
+        let observed = Observations { simulated_s: 30.0, ..Observations::default() };
+        let reasons = reasons.iter().map(|r| r.to_string()).collect();
+        Outcome::Judged { verdict: Verdict { passed, reasons, criteria: Criteria::default(), observed }, wall_s: 0.5 }
+    }
+
+    #[test]
+    fn every_preflight_outcome_has_its_state() {
+        let strings = |r: &[&str]| r.iter().map(|s| s.to_string()).collect::<Vec<_>>();
+        let crashed = PreflightError::Crashed { status: "signal 9".into(), last: "oom".into() };
+        let cases: Vec<(&str, Result<Outcome, PreflightError>, bool, AfterPreflight)> = vec![
+            (
+                "passed",
+                Ok(judged(true, &[])),
+                false,
+                AfterPreflight::Enter {
+                    state: ExperimentState::Queued,
+                    cause: "passed its preflight (30 s simulated in 0.5 s); queued".into(),
+                    reasons: vec![],
+                },
+            ),
+            (
+                "judged and failed",
+                Ok(judged(false, &["preflight: collision at 3.0 s"])),
+                false,
+                AfterPreflight::Enter {
+                    state: ExperimentState::Refused,
+                    cause: "refused by its preflight".into(),
+                    reasons: strings(&["preflight: collision at 3.0 s"]),
+                },
+            ),
+            (
+                "did not start",
+                Ok(Outcome::DidNotStart(strings(&["robot.xml:3:5: unknown port"]))),
+                false,
+                AfterPreflight::Enter {
+                    state: ExperimentState::Refused,
+                    cause: "refused: it did not start in the simulator".into(),
+                    reasons: strings(&["robot.xml:3:5: unknown port"]),
+                },
+            ),
+            (
+                "too slow",
+                Ok(Outcome::TooSlow { limit: Duration::from_secs(120) }),
+                false,
+                AfterPreflight::Enter {
+                    state: ExperimentState::Refused,
+                    cause: "refused: its preflight was too slow".into(),
+                    reasons: strings(&[
+                        "preflight: it used more than 120 s of cpu without finishing (its components use most of their budgets)",
+                    ]),
+                },
+            ),
+            (
+                "starved: the host's",
+                Ok(Outcome::Starved { cpu: Duration::from_millis(1500), waited: Duration::from_secs(600) }),
+                false,
+                AfterPreflight::Enter {
+                    state: ExperimentState::Failed,
+                    cause: "failed: the host was too busy to run its preflight (it got 1.5 s of cpu in 600 s); submit it again".into(),
+                    reasons: strings(&[
+                        "failed: the host was too busy to run its preflight (it got 1.5 s of cpu in 600 s); submit it again",
+                    ]),
+                },
+            ),
+            (
+                "crashed: the host's",
+                Err(crashed),
+                false,
+                AfterPreflight::Enter {
+                    state: ExperimentState::Failed,
+                    cause: "failed: the preflight process ended without a verdict (signal 9); its last words: oom".into(),
+                    reasons: strings(&[
+                        "failed: the preflight process ended without a verdict (signal 9); its last words: oom",
+                    ]),
+                },
+            ),
+            ("cancelled", Err(PreflightError::Cancelled), false, AfterPreflight::Cancelled),
+            ("the host stops", Err(PreflightError::Cancelled), true, AfterPreflight::Stays),
+        ];
+        for (case, outcome, stopping, expected) in cases {
+            assert_eq!(after_preflight(outcome, stopping), expected, "{case}");
+        }
     }
 }

@@ -38,6 +38,7 @@ use serde::Serialize;
 use thiserror::Error;
 use zenoh::Wait;
 
+use super::queue::{self, Seat, Unplaced};
 use super::transfer::{self, TransferError};
 use super::wire::{
     self, Ack, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop, FileRequest,
@@ -49,7 +50,7 @@ use crate::bridge::session::{self, SessionSettings, Shared};
 use crate::deploy::{SetImport, utc_time};
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentState, Target};
-use crate::store::users::User;
+use crate::store::users::Principal;
 use crate::store::{Outcome, Store};
 
 /// How often the lab server says it is there.
@@ -467,7 +468,7 @@ impl Fleet {
 
     /// Engages the emergency stop of robot `name` (every online robot
     /// when `None`) for `user`: each robot's answer.
-    pub fn estop(&self, user: &User, name: Option<&str>) -> Result<Vec<RobotAnswer>, LabError> {
+    pub fn estop(&self, user: &Principal, name: Option<&str>) -> Result<Vec<RobotAnswer>, LabError> {
         let names: Vec<String> = {
             let robots = lock(&self.robots);
             match name {
@@ -591,21 +592,6 @@ fn dispatch_loop(lab: &Arc<Lab>, fleet: &Arc<Fleet>) {
     fleet.shut_down();
 }
 
-/// Whether robot `name` with `token` is one `target` names.
-fn targets(name: &str, token: &TokenBody, target: &Target) -> bool {
-    match target {
-        Target::Any => true,
-        Target::Robot(robot) => robot == name,
-        Target::Profile(id) => token.profile.id == *id,
-    }
-}
-
-/// Whether robot `name` with `token` may take an experiment for `target`
-/// of `duration_s`.
-fn fits(name: &str, token: &TokenBody, target: &Target, duration_s: f64) -> bool {
-    targets(name, token, target) && duration_s <= token.max_duration_s
-}
-
 /// Looks at every experiment on or for a robot and every robot, and
 /// decides what to do (under the book's lock and the robots').
 fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
@@ -717,32 +703,29 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
         return actions;
     }
     // The queue, first in, first out: each experiment to the first free
-    // robot that fits it.
-    let queued: Vec<(u64, Target, f64)> = book
+    // robot that fits it (queue::place).
+    let queued: Vec<Unplaced> = book
         .experiments
         .values()
         .filter(|r| r.state == ExperimentState::Queued && !book.dispatching.contains(&r.id))
         .filter_map(|r| {
             let p = r.placement.as_ref()?;
-            p.robot.is_none().then(|| (r.id, p.target.clone(), r.duration_s))
+            p.robot.is_none().then(|| Unplaced { id: r.id, target: p.target.clone(), duration_s: r.duration_s })
         })
         .collect();
-    for (id, target, duration_s) in queued {
-        // A robot whose max-duration is too short is not sent it, unless
-        // no robot of its target allows it: then it goes to one, which
-        // refuses it with its reason, rather than waiting for ever.
-        let anyone_allows =
-            robots.iter().any(|(name, r)| r.current.as_ref().is_some_and(|t| fits(name, t, &target, duration_s)));
-        let free = robots.iter().find(|(name, robot)| {
-            !busy.contains(*name)
-                && robot.dispatching.is_none()
-                && matches!(&robot.current, Some(t) if t.state == RobotState::Idle
-                    && targets(name, t, &target)
-                    && (fits(name, t, &target, duration_s) || !anyone_allows))
-        });
-        let Some((name, _)) = free else { continue };
-        let name = name.clone();
-        busy.insert(name.clone());
+    let online: Vec<Seat> = robots
+        .iter()
+        .filter_map(|(name, robot)| {
+            let token = robot.current.as_ref()?;
+            Some(Seat {
+                name: name.clone(),
+                profile: token.profile.id.clone(),
+                max_duration_s: token.max_duration_s,
+                free: token.state == RobotState::Idle && !busy.contains(name) && robot.dispatching.is_none(),
+            })
+        })
+        .collect();
+    for (id, name) in queue::place(&queued, &online) {
         if let Some(robot) = robots.get_mut(&name) {
             robot.dispatching = Some(id);
         }
@@ -925,7 +908,9 @@ fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
         placement.fetch_pending = false;
     }
     let state = record.state;
-    let robot_state = results.state.unwrap_or(ExperimentState::Failed);
+    // A robot's ending the experiment's life does not lead to here (its
+    // bug, or a newer host's state) ends it failed, never stuck.
+    let robot_state = results.state.filter(|s| state.may_enter(*s)).unwrap_or(ExperimentState::Failed);
     let robot_cause = results.history.last().map(|c| c.cause.clone()).unwrap_or_default();
     if matches!(state, ExperimentState::Running | ExperimentState::Finishing) {
         let cause = format!("on robot {robot}: {robot_cause}");

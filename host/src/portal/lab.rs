@@ -37,6 +37,7 @@ impl From<LabError> for ApiError {
             },
             LabError::Store(e) => ApiError::from(e),
             LabError::Host(m) => ApiError::internal(m),
+            e @ LabError::Illegal(_) => ApiError::internal(e.to_string()),
         }
     }
 }

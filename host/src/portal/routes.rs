@@ -68,7 +68,7 @@ pub(super) async fn get_own_component(
     Authed(user): Authed,
     Path(name): Path<String>,
 ) -> Result<Json<Json_>, ApiError> {
-    one_component(&state, user.name, name).await
+    one_component(&state, user.principal.name, name).await
 }
 
 /// User `owner`'s upload `name` (any user may read any record).

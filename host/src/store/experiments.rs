@@ -112,6 +112,37 @@ impl ExperimentState {
     }
 }
 
+impl ExperimentState {
+    /// Whether an experiment in this state may go to `next`: the life in
+    /// docs/lab.md as a table. `queued -> queued` is a lab server's refused
+    /// dispatch going back to the queue once; `preflight -> checking` a
+    /// host that stopped during a preflight checking it again; `running`
+    /// and `finishing` end in any final state but `refused` (a lab server
+    /// learns a robot's ending from the robot); an ended experiment goes
+    /// nowhere.
+    pub fn may_enter(self, next: ExperimentState) -> bool {
+        use ExperimentState::*;
+        match self {
+            Checking => matches!(next, Preflight | Refused | Cancelled | Failed),
+            Preflight => matches!(next, Queued | Checking | Refused | Cancelled | Failed),
+            Queued => matches!(next, Queued | Running | Refused | Cancelled | Failed),
+            Running => matches!(next, Finishing | Done | Cancelled | Aborted | Failed),
+            Finishing => matches!(next, Done | Cancelled | Aborted | Failed),
+            Done | Refused | Cancelled | Aborted | Failed => false,
+        }
+    }
+}
+
+/// An experiment asked to go where its life does not lead
+/// ([`ExperimentState::may_enter`]): the host's own bug, refused.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("experiment {id} cannot go from {from} to {to}")]
+pub struct IllegalTransition {
+    pub id: u64,
+    pub from: ExperimentState,
+    pub to: ExperimentState,
+}
+
 impl std::fmt::Display for ExperimentState {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.write_str(self.name())
@@ -279,16 +310,60 @@ impl AppliedSettings {
     }
 }
 
+/// What a new experiment's record is made of (a submission here, or a
+/// lab's dispatch on a robot).
+#[derive(Clone, Debug)]
+pub struct NewExperiment {
+    pub submitter: String,
+    pub set: u64,
+    pub label: String,
+    pub duration_s: f64,
+    pub submitted_ms: u64,
+    pub settings: AppliedSettings,
+    pub components: Vec<ComponentHash>,
+}
+
 impl ExperimentRecord {
+    /// The record of `new`, in its first `state` since it was submitted,
+    /// for `cause` (the store gives it its id).
+    pub fn new(new: NewExperiment, state: ExperimentState, cause: &str) -> ExperimentRecord {
+        let NewExperiment { submitter, set, label, duration_s, submitted_ms, settings, components } = new;
+        ExperimentRecord {
+            format: LAB_FORMAT,
+            id: 0,
+            submitter,
+            set,
+            label,
+            duration_s,
+            submitted_ms,
+            state,
+            history: vec![StateChange { state, at_ms: submitted_ms, cause: cause.to_string() }],
+            reasons: Vec::new(),
+            settings,
+            components,
+            preflight: None,
+            run: None,
+            results: Vec::new(),
+            recording_expired: false,
+            origin: None,
+            placement: None,
+        }
+    }
+
     pub(super) fn parse(bytes: &[u8]) -> Result<ExperimentRecord, String> {
         check_format(bytes)?;
         serde_json::from_slice(bytes).map_err(|e| e.to_string())
     }
 
-    /// Moves it to `state`, now, for `cause`.
-    pub fn enter(&mut self, state: ExperimentState, at_ms: u64, cause: &str) {
+    /// Moves it to `state` at `at_ms` for `cause`, if its life leads there
+    /// from where it is (else nothing changes).
+    pub fn enter(&mut self, state: ExperimentState, at_ms: u64, cause: &str) -> Result<(), IllegalTransition> {
+        if !self.state.may_enter(state) {
+            return Err(IllegalTransition { id: self.id, from: self.state, to: state });
+        }
         self.state = state;
         self.history.push(StateChange { state, at_ms, cause: cause.to_string() });
+        Ok(())
     }
 
     /// Adds a reason (at most [`MAX_REASONS`]; the rest are counted).
@@ -505,6 +580,52 @@ pub type Experiments = BTreeMap<u64, ExperimentRecord>;
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_life_of_an_experiment_is_a_table_checked_pair_by_pair() {
+        use ExperimentState::*;
+        // Row: from; the states it may enter, in ALL's order. The life in
+        // docs/lab.md ("An experiment's life").
+        let table: [(ExperimentState, &[ExperimentState]); 10] = [
+            (Checking, &[Preflight, Refused, Cancelled, Failed]),
+            (Preflight, &[Checking, Queued, Refused, Cancelled, Failed]),
+            (Queued, &[Queued, Running, Refused, Cancelled, Failed]),
+            (Running, &[Finishing, Done, Cancelled, Aborted, Failed]),
+            (Finishing, &[Done, Cancelled, Aborted, Failed]),
+            (Done, &[]),
+            (Refused, &[]),
+            (Cancelled, &[]),
+            (Aborted, &[]),
+            (Failed, &[]),
+        ];
+        for (from, allowed) in table {
+            for to in ExperimentState::ALL {
+                assert_eq!(from.may_enter(to), allowed.contains(&to), "{from} -> {to}");
+            }
+        }
+        // `enter` keeps to it: a refused move changes nothing.
+        let new = NewExperiment {
+            submitter: "ana".into(),
+            set: 3,
+            label: String::new(),
+            duration_s: 10.0,
+            submitted_ms: 1,
+            settings: AppliedSettings::of(&LabSettings::default(), 1),
+            components: Vec::new(),
+        };
+        let mut record = ExperimentRecord::new(new, Checking, "submitted by ana");
+        assert_eq!(
+            record.enter(Queued, 2, "skips its preflight"),
+            Err(IllegalTransition { id: 0, from: Checking, to: Queued })
+        );
+        assert_eq!((record.state, record.history.len()), (Checking, 1));
+        for (to, at) in [(Preflight, 3), (Queued, 4), (Running, 5), (Finishing, 6), (Done, 7)] {
+            record.enter(to, at, "on").unwrap();
+        }
+        assert!(record.enter(Failed, 8, "after the end").is_err());
+        let states: Vec<_> = record.history.iter().map(|c| (c.state, c.at_ms)).collect();
+        assert_eq!(states, [(Checking, 1), (Preflight, 3), (Queued, 4), (Running, 5), (Finishing, 6), (Done, 7)]);
+    }
 
     #[test]
     fn states_say_whether_they_wait_or_ended() {

@@ -79,25 +79,32 @@ impl std::str::FromStr for Role {
     }
 }
 
-/// One user as the users file keeps it.
+/// Who asks for a use case: a name, a role and the platforms it may
+/// change, and never a password hash. A stored [`User`] is one (its
+/// `Deref`); so are the host's own jobs ([`Principal::host`]) and a lab's
+/// experiment on a robot, whose submitter the lab vouched for.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub struct User {
+pub struct Principal {
     pub name: String,
     pub role: Role,
     /// Platforms a developer may change (ignored for other roles).
     #[serde(default)]
     pub platforms: Vec<String>,
-    /// PHC string of an argon2id hash.
-    pub hash: String,
 }
 
-impl User {
-    /// Whether this user may drive the robot.
+impl Principal {
+    /// The host acting on its own (`boot`, `lab`, `dev`): an admin of no
+    /// platform in particular (an admin may change every one).
+    pub fn host(name: &str) -> Principal {
+        Principal { name: name.to_string(), role: Role::Admin, platforms: Vec::new() }
+    }
+
+    /// Whether this principal may drive the robot.
     pub fn may_drive(&self) -> bool {
         matches!(self.role, Role::Operator | Role::Admin)
     }
 
-    /// Whether this user may upload to and activate `platform`.
+    /// Whether this principal may upload to and activate `platform`.
     pub fn may_change(&self, platform: Platform) -> bool {
         match self.role {
             Role::Admin => true,
@@ -106,18 +113,37 @@ impl User {
         }
     }
 
-    /// Whether this user may activate sets, record and read the audit log:
-    /// a developer of some platform, or an admin (a researcher's changes
-    /// reach the robot only as experiments).
+    /// Whether this principal may activate sets, record and read the audit
+    /// log: a developer of some platform, or an admin (a researcher's
+    /// changes reach the robot only as experiments).
     pub fn is_developer(&self) -> bool {
         self.role != Role::Researcher && (self.may_change(Platform::Control) || self.may_change(Platform::Network))
     }
 
-    /// Whether this user may submit experiments (docs/lab.md).
+    /// Whether this principal may submit experiments (docs/lab.md).
     pub fn may_submit(&self) -> bool {
         matches!(self.role, Role::Researcher | Role::Developer | Role::Admin)
     }
+}
 
+/// One user as the users file keeps it: a principal and its password's
+/// hash.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct User {
+    #[serde(flatten)]
+    pub principal: Principal,
+    /// PHC string of an argon2id hash.
+    pub hash: String,
+}
+
+impl std::ops::Deref for User {
+    type Target = Principal;
+    fn deref(&self) -> &Principal {
+        &self.principal
+    }
+}
+
+impl User {
     /// Whether `password` is this user's (constant time in the hash).
     pub fn check_password(&self, password: &str) -> bool {
         if password.len() > MAX_PASSWORD_LEN {
@@ -256,7 +282,7 @@ impl<'a> UsersWriter<'a> {
         let mut platforms: Vec<String> = platforms.iter().map(|p| p.name().to_string()).collect();
         platforms.sort();
         platforms.dedup();
-        let user = User { name: name.into(), role, platforms, hash: hash_password(password)? };
+        let user = User { principal: Principal { name: name.into(), role, platforms }, hash: hash_password(password)? };
         users.retain(|u| u.name != name);
         users.push(user);
         users.sort_by(|a, b| a.name.cmp(&b.name));
@@ -437,7 +463,7 @@ impl Directory {
     }
 
     /// Whether `user` may drive now: by role, or by a grant.
-    pub fn may_drive(&self, user: &User) -> bool {
+    pub fn may_drive(&self, user: &Principal) -> bool {
         user.may_drive() || self.grants.allows(&user.name, crate::runtime::locks::unix_now_ms())
     }
 

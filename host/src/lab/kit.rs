@@ -1,0 +1,69 @@
+//! The lab kit (docs/lab.md): the baseline in its preflight form, the
+//! criteria and a README, for a researcher to run the lab's robot on their
+//! own machine and get the verdict the preflight would give. The owner's
+//! `kit` setting turns it off for everyone but admins.
+
+use super::{Lab, LabError, bundle, materialize};
+use crate::store::users::{Principal, Role};
+
+impl Lab {
+    /// The lab kit (docs/lab.md): the baseline in its preflight form (the
+    /// robot file, its components, its world), the criteria and a README,
+    /// for `user` to run the lab's robot on their own machine; written into
+    /// a temporary folder the caller keeps until the archive is sent.
+    pub fn kit(&self, user: &Principal) -> Result<(tempfile::TempDir, bundle::Contents), LabError> {
+        self.audited(
+            &user.name,
+            "lab-kit",
+            "the lab kit",
+            || self.write_kit(user),
+            |(_, contents)| format!("downloaded ({} files)", contents.entries.len()),
+        )
+    }
+
+    fn write_kit(&self, user: &Principal) -> Result<(tempfile::TempDir, bundle::Contents), LabError> {
+        let (settings, baseline) = {
+            let book = self.lock()?;
+            (book.lab.settings.clone(), self.baseline(&book.lab))
+        };
+        if !user.may_submit() {
+            return Err(LabError::Forbidden(format!("{} may not download the lab kit", user.name)));
+        }
+        if !settings.kit && user.role != Role::Admin {
+            return Err(LabError::Forbidden("the robot's owner turned the lab kit off".into()));
+        }
+        let set = self.store().set(baseline)?;
+        let world = match &settings.preflight_world {
+            Some(name) => {
+                let worlds = self.store().worlds()?;
+                let stored = worlds
+                    .get(name)
+                    .ok_or_else(|| LabError::Host(format!("the preflight world '{name}' is not stored")))?;
+                Some(materialize::PreflightWorld { name: name.clone(), sha256: stored.sha256.clone() })
+            }
+            None => None,
+        };
+        let dir = tempfile::tempdir().map_err(|e| LabError::Host(format!("cannot make the kit's folder: {e}")))?;
+        let comment = format!("the lab's baseline (set {baseline}) in its preflight form: the lab kit (docs/lab.md)");
+        let written = materialize::write_preflight_form(self.store(), &set, world.as_ref(), dir.path(), &comment)
+            .map_err(|e| LabError::Host(e.to_string()))?;
+        let criteria = serde_json::to_vec_pretty(&settings.criteria).map_err(|e| LabError::Host(e.to_string()))?;
+        let readme = format!(
+            "The lab's robot (set {baseline}), as the lab's preflight runs it.\n\n\
+             Check an experiment's components the way the lab will, for up to {} s:\n\n    \
+             subsume run robot.xml --http off --speed max --duration 60 --criteria criteria.json\n\n\
+             It ends with the verdict the preflight would give. Replace a component's source in\n\
+             robot.xml with your own .wasm to try yours. The envelope component's parameters are the\n\
+             robot's safety settings: an experiment may not change them.\n",
+            settings.max_duration_s
+        );
+        let mut entries = vec![
+            ("criteria.json".to_string(), bundle::Source::Bytes(criteria)),
+            ("README.txt".to_string(), bundle::Source::Bytes(readme.into_bytes())),
+        ];
+        for (name, _) in &written.files {
+            entries.push((name.clone(), bundle::Source::File(dir.path().join(name))));
+        }
+        Ok((dir, bundle::Contents { folder: "lab-kit".into(), entries }))
+    }
+}

@@ -1,0 +1,117 @@
+//! The owner's use cases (admins): the lab's settings, the baseline,
+//! pausing and resuming the queue, and confirming a manual reset. Each is
+//! one change of `lab.json` under the lab's lock, audited.
+
+use super::{Lab, LabError, MAX_DURATION_CAP_S, MIN_DURATION_S};
+use crate::contract::clip;
+use crate::store::experiments::{LabSettings, LabState};
+use crate::store::users::{Principal, Role};
+
+impl Lab {
+    /// Changes the owner's settings (admins).
+    pub fn set_settings(&self, user: &Principal, settings: LabSettings) -> Result<LabSettings, LabError> {
+        self.admin_change(user, "lab-settings", "lab", |lab| {
+            check_settings(&settings)?;
+            lab.settings = settings.clone();
+            Ok(format!(
+                "max-duration {} s, {} queued and {} robot-minutes a day per user",
+                settings.max_duration_s, settings.limits.max_queued, settings.limits.robot_minutes_per_day
+            ))
+        })
+        .map(|lab| lab.settings)
+    }
+
+    /// Marks set `set` as the baseline (admins); it must validate.
+    pub fn set_baseline(&self, user: &Principal, set: u64) -> Result<u64, LabError> {
+        let checked = self.deployer.check_experiment_set(user, set, set);
+        let reference = match (&checked, self.fleet()) {
+            (Ok(_), Some(_)) if user.role == Role::Admin => self.deployer.set_reference(set).map_err(LabError::from),
+            _ => Ok(()),
+        };
+        self.admin_change(user, "lab-baseline", &format!("set {set}"), |lab| {
+            checked.map_err(LabError::from)?;
+            reference?;
+            lab.baseline = Some(set);
+            Ok(format!("the baseline is set {set}"))
+        })
+        .map(|lab| self.baseline(&lab))
+    }
+
+    /// Pauses or resumes the queue (admins): a paused queue starts nothing
+    /// new; what runs goes on.
+    pub fn set_paused(&self, user: &Principal, paused: bool) -> Result<bool, LabError> {
+        let action = if paused { "lab-pause" } else { "lab-resume" };
+        self.admin_change(user, action, "queue", |lab| {
+            lab.paused = paused;
+            Ok(if paused { "the queue is paused".into() } else { "the queue runs".into() })
+        })
+        .map(|lab| lab.paused)
+    }
+
+    /// Confirms the robot was put back at its start for the experiment
+    /// that waits for it (admins; the `manual` reset policy).
+    pub fn confirm_reset(&self, user: &Principal) -> Result<u64, LabError> {
+        let confirmed = || {
+            if user.role != Role::Admin {
+                return Err(LabError::Forbidden(format!("{} may not confirm resets (admins may)", user.name)));
+            }
+            let mut book = self.lock()?;
+            let id = book
+                .awaiting_reset
+                .ok_or_else(|| LabError::Conflict("no experiment waits for the robot to be reset".into()))?;
+            book.reset_confirmed = Some(id);
+            drop(book);
+            self.notify();
+            Ok(id)
+        };
+        self.audited(&user.name, "lab-reset", "reset", confirmed, |id| format!("for experiment {id}"))
+    }
+
+    fn admin_change(
+        &self,
+        user: &Principal,
+        action: &str,
+        target: &str,
+        change: impl FnOnce(&mut LabState) -> Result<String, LabError>,
+    ) -> Result<LabState, LabError> {
+        let changed = || {
+            if user.role != Role::Admin {
+                return Err(LabError::Forbidden(format!("{} may not change the lab (admins may)", user.name)));
+            }
+            let mut book = self.lock()?;
+            let mut lab = book.lab.clone();
+            let detail = change(&mut lab)?;
+            self.store().lock()?.put_lab_state(&lab)?;
+            book.lab = lab.clone();
+            drop(book);
+            self.notify();
+            Ok((lab, detail))
+        };
+        self.audited(&user.name, action, target, changed, |(_, detail)| detail.clone()).map(|(lab, _)| lab)
+    }
+}
+
+fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
+    let bad = |why: String| Err(LabError::BadRequest(why));
+    let d = settings.max_duration_s;
+    if !d.is_finite() || !(MIN_DURATION_S..=MAX_DURATION_CAP_S).contains(&d) {
+        return bad(format!("max_duration_s must be from {MIN_DURATION_S} to {MAX_DURATION_CAP_S}, got {d}"));
+    }
+    let limits = &settings.limits;
+    let minutes = limits.robot_minutes_per_day;
+    if !minutes.is_finite() || !(0.0..=24.0 * 60.0).contains(&minutes) {
+        return bad(format!("limits.robot_minutes_per_day must be from 0 to 1440, got {minutes}"));
+    }
+    if limits.max_queued > 1000 {
+        return bad(format!("limits.max_queued must be at most 1000, got {}", limits.max_queued));
+    }
+    if limits.max_reservation_s > 24 * 3600 || limits.reservation_per_day_s > 24 * 3600 {
+        return bad("reservations last at most a day".into());
+    }
+    if let Some(name) = &settings.preflight_world
+        && (name.is_empty() || name.len() > 64)
+    {
+        return bad(format!("preflight_world must name an uploaded world, got '{}'", clip(name)));
+    }
+    Ok(())
+}

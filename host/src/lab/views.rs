@@ -1,0 +1,141 @@
+//! What users see of the lab: their experiments (an admin: every one) with
+//! each queued one's place and ETA, the lab's overview for every tab's
+//! banner, and a finished experiment's results bundle. Someone else's
+//! experiment answers as a missing one.
+
+use serde::Serialize;
+
+use super::queue::{self, QueueView, Waiting};
+use super::{Book, Lab, LabError, TURNAROUND, bundle, not_found, server, visible};
+use crate::deploy::RunningExperiment;
+use crate::runtime::locks::unix_now_ms;
+use crate::store::experiments::{ExperimentRecord, ExperimentState, LabSettings, Reservation};
+use crate::store::users::{Principal, Role};
+
+impl Lab {
+    /// The queue's ETAs now.
+    pub(super) fn etas(&self, book: &Book, now: u64) -> Vec<(u64, Option<u64>)> {
+        let waiting = Self::waiting(book);
+        let view = QueueView {
+            now_ms: now,
+            running_until_ms: book.running.as_ref().map(|r| r.ends_unix_ms),
+            waiting: &waiting,
+            reservations: &book.lab.reservations,
+            paused: book.lab.paused,
+            turnaround_ms: TURNAROUND.as_millis() as u64,
+        };
+        queue::etas(&view)
+    }
+
+    /// The queued experiments, in submission order.
+    pub(super) fn waiting(book: &Book) -> Vec<Waiting> {
+        book.experiments
+            .values()
+            .filter(|r| r.state == ExperimentState::Queued)
+            .map(|r| Waiting { id: r.id, user: r.submitter.clone(), duration_ms: (r.duration_s * 1000.0) as u64 })
+            .collect()
+    }
+
+    fn view(&self, book: &Book, record: &ExperimentRecord, etas: &[(u64, Option<u64>)]) -> ExperimentView {
+        let place = etas.iter().position(|(id, _)| *id == record.id).map(|i| i + 1);
+        let eta = etas.iter().find(|(id, _)| *id == record.id).and_then(|(_, eta)| *eta);
+        let ends = book.running.as_ref().filter(|r| r.id == record.id).map(|r| r.ends_unix_ms);
+        ExperimentView {
+            record: record.clone(),
+            place,
+            eta_unix_ms: eta,
+            ends_unix_ms: ends,
+            awaiting_reset: book.awaiting_reset == Some(record.id),
+        }
+    }
+
+    /// `user`'s experiments (an admin's: every one), newest first.
+    pub fn list(&self, user: &Principal) -> Result<Vec<ExperimentView>, LabError> {
+        let book = self.lock()?;
+        let etas = self.etas(&book, unix_now_ms());
+        Ok(book.experiments.values().rev().filter(|r| visible(user, r)).map(|r| self.view(&book, r, &etas)).collect())
+    }
+
+    /// Experiment `id`, if `user` may see it.
+    pub fn get(&self, user: &Principal, id: u64) -> Result<ExperimentView, LabError> {
+        let book = self.lock()?;
+        let record = book.experiments.get(&id).filter(|r| visible(user, r)).ok_or_else(|| not_found(id))?;
+        let etas = self.etas(&book, unix_now_ms());
+        Ok(self.view(&book, record, &etas))
+    }
+
+    /// The lab as `user` sees it (the owner's settings for admins only).
+    pub fn overview(&self, user: &Principal) -> Result<LabView, LabError> {
+        let book = self.lock()?;
+        let now = unix_now_ms();
+        Ok(LabView {
+            running: self.deployer.experiments().running(),
+            queued: book.experiments.values().filter(|r| r.state == ExperimentState::Queued).count(),
+            paused: book.lab.paused,
+            held: book.held.clone(),
+            awaiting_reset: book.awaiting_reset,
+            baseline: self.baseline(&book.lab),
+            reservations: book.lab.reservations.iter().filter(|r| r.end_ms > now).cloned().collect(),
+            reserved_now: queue::reservation_at(&book.lab.reservations, now).cloned(),
+            settings: (user.role == Role::Admin).then(|| book.lab.settings.clone()),
+            now_unix_ms: now,
+            robots: self.fleet().map(|f| f.robots_with(now, &book.lab.baselines)),
+        })
+    }
+
+    /// The files of experiment `id`'s results bundle, if `user` may see
+    /// it: see [`bundle::contents`].
+    pub fn results(&self, user: &Principal, id: u64) -> Result<bundle::Contents, LabError> {
+        let record = {
+            let book = self.lock()?;
+            book.experiments.get(&id).filter(|r| visible(user, r)).cloned().ok_or_else(|| not_found(id))?
+        };
+        if !record.state.is_final() {
+            return Err(LabError::Conflict(format!(
+                "experiment {id} is {}: its results come when it ends",
+                record.state.name()
+            )));
+        }
+        bundle::contents(self.store(), &record).map_err(LabError::from)
+    }
+}
+
+/// An experiment as its submitter (or an admin) sees it.
+#[derive(Clone, Debug, Serialize)]
+pub struct ExperimentView {
+    #[serde(flatten)]
+    pub record: ExperimentRecord,
+    /// Place in the queue (1: next), while queued.
+    pub place: Option<usize>,
+    /// When it is expected to start (ms since the Unix epoch), while queued.
+    pub eta_unix_ms: Option<u64>,
+    /// When it ends (ms since the Unix epoch), while it runs.
+    pub ends_unix_ms: Option<u64>,
+    /// It is next, and waits for an admin to confirm the robot was reset.
+    pub awaiting_reset: bool,
+}
+
+/// The lab as a user sees it.
+#[derive(Clone, Debug, Serialize)]
+pub struct LabView {
+    /// The experiment on the robot now, for every tab's banner.
+    pub running: Option<RunningExperiment>,
+    pub queued: usize,
+    pub paused: bool,
+    /// Why the head of the queue waits, when it does (a lock, a reset).
+    pub held: Option<String>,
+    pub awaiting_reset: Option<u64>,
+    pub baseline: u64,
+    pub reservations: Vec<Reservation>,
+    /// The reservation in effect now.
+    pub reserved_now: Option<Reservation>,
+    /// On a lab server: every robot it knows.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub robots: Option<Vec<server::RobotView>>,
+    /// The owner's settings (admins only).
+    pub settings: Option<LabSettings>,
+    /// The host's clock when this view was made (ms since the Unix epoch):
+    /// a client whose own clock is off counts down to `running`'s end and
+    /// to ETAs from it.
+    pub now_unix_ms: u64,
+}
