@@ -5,13 +5,19 @@
 //! on time, and its results kept ([`bundle`]); between experiments the
 //! robot runs the owner's baseline.
 //!
-//! [`Lab`] holds the use cases (submit, cancel, list, results, the owner's
-//! settings, the baseline, pause and resume, reservations, the manual
-//! reset's confirmation) and two threads: one checks and preflights
-//! experiments one at a time, the other runs them on the robot
-//! ([`runner`]). Each use case authorises, then changes the experiments'
-//! records and `lab.json` under the lab's lock and the store's, and writes
-//! one audit line, refused or not.
+//! This file is the core: [`Lab`], its in-memory book of records,
+//! [`LabError`], `transition` (every state change, stored and audited
+//! before anyone is told, kept to `ExperimentState::may_enter`) and
+//! `audited` (a use case's one audit line, refused or not). Each use case
+//! is an `impl Lab` in a file of its own, in `deploy`'s shape: `submit`,
+//! `cancel`, `views` (list, get, overview, results), `owner` (settings,
+//! baseline, pause, the manual reset), `reservations`, `kit`, `metrics`,
+//! `robots` (a lab server's robots and STOP). Pure decisions: `queue`
+//! (what starts next, ETAs, limits, reservations, a lab server's
+//! placement), `verdict` (the preflight's verdict), and the preflight
+//! outcome's state in `runner`. Two threads drive the lab: the checker,
+//! and on a robot the runner ([`runner`]) or on a lab server the
+//! dispatcher ([`server`]).
 //!
 //! Invariants:
 //! - every state change is stored (time, cause) before anyone is told, and
@@ -156,6 +162,7 @@ pub enum LabRole {
 
 /// The lab's state in memory: the records as stored, and what only this
 /// process knows (who asked to cancel, what runs on the robot).
+#[derive(Default)]
 struct Book {
     experiments: BTreeMap<u64, ExperimentRecord>,
     lab: LabState,
@@ -219,49 +226,11 @@ impl Lab {
         let store = deployer.store.clone();
         let mut experiments = store.experiments()?;
         let lab = store.lab_state()?;
-        let now = unix_now_ms();
-        let is_server = matches!(options.role, LabRole::Server(_));
-        {
-            let writer = store.lock()?;
-            for record in experiments.values_mut() {
-                // A lab server's experiments on robots ran on without it:
-                // it learns what became of them from the robots.
-                if is_server && matches!(record.state, ExperimentState::Running | ExperimentState::Finishing) {
-                    continue;
-                }
-                let cause = match record.state {
-                    ExperimentState::Running | ExperimentState::Finishing => "the host stopped while it ran",
-                    ExperimentState::Preflight => "the host stopped during its preflight; it is checked again",
-                    _ => continue,
-                };
-                if matches!(record.state, ExperimentState::Running | ExperimentState::Finishing) {
-                    record.add_reason("aborted: host stopped".into());
-                    bundle::salvage(&store, record);
-                    record.enter(ExperimentState::Aborted, now, cause)?;
-                } else {
-                    record.enter(ExperimentState::Checking, now, cause)?;
-                }
-                writer.put_experiment(record)?;
-                writer.record(LAB_AUDIT_USER, "experiment", &format!("experiment {}", record.id), Outcome::Ok(cause));
-            }
-        }
+        runner::recover(&store, &mut experiments, matches!(options.role, LabRole::Server(_)))?;
         let lab = Arc::new(Lab {
             deployer: deployer.clone(),
             options,
-            book: Mutex::new(Book {
-                experiments,
-                lab,
-                cancels: BTreeMap::new(),
-                preempt: None,
-                running: None,
-                starting: None,
-                dispatching: BTreeSet::new(),
-                aborts: BTreeMap::new(),
-                reset_confirmed: None,
-                awaiting_reset: None,
-                held: None,
-                granted: None,
-            }),
+            book: Mutex::new(Book { experiments, lab, ..Book::default() }),
             changed: Condvar::new(),
             generation: tokio::sync::watch::channel(0).0,
             stopping: AtomicBool::new(false),

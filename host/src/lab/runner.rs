@@ -23,6 +23,7 @@ use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy};
 use crate::store::users::Principal;
+use crate::store::{Outcome as AuditOutcome, Store};
 
 /// How often the runner looks at the robot and the queue when nothing
 /// wakes it.
@@ -559,6 +560,44 @@ fn end(lab: &Lab, ending: &Ending) {
         tracing::error!("experiment {id} ended but its record was not stored: {e}");
     }
     retain(lab, &mut book);
+}
+
+/// What a host that starts again does with the records it left: an
+/// experiment that ran is `aborted: host stopped` with what it recorded;
+/// one in its preflight is checked again. A lab server's experiments on
+/// robots ran on without it (`is_server`): it learns their end from the
+/// robots.
+pub(super) fn recover(
+    store: &Store,
+    experiments: &mut BTreeMap<u64, ExperimentRecord>,
+    is_server: bool,
+) -> Result<(), LabError> {
+    let now = unix_now_ms();
+    let writer = store.lock()?;
+    for record in experiments.values_mut() {
+        let ran = matches!(record.state, ExperimentState::Running | ExperimentState::Finishing);
+        let cause = match record.state {
+            _ if ran && is_server => continue,
+            _ if ran => "the host stopped while it ran",
+            ExperimentState::Preflight => "the host stopped during its preflight; it is checked again",
+            _ => continue,
+        };
+        if ran {
+            record.add_reason("aborted: host stopped".into());
+            bundle::salvage(store, record);
+            record.enter(ExperimentState::Aborted, now, cause)?;
+        } else {
+            record.enter(ExperimentState::Checking, now, cause)?;
+        }
+        writer.put_experiment(record)?;
+        writer.record(
+            super::LAB_AUDIT_USER,
+            "experiment",
+            &format!("experiment {}", record.id),
+            AuditOutcome::Ok(cause),
+        );
+    }
+    Ok(())
 }
 
 /// Applies the owner's retention cap to the finished experiments.
