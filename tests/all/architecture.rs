@@ -16,8 +16,9 @@
 //! - a built-in's kind is a `BuiltinKind` only the registry makes: no
 //!   kind string (`"sim"`, `"builtin:sim"`) outside the registry and the
 //!   built-ins, no `ComponentSource::Builtin("...")`;
-//! - no public function or trait method returns `Result<_, String>`: errors
-//!   that cross a module seam are typed.
+//! - no public function or trait method returns `Result<_, String>`, and no
+//!   trait's error is a `String` (`type Err = String`): errors that cross a
+//!   module seam are typed.
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
@@ -397,6 +398,11 @@ fn anyhow_lives_only_in_main_and_no_public_function_returns_a_string_error() {
                 in_pub_trait = true;
             } else if line.starts_with('}') {
                 in_pub_trait = false;
+            }
+            // `FromStr` and the other conversion traits carry their error
+            // as an associated type.
+            if trimmed.replace(' ', "").starts_with("typeErr=String;") {
+                broken.push(format!("{file}:{}: {}", i + 1, trimmed));
             }
             let public = trimmed.starts_with("pub fn ") || (in_pub_trait && trimmed.starts_with("fn "));
             if !public {

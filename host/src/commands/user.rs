@@ -74,7 +74,7 @@ impl UserCommand {
         let store = Store::open(&context.store_dir()?)?;
         match self.action {
             UserAction::Add { name, role, platforms, password_stdin, replace } => {
-                let role: Role = role.parse().map_err(anyhow::Error::msg)?;
+                let role: Role = role.parse()?;
                 let platforms = platforms.iter().map(|p| Platform::parse(p)).collect::<Result<Vec<_>, _>>()?;
                 let (password, generated) = password(password_stdin)?;
                 let result = store.lock()?.users_mut().add(&name, role, &platforms, &password, replace);

@@ -201,11 +201,16 @@ pub struct ParamOverride {
     pub value: String,
 }
 
+/// A `--param` that is not `COMPONENT.PARAM=VALUE`.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+#[error("'{0}' is not COMPONENT.PARAM=VALUE")]
+pub struct BadOverride(pub String);
+
 impl std::str::FromStr for ParamOverride {
-    type Err = String;
+    type Err = BadOverride;
 
     fn from_str(text: &str) -> Result<Self, Self::Err> {
-        let shape = || format!("'{text}' is not COMPONENT.PARAM=VALUE");
+        let shape = || BadOverride(text.to_string());
         let (target, value) = text.split_once('=').ok_or_else(shape)?;
         let (component, param) = target.split_once('.').ok_or_else(shape)?;
         if component.is_empty() || param.is_empty() {

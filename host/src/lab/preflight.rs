@@ -73,14 +73,19 @@ impl Priority {
     pub const NAMES: [&str; 3] = ["idle", "background", "normal"];
 }
 
+/// A preflight priority's name that is none of [`Priority::NAMES`].
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+#[error("unknown preflight priority '{0}': expected idle, background or normal")]
+pub struct UnknownPriority(pub String);
+
 impl std::str::FromStr for Priority {
-    type Err = String;
-    fn from_str(text: &str) -> Result<Priority, String> {
+    type Err = UnknownPriority;
+    fn from_str(text: &str) -> Result<Priority, UnknownPriority> {
         match text {
             "idle" => Ok(Priority::Idle),
             "background" => Ok(Priority::Background),
             "normal" => Ok(Priority::Normal),
-            other => Err(format!("unknown preflight priority '{other}': expected idle, background or normal")),
+            other => Err(UnknownPriority(other.to_string())),
         }
     }
 }
@@ -453,7 +458,7 @@ mod tests {
         }
         let names: Vec<Priority> = Priority::NAMES.iter().map(|n| n.parse().unwrap()).collect();
         assert_eq!(names, [Priority::Idle, Priority::Background, Priority::Normal]);
-        assert!("fast".parse::<Priority>().unwrap_err().contains("'fast'"));
+        assert!("fast".parse::<Priority>().unwrap_err().to_string().contains("'fast'"));
     }
 
     /// A preflight dies with the thread that started it (a host killed

@@ -65,16 +65,21 @@ impl Role {
     }
 }
 
+/// A role's name that is none of the five.
+#[derive(Clone, Debug, PartialEq, Eq, Error)]
+#[error("unknown role '{0}' (expected viewer, operator, researcher, developer or admin)")]
+pub struct UnknownRole(pub String);
+
 impl std::str::FromStr for Role {
-    type Err = String;
-    fn from_str(text: &str) -> Result<Role, String> {
+    type Err = UnknownRole;
+    fn from_str(text: &str) -> Result<Role, UnknownRole> {
         match text {
             "viewer" => Ok(Role::Viewer),
             "operator" => Ok(Role::Operator),
             "researcher" => Ok(Role::Researcher),
             "developer" => Ok(Role::Developer),
             "admin" => Ok(Role::Admin),
-            other => Err(format!("unknown role '{other}' (expected viewer, operator, researcher, developer or admin)")),
+            other => Err(UnknownRole(other.to_string())),
         }
     }
 }
