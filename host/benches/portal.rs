@@ -109,8 +109,11 @@ fn main() -> Result<(), String> {
     let directory = Arc::new(Directory::new(store.users().clone()));
     let shutdown = Shutdown::new();
     let clock = Clock::new();
-    let overrides =
-        ["teleop.listen=127.0.0.1:0", "teleop.websocket="].iter().map(|o| o.parse()).collect::<Result<Vec<_>, _>>().map_err(|e| e.to_string())?;
+    let overrides = ["teleop.listen=127.0.0.1:0", "teleop.websocket="]
+        .iter()
+        .map(|o| o.parse())
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(|e: subsume::config::BadOverride| e.to_string())?;
     let boot = Deployer::boot(BootOptions {
         store,
         sandbox: Arc::new(Sandbox::new(Some(dir.path().join("cache"))).map_err(|e| e.to_string())?),
