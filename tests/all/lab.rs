@@ -521,6 +521,7 @@ fn bad_submissions_are_refused_with_their_reason() {
     }
     let body = |set: u64, duration: f64| serde_json::json!({ "set": set, "duration_s": duration }).to_string();
     // (case, body, status, words of the error)
+    let hers_alone = format!("no set {network}");
     let at_once: Vec<(&str, String, u16, &str)> = vec![
         ("over the max duration", body(good, 121.0), 400, "max-duration of 120 s"),
         ("no duration", body(good, 0.0), 400, "duration_s must be from 1"),
@@ -533,7 +534,8 @@ fn bad_submissions_are_refused_with_their_reason() {
             "at most 120 characters",
         ),
         ("no such set", body(9999, 5.0), 404, "no set 9999"),
-        ("another platform's set", body(network, 5.0), 403, "staged for platform network, which ana does not hold"),
+        // Nora's set is hers: to ana it is no set at all (store::access).
+        ("another researcher's set", body(network, 5.0), 404, &hers_alone),
         ("a set that no longer validates", body(gone, 5.0), 422, "problem(s) in the set's robot file"),
     ];
     for (case, body, status, words) in &at_once {
@@ -589,6 +591,19 @@ fn nobody_else_changes_what_runs_during_an_experiment_but_an_admin_who_ends_it()
     let (status, json) = lab.call(&ana, "POST", &format!("/api/v1/sets/{other}/activate"), "");
     assert_eq!(status, 403, "a researcher never activates: {json}");
     assert_eq!(lab.experiment(&ana, id)["state"], "running");
+    // An admin's activation that is refused changes nothing: the
+    // experiment runs on and the queue is not paused.
+    for (what, path, expected, words) in [
+        ("the baseline", format!("/api/v1/sets/{baseline}/activate"), 409, "is what runs after experiment"),
+        ("no such set", "/api/v1/sets/9999/activate".to_string(), 404, "no set 9999"),
+    ] {
+        let (status, json) = lab.call(&boss, "POST", &path, "");
+        assert_eq!(status, expected, "{what}: {json}");
+        assert!(json["error"].as_str().unwrap_or_default().contains(words), "{what}: {json}");
+        assert_eq!(lab.experiment(&ana, id)["state"], "running", "{what}");
+        let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+        assert_eq!(overview["lab"]["paused"], false, "{what}: {overview}");
+    }
     let (status, json) = lab.call(&boss, "POST", &format!("/api/v1/sets/{other}/activate"), "");
     assert_eq!(status, 200, "{json}");
     let note = json["note"].as_str().unwrap();
@@ -943,4 +958,123 @@ fn a_researcher_drives_inside_their_reservation_and_is_cut_off_when_it_ends() {
     assert_eq!(closed.trim_end(), format!("ERR {}", subsume::teleop::session::GRANT_ENDED));
     let mut rest = String::new();
     assert_eq!(std::io::BufRead::read_line(&mut inside.reader, &mut rest).unwrap_or(0), 0, "still open: {rest}");
+}
+
+/// The names of the files in bundle folder `folder`, relative to it.
+fn bundle_files(folder: &Path) -> Vec<String> {
+    let mut names = Vec::new();
+    let mut stack = vec![folder.to_path_buf()];
+    while let Some(dir) = stack.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                stack.push(path);
+            } else {
+                names.push(path.strip_prefix(folder).unwrap().to_string_lossy().into_owned());
+            }
+        }
+    }
+    names.sort();
+    names
+}
+
+/// A researcher's uploads, sets, experiments and results are hers
+/// (docs/portal.md, "Who sees what"): another researcher sees none of it
+/// through any route, cannot run it, submit it or get its bytes through a
+/// bundle, and the robot's own robot file and components stay on the robot
+/// while the owner's lab kit is off. Sharing an upload with the lab lets
+/// others see and run it; an admin sees everything.
+#[test]
+fn a_researchers_work_is_hers_unless_she_shares_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let (ana, ben, boss) = (lab.token("ana"), lab.token("ben"), lab.token("boss"));
+    let baseline = lab.active_set(&boss);
+    // The owner keeps the robot's own files on the robot.
+    let (status, settings) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert_eq!(status, 200, "{settings}");
+    let mut settings = settings["lab"]["settings"].clone();
+    settings["kit"] = Json::Bool(false);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    // Ben's private planner, and his robot file that runs it.
+    upload(&lab, &ben, "secret", "planner");
+    let bens = robot(7.0, "").replace(&crate::support::guest("planner").display().to_string(), "secret.wasm");
+    let ben_set = lab.stage(&ben, "ben.xml", &bens);
+    let get = |token: &str, path: &str| lab.call(token, "GET", path, "");
+    // (who, what, status): Ben's things are his and the admin's.
+    let answers = [
+        (&ana, format!("/api/v1/sets/{ben_set}"), 404),
+        (&ana, "/api/v1/components/ben/secret".to_string(), 404),
+        (&ben, format!("/api/v1/sets/{ben_set}"), 200),
+        (&ben, "/api/v1/components/secret".to_string(), 200),
+        (&boss, format!("/api/v1/sets/{ben_set}"), 200),
+        (&boss, "/api/v1/components/ben/secret".to_string(), 200),
+        (&ana, format!("/api/v1/sets/{baseline}"), 200),
+    ];
+    for (token, path, expected) in &answers {
+        let (status, json) = get(token, path);
+        assert_eq!(status, *expected, "GET {path}: {json}");
+    }
+    // The baseline's record, but not its robot file, while the kit is off.
+    let (_, set) = get(&ana, &format!("/api/v1/sets/{baseline}"));
+    assert!(set["config"].is_null(), "{set:#}");
+    let (_, set) = get(&boss, &format!("/api/v1/sets/{baseline}"));
+    assert!(set["config"].as_str().is_some_and(|c| c.contains("<robot")), "{set:#}");
+    // Listings carry none of Ben's.
+    let (_, sets) = get(&ana, "/api/v1/sets");
+    let ids: Vec<u64> = sets["sets"].as_array().unwrap().iter().map(|s| s["id"].as_u64().unwrap()).collect();
+    assert!(!ids.contains(&ben_set) && ids.contains(&baseline), "{sets:#}");
+    let (_, components) = get(&ana, "/api/v1/components");
+    assert!(!components.to_string().contains("secret"), "{components:#}");
+    // Ana can neither run Ben's upload by name nor submit his set.
+    let naming = bens.replace("secret.wasm", "ben/secret.wasm");
+    let (status, json) = lab.call(&ana, "PUT", "/api/v1/platforms/control/configs/mine.xml", &naming);
+    assert_eq!(status, 422, "{json}");
+    assert!(json.to_string().contains("component 'ben/secret' is ben's and not shared with the lab"), "{json}");
+    let submit = |token: &str, set: u64| {
+        lab.call(token, "POST", "/api/v1/experiments", &serde_json::json!({"set": set, "duration_s": 2}).to_string())
+    };
+    let (status, json) = submit(&ana, ben_set);
+    assert_eq!((status, json["error"].as_str()), (404, Some(format!("no set {ben_set}").as_str())), "{json}");
+    // Ana submits the baseline as her own experiment and cancels it: its
+    // bundle names the baseline's components by hash, never holds them.
+    let (status, json) = submit(&ana, baseline);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    // Cancelled once its preflight wrote the robot file in its preflight
+    // form (or ended already: either way its results are whole).
+    lab.wait_for(&ana, id, "queued", Duration::from_secs(120));
+    let (status, json) = lab.call(&ana, "POST", &format!("/api/v1/experiments/{id}/cancel"), "");
+    assert!(status == 200 || status == 409, "{json}");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !["cancelled", "done"].contains(&lab.experiment(&ana, id)["state"].as_str().unwrap_or("")) {
+        assert!(Instant::now() < deadline, "{:#}", lab.experiment(&ana, id));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let into = tempfile::tempdir().unwrap();
+    let folder = lab.results(&ana, id, into.path());
+    let files = bundle_files(&folder);
+    assert!(files.iter().all(|f| !f.starts_with("components/") && f != "robot.xml"), "{files:?}");
+    let record: Json = serde_json::from_slice(&std::fs::read(folder.join("experiment.json")).unwrap()).unwrap();
+    let hashes = record["components"].as_array().unwrap().iter().filter(|c| c["sha256"].is_string()).count();
+    assert_eq!(hashes, 3, "the three guests are named by their hashes: {record:#}");
+    // The admin's copy of the same bundle holds them.
+    let into = tempfile::tempdir().unwrap();
+    let files = bundle_files(&lab.results(&boss, id, into.path()));
+    assert_eq!(files.iter().filter(|f| f.starts_with("components/")).count(), 3, "{files:?}");
+    assert!(files.contains(&"robot.xml".to_string()), "{files:?}");
+    // Ben shares his upload with the lab: Ana sees it and runs it by name,
+    // read-only; Ana cannot share it for him.
+    let (status, json) = lab.call(&ana, "PUT", "/api/v1/components/ben/secret/visibility", r#"{"visibility":"lab"}"#);
+    assert_eq!(status, 404, "{json}");
+    let (status, json) = lab.call(&ben, "PUT", "/api/v1/components/ben/secret/visibility", r#"{"visibility":"lab"}"#);
+    assert_eq!((status, json["visibility"].as_str()), (200, Some("lab")), "{json}");
+    let (status, json) = get(&ana, "/api/v1/components/ben/secret");
+    assert_eq!(status, 200, "{json}");
+    let (status, json) = lab.call(&ana, "PUT", "/api/v1/platforms/control/configs/mine.xml", &naming);
+    assert_eq!(status, 201, "{json}");
+    // His set stays his.
+    let (status, _) = get(&ana, &format!("/api/v1/sets/{ben_set}"));
+    assert_eq!(status, 404);
 }

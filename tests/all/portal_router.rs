@@ -188,6 +188,8 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("GET", "/api/v1/components", b"", Allowed::AnyUser),
         ("GET", "/api/v1/components/none", b"", Allowed::AnyUser),
         ("GET", "/api/v1/components/admin/none", b"", Allowed::AnyUser),
+        // Someone else's upload, or none: 404 for every role (not 403).
+        ("PUT", "/api/v1/components/admin/none/visibility", br#"{"visibility":"lab"}"#, Allowed::AnyUser),
         ("PUT", "/api/v1/platforms/control/components/x", b"not wasm", Allowed::Control),
         ("PUT", "/api/v1/platforms/network/components/x", b"not wasm", Allowed::Network),
         ("PUT", "/api/v1/platforms/control/configs/r.xml", b"<robot", Allowed::Control),

@@ -65,8 +65,6 @@ impl Deployer {
             Some(id) => format!("activate set {id}"),
             None => "roll back".to_string(),
         };
-        let preempted = authorise(user, Permission::Activate).and_then(|()| self.experiments.admit(user, &what));
-        let mut active = self.lock_active()?;
         let id = match id {
             Some(id) => Ok(id),
             None => self.store.state().map_err(DeployError::from).and_then(|state| {
@@ -77,6 +75,16 @@ impl Deployer {
                     .ok_or_else(|| DeployError::Conflict("there is no previous set to roll back to".into()))
             }),
         };
+        // What can be known before the experiment ends is checked first: a
+        // refused activation changes nothing, not even the experiment.
+        let preempted = authorise(user, Permission::Activate)
+            .and_then(|()| match &id {
+                Ok(id) => self.precheck(*id),
+                // Said by the activation itself, below.
+                Err(_) => Ok(()),
+            })
+            .and_then(|()| self.experiments.admit(user, &what));
+        let mut active = self.lock_active()?;
         let (action, target) = match (&id, rollback) {
             (Ok(id), false) => ("activate", format!("set {id}")),
             (Ok(id), true) => ("rollback", format!("set {id}")),
@@ -173,6 +181,24 @@ impl Deployer {
             sim_ptys: ready.built.sim_ptys,
         };
         Ok(())
+    }
+
+    /// While an experiment runs, what an activation of set `id` would be
+    /// refused for once it ended: the set is what comes back after it, it
+    /// is not stored, or it no longer validates.
+    fn precheck(&self, id: u64) -> Result<(), DeployError> {
+        let Some(running) = self.experiments.running() else { return Ok(()) };
+        if let Some((before, _)) = self.experiments.before()
+            && before.id == id
+        {
+            return Err(DeployError::Conflict(format!(
+                "set {id} is what runs after experiment {} (by {}): cancel the experiment to have it back",
+                running.id, running.submitter
+            )));
+        }
+        let set = self.store.set(id)?;
+        let mut loader = Loader::new(&self.sandbox);
+        stage::validate_set(&self.store, &set, &mut loader, &self.overrides).map(|_| ())
     }
 
     fn prepare_switch(&self, user: &Principal, id: u64, active: &Deployment) -> Result<Ready, DeployError> {

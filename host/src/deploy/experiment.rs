@@ -68,6 +68,9 @@ pub struct PreemptError(pub String);
 #[derive(Default)]
 pub struct ExperimentGate {
     running: Mutex<Option<RunningExperiment>>,
+    /// What ran before the running experiment (the set that comes back
+    /// after it): what robot files are staged against meanwhile.
+    before: Mutex<Option<(SetRecord, Arc<RobotConfig>)>>,
     preempt: Mutex<Option<Weak<dyn Preempt>>>,
 }
 
@@ -81,6 +84,17 @@ impl ExperimentGate {
         if let Ok(mut slot) = self.running.lock() {
             *slot = running;
         }
+    }
+
+    fn set_before(&self, before: Option<(SetRecord, Arc<RobotConfig>)>) {
+        if let Ok(mut slot) = self.before.lock() {
+            *slot = before;
+        }
+    }
+
+    /// The set that ran before the running experiment, if one runs.
+    pub fn before(&self) -> Option<(SetRecord, Arc<RobotConfig>)> {
+        self.before.lock().ok().and_then(|b| b.clone())
     }
 
     /// Who ends the running experiment when an admin activates a set.
@@ -297,12 +311,14 @@ impl Deployer {
                         })
                         .collect(),
                 };
+                let before = (active.set.clone(), active.config.clone());
                 if let Err(e) = self.swap_in_reporting(ready, &mut active, None, Some(Arc::new(shown))) {
                     if let Err(abandoned) = recordings.abandon() {
                         tracing::error!("experiment {}'s recording was not removed: {abandoned}", tag.id);
                     }
                     return Err(e);
                 }
+                self.experiments.set_before(Some(before));
                 self.experiments.set(Some(tag.clone()));
                 tracing::info!("experiment {} by {} runs set {} on the robot", tag.id, tag.submitter, tag.set);
                 Ok(())
@@ -369,6 +385,8 @@ impl Deployer {
                 let (sender, receiver) = std::sync::mpsc::sync_channel(1);
                 self.swap_in_reporting(ready, &mut active, Some((ran_ns, sender)), None)?;
                 self.experiments.set(None);
+                self.experiments.set_before(None);
+                self.experiments.set_before(None);
                 if writer.state()?.active != Some(baseline) {
                     writer.mark_active(baseline)?;
                 }
@@ -382,5 +400,6 @@ impl Deployer {
     /// stopping (the graph stops with it).
     pub fn forget_experiment(&self) {
         self.experiments.set(None);
+        self.experiments.set_before(None);
     }
 }

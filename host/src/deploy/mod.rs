@@ -72,6 +72,10 @@ pub use crate::sim::world::MAX_WORLD_BYTES as MAX_WORLD_UPLOAD_BYTES;
 use crate::store::users::Principal;
 use crate::store::{Outcome, STORE_FORMAT, SetRecord, Store, StoreError, StoreWriter, sha256_hex, unix_now};
 
+/// The name the robot file given on the command line is imported as: the
+/// owner's own set, the robot's.
+pub const BOOT_USER: &str = "boot";
+
 /// Why a use case did not happen. The running set is untouched in every case.
 #[derive(Debug, Error)]
 pub enum DeployError {
@@ -399,7 +403,7 @@ fn import(
         format: STORE_FORMAT,
         id: 0,
         created_by: match how {
-            Import::Boot => "boot".into(),
+            Import::Boot => BOOT_USER.into(),
             Import::Dev => dev::DEV_USER.into(),
         },
         created_at: unix_now(),
@@ -419,7 +423,7 @@ fn import(
     writer.mark_active(record.id)?;
     writer.set_boot_config(&sha)?;
     let detail = format!("imported {} and activated it", path.display());
-    writer.record("boot", "boot", &format!("set {}", record.id), Outcome::Ok(&detail));
+    writer.record(BOOT_USER, "boot", &format!("set {}", record.id), Outcome::Ok(&detail));
     tracing::info!("imported {} as set {} and activated it", path.display(), record.id);
     Ok(record)
 }
@@ -434,6 +438,19 @@ enum Import {
 }
 
 impl Deployer {
+    /// Who may see what of the store now (`store::access`), with the
+    /// owner's lab kit setting `kit`.
+    pub fn access_with_kit(&self, kit: bool) -> Result<crate::store::access::Access, DeployError> {
+        let users = self.store.users().all().map_err(|e| DeployError::Host(e.to_string()))?;
+        Ok(crate::store::access::Access::new(&users, kit))
+    }
+
+    /// Who may see what of the store now, for what never leaves the robot
+    /// by the kit (records, staging).
+    pub fn access(&self) -> Result<crate::store::access::Access, DeployError> {
+        self.access_with_kit(false)
+    }
+
     /// The parameters this host sets on every set it validates (`subsume
     /// run --param`): what the set view shows as in effect beyond the file.
     pub fn overrides(&self) -> &[ParamOverride] {

@@ -122,7 +122,12 @@ impl Deployer {
         }
         let text = std::str::from_utf8(bytes)
             .map_err(|e| DeployError::BadRequest(format!("{file_name} is not utf-8: {e}")))?;
-        let (active_set, active_config) = self.active()?;
+        // Staged against what the robot runs outside experiments: never
+        // another researcher's experiment that runs now.
+        let (active_set, active_config) = match self.experiments().before() {
+            Some(before) => before,
+            None => self.active()?,
+        };
         if self.is_headless() && active_set.id == 0 {
             return Err(DeployError::Conflict(
                 "the lab knows no robot yet: robot files are staged against a robot's baseline, and none has joined"
@@ -130,10 +135,19 @@ impl Deployer {
             ));
         }
         let components = self.store.components()?;
-        // The stager's own upload (or the one of the user it names), then
-        // what the active set pinned under that source.
+        let access = self.access()?;
+        // The stager's own upload (or the one of the user it names, when
+        // they may see it), then what the active set pinned under that
+        // source.
         let lookup = |source: &str| -> Result<String, String> {
             if let Some(record) = upload_for_source(&components, &user.name, source) {
+                if !access.may_see_component(user, record) {
+                    return Err(format!(
+                        "component '{}' is {}'s and not shared with the lab",
+                        record.key(),
+                        record.uploaded_by
+                    ));
+                }
                 return Ok(record.sha256.clone());
             }
             active_set.sources.get(source).cloned().ok_or_else(|| unknown_component(&components, &user.name, source))

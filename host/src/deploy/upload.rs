@@ -7,7 +7,8 @@
 use super::{DeployError, Deployer, Permission, Platform, authorise};
 use crate::contract::{DescriptionDoc, clip, is_valid_name};
 use crate::sandbox::{MAX_COMPONENT_BYTES, preamble};
-use crate::store::users::Principal;
+use crate::store::access::Visibility;
+use crate::store::users::{Principal, Role};
 use crate::store::{ComponentRecord, MAX_COMPONENTS_PER_USER, World, component_key, unix_now};
 
 /// Largest component upload: Python and JavaScript components are ~20 MB.
@@ -107,6 +108,46 @@ impl Deployer {
             uploaded_by: user.name.clone(),
             uploaded_at: unix_now(),
             description,
+            // A new version of an upload keeps its owner's choice.
+            visibility: stored.get(&component_key(&user.name, name)).map(|c| c.visibility).unwrap_or_default(),
         })
+    }
+}
+
+impl Deployer {
+    /// Shares `owner`'s upload `name` with the lab, or makes it private
+    /// again (its owner, or an admin): who else may see and run it
+    /// (`store::access`).
+    pub fn set_component_visibility(
+        &self,
+        user: &Principal,
+        owner: &str,
+        name: &str,
+        visibility: Visibility,
+    ) -> Result<ComponentRecord, DeployError> {
+        let key = component_key(&clip(owner), &clip(name));
+        let target = format!("component '{key}'");
+        let prepared = if user.name == owner || user.role == Role::Admin {
+            Ok(())
+        } else {
+            // Someone else's upload answers as a missing one.
+            Err(DeployError::NotFound(format!("no component '{key}' in the store")))
+        };
+        self.commit(
+            &user.name,
+            "component-visibility",
+            &target,
+            prepared,
+            |writer, ()| {
+                let record = self
+                    .store
+                    .component(owner, name)?
+                    .ok_or_else(|| DeployError::NotFound(format!("no component '{key}' in the store")))?;
+                let record = ComponentRecord { visibility, ..record };
+                writer.put_component(record.clone())?;
+                Ok(record)
+            },
+            |record| format!("visibility {}", record.visibility.name()),
+        )
     }
 }

@@ -201,17 +201,29 @@ pub fn salvage(store: &Store, record: &mut ExperimentRecord) {
 }
 
 /// The archive of experiment `record`'s results.
-pub fn contents(store: &Store, record: &ExperimentRecord) -> Result<Contents, StoreError> {
+/// What of an experiment's set the one who downloads its results may
+/// have (`store::access`): the rest is named by its hash in the record.
+pub struct Readable<'a> {
+    /// The set's robot file (`robot.xml`).
+    pub robot_file: bool,
+    /// A component's bytes, by their sha256.
+    pub component: &'a dyn Fn(&str) -> bool,
+}
+
+pub fn contents(store: &Store, record: &ExperimentRecord, readable: &Readable<'_>) -> Result<Contents, StoreError> {
     let dir = store.experiment_dir(record.id);
     let record_json = serde_json::to_vec_pretty(record)
         .map_err(|e| StoreError::Io { path: dir.join(RECORD), reason: e.to_string() })?;
     let mut entries = vec![(RECORD.to_string(), Source::Bytes(record_json))];
     for file in scan(store, record.id) {
+        if file.name == ROBOT && !readable.robot_file {
+            continue;
+        }
         let path = dir.join(&file.name);
         entries.push((file.name, Source::File(path)));
     }
     for component in &record.components {
-        if let Some(sha) = &component.sha256 {
+        if let Some(sha) = component.sha256.as_ref().filter(|sha| (readable.component)(sha)) {
             entries.push((format!("components/{}.wasm", component.name), Source::Blob(sha.clone())));
         }
     }

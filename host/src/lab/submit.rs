@@ -108,6 +108,13 @@ impl Lab {
                 settings.max_duration_s, duration
             )));
         }
+        // Her own sets, or the baseline: someone else's set answers as a
+        // missing one (store::access).
+        let set =
+            self.store().set(submission.set).map_err(|_| LabError::NotFound(format!("no set {}", submission.set)))?;
+        if submission.set != baseline && !self.deployer.access()?.may_see_set(user, &set) {
+            return Err(LabError::NotFound(format!("no set {}", submission.set)));
+        }
         let checked = self.deployer.check_experiment_set(user, submission.set, baseline)?;
         let components = checked
             .components

@@ -9,6 +9,7 @@ use super::queue::{self, QueueView, Waiting};
 use super::{Book, Lab, LabError, TURNAROUND, bundle, not_found, server, visible};
 use crate::deploy::RunningExperiment;
 use crate::runtime::locks::unix_now_ms;
+use crate::store::access::Access;
 use crate::store::experiments::{ExperimentRecord, ExperimentState, LabSettings, Reservation};
 use crate::store::users::{Principal, Role};
 
@@ -83,8 +84,21 @@ impl Lab {
         })
     }
 
+    /// Who may see what of the store now (`store::access`, with the
+    /// owner's lab kit setting), and the baseline's set.
+    pub fn access(&self) -> Result<(Access, u64), LabError> {
+        let (kit, baseline) = {
+            let book = self.lock()?;
+            (book.lab.settings.kit, self.baseline(&book.lab))
+        };
+        Ok((self.deployer.access_with_kit(kit)?, baseline))
+    }
+
     /// The files of experiment `id`'s results bundle, if `user` may see
-    /// it: see [`bundle::contents`].
+    /// it: see [`bundle::contents`]. Only what `user` may read is in it:
+    /// a component's bytes and the robot file when they are `user`'s own,
+    /// shared with the lab, or the robot's where the lab kit lets them
+    /// leave the robot; the record names every component's hash.
     pub fn results(&self, user: &Principal, id: u64) -> Result<bundle::Contents, LabError> {
         let record = {
             let book = self.lock()?;
@@ -96,7 +110,22 @@ impl Lab {
                 record.state.name()
             )));
         }
-        bundle::contents(self.store(), &record).map_err(LabError::from)
+        let (access, _) = self.access()?;
+        let components = self.store().components()?;
+        let set = self.store().set(record.set).ok();
+        let readable = bundle::Readable {
+            robot_file: set.as_ref().is_some_and(|set| access.may_read_set(user, set)),
+            component: &|sha: &str| {
+                let records: Vec<_> = components.values().filter(|c| c.sha256 == sha).collect();
+                if records.is_empty() {
+                    // Pinned from a robot's set, not uploaded: the robot's.
+                    access.may_read(user, crate::deploy::BOOT_USER)
+                } else {
+                    records.iter().any(|c| access.may_read_component(user, c))
+                }
+            },
+        };
+        bundle::contents(self.store(), &record, &readable).map_err(LabError::from)
     }
 }
 

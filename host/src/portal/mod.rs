@@ -206,6 +206,10 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/components/{name}", get(get_own_component))
         .route("/components/{owner}/{name}", get(get_component))
         .route(
+            "/components/{owner}/{name}/visibility",
+            put(put_component_visibility).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
+        )
+        .route(
             "/platforms/{platform}/components/{name}",
             put(upload_component).layer(DefaultBodyLimit::max(MAX_UPLOAD_BYTES)),
         )

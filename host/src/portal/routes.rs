@@ -19,6 +19,7 @@ use super::error::ApiError;
 use crate::contract::clip;
 use crate::deploy::{Permission, Platform, SimAction, authorise};
 use crate::report::LiveStatus;
+use crate::store::users::User;
 use crate::store::{ComponentRecord, MAX_AUDIT_READ, StoreState};
 use crate::teleop::TeleopServers;
 
@@ -46,17 +47,26 @@ fn component_json(record: ComponentRecord) -> Json_ {
 /// Every stored component of every user, by owner then name.
 pub(super) async fn list_components(
     State(state): State<Arc<PortalState>>,
-    Authed(_): Authed,
+    Authed(user): Authed,
 ) -> Result<Json<Json_>, ApiError> {
-    let store = state.deployer.store.clone();
-    let components = blocking(move || Ok(store.components()?)).await?;
-    Ok(Json(json!({ "components": components.into_values().map(component_json).collect::<Vec<_>>() })))
+    let (store, lab) = (state.deployer.store.clone(), state.lab.clone());
+    let components = blocking(move || {
+        let (access, _) = lab.access()?;
+        Ok(store.components()?.into_values().filter(|c| access.may_see_component(&user, c)).collect::<Vec<_>>())
+    })
+    .await?;
+    Ok(Json(json!({ "components": components.into_iter().map(component_json).collect::<Vec<_>>() })))
 }
 
-async fn one_component(state: &PortalState, owner: String, name: String) -> Result<Json<Json_>, ApiError> {
-    let store = state.deployer.store.clone();
+async fn one_component(state: &PortalState, user: User, owner: String, name: String) -> Result<Json<Json_>, ApiError> {
+    let (store, lab) = (state.deployer.store.clone(), state.lab.clone());
     let key = crate::store::component_key(&clip(&owner), &clip(&name));
-    let found = blocking(move || Ok(store.component(&owner, &name)?)).await?;
+    let found = blocking(move || {
+        let (access, _) = lab.access()?;
+        Ok(store.component(&owner, &name)?.filter(|c| access.may_see_component(&user, c)))
+    })
+    .await?;
+    // Someone else's private upload answers as a missing one.
     found
         .map(|record| Json(component_json(record)))
         .ok_or_else(|| ApiError::new(StatusCode::NOT_FOUND, format!("no component '{key}' in the store")))
@@ -68,16 +78,42 @@ pub(super) async fn get_own_component(
     Authed(user): Authed,
     Path(name): Path<String>,
 ) -> Result<Json<Json_>, ApiError> {
-    one_component(&state, user.principal.name, name).await
+    let owner = user.name.clone();
+    one_component(&state, user, owner, name).await
 }
 
-/// User `owner`'s upload `name` (any user may read any record).
+/// User `owner`'s upload `name`, if the caller may see it
+/// (`store::access`).
 pub(super) async fn get_component(
     State(state): State<Arc<PortalState>>,
-    Authed(_): Authed,
+    Authed(user): Authed,
     Path((owner, name)): Path<(String, String)>,
 ) -> Result<Json<Json_>, ApiError> {
-    one_component(&state, owner, name).await
+    one_component(&state, user, owner, name).await
+}
+
+/// The body of `PUT /components/{owner}/{name}/visibility`.
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct VisibilityBody {
+    visibility: crate::store::access::Visibility,
+}
+
+/// Shares an upload with the lab, or makes it private again (its owner,
+/// or an admin).
+pub(super) async fn put_component_visibility(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path((owner, name)): Path<(String, String)>,
+    body: Bytes,
+) -> Result<Json<Json_>, ApiError> {
+    let body: VisibilityBody = serde_json::from_slice(&body).map_err(|e| {
+        ApiError::new(StatusCode::BAD_REQUEST, format!("expected {{\"visibility\": \"private\" or \"lab\"}}: {e}"))
+    })?;
+    let deployer = state.deployer.clone();
+    let record =
+        blocking(move || Ok(deployer.set_component_visibility(&user, &owner, &name, body.visibility)?)).await?;
+    Ok(Json(component_json(record)))
 }
 
 pub(super) async fn upload_component(
@@ -156,15 +192,17 @@ fn set_status(id: u64, state: &StoreState) -> &'static str {
 
 pub(super) async fn list_sets(
     State(state): State<Arc<PortalState>>,
-    Authed(_): Authed,
+    Authed(user): Authed,
 ) -> Result<Json<Json_>, ApiError> {
-    let store = state.deployer.store.clone();
+    let (store, lab) = (state.deployer.store.clone(), state.lab.clone());
     blocking(move || {
         let st = store.state()?;
+        let (access, baseline) = lab.access()?;
         let sets: Vec<Json_> = store
             .sets()?
             .into_iter()
             .rev()
+            .filter(|s| s.id == baseline || access.may_see_set(&user, s))
             .map(|s| {
                 let status = set_status(s.id, &st);
                 let mut value = serde_json::to_value(s).unwrap_or_default();
@@ -181,30 +219,43 @@ pub(super) async fn list_sets(
     .await
 }
 
+/// Set `id`, if the caller may see it (`store::access`; the baseline is
+/// everyone's to see): its record, wiring, status and robot file, the
+/// robot file only when the caller may read it (a researcher gets the
+/// robot's own only while the owner's lab kit is on).
 pub(super) async fn get_set(
     State(state): State<Arc<PortalState>>,
-    Authed(_): Authed,
+    Authed(user): Authed,
     Path(id): Path<String>,
 ) -> Result<Json<Json_>, ApiError> {
     let id = set_id(&id)?;
-    let store = state.deployer.store.clone();
+    let (store, lab) = (state.deployer.store.clone(), state.lab.clone());
     // Parameters set with `subsume run --param`: a set runs with those that
     // name one of its components (the others are skipped for it).
     let overrides = state.deployer.overrides().to_vec();
     blocking(move || {
         let set = store.set(id)?;
+        let (access, baseline) = lab.access()?;
+        if id != baseline && !access.may_see_set(&user, &set) {
+            // Someone else's set answers as a missing one.
+            return Err(ApiError::from(crate::store::StoreError::NoSet(id)));
+        }
         let overrides: Vec<Json_> = overrides
             .iter()
             .filter(|o| set.graph.components.iter().any(|c| c.name == o.component))
             .map(|o| json!({ "component": o.component, "param": o.param, "value": o.value }))
             .collect();
-        let text = store.blob(&set.config_sha256)?;
+        let config = if access.may_read_set(&user, &set) {
+            Json_::String(String::from_utf8_lossy(&store.blob(&set.config_sha256)?).into_owned())
+        } else {
+            Json_::Null
+        };
         let status = set_status(id, &store.state()?);
         Ok(Json(json!({
             "graph": set.graph,
             "set": set,
             "status": status,
-            "config": String::from_utf8_lossy(&text),
+            "config": config,
             "overrides": overrides,
         })))
     })

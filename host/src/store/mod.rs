@@ -30,12 +30,13 @@
 //! - nothing here runs guest code or parses a component: callers validate
 //!   before they store.
 
+pub mod access;
 pub mod audit;
 pub mod experiments;
 pub mod records;
 pub mod users;
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::sync::{Mutex, MutexGuard};
 use std::time::{SystemTime, UNIX_EPOCH};
@@ -53,9 +54,14 @@ use self::users::{Users, UsersError};
 use crate::contract::clip;
 use crate::fsutil::write_atomically;
 
-/// Most sets kept; the oldest ones that are neither active nor in the
-/// rollback history are forgotten beyond this (bounds the store's growth).
-pub const MAX_SETS: usize = 200;
+/// Most sets the store holds: beyond it a new set is refused, never made
+/// room for with another user's (bounds the store's growth).
+pub const MAX_SETS: usize = 1000;
+/// Most sets one stager keeps (a user, or the host itself as `boot`,
+/// `dev`, `robot:NAME`): beyond it their own oldest set that nothing needs
+/// is forgotten, audited. One researcher staging in a loop evicts only
+/// her own sets, never another user's.
+pub const MAX_SETS_PER_USER: usize = 20;
 /// Previously active sets remembered for rollback.
 pub const MAX_HISTORY: usize = 20;
 /// Most named components in the store.
@@ -462,6 +468,7 @@ impl StoreWriter<'_> {
             }
         }
         let mut state = self.state()?;
+        let evicted = self.room_for_set(&record.created_by, &state)?;
         // A set file beyond the counter (a crash between the two writes
         // below in an older host) must not be overwritten.
         let highest = self.set_ids()?.last().copied().unwrap_or(0);
@@ -472,19 +479,60 @@ impl StoreWriter<'_> {
         // it never reuses one.
         self.write_state(&state)?;
         self.write_json(&self.set_path(record.id), &record)?;
-        self.forget_old_sets(&state)?;
+        if let Some(old) = evicted {
+            match std::fs::remove_file(self.set_path(old)) {
+                Ok(()) => {
+                    let detail =
+                        format!("{} keeps at most {MAX_SETS_PER_USER} sets; set {} came", record.created_by, record.id);
+                    self.record(
+                        "store",
+                        "forget-set",
+                        &format!("set {old} of {}", record.created_by),
+                        Outcome::Ok(&detail),
+                    );
+                    tracing::info!("set {old} of {} forgotten: {detail}", record.created_by);
+                }
+                Err(e) => tracing::warn!("set {old} could not be forgotten: {e}"),
+            }
+        }
         Ok(record)
     }
 
-    fn forget_old_sets(&self, state: &StoreState) -> Result<(), StoreError> {
+    /// The sets something needs: the active one, the rollback history, the
+    /// lab's baselines, and every experiment's that has not ended.
+    fn needed_sets(&self, state: &StoreState) -> Result<BTreeSet<u64>, StoreError> {
+        let mut needed: BTreeSet<u64> = state.history.iter().copied().chain(state.active).collect();
+        let lab = self.lab_state()?;
+        needed.extend(lab.baseline);
+        needed.extend(lab.baselines.values().copied());
+        needed.extend(self.experiments()?.values().filter(|r| !r.state.is_final()).map(|r| r.set));
+        Ok(needed)
+    }
+
+    /// Room for one more set of `stager`'s: the id of their own oldest set
+    /// nothing needs when they are at their quota; refused when the store
+    /// or their quota is full of needed sets.
+    fn room_for_set(&self, stager: &str, state: &StoreState) -> Result<Option<u64>, StoreError> {
         let ids = self.set_ids()?;
-        let excess = ids.len().saturating_sub(MAX_SETS);
-        for id in ids.iter().take(excess) {
-            if state.active != Some(*id) && !state.history.contains(id) {
-                let _ = std::fs::remove_file(self.set_path(*id));
+        let mut theirs = Vec::new();
+        for id in &ids {
+            if self.set(*id).is_ok_and(|set| set.created_by == stager) {
+                theirs.push(*id);
             }
         }
-        Ok(())
+        if theirs.len() < MAX_SETS_PER_USER {
+            if ids.len() >= MAX_SETS {
+                return Err(StoreError::Refused(format!("the store holds {MAX_SETS} sets already")));
+            }
+            return Ok(None);
+        }
+        let needed = self.needed_sets(state)?;
+        match theirs.into_iter().find(|id| !needed.contains(id)) {
+            Some(oldest) => Ok(Some(oldest)),
+            None => Err(StoreError::Refused(format!(
+                "{stager} has {MAX_SETS_PER_USER} sets, each needed (active, in the rollback history, a baseline or an experiment's); one must end first"
+            ))),
+        }
     }
 
     /// Records that set `id` is now the active one (the previous active set
@@ -620,12 +668,16 @@ mod tests {
     use super::*;
 
     fn set(store: &Store, text: &[u8]) -> Result<SetRecord, StoreError> {
+        set_of(store, "alice", text)
+    }
+
+    fn set_of(store: &Store, by: &str, text: &[u8]) -> Result<SetRecord, StoreError> {
         let writer = store.lock()?;
         let sha = writer.put_blob(text)?;
         writer.add_set(SetRecord {
             format: STORE_FORMAT,
             id: 0,
-            created_by: "alice".into(),
+            created_by: by.into(),
             created_at: unix_now(),
             platform: Some("control".into()),
             config_name: "robot.xml".into(),
@@ -657,6 +709,46 @@ mod tests {
         assert_eq!(reopened.state()?.active, Some(1));
         assert_eq!(reopened.sets()?.len(), 2);
         reopened.verify()
+    }
+
+    /// One stager's sets beyond their quota evict only their own oldest
+    /// that nothing needs, audited; a needed set is never evicted, and a
+    /// quota full of needed sets refuses the next one.
+    #[test]
+    fn a_stager_evicts_only_their_own_sets_that_nothing_needs() -> Result<(), StoreError> {
+        let dir = tempfile::tempdir().map_err(io(Path::new("tmp")))?;
+        let store = Store::open(dir.path())?;
+        let bens = set_of(&store, "ben", b"<robot name='ben'/>")?.id;
+        let first = set_of(&store, "ana", b"<robot name='a0'/>")?.id;
+        store.lock()?.mark_active(first)?;
+        let mut anas = vec![first];
+        for i in 1..MAX_SETS_PER_USER {
+            anas.push(set_of(&store, "ana", format!("<robot name='a{i}'/>").as_bytes())?.id);
+        }
+        // At her quota: her oldest set that nothing needs goes (the first
+        // is active), and nobody else's.
+        let next = set_of(&store, "ana", b"<robot name='more'/>")?.id;
+        let ids: Vec<u64> = store.sets()?.iter().map(|s| s.id).collect();
+        assert!(ids.contains(&bens) && ids.contains(&first) && ids.contains(&next), "{ids:?}");
+        assert!(!ids.contains(&anas[1]), "{ids:?}");
+        assert_eq!(ids.len(), MAX_SETS_PER_USER + 1);
+        let audit = store.audit_entries(10)?;
+        assert!(
+            audit.iter().any(|e| e.action == "forget-set" && e.target == format!("set {} of ana", anas[1])),
+            "{audit:?}"
+        );
+        // Every one of hers needed (the rollback history): the next is
+        // refused, and nothing is evicted.
+        let writer = store.lock()?;
+        for id in store.sets()?.iter().filter(|s| s.created_by == "ana").map(|s| s.id) {
+            writer.mark_active(id)?;
+        }
+        writer.mark_active(bens)?;
+        drop(writer);
+        let before = store.sets()?.len();
+        assert!(matches!(set_of(&store, "ana", b"<robot name='refused'/>"), Err(StoreError::Refused(_))));
+        assert_eq!(store.sets()?.len(), before);
+        Ok(())
     }
 
     /// Hosts starting at once on one empty store (threads with a handle
@@ -708,7 +800,8 @@ mod tests {
                         let mut made = Vec::new();
                         for i in 0..10 {
                             let text = format!("<robot name='t{t}-{i}'/>");
-                            let set = set(&store, text.as_bytes())?;
+                            // A stager per thread, within their quota.
+                            let set = set_of(&store, &format!("t{t}"), text.as_bytes())?;
                             made.push((set.id, text));
                             if i % 3 == 0 {
                                 store.lock()?.mark_active(set.id)?;
@@ -754,6 +847,7 @@ mod tests {
                 uploaded_by: owner.into(),
                 uploaded_at: 1,
                 description: None,
+                visibility: Default::default(),
             })
         };
         writer.put_component(record("ana", "avoid", b"ana 1")?)?;

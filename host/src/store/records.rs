@@ -39,6 +39,10 @@ pub struct ComponentRecord {
     /// What `describe` returned; translators have none.
     #[serde(default, deserialize_with = "description_or_none")]
     pub description: Option<DescriptionDoc>,
+    /// Who besides its owner and the admins may see and run it
+    /// (`store::access`); private unless its owner shares it.
+    #[serde(default)]
+    pub visibility: super::access::Visibility,
 }
 
 /// The WIT world a component fits.
