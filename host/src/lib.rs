@@ -54,3 +54,4 @@ pub mod sim;
 pub mod store;
 pub mod teleop;
 pub mod tls;
+pub mod walltime;

@@ -250,9 +250,25 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
     ids.sort_unstable();
     ids.dedup();
     assert_eq!(ids.len(), staged.len(), "a set id was given twice");
+    // A set its stager's quota forgot (store::MAX_SETS_PER_USER, their own
+    // oldest that nothing needed) is gone with an audit line saying so.
+    let entries = opened.audit_entries(usize::MAX).unwrap();
+    let forgotten: std::collections::BTreeSet<u64> = entries
+        .iter()
+        .filter(|e| e.action == "forget-set")
+        .filter_map(|e| e.target.strip_prefix("set ")?.split(' ').next()?.parse().ok())
+        .collect();
     for (id, bytes) in &staged {
+        if forgotten.contains(id) {
+            assert!(opened.set(*id).is_err(), "set {id} was forgotten, yet it is there");
+            continue;
+        }
         let set = opened.set(*id).unwrap();
         assert_eq!(&opened.blob(&set.config_sha256).unwrap(), bytes, "set {id}");
+    }
+    for stager in ["ctl", "net", "admin"] {
+        let kept = opened.sets().unwrap().iter().filter(|s| s.created_by == stager).count();
+        assert!(kept <= subsume::store::MAX_SETS_PER_USER, "{stager} keeps {kept} sets");
     }
     // state.json names only sets that exist, and the store is whole.
     for id in state.active.iter().chain(&state.history) {
@@ -268,9 +284,13 @@ fn concurrent_changes_from_many_users_never_lose_or_rewrite_a_record() {
         let last_round = uploads.iter().map(|(round, _)| *round).max().unwrap();
         assert!(uploads.iter().any(|(round, sent)| *round == last_round && *sent == bytes), "{name}");
     }
-    // One audit line per request, refused ones included.
-    let entries = opened.audit_entries(usize::MAX).unwrap();
-    assert_eq!(entries.len() - audit_before, requests_sent, "audit lines for {requests_sent} requests");
+    // One audit line per request, refused ones included (and one per set
+    // a quota forgot).
+    assert_eq!(
+        entries.len() - audit_before - forgotten.len(),
+        requests_sent,
+        "audit lines for {requests_sent} requests"
+    );
     assert!(entries.iter().any(|e| e.action == "upload-component" && e.user == "view" && e.result == "refused"));
 }
 

@@ -19,7 +19,7 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, Weak};
-use std::time::{Duration, SystemTime, UNIX_EPOCH};
+use std::time::Duration;
 
 use thiserror::Error;
 use zenoh::Wait;
@@ -274,9 +274,7 @@ fn open_error(settings: &SessionSettings, config: &zenoh::Config, why: &str) -> 
 }
 
 /// Nanoseconds since the UNIX epoch (timestamps on the wire).
-pub fn unix_ns() -> u64 {
-    SystemTime::now().duration_since(UNIX_EPOCH).map(|d| d.as_nanos() as u64).unwrap_or(0)
-}
+pub use crate::walltime::unix_now_ns as unix_ns;
 
 /// Counters of one bridge (a Zenoh or ROS 2 built-in), for the report and
 /// the live status. Written by the control loop (out) and Zenoh's threads

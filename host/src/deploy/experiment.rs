@@ -127,10 +127,10 @@ impl ExperimentGate {
     }
 }
 
-/// `HH:MM:SS UTC` of a time in ms since the Unix epoch.
+/// A time in ms since the Unix epoch as a person reads it: its time of
+/// day, with its date when it is not today (`walltime::shown`).
 pub fn utc_time(unix_ms: u64) -> String {
-    let seconds = (unix_ms / 1000) % 86_400;
-    format!("{:02}:{:02}:{:02} UTC", seconds / 3600, seconds / 60 % 60, seconds % 60)
+    crate::walltime::shown(unix_ms)
 }
 
 /// A set checked to run as an experiment.

@@ -83,8 +83,7 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RingLayer {
             }
             message.truncate(cut);
         }
-        let time =
-            std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_secs_f64()).unwrap_or(0.0);
+        let time = crate::walltime::unix_now_s_f64();
         self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component: fields.component, message });
     }
 }

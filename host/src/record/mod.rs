@@ -209,7 +209,7 @@ impl Timeline {
     /// `clock`'s time line, its zero at the wall-clock time now less
     /// `clock`'s reading.
     pub fn of(clock: &Clock) -> Timeline {
-        let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos() as u64);
+        let now = crate::walltime::unix_now_ns();
         Timeline { epoch_unix_ns: now.saturating_sub(clock.now_ns()), clock: clock.clone() }
     }
 

@@ -193,10 +193,7 @@ impl Locks {
     }
 }
 
-/// Milliseconds since the Unix epoch, now (0 if the clock is before it).
-pub fn unix_now_ms() -> u64 {
-    std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map(|d| d.as_millis() as u64).unwrap_or(0)
-}
+pub use crate::walltime::unix_now_ms;
 
 #[cfg(test)]
 mod tests {
