@@ -24,6 +24,9 @@ use crate::contract::{Value, ValueKind};
 struct Counted {
     file: BufWriter<File>,
     position: u64,
+    /// A character device or FIFO: no seeking; where it is is what was
+    /// written.
+    streamed: bool,
     /// The file's size so far, which the writer thread reads.
     size: Arc<AtomicU64>,
 }
@@ -43,6 +46,12 @@ impl Write for Counted {
 
 impl Seek for Counted {
     fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        if self.streamed {
+            return match pos {
+                SeekFrom::Current(0) => Ok(self.position),
+                _ => Err(std::io::Error::other("a recording into a device or FIFO cannot seek")),
+            };
+        }
         self.position = self.file.seek(pos)?;
         Ok(self.position)
     }
@@ -67,6 +76,9 @@ pub(super) struct Writer {
     file: Option<OpenFile>,
     /// Index of the open file (0: the path itself).
     index: u32,
+    /// The recording goes into a character device or FIFO: one stream,
+    /// never rotated (there is no FILE.1.mcap beside /dev/stdout).
+    streamed: bool,
     summary: RecordSummary,
     last_flush: Instant,
 }
@@ -85,6 +97,7 @@ impl Writer {
             epoch_unix_ns,
             file: None,
             index: 0,
+            streamed: false,
             summary: RecordSummary::default(),
             last_flush: Instant::now(),
         };
@@ -104,10 +117,14 @@ impl Writer {
 
     fn open(&mut self) -> Result<(), RecordError> {
         let path = self.path();
-        let file = File::create(&path).map_err(|source| RecordError::Io { path: path.clone(), source })?;
+        let (file, target) =
+            crate::fsutil::create_output(&path).map_err(|source| RecordError::Io { path: path.clone(), source })?;
+        let streamed = target == crate::fsutil::Target::Stream;
+        self.streamed = streamed;
         let size = Arc::new(AtomicU64::new(0));
-        let counted = Counted { file: BufWriter::new(file), position: 0, size: size.clone() };
+        let counted = Counted { file: BufWriter::new(file), position: 0, streamed, size: size.clone() };
         let mcap = mcap::WriteOptions::new()
+            .disable_seeking(streamed)
             .compression(None)
             .chunk_size(Some(CHUNK_BYTES))
             .profile("")
@@ -165,7 +182,7 @@ impl Writer {
     }
 
     fn rotate_if_full(&mut self, dropped: u64) -> Result<(), RecordError> {
-        if self.file.is_none() {
+        if self.file.is_none() || self.streamed {
             return Ok(());
         }
         let size = self.file.as_ref().map_or(0, |f| f.size.load(Ordering::Relaxed));
