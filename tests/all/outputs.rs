@@ -244,5 +244,5 @@ fn a_report_to_dev_stdout_arrives_on_standard_output() {
     assert!(output.status.success(), "{}", text(&output.stderr));
     let stdout = text(&output.stdout);
     let start = stdout.find('{').unwrap_or_else(|| panic!("no report on stdout: {stdout}"));
-    json_has(stdout[start..].as_bytes(), "format").unwrap_or_else(|e| panic!("{e}: {stdout}"));
+    json_has(&stdout.as_bytes()[start..], "format").unwrap_or_else(|e| panic!("{e}: {stdout}"));
 }

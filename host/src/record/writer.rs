@@ -79,6 +79,8 @@ pub(super) struct Writer {
     /// The recording goes into a character device or FIFO: one stream,
     /// never rotated (there is no FILE.1.mcap beside /dev/stdout).
     streamed: bool,
+    /// The files reached `max_total_bytes`: nothing more is written.
+    cut: bool,
     summary: RecordSummary,
     last_flush: Instant,
 }
@@ -98,6 +100,7 @@ impl Writer {
             file: None,
             index: 0,
             streamed: false,
+            cut: false,
             summary: RecordSummary::default(),
             last_flush: Instant::now(),
         };
@@ -109,6 +112,12 @@ impl Writer {
 
     fn path(&self) -> std::path::PathBuf {
         self.options.path.as_deref().map(|p| rotated_path(p, self.index)).unwrap_or_default()
+    }
+
+    /// `text` with the hidden folders named.
+    fn hidden(&self, mut text: String) -> String {
+        self.options.hidden.hide(&mut text);
+        text
     }
 
     fn mcap_error(&self, source: mcap::McapError) -> RecordError {
@@ -139,6 +148,9 @@ impl Writer {
             ("file_index".to_string(), self.index.to_string()),
             ("format".to_string(), "1".to_string()),
         ]);
+        for value in about.values_mut() {
+            self.options.hidden.hide(value);
+        }
         let metadata = mcap::records::Metadata { name: "subsume.recording".into(), metadata: about };
         open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
         self.summary.files.push(path);
@@ -181,6 +193,26 @@ impl Writer {
         Ok(())
     }
 
+    /// At `max_total_bytes` over every file: finishes the open file with
+    /// a `subsume.recording.cut` record and stops recording; true then.
+    fn cut_if_full(&mut self, dropped: u64) -> Result<bool, RecordError> {
+        let Some(open) = &mut self.file else { return Ok(false) };
+        let total = self.summary.bytes + open.size.load(Ordering::Relaxed);
+        if total < self.options.max_total_bytes {
+            return Ok(false);
+        }
+        let limit = self.options.max_total_bytes;
+        let cut = mcap::records::Metadata {
+            name: "subsume.recording.cut".into(),
+            metadata: BTreeMap::from([("max_total_bytes".to_string(), limit.to_string())]),
+        };
+        open.mcap.write_metadata(&cut).map_err(|e| self.mcap_error(e))?;
+        self.close(dropped)?;
+        self.cut = true;
+        tracing::warn!("the recording stops here: its files reached {total} bytes, the most it may take ({limit})");
+        Ok(true)
+    }
+
     fn rotate_if_full(&mut self, dropped: u64) -> Result<(), RecordError> {
         if self.file.is_none() || self.streamed {
             return Ok(());
@@ -196,6 +228,9 @@ impl Writer {
     }
 
     pub(super) fn write(&mut self, event: Event, dropped: u64) -> Result<(), RecordError> {
+        if self.cut || self.cut_if_full(dropped)? {
+            return Ok(());
+        }
         self.rotate_if_full(dropped)?;
         let epoch = self.epoch_unix_ns;
         let layout = self.layout.clone();
@@ -240,7 +275,7 @@ impl Writer {
                 "/subsume/events",
                 schema::EVENT,
                 epoch + t,
-                &json!({ "t": t, "component": name(index), "event": "fault", "reason": clip(&reason) }),
+                &json!({ "t": t, "component": name(index), "event": "fault", "reason": clip(&self.hidden(reason)) }),
             ),
             Event::Restart { index, t, attempt } => self.message(
                 "/subsume/events",
@@ -258,7 +293,7 @@ impl Writer {
                 super::LOG_TOPIC,
                 schema::LOG,
                 unix_ns,
-                &schema::log(level, &name, clip(&message), unix_ns),
+                &schema::log(level, &name, clip(&self.hidden(message)), unix_ns),
             ),
             Event::Layout(layout) => {
                 self.layout = layout;
