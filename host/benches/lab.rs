@@ -107,6 +107,7 @@ fn preflights_beside_the_robot(seconds: f64) {
             exe: PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
             cache_dir: Some(support::cache_dir()),
             priority: Priority::Idle,
+            limits: subsume::lab::preflight::PreflightLimits::default(),
         };
     let started = Instant::now();
     let mut speeds = Vec::new();

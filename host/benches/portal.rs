@@ -136,6 +136,7 @@ fn main() -> Result<(), String> {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: None,
                 priority: subsume::lab::preflight::Priority::Idle,
+                limits: subsume::lab::preflight::PreflightLimits::default(),
             },
             role: subsume::lab::LabRole::Alone,
         },

@@ -16,7 +16,7 @@ use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::fsutil::HiddenPaths;
-use crate::lab::preflight::{HolderWatch, PreflightCommand};
+use crate::lab::preflight::{HolderWatch, PreflightCommand, PreflightLimits};
 use crate::lab::robot_link::{LinkError, RobotLink, RobotLinkOptions};
 use crate::lab::server::{Fleet, FleetOptions, ServerError};
 use crate::lab::verdict::Criteria;
@@ -632,6 +632,7 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
                 exe,
                 cache_dir: options.cache_dir.clone(),
                 priority: portal.preflight_priority,
+                limits: PreflightLimits::default(),
             },
             role,
         },
@@ -640,6 +641,9 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
     let hidden = [(portal.store_dir.as_path(), "<store>"), (robot_dir.as_path(), "<robot file folder>")];
     // The robot's live status reaches the lab's users through the lab
     // server: it hides the robot's folders as the robot's own portal does.
+    // So does every recording the portal or the lab starts: each is
+    // downloaded by a remote user (a results bundle's run.mcap).
+    recordings.hide(answer_hidden(&deployer, &hidden));
     let link =
         portal.lab.clone().map(|o| RobotLink::start(lab.clone(), o, answer_hidden(&deployer, &hidden))).transpose()?;
     if let Some(poll) = portal.watch {
@@ -723,6 +727,7 @@ pub fn serve_lab(options: &LabServeOptions, shutdown: Shutdown) -> Result<(), Ru
                 exe,
                 cache_dir: options.cache_dir.clone(),
                 priority: options.preflight_priority,
+                limits: PreflightLimits::default(),
             },
             role: LabRole::Server(fleet.clone()),
         },

@@ -1078,3 +1078,150 @@ fn a_researchers_work_is_hers_unless_she_shares_it() {
     let (status, _) = get(&ana, &format!("/api/v1/sets/{ben_set}"));
     assert_eq!(status, 404);
 }
+
+/// Every file of every regular file under `root`, as (path relative to
+/// `root`, bytes).
+fn every_file(root: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    let mut files = Vec::new();
+    let mut folders = vec![root.to_path_buf()];
+    while let Some(folder) = folders.pop() {
+        for entry in std::fs::read_dir(&folder).unwrap() {
+            let path = entry.unwrap().path();
+            if path.is_dir() {
+                folders.push(path);
+            } else {
+                let bytes = std::fs::read(&path).unwrap();
+                files.push((path.strip_prefix(root).unwrap().to_path_buf(), bytes));
+            }
+        }
+    }
+    files.sort();
+    files
+}
+
+/// Where `needle` occurs in the files, with some bytes around it.
+fn occurrences(files: &[(PathBuf, Vec<u8>)], needle: &str) -> Vec<String> {
+    let needle = needle.as_bytes();
+    let mut found = Vec::new();
+    for (name, bytes) in files {
+        if let Some(at) = bytes.windows(needle.len()).position(|w| w == needle) {
+            let around = &bytes[at.saturating_sub(60)..(at + needle.len() + 60).min(bytes.len())];
+            found.push(format!("{}: …{}…", name.display(), String::from_utf8_lossy(around)));
+        }
+    }
+    found
+}
+
+/// No file of an experiment's results bundle nor of the lab kit spells out
+/// a folder of the owner's machine (the store, the robot file's folder,
+/// the working folder): the API's names stand in for them, in the text
+/// files and in the recordings alike.
+#[test]
+fn a_bundle_and_the_kit_spell_out_no_folder_of_the_owners_machine() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0, "label": "paths" });
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body.to_string());
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
+    assert_eq!(done["state"], "done", "{done:#}");
+
+    let out = tempfile::tempdir().unwrap();
+    let bundle = lab.results(&ana, id, out.path());
+    let kit = out.path().join("lab-kit.tar");
+    let fetched = Command::new("curl")
+        .args(["-s", "-f", "-o"])
+        .arg(&kit)
+        .args(["-H", &format!("Authorization: Bearer {ana}")])
+        .arg(format!("http://{}/api/v1/lab/kit", lab.address))
+        .status()
+        .unwrap();
+    assert!(fetched.success());
+    let unpacked = Command::new("tar").arg("-xf").arg(&kit).arg("-C").arg(out.path()).status().unwrap();
+    assert!(unpacked.success());
+
+    let mut files = every_file(&bundle);
+    for name in ["log.txt", "preflight.log", "report.json", "preflight-report.json", "run.mcap", "preflight.mcap"] {
+        assert!(files.iter().any(|(n, _)| n == Path::new(name)), "the bundle has no {name}");
+    }
+    let kit_files = every_file(&out.path().join("lab-kit"));
+    assert!(kit_files.iter().any(|(n, _)| n == Path::new("robot.xml")), "the kit has no robot.xml");
+    files.extend(kit_files.into_iter().map(|(n, b)| (Path::new("lab-kit").join(n), b)));
+
+    let store = dir.path().join("store");
+    let working = crate::support::repo_root();
+    let mut folders = Vec::new();
+    for folder in [dir.path().to_path_buf(), store, working] {
+        folders.push(folder.display().to_string());
+        folders.push(std::fs::canonicalize(&folder).unwrap().display().to_string());
+    }
+    let found: Vec<String> = folders.iter().flat_map(|f| occurrences(&files, f)).collect();
+    assert!(found.is_empty(), "the owner's folders are spelled out:\n{}", found.join("\n"));
+    // The names the API shows stand in for them.
+    let report = String::from_utf8_lossy(&files.iter().find(|(n, _)| n == Path::new("report.json")).unwrap().1);
+    assert!(report.contains("\"config\": \"<"), "{report}");
+}
+
+/// A preflight is bounded (docs/lab.md, Preflight): a guest that logs
+/// without end (10,000 lines in a tick, up to its `max-logs`) fills the log
+/// only to its limit, and the log says it was cut; its recording stops at
+/// its limit, finished (the `mcap` package reads it whole) and marked cut,
+/// and the log says so. Either way the preflight is judged.
+#[test]
+fn a_preflight_that_logs_without_end_is_cut_at_its_limits() {
+    use subsume::lab::preflight::{self, Outcome, PreflightCommand, PreflightFiles, PreflightLimits, Priority};
+    let flood = format!(
+        r#"<component name="chatty" source="{}" rate="10" budget="200ms" max-logs="10000">
+      <param name="mode" value="log-flood"/>
+      <param name="after" value="0"/>
+    </component>"#,
+        crate::support::guest("test-faulty").display()
+    );
+    let cases = [
+        ("log", PreflightLimits { log_bytes: 64 << 10, ..PreflightLimits::default() }),
+        ("recording", PreflightLimits { recording_bytes: 1 << 20, ..PreflightLimits::default() }),
+    ];
+    for (bound, limits) in cases {
+        let dir = tempfile::tempdir().unwrap();
+        let robot = dir.path().join("robot.xml");
+        // The preflight form has no network platform (no teleoperation).
+        let xml = self::robot(8.0, &flood);
+        let network = xml.find("  <platform name=\"network\">").unwrap();
+        let xml = format!("{}</robot>\n", &xml[..network]);
+        std::fs::write(&robot, xml).unwrap();
+        std::fs::write(dir.path().join("lab.world"), WORLD).unwrap();
+        let command = PreflightCommand {
+            exe: PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
+            cache_dir: Some(crate::support::cache_dir()),
+            priority: Priority::Normal,
+            limits,
+        };
+        let files = PreflightFiles::in_dir(dir.path());
+        let criteria = subsume::lab::verdict::Criteria::default();
+        let outcome = preflight::run(&command, &robot, Duration::from_secs(3), &criteria, &files, &|| false);
+        let log = std::fs::read_to_string(&files.log).unwrap();
+        assert!(matches!(outcome, Ok(Outcome::Judged { .. })), "{bound}: {outcome:?}\n{log}");
+        let recording = std::fs::read(&files.recording).unwrap();
+        match bound {
+            "log" => {
+                let note = "\n(the preflight's log stops here: it is cut at 65536 bytes";
+                let at = log.find(note).unwrap_or_else(|| panic!("the log does not say it was cut:\n{log}"));
+                assert_eq!(at, 64 << 10, "cut where it should be");
+                assert!(log.ends_with("the rest of its output was dropped)\n"), "{}", &log[at..]);
+            }
+            _ => {
+                assert!(log.contains("the recording stops here"), "the log does not say so:\n{log}");
+                let marked = recording.windows(21).any(|w| w == b"subsume.recording.cut");
+                assert!(marked, "the recording is not marked cut");
+                // The limit, plus the chunk being filled and the summary.
+                assert!(recording.len() < (1 << 20) + (512 << 10), "{} bytes", recording.len());
+                let read = read_mcap(&files.recording, false);
+                assert_eq!(read["complete"], true, "{read}");
+            }
+        }
+    }
+}

@@ -29,6 +29,7 @@ mod lab;
 mod labnet;
 mod languages;
 mod memory;
+mod outputs;
 mod portal;
 mod portal_router;
 mod record;

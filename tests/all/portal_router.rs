@@ -94,6 +94,7 @@ async fn portal_over(over_tls: bool) -> Portal {
                 exe: std::path::PathBuf::from(env!("CARGO_BIN_EXE_subsume")),
                 cache_dir: Some(support::cache_dir()),
                 priority: subsume::lab::preflight::Priority::Background,
+                limits: subsume::lab::preflight::PreflightLimits::default(),
             },
             role: subsume::lab::LabRole::Alone,
         },

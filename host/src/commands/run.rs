@@ -78,6 +78,11 @@ pub struct HostFlags {
     /// reaches this many MiB.
     #[arg(long, value_name = "MIB", default_value = "1024", value_parser = clap::value_parser!(u64).range(1..))]
     record_max_mib: u64,
+    /// Stop recording once the files together reach this many MiB (the
+    /// last file is finished and marked cut; the log says so). No limit
+    /// when not given.
+    #[arg(long, value_name = "MIB", value_parser = clap::value_parser!(u64).range(1..))]
+    record_max_total_mib: Option<u64>,
     /// Serve the same channels live to Foxglove or Lichtblick (Foxglove
     /// WebSocket, subprotocol foxglove.sdk.v1) on this address, or `off`.
     #[arg(long, value_name = "ADDRESS|off", env = "SUBSUME_FOXGLOVE", default_value = "off",
@@ -111,6 +116,7 @@ impl Default for HostFlags {
             allow_plain_http: false,
             record: None,
             record_max_mib: subsume::record::DEFAULT_MAX_FILE_BYTES >> 20,
+            record_max_total_mib: None,
             foxglove: Listen::Off,
             verdict: None,
             criteria: None,
@@ -174,8 +180,13 @@ pub fn run_options(
         }),
     };
     let live = host.foxglove.address();
-    let record =
-        (host.record.is_some() || live.is_some()).then_some(RecordOptions { path: host.record, max_file_bytes, live });
+    let record = (host.record.is_some() || live.is_some()).then_some(RecordOptions {
+        path: host.record,
+        max_file_bytes,
+        max_total_bytes: host.record_max_total_mib.map_or(u64::MAX, |mib| mib.saturating_mul(1 << 20)),
+        live,
+        hidden: Default::default(),
+    });
     let identity = TlsIdentity::from_options(host.tls_cert.as_deref(), host.tls_key.as_deref())?;
     let fault_injection = match std::env::var("SUBSUME_FAULT_INJECTION") {
         Ok(text) if !text.is_empty() => Some(text.parse::<FaultInjection>()?),

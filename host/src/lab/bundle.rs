@@ -29,6 +29,7 @@ use serde_json::Value as Json;
 use sha2::{Digest, Sha256};
 
 use crate::deploy::Ended;
+use crate::fsutil::HiddenPaths;
 use crate::store::experiments::{ExperimentRecord, ResultFile, RunResult};
 use crate::store::{Store, StoreError};
 
@@ -46,6 +47,33 @@ pub const MAX_LOG_SOURCE_BYTES: u64 = 1 << 30;
 /// Lines of the log kept: a component logging in a loop for two minutes
 /// must not make a giant text file.
 pub const MAX_LOG_LINES: usize = 200_000;
+
+/// Whether the archive's file `name` is text whose server folders are
+/// hidden as it is served ([`write_tar`]): everything but the recordings
+/// (MCAP offsets would break; what they carry is hidden as they are
+/// written) and the components' bytes.
+fn hides_folders(name: &str) -> bool {
+    !name.ends_with(".mcap") && !name.ends_with(".wasm")
+}
+
+/// A copy of `reader` with `hidden`'s folders named, a line at a time, in
+/// a temporary file (a log is never held whole); the copy and its size.
+fn hidden_copy(reader: impl Read, hidden: &HiddenPaths) -> std::io::Result<(Box<dyn Read>, u64)> {
+    let mut copy = tempfile::tempfile()?;
+    {
+        let mut out = std::io::BufWriter::new(&mut copy);
+        let mut lines = std::io::BufReader::new(reader);
+        let mut line = Vec::new();
+        while std::io::BufRead::read_until(&mut lines, b'\n', &mut line)? > 0 {
+            out.write_all(&hidden.hide_bytes(&line))?;
+            line.clear();
+        }
+        out.flush()?;
+    }
+    let size = copy.metadata()?.len();
+    std::io::Seek::seek(&mut copy, std::io::SeekFrom::Start(0))?;
+    Ok((Box::new(copy), size))
+}
 
 /// One file of the archive and where its bytes come from.
 #[derive(Clone, Debug)]
@@ -264,13 +292,19 @@ impl<R: Read> Read for Hashing<R> {
 
 /// Writes `contents` as a tar archive (in its folder) to `out`, ending
 /// with `SHA256SUMS` of every file before it. Files are streamed, never
-/// held whole.
-pub fn write_tar(store: &Store, contents: &Contents, out: impl Write) -> std::io::Result<()> {
+/// held whole; in every text file the `hidden` folders (the store, the
+/// robot file's folder: the owner's machine) are named, never spelled out.
+pub fn write_tar(store: &Store, contents: &Contents, hidden: &HiddenPaths, out: impl Write) -> std::io::Result<()> {
     let folder = &contents.folder;
     let mut builder = tar::Builder::new(out);
     let mut sums = String::new();
     for (name, source) in &contents.entries {
         let (reader, size) = open(store, source)?;
+        let (reader, size) = if hides_folders(name) && !hidden.is_empty() {
+            hidden_copy(reader.take(size), hidden)?
+        } else {
+            (reader, size)
+        };
         let mut header = tar::Header::new_gnu();
         header.set_size(size);
         header.set_mode(0o644);

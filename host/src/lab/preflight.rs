@@ -43,6 +43,50 @@ pub const PREFLIGHT_CPU_GRACE: Duration = Duration::from_secs(60);
 /// host's problem rather than holding the lab's checks forever.
 pub const PREFLIGHT_STARVED_AFTER: Duration = Duration::from_secs(600);
 
+/// Most bytes of a preflight's output kept in its log (`preflight.log`): a
+/// guest that logs without end (its `max-logs` lines a second, each up to
+/// 4 KiB, for the whole preflight) must not fill the owner's disk. Past it
+/// the log says it was cut, and the rest is read and dropped.
+pub const MAX_PREFLIGHT_LOG_BYTES: u64 = 16 << 20;
+
+/// Most bytes of a preflight's recording (`preflight.mcap`,
+/// `--record-max-total-mib`): a set that emits as much as it may for its
+/// whole duration must not fill the owner's disk. Past it the recording
+/// stops (its file finished, marked cut) and the log says so. Below the
+/// rotation size, so a preflight's recording is one file.
+pub const MAX_PREFLIGHT_RECORDING_BYTES: u64 = 512 << 20;
+
+/// Most memory a preflight process may map writable (`RLIMIT_DATA`: its
+/// heap and every guest's accessible linear memory; not the address space
+/// wasmtime only reserves, terabytes with its pooling allocator, which
+/// `RLIMIT_AS` would count): a preflight whose guests grow their memories
+/// must not take the robot's memory. Measured: the demo's preflight maps
+/// 2.2 GB with the pooling allocator (its pools, mostly never touched); a
+/// machine whose pools do not fit falls back to allocating on demand.
+pub const PREFLIGHT_MEMORY_BYTES: u64 = 4 << 30;
+
+/// The bounds of a preflight, the named limits above unless a test sets
+/// its own.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct PreflightLimits {
+    /// [`MAX_PREFLIGHT_LOG_BYTES`].
+    pub log_bytes: u64,
+    /// [`MAX_PREFLIGHT_RECORDING_BYTES`] (whole MiB).
+    pub recording_bytes: u64,
+    /// [`PREFLIGHT_MEMORY_BYTES`].
+    pub memory_bytes: u64,
+}
+
+impl Default for PreflightLimits {
+    fn default() -> PreflightLimits {
+        PreflightLimits {
+            log_bytes: MAX_PREFLIGHT_LOG_BYTES,
+            recording_bytes: MAX_PREFLIGHT_RECORDING_BYTES,
+            memory_bytes: PREFLIGHT_MEMORY_BYTES,
+        }
+    }
+}
+
 /// The `nice` value of a preflight process at [`Priority::Idle`]: it only
 /// gets the CPU the robot does not use.
 pub const PREFLIGHT_NICE: i32 = 19;
@@ -254,6 +298,8 @@ pub struct PreflightCommand {
     pub cache_dir: Option<PathBuf>,
     /// How the process is scheduled.
     pub priority: Priority,
+    /// Its log, recording and memory bounds.
+    pub limits: PreflightLimits,
 }
 
 /// Lines of the child's output kept as a reason when the robot did not start.
@@ -278,7 +324,11 @@ pub fn run(
         .map_err(|e| PreflightError::File { path: files.criteria.clone(), reason: e.to_string() })?;
     crate::fsutil::write_atomically(&files.criteria, &criteria_json).map_err(file_error(&files.criteria))?;
     let log = std::fs::File::create(&files.log).map_err(file_error(&files.log))?;
-    let log_err = log.try_clone().map_err(file_error(&files.log))?;
+    // Standard output and error into one pipe the host reads into the log,
+    // up to its bound.
+    let (output, output_end) = std::io::pipe().map_err(file_error(&files.log))?;
+    let output_err = output_end.try_clone().map_err(file_error(&files.log))?;
+    let recording_mib = (command.limits.recording_bytes >> 20).max(1).to_string();
     let mut child = Command::new(&command.exe);
     child
         .arg("run")
@@ -288,6 +338,7 @@ pub fn run(
         .arg(format!("{}", duration.as_secs_f64()))
         .arg("--record")
         .arg(&files.recording)
+        .args(["--record-max-mib", &recording_mib, "--record-max-total-mib", &recording_mib])
         .arg("--report")
         .arg(&files.report)
         .arg("--verdict")
@@ -300,16 +351,30 @@ pub fn run(
         .env_remove("SUBSUME_HTTP")
         .env_remove("SUBSUME_FOXGLOVE")
         .stdin(Stdio::null())
-        .stdout(Stdio::from(log))
-        .stderr(Stdio::from(log_err));
+        .stdout(Stdio::from(output_end))
+        .stderr(Stdio::from(output_err));
     match &command.cache_dir {
         Some(dir) => child.arg("--cache-dir").arg(dir),
         None => child.arg("--no-cache"),
     };
-    lowered(&mut child, command.priority);
+    lowered(&mut child, command.priority, command.limits.memory_bytes);
     let started = Instant::now();
     let limit = duration + PREFLIGHT_CPU_GRACE;
-    let mut process = child.spawn().map_err(|source| PreflightError::Spawn { exe: command.exe.clone(), source })?;
+    let spawned = child.spawn();
+    // The pipe's writing ends are the child's alone now: the reader sees
+    // its end when the child's output closes.
+    drop(child);
+    let mut process = spawned.map_err(|source| PreflightError::Spawn { exe: command.exe.clone(), source })?;
+    let log_bytes = command.limits.log_bytes;
+    let copier = std::thread::Builder::new()
+        .name("preflight-log".into())
+        .spawn(move || copy_bounded(output, log, log_bytes))
+        .map_err(|source| PreflightError::Spawn { exe: command.exe.clone(), source })?;
+    let copied = || {
+        if let Ok(Err(e)) = copier.join() {
+            tracing::warn!("the preflight's log: {e}");
+        }
+    };
     let status = loop {
         match process.try_wait() {
             Ok(Some(status)) => break status,
@@ -322,6 +387,7 @@ pub fn run(
         if cancelled() || too_slow || starved {
             let _ = process.kill();
             let _ = process.wait();
+            copied();
             if cancelled() {
                 return Err(PreflightError::Cancelled);
             }
@@ -333,6 +399,7 @@ pub fn run(
         std::thread::sleep(Duration::from_millis(20));
     };
     let wall_s = started.elapsed().as_secs_f64();
+    copied();
     let output = std::fs::read_to_string(&files.log).unwrap_or_default();
     if status.success() {
         let bytes = std::fs::read(&files.verdict).map_err(file_error(&files.verdict))?;
@@ -354,6 +421,36 @@ pub fn run(
     }
     let last = output.lines().rev().take(3).collect::<Vec<_>>().join(" | ");
     Err(PreflightError::Crashed { status: status.to_string(), last: crate::contract::clip(&last) })
+}
+
+/// Copies `from` into `to` up to `limit` bytes; past it `to` says it was
+/// cut, and the rest of `from` is read (the child never blocks on a full
+/// pipe) and dropped. Returns the bytes `from` gave.
+fn copy_bounded(mut from: impl std::io::Read, mut to: impl std::io::Write, limit: u64) -> std::io::Result<u64> {
+    let mut buffer = vec![0u8; 64 * 1024];
+    let mut total: u64 = 0;
+    loop {
+        let n = match from.read(&mut buffer) {
+            Ok(0) => break,
+            Ok(n) => n,
+            Err(e) if e.kind() == std::io::ErrorKind::Interrupted => continue,
+            Err(e) => return Err(e),
+        };
+        let room = limit.saturating_sub(total);
+        if room > 0 {
+            let kept = (n as u64).min(room) as usize;
+            to.write_all(&buffer[..kept])?;
+            if kept < n {
+                write!(
+                    to,
+                    "\n(the preflight's log stops here: it is cut at {limit} bytes, the most kept; the rest of its output was dropped)\n"
+                )?;
+            }
+        }
+        total += n as u64;
+    }
+    to.flush()?;
+    Ok(total)
 }
 
 /// The CPU time process `pid` has used so far, user and system, from
@@ -378,17 +475,19 @@ fn clock_ticks_per_second() -> Option<u64> {
     u64::try_from(ticks).ok().filter(|t| *t > 0)
 }
 
-/// The child runs at `priority`, and is killed when the thread that
+/// The child runs at `priority` with at most `memory_bytes` mapped
+/// writable (`RLIMIT_DATA`), and is killed when the thread that
 /// started it ends: a host killed mid-preflight (`kill -9`, a panic that
 /// exits) leaves no orphan running on its CPU and holding its files.
-fn lowered(command: &mut Command, priority: Priority) {
+fn lowered(command: &mut Command, priority: Priority, memory_bytes: u64) {
     use std::os::unix::process::CommandExt;
     let parent = std::process::id() as libc::pid_t;
     // SAFETY: between fork and exec only async-signal-safe calls are made
-    // (prctl, getppid, setpriority and sched_setscheduler are system
-    // calls), and nothing allocates (`from_raw_os_error` does not). A
-    // refused priority leaves the child at the host's, which is still a
-    // separate process.
+    // (prctl, getppid, getrlimit, setrlimit, setpriority and
+    // sched_setscheduler are system calls), and nothing allocates
+    // (`from_raw_os_error` does not). A refused priority leaves the child
+    // at the host's, which is still a separate process; a refused memory
+    // limit fails the start.
     unsafe {
         command.pre_exec(move || {
             if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) != 0 {
@@ -397,6 +496,16 @@ fn lowered(command: &mut Command, priority: Priority) {
             // The parent may have died before the prctl took hold.
             if libc::getppid() != parent {
                 return Err(std::io::Error::from_raw_os_error(libc::ESRCH));
+            }
+            // Never above what the host itself may map.
+            let mut memory = libc::rlimit { rlim_cur: 0, rlim_max: 0 };
+            if libc::getrlimit(libc::RLIMIT_DATA, &mut memory) != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            memory.rlim_max = memory.rlim_max.min(memory_bytes);
+            memory.rlim_cur = memory.rlim_max;
+            if libc::setrlimit(libc::RLIMIT_DATA, &memory) != 0 {
+                return Err(std::io::Error::last_os_error());
             }
             match priority {
                 Priority::Idle => {
@@ -446,7 +555,7 @@ mod tests {
         for (priority, nice, policy) in cases {
             let mut command = Command::new("sleep");
             command.arg("30");
-            lowered(&mut command, priority);
+            lowered(&mut command, priority, PREFLIGHT_MEMORY_BYTES);
             let mut child = command.spawn().unwrap();
             let stat = std::fs::read_to_string(format!("/proc/{}/stat", child.id())).unwrap();
             let _ = child.kill();
@@ -461,6 +570,43 @@ mod tests {
         assert!("fast".parse::<Priority>().unwrap_err().to_string().contains("'fast'"));
     }
 
+    /// A preflight process may map at most its memory limit writable: the
+    /// child's `Max data size` in `/proc/PID/limits`, soft and hard.
+    #[test]
+    fn a_preflight_process_has_its_memory_limit() {
+        for limit in [PREFLIGHT_MEMORY_BYTES, 256 << 20] {
+            let mut command = Command::new("sleep");
+            command.arg("30");
+            lowered(&mut command, Priority::Normal, limit);
+            let mut child = command.spawn().unwrap();
+            let limits = std::fs::read_to_string(format!("/proc/{}/limits", child.id())).unwrap();
+            let _ = child.kill();
+            let _ = child.wait();
+            let line = limits.lines().find(|l| l.starts_with("Max data size")).unwrap();
+            let values: Vec<&str> = line["Max data size".len()..].split_whitespace().collect();
+            assert_eq!(values, [limit.to_string().as_str(), limit.to_string().as_str(), "bytes"], "{limits}");
+        }
+    }
+
+    /// The log keeps its first `limit` bytes and says it was cut; the
+    /// writer is read to its end (it never blocks), and a log within its
+    /// limit is kept whole, unmarked.
+    #[test]
+    fn a_log_past_its_limit_is_cut_and_says_so() {
+        use std::io::Read as _;
+        let limit = 1000;
+        let endless = std::io::repeat(b'x').take(10 << 20);
+        let mut log = Vec::new();
+        assert_eq!(copy_bounded(endless, &mut log, limit).unwrap(), 10 << 20);
+        let text = String::from_utf8(log).unwrap();
+        let (kept, note) = text.split_at(limit as usize);
+        assert!(kept.bytes().all(|b| b == b'x'));
+        assert!(note.starts_with("\n(the preflight's log stops here: it is cut at 1000 bytes"), "{note}");
+        let mut short = Vec::new();
+        copy_bounded(&b"line\n"[..], &mut short, limit).unwrap();
+        assert_eq!(short, b"line\n");
+    }
+
     /// A preflight dies with the thread that started it (a host killed
     /// mid-preflight leaves no orphan): the child of a thread that ended
     /// was killed by SIGKILL, not left to sleep its 30 s.
@@ -470,7 +616,7 @@ mod tests {
         let mut child = std::thread::spawn(|| {
             let mut command = Command::new("sleep");
             command.arg("30");
-            lowered(&mut command, Priority::Background);
+            lowered(&mut command, Priority::Background, PREFLIGHT_MEMORY_BYTES);
             command.spawn().unwrap()
         })
         .join()

@@ -100,10 +100,11 @@ pub(super) async fn cancel_experiment(
 fn tar_response<K: Send + 'static>(state: &PortalState, contents: bundle::Contents, file: String, keep: K) -> Response {
     let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(4);
     let store = state.deployer.store.clone();
+    let hidden = state.hidden_paths.clone();
     tokio::task::spawn_blocking(move || {
         let _keep = keep;
         let mut out = ChannelWriter { tx: tx.clone(), buffer: Vec::with_capacity(CHUNK) };
-        if let Err(e) = bundle::write_tar(&store, &contents, &mut out) {
+        if let Err(e) = bundle::write_tar(&store, &contents, &hidden, &mut out) {
             tracing::warn!("the archive {} stopped: {e}", contents.folder);
             let _ = tx.blocking_send(Err(e));
         }

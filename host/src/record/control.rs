@@ -127,6 +127,9 @@ pub struct Recordings {
     running: Mutex<Option<Running>>,
     request: Arc<Mutex<Request>>,
     serial: AtomicU64,
+    /// The folders these recordings name instead of spelling them out
+    /// (they are downloaded by remote users).
+    hidden: Mutex<crate::fsutil::HiddenPaths>,
 }
 
 impl std::fmt::Debug for Recordings {
@@ -170,7 +173,13 @@ impl Recordings {
         command_line: bool,
     ) -> Result<Recordings, RecordingError> {
         std::fs::create_dir_all(&dir).map_err(|source| RecordingError::Io { path: dir.clone(), source })?;
-        let probe = RecordOptions { path: Some(dir.join("rec-0.mcap")), max_file_bytes, live: None };
+        let probe = RecordOptions {
+            path: Some(dir.join("rec-0.mcap")),
+            max_file_bytes,
+            max_total_bytes: u64::MAX,
+            live: None,
+            hidden: Default::default(),
+        };
         probe.check()?;
         Ok(Recordings {
             dir,
@@ -180,7 +189,16 @@ impl Recordings {
             running: Mutex::new(None),
             request: Arc::new(Mutex::new(Request::None)),
             serial: AtomicU64::new(0),
+            hidden: Mutex::new(crate::fsutil::HiddenPaths::default()),
         })
+    }
+
+    /// Every recording started from now on names `hidden`'s folders
+    /// instead of spelling them out (known once the deployer is built).
+    pub fn hide(&self, hidden: crate::fsutil::HiddenPaths) {
+        if let Ok(mut current) = self.hidden.lock() {
+            *current = hidden;
+        }
     }
 
     pub fn dir(&self) -> &Path {
@@ -264,7 +282,14 @@ impl Recordings {
                 }
             },
         };
-        let options = RecordOptions { path: Some(path.clone()), max_file_bytes: self.max_file_bytes, live: None };
+        let hidden = self.hidden.lock().map_err(|_| RecordingError::Poisoned)?.clone();
+        let options = RecordOptions {
+            path: Some(path.clone()),
+            max_file_bytes: self.max_file_bytes,
+            max_total_bytes: u64::MAX,
+            live: None,
+            hidden,
+        };
         let recorder = Recorder::start(&options, layout, self.timeline.clone())?;
         let sink = recorder.sink.clone();
         self.ask(match after_swap {

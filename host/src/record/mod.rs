@@ -98,13 +98,26 @@ pub struct RecordOptions {
     pub path: Option<PathBuf>,
     /// Size at which a file is finished and the next one started.
     pub max_file_bytes: u64,
+    /// Size of every file together at which the recording stops (the file
+    /// finished and marked cut); `u64::MAX`: none.
+    pub max_total_bytes: u64,
     /// Where the Foxglove WebSocket server listens, if it runs.
     pub live: Option<std::net::SocketAddr>,
+    /// Folders the recording names instead of spelling them out (in log
+    /// lines, fault reasons and metadata): a recording from the portal or
+    /// of a lab experiment is handed to a remote user.
+    pub hidden: crate::fsutil::HiddenPaths,
 }
 
 impl RecordOptions {
     pub fn new(path: PathBuf) -> RecordOptions {
-        RecordOptions { path: Some(path), max_file_bytes: DEFAULT_MAX_FILE_BYTES, live: None }
+        RecordOptions {
+            path: Some(path),
+            max_file_bytes: DEFAULT_MAX_FILE_BYTES,
+            max_total_bytes: u64::MAX,
+            live: None,
+            hidden: Default::default(),
+        }
     }
 
     fn check(&self) -> Result<(), RecordError> {

@@ -24,6 +24,9 @@ use crate::contract::{Value, ValueKind};
 struct Counted {
     file: BufWriter<File>,
     position: u64,
+    /// A character device or FIFO: no seeking; where it is is what was
+    /// written.
+    streamed: bool,
     /// The file's size so far, which the writer thread reads.
     size: Arc<AtomicU64>,
 }
@@ -43,6 +46,12 @@ impl Write for Counted {
 
 impl Seek for Counted {
     fn seek(&mut self, pos: SeekFrom) -> std::io::Result<u64> {
+        if self.streamed {
+            return match pos {
+                SeekFrom::Current(0) => Ok(self.position),
+                _ => Err(std::io::Error::other("a recording into a device or FIFO cannot seek")),
+            };
+        }
         self.position = self.file.seek(pos)?;
         Ok(self.position)
     }
@@ -67,6 +76,11 @@ pub(super) struct Writer {
     file: Option<OpenFile>,
     /// Index of the open file (0: the path itself).
     index: u32,
+    /// The recording goes into a character device or FIFO: one stream,
+    /// never rotated (there is no FILE.1.mcap beside /dev/stdout).
+    streamed: bool,
+    /// The files reached `max_total_bytes`: nothing more is written.
+    cut: bool,
     summary: RecordSummary,
     last_flush: Instant,
 }
@@ -85,6 +99,8 @@ impl Writer {
             epoch_unix_ns,
             file: None,
             index: 0,
+            streamed: false,
+            cut: false,
             summary: RecordSummary::default(),
             last_flush: Instant::now(),
         };
@@ -98,16 +114,26 @@ impl Writer {
         self.options.path.as_deref().map(|p| rotated_path(p, self.index)).unwrap_or_default()
     }
 
+    /// `text` with the hidden folders named.
+    fn hidden(&self, mut text: String) -> String {
+        self.options.hidden.hide(&mut text);
+        text
+    }
+
     fn mcap_error(&self, source: mcap::McapError) -> RecordError {
         RecordError::Mcap { path: self.path(), source }
     }
 
     fn open(&mut self) -> Result<(), RecordError> {
         let path = self.path();
-        let file = File::create(&path).map_err(|source| RecordError::Io { path: path.clone(), source })?;
+        let (file, target) =
+            crate::fsutil::create_output(&path).map_err(|source| RecordError::Io { path: path.clone(), source })?;
+        let streamed = target == crate::fsutil::Target::Stream;
+        self.streamed = streamed;
         let size = Arc::new(AtomicU64::new(0));
-        let counted = Counted { file: BufWriter::new(file), position: 0, size: size.clone() };
+        let counted = Counted { file: BufWriter::new(file), position: 0, streamed, size: size.clone() };
         let mcap = mcap::WriteOptions::new()
+            .disable_seeking(streamed)
             .compression(None)
             .chunk_size(Some(CHUNK_BYTES))
             .profile("")
@@ -122,6 +148,9 @@ impl Writer {
             ("file_index".to_string(), self.index.to_string()),
             ("format".to_string(), "1".to_string()),
         ]);
+        for value in about.values_mut() {
+            self.options.hidden.hide(value);
+        }
         let metadata = mcap::records::Metadata { name: "subsume.recording".into(), metadata: about };
         open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
         self.summary.files.push(path);
@@ -164,8 +193,28 @@ impl Writer {
         Ok(())
     }
 
+    /// At `max_total_bytes` over every file: finishes the open file with
+    /// a `subsume.recording.cut` record and stops recording; true then.
+    fn cut_if_full(&mut self, dropped: u64) -> Result<bool, RecordError> {
+        let Some(open) = &mut self.file else { return Ok(false) };
+        let total = self.summary.bytes + open.size.load(Ordering::Relaxed);
+        if total < self.options.max_total_bytes {
+            return Ok(false);
+        }
+        let limit = self.options.max_total_bytes;
+        let cut = mcap::records::Metadata {
+            name: "subsume.recording.cut".into(),
+            metadata: BTreeMap::from([("max_total_bytes".to_string(), limit.to_string())]),
+        };
+        open.mcap.write_metadata(&cut).map_err(|e| self.mcap_error(e))?;
+        self.close(dropped)?;
+        self.cut = true;
+        tracing::warn!("the recording stops here: its files reached {total} bytes, the most it may take ({limit})");
+        Ok(true)
+    }
+
     fn rotate_if_full(&mut self, dropped: u64) -> Result<(), RecordError> {
-        if self.file.is_none() {
+        if self.file.is_none() || self.streamed {
             return Ok(());
         }
         let size = self.file.as_ref().map_or(0, |f| f.size.load(Ordering::Relaxed));
@@ -179,6 +228,9 @@ impl Writer {
     }
 
     pub(super) fn write(&mut self, event: Event, dropped: u64) -> Result<(), RecordError> {
+        if self.cut || self.cut_if_full(dropped)? {
+            return Ok(());
+        }
         self.rotate_if_full(dropped)?;
         let epoch = self.epoch_unix_ns;
         let layout = self.layout.clone();
@@ -223,7 +275,7 @@ impl Writer {
                 "/subsume/events",
                 schema::EVENT,
                 epoch + t,
-                &json!({ "t": t, "component": name(index), "event": "fault", "reason": clip(&reason) }),
+                &json!({ "t": t, "component": name(index), "event": "fault", "reason": clip(&self.hidden(reason)) }),
             ),
             Event::Restart { index, t, attempt } => self.message(
                 "/subsume/events",
@@ -241,7 +293,7 @@ impl Writer {
                 super::LOG_TOPIC,
                 schema::LOG,
                 unix_ns,
-                &schema::log(level, &name, clip(&message), unix_ns),
+                &schema::log(level, &name, clip(&self.hidden(message)), unix_ns),
             ),
             Event::Layout(layout) => {
                 self.layout = layout;
