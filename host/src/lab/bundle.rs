@@ -22,6 +22,7 @@
 //! experiments' recordings go first, and their records stay, marked
 //! `recording_expired`.
 
+use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::path::{Path, PathBuf};
 
@@ -340,15 +341,28 @@ pub fn enforce_retention<'r>(
     let mut total: u64 = finished.iter().flat_map(|r| r.results.iter()).map(|f| f.bytes).sum();
     let mut changed = Vec::new();
     finished.sort_by_key(|r| r.id);
-    for record in finished {
-        if total <= cap {
+    // Each user's recordings: the one holding the most gives first, so
+    // one user's churn expires her own results, not everyone's.
+    let mut held: BTreeMap<String, u64> = BTreeMap::new();
+    for record in &finished {
+        *held.entry(record.submitter.clone()).or_default() += recordings(record).map(|f| f.bytes).sum::<u64>();
+    }
+    while total > cap {
+        let Some(user) = held
+            .iter()
+            .filter(|(_, b)| **b > 0)
+            .max_by_key(|(u, b)| (**b, std::cmp::Reverse(*u)))
+            .map(|(u, _)| u.clone())
+        else {
             break;
-        }
+        };
+        let Some(record) = finished.iter_mut().find(|r| r.submitter == user && recordings(r).any(|f| f.bytes > 0))
+        else {
+            held.remove(&user);
+            continue;
+        };
         let dir = store.experiment_dir(record.id);
         let freed: u64 = recordings(record).map(|f| f.bytes).sum();
-        if freed == 0 {
-            continue;
-        }
         for file in recordings(record) {
             if let Err(e) = std::fs::remove_file(dir.join(&file.name)) {
                 tracing::warn!("experiment {}: cannot remove {}: {e}", record.id, file.name);
@@ -357,7 +371,13 @@ pub fn enforce_retention<'r>(
         record.results.retain(|f| !f.name.ends_with(".mcap"));
         record.recording_expired = true;
         total = total.saturating_sub(freed);
-        tracing::info!("experiment {}: its recordings expired ({freed} bytes; the retention cap is {cap})", record.id);
+        if let Some(bytes) = held.get_mut(&user) {
+            *bytes = bytes.saturating_sub(freed);
+        }
+        tracing::info!(
+            "experiment {} ({user}): its recordings expired ({freed} bytes; the retention cap is {cap}, and {user} held the most)",
+            record.id
+        );
         changed.push(record.id);
     }
     changed
@@ -435,6 +455,26 @@ mod tests {
                 assert!(dir.join(REPORT).exists(), "cap {cap}: experiment {}'s report went", record.id);
                 assert_eq!(record.results.len(), if gone { 1 } else { 2 }, "cap {cap}");
             }
+        }
+    }
+
+    /// Ben's two old runs and Ana's four newer ones: the cap takes from
+    /// whoever holds the most first (Ana, her oldest), so one user's
+    /// churn never expires another's results before her own.
+    #[test]
+    fn retention_takes_first_from_the_user_who_holds_the_most() {
+        let cases: [(u64, &[u64]); 4] = [(6_600, &[]), (6_599, &[3]), (4_600, &[3, 4]), (3_299, &[3, 4, 5, 1])];
+        for (cap, expired) in cases {
+            let dir = tempfile::tempdir().unwrap();
+            let store = Store::open(dir.path()).unwrap();
+            let mut records: Vec<ExperimentRecord> = (1..=6)
+                .map(|id| {
+                    let mut record = experiment(&store, id, ExperimentState::Done);
+                    record.submitter = if id <= 2 { "ben".into() } else { "ana".into() };
+                    record
+                })
+                .collect();
+            assert_eq!(enforce_retention(&store, records.iter_mut(), cap), expired, "cap {cap}");
         }
     }
 

@@ -1,18 +1,28 @@
 //! Submitting an experiment: the checks a submission passes at once
 //! (permission, label, duration, the set validates against the baseline,
 //! the per-user limits under the lab's lock), then its record, which the
-//! checker thread takes from `checking`. Old finished records beyond
-//! [`MAX_EXPERIMENT_RECORDS`] are forgotten here.
+//! checker thread takes from `checking`. Old finished records beyond each
+//! user's share are forgotten here, the user's own first.
+
+use std::collections::BTreeMap;
 
 use super::queue::{self, Charge, OverLimit};
 use super::{Book, Lab, LabError, LabRole, MIN_DURATION_S, seconds_until};
 use crate::deploy::utc_time;
 use crate::runtime::locks::unix_now_ms;
+use crate::store::Outcome;
 use crate::store::experiments::{
     AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, LabSettings, MAX_EXPERIMENT_RECORDS,
-    MAX_LABEL_LEN, NewExperiment, Placement, Target,
+    MAX_EXPERIMENT_RECORDS_PER_USER, MAX_LABEL_LEN, NewExperiment, Placement, Target,
 };
 use crate::store::users::Principal;
+
+/// Most experiments one user submits in [`SUBMISSION_WINDOW_MS`]: a script
+/// submitting and cancelling in a loop cannot flood the checker, the
+/// store's records or the audit log.
+pub const MAX_SUBMISSIONS_PER_WINDOW: usize = 30;
+/// The window of that limit.
+pub const SUBMISSION_WINDOW_MS: u64 = 60_000;
 
 impl Lab {
     /// Submits set `submission.set` as `user`'s experiment: checked at once
@@ -44,7 +54,7 @@ impl Lab {
             let record = writer.add_experiment(&mut book.lab, record)?;
             drop(writer);
             book.experiments.insert(record.id, record.clone());
-            self.forget_oldest(&mut book);
+            self.forget_oldest(&mut book, &user.name);
             drop(book);
             tracing::info!("experiment {} submitted by {}: set {}", record.id, user.name, submission.set);
             self.notify();
@@ -127,6 +137,25 @@ impl Lab {
     /// Whether `user` may have one more experiment of `duration_ms` now
     /// (the per-user limits), with the answer a 429 carries.
     fn admit(&self, book: &Book, user: &Principal, duration_ms: u64, now: u64) -> Result<(), LabError> {
+        let recent: Vec<u64> = book
+            .experiments
+            .values()
+            .filter(|r| r.submitter == user.name && r.submitted_ms.saturating_add(SUBMISSION_WINDOW_MS) > now)
+            .map(|r| r.submitted_ms)
+            .collect();
+        if recent.len() >= MAX_SUBMISSIONS_PER_WINDOW {
+            let frees = recent.iter().min().map_or(now, |first| first + SUBMISSION_WINDOW_MS);
+            return Err(LabError::OverLimit {
+                message: format!(
+                    "{} submitted {} experiments in the last {} s, the most allowed; submit again in {} s",
+                    user.name,
+                    recent.len(),
+                    SUBMISSION_WINDOW_MS / 1000,
+                    seconds_until(frees, now).max(1)
+                ),
+                retry_after_s: Some(seconds_until(frees, now).max(1)),
+            });
+        }
         let charges: Vec<Charge> = book
             .experiments
             .values()
@@ -164,16 +193,55 @@ impl Lab {
         })
     }
 
-    /// Forgets the oldest finished experiments beyond
-    /// [`MAX_EXPERIMENT_RECORDS`].
-    fn forget_oldest(&self, book: &mut Book) {
-        let excess = book.experiments.len().saturating_sub(MAX_EXPERIMENT_RECORDS);
-        let old: Vec<u64> =
-            book.experiments.values().filter(|r| r.state.is_final()).map(|r| r.id).take(excess).collect();
+    /// Forgets `user`'s oldest finished experiments beyond
+    /// [`MAX_EXPERIMENT_RECORDS_PER_USER`], and, beyond
+    /// [`MAX_EXPERIMENT_RECORDS`] in all, the oldest of whoever keeps the
+    /// most: one user's churn forgets her own records, never another's.
+    /// A record whose robot time still counts (it ran within the last
+    /// day) is never forgotten, so forgetting never gives robot-minutes
+    /// back.
+    fn forget_oldest(&self, book: &mut Book, user: &str) {
+        let now = unix_now_ms();
+        let forgettable = |r: &ExperimentRecord| {
+            r.state.is_final()
+                && (r.robot_ms() == 0 || r.history.last().is_none_or(|c| c.at_ms.saturating_add(queue::DAY_MS) < now))
+        };
+        let mut old: Vec<u64> = Vec::new();
+        let theirs = book.experiments.values().filter(|r| r.submitter == user).count();
+        let excess = theirs.saturating_sub(MAX_EXPERIMENT_RECORDS_PER_USER);
+        old.extend(
+            book.experiments.values().filter(|r| r.submitter == user && forgettable(r)).map(|r| r.id).take(excess),
+        );
+        let excess = book.experiments.len().saturating_sub(MAX_EXPERIMENT_RECORDS + old.len());
+        if excess > 0 {
+            let mut kept: BTreeMap<&str, usize> = BTreeMap::new();
+            for record in book.experiments.values() {
+                *kept.entry(record.submitter.as_str()).or_default() += 1;
+            }
+            if let Some((most, _)) = kept.into_iter().max_by_key(|(u, n)| (*n, std::cmp::Reverse(*u))) {
+                let most = most.to_string();
+                let more: Vec<u64> = book
+                    .experiments
+                    .values()
+                    .filter(|r| r.submitter == most && forgettable(r) && !old.contains(&r.id))
+                    .map(|r| r.id)
+                    .take(excess)
+                    .collect();
+                old.extend(more);
+            }
+        }
         for id in old {
             match self.store().lock().and_then(|writer| writer.forget_experiment(id)) {
                 Ok(()) => {
-                    book.experiments.remove(&id);
+                    if let Some(record) = book.experiments.remove(&id) {
+                        let target = format!("experiment {id} of {}", record.submitter);
+                        self.audit(
+                            super::LAB_AUDIT_USER,
+                            "forget-experiment",
+                            &target,
+                            Outcome::Ok("records kept per user"),
+                        );
+                    }
                 }
                 Err(e) => tracing::warn!("cannot forget experiment {id}: {e}"),
             }

@@ -28,6 +28,11 @@ pub const LAB_FORMAT: u32 = 1;
 /// a lab running for years must not grow the store's folder without bound.
 pub const MAX_EXPERIMENT_RECORDS: usize = 5000;
 
+/// Experiment records one user keeps: beyond it her own oldest finished
+/// ones are forgotten, so a user submitting and cancelling in a loop
+/// erases only her own records.
+pub const MAX_EXPERIMENT_RECORDS_PER_USER: usize = 1000;
+
 /// Reservations kept (past ones are dropped first): a user booking in a
 /// loop cannot grow `lab.json` without bound.
 pub const MAX_RESERVATIONS: usize = 500;
