@@ -1225,3 +1225,37 @@ fn a_preflight_that_logs_without_end_is_cut_at_its_limits() {
         }
     }
 }
+
+/// Submit-and-cancel in a loop is bounded per user (at most 30 a minute,
+/// then 429 saying when to try again) and erases nothing of anyone
+/// else's: another researcher's experiment is still there, as it was.
+#[test]
+fn submit_and_cancel_churn_is_bounded_and_erases_nothing_of_anyone_elses() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = start_with_users(dir.path());
+    let (ana, ben, boss) = (lab.token("ana"), lab.token("ben"), lab.token("boss"));
+    let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200);
+    let submit = |token: &str, set: u64| {
+        lab.call(token, "POST", "/api/v1/experiments", &serde_json::json!({"set": set, "duration_s": 2}).to_string())
+    };
+    let bens_set = lab.stage(&ben, "ben.xml", &robot(7.0, ""));
+    let (status, json) = submit(&ben, bens_set);
+    assert_eq!(status, 201, "{json}");
+    let bens = json["experiment"]["id"].as_u64().unwrap();
+    let anas_set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    for round in 0..subsume::lab::MAX_SUBMISSIONS_PER_WINDOW {
+        let (status, json) = submit(&ana, anas_set);
+        assert_eq!(status, 201, "round {round}: {json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        let (status, json) = lab.call(&ana, "POST", &format!("/api/v1/experiments/{id}/cancel"), "");
+        assert_eq!(status, 200, "round {round}: {json}");
+    }
+    let (status, json) = submit(&ana, anas_set);
+    assert_eq!(status, 429, "{json}");
+    let error = json["error"].as_str().unwrap();
+    assert!(error.starts_with("ana submitted 30 experiments in the last 60 s, the most allowed"), "{error}");
+    let bens_now = lab.experiment(&ben, bens);
+    assert_eq!(bens_now["submitter"], "ben", "{bens_now:#}");
+    assert_ne!(bens_now["state"], "cancelled", "{bens_now:#}");
+}

@@ -56,7 +56,7 @@ pub mod wire;
 
 pub use self::metrics::{LabMetrics, PREFLIGHT_BUCKETS_S};
 pub use self::robots::RobotStop;
-pub use self::submit::Submission;
+pub use self::submit::{MAX_SUBMISSIONS_PER_WINDOW, SUBMISSION_WINDOW_MS, Submission};
 pub use self::views::{ExperimentView, LabView};
 
 use std::collections::{BTreeMap, BTreeSet};
