@@ -288,14 +288,16 @@ impl Lab {
         cause: &str,
         reasons: Vec<String>,
     ) -> Result<ExperimentRecord, LabError> {
-        let record = book.experiments.get_mut(&id).ok_or_else(|| not_found(id))?;
+        // Changed on a copy, stored, and only then in the book: a failed
+        // write (a full disk) leaves the experiment what the store says.
+        let mut record = book.experiments.get(&id).cloned().ok_or_else(|| not_found(id))?;
         record.enter(state, unix_now_ms(), cause)?;
         for reason in reasons {
             record.add_reason(reason);
         }
-        let record = record.clone();
         let writer = self.store().lock()?;
         writer.put_experiment(&record)?;
+        book.experiments.insert(id, record.clone());
         writer.record(
             LAB_AUDIT_USER,
             &format!("experiment-{}", state.name()),
