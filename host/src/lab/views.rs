@@ -22,7 +22,9 @@ impl Lab {
             running_until_ms: book.running.as_ref().map(|r| r.ends_unix_ms),
             waiting: &waiting,
             reservations: &book.lab.reservations,
-            paused: book.lab.paused,
+            // Held (an emergency stop, a reset to confirm): nobody can say
+            // when it goes on, so no ETA is shown.
+            paused: book.lab.paused || book.held.is_some(),
             turnaround_ms: TURNAROUND.as_millis() as u64,
         };
         queue::etas(&view)

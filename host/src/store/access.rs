@@ -13,32 +13,9 @@
 
 use std::collections::BTreeSet;
 
-use serde::{Deserialize, Serialize};
-
+pub use super::records::Visibility;
 use super::records::{ComponentRecord, SetRecord};
 use super::users::{Principal, Role, User};
-
-/// Who may run and see an upload besides its owner and the admins.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Visibility {
-    /// Its owner and the admins only (and, for an upload of the robot's
-    /// own people, every user but a researcher).
-    #[default]
-    Private,
-    /// Every user of the lab, read-only: they may see its record and name
-    /// it as `OWNER/NAME.wasm`; only its owner replaces it.
-    Lab,
-}
-
-impl Visibility {
-    pub fn name(self) -> &'static str {
-        match self {
-            Visibility::Private => "private",
-            Visibility::Lab => "lab",
-        }
-    }
-}
 
 /// The store's owners as access sees them: which of them are researchers.
 #[derive(Clone, Debug, Default)]

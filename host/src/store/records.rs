@@ -42,7 +42,29 @@ pub struct ComponentRecord {
     /// Who besides its owner and the admins may see and run it
     /// (`store::access`); private unless its owner shares it.
     #[serde(default)]
-    pub visibility: super::access::Visibility,
+    pub visibility: Visibility,
+}
+
+/// Who may run and see an upload besides its owner and the admins.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Visibility {
+    /// Its owner and the admins only (and, for an upload of the robot's
+    /// own people, every user but a researcher).
+    #[default]
+    Private,
+    /// Every user of the lab, read-only: they may see its record and name
+    /// it as `OWNER/NAME.wasm`; only its owner replaces it.
+    Lab,
+}
+
+impl Visibility {
+    pub fn name(self) -> &'static str {
+        match self {
+            Visibility::Private => "private",
+            Visibility::Lab => "lab",
+        }
+    }
 }
 
 /// The WIT world a component fits.
