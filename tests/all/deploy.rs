@@ -874,6 +874,21 @@ fn every_portal_command_speaks_https_trusting_the_labs_own_authority_or_the_syst
         assert!(format!("{stdout}{stderr}").contains(says), "{case}: {stdout}{stderr}");
     }
 
+    // A platform the user may not change: refused before any upload, as
+    // the portal told at login.
+    let (ok, _, stderr) = as_user(
+        "ada",
+        &[&"deploy", &"--platform", &"network", &"--component", &driver, &address, &ca_flag[0], &ca_flag[1]],
+        &[],
+    );
+    assert!(!ok && !stderr.contains("uploading"), "{stderr}");
+    assert!(
+        stderr.contains(
+            "ada may not upload to platform network (role researcher; may change: control); nothing was uploaded"
+        ),
+        "{stderr}"
+    );
+
     // A file that is not a component: named before anything is sent.
     let junk = dir.path().join("junk.wasm");
     std::fs::write(&junk, b"\0asm\x01\0\0\0").unwrap();

@@ -42,6 +42,10 @@ pub const MAX_ANSWER_BYTES: u64 = 1 << 20;
 /// Largest head of an answer (status line and headers): a host that sends
 /// headers without end cannot fill the client's memory.
 pub const MAX_HEAD_BYTES: usize = 64 << 10;
+/// Longest a connection is kept idle for the next request: the portal
+/// closes one idle for its header deadline (`admission::HEADER_READ_TIMEOUT`,
+/// 5 s), and a request sent on a connection it just closed would fail.
+pub const MAX_IDLE: Duration = Duration::from_secs(2);
 
 /// Who logs in, where, and how the portal is trusted.
 #[derive(Clone, Debug)]
@@ -148,10 +152,14 @@ impl PortalUrl {
         format!("{}://{}:{}", if self.secure { "https" } else { "http" }, self.host, self.port)
     }
 
-    /// The address as messages show it: `HOST:PORT` for plain http (as
-    /// the commands take it), `https://HOST:PORT` (to be given as it is).
+    /// The address as messages show it, as the commands take it:
+    /// `HOST:PORT` for plain http, `https://HOST[:PORT]` (443 left out).
     pub fn shown(&self) -> String {
-        if self.secure { self.base() } else { format!("{}:{}", self.host, self.port) }
+        match (self.secure, self.port) {
+            (true, 443) => format!("https://{}", self.host),
+            (true, _) => self.base(),
+            (false, _) => format!("{}:{}", self.host, self.port),
+        }
     }
 
     /// `localhost`, or an address of the loopback network (127.0.0.0/8,
@@ -198,6 +206,7 @@ impl Connection {
             .proxy(None)
             .user_agent(concat!("subsume/", env!("CARGO_PKG_VERSION")))
             .max_response_header_size(MAX_HEAD_BYTES)
+            .max_idle_age(MAX_IDLE)
             .timeout_resolve(Some(CONNECT_TIMEOUT))
             .timeout_connect(Some(CONNECT_TIMEOUT))
             .timeout_per_read(Some(timeout))
@@ -404,6 +413,14 @@ mod tests {
         for (text, expected) in cases {
             let parsed = PortalUrl::parse(text).ok().map(|u| (u.secure, u.host, u.port));
             assert_eq!(parsed, expected.map(|(s, h, p)| (s, h.to_string(), p)), "{text}");
+        }
+        // As messages show them: as a command takes them again.
+        for (text, shown) in [
+            ("http://127.0.0.1:8080/", "127.0.0.1:8080"),
+            ("https://lab.example.org:443", "https://lab.example.org"),
+            ("https://[::1]:8443/", "https://[::1]:8443"),
+        ] {
+            assert_eq!(PortalUrl::parse(text).unwrap().shown(), shown, "{text}");
         }
     }
 

@@ -70,6 +70,8 @@ pub enum DeployClientError {
     File { path: String, why: String },
     #[error("{path} is not a webassembly component: {why}; nothing was uploaded")]
     NotAComponent { path: String, why: String },
+    #[error("{user} may not upload to platform {platform} (role {role}; may change: {may}); nothing was uploaded")]
+    MayNotChange { user: String, role: String, platform: String, may: String },
     #[error("the running robot file {file} has no component '{name}' (it has: {has})")]
     NoSuchComponent { file: String, name: String, has: String },
     #[error("{0} was refused; nothing was changed:\n{1}")]
@@ -147,18 +149,45 @@ pub(super) struct Portal {
     pub(super) token: String,
     /// Who is logged in (uploads are stored as theirs).
     pub(super) user: String,
+    /// Their role and the platforms they may change, as the portal said at
+    /// login (`None`: it did not say).
+    may_change: Option<(String, Vec<String>)>,
 }
 
 impl Portal {
     pub(super) fn login(connection: Connection, user: &str, password: &str) -> Result<Portal, DeployClientError> {
-        let token = log_in(&connection, user, password)?;
-        Ok(Portal { connection, token, user: user.to_string() })
+        let answer = log_in(&connection, user, password)?;
+        let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(connection.address().to_string()))?;
+        let role = answer["user"]["role"].as_str().map(str::to_string);
+        let platforms = answer["user"]["platforms"]
+            .as_array()
+            .map(|p| p.iter().filter_map(|p| p.as_str().map(str::to_string)).collect());
+        Ok(Portal { token: token.to_string(), connection, user: user.to_string(), may_change: role.zip(platforms) })
     }
 
     /// Logs in again (the portal forgot the session).
     pub(super) fn log_in_again(&mut self, password: &str) -> Result<(), DeployClientError> {
-        self.token = log_in(&self.connection, &self.user, password)?;
+        let answer = log_in(&self.connection, &self.user, password)?;
+        let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
+        self.token = token.to_string();
         Ok(())
+    }
+
+    /// Whether the user may upload to `platform`, as the portal told at
+    /// login: checked before anything is uploaded (the portal checks it
+    /// again on each upload).
+    pub(super) fn check_may_change(&self, platform: &str) -> Result<(), DeployClientError> {
+        match &self.may_change {
+            Some((role, platforms)) if !platforms.iter().any(|p| p == platform) => {
+                Err(DeployClientError::MayNotChange {
+                    user: self.user.clone(),
+                    role: role.clone(),
+                    platform: clip(platform),
+                    may: if platforms.is_empty() { "none".into() } else { platforms.join(", ") },
+                })
+            }
+            _ => Ok(()),
+        }
     }
 
     pub(super) fn address(&self) -> &str {
@@ -188,6 +217,9 @@ impl Portal {
         robot: Option<(String, String, Vec<u8>)>,
         say: &mut dyn FnMut(&str),
     ) -> Result<Deployed, DeployClientError> {
+        if !components.is_empty() {
+            self.check_may_change(platform)?;
+        }
         // The robot file: the given one, or the active one pointed at the
         // uploads (checked before anything is uploaded).
         let (shown, name, text) = match robot {
@@ -292,12 +324,10 @@ impl Portal {
     }
 }
 
-/// Logs in as `user`; the session's token.
-fn log_in(connection: &Connection, user: &str, password: &str) -> Result<String, DeployClientError> {
+/// Logs in as `user`; the portal's answer (the token, the user).
+fn log_in(connection: &Connection, user: &str, password: &str) -> Result<Value, DeployClientError> {
     let body = json!({ "name": user, "password": password }).to_string();
-    let answer = call(connection, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")?;
-    let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(connection.address().to_string()))?;
-    Ok(token.to_string())
+    call(connection, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")
 }
 
 /// One request whose non-2xx answer becomes `Refused` (diagnostics kept in

@@ -326,6 +326,9 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
     let components = read_components(&request.components)?;
     let local = request.robot.as_deref().map(|path| local_robot(path, &components)).transpose()?;
     in_session_on(connection, &request.login, |session| {
+        if !components.is_empty() {
+            session.portal.check_may_change(&request.platform)?;
+        }
         let robot = match local {
             Some(robot) => robot,
             None => {
