@@ -978,3 +978,47 @@ fn no_command_sends_a_password_in_clear_off_loopback_unless_allowed() {
         assert!(!child.wait().unwrap().success());
     }
 }
+
+#[test]
+fn a_portal_on_the_other_scheme_is_told_apart_from_an_unreachable_one() {
+    // A plain-http server on loopback, answering anything with a 401.
+    let plain = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = plain.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for stream in plain.incoming().take(2) {
+            use std::io::Write;
+            let mut stream = stream.unwrap();
+            let _ = stream.write_all(b"HTTP/1.1 401 Unauthorized\r\ncontent-length: 0\r\nconnection: close\r\n\r\n");
+        }
+    });
+    // A TLS server (the portal).
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path().join("pki");
+    std::fs::create_dir(&pki).unwrap();
+    support::make_test_pki(&pki);
+    let (_host, address) = start_https(dir.path(), &pki);
+    // (case, address given, what it says).
+    let cases = [
+        (
+            "https:// to plain http",
+            format!("https://127.0.0.1:{port}"),
+            format!(
+                "the portal at https://127.0.0.1:{port} does not speak TLS (received corrupt message of type \
+                 InvalidContentType): if it serves plain http on loopback, give http://127.0.0.1:{port}"
+            ),
+        ),
+        (
+            "http:// to TLS",
+            address.replace("https://", "http://"),
+            format!("the portal at {} gave an answer that is not HTTP", address.trim_start_matches("https://")),
+        ),
+        ("nobody there", "127.0.0.1:1".to_string(), "cannot reach the portal at 127.0.0.1:1: ".to_string()),
+    ];
+    for (case, given, says) in cases {
+        let ca = pki.join("ca.pem");
+        let args: Vec<Arg> =
+            if given.starts_with("https://") { vec![&"estop", &given, &"--ca", &ca] } else { vec![&"estop", &given] };
+        let (ok, _, stderr) = as_user("admin", &args, &[]);
+        assert!(!ok && stderr.contains(&says), "{case}: {stderr}");
+    }
+}

@@ -93,6 +93,11 @@ pub enum ClientError {
     Refused { address: String, status: u16, message: String },
     #[error("the portal at {0} gave an answer that is not HTTP")]
     Garbled(String),
+    #[error(
+        "the portal at {address} does not speak TLS ({reason}): if it serves plain http on loopback, \
+         give http://{host}:{port}"
+    )]
+    NotTls { address: String, reason: String, host: String, port: u16 },
     #[error("the answer of the portal at {address} is larger than {limit} bytes, the most read")]
     TooLarge { address: String, limit: u64 },
 }
@@ -291,17 +296,26 @@ impl Connection {
             };
             return ClientError::Untrusted { address, reason, hint };
         }
+        if let Some(e @ rustls::Error::InvalidMessage(_)) = rustls_error(&error) {
+            let (host, port) = (self.url.host.clone(), self.url.port);
+            return ClientError::NotTls { address, reason: e.to_string(), host, port };
+        }
         answer_error(error, address)
+    }
+}
+
+/// What rustls said, when the error is a TLS one.
+fn rustls_error(error: &ureq::Error) -> Option<&rustls::Error> {
+    match error {
+        ureq::Error::Rustls(e) => Some(e),
+        ureq::Error::Io(e) => e.get_ref().and_then(|inner| inner.downcast_ref::<rustls::Error>()),
+        _ => None,
     }
 }
 
 /// A certificate the client refused, as rustls said it.
 fn certificate_problem(error: &ureq::Error) -> Option<String> {
-    let rustls_error = match error {
-        ureq::Error::Rustls(e) => Some(e),
-        ureq::Error::Io(e) => e.get_ref().and_then(|inner| inner.downcast_ref::<rustls::Error>()),
-        _ => None,
-    }?;
+    let rustls_error = rustls_error(error)?;
     matches!(rustls_error, rustls::Error::InvalidCertificate(_)).then(|| rustls_error.to_string())
 }
 
@@ -310,6 +324,7 @@ fn answer_error(error: ureq::Error, address: String) -> ClientError {
     match error {
         ureq::Error::BodyExceedsLimit(limit) => ClientError::TooLarge { address, limit },
         ureq::Error::Protocol(_) | ureq::Error::LargeResponseHeader(..) => ClientError::Garbled(address),
+        ureq::Error::Io(e) => ClientError::Connect { address, reason: e.to_string() },
         other => ClientError::Connect { address, reason: other.to_string() },
     }
 }
