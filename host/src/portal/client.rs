@@ -85,6 +85,8 @@ pub enum ClientError {
     CaWithoutTls { ca: PathBuf, address: String },
     #[error(transparent)]
     Tls(#[from] TlsError),
+    #[error("cannot make a request of {path}: {why}")]
+    Request { path: String, why: String },
     #[error("cannot reach the portal at {address}: {reason}")]
     Connect { address: String, reason: String },
     #[error("the portal at {address} presented a certificate this client does not trust ({reason}): {hint}")]
@@ -259,7 +261,9 @@ impl Connection {
         if let Some(token) = token {
             request = request.header("authorization", format!("Bearer {token}"));
         }
-        let request = request.body(body).map_err(|_| ClientError::Host(clip_to(&self.shown, MAX_SHOWN_ADDRESS)))?;
+        let request = request
+            .body(body)
+            .map_err(|e| ClientError::Request { path: clip_to(path, MAX_SHOWN_ADDRESS), why: e.to_string() })?;
         let answer = self.agent.run(request).map_err(|e| self.failed(e))?;
         Ok(Answer { status: answer.status().as_u16(), body: answer.into_body(), address: self.shown.clone() })
     }
