@@ -621,7 +621,14 @@ fn lab_show_list_and_cancel_act_on_ones_own_experiments_only() {
     });
     let mut followed = Vec::new();
     while !followed.iter().any(|l: &String| l.starts_with("experiment 1: running:")) {
-        followed.push(told.recv_timeout(Duration::from_secs(120)).expect("experiment 1 did not start"));
+        match told.recv_timeout(Duration::from_secs(120)) {
+            Ok(line) => followed.push(line),
+            Err(e) => {
+                let _ = follower.kill();
+                let stderr = out(&follower.wait_with_output().unwrap()).1;
+                panic!("experiment 1 did not start ({e}): {followed:?}\n{stderr}");
+            }
+        }
     }
 
     // A second one waits behind it.
