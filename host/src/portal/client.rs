@@ -42,10 +42,12 @@ pub const MAX_ANSWER_BYTES: u64 = 1 << 20;
 /// Largest head of an answer (status line and headers): a host that sends
 /// headers without end cannot fill the client's memory.
 pub const MAX_HEAD_BYTES: usize = 64 << 10;
-/// Longest a connection is kept idle for the next request: the portal
-/// closes one idle for its header deadline (`admission::HEADER_READ_TIMEOUT`,
-/// 5 s), and a request sent on a connection it just closed would fail.
-pub const MAX_IDLE: Duration = Duration::from_secs(2);
+/// Connections kept idle for the next request: none. Each request has its
+/// own connection (as the hand-written client had): a request sent on a
+/// kept connection the portal has just closed (its header deadline,
+/// `admission::HEADER_READ_TIMEOUT`, closes idle ones) would fail, and
+/// `ureq` does not send it again.
+pub const MAX_IDLE_CONNECTIONS: usize = 0;
 
 /// Who logs in, where, and how the portal is trusted.
 #[derive(Clone, Debug)]
@@ -213,7 +215,8 @@ impl Connection {
             .proxy(None)
             .user_agent(concat!("subsume/", env!("CARGO_PKG_VERSION")))
             .max_response_header_size(MAX_HEAD_BYTES)
-            .max_idle_age(MAX_IDLE)
+            .max_idle_connections(MAX_IDLE_CONNECTIONS)
+            .max_idle_connections_per_host(MAX_IDLE_CONNECTIONS)
             .timeout_resolve(Some(CONNECT_TIMEOUT))
             .timeout_connect(Some(CONNECT_TIMEOUT))
             .timeout_per_read(Some(timeout))
