@@ -3,7 +3,9 @@
 //! identity read from PEM files (`--tls-cert`, `--tls-key`), the rule that
 //! plain text is served on loopback addresses only unless the robot's owner
 //! opts in (`--allow-plain-http`), and the handshake with its deadline
-//! (`admission::serve_http` serves HTTP over it).
+//! (`admission::serve_http` serves HTTP over it). For the clients: a
+//! lab's own authority read from PEM (`--ca`, `--tls-ca`) and the system's
+//! trusted roots.
 //!
 //! Invariants: a listener that is not on a loopback address speaks TLS
 //! unless the owner allowed plain text explicitly; a peer that opens
@@ -52,6 +54,8 @@ pub enum TlsError {
     NoCertificate { path: PathBuf },
     #[error("the certificate {} and the key {} do not make a TLS identity: {why}", .cert.display(), .key.display())]
     Identity { cert: PathBuf, key: PathBuf, why: String },
+    #[error("the system has no trusted root certificates ({why}): give the portal's authority with --ca FILE")]
+    NoSystemRoots { why: String },
     #[error("--tls-cert and --tls-key go together: give both or neither")]
     HalfIdentity,
     #[error(
@@ -144,17 +148,44 @@ impl TlsIdentity {
     }
 }
 
+/// The CA certificates in `ca` (PEM), each checked to be one a client can
+/// trust as a root; at least one.
+pub fn read_authority(ca: &Path) -> Result<Vec<CertificateDer<'static>>, TlsError> {
+    let pem = read_pem("CA certificate", ca)?;
+    let mut roots = rustls::RootCertStore::empty();
+    let mut certificates = Vec::new();
+    for cert in CertificateDer::pem_reader_iter(BufReader::new(pem.as_slice())) {
+        let cert = cert.map_err(|e| TlsError::Pem { path: ca.into(), why: format!("not a PEM certificate: {e}") })?;
+        roots
+            .add(cert.clone())
+            .map_err(|e| TlsError::Pem { path: ca.into(), why: format!("not a CA certificate: {e}") })?;
+        certificates.push(cert);
+    }
+    if certificates.is_empty() {
+        return Err(TlsError::NoCertificate { path: ca.into() });
+    }
+    Ok(certificates)
+}
+
+/// The system's trusted roots, as `rustls-native-certs` reads them: on
+/// Linux the distribution's bundle (Debian's `/etc/ssl/certs`, found
+/// with openssl-probe), or the files `SSL_CERT_FILE` and `SSL_CERT_DIR`
+/// name when set. At least one.
+pub fn system_roots() -> Result<Vec<CertificateDer<'static>>, TlsError> {
+    let found = rustls_native_certs::load_native_certs();
+    if found.certs.is_empty() {
+        let why = found.errors.first().map_or_else(|| "none found".to_string(), ToString::to_string);
+        return Err(TlsError::NoSystemRoots { why });
+    }
+    Ok(found.certs)
+}
+
 /// A client configuration trusting the CA certificates in `ca` (PEM) and
 /// nothing else: for `subsume teleop --tls-ca` and the benchmarks.
 pub fn client_config(ca: &Path) -> Result<Arc<rustls::ClientConfig>, TlsError> {
-    let pem = read_pem("CA certificate", ca)?;
     let mut roots = rustls::RootCertStore::empty();
-    for cert in CertificateDer::pem_reader_iter(BufReader::new(pem.as_slice())) {
-        let cert = cert.map_err(|e| TlsError::Pem { path: ca.into(), why: format!("not a PEM certificate: {e}") })?;
+    for cert in read_authority(ca)? {
         roots.add(cert).map_err(|e| TlsError::Pem { path: ca.into(), why: format!("not a CA certificate: {e}") })?;
-    }
-    if roots.is_empty() {
-        return Err(TlsError::NoCertificate { path: ca.into() });
     }
     let provider = Arc::new(rustls::crypto::ring::default_provider());
     let config = rustls::ClientConfig::builder_with_provider(provider)

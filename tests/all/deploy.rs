@@ -170,13 +170,34 @@ fn deploy_replaces_a_component_or_a_whole_robot_in_one_step_and_changes_nothing_
     assert_eq!(status, 404);
     assert_eq!(active(&host.address, "relay").0, third);
 
-    // A file that is not a component: the portal's check, nothing changed.
-    let junk = dir.path().join("junk.wasm");
-    std::fs::write(&junk, b"not wasm").unwrap();
-    let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("relay={}", junk.display())]);
-    assert!(!ok);
-    assert!(stderr.contains("component relay: the portal answered 415"), "{stderr}");
-    assert_eq!(active(&host.address, "relay").0, third);
+    // A file that is not a component: named by the client before anything
+    // is uploaded (its preamble), or refused by the portal (it does not
+    // compile); nothing changed either way. (case, bytes, what it says,
+    // whether it was sent).
+    let cases: [(&str, &[u8], &str, bool); 3] = [
+        (
+            "text",
+            b"not wasm",
+            "is not a webassembly component: the file does not start with the webassembly magic bytes",
+            false,
+        ),
+        (
+            "a core module",
+            b"\0asm\x01\0\0\0",
+            "is not a webassembly component: this is a core webassembly module",
+            false,
+        ),
+        ("a component's preamble, then junk", b"\0asm\x0d\0\x01\0junk", "component relay: the portal answered 4", true),
+    ];
+    for (case, bytes, says, sent) in cases {
+        let junk = dir.path().join("junk.wasm");
+        std::fs::write(&junk, bytes).unwrap();
+        let (ok, _, stderr) = deploy(&host.address, &["--component", &format!("relay={}", junk.display())]);
+        assert!(!ok, "{case}");
+        assert!(stderr.contains(says), "{case}: {stderr}");
+        assert_eq!(stderr.contains("uploading relay"), sent, "{case}: {stderr}");
+        assert_eq!(active(&host.address, "relay").0, third, "{case}");
+    }
 }
 
 /// The sha256 of `owner`'s stored upload `name`, if any.
@@ -600,7 +621,14 @@ fn lab_show_list_and_cancel_act_on_ones_own_experiments_only() {
     });
     let mut followed = Vec::new();
     while !followed.iter().any(|l: &String| l.starts_with("experiment 1: running:")) {
-        followed.push(told.recv_timeout(Duration::from_secs(120)).expect("experiment 1 did not start"));
+        match told.recv_timeout(Duration::from_secs(120)) {
+            Ok(line) => followed.push(line),
+            Err(e) => {
+                let _ = follower.kill();
+                let stderr = out(&follower.wait_with_output().unwrap()).1;
+                panic!("experiment 1 did not start ({e}): {followed:?}\n{stderr}");
+            }
+        }
     }
 
     // A second one waits behind it.
@@ -711,4 +739,301 @@ fn the_lab_kit_run_locally_gives_the_verdict_the_labs_preflight_gave() {
     let (local, lab) = (read(&verdict), read(&results.join("preflight-verdict.json")));
     assert_eq!(local["passed"], false, "{local}");
     assert_eq!(local, lab, "the kit's verdict differs from the lab's preflight's");
+}
+
+/// One argument of a command line.
+type Arg<'a> = &'a dyn AsRef<std::ffi::OsStr>;
+
+/// `subsume ARGS...` as `user` (by the environment) with `env` set and
+/// `SUBSUME_CA` unset: (success, stdout, stderr).
+fn as_user(user: &str, args: &[Arg], env: &[(&str, &Path)]) -> (bool, String, String) {
+    let password = if user == "admin" { PASSWORD } else { RESEARCHER_PASSWORD };
+    let mut command = subsume();
+    command.args(args).env("SUBSUME_USER", user).env("SUBSUME_PASSWORD", password).env_remove("SUBSUME_CA");
+    for (name, value) in env {
+        command.env(name, value);
+    }
+    let output = command.output().unwrap();
+    let (stdout, stderr) = out(&output);
+    (output.status.success(), stdout, stderr)
+}
+
+/// The gentle lab's robot with its portal on https, its certificate from
+/// the test authority in `pki`; an admin and researchers `ada` and `bob`.
+/// Its `https://127.0.0.1:PORT` address.
+fn start_https(dir: &Path, pki: &Path) -> (HostProcess, String) {
+    let store = dir.join("store");
+    add_admin(&store);
+    for name in ["ada", "bob"] {
+        support::add_user(&store, name, "researcher", &["control"], RESEARCHER_PASSWORD);
+    }
+    let commander_path = support::guest("test-commander").display().to_string();
+    let boot = lab_robot(dir, "boot.xml", &commander_path, &commander("VEL 0.2 0", 15), WATCHFUL);
+    let mut command = subsume();
+    command.args(["--store", store.to_str().unwrap(), "run"]).arg(boot).args(["--http", "127.0.0.1:0"]);
+    command.arg("--tls-cert").arg(pki.join("chain.pem")).arg("--tls-key").arg(pki.join("server.key"));
+    command.args(["--preflight-priority", "normal"]);
+    let process = HostProcess::spawn(command);
+    let address = format!("https://{}", process.address_after("portal on https://", Duration::from_secs(120)));
+    (process, address)
+}
+
+/// What Python's own TLS client (OpenSSL, trusting `ca`) reads from the
+/// API at `address` as the admin: each path's JSON (`{set}`: the active
+/// set).
+fn read_over_tls(address: &str, ca: &Path, paths: &[&str]) -> Vec<serde_json::Value> {
+    let output = Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/service_peer.py"))
+        .args(["get", &format!("{address}/"), ca.to_str().unwrap(), "admin", PASSWORD])
+        .args(paths)
+        .output()
+        .unwrap();
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "service_peer.py get: {stderr}");
+    let answers: Vec<serde_json::Value> = serde_json::from_str(&stdout).unwrap();
+    answers.into_iter().map(|a| a["json"].clone()).collect()
+}
+
+#[test]
+fn every_portal_command_speaks_https_trusting_the_labs_own_authority_or_the_systems() {
+    let dir = tempfile::tempdir().unwrap();
+    let (pki, other) = (dir.path().join("pki"), dir.path().join("other-pki"));
+    for d in [&pki, &other] {
+        std::fs::create_dir(d).unwrap();
+        support::make_test_pki(d);
+    }
+    let (ca, other_ca) = (pki.join("ca.pem"), other.join("ca.pem"));
+    let (_host, address) = start_https(dir.path(), &pki);
+    let ca_flag: [Arg; 2] = [&"--ca", &ca];
+    let locks = || read_over_tls(&address, &ca, &["/api/v1/locks"]).remove(0);
+
+    // The emergency stop and its release; a refusal's reason printed whole.
+    let (ok, stdout, stderr) = as_user("bob", &[&"estop", &address, &ca_flag[0], &ca_flag[1]], &[]);
+    assert!(ok && stdout.contains("estop engaged: the motors are stopped"), "{stdout}{stderr}");
+    assert!(locks().to_string().contains("estop"), "{}", locks());
+    let (ok, _, stderr) = as_user("ada", &[&"release", &address, &ca_flag[0], &ca_flag[1]], &[]);
+    assert!(!ok);
+    assert!(
+        stderr.contains(&format!(
+            "the portal at {address} answered 403: ada may not drive (role researcher): releasing a lock needs a role that may drive\n"
+        )),
+        "{stderr}"
+    );
+    let (ok, stdout, stderr) = as_user("admin", &[&"release", &address, &ca_flag[0], &ca_flag[1]], &[]);
+    assert!(ok && stdout.contains("released estop after"), "{stdout}{stderr}");
+
+    // Deploy: upload, stage, activate; the active set read back by an
+    // independent client runs the upload.
+    let v2 = unique_guest(dir.path(), "test-commander", "v2");
+    let driver = format!("driver={}", v2.display());
+    let (ok, stdout, stderr) =
+        as_user("admin", &[&"deploy", &"--component", &driver, &address, &ca_flag[0], &ca_flag[1]], &[]);
+    assert!(ok, "{stderr}");
+    let answers = read_over_tls(&address, &ca, &["/api/v1/status", "/api/v1/sets/{set}"]);
+    let set = answers[0]["set"].as_u64().unwrap();
+    assert_eq!(stdout.trim(), format!("deployed: set {set} is running"));
+    assert_eq!(answers[1]["set"]["sources"]["admin/driver.wasm"], sha256(&v2), "{}", answers[1]);
+
+    // lab submit, followed to done, its results unpacked and checked; the
+    // same results downloaded again by `lab results`.
+    let v3 = unique_guest(dir.path(), "test-commander", "v3");
+    let driver = format!("driver={}", v3.display());
+    let results = dir.path().join("results");
+    let submit: [Arg; 9] =
+        [&"lab", &"submit", &"--component", &driver, &"--duration", &"2", &"--results", &results, &address];
+    let (ok, stdout, stderr) = as_user("ada", &[&submit[..], &ca_flag[..]].concat(), &[]);
+    assert!(ok, "{stdout}\n{stderr}");
+    assert_eq!(told_states(&stdout, 1), DONE, "{stdout}");
+    assert!(stdout.contains(&format!("follow it with `subsume lab show 1 {address}`")), "{stdout}");
+    check_sums(&results);
+    assert_eq!(sha256(&results.join("components/driver.wasm")), sha256(&v3));
+    let again = dir.path().join("again");
+    let (ok, stdout, stderr) =
+        as_user("ada", &[&"lab", &"results", &"1", &address, &"-o", &again, &ca_flag[0], &ca_flag[1]], &[]);
+    assert!(ok && stdout.contains("sha256 checked"), "{stdout}{stderr}");
+    check_sums(&again);
+    assert_eq!(sha256(&again.join("run.mcap")), sha256(&results.join("run.mcap")));
+
+    // The system's roots (rustls-native-certs reads SSL_CERT_FILE as the
+    // system's bundle): trusted when they hold the lab's authority, and
+    // only then. Both test authorities have the same name, so rustls
+    // finds the other one and its signature does not match. (case, args,
+    // SSL_CERT_FILE, what it says).
+    let list: [Arg; 3] = [&"lab", &"list", &address];
+    let cases: [(&str, Vec<Arg>, &Path, &str); 3] = [
+        ("the system trusts the lab's authority", list.to_vec(), &ca, "ID  STATE"),
+        (
+            "the system does not trust it",
+            list.to_vec(),
+            &other_ca,
+            "does not trust (invalid peer certificate: BadSignature): give the lab's own authority with --ca FILE (PEM)",
+        ),
+        (
+            "--ca names another authority",
+            [&list[..], &[&"--ca" as Arg, &other_ca]].concat(),
+            &ca,
+            "(invalid peer certificate: BadSignature): it was not issued for 127.0.0.1 by the authority in --ca",
+        ),
+    ];
+    // The system's folder of certificates, emptied for the test.
+    let no_certs = dir.path().join("no-certs");
+    std::fs::create_dir(&no_certs).unwrap();
+    for (case, args, roots, says) in cases {
+        let env = [("SSL_CERT_FILE", roots), ("SSL_CERT_DIR", no_certs.as_path())];
+        let (ok, stdout, stderr) = as_user("ada", &args, &env);
+        assert_eq!(ok, case.starts_with("the system trusts"), "{case}: {stdout}{stderr}");
+        assert!(format!("{stdout}{stderr}").contains(says), "{case}: {stdout}{stderr}");
+    }
+
+    // A platform the user may not change: refused before any upload, as
+    // the portal told at login.
+    let (ok, _, stderr) = as_user(
+        "ada",
+        &[&"deploy", &"--platform", &"network", &"--component", &driver, &address, &ca_flag[0], &ca_flag[1]],
+        &[],
+    );
+    assert!(!ok && !stderr.contains("uploading"), "{stderr}");
+    assert!(
+        stderr.contains(
+            "ada may not upload to platform network (role researcher; may change: control); nothing was uploaded"
+        ),
+        "{stderr}"
+    );
+
+    // A file that is not a component: named before anything is sent.
+    let junk = dir.path().join("junk.wasm");
+    std::fs::write(&junk, b"\0asm\x01\0\0\0").unwrap();
+    let driver = format!("driver={}", junk.display());
+    let (ok, _, stderr) = as_user(
+        "ada",
+        &[&"lab", &"submit", &"--component", &driver, &"--duration", &"2", &address, &ca_flag[0], &ca_flag[1]],
+        &[],
+    );
+    assert!(!ok && !stderr.contains("uploading"), "{stderr}");
+    assert!(stderr.contains(&format!("{} is not a webassembly component: this is a core", junk.display())), "{stderr}");
+    let experiments = read_over_tls(&address, &ca, &["/api/v1/experiments"]).remove(0);
+    assert_eq!(experiments["experiments"].as_array().map(Vec::len), Some(1), "{experiments}");
+}
+
+/// A listener on every address and this machine's address on its
+/// default route (not loopback), when it has one.
+fn non_loopback_listener() -> (std::net::TcpListener, Option<std::net::IpAddr>) {
+    let listener = std::net::TcpListener::bind("0.0.0.0:0").unwrap();
+    listener.set_nonblocking(true).unwrap();
+    // Connecting a UDP socket sends nothing; it picks the route's source.
+    let ip = std::net::UdpSocket::bind("0.0.0.0:0")
+        .and_then(|s| s.connect("192.0.2.1:9").and_then(|()| s.local_addr()))
+        .map(|a| a.ip())
+        .ok()
+        .filter(|ip| !ip.is_loopback() && !ip.is_unspecified());
+    (listener, ip)
+}
+
+#[test]
+fn no_command_sends_a_password_in_clear_off_loopback_unless_allowed() {
+    let dir = tempfile::tempdir().unwrap();
+    let (listener, ip) = non_loopback_listener();
+    // Without an address of its own off loopback, the documentation
+    // address: the refusal comes before any connection all the same (a
+    // connection to it would wait for its timeout).
+    let port = listener.local_addr().unwrap().port();
+    let address = format!("http://{}:{port}", ip.map_or_else(|| "192.0.2.1".to_string(), |ip| ip.to_string()));
+    let component = dir.path().join("driver.wasm");
+    std::fs::copy(support::guest("test-commander"), &component).unwrap();
+    let driver = format!("driver={}", component.display());
+    let out_dir = dir.path().join("out");
+    let commands: [Vec<Arg>; 8] = [
+        vec![&"estop", &address],
+        vec![&"release", &address],
+        vec![&"deploy", &"--component", &driver, &address],
+        vec![&"lab", &"submit", &"--component", &driver, &"--duration", &"2", &address],
+        vec![&"lab", &"list", &address],
+        vec![&"lab", &"cancel", &"1", &address],
+        vec![&"lab", &"results", &"1", &address, &"-o", &out_dir],
+        vec![&"lab", &"kit", &address, &"-o", &out_dir],
+    ];
+    let shown = address.trim_start_matches("http://");
+    for args in commands {
+        let started = std::time::Instant::now();
+        let (ok, _, stderr) = as_user("ada", &args, &[]);
+        let line = args.iter().map(|a| a.as_ref().to_string_lossy().into_owned()).collect::<Vec<_>>().join(" ");
+        assert!(!ok, "{line}: {stderr}");
+        assert!(
+            stderr.contains(&format!(
+                "refusing to send a password in clear to http://{shown}, which is not a loopback address: use https://"
+            )) && stderr.contains("--allow-plain-http"),
+            "{line}: {stderr}"
+        );
+        // Without an address of our own, only the time tells: a
+        // connection would wait for `CONNECT_TIMEOUT` (5 s).
+        if ip.is_none() {
+            assert!(started.elapsed() < Duration::from_secs(4), "{line} took {:?}", started.elapsed());
+        }
+        assert!(listener.accept().is_err(), "{line} connected");
+        assert!(!out_dir.exists(), "{line} wrote {}", out_dir.display());
+    }
+    // With --allow-plain-http it does connect (and fails on a peer that
+    // closes at once).
+    if ip.is_some() {
+        let mut child = subsume()
+            .args(["estop", &address, "--user", "ada", "--password", "x", "--allow-plain-http"])
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        let deadline = std::time::Instant::now() + Duration::from_secs(10);
+        let connected = loop {
+            match listener.accept() {
+                Ok(_) => break true,
+                Err(_) if std::time::Instant::now() < deadline => std::thread::sleep(Duration::from_millis(20)),
+                Err(_) => break false,
+            }
+        };
+        assert!(connected, "--allow-plain-http did not connect");
+        assert!(!child.wait().unwrap().success());
+    }
+}
+
+#[test]
+fn a_portal_on_the_other_scheme_is_told_apart_from_an_unreachable_one() {
+    // A plain-http server on loopback, answering anything with a 401.
+    let plain = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = plain.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        for stream in plain.incoming().take(2) {
+            use std::io::Write;
+            let mut stream = stream.unwrap();
+            let _ = stream.write_all(b"HTTP/1.1 401 Unauthorized\r\ncontent-length: 0\r\nconnection: close\r\n\r\n");
+        }
+    });
+    // A TLS server (the portal).
+    let dir = tempfile::tempdir().unwrap();
+    let pki = dir.path().join("pki");
+    std::fs::create_dir(&pki).unwrap();
+    support::make_test_pki(&pki);
+    let (_host, address) = start_https(dir.path(), &pki);
+    // (case, address given, what it says).
+    let cases = [
+        (
+            "https:// to plain http",
+            format!("https://127.0.0.1:{port}"),
+            format!(
+                "the portal at https://127.0.0.1:{port} does not speak TLS (received corrupt message of type \
+                 InvalidContentType): if it serves plain http on loopback, give http://127.0.0.1:{port}"
+            ),
+        ),
+        (
+            "http:// to TLS",
+            address.replace("https://", "http://"),
+            format!("the portal at {} gave an answer that is not HTTP", address.trim_start_matches("https://")),
+        ),
+        ("nobody there", "127.0.0.1:1".to_string(), "cannot reach the portal at 127.0.0.1:1: ".to_string()),
+    ];
+    for (case, given, says) in cases {
+        let ca = pki.join("ca.pem");
+        let args: Vec<Arg> =
+            if given.starts_with("https://") { vec![&"estop", &given, &"--ca", &ca] } else { vec![&"estop", &given] };
+        let (ok, _, stderr) = as_user("admin", &args, &[]);
+        assert!(!ok && stderr.contains(&says), "{case}: {stderr}");
+    }
 }

@@ -9,6 +9,7 @@ of the prometheus_client package. Each command prints one JSON document.
     service_peer.py teleop-lines HOST:PORT CA NAME TOKEN COMMANDS
     service_peer.py teleop-websocket HOST:PORT CA
     service_peer.py plain-http HOST:PORT
+    service_peer.py get URL CA USER PASSWORD PATH...
 """
 
 import base64
@@ -46,6 +47,21 @@ def login(url, ca, user, password):
     status, headers, text = request(url + "api/v1/login", ca, "POST", body)
     token = json.loads(text).get("token") if status == 200 else None
     return {"status": status, "set_cookie": headers.get("set-cookie", ""), "token": token}
+
+
+def get(url, ca, user, password, *paths):
+    """Logs in and reads each API path (`{set}` in a path is the active
+    set's id, once /api/v1/status was read): their JSON answers."""
+    token = login(url, ca, user, password)["token"]
+    answers = []
+    active = None
+    for path in paths:
+        status, _, text = request(url + path.lstrip("/").replace("{set}", str(active)), ca, token=token)
+        answer = json.loads(text) if text else None
+        if path.endswith("/status") and status == 200:
+            active = answer.get("set")
+        answers.append({"status": status, "json": answer})
+    return answers
 
 
 def metrics(url, ca, token=None):
@@ -181,6 +197,8 @@ def main(argv):
         result = teleop_websocket(*args)
     elif command == "plain-http":
         result = plain_http(*args)
+    elif command == "get":
+        result = get(*args)
     else:
         raise SystemExit(f"unknown command {command}")
     print(json.dumps(result))

@@ -32,11 +32,8 @@ pub struct DeployCommand {
 
 impl DeployCommand {
     pub fn execute(self, _: &Context) -> anyhow::Result<ExitCode> {
-        let LoginFlags { host, user, password } = self.login;
         let request = DeployRequest {
-            host,
-            user,
-            password,
+            login: self.login.login(),
             platform: self.platform,
             components: self.components,
             robot: self.robot,

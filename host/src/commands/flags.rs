@@ -35,10 +35,13 @@ pub struct RobotFlags {
     pub params: ParamFlags,
 }
 
-/// Logging in to a running host's portal (`estop`, `release`, `deploy`).
+/// Logging in to a running host's portal or a lab server's (`estop`,
+/// `release`, `deploy`, `lab`), over https or, to loopback, plain http.
 #[derive(clap::Args, Clone, Debug)]
 pub struct LoginFlags {
-    /// The portal's address (HOST:PORT or http://HOST:PORT).
+    /// The portal's address: https://HOST[:PORT], or http://HOST:PORT or
+    /// HOST:PORT for plain http (loopback only, unless
+    /// --allow-plain-http).
     pub host: String,
     /// The portal user to log in as.
     #[arg(long, env = "SUBSUME_USER")]
@@ -46,13 +49,33 @@ pub struct LoginFlags {
     /// Their password (or set SUBSUME_PASSWORD).
     #[arg(long, env = "SUBSUME_PASSWORD", hide_env_values = true)]
     pub password: String,
+    /// Trust the portal's certificate only if this authority (PEM) issued
+    /// it: a lab's own CA. Without it, the system's trusted roots.
+    #[arg(long, value_name = "FILE", env = "SUBSUME_CA")]
+    pub ca: Option<PathBuf>,
+    /// Send the password over plain http to an address other than
+    /// loopback (anyone on the way can read it: only on a network you
+    /// trust).
+    #[arg(long)]
+    pub allow_plain_http: bool,
 }
 
 impl LoginFlags {
+    /// The client's login.
+    pub fn login(self) -> subsume::portal::client::Login {
+        subsume::portal::client::Login {
+            host: self.host,
+            user: self.user,
+            password: self.password,
+            ca: self.ca,
+            allow_plain_http: self.allow_plain_http,
+        }
+    }
+
     /// Logs in to the portal and engages or releases its locks, printing
     /// what the host said.
     pub fn lock_action(self, action: subsume::portal::client::LockAction) -> anyhow::Result<std::process::ExitCode> {
-        println!("{}", subsume::portal::client::lock_action(&self.host, &self.user, &self.password, action)?);
+        println!("{}", subsume::portal::client::lock_action(&self.login(), action)?);
         Ok(std::process::ExitCode::SUCCESS)
     }
 }

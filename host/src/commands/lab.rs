@@ -188,7 +188,7 @@ struct SubmitArgs {
 
 /// The client's login from the shared flags.
 fn to_login(flags: LoginFlags) -> Login {
-    Login { host: flags.host, user: flags.user, password: flags.password }
+    flags.login()
 }
 
 fn print_json(value: &impl serde::Serialize) -> anyhow::Result<()> {

@@ -1,26 +1,69 @@
-//! `subsume estop HOST` and `subsume release HOST`: the emergency stop from
-//! a script or a physical button wired to a small computer, through the
-//! portal's HTTP API (docs/estop.md): log in, `POST /api/v1/estop` or
-//! `/api/v1/release`, log out. Plain HTTP/1.1 on one connection per
-//! request, with every wait bounded; a portal that speaks TLS is not
-//! reached by this client (use `curl` against the API). `deploy` and `lab`
-//! send their requests through [`send`], whose answers' bodies are read as
-//! they arrive (a results archive is never held whole).
+//! The command line's HTTP client of a portal, and `subsume estop HOST` and
+//! `subsume release HOST` on it: the emergency stop from a script or a
+//! physical button wired to a small computer, through the portal's HTTP API
+//! (docs/estop.md): log in, `POST /api/v1/estop` or `/api/v1/release`, log
+//! out. `deploy` and `lab` (`deploy_client.rs`, `lab_client.rs`) send their
+//! requests through the same [`Connection`].
+//!
+//! HTTP is `ureq`'s (blocking HTTP/1.1), over rustls with the ring provider
+//! for `https://`. A portal's certificate is checked against the system's
+//! trusted roots (`tls::system_roots`: Debian's `/etc/ssl/certs`, or
+//! `SSL_CERT_FILE`), or only against a lab's own authority (`--ca FILE`).
+//! Every wait is bounded (connecting, each read and write), answers are read
+//! as they arrive (a results archive is never held whole), no proxy and no
+//! redirect is followed.
+//!
+//! Invariants: everything that can be checked here is checked before any
+//! connection is made (the address, the certificates to trust); a password
+//! never goes in clear to an address other than loopback unless the person
+//! said so (`--allow-plain-http`).
 
-use std::io::{BufRead, BufReader, Read, Write};
-use std::net::{TcpStream, ToSocketAddrs};
+use std::net::IpAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::Duration;
 
 use serde_json::{Value, json};
 use thiserror::Error;
+use tokio_rustls::rustls;
 
-use crate::contract::clip;
+use crate::contract::clip_to;
+use crate::tls::{self, TlsError};
 
-/// Longest wait to connect, and for each read or write: a stop that cannot
-/// be delivered must say so quickly, not hang the button's script.
+/// Longest wait to resolve the portal's name, and to connect: a stop that
+/// cannot be delivered must say so quickly, not hang the button's script.
+pub const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+/// Longest wait for each read or write of `estop` and `release` (the TLS
+/// handshake's included): a portal that stalls is reported within seconds.
 pub const CLIENT_TIMEOUT: Duration = Duration::from_secs(5);
-/// Largest answer read: the API's answers here are a few hundred bytes.
+/// Largest answer read: the API's answers here are a few hundred bytes; a
+/// host that sends without end cannot fill the client's memory.
 pub const MAX_ANSWER_BYTES: u64 = 1 << 20;
+/// Largest head of an answer (status line and headers): a host that sends
+/// headers without end cannot fill the client's memory.
+pub const MAX_HEAD_BYTES: usize = 64 << 10;
+/// Connections kept idle for the next request: none. Each request has its
+/// own connection (as the hand-written client had): a request sent on a
+/// kept connection the portal has just closed (its header deadline,
+/// `admission::HEADER_READ_TIMEOUT`, closes idle ones) would fail, and
+/// `ureq` does not send it again.
+pub const MAX_IDLE_CONNECTIONS: usize = 0;
+
+/// Who logs in, where, and how the portal is trusted.
+#[derive(Clone, Debug)]
+pub struct Login {
+    /// The portal's address: `https://HOST[:PORT]`, `http://HOST[:PORT]`
+    /// or `HOST:PORT` (plain http).
+    pub host: String,
+    pub user: String,
+    pub password: String,
+    /// Trust only this authority (PEM) for the portal's certificate, not
+    /// the system's roots (`--ca`).
+    pub ca: Option<PathBuf>,
+    /// Send the password in clear to an address other than loopback
+    /// (`--allow-plain-http`).
+    pub allow_plain_http: bool,
+}
 
 /// What the command line asks.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -29,31 +72,314 @@ pub enum LockAction {
     Release,
 }
 
-/// Why the stop or release did not happen.
+/// Why a request to a portal did not happen or was refused.
 #[derive(Debug, Error)]
 pub enum ClientError {
-    #[error("bad host '{0}': expected HOST:PORT or http://HOST:PORT")]
+    #[error("bad portal address '{0}': expected https://HOST[:PORT], http://HOST[:PORT] or HOST:PORT")]
     Host(String),
+    #[error(
+        "refusing to send a password in clear to http://{0}, which is not a loopback address: \
+         use https:// (with --ca FILE for a lab's own authority), or give --allow-plain-http \
+         on a network you trust"
+    )]
+    PlainRemote(String),
+    #[error("--ca {} is for a portal on https://, and {address} is plain http", .ca.display())]
+    CaWithoutTls { ca: PathBuf, address: String },
+    #[error(transparent)]
+    Tls(#[from] TlsError),
+    #[error("cannot make a request of {path}: {why}")]
+    Request { path: String, why: String },
     #[error("cannot reach the portal at {address}: {reason}")]
     Connect { address: String, reason: String },
+    #[error("the portal at {address} presented a certificate this client does not trust ({reason}): {hint}")]
+    Untrusted { address: String, reason: String, hint: String },
     #[error("the portal at {address} answered {status}: {message}")]
     Refused { address: String, status: u16, message: String },
     #[error("the portal at {0} gave an answer that is not HTTP")]
     Garbled(String),
+    #[error(
+        "the portal at {address} does not speak TLS ({reason}): if it serves plain http on loopback, \
+         give http://{host}:{port}"
+    )]
+    NotTls { address: String, reason: String, host: String, port: u16 },
+    #[error("the answer of the portal at {address} is larger than {limit} bytes, the most read")]
+    TooLarge { address: String, limit: u64 },
 }
 
-/// Engages or releases on the portal at `host` as `user` with `password`;
-/// returns what the portal said, in a line.
-pub fn lock_action(host: &str, user: &str, password: &str, action: LockAction) -> Result<String, ClientError> {
-    let address = portal_address(host)?;
-    let login = request(&address, "POST", "/api/v1/login", None, &json!({"name": user, "password": password}))?;
-    let token = login["token"].as_str().ok_or_else(|| ClientError::Garbled(address.clone()))?.to_string();
+/// A portal's address, parsed.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct PortalUrl {
+    /// `https://`.
+    pub secure: bool,
+    /// A name, an IPv4 address, or an IPv6 address in brackets.
+    pub host: String,
+    pub port: u16,
+}
+
+impl PortalUrl {
+    /// `https://HOST[:PORT]` (port 443), `http://HOST[:PORT]` (port 80)
+    /// or `HOST:PORT` (plain http); a trailing `/` is allowed, no path.
+    pub fn parse(text: &str) -> Result<PortalUrl, ClientError> {
+        let bad = || ClientError::Host(clip_to(text, MAX_SHOWN_ADDRESS));
+        let trimmed = text.strip_suffix('/').unwrap_or(text);
+        let (secure, rest, port_needed) = if let Some(rest) = trimmed.strip_prefix("https://") {
+            (true, rest, false)
+        } else if let Some(rest) = trimmed.strip_prefix("http://") {
+            (false, rest, false)
+        } else {
+            (false, trimmed, true)
+        };
+        let forbidden = |c: char| c.is_whitespace() || c.is_control() || "/?#@\\".contains(c);
+        if rest.is_empty() || rest.chars().any(forbidden) {
+            return Err(bad());
+        }
+        let (host, port) = match rest.strip_prefix('[') {
+            Some(v6) => {
+                let (inside, after) = v6.split_once(']').ok_or_else(bad)?;
+                inside.parse::<std::net::Ipv6Addr>().map_err(|_| bad())?;
+                let port = if after.is_empty() { None } else { Some(after.strip_prefix(':').ok_or_else(bad)?) };
+                (format!("[{inside}]"), port)
+            }
+            None => match rest.split_once(':') {
+                Some((host, port)) => (host.to_string(), Some(port)),
+                None => (rest.to_string(), None),
+            },
+        };
+        if host.is_empty() || (port_needed && port.is_none()) {
+            return Err(bad());
+        }
+        let port = match port {
+            Some(port) => port.parse::<u16>().ok().filter(|p| *p != 0).ok_or_else(bad)?,
+            None if secure => 443,
+            None => 80,
+        };
+        Ok(PortalUrl { secure, host, port })
+    }
+
+    /// `https://HOST:PORT` or `http://HOST:PORT`.
+    fn base(&self) -> String {
+        format!("{}://{}:{}", if self.secure { "https" } else { "http" }, self.host, self.port)
+    }
+
+    /// The address as messages show it, as the commands take it:
+    /// `HOST:PORT` for plain http, `https://HOST[:PORT]` (443 left out).
+    pub fn shown(&self) -> String {
+        match (self.secure, self.port) {
+            (true, 443) => format!("https://{}", self.host),
+            (true, _) => self.base(),
+            (false, _) => format!("{}:{}", self.host, self.port),
+        }
+    }
+
+    /// `localhost`, or an address of the loopback network (127.0.0.0/8,
+    /// ::1, and IPv4's loopback mapped into IPv6).
+    pub fn is_loopback(&self) -> bool {
+        let bare = self.host.trim_start_matches('[').trim_end_matches(']');
+        bare.eq_ignore_ascii_case("localhost") || bare.parse::<IpAddr>().is_ok_and(|ip| ip.to_canonical().is_loopback())
+    }
+}
+
+/// Most bytes of a bad address quoted in its error.
+const MAX_SHOWN_ADDRESS: usize = 200;
+
+/// Whether a password may go to `url`: over TLS, on loopback, or where the
+/// person allowed plain http.
+pub fn check_plain(url: &PortalUrl, allow_plain_http: bool) -> Result<(), ClientError> {
+    if url.secure || allow_plain_http || url.is_loopback() {
+        Ok(())
+    } else {
+        Err(ClientError::PlainRemote(url.shown()))
+    }
+}
+
+/// Requests to one portal, every wait bounded.
+pub struct Connection {
+    agent: ureq::Agent,
+    url: PortalUrl,
+    shown: String,
+    /// `--ca`, named when a certificate is not trusted.
+    ca: Option<PathBuf>,
+}
+
+impl Connection {
+    /// A client of `login`'s portal whose reads and writes wait at most
+    /// `timeout` each. Checks, before anything is sent: the address, that
+    /// a password may go there, and the certificates to trust.
+    pub fn open(login: &Login, timeout: Duration) -> Result<Connection, ClientError> {
+        let url = PortalUrl::parse(&login.host)?;
+        check_plain(&url, login.allow_plain_http)?;
+        let shown = url.shown();
+        let mut config = ureq::Agent::config_builder()
+            .http_status_as_error(false)
+            .max_redirects(0)
+            .proxy(None)
+            .user_agent(concat!("subsume/", env!("CARGO_PKG_VERSION")))
+            .max_response_header_size(MAX_HEAD_BYTES)
+            .max_idle_connections(MAX_IDLE_CONNECTIONS)
+            .max_idle_connections_per_host(MAX_IDLE_CONNECTIONS)
+            .timeout_resolve(Some(CONNECT_TIMEOUT))
+            .timeout_connect(Some(CONNECT_TIMEOUT))
+            .timeout_per_read(Some(timeout))
+            .timeout_per_write(Some(timeout));
+        match (&login.ca, url.secure) {
+            (Some(ca), false) => return Err(ClientError::CaWithoutTls { ca: ca.clone(), address: shown }),
+            (None, false) => {}
+            (ca, true) => {
+                let roots = match ca {
+                    Some(ca) => tls::read_authority(ca)?,
+                    None => tls::system_roots()?,
+                };
+                let roots: Vec<ureq::tls::Certificate<'static>> =
+                    roots.iter().map(|c| ureq::tls::Certificate::from_der(c.as_ref()).to_owned()).collect();
+                let tls = ureq::tls::TlsConfig::builder()
+                    .provider(ureq::tls::TlsProvider::Rustls)
+                    .root_certs(ureq::tls::RootCerts::new_with_certs(&roots))
+                    .unversioned_rustls_crypto_provider(Arc::new(rustls::crypto::ring::default_provider()))
+                    .build();
+                config = config.tls_config(tls);
+            }
+        }
+        Ok(Connection { agent: config.build().new_agent(), url, shown, ca: login.ca.clone() })
+    }
+
+    /// The portal's address as messages show it.
+    pub fn address(&self) -> &str {
+        &self.shown
+    }
+
+    /// Sends one request with `body` as `content_type` and reads the
+    /// answer's head; its body is read as it arrives.
+    pub fn send(
+        &self,
+        method: &str,
+        path: &str,
+        token: Option<&str>,
+        content_type: &str,
+        body: &[u8],
+    ) -> Result<Answer, ClientError> {
+        let mut request = ureq::http::Request::builder()
+            .method(method)
+            .uri(format!("{}{path}", self.url.base()))
+            .header("content-type", content_type);
+        if let Some(token) = token {
+            request = request.header("authorization", format!("Bearer {token}"));
+        }
+        let request = request
+            .body(body)
+            .map_err(|e| ClientError::Request { path: clip_to(path, MAX_SHOWN_ADDRESS), why: e.to_string() })?;
+        let answer = self.agent.run(request).map_err(|e| self.failed(e))?;
+        Ok(Answer { status: answer.status().as_u16(), body: answer.into_body(), address: self.shown.clone() })
+    }
+
+    /// One JSON request; the JSON answer of a 2xx, else the portal's
+    /// error, whole (bounded by [`MAX_ANSWER_BYTES`]).
+    fn request(&self, method: &str, path: &str, token: Option<&str>, body: &Value) -> Result<Value, ClientError> {
+        let body = if body.is_null() { String::new() } else { body.to_string() };
+        let (status, json, text) =
+            self.send(method, path, token, "application/json", body.as_bytes())?.read(MAX_ANSWER_BYTES)?;
+        if (200..300).contains(&status) {
+            return Ok(json);
+        }
+        let message = json["error"].as_str().map_or_else(|| text.trim().to_string(), str::to_string);
+        Err(ClientError::Refused {
+            address: self.shown.clone(),
+            status,
+            message: clip_to(&message, MAX_ANSWER_BYTES as usize),
+        })
+    }
+
+    /// `ureq`'s error as this client's: a certificate not trusted, an
+    /// answer that is not HTTP, or a portal not reached.
+    fn failed(&self, error: ureq::Error) -> ClientError {
+        let address = self.shown.clone();
+        if let Some(reason) = certificate_problem(&error) {
+            let hint = match &self.ca {
+                Some(ca) => {
+                    format!("it was not issued for {} by the authority in --ca {}", self.url.host, ca.display())
+                }
+                None => "give the lab's own authority with --ca FILE (PEM), or give the portal a certificate \
+                         from an authority the system trusts"
+                    .to_string(),
+            };
+            return ClientError::Untrusted { address, reason, hint };
+        }
+        if let Some(e @ rustls::Error::InvalidMessage(_)) = rustls_error(&error) {
+            let (host, port) = (self.url.host.clone(), self.url.port);
+            return ClientError::NotTls { address, reason: e.to_string(), host, port };
+        }
+        answer_error(error, address)
+    }
+}
+
+/// What rustls said, when the error is a TLS one.
+fn rustls_error(error: &ureq::Error) -> Option<&rustls::Error> {
+    match error {
+        ureq::Error::Rustls(e) => Some(e),
+        ureq::Error::Io(e) => e.get_ref().and_then(|inner| inner.downcast_ref::<rustls::Error>()),
+        _ => None,
+    }
+}
+
+/// A certificate the client refused, as rustls said it.
+fn certificate_problem(error: &ureq::Error) -> Option<String> {
+    let rustls_error = rustls_error(error)?;
+    matches!(rustls_error, rustls::Error::InvalidCertificate(_)).then(|| rustls_error.to_string())
+}
+
+/// An error reading or waiting for an answer from `address`.
+fn answer_error(error: ureq::Error, address: String) -> ClientError {
+    match error {
+        ureq::Error::BodyExceedsLimit(limit) => ClientError::TooLarge { address, limit },
+        ureq::Error::Protocol(_) | ureq::Error::LargeResponseHeader(..) => ClientError::Garbled(address),
+        ureq::Error::Io(e) => ClientError::Connect { address, reason: e.to_string() },
+        other => ClientError::Connect { address, reason: other.to_string() },
+    }
+}
+
+/// An answer whose head was read; its body is read as it arrives.
+pub struct Answer {
+    pub status: u16,
+    body: ureq::Body,
+    address: String,
+}
+
+impl Answer {
+    /// The status, the body as JSON (`Null` when it is not) and as text;
+    /// an answer longer than `limit` bytes is an error.
+    pub fn read(self, limit: u64) -> Result<(u16, Value, String), ClientError> {
+        let status = self.status;
+        let text = self.text(limit)?;
+        let json: Value = serde_json::from_str(text.trim()).unwrap_or(Value::Null);
+        Ok((status, json, text))
+    }
+
+    /// The body as text; an answer longer than `limit` bytes is an error.
+    pub fn text(self, limit: u64) -> Result<String, ClientError> {
+        let bytes =
+            self.body.into_with_config().limit(limit).read_to_vec().map_err(|e| answer_error(e, self.address))?;
+        Ok(String::from_utf8_lossy(&bytes).into_owned())
+    }
+
+    /// The body as a reader, streamed as it arrives; the caller bounds
+    /// what it reads (`lab_client`'s archives: `MAX_ARCHIVE_BYTES`).
+    pub fn into_reader(self) -> ureq::BodyReader<'static> {
+        self.body.into_reader()
+    }
+}
+
+/// Engages or releases on `login`'s portal; returns what the portal said,
+/// in a line.
+pub fn lock_action(login: &Login, action: LockAction) -> Result<String, ClientError> {
+    let portal = Connection::open(login, CLIENT_TIMEOUT)?;
+    let answer =
+        portal.request("POST", "/api/v1/login", None, &json!({"name": login.user, "password": login.password}))?;
+    let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(portal.shown.clone()))?.to_string();
     let path = match action {
         LockAction::Engage => "/api/v1/estop",
         LockAction::Release => "/api/v1/release",
     };
-    let answer = request(&address, "POST", path, Some(&token), &Value::Null);
-    let _ = request(&address, "POST", "/api/v1/logout", Some(&token), &Value::Null);
+    let answer = portal.request("POST", path, Some(&token), &Value::Null);
+    let _ = portal.request("POST", "/api/v1/logout", Some(&token), &Value::Null);
     let answer = answer?;
     Ok(match action {
         LockAction::Engage if answer["newly"] == true => "estop engaged: the motors are stopped".to_string(),
@@ -79,222 +405,91 @@ pub fn lock_action(host: &str, user: &str, password: &str, action: LockAction) -
     })
 }
 
-/// The `HOST:PORT` of a portal given as `HOST:PORT` or `http://HOST:PORT`.
-pub(crate) fn portal_address(host: &str) -> Result<String, ClientError> {
-    let address = host.strip_prefix("http://").unwrap_or(host).trim_end_matches('/').to_string();
-    if address.is_empty() || address.contains('/') || host.starts_with("https://") {
-        return Err(ClientError::Host(address));
-    }
-    Ok(address)
-}
-
-/// One request; the JSON answer of a 2xx, else the portal's error.
-fn request(address: &str, method: &str, path: &str, token: Option<&str>, body: &Value) -> Result<Value, ClientError> {
-    let body = if body.is_null() { String::new() } else { body.to_string() };
-    let (status, json, text) = send(address, method, path, token, "application/json", body.as_bytes(), CLIENT_TIMEOUT)?
-        .read(MAX_ANSWER_BYTES)?;
-    if (200..300).contains(&status) {
-        return Ok(json);
-    }
-    let message = json["error"].as_str().map_or_else(|| text.trim().to_string(), str::to_string);
-    Err(ClientError::Refused { address: address.to_string(), status, message: clip(&message) })
-}
-
-/// Largest head of an answer read (status line and headers).
-const MAX_HEAD_BYTES: u64 = 64 << 10;
-
-/// An answer whose head was read; its body is read as it arrives.
-pub(crate) struct Answer {
-    pub status: u16,
-    pub body: Body,
-}
-
-impl Answer {
-    /// The status, the body as JSON (`Null` when it is not) and as text, at
-    /// most `limit` bytes of it (the rest is not read).
-    pub(crate) fn read(self, limit: u64) -> Result<(u16, Value, String), ClientError> {
-        let status = self.status;
-        let text = self.text(limit)?;
-        let json: Value = serde_json::from_str(text.trim()).unwrap_or(Value::Null);
-        Ok((status, json, text))
-    }
-
-    /// The body as text, at most `limit` bytes of it (the rest is not read).
-    pub(crate) fn text(self, limit: u64) -> Result<String, ClientError> {
-        let address = self.body.address.clone();
-        let mut bytes = Vec::new();
-        self.body
-            .take(limit)
-            .read_to_end(&mut bytes)
-            .map_err(|e| ClientError::Connect { address, reason: e.to_string() })?;
-        Ok(String::from_utf8_lossy(&bytes).into_owned())
-    }
-}
-
-/// Longest line of the chunked framing read (a chunk's size, a trailer).
-const MAX_FRAMING_LINE: u64 = 1024;
-
-/// How the body's end is known.
-enum Framing {
-    /// `Transfer-Encoding: chunked`: bytes left in the current chunk, and
-    /// whether the last chunk was read.
-    Chunked { left: u64, ended: bool },
-    /// `Content-Length`: bytes left.
-    Length(u64),
-    /// Until the connection closes.
-    ToEnd,
-}
-
-/// The body of an [`Answer`], de-chunked.
-pub(crate) struct Body {
-    reader: Box<dyn BufRead + Send>,
-    framing: Framing,
-    address: String,
-}
-
-fn cut_short() -> std::io::Error {
-    std::io::Error::new(std::io::ErrorKind::UnexpectedEof, "the answer ended before its last chunk")
-}
-
-impl Body {
-    /// One line of the chunked framing, without its CRLF.
-    fn framing_line(&mut self) -> std::io::Result<String> {
-        let mut line = String::new();
-        (&mut self.reader).take(MAX_FRAMING_LINE).read_line(&mut line)?;
-        if !line.ends_with('\n') {
-            return Err(cut_short());
-        }
-        Ok(line.trim_end().to_string())
-    }
-}
-
-impl Read for Body {
-    fn read(&mut self, buf: &mut [u8]) -> std::io::Result<usize> {
-        match self.framing {
-            Framing::ToEnd => self.reader.read(buf),
-            Framing::Length(0) => Ok(0),
-            Framing::Length(left) => {
-                let want = buf.len().min(usize::try_from(left).unwrap_or(usize::MAX));
-                let n = self.reader.read(&mut buf[..want])?;
-                if n == 0 {
-                    return Err(cut_short());
-                }
-                self.framing = Framing::Length(left - n as u64);
-                Ok(n)
-            }
-            Framing::Chunked { ended: true, .. } => Ok(0),
-            Framing::Chunked { left: 0, .. } => {
-                let line = self.framing_line()?;
-                let size = line.split(';').next().unwrap_or_default().trim();
-                let size = u64::from_str_radix(size, 16).map_err(|_| {
-                    std::io::Error::new(std::io::ErrorKind::InvalidData, format!("bad chunk size '{}'", clip(size)))
-                })?;
-                if size == 0 {
-                    // Trailers, then the empty line.
-                    while !self.framing_line()?.is_empty() {}
-                    self.framing = Framing::Chunked { left: 0, ended: true };
-                    return Ok(0);
-                }
-                self.framing = Framing::Chunked { left: size, ended: false };
-                self.read(buf)
-            }
-            Framing::Chunked { left, .. } => {
-                let want = buf.len().min(usize::try_from(left).unwrap_or(usize::MAX));
-                let n = self.reader.read(&mut buf[..want])?;
-                if n == 0 {
-                    return Err(cut_short());
-                }
-                let left = left - n as u64;
-                if left == 0 && !self.framing_line()?.is_empty() {
-                    return Err(std::io::Error::new(std::io::ErrorKind::InvalidData, "a chunk longer than its size"));
-                }
-                self.framing = Framing::Chunked { left, ended: false };
-                Ok(n)
-            }
-        }
-    }
-}
-
-/// Sends one request with `body` as `content_type` and reads the answer's
-/// head; every wait (connecting, each read and write) is bounded by
-/// `timeout`.
-pub(crate) fn send(
-    address: &str,
-    method: &str,
-    path: &str,
-    token: Option<&str>,
-    content_type: &str,
-    body: &[u8],
-    timeout: Duration,
-) -> Result<Answer, ClientError> {
-    let connect = |reason: String| ClientError::Connect { address: address.to_string(), reason };
-    let garbled = || ClientError::Garbled(address.to_string());
-    let target = address
-        .to_socket_addrs()
-        .map_err(|e| connect(e.to_string()))?
-        .next()
-        .ok_or_else(|| ClientError::Host(address.to_string()))?;
-    let mut stream = TcpStream::connect_timeout(&target, CLIENT_TIMEOUT).map_err(|e| connect(e.to_string()))?;
-    stream.set_read_timeout(Some(timeout)).map_err(|e| connect(e.to_string()))?;
-    stream.set_write_timeout(Some(timeout)).map_err(|e| connect(e.to_string()))?;
-    let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
-    let head = format!(
-        "{method} {path} HTTP/1.1\r\nHost: {address}\r\n{auth}Content-Type: {content_type}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
-        body.len()
-    );
-    stream.write_all(head.as_bytes()).and_then(|()| stream.write_all(body)).map_err(|e| connect(e.to_string()))?;
-    let mut reader = BufReader::new(stream);
-    let mut head = Vec::new();
-    let mut limited = (&mut reader).take(MAX_HEAD_BYTES);
-    loop {
-        let before = head.len();
-        let n = limited.read_until(b'\n', &mut head).map_err(|e| connect(e.to_string()))?;
-        if n == 0 {
-            return Err(garbled());
-        }
-        if head[before..].iter().all(|b| b.is_ascii_whitespace()) {
-            break;
-        }
-    }
-    let head = String::from_utf8_lossy(&head).to_ascii_lowercase();
-    let mut lines = head.lines();
-    let status: u16 =
-        lines.next().and_then(|l| l.split_whitespace().nth(1)).and_then(|s| s.parse().ok()).ok_or_else(garbled)?;
-    let header = |name: &str| {
-        head.lines().skip(1).find_map(|l| l.split_once(':').filter(|(k, _)| k.trim() == name).map(|(_, v)| v.trim()))
-    };
-    let framing = if header("transfer-encoding").is_some_and(|v| v.contains("chunked")) {
-        Framing::Chunked { left: 0, ended: false }
-    } else if let Some(length) = header("content-length") {
-        Framing::Length(length.parse().map_err(|_| garbled())?)
-    } else {
-        Framing::ToEnd
-    };
-    Ok(Answer { status, body: Body { reader: Box::new(reader), framing, address: address.to_string() } })
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
 
-    fn body(text: &str, framing: Framing) -> Result<String, std::io::Error> {
-        let reader = Box::new(std::io::Cursor::new(text.as_bytes().to_vec()));
-        let mut out = String::new();
-        Body { reader, framing, address: "x:1".into() }.read_to_string(&mut out)?;
-        Ok(out)
+    /// (address as given, parsed: (https, host, port), or refused).
+    #[test]
+    fn addresses_parse_with_their_scheme_and_default_port_and_bad_ones_are_refused() {
+        type Parsed<'a> = Option<(bool, &'a str, u16)>;
+        let cases: [(&str, Parsed); 17] = [
+            ("127.0.0.1:8080", Some((false, "127.0.0.1", 8080))),
+            ("http://127.0.0.1:8080/", Some((false, "127.0.0.1", 8080))),
+            ("http://robot.lan", Some((false, "robot.lan", 80))),
+            ("https://lab.example.org", Some((true, "lab.example.org", 443))),
+            ("https://lab.example.org:8443/", Some((true, "lab.example.org", 8443))),
+            ("https://[::1]:8443", Some((true, "[::1]", 8443))),
+            ("http://[fe80::1]", Some((false, "[fe80::1]", 80))),
+            ("robot.lan", None),
+            ("", None),
+            ("https://", None),
+            ("x:1/y", None),
+            ("https://x:1/api", None),
+            ("ftp://x:1", None),
+            ("https://user@x:1", None),
+            ("http://x:0", None),
+            ("http://x:99999", None),
+            ("http://[::1", None),
+        ];
+        for (text, expected) in cases {
+            let parsed = PortalUrl::parse(text).ok().map(|u| (u.secure, u.host, u.port));
+            assert_eq!(parsed, expected.map(|(s, h, p)| (s, h.to_string(), p)), "{text}");
+        }
+        // As messages show them: as a command takes them again.
+        for (text, shown) in [
+            ("http://127.0.0.1:8080/", "127.0.0.1:8080"),
+            ("https://lab.example.org:443", "https://lab.example.org"),
+            ("https://[::1]:8443/", "https://[::1]:8443"),
+        ] {
+            assert_eq!(PortalUrl::parse(text).unwrap().shown(), shown, "{text}");
+        }
+    }
+
+    /// (address, allowed without --allow-plain-http).
+    #[test]
+    fn a_password_goes_in_clear_only_to_loopback_unless_allowed() {
+        let cases = [
+            ("127.0.0.1:8080", true),
+            ("http://127.3.2.1:80", true),
+            ("http://localhost:8080", true),
+            ("http://LOCALHOST:8080", true),
+            ("http://[::1]:8080", true),
+            ("http://[::ffff:127.0.0.1]:8080", true),
+            ("https://192.0.2.1:8443", true),
+            ("https://lab.example.org", true),
+            ("http://192.0.2.1:1", false),
+            ("192.0.2.1:8080", false),
+            ("http://10.0.0.5:8080", false),
+            ("http://[2001:db8::1]:80", false),
+            ("http://robot.lan:8080", false),
+            ("http://localhost.example.org:8080", false),
+            ("http://0.0.0.0:8080", false),
+        ];
+        for (text, allowed) in cases {
+            let url = PortalUrl::parse(text).unwrap();
+            assert_eq!(check_plain(&url, false).is_ok(), allowed, "{text}");
+            assert!(check_plain(&url, true).is_ok(), "{text} with --allow-plain-http");
+        }
+        let error = check_plain(&PortalUrl::parse("http://192.0.2.1:1").unwrap(), false).unwrap_err().to_string();
+        assert!(error.starts_with("refusing to send a password in clear to http://192.0.2.1:1, "), "{error}");
+        assert!(error.contains("--allow-plain-http"), "{error}");
     }
 
     #[test]
-    fn chunked_bodies_are_joined_and_cut_ones_refused_and_bad_hosts_refused() {
-        let chunked = || Framing::Chunked { left: 0, ended: false };
-        assert_eq!(body("4\r\n{\"a\"\r\n3;x=y\r\n:1}\r\n0\r\nT: 1\r\n\r\n", chunked()).unwrap(), "{\"a\":1}");
-        for cut in ["4\r\n{\"a\"\r\n", "4\r\n{\"", "4\r\n{\"a\"xx\r\n0\r\n\r\n", "z\r\n"] {
-            assert!(body(cut, chunked()).is_err(), "{cut:?}");
-        }
-        assert_eq!(body("abcdef", Framing::Length(3)).unwrap(), "abc");
-        assert!(body("ab", Framing::Length(3)).is_err());
-        assert_eq!(body("abc", Framing::ToEnd).unwrap(), "abc");
-        assert!(matches!(lock_action("https://x:1", "u", "p", LockAction::Engage), Err(ClientError::Host(_))));
-        assert!(matches!(lock_action("x:1/y", "u", "p", LockAction::Engage), Err(ClientError::Host(_))));
+    fn nothing_is_sent_to_an_address_refused_before_connecting() {
+        let login = |host: &str, ca: Option<&str>| Login {
+            host: host.into(),
+            user: "u".into(),
+            password: "p".into(),
+            ca: ca.map(PathBuf::from),
+            allow_plain_http: false,
+        };
+        let refused = |l: Login| lock_action(&l, LockAction::Engage).unwrap_err();
+        assert!(matches!(refused(login("ftp://x:1", None)), ClientError::Host(_)));
+        assert!(matches!(refused(login("http://192.0.2.1:1", None)), ClientError::PlainRemote(_)));
+        assert!(matches!(refused(login("127.0.0.1:1", Some("ca.pem"))), ClientError::CaWithoutTls { .. }));
+        let missing = refused(login("https://127.0.0.1:1", Some("/nonexistent/ca.pem"))).to_string();
+        assert!(missing.starts_with("cannot read the TLS CA certificate /nonexistent/ca.pem: "), "{missing}");
     }
 }

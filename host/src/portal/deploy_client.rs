@@ -11,7 +11,8 @@
 //! at the upload by its full name (`USER/NAME.wasm`, so the file says whose
 //! code runs, whoever stages it next), so "replace component NAME of the
 //! running robot" is one command. Everything local (files, names, the
-//! components the robot file must have) is checked before anything is
+//! components the robot file must have, that each component file is a
+//! WebAssembly component by its preamble) is checked before anything is
 //! sent; any refusal after that leaves the running set as it was (a
 //! component that was uploaded stays in the store as the user's, as a page
 //! upload would).
@@ -22,8 +23,9 @@ use std::time::{Duration, Instant};
 use serde_json::{Value, json};
 use thiserror::Error;
 
-use super::client::{ClientError, MAX_ANSWER_BYTES, portal_address, send};
+use super::client::{ClientError, Connection, Login, MAX_ANSWER_BYTES};
 use crate::contract::{clip, is_valid_name};
+use crate::sandbox::preamble::check_component_preamble;
 
 /// Longest wait for one upload or activation: the portal answers an upload
 /// only after compiling it (a Python component takes 14-19 s on a loaded
@@ -36,10 +38,8 @@ pub const MAX_DEPLOY_FILE_BYTES: u64 = 32 << 20;
 /// What to deploy, and where.
 #[derive(Clone, Debug)]
 pub struct DeployRequest {
-    /// The portal's address (HOST:PORT or http://HOST:PORT).
-    pub host: String,
-    pub user: String,
-    pub password: String,
+    /// Who deploys, and where.
+    pub login: Login,
     /// The platform the uploads belong to (`control`, `network`).
     pub platform: String,
     /// (component name in the robot file and in the store, .wasm file).
@@ -68,6 +68,10 @@ pub enum DeployClientError {
     Nothing,
     #[error("{path}: {why}")]
     File { path: String, why: String },
+    #[error("{path} is not a webassembly component: {why}; nothing was uploaded")]
+    NotAComponent { path: String, why: String },
+    #[error("{user} may not upload to platform {platform} (role {role}; may change: {may}); nothing was uploaded")]
+    MayNotChange { user: String, role: String, platform: String, may: String },
     #[error("the running robot file {file} has no component '{name}' (it has: {has})")]
     NoSuchComponent { file: String, name: String, has: String },
     #[error("{0} was refused; nothing was changed:\n{1}")]
@@ -89,23 +93,37 @@ pub fn deploy(request: &DeployRequest, say: &mut dyn FnMut(&str)) -> Result<Depl
     if request.components.is_empty() && request.robot.is_none() {
         return Err(DeployClientError::Nothing);
     }
-    let address = portal_address(&request.host)?;
+    let connection = Connection::open(&request.login, DEPLOY_TIMEOUT)?;
     // Everything local first: a missing file changes nothing remotely.
-    let mut components = Vec::new();
-    for (name, path) in &request.components {
-        if !is_valid_name(name) {
-            return Err(DeployClientError::BadComponent(clip(name)));
-        }
-        components.push((name.clone(), read(path)?));
-    }
+    let components = read_components(&request.components)?;
     let robot = match &request.robot {
         Some(path) => Some((path.display().to_string(), file_name(path)?, read(path)?)),
         None => None,
     };
-    let portal = Portal::login(&address, &request.user, &request.password)?;
+    let portal = Portal::login(connection, &request.login.user, &request.login.password)?;
     let result = portal.deploy(&request.platform, &components, robot, say);
     portal.logout();
     result
+}
+
+/// The component files to upload (`deploy`'s and `lab submit`'s), each
+/// checked to be a WebAssembly component by its preamble, before anything
+/// is sent: a core module, a native artifact or a text file is named here,
+/// not found out after the other uploads.
+pub(super) fn read_components(components: &[(String, PathBuf)]) -> Result<Vec<(String, Vec<u8>)>, DeployClientError> {
+    let mut read_ones = Vec::new();
+    for (name, path) in components {
+        if !is_valid_name(name) {
+            return Err(DeployClientError::BadComponent(clip(name)));
+        }
+        let bytes = read(path)?;
+        check_component_preamble(&bytes).map_err(|why| DeployClientError::NotAComponent {
+            path: path.display().to_string(),
+            why: why.to_string(),
+        })?;
+        read_ones.push((name.clone(), bytes));
+    }
+    Ok(read_ones)
 }
 
 /// A local file to upload, bounded by [`MAX_DEPLOY_FILE_BYTES`].
@@ -127,23 +145,57 @@ pub(super) fn file_name(path: &Path) -> Result<String, DeployClientError> {
 
 /// A logged-in session on one portal (`deploy`'s and `lab`'s).
 pub(super) struct Portal {
-    pub(super) address: String,
+    pub(super) connection: Connection,
     pub(super) token: String,
     /// Who is logged in (uploads are stored as theirs).
     pub(super) user: String,
+    /// Their role and the platforms they may change, as the portal said at
+    /// login (`None`: it did not say).
+    may_change: Option<(String, Vec<String>)>,
 }
 
 impl Portal {
-    pub(super) fn login(address: &str, user: &str, password: &str) -> Result<Portal, DeployClientError> {
-        let body = json!({ "name": user, "password": password }).to_string();
-        let answer = call(address, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")?;
-        let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(address.to_string()))?.to_string();
-        Ok(Portal { address: address.to_string(), token, user: user.to_string() })
+    pub(super) fn login(connection: Connection, user: &str, password: &str) -> Result<Portal, DeployClientError> {
+        let answer = log_in(&connection, user, password)?;
+        let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(connection.address().to_string()))?;
+        let role = answer["user"]["role"].as_str().map(str::to_string);
+        let platforms = answer["user"]["platforms"]
+            .as_array()
+            .map(|p| p.iter().filter_map(|p| p.as_str().map(str::to_string)).collect());
+        Ok(Portal { token: token.to_string(), connection, user: user.to_string(), may_change: role.zip(platforms) })
+    }
+
+    /// Logs in again (the portal forgot the session).
+    pub(super) fn log_in_again(&mut self, password: &str) -> Result<(), DeployClientError> {
+        let answer = log_in(&self.connection, &self.user, password)?;
+        let token = answer["token"].as_str().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
+        self.token = token.to_string();
+        Ok(())
+    }
+
+    /// Whether the user may upload to `platform`, as the portal told at
+    /// login: checked before anything is uploaded (the portal checks it
+    /// again on each upload).
+    pub(super) fn check_may_change(&self, platform: &str) -> Result<(), DeployClientError> {
+        match &self.may_change {
+            Some((role, platforms)) if !platforms.iter().any(|p| p == platform) => {
+                Err(DeployClientError::MayNotChange {
+                    user: self.user.clone(),
+                    role: role.clone(),
+                    platform: clip(platform),
+                    may: if platforms.is_empty() { "none".into() } else { platforms.join(", ") },
+                })
+            }
+            _ => Ok(()),
+        }
+    }
+
+    pub(super) fn address(&self) -> &str {
+        self.connection.address()
     }
 
     pub(super) fn logout(&self) {
-        let logout =
-            send(&self.address, "POST", "/api/v1/logout", Some(&self.token), "application/json", b"", DEPLOY_TIMEOUT);
+        let logout = self.connection.send("POST", "/api/v1/logout", Some(&self.token), "application/json", b"");
         let _ = logout.and_then(|answer| answer.read(MAX_ANSWER_BYTES));
     }
 
@@ -155,7 +207,7 @@ impl Portal {
         body: &[u8],
         what: &str,
     ) -> Result<Value, DeployClientError> {
-        call(&self.address, Some(&self.token), method, path, content_type, body, what)
+        call(&self.connection, Some(&self.token), method, path, content_type, body, what)
     }
 
     fn deploy(
@@ -165,6 +217,9 @@ impl Portal {
         robot: Option<(String, String, Vec<u8>)>,
         say: &mut dyn FnMut(&str),
     ) -> Result<Deployed, DeployClientError> {
+        if !components.is_empty() {
+            self.check_may_change(platform)?;
+        }
         // The robot file: the given one, or the active one pointed at the
         // uploads (checked before anything is uploaded).
         let (shown, name, text) = match robot {
@@ -205,7 +260,7 @@ impl Portal {
     /// The active set's id, its robot file's name and its text.
     pub(super) fn active_robot(&self) -> Result<(u64, String, String), DeployClientError> {
         let status = self.call("GET", "/api/v1/status", "application/json", b"", "reading the status")?;
-        let set = status["set"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()))?;
+        let set = status["set"].as_u64().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
         let active =
             self.call("GET", &format!("/api/v1/sets/{set}"), "application/json", b"", "reading the active set")?;
         let name = active["set"]["config_name"].as_str().unwrap_or("robot.xml").to_string();
@@ -247,7 +302,7 @@ impl Portal {
     ) -> Result<u64, DeployClientError> {
         let path = format!("/api/v1/platforms/{platform}/configs/{name}");
         let staged = self.call("PUT", &path, "application/xml", text, shown).map_err(|e| locate(e, shown, position))?;
-        staged["set"]["id"].as_u64().ok_or_else(|| ClientError::Garbled(self.address.clone()).into())
+        staged["set"]["id"].as_u64().ok_or_else(|| ClientError::Garbled(self.address().to_string()).into())
     }
 }
 
@@ -269,10 +324,16 @@ impl Portal {
     }
 }
 
+/// Logs in as `user`; the portal's answer (the token, the user).
+fn log_in(connection: &Connection, user: &str, password: &str) -> Result<Value, DeployClientError> {
+    let body = json!({ "name": user, "password": password }).to_string();
+    call(connection, None, "POST", "/api/v1/login", "application/json", body.as_bytes(), "login")
+}
+
 /// One request whose non-2xx answer becomes `Refused` (diagnostics kept in
 /// the message, one per line, for [`locate`]).
 fn call(
-    address: &str,
+    connection: &Connection,
     token: Option<&str>,
     method: &str,
     path: &str,
@@ -280,8 +341,7 @@ fn call(
     body: &[u8],
     what: &str,
 ) -> Result<Value, DeployClientError> {
-    let (status, answer, text) =
-        send(address, method, path, token, content_type, body, DEPLOY_TIMEOUT)?.read(MAX_ANSWER_BYTES)?;
+    let (status, answer, text) = connection.send(method, path, token, content_type, body)?.read(MAX_ANSWER_BYTES)?;
     if (200..300).contains(&status) {
         return Ok(answer);
     }
@@ -430,9 +490,13 @@ mod tests {
             assert!(matches!(component_arg(bad), Err(DeployClientError::BadComponent(_))), "{bad}");
         }
         let request = |host: &str, components: Vec<(String, PathBuf)>| DeployRequest {
-            host: host.into(),
-            user: "u".into(),
-            password: "p".into(),
+            login: Login {
+                host: host.into(),
+                user: "u".into(),
+                password: "p".into(),
+                ca: None,
+                allow_plain_http: false,
+            },
             platform: "control".into(),
             components,
             robot: None,
@@ -442,6 +506,32 @@ mod tests {
         // A missing file is reported before the (unreachable) host is tried.
         let error = deploy(&request("127.0.0.1:1", missing.clone()), &mut |_| {}).unwrap_err().to_string();
         assert!(error.starts_with("/nonexistent/a.wasm: "), "{error}");
-        assert!(matches!(deploy(&request("https://x:1", missing), &mut |_| {}), Err(DeployClientError::Portal(_))));
+        assert!(matches!(deploy(&request("ftp://x:1", missing), &mut |_| {}), Err(DeployClientError::Portal(_))));
+        // A file that is not a component is named before anything is sent
+        // (the host is unreachable).
+        let dir = tempfile::tempdir().unwrap();
+        let cases: [(&str, &[u8], &str); 4] = [
+            ("core.wasm", b"\0asm\x01\0\0\0", "this is a core webassembly module, not a component"),
+            ("native.cwasm", b"\x7fELF\x02\x01", "precompiled native artifact"),
+            ("text.wasm", b"<robot/>", "does not start with the webassembly magic bytes"),
+            ("short.wasm", b"\0asm", "too short"),
+        ];
+        for (file, bytes, why) in cases {
+            let path = dir.path().join(file);
+            std::fs::write(&path, bytes).unwrap();
+            let good = support_component(dir.path());
+            let components = vec![("good".to_string(), good), ("bad".to_string(), path.clone())];
+            let error = deploy(&request("127.0.0.1:1", components), &mut |_| {}).unwrap_err().to_string();
+            assert!(error.starts_with(&format!("{} is not a webassembly component: ", path.display())), "{error}");
+            assert!(error.contains(why) && error.ends_with("nothing was uploaded"), "{file}: {error}");
+        }
+    }
+
+    /// A file whose preamble is a component's (the compiler would check
+    /// the rest; the client only reads the preamble).
+    fn support_component(dir: &Path) -> PathBuf {
+        let path = dir.join("good.wasm");
+        std::fs::write(&path, b"\0asm\x0d\0\x01\0").unwrap();
+        path
     }
 }

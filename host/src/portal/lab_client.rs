@@ -28,11 +28,13 @@ use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 use thiserror::Error;
 
-use super::client::{Answer, ClientError, portal_address, send};
+pub use super::client::Login;
+use super::client::{Answer, ClientError, Connection};
 use super::deploy_client::{
-    DEPLOY_TIMEOUT, DeployClientError, Edit, Portal, file_name, locate, point_source_at, read, refused, upload_source,
+    DEPLOY_TIMEOUT, DeployClientError, Edit, Portal, file_name, locate, point_source_at, read_components, refused,
+    upload_source,
 };
-use crate::contract::{clip, is_valid_name};
+use crate::contract::clip;
 use crate::deploy::{Diagnostics, SourceMap, read_and_parse, utc_time};
 use crate::lab::{MAX_DURATION_CAP_S, MIN_DURATION_S};
 use crate::store::experiments::{ExperimentRecord, ExperimentState, MAX_LABEL_LEN};
@@ -54,15 +56,6 @@ pub const MAX_ARCHIVE_FILES: usize = 10_000;
 /// How far a queued experiment's expected start must move before it is
 /// printed again.
 pub const ETA_SHIFT_MS: u64 = 5_000;
-
-/// Who asks, and where.
-#[derive(Clone, Debug)]
-pub struct Login {
-    /// The portal's address (HOST:PORT or http://HOST:PORT).
-    pub host: String,
-    pub user: String,
-    pub password: String,
-}
 
 /// What `subsume lab submit` asks.
 #[derive(Clone, Debug)]
@@ -152,19 +145,19 @@ impl From<ClientError> for LabClientError {
 /// A logged-in session that logs in again when the portal forgot it (a
 /// long wait, a host restarted).
 struct Session {
-    login: Login,
+    password: String,
     portal: Portal,
 }
 
 impl Session {
-    fn open(login: &Login) -> Result<Session, LabClientError> {
-        let address = portal_address(&login.host)?;
-        let portal = Portal::login(&address, &login.user, &login.password)?;
-        Ok(Session { login: Login { host: address, ..login.clone() }, portal })
+    /// Logs in to `connection`'s portal as `login` says.
+    fn open(connection: Connection, login: &Login) -> Result<Session, LabClientError> {
+        let portal = Portal::login(connection, &login.user, &login.password)?;
+        Ok(Session { password: login.password.clone(), portal })
     }
 
     fn address(&self) -> &str {
-        &self.portal.address
+        self.portal.address()
     }
 
     /// Sends one request; a 401 (the portal forgot the session) logs in
@@ -172,13 +165,13 @@ impl Session {
     fn send(&mut self, method: &str, path: &str, body: &[u8]) -> Result<Answer, DeployClientError> {
         let once = |session: &Session| {
             let token = Some(session.portal.token.as_str());
-            send(session.address(), method, path, token, "application/json", body, DEPLOY_TIMEOUT)
+            session.portal.connection.send(method, path, token, "application/json", body)
         };
         let answer = once(self)?;
         if answer.status != 401 {
             return Ok(answer);
         }
-        self.portal = Portal::login(&self.login.host, &self.login.user, &self.login.password)?;
+        self.portal.log_in_again(&self.password)?;
         Ok(once(self)?)
     }
 
@@ -224,7 +217,16 @@ fn in_session<T>(
     login: &Login,
     work: impl FnOnce(&mut Session) -> Result<T, LabClientError>,
 ) -> Result<T, LabClientError> {
-    let mut session = Session::open(login)?;
+    in_session_on(Connection::open(login, DEPLOY_TIMEOUT)?, login, work)
+}
+
+/// Runs `work` in a session on `connection`'s portal, logging out after.
+fn in_session_on<T>(
+    connection: Connection,
+    login: &Login,
+    work: impl FnOnce(&mut Session) -> Result<T, LabClientError>,
+) -> Result<T, LabClientError> {
+    let mut session = Session::open(connection, login)?;
     let result = work(&mut session);
     session.close();
     result
@@ -315,21 +317,18 @@ pub struct Say<'a> {
 /// it ends (then unpacks its results when asked).
 pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, LabClientError> {
     check_request(request)?;
-    portal_address(&request.login.host)?;
+    let connection = Connection::open(&request.login, DEPLOY_TIMEOUT)?;
     if let Some(dir) = &request.results {
         check_destination(dir)?;
     }
-    // Everything local first: a missing file or a broken robot file
-    // changes nothing remotely.
-    let mut components = Vec::new();
-    for (name, path) in &request.components {
-        if !is_valid_name(name) {
-            return Err(DeployClientError::BadComponent(clip(name)).into());
-        }
-        components.push((name.clone(), read(path)?));
-    }
+    // Everything local first: a missing file, a file that is not a
+    // component or a broken robot file changes nothing remotely.
+    let components = read_components(&request.components)?;
     let local = request.robot.as_deref().map(|path| local_robot(path, &components)).transpose()?;
-    in_session(&request.login, |session| {
+    in_session_on(connection, &request.login, |session| {
+        if !components.is_empty() {
+            session.portal.check_may_change(&request.platform)?;
+        }
         let robot = match local {
             Some(robot) => robot,
             None => {
@@ -602,8 +601,8 @@ fn download(session: &mut Session, path: &str, what: &str, dir: &Path) -> Result
         .prefix(".subsume-download-")
         .tempdir_in(&parent)
         .map_err(|e| folder_error(format!("cannot make a temporary folder beside it: {e}")))?;
-    let written =
-        unpack(Bounded { inner: answer.body, left: MAX_ARCHIVE_BYTES }, staging.path()).map_err(archive_error)?;
+    let written = unpack(Bounded { inner: answer.into_reader(), left: MAX_ARCHIVE_BYTES }, staging.path())
+        .map_err(archive_error)?;
     // Into place: an empty folder there is replaced.
     if dir.exists() {
         std::fs::remove_dir(dir).map_err(|e| folder_error(e.to_string()))?;
@@ -1028,10 +1027,15 @@ mod tests {
         assert!(!dir.path().parent().unwrap().join("evil").exists());
     }
 
+    /// A portal that nothing listens on.
+    fn login() -> Login {
+        Login { host: "127.0.0.1:1".into(), user: "u".into(), password: "p".into(), ca: None, allow_plain_http: false }
+    }
+
     #[test]
     fn bad_arguments_are_refused_before_anything_is_sent() {
         let request = |duration_s: f64, label: &str, robot: Option<&str>| SubmitRequest {
-            login: Login { host: "127.0.0.1:1".into(), user: "u".into(), password: "p".into() },
+            login: login(),
             platform: "control".into(),
             components: vec![],
             robot: robot.map(PathBuf::from),
@@ -1055,9 +1059,7 @@ mod tests {
         let full = dir.path().join("full");
         std::fs::create_dir(&full).unwrap();
         std::fs::write(full.join("x"), "").unwrap();
-        let text = results(&Login { host: "127.0.0.1:1".into(), user: "u".into(), password: "p".into() }, 1, &full)
-            .unwrap_err()
-            .to_string();
+        let text = results(&login(), 1, &full).unwrap_err().to_string();
         assert!(text.ends_with("is not empty; give a new or empty folder"), "{text}");
     }
 }
