@@ -55,6 +55,11 @@ pub const LOOP_WAIT_BEFORE_DROP_US: i64 = 1;
 /// with a larger value keeps every put on the sender thread.
 pub const MAX_LOOP_WAIT_BEFORE_DROP_US: i64 = 10;
 
+/// Zenoh's setting for the largest message a link reassembles (bytes;
+/// Zenoh's default is 1 GiB): a peer sending more is dropped by Zenoh
+/// itself, before anything here holds it.
+pub const MAX_MESSAGE_SIZE_KEY: &str = "transport/link/rx/max_message_size";
+
 /// Why a session did not open.
 #[derive(Debug, Error)]
 pub enum SessionError {
@@ -103,6 +108,9 @@ pub struct SessionSettings {
     pub connect: Vec<String>,
     pub listen: Vec<String>,
     pub config: Option<PathBuf>,
+    /// The largest message Zenoh reassembles on this session
+    /// ([`MAX_MESSAGE_SIZE_KEY`]); `None`: the config's, else Zenoh's.
+    pub max_message_bytes: Option<usize>,
 }
 
 fn endpoints(text: &str, key: &'static str) -> Result<Vec<String>, SessionError> {
@@ -137,6 +145,7 @@ impl SessionSettings {
             connect: endpoints(text("connect"), "connect")?,
             listen: endpoints(text("listen"), "listen")?,
             config,
+            max_message_bytes: None,
         })
     }
 
@@ -178,6 +187,9 @@ impl SessionSettings {
         }
         if !self.listen.is_empty() || self.config.is_none() {
             set(&mut config, "listen/endpoints", json(&self.listen))?;
+        }
+        if let Some(bytes) = self.max_message_bytes {
+            set(&mut config, MAX_MESSAGE_SIZE_KEY, bytes.to_string())?;
         }
         Ok(config)
     }
@@ -379,7 +391,12 @@ mod tests {
 
     #[test]
     fn the_default_config_is_peer_mode_without_multicast() {
-        let settings = SessionSettings { connect: vec!["tcp/127.0.0.1:7447".into()], listen: vec![], config: None };
+        let settings = SessionSettings {
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            listen: vec![],
+            config: None,
+            max_message_bytes: None,
+        };
         let config = settings.zenoh_config().unwrap_or_default();
         let get = |key| config.get_json(key).unwrap_or_default();
         assert_eq!(get("mode"), "\"peer\"");
@@ -390,7 +407,7 @@ mod tests {
 
     #[test]
     fn the_loop_puts_itself_only_when_a_congested_put_gives_up_at_once() {
-        let settings = SessionSettings { connect: vec![], listen: vec![], config: None };
+        let settings = SessionSettings { connect: vec![], listen: vec![], config: None, max_message_bytes: None };
         let config = settings.zenoh_config().unwrap_or_default();
         assert_eq!(config.get_json(WAIT_BEFORE_DROP_KEY).unwrap_or_default(), LOOP_WAIT_BEFORE_DROP_US.to_string());
         assert!(loop_puts(&config));
@@ -399,7 +416,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
         let file = dir.path().join("zenoh.json5");
         std::fs::write(&file, "{ mode: \"peer\" }").unwrap_or_else(|e| panic!("write: {e}"));
-        let settings = SessionSettings { connect: vec![], listen: vec![], config: Some(file.clone()) };
+        let settings =
+            SessionSettings { connect: vec![], listen: vec![], config: Some(file.clone()), max_message_bytes: None };
         let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{e}"));
         assert!(!loop_puts(&config));
         let quick = format!(

@@ -96,7 +96,13 @@ pub fn lab_session(
     listen: &str,
 ) -> anyhow::Result<subsume::bridge::session::SessionSettings> {
     let split = |text: &str| text.split(',').map(str::trim).filter(|s| !s.is_empty()).map(str::to_string).collect();
-    let settings = subsume::bridge::session::SessionSettings { connect: split(connect), listen: split(listen), config };
+    let settings = subsume::bridge::session::SessionSettings {
+        connect: split(connect),
+        listen: split(listen),
+        config,
+        // The lab's bound, at the Zenoh layer too.
+        max_message_bytes: Some(subsume::lab::wire::MAX_ZENOH_MESSAGE_BYTES),
+    };
     settings.zenoh_config()?;
     Ok(settings)
 }

@@ -1153,6 +1153,7 @@ impl LabMetrics {
                 )
                 .counter(vec![], link.foreign),
             );
+            families.extend(link.refusal_families());
         }
         families
     }
