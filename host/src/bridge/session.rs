@@ -406,6 +406,74 @@ mod tests {
     }
 
     #[test]
+    fn a_bounded_session_drops_a_larger_message_at_the_zenoh_layer_over_any_config_file() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
+        let file = dir.path().join("zenoh.json5");
+        std::fs::write(&file, "{ mode: \"peer\" }").unwrap_or_else(|e| panic!("write: {e}"));
+        for config in [None, Some(file)] {
+            let settings = SessionSettings { connect: vec![], listen: vec![], config, max_message_bytes: Some(1234) };
+            let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(config.get_json(MAX_MESSAGE_SIZE_KEY).unwrap_or_default(), "1234");
+        }
+        // Over a real link: a message larger than the bound never arrives;
+        // one within it, sent after it on the same link, does.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .map(|a| a.port())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let bounded = session(&SessionSettings {
+            connect: vec![],
+            listen: vec![endpoint.clone()],
+            config: None,
+            max_message_bytes: Some(256 << 10),
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        let sender = session(&SessionSettings {
+            connect: vec![endpoint],
+            listen: vec![],
+            config: None,
+            max_message_bytes: None,
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        let (heard, sizes) = std::sync::mpsc::channel();
+        let _subscriber = bounded
+            .session
+            .declare_subscriber("subsume/test/bounded")
+            .callback(move |sample: zenoh::sample::Sample| {
+                let _ = heard.send(sample.payload().len());
+            })
+            .wait()
+            .unwrap_or_else(|e| panic!("{e}"));
+        let put = |bytes: usize| {
+            sender
+                .session
+                .put("subsume/test/bounded", vec![7u8; bytes])
+                .congestion_control(zenoh::qos::CongestionControl::Block)
+                .wait()
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        loop {
+            put(10);
+            if sizes.recv_timeout(Duration::from_millis(200)).is_ok() {
+                break;
+            }
+            assert!(std::time::Instant::now() < deadline, "the sessions never linked");
+        }
+        put(1 << 20);
+        put(100 << 10);
+        let mut arrived = Vec::new();
+        while let Ok(size) = sizes.recv_timeout(Duration::from_secs(3)) {
+            arrived.push(size);
+            if size == 100 << 10 {
+                break;
+            }
+        }
+        assert!(arrived.contains(&(100 << 10)) && !arrived.contains(&(1 << 20)), "{arrived:?}");
+    }
+
+    #[test]
     fn the_loop_puts_itself_only_when_a_congested_put_gives_up_at_once() {
         let settings = SessionSettings { connect: vec![], listen: vec![], config: None, max_message_bytes: None };
         let config = settings.zenoh_config().unwrap_or_default();
