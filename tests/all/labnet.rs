@@ -161,6 +161,10 @@ fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Nam
         .args(["--preflight-priority", "normal"])
         .args(["--listen", listen])
         .env_remove("SUBSUME_HTTP");
+    if namespaces.is_some() {
+        // Plain Zenoh between namespaces the test made: a closed network.
+        command.arg("--allow-plain-zenoh");
+    }
     let command = match namespaces {
         Some(namespaces) => namespaces.inside(0, &command),
         None => command,
@@ -369,6 +373,9 @@ impl LabNet {
                     .args(["--lab-connect", &connect])
                     .args(["--lab-lost", &LOST_AFTER_S.to_string()])
                     .env_remove("SUBSUME_HTTP");
+                if namespaces.is_some() {
+                    command.arg("--lab-allow-plain");
+                }
                 let command = match &namespaces {
                     Some(namespaces) => namespaces.inside(n, &command),
                     None => command,
@@ -731,7 +738,7 @@ fn a_robot_obeys_only_its_own_lab_and_a_second_server_of_the_same_name_keeps_not
     let config = dir.path().join("robot-zenoh.json5");
     std::fs::write(
         &config,
-        r#"{ mode: "peer", scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#,
+        r#"{ mode: "peer", listen: { endpoints: [] }, scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#,
     )
     .unwrap();
     let rogue_endpoint = format!("tcp/127.0.0.1:{rogue_port}");
@@ -1438,4 +1445,56 @@ fn a_robots_token_declared_again_keeps_it_neither_listed_nor_its_experiment_aliv
         robots.iter().any(|r| r["name"] == "r1" && r["state"] == "lost" && r["online"] == false)
     });
     assert_eq!(holder.finish(Duration::from_secs(30))["released"], keys.len());
+}
+
+#[test]
+fn a_lab_link_off_loopback_without_tls_and_authentication_is_refused_unless_allowed_and_then_logged() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let port = free_port();
+    let serve = |extra: &[&str]| {
+        let mut command = support::subsume();
+        command
+            .arg("--store")
+            .arg(&store)
+            .args(["lab", "serve", "--http", "127.0.0.1:0", "--lab", LAB])
+            .args(["--listen", &format!("tcp/0.0.0.0:{port}")])
+            .args(extra)
+            .env_remove("SUBSUME_HTTP");
+        HostProcess::spawn(command)
+    };
+    // A lab server listening on every address in plain text.
+    let mut refused = serve(&[]);
+    let status = support::wait_for_exit(&mut refused.child, Duration::from_secs(60));
+    assert!(!status.success());
+    let said = refused.lines_until(0, "on a closed network", Duration::from_secs(10)).join("\n");
+    assert!(said.contains(&format!("is plain text off loopback (tcp/0.0.0.0:{port})")), "{said}");
+    assert!(said.contains("--allow-plain-zenoh on a closed network"), "{said}");
+    // A robot connecting over TLS that authenticates nobody.
+    let home = dir.path().join("r1");
+    std::fs::create_dir_all(&home).unwrap();
+    std::fs::write(home.join("robot.xml"), robot(8.0, "")).unwrap();
+    std::fs::write(home.join("lab.world"), WORLD).unwrap();
+    std::fs::write(home.join("lab.secret"), "0123456789abcdef0123456789abcdef\n").unwrap();
+    let mut command = support::subsume();
+    command
+        .arg("--store")
+        .arg(home.join("store"))
+        .arg("run")
+        .arg(home.join("robot.xml"))
+        .args(["--http", "127.0.0.1:0", "--lab", LAB, "--lab-robot", "r1"])
+        .arg("--lab-secret")
+        .arg(home.join("lab.secret"))
+        .args(["--lab-connect", "tls/192.0.2.1:7447"])
+        .env_remove("SUBSUME_HTTP");
+    let mut robot_host = HostProcess::spawn(command);
+    let status = support::wait_for_exit(&mut robot_host.child, Duration::from_secs(60));
+    assert!(!status.success());
+    let said = robot_host.lines_until(0, "on a closed network", Duration::from_secs(10)).join("\n");
+    assert!(said.contains("is TLS without mutual TLS or user/password (tls/192.0.2.1:7447)"), "{said}");
+    assert!(said.contains("--lab-allow-plain on a closed network"), "{said}");
+    // Allowed on a closed network: it starts, and says so in its log.
+    let allowed = serve(&["--allow-plain-zenoh"]);
+    allowed.lines_until(0, "allowed by --allow-plain-zenoh (a closed network only)", Duration::from_secs(60));
+    allowed.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
 }

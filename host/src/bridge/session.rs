@@ -254,6 +254,80 @@ pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> 
     Ok(shared)
 }
 
+/// The links of a Zenoh config that cross a network unprotected: what a
+/// lab refuses unless its owner allows it (a closed network).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LinkExposure {
+    /// Endpoints off loopback without TLS (anyone on the path reads them).
+    pub plain: Vec<String>,
+    /// Endpoints off loopback over TLS with neither mutual TLS nor
+    /// user/password (anyone who reaches them joins).
+    pub unauthenticated: Vec<String>,
+}
+
+impl LinkExposure {
+    pub fn is_empty(&self) -> bool {
+        self.plain.is_empty() && self.unauthenticated.is_empty()
+    }
+}
+
+impl std::fmt::Display for LinkExposure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mut parts = Vec::new();
+        if !self.plain.is_empty() {
+            parts.push(format!("is plain text off loopback ({})", self.plain.join(", ")));
+        }
+        if !self.unauthenticated.is_empty() {
+            parts.push(format!("is TLS without mutual TLS or user/password ({})", self.unauthenticated.join(", ")));
+        }
+        f.write_str(&parts.join(" and "))
+    }
+}
+
+/// Whether `endpoint` (`PROTO/HOST:PORT`, maybe with `?config` or
+/// `#metadata`) stays on this machine.
+pub fn is_loopback_endpoint(endpoint: &str) -> bool {
+    let address = endpoint.split(['?', '#']).next().unwrap_or_default();
+    let address = address.split_once('/').map_or(address, |(_, rest)| rest);
+    let host = address.rsplit_once(':').map_or(address, |(host, _)| host);
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost" || host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
+}
+
+/// The endpoints of `config` (connect and listen) off loopback that are
+/// plain text, or TLS that authenticates nobody.
+pub fn link_exposure(config: &zenoh::Config) -> LinkExposure {
+    fn strings(value: &serde_json::Value, out: &mut Vec<String>) {
+        match value {
+            serde_json::Value::String(text) => out.push(text.clone()),
+            serde_json::Value::Array(items) => items.iter().for_each(|v| strings(v, out)),
+            serde_json::Value::Object(map) => map.values().for_each(|v| strings(v, out)),
+            _ => {}
+        }
+    }
+    let json =
+        |key: &str| config.get_json(key).ok().and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok());
+    let mut endpoints = Vec::new();
+    for key in ["connect/endpoints", "listen/endpoints"] {
+        if let Some(value) = json(key) {
+            strings(&value, &mut endpoints);
+        }
+    }
+    let set = |key: &str| json(key).is_some_and(|v| !v.is_null() && v != serde_json::Value::Bool(false));
+    let authenticated = set("transport/link/tls/enable_mtls")
+        || set("transport/auth/usrpwd/user")
+        || set("transport/auth/usrpwd/dictionary_file");
+    let mut exposure = LinkExposure::default();
+    for endpoint in endpoints.into_iter().filter(|e| !is_loopback_endpoint(e)) {
+        if !endpoint.starts_with("tls/") {
+            exposure.plain.push(endpoint);
+        } else if !authenticated {
+            exposure.unauthenticated.push(endpoint);
+        }
+    }
+    exposure
+}
+
 /// Whether `config` lets a droppable put wait at most
 /// [`MAX_LOOP_WAIT_BEFORE_DROP_US`] for a free batch.
 pub fn loop_puts(config: &zenoh::Config) -> bool {
@@ -471,6 +545,80 @@ mod tests {
             }
         }
         assert!(arrived.contains(&(100 << 10)) && !arrived.contains(&(1 << 20)), "{arrived:?}");
+    }
+
+    #[test]
+    fn links_off_loopback_without_tls_or_authentication_are_named() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
+        let file = dir.path().join("zenoh.json5");
+        // (case, config file, connect, listen, plain, unauthenticated)
+        let cases: Vec<(&str, Option<&str>, &str, &str, Vec<&str>, Vec<&str>)> = vec![
+            ("loopback only", None, "tcp/127.0.0.1:7447", "tcp/[::1]:7448", vec![], vec![]),
+            ("localhost", None, "tcp/localhost:7447", "", vec![], vec![]),
+            ("a plain listener", None, "", "tcp/0.0.0.0:7447", vec!["tcp/0.0.0.0:7447"], vec![]),
+            ("a plain connection", None, "tcp/10.0.0.2:7447", "", vec!["tcp/10.0.0.2:7447"], vec![]),
+            (
+                "TLS, nobody authenticated",
+                None,
+                "tls/lab.example.org:7447",
+                "",
+                vec![],
+                vec!["tls/lab.example.org:7447"],
+            ),
+            (
+                "TLS with user/password",
+                Some(
+                    "{ listen: { endpoints: [] }, transport: { auth: { usrpwd: { user: \"r1\", password: \"secret\" } } } }",
+                ),
+                "tls/lab.example.org:7447",
+                "",
+                vec![],
+                vec![],
+            ),
+            (
+                "TLS with mutual TLS",
+                Some("{ transport: { link: { tls: { enable_mtls: true } } } }"),
+                "",
+                "tls/0.0.0.0:7447",
+                vec![],
+                vec![],
+            ),
+            (
+                "a config file naming no listener: Zenoh's default listens on every address",
+                Some("{ mode: \"peer\" }"),
+                "tcp/127.0.0.1:7447",
+                "",
+                vec!["tcp/[::]:0", "tcp/[::]:7447"],
+                vec![],
+            ),
+            (
+                "endpoints from the file",
+                Some("{ listen: { endpoints: [\"tcp/192.168.1.2:7447\"] } }"),
+                "",
+                "",
+                vec!["tcp/192.168.1.2:7447"],
+                vec![],
+            ),
+        ];
+        for (case, text, connect, listen, plain, unauthenticated) in cases {
+            let config = text.map(|text| {
+                std::fs::write(&file, text).unwrap_or_else(|e| panic!("write: {e}"));
+                file.clone()
+            });
+            let list = |t: &str| t.split(',').filter(|s| !s.is_empty()).map(str::to_string).collect();
+            let settings =
+                SessionSettings { connect: list(connect), listen: list(listen), config, max_message_bytes: None };
+            let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{case}: {e}"));
+            let exposure = link_exposure(&config);
+            assert_eq!(
+                (
+                    exposure.plain.iter().map(String::as_str).collect::<Vec<_>>(),
+                    exposure.unauthenticated.iter().map(String::as_str).collect::<Vec<_>>()
+                ),
+                (plain, unauthenticated),
+                "{case}"
+            );
+        }
     }
 
     #[test]

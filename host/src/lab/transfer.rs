@@ -57,12 +57,6 @@ pub enum TransferError {
     Zenoh(String),
     #[error("no answer on {key} within {} s{}", .timeout.as_secs_f64(), skipped_text(.skipped))]
     NoAnswer { key: String, timeout: Duration, skipped: Vec<String> },
-    #[error("the answer on {key} was refused: {source}")]
-    Refused {
-        key: String,
-        #[source]
-        source: WireError,
-    },
     #[error("{0}")]
     Missing(String),
     #[error("{what}: the bytes' sha256 is {got}, not {expected}")]
