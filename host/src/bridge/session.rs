@@ -551,8 +551,9 @@ mod tests {
     fn links_off_loopback_without_tls_or_authentication_are_named() {
         let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
         let file = dir.path().join("zenoh.json5");
-        // (case, config file, connect, listen, plain, unauthenticated)
-        let cases: Vec<(&str, Option<&str>, &str, &str, Vec<&str>, Vec<&str>)> = vec![
+        /// (case, config file, connect, listen, plain, unauthenticated)
+        type Case<'a> = (&'a str, Option<&'a str>, &'a str, &'a str, Vec<&'a str>, Vec<&'a str>);
+        let cases: Vec<Case> = vec![
             ("loopback only", None, "tcp/127.0.0.1:7447", "tcp/[::1]:7448", vec![], vec![]),
             ("localhost", None, "tcp/localhost:7447", "", vec![], vec![]),
             ("a plain listener", None, "", "tcp/0.0.0.0:7447", vec!["tcp/0.0.0.0:7447"], vec![]),
