@@ -177,7 +177,7 @@ pub fn serve<Q: Request + Send + 'static>(
 ) -> Result<std::thread::JoinHandle<()>, TransferError> {
     let (sender, receiver) = std::sync::mpsc::sync_channel::<(zenoh::query::Query, Q)>(QUERY_BACKLOG);
     let me = gate.me.clone();
-    let replays = Mutex::new(Replays::new(&gate.me));
+    let replays = Mutex::new(Replays::new(&gate.me).since(unix_now_ms()));
     let queryable = shared
         .session
         .declare_queryable(key_expr.clone())
