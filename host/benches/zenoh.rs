@@ -42,10 +42,16 @@ fn pair(config: Option<&std::path::Path>) -> (Arc<session::Shared>, Arc<session:
     let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
     let endpoint = format!("tcp/127.0.0.1:{port}");
     let config = config.map(std::path::Path::to_path_buf);
-    let a =
-        session::session(&SessionSettings { connect: vec![], listen: vec![endpoint.clone()], config: config.clone() })
+    let a = session::session(&SessionSettings {
+        connect: vec![],
+        listen: vec![endpoint.clone()],
+        config: config.clone(),
+        max_message_bytes: None,
+    })
+    .unwrap();
+    let b =
+        session::session(&SessionSettings { connect: vec![endpoint], listen: vec![], config, max_message_bytes: None })
             .unwrap();
-    let b = session::session(&SessionSettings { connect: vec![endpoint], listen: vec![], config }).unwrap();
     (a, b)
 }
 

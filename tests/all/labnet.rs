@@ -34,7 +34,17 @@
 //!   runs; without a session it is refused (401).
 //! - Messages forged with another secret by an `eclipse-zenoh` client
 //!   (`tests/python/lab_forge.py`) straight to a robot's queryables, a
-//!   dispatch and an emergency stop, are refused and change nothing there.
+//!   dispatch and an emergency stop, get no answer and change nothing
+//!   there; a stale signed one gets an unsigned refusal; the refusals are
+//!   audited in one bounded line.
+//! - A peer without the secret (`tests/python/lab_attack.py`, with
+//!   `eclipse-zenoh`): a rogue complete queryable on a robot's keys
+//!   answering garbage and captured signed replies takes nothing
+//!   (experiments end `done`, the STOP engages); a captured dispatch
+//!   replayed to its robot or another is refused and counted; a junk
+//!   flood during a STOP leaves it engaging at once and the robot's audit
+//!   log bounded; a robot's token declared again keeps the robot neither
+//!   listed nor its experiment alive.
 //! - A robot whose owner marked another baseline refuses an experiment the
 //!   lab passed (an envelope difference; a platform its submitter does not
 //!   hold): back in the queue once with the reason, then `refused`.
@@ -151,6 +161,10 @@ fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Nam
         .args(["--preflight-priority", "normal"])
         .args(["--listen", listen])
         .env_remove("SUBSUME_HTTP");
+    if namespaces.is_some() {
+        // Plain Zenoh between namespaces the test made: a closed network.
+        command.arg("--allow-plain-zenoh");
+    }
     let command = match namespaces {
         Some(namespaces) => namespaces.inside(0, &command),
         None => command,
@@ -359,6 +373,9 @@ impl LabNet {
                     .args(["--lab-connect", &connect])
                     .args(["--lab-lost", &LOST_AFTER_S.to_string()])
                     .env_remove("SUBSUME_HTTP");
+                if namespaces.is_some() {
+                    command.arg("--lab-allow-plain");
+                }
                 let command = match &namespaces {
                     Some(namespaces) => namespaces.inside(n, &command),
                     None => command,
@@ -721,7 +738,7 @@ fn a_robot_obeys_only_its_own_lab_and_a_second_server_of_the_same_name_keeps_not
     let config = dir.path().join("robot-zenoh.json5");
     std::fs::write(
         &config,
-        r#"{ mode: "peer", scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#,
+        r#"{ mode: "peer", listen: { endpoints: [] }, scouting: { multicast: { enabled: false }, gossip: { enabled: false } } }"#,
     )
     .unwrap();
     let rogue_endpoint = format!("tcp/127.0.0.1:{rogue_port}");
@@ -1004,19 +1021,21 @@ fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_
     let xml = robot(7.0, "");
     // What a forger on the lab's Zenoh network sends r1 (an
     // `eclipse-zenoh` client, the envelope written from the format), and
-    // what r1 must answer. The last two are signed with the lab's secret:
-    // they show the forger's messages are well made, so the refusals
-    // above them are the signature's.
+    // what r1 must answer: nothing to what is not signed (no signing
+    // oracle), an unsigned refusal to a stale signed request, a signed
+    // refusal to a well-made one it will not run. The last two show the
+    // forger's messages are well made, so the silence above them is the
+    // signature's.
     let cases = [
-        (serde_json::json!({"op": "dispatch", "secret": other, "config_text": xml}), "not signed by lab 'testlab'"),
-        (serde_json::json!({"op": "estop", "secret": other}), "not signed by lab 'testlab'"),
+        (serde_json::json!({"op": "dispatch", "secret": other, "config_text": xml}), None),
+        (serde_json::json!({"op": "estop", "secret": other}), None),
         (
             serde_json::json!({"op": "dispatch", "secret": secret, "config_text": xml, "skew_ms": -120_000}),
-            "ms from this host's clock",
+            Some((false, "refused (stale): the request was issued")),
         ),
         (
             serde_json::json!({"op": "dispatch", "secret": secret, "config_text": xml, "duration_s": 1000.0}),
-            "over this robot's max-duration",
+            Some((true, "over this robot's max-duration")),
         ),
     ];
     let list: Vec<&Json> = cases.iter().map(|(case, _)| case).collect();
@@ -1031,14 +1050,19 @@ fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_
     assert_eq!(answers.len(), cases.len(), "{answers:#?}");
     for ((case, expected), answer) in cases.iter().zip(&answers) {
         let replies = answer["answers"].as_array().unwrap();
+        let Some((signed, words)) = expected else {
+            assert_eq!(replies.len(), 0, "{case}: no answer to what is not signed: {answer:#}");
+            continue;
+        };
         assert_eq!(replies.len(), 1, "{case}: {answer:#}");
         let reply = &replies[0];
-        let refused = match case["op"].as_str().unwrap() {
-            "dispatch" => reply["outcome"] == "refused",
-            _ => reply["ok"] == false,
-        };
-        assert!(refused, "{case}: {reply:#}");
-        assert!(reply.to_string().contains(expected), "{case}: expected '{expected}' in {reply:#}");
+        if *signed {
+            assert_eq!(reply["outcome"], "refused", "{case}: {reply:#}");
+            assert_eq!(reply["re"]["robot"], "r1", "{case}: the reply names its robot: {reply:#}");
+        } else {
+            assert!(reply["refused"].is_string(), "{case}: an unsigned refusal: {reply:#}");
+        }
+        assert!(reply.to_string().contains(words), "{case}: expected '{words}' in {reply:#}");
     }
     // Nothing changed on r1: no experiment, no new set, the same set runs,
     // no lock; the refusals are in its audit log. The lab lists it idle.
@@ -1047,18 +1071,33 @@ fn a_dispatch_or_stop_forged_with_another_secret_straight_to_a_robot_is_refused_
     assert_eq!(before.2["experiments"].as_array().map(Vec::len), Some(0), "{:#}", before.2);
     let status = robot_status(r1);
     assert_eq!(status["arbiter"]["engaged"], serde_json::json!([]), "{status:#}");
-    // Every refusal, in the order sent, each under its op's action.
-    let audit = on_robot("/api/v1/audit");
-    let refusals: Vec<&Json> = audit["entries"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|e| e["action"].as_str().is_some_and(|a| a.starts_with("lab-")) && e["result"] == "refused")
-        .collect();
-    assert_eq!(refusals.len(), cases.len(), "{audit:#}");
-    for ((case, expected), refusal) in cases.iter().zip(&refusals) {
-        assert_eq!(refusal["action"], format!("lab-{}", case["op"].as_str().unwrap()), "{refusal:#}");
-        assert!(refusal["detail"].as_str().unwrap().contains(expected), "{expected}: {refusal:#}");
+    // The dispatch r1 read and refused is audited as any; the messages it
+    // would not read are counted, and audited in bounded summary lines
+    // (at most one every 10 s): two not signed, one stale.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let audit = on_robot("/api/v1/audit");
+        let entries = audit["entries"].as_array().unwrap();
+        let dispatches: Vec<&Json> = entries.iter().filter(|e| e["action"] == "lab-dispatch").collect();
+        assert_eq!(dispatches.len(), 1, "{audit:#}");
+        assert!(dispatches[0]["detail"].as_str().unwrap().contains("max-duration"), "{audit:#}");
+        let summaries: Vec<String> = entries
+            .iter()
+            .filter(|e| e["action"] == "lab-refusals")
+            .map(|e| e["detail"].as_str().unwrap().to_string())
+            .collect();
+        let count = |class: &str| -> u64 {
+            summaries
+                .iter()
+                .filter_map(|s| s.split(&format!("{class} ")).nth(1)?.split([',', ')']).next()?.parse::<u64>().ok())
+                .sum()
+        };
+        if count("not-signed") == 2 && count("stale") == 1 {
+            assert!(summaries.len() <= 2, "{summaries:#?}");
+            break;
+        }
+        assert!(Instant::now() < deadline, "the refusals were never audited: {summaries:#?}");
+        std::thread::sleep(Duration::from_millis(500));
     }
     let boss = lab.token("boss");
     assert!(lab.robots(&boss).iter().all(|r| r["state"] == "idle" && r["experiment"].is_null()));
@@ -1182,4 +1221,291 @@ fn the_lab_servers_page_lists_every_robot_and_its_stop_buttons_work_in_a_real_br
     let presses =
         audit["entries"].as_array().unwrap().iter().filter(|e| e["action"] == "lab-estop" && e["user"] == VIEWER);
     assert_eq!(presses.count(), 3, "r1, then r1 and r2: {audit:#}");
+}
+
+/// An attack of `tests/python/lab_attack.py` (an `eclipse-zenoh` peer
+/// without the lab's secret) running beside the lab: its output line by
+/// line; its standard input held open until [`Attack::finish`].
+struct Attack {
+    child: std::process::Child,
+    lines: std::sync::mpsc::Receiver<String>,
+}
+
+impl Attack {
+    fn start(args: &[&str]) -> Attack {
+        let mut child = std::process::Command::new(support::python())
+            .arg(support::repo_root().join("tests/python/lab_attack.py"))
+            .args(args)
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let stdout = child.stdout.take().unwrap();
+        let (sender, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for line in std::io::BufRead::lines(std::io::BufReader::new(stdout)).map_while(Result::ok) {
+                if sender.send(line).is_err() {
+                    break;
+                }
+            }
+        });
+        Attack { child, lines }
+    }
+
+    /// Its next line of output.
+    fn line(&self, timeout: Duration) -> String {
+        self.lines.recv_timeout(timeout).unwrap_or_else(|e| panic!("the attack said nothing within {timeout:?}: {e}"))
+    }
+
+    /// Closes its standard input; its last line, as JSON.
+    fn finish(mut self, timeout: Duration) -> Json {
+        drop(self.child.stdin.take());
+        let line = self.line(timeout);
+        let _ = self.child.wait();
+        serde_json::from_str(&line).unwrap_or_else(|e| panic!("{e}: {line}"))
+    }
+}
+
+/// A value of the lab server's /metrics (0 when it is not there).
+fn lab_metric(lab: &LabNet, name: &str) -> f64 {
+    let (status, body) = support::http_bytes(&lab.address, "GET", "/metrics", None, b"");
+    assert_eq!(status, 200);
+    let text = support::text(&body);
+    text.lines().find_map(|l| l.strip_prefix(name)?.trim().parse::<f64>().ok()).unwrap_or_default()
+}
+
+/// Robot `robot`'s audit entries, as its owner sees them.
+fn robot_audit(robot: &Robot) -> Vec<Json> {
+    let owner = support::login(&robot.address, "owner", PASSWORD);
+    let (status, json) = http(&robot.address, "GET", "/api/v1/audit", Some(&owner), b"");
+    assert_eq!(status, 200, "{json}");
+    json["entries"].as_array().unwrap().clone()
+}
+
+#[test]
+fn a_rogue_complete_queryable_on_a_robots_keys_takes_nothing_experiments_end_done_and_the_stop_engages() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let secret = std::fs::read_to_string(dir.path().join("lab").join("store").join("lab.secret")).unwrap();
+    // The rogue answers every query on r1's keys at once, before r1 does.
+    let rogue = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim()]);
+    assert_eq!(rogue.line(Duration::from_secs(60)), "ready");
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 2.0, Some("r1"));
+    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
+    assert_eq!(done["state"], "done", "{done:#}\n{}", lab.logs());
+    // Its results came from r1, whole, past the rogue's chunks.
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, id, &out);
+    assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    // The lab's STOP reaches r1 through the rogue's answers.
+    let long = lab.submit(&ana, set, 110.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");
+    let pressed = Instant::now();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/robots/r1/stop", "");
+    let took = pressed.elapsed();
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["stopped"], serde_json::json!([{"robot": "r1", "engaged": true, "message": "engaged"}]));
+    eprintln!("the lab's STOP, a rogue answering first: engaged in {took:?}");
+    assert!(took < Duration::from_secs(5), "{took:?}");
+    wait_stopped_by(lab.robot("r1"), &format!("ana@{LAB}"));
+    let aborted = lab.wait_for(&ana, long, "aborted", Duration::from_secs(120));
+    assert!(aborted.to_string().contains("emergency stop by ana@testlab"), "{aborted:#}");
+    // The rogue was asked every time, and everything it said was skipped.
+    let answered = rogue.finish(Duration::from_secs(30));
+    for op in ["dispatch", "results", "file", "estop"] {
+        assert!(answered["answered"][op].as_u64().unwrap() > 0, "{op}: {answered}");
+    }
+    assert!(lab_metric(&lab, "subsume_lab_skipped_replies_total") >= 5.0 * 4.0, "{}", lab.logs());
+}
+
+#[test]
+fn a_captured_dispatch_replayed_to_its_robot_or_to_another_is_refused_and_counted() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let capture = Attack::start(&["capture", &lab.zenoh, LAB, "r1", "r2"]);
+    assert_eq!(capture.line(Duration::from_secs(60)), "ready");
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 2.0, Some("r1"));
+    let replayed: Json = serde_json::from_str(&capture.line(Duration::from_secs(240))).unwrap();
+    assert_eq!(replayed["captured"]["lab_id"], id, "{replayed:#}");
+    assert_eq!(replayed["captured"]["to"]["robot"], "r1", "{replayed:#}");
+    // (to, what the unsigned refusal says): each replay once, nothing signed.
+    let expected = [("r1", "refused (replayed)"), ("r1", "refused (replayed)"), ("r2", "names robot 'r1'")];
+    let replays = replayed["replays"].as_array().unwrap();
+    assert_eq!(replays.len(), expected.len(), "{replayed:#}");
+    for ((to, words), replay) in expected.iter().zip(replays) {
+        assert_eq!(replay["to"], *to, "{replay:#}");
+        let answers = replay["answers"].as_array().unwrap();
+        assert_eq!(answers.len(), 1, "{replay:#}");
+        assert!(answers[0]["refused"].as_str().is_some_and(|t| t.contains(words)), "{words}: {replay:#}");
+    }
+    // The experiment ran once, on r1, to its end; r2 ran nothing.
+    assert_eq!(lab.wait_for(&ana, id, "done", Duration::from_secs(180))["state"], "done", "{}", lab.logs());
+    let experiments = |robot: &Robot| {
+        let owner = support::login(&robot.address, "owner", PASSWORD);
+        let (_, json) = http(&robot.address, "GET", "/api/v1/experiments", Some(&owner), b"");
+        json["experiments"].as_array().unwrap().len()
+    };
+    assert_eq!((experiments(lab.robot("r1")), experiments(lab.robot("r2"))), (1, 0));
+    // Counted: in each robot's audit (bounded lines) and the lab's metrics.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let lines = |robot: &Robot| -> String {
+            robot_audit(robot)
+                .iter()
+                .filter(|e| e["action"] == "lab-refusals")
+                .map(|e| e["detail"].to_string())
+                .collect()
+        };
+        let (r1, r2) = (lines(lab.robot("r1")), lines(lab.robot("r2")));
+        if r1.contains("replayed")
+            && r2.contains("other-robot 1")
+            && lab_metric(&lab, "subsume_lab_refused_requests_total{by=\"robots\"}") >= 3.0
+        {
+            break;
+        }
+        assert!(Instant::now() < deadline, "the replays were never counted: r1 {r1}, r2 {r2}\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(500));
+    }
+}
+
+#[test]
+fn a_junk_query_flood_during_a_stop_leaves_it_engaging_at_once_and_the_robots_audit_bounded() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 110.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(180))["state"], "running");
+    let r1 = lab.robot("r1");
+    let before = robot_audit(r1).len();
+    let flood = Attack::start(&["flood", &lab.zenoh, LAB, "r1", "8", "1000"]);
+    assert_eq!(flood.line(Duration::from_secs(60)), "ready");
+    std::thread::sleep(Duration::from_secs(2));
+    let pressed = Instant::now();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/robots/r1/stop", "");
+    let took = pressed.elapsed();
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["stopped"], serde_json::json!([{"robot": "r1", "engaged": true, "message": "engaged"}]));
+    assert!(took < Duration::from_secs(2), "{took:?}");
+    // Pressed 19 times more during the flood: every press reaches r1.
+    let mut times = vec![took];
+    for _ in 0..19 {
+        let pressed = Instant::now();
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/robots/r1/stop", "");
+        times.push(pressed.elapsed());
+        assert_eq!(status, 200, "{json}");
+        assert_eq!(json["stopped"][0]["engaged"], true, "{json}");
+    }
+    times.sort();
+    eprintln!("the lab's STOP during a junk flood, 20 presses: median {:?}, slowest {:?}", times[10], times[19]);
+    assert!(times[19] < Duration::from_secs(2), "{times:?}");
+    let sent = flood.finish(Duration::from_secs(60));
+    let sent = sent["sent"].as_u64().unwrap();
+    assert!(sent >= 4000, "the flood sent {sent}");
+    wait_stopped_by(r1, &format!("ana@{LAB}"));
+    assert_eq!(lab.wait_for(&ana, id, "aborted", Duration::from_secs(120))["state"], "aborted");
+    // Every junk query was counted, none answered, and the audit log got a
+    // summary line at most every 10 s, not a line each.
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while lab_metric(&lab, "subsume_lab_refused_requests_total{by=\"robots\"}") < sent as f64 * 0.9 {
+        assert!(Instant::now() < deadline, "the junk was not counted\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(500));
+    }
+    let audit = robot_audit(r1);
+    let added: Vec<&Json> = audit.iter().skip(before).collect();
+    let summaries = added.iter().filter(|e| e["action"] == "lab-refusals").count();
+    assert!((1..=3).contains(&summaries), "{added:#?}");
+    assert!(added.len() <= 12, "the flood's audit is not bounded: {added:#?}");
+}
+
+#[test]
+fn a_robots_token_declared_again_keeps_it_neither_listed_nor_its_experiment_alive() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 60.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(180))["state"], "running");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "running")
+    });
+    // A peer declares r1's running token again, then r1's link is cut.
+    let holder = Attack::start(&["token", &lab.zenoh, LAB, "r1"]);
+    let keys: Json = serde_json::from_str(&holder.line(Duration::from_secs(60))).unwrap();
+    let keys = keys["ready"].as_array().unwrap().clone();
+    assert!(keys.iter().any(|k| k.as_str().unwrap().contains(&format!("/running-{id}/"))), "{keys:?}");
+    lab.robot("r1").link.cut();
+    std::thread::sleep(Duration::from_secs(1));
+    // At the Zenoh layer r1's token is still there: any client sees it.
+    let output = std::process::Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/lab_tokens.py"))
+        .args([&lab.zenoh, LAB])
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&output.stdout).contains("\"r1\""), "{output:?}");
+    // The lab goes by r1's signed statuses: lost, its experiment aborted.
+    let lost = lab.wait_for(&ana, id, "aborted", Duration::from_secs(30));
+    assert!(lost.to_string().contains("robot lost"), "{lost:#}\n{}", lab.logs());
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "lost" && r["online"] == false)
+    });
+    assert_eq!(holder.finish(Duration::from_secs(30))["released"], keys.len());
+}
+
+#[test]
+fn a_lab_link_off_loopback_without_tls_and_authentication_is_refused_unless_allowed_and_then_logged() {
+    let dir = tempfile::tempdir().unwrap();
+    let store = dir.path().join("store");
+    let port = free_port();
+    let serve = |extra: &[&str]| {
+        let mut command = support::subsume();
+        command
+            .arg("--store")
+            .arg(&store)
+            .args(["lab", "serve", "--http", "127.0.0.1:0", "--lab", LAB])
+            .args(["--listen", &format!("tcp/0.0.0.0:{port}")])
+            .args(extra)
+            .env_remove("SUBSUME_HTTP");
+        HostProcess::spawn(command)
+    };
+    // A lab server listening on every address in plain text.
+    let mut refused = serve(&[]);
+    let status = support::wait_for_exit(&mut refused.child, Duration::from_secs(60));
+    assert!(!status.success());
+    let said = refused.lines_until(0, "on a closed network", Duration::from_secs(10)).join("\n");
+    assert!(said.contains(&format!("is plain text off loopback (tcp/0.0.0.0:{port})")), "{said}");
+    assert!(said.contains("--allow-plain-zenoh on a closed network"), "{said}");
+    // A robot connecting over TLS that authenticates nobody.
+    let home = dir.path().join("r1");
+    std::fs::create_dir_all(&home).unwrap();
+    std::fs::write(home.join("robot.xml"), robot(8.0, "")).unwrap();
+    std::fs::write(home.join("lab.world"), WORLD).unwrap();
+    std::fs::write(home.join("lab.secret"), "0123456789abcdef0123456789abcdef\n").unwrap();
+    let mut command = support::subsume();
+    command
+        .arg("--store")
+        .arg(home.join("store"))
+        .arg("run")
+        .arg(home.join("robot.xml"))
+        .args(["--http", "127.0.0.1:0", "--lab", LAB, "--lab-robot", "r1"])
+        .arg("--lab-secret")
+        .arg(home.join("lab.secret"))
+        .args(["--lab-connect", "tls/192.0.2.1:7447"])
+        .env_remove("SUBSUME_HTTP");
+    let mut robot_host = HostProcess::spawn(command);
+    let status = support::wait_for_exit(&mut robot_host.child, Duration::from_secs(60));
+    assert!(!status.success());
+    let said = robot_host.lines_until(0, "on a closed network", Duration::from_secs(10)).join("\n");
+    assert!(said.contains("is TLS without mutual TLS or user/password (tls/192.0.2.1:7447)"), "{said}");
+    assert!(said.contains("--lab-allow-plain on a closed network"), "{said}");
+    // Allowed on a closed network: it starts, and says so in its log.
+    let allowed = serve(&["--allow-plain-zenoh"]);
+    allowed.lines_until(0, "allowed by --allow-plain-zenoh (a closed network only)", Duration::from_secs(60));
+    allowed.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
 }

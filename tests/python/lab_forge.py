@@ -8,9 +8,11 @@ Opens a client session to ENDPOINT, and for each case of the JSON list
 CASES_JSON ({"op": "dispatch" | "estop", "secret": TEXT, "skew_ms": N,
 "duration_s": S, "config_text": XML}) builds the message as docs/lab.md
 describes it (an SLB1 envelope: HMAC-SHA256 over the lab's name, the kind,
-the header's length and the header), sends it as the payload of a query on
+the header's length and the header; the header names ROBOT, the time, and
+a fresh nonce), sends it as the payload of a query on
 subsume/lab/LAB/rpc/ROBOT/OP, and prints one JSON object per case: the
-case's op and the header of the robot's answer.
+case's op and the robot's answers (the header of a signed one, or the text
+of an unsigned refusal).
 
 The envelope is written here from the format alone, not with subsume's
 code: a robot that refuses these refuses any peer, not only subsume's own.
@@ -19,6 +21,7 @@ code: a robot that refuses these refuses any peer, not only subsume's own.
 import hashlib
 import hmac
 import json
+import os
 import struct
 import sys
 import time
@@ -44,14 +47,15 @@ def header_of(envelope):
     return json.loads(envelope[41 : 41 + length])
 
 
-def message(case, lab_id):
+def message(case, robot, lab_id):
     issued = int(time.time() * 1000) + case.get("skew_ms", 0)
+    to = {"robot": robot, "issued_unix_ms": issued, "nonce": os.urandom(16).hex()}
     if case["op"] == "estop":
-        return {"v": 1, "by": "mallory", "issued_unix_ms": issued}
+        return {"v": 2, "to": to, "by": "mallory"}
     return {
-        "v": 1,
+        "v": 2,
+        "to": to,
         "lab_id": lab_id,
-        "issued_unix_ms": issued,
         "submitter": "mallory",
         "role": "admin",
         "platforms": ["control", "network"],
@@ -71,13 +75,15 @@ def main():
     session = client(endpoint)
     try:
         for n, case in enumerate(cases):
-            header = json.dumps(message(case, 9000 + n)).encode()
+            header = json.dumps(message(case, robot, 9000 + n)).encode()
             payload = seal(lab, case["secret"], KINDS[case["op"]], header)
             answers = []
             key = f"subsume/lab/{lab}/rpc/{robot}/{case['op']}"
             for reply in session.get(key, payload=payload, timeout=60.0):
                 if reply.ok is not None:
                     answers.append(header_of(bytes(reply.ok.payload.to_bytes())))
+                else:
+                    answers.append({"refused": bytes(reply.err.payload.to_bytes()).decode("utf-8", "replace")})
             print(json.dumps({"op": case["op"], "answers": answers}), flush=True)
     finally:
         session.close()

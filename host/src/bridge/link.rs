@@ -321,7 +321,7 @@ mod tests {
     /// A session of its own (the registry shares sessions by settings).
     fn lone_session() -> Arc<Shared> {
         let listen = vec![format!("tcp/127.0.0.1:{}", free_port())];
-        session::session(&SessionSettings { connect: vec![], listen, config: None }).unwrap()
+        session::session(&SessionSettings { connect: vec![], listen, config: None, max_message_bytes: None }).unwrap()
     }
 
     #[test]
@@ -411,9 +411,20 @@ mod tests {
     fn messages_arrive_in_the_order_sent_whichever_thread_puts_them() {
         let port = free_port();
         let endpoint = format!("tcp/127.0.0.1:{port}");
-        let a = session::session(&SessionSettings { connect: vec![], listen: vec![endpoint.clone()], config: None })
-            .unwrap();
-        let b = session::session(&SessionSettings { connect: vec![endpoint], listen: vec![], config: None }).unwrap();
+        let a = session::session(&SessionSettings {
+            connect: vec![],
+            listen: vec![endpoint.clone()],
+            config: None,
+            max_message_bytes: None,
+        })
+        .unwrap();
+        let b = session::session(&SessionSettings {
+            connect: vec![endpoint],
+            listen: vec![],
+            config: None,
+            max_message_bytes: None,
+        })
+        .unwrap();
         let (tx, rx) = mpsc::channel::<Vec<u8>>();
         let _subscriber = b
             .session

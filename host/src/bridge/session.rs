@@ -55,6 +55,11 @@ pub const LOOP_WAIT_BEFORE_DROP_US: i64 = 1;
 /// with a larger value keeps every put on the sender thread.
 pub const MAX_LOOP_WAIT_BEFORE_DROP_US: i64 = 10;
 
+/// Zenoh's setting for the largest message a link reassembles (bytes;
+/// Zenoh's default is 1 GiB): a peer sending more is dropped by Zenoh
+/// itself, before anything here holds it.
+pub const MAX_MESSAGE_SIZE_KEY: &str = "transport/link/rx/max_message_size";
+
 /// Why a session did not open.
 #[derive(Debug, Error)]
 pub enum SessionError {
@@ -103,6 +108,9 @@ pub struct SessionSettings {
     pub connect: Vec<String>,
     pub listen: Vec<String>,
     pub config: Option<PathBuf>,
+    /// The largest message Zenoh reassembles on this session
+    /// ([`MAX_MESSAGE_SIZE_KEY`]); `None`: the config's, else Zenoh's.
+    pub max_message_bytes: Option<usize>,
 }
 
 fn endpoints(text: &str, key: &'static str) -> Result<Vec<String>, SessionError> {
@@ -137,6 +145,7 @@ impl SessionSettings {
             connect: endpoints(text("connect"), "connect")?,
             listen: endpoints(text("listen"), "listen")?,
             config,
+            max_message_bytes: None,
         })
     }
 
@@ -178,6 +187,9 @@ impl SessionSettings {
         }
         if !self.listen.is_empty() || self.config.is_none() {
             set(&mut config, "listen/endpoints", json(&self.listen))?;
+        }
+        if let Some(bytes) = self.max_message_bytes {
+            set(&mut config, MAX_MESSAGE_SIZE_KEY, bytes.to_string())?;
         }
         Ok(config)
     }
@@ -240,6 +252,80 @@ pub fn session(settings: &SessionSettings) -> Result<Arc<Shared>, SessionError> 
     });
     tracing::info!(session = %shared.id, connect = ?settings.connect, listen = ?settings.listen, "zenoh session open");
     Ok(shared)
+}
+
+/// The links of a Zenoh config that cross a network unprotected: what a
+/// lab refuses unless its owner allows it (a closed network).
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct LinkExposure {
+    /// Endpoints off loopback without TLS (anyone on the path reads them).
+    pub plain: Vec<String>,
+    /// Endpoints off loopback over TLS with neither mutual TLS nor
+    /// user/password (anyone who reaches them joins).
+    pub unauthenticated: Vec<String>,
+}
+
+impl LinkExposure {
+    pub fn is_empty(&self) -> bool {
+        self.plain.is_empty() && self.unauthenticated.is_empty()
+    }
+}
+
+impl std::fmt::Display for LinkExposure {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let mut parts = Vec::new();
+        if !self.plain.is_empty() {
+            parts.push(format!("is plain text off loopback ({})", self.plain.join(", ")));
+        }
+        if !self.unauthenticated.is_empty() {
+            parts.push(format!("is TLS without mutual TLS or user/password ({})", self.unauthenticated.join(", ")));
+        }
+        f.write_str(&parts.join(" and "))
+    }
+}
+
+/// Whether `endpoint` (`PROTO/HOST:PORT`, maybe with `?config` or
+/// `#metadata`) stays on this machine.
+pub fn is_loopback_endpoint(endpoint: &str) -> bool {
+    let address = endpoint.split(['?', '#']).next().unwrap_or_default();
+    let address = address.split_once('/').map_or(address, |(_, rest)| rest);
+    let host = address.rsplit_once(':').map_or(address, |(host, _)| host);
+    let host = host.trim_start_matches('[').trim_end_matches(']');
+    host == "localhost" || host.parse::<std::net::IpAddr>().is_ok_and(|ip| ip.is_loopback())
+}
+
+/// The endpoints of `config` (connect and listen) off loopback that are
+/// plain text, or TLS that authenticates nobody.
+pub fn link_exposure(config: &zenoh::Config) -> LinkExposure {
+    fn strings(value: &serde_json::Value, out: &mut Vec<String>) {
+        match value {
+            serde_json::Value::String(text) => out.push(text.clone()),
+            serde_json::Value::Array(items) => items.iter().for_each(|v| strings(v, out)),
+            serde_json::Value::Object(map) => map.values().for_each(|v| strings(v, out)),
+            _ => {}
+        }
+    }
+    let json =
+        |key: &str| config.get_json(key).ok().and_then(|text| serde_json::from_str::<serde_json::Value>(&text).ok());
+    let mut endpoints = Vec::new();
+    for key in ["connect/endpoints", "listen/endpoints"] {
+        if let Some(value) = json(key) {
+            strings(&value, &mut endpoints);
+        }
+    }
+    let set = |key: &str| json(key).is_some_and(|v| !v.is_null() && v != serde_json::Value::Bool(false));
+    let authenticated = set("transport/link/tls/enable_mtls")
+        || set("transport/auth/usrpwd/user")
+        || set("transport/auth/usrpwd/dictionary_file");
+    let mut exposure = LinkExposure::default();
+    for endpoint in endpoints.into_iter().filter(|e| !is_loopback_endpoint(e)) {
+        if !endpoint.starts_with("tls/") {
+            exposure.plain.push(endpoint);
+        } else if !authenticated {
+            exposure.unauthenticated.push(endpoint);
+        }
+    }
+    exposure
 }
 
 /// Whether `config` lets a droppable put wait at most
@@ -377,7 +463,12 @@ mod tests {
 
     #[test]
     fn the_default_config_is_peer_mode_without_multicast() {
-        let settings = SessionSettings { connect: vec!["tcp/127.0.0.1:7447".into()], listen: vec![], config: None };
+        let settings = SessionSettings {
+            connect: vec!["tcp/127.0.0.1:7447".into()],
+            listen: vec![],
+            config: None,
+            max_message_bytes: None,
+        };
         let config = settings.zenoh_config().unwrap_or_default();
         let get = |key| config.get_json(key).unwrap_or_default();
         assert_eq!(get("mode"), "\"peer\"");
@@ -387,8 +478,151 @@ mod tests {
     }
 
     #[test]
+    fn a_bounded_session_drops_a_larger_message_at_the_zenoh_layer_over_any_config_file() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
+        let file = dir.path().join("zenoh.json5");
+        std::fs::write(&file, "{ mode: \"peer\" }").unwrap_or_else(|e| panic!("write: {e}"));
+        for config in [None, Some(file)] {
+            let settings = SessionSettings { connect: vec![], listen: vec![], config, max_message_bytes: Some(1234) };
+            let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(config.get_json(MAX_MESSAGE_SIZE_KEY).unwrap_or_default(), "1234");
+        }
+        // Over a real link: a message larger than the bound never arrives;
+        // one within it, sent after it on the same link, does.
+        let port = std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .map(|a| a.port())
+            .unwrap_or_else(|e| panic!("{e}"));
+        let endpoint = format!("tcp/127.0.0.1:{port}");
+        let bounded = session(&SessionSettings {
+            connect: vec![],
+            listen: vec![endpoint.clone()],
+            config: None,
+            max_message_bytes: Some(256 << 10),
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        let sender = session(&SessionSettings {
+            connect: vec![endpoint],
+            listen: vec![],
+            config: None,
+            max_message_bytes: None,
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        let (heard, sizes) = std::sync::mpsc::channel();
+        let _subscriber = bounded
+            .session
+            .declare_subscriber("subsume/test/bounded")
+            .callback(move |sample: zenoh::sample::Sample| {
+                let _ = heard.send(sample.payload().len());
+            })
+            .wait()
+            .unwrap_or_else(|e| panic!("{e}"));
+        let put = |bytes: usize| {
+            sender
+                .session
+                .put("subsume/test/bounded", vec![7u8; bytes])
+                .congestion_control(zenoh::qos::CongestionControl::Block)
+                .wait()
+                .unwrap_or_else(|e| panic!("{e}"))
+        };
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        loop {
+            put(10);
+            if sizes.recv_timeout(Duration::from_millis(200)).is_ok() {
+                break;
+            }
+            assert!(std::time::Instant::now() < deadline, "the sessions never linked");
+        }
+        put(1 << 20);
+        put(100 << 10);
+        let mut arrived = Vec::new();
+        while let Ok(size) = sizes.recv_timeout(Duration::from_secs(3)) {
+            arrived.push(size);
+            if size == 100 << 10 {
+                break;
+            }
+        }
+        assert!(arrived.contains(&(100 << 10)) && !arrived.contains(&(1 << 20)), "{arrived:?}");
+    }
+
+    #[test]
+    fn links_off_loopback_without_tls_or_authentication_are_named() {
+        let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
+        let file = dir.path().join("zenoh.json5");
+        /// (case, config file, connect, listen, plain, unauthenticated)
+        type Case<'a> = (&'a str, Option<&'a str>, &'a str, &'a str, Vec<&'a str>, Vec<&'a str>);
+        let cases: Vec<Case> = vec![
+            ("loopback only", None, "tcp/127.0.0.1:7447", "tcp/[::1]:7448", vec![], vec![]),
+            ("localhost", None, "tcp/localhost:7447", "", vec![], vec![]),
+            ("a plain listener", None, "", "tcp/0.0.0.0:7447", vec!["tcp/0.0.0.0:7447"], vec![]),
+            ("a plain connection", None, "tcp/10.0.0.2:7447", "", vec!["tcp/10.0.0.2:7447"], vec![]),
+            (
+                "TLS, nobody authenticated",
+                None,
+                "tls/lab.example.org:7447",
+                "",
+                vec![],
+                vec!["tls/lab.example.org:7447"],
+            ),
+            (
+                "TLS with user/password",
+                Some(
+                    "{ listen: { endpoints: [] }, transport: { auth: { usrpwd: { user: \"r1\", password: \"secret\" } } } }",
+                ),
+                "tls/lab.example.org:7447",
+                "",
+                vec![],
+                vec![],
+            ),
+            (
+                "TLS with mutual TLS",
+                Some("{ transport: { link: { tls: { enable_mtls: true } } } }"),
+                "",
+                "tls/0.0.0.0:7447",
+                vec![],
+                vec![],
+            ),
+            (
+                "a config file naming no listener: Zenoh's default listens on every address",
+                Some("{ mode: \"peer\" }"),
+                "tcp/127.0.0.1:7447",
+                "",
+                vec!["tcp/[::]:0", "tcp/[::]:7447"],
+                vec![],
+            ),
+            (
+                "endpoints from the file",
+                Some("{ listen: { endpoints: [\"tcp/192.168.1.2:7447\"] } }"),
+                "",
+                "",
+                vec!["tcp/192.168.1.2:7447"],
+                vec![],
+            ),
+        ];
+        for (case, text, connect, listen, plain, unauthenticated) in cases {
+            let config = text.map(|text| {
+                std::fs::write(&file, text).unwrap_or_else(|e| panic!("write: {e}"));
+                file.clone()
+            });
+            let list = |t: &str| t.split(',').filter(|s| !s.is_empty()).map(str::to_string).collect();
+            let settings =
+                SessionSettings { connect: list(connect), listen: list(listen), config, max_message_bytes: None };
+            let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{case}: {e}"));
+            let exposure = link_exposure(&config);
+            assert_eq!(
+                (
+                    exposure.plain.iter().map(String::as_str).collect::<Vec<_>>(),
+                    exposure.unauthenticated.iter().map(String::as_str).collect::<Vec<_>>()
+                ),
+                (plain, unauthenticated),
+                "{case}"
+            );
+        }
+    }
+
+    #[test]
     fn the_loop_puts_itself_only_when_a_congested_put_gives_up_at_once() {
-        let settings = SessionSettings { connect: vec![], listen: vec![], config: None };
+        let settings = SessionSettings { connect: vec![], listen: vec![], config: None, max_message_bytes: None };
         let config = settings.zenoh_config().unwrap_or_default();
         assert_eq!(config.get_json(WAIT_BEFORE_DROP_KEY).unwrap_or_default(), LOOP_WAIT_BEFORE_DROP_US.to_string());
         assert!(loop_puts(&config));
@@ -397,7 +631,8 @@ mod tests {
         let dir = tempfile::tempdir().unwrap_or_else(|e| panic!("tempdir: {e}"));
         let file = dir.path().join("zenoh.json5");
         std::fs::write(&file, "{ mode: \"peer\" }").unwrap_or_else(|e| panic!("write: {e}"));
-        let settings = SessionSettings { connect: vec![], listen: vec![], config: Some(file.clone()) };
+        let settings =
+            SessionSettings { connect: vec![], listen: vec![], config: Some(file.clone()), max_message_bytes: None };
         let config = settings.zenoh_config().unwrap_or_else(|e| panic!("{e}"));
         assert!(!loop_puts(&config));
         let quick = format!(

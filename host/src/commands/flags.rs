@@ -109,6 +109,10 @@ pub struct LabJoinFlags {
     /// How often the robot publishes its status to the lab (0.1 to 10).
     #[arg(long, value_name = "HZ", default_value = "1", value_parser = status_hz)]
     pub lab_status_hz: f64,
+    /// Allow the lab's Zenoh link off loopback in plain text, or over TLS
+    /// that authenticates nobody (a closed network only).
+    #[arg(long)]
+    pub lab_allow_plain: bool,
 }
 
 /// The Zenoh session of a lab's link: a config file and endpoints, as the
@@ -117,10 +121,28 @@ pub fn lab_session(
     config: Option<PathBuf>,
     connect: &str,
     listen: &str,
+    allow_plain: (bool, &str),
 ) -> anyhow::Result<subsume::bridge::session::SessionSettings> {
     let split = |text: &str| text.split(',').map(str::trim).filter(|s| !s.is_empty()).map(str::to_string).collect();
-    let settings = subsume::bridge::session::SessionSettings { connect: split(connect), listen: split(listen), config };
-    settings.zenoh_config()?;
+    let settings = subsume::bridge::session::SessionSettings {
+        connect: split(connect),
+        listen: split(listen),
+        config,
+        // The lab's bound, at the Zenoh layer too.
+        max_message_bytes: Some(subsume::lab::wire::MAX_ZENOH_MESSAGE_BYTES),
+    };
+    // Off loopback, the lab's link is TLS that authenticates its peers
+    // (mutual TLS or user/password), unless the owner allows otherwise.
+    let exposure = subsume::bridge::session::link_exposure(&settings.zenoh_config()?);
+    let (allowed, flag) = allow_plain;
+    if !exposure.is_empty() {
+        if !allowed {
+            anyhow::bail!(
+                "the lab's zenoh link {exposure}: anyone on that network could read or join it; use tls/ endpoints with mutual TLS or user/password in the zenoh config (docs/distributed.md), or {flag} on a closed network"
+            );
+        }
+        tracing::warn!("the lab's zenoh link {exposure}: allowed by {flag} (a closed network only)");
+    }
     Ok(settings)
 }
 
@@ -137,7 +159,8 @@ impl LabJoinFlags {
             .or_else(|| store_dir.map(|d| d.join("lab.secret")))
             .context("--lab needs the lab's secret: --lab-secret FILE")?;
         let key = subsume::lab::wire::LabKey::from_file(&lab, &secret)?;
-        let session = lab_session(self.lab_zenoh_config, &self.lab_connect, &self.lab_listen)?;
+        let allow = (self.lab_allow_plain, "--lab-allow-plain");
+        let session = lab_session(self.lab_zenoh_config, &self.lab_connect, &self.lab_listen, allow)?;
         let robot = match self.lab_robot {
             Some(name) => name,
             None => std::fs::read_to_string("/proc/sys/kernel/hostname")

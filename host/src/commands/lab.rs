@@ -117,6 +117,10 @@ struct ServeArgs {
     /// Allow plain HTTP on addresses other than loopback.
     #[arg(long, env = "SUBSUME_ALLOW_PLAIN_HTTP")]
     allow_plain_http: bool,
+    /// Allow the lab's Zenoh listener or connections off loopback in plain
+    /// text, or over TLS that authenticates nobody (a closed network only).
+    #[arg(long)]
+    allow_plain_zenoh: bool,
     /// How the preflights run: `background` (nice 10, behind the lab's
     /// portal and dispatch), `idle` (only the CPU nothing else wants) or
     /// `normal` (a machine that does nothing else).
@@ -131,7 +135,8 @@ impl ServeArgs {
         std::fs::create_dir_all(&store_dir).with_context(|| format!("cannot make {}", store_dir.display()))?;
         let secret = self.secret.unwrap_or_else(|| store_dir.join("lab.secret"));
         let key = subsume::lab::wire::LabKey::from_file_or_new(&self.lab, &secret)?;
-        let session = super::flags::lab_session(self.zenoh_config, &self.connect, &self.listen)?;
+        let allow = (self.allow_plain_zenoh, "--allow-plain-zenoh");
+        let session = super::flags::lab_session(self.zenoh_config, &self.connect, &self.listen, allow)?;
         let identity = subsume::tls::TlsIdentity::from_options(self.tls_cert.as_deref(), self.tls_key.as_deref())?;
         let options = subsume::run::LabServeOptions {
             listen: self.http,

@@ -79,7 +79,7 @@ impl LabMetrics {
             families.push(
                 Family::new(
                     "subsume_lab_robots",
-                    "robots the lab server knows, by whether a token shows them",
+                    "robots the lab server knows, by whether they are online (a token and fresh signed statuses)",
                     MetricKind::Gauge,
                 )
                 .gauge(vec![("online", "true".into())], link.online as f64)
@@ -109,6 +109,7 @@ impl LabMetrics {
                 )
                 .counter(vec![], link.foreign),
             );
+            families.extend(link.refusal_families());
         }
         families
     }

@@ -15,17 +15,23 @@
 //! it runs the lab's experiment aborts it on its own and goes back to its
 //! baseline.
 //!
-//! Who the robot obeys: only messages signed with its lab's secret
-//! ([`wire::LabKey`]): a second lab server, under any name or secret,
-//! gets refusals, and its heartbeats count for nothing.
+//! Who the robot obeys: only requests signed with its lab's secret
+//! ([`wire::LabKey`]), naming this robot, fresh, and never seen before
+//! ([`transfer::Gate`]); its replies carry the request's nonce and its
+//! name under their MAC. A peer without the secret gets no answer, and
+//! its heartbeats count for nothing; refusals are counted by class and
+//! audited at most once per [`wire::REFUSAL_AUDIT_INTERVAL_MS`], and the
+//! count travels in the robot's status to its lab server's /metrics.
 //!
-//! Threads: one per kind of query (dispatches, which take seconds; stops
-//! and emergency stops, which must not wait behind one; files), and one
-//! that keeps the token, the status and the lost-lab watch.
+//! Threads: one per kind of query, each with its own queryable and
+//! backlog (dispatches, which take seconds; stops and emergency stops,
+//! which must not wait behind one nor behind junk on other keys; files),
+//! and one that keeps the token, the status, the refusals' audit and the
+//! lost-lab watch.
 
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -33,11 +39,11 @@ use thiserror::Error;
 use zenoh::Wait;
 
 use super::materialize::{self, NamedContent};
-use super::transfer::{self, TransferError};
+use super::transfer::{self, Asker, Gate, TransferError};
 use super::wire::{
-    self, Ack, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop, FileRequest,
-    FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, ResultsRequest, RobotState, SetManifest,
-    Status, Stop, TokenBody, WIRE_VERSION,
+    self, Ack, Answered, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop,
+    FileRequest, FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, RefusalTally, Request,
+    ResultsRequest, RobotState, SetManifest, Status, Stop, TokenBody, WIRE_VERSION,
 };
 use super::{Lab, LabError, bundle};
 use crate::bridge::session::{self, SessionSettings, Shared};
@@ -71,6 +77,11 @@ pub const START_WAIT: Duration = Duration::from_secs(60);
 
 /// How often the token, the status and the lost-lab watch are looked at.
 const WATCH: Duration = Duration::from_millis(100);
+
+/// Largest request but a dispatch (results, a file's chunk, the baseline,
+/// the live status): each is a few hundred bytes; junk larger is refused
+/// before its MAC is computed.
+pub const MAX_SMALL_REQUEST_BYTES: usize = 16 << 10;
 
 /// Why the link could not start.
 #[derive(Debug, Error)]
@@ -119,6 +130,12 @@ pub struct RobotLink {
     boot_ms: u64,
     /// When the lab was last heard (a heartbeat or a dispatch).
     heard: Mutex<Option<Instant>>,
+    /// The newest heartbeat's time: an older one (replayed) is not heard.
+    last_beat_ms: AtomicU64,
+    /// Lab messages refused, by class, and their audit.
+    refusals: Arc<Mutex<RefusalTally>>,
+    /// Replies this robot skipped when it asked its lab server (blobs).
+    skipped: AtomicU64,
     package: Mutex<Option<Package>>,
     stopping: Arc<AtomicBool>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
@@ -166,6 +183,9 @@ impl RobotLink {
             shared,
             boot_ms: unix_now_ms(),
             heard: Mutex::new(None),
+            last_beat_ms: AtomicU64::new(0),
+            refusals: Arc::new(Mutex::new(RefusalTally::default())),
+            skipped: AtomicU64::new(0),
             package: Mutex::new(None),
             stopping: Arc::new(AtomicBool::new(false)),
             threads: Mutex::new(Vec::new()),
@@ -183,22 +203,48 @@ impl RobotLink {
                 let Some(link) = weak.upgrade() else { return };
                 let bytes = sample.payload().to_bytes();
                 match key.open::<Heartbeat>(&bytes) {
-                    Ok((beat, _)) if wire::fresh(beat.at_unix_ms, unix_now_ms()).is_ok() => link.heard_lab(),
-                    Ok(_) => tracing::debug!("lab heartbeat too old or too new: ignored"),
-                    Err(e) => tracing::debug!("a heartbeat on the lab's key was refused: {e}"),
+                    // Fresh, and newer than the newest heard: a replayed
+                    // heartbeat keeps no experiment alive.
+                    Ok((beat, _))
+                        if wire::fresh(beat.at_unix_ms, unix_now_ms()).is_ok()
+                            && link.last_beat_ms.fetch_max(beat.at_unix_ms, Ordering::AcqRel) < beat.at_unix_ms =>
+                    {
+                        link.heard_lab()
+                    }
+                    Ok(_) => tracing::debug!("lab heartbeat too old, too new or replayed: ignored"),
+                    Err(e) => {
+                        lock(&link.refusals).note(e.class());
+                        tracing::debug!("a heartbeat on the lab's key was refused: {e}")
+                    }
                 }
             })
             .wait()
             .map_err(|e| TransferError::Zenoh(e.to_string()))?;
         *lock(&link._heartbeats) = Some(subscriber);
-        let mut threads = Vec::new();
-        for (op, name) in [(Op::Dispatch, "lab-dispatch"), (Op::Stop, "lab-stop"), (Op::Estop, "lab-estop")] {
-            threads.push(link.serve(op, name)?);
-        }
-        for (op, name) in [(Op::Results, "lab-results"), (Op::File, "lab-files"), (Op::Baseline, "lab-baseline")] {
-            threads.push(link.serve(op, name)?);
-        }
-        threads.push(link.serve(Op::Live, "lab-live")?);
+        // Each kind of query its own queryable, backlog and thread: the
+        // STOP's first, and nothing on other keys reaches its backlog.
+        let small = MAX_SMALL_REQUEST_BYTES;
+        let threads = vec![
+            link.serve(Op::Estop, "lab-estop", wire::MAX_STOP_BYTES, |link, estop: Estop, re| {
+                link.options.key.seal(&link.estop(&estop, re), &[])
+            })?,
+            link.serve(Op::Stop, "lab-stop", wire::MAX_STOP_BYTES, |link, stop: Stop, re| {
+                link.options.key.seal(&link.stop(&stop, re), &[])
+            })?,
+            link.serve(Op::Dispatch, "lab-dispatch", wire::MAX_MESSAGE_BYTES, |link, dispatch: Dispatch, re| {
+                let outcome = link.dispatch(&dispatch);
+                link.options.key.seal(&DispatchReply { v: WIRE_VERSION, re, lab_id: dispatch.lab_id, outcome }, &[])
+            })?,
+            link.serve(Op::Results, "lab-results", small, |link, request: ResultsRequest, re| {
+                link.options.key.seal(&link.results(request.lab_id, re), &[])
+            })?,
+            link.serve(Op::File, "lab-files", small, |link, request: FileRequest, re| link.file(&request, re))?,
+            link.serve(Op::Baseline, "lab-baseline", small, |link, _: BaselineRequest, re| link.baseline(re))?,
+            link.serve(Op::Live, "lab-live", small, |link, _: LiveRequest, re| {
+                link.options.key.seal(&Live { v: WIRE_VERSION, re, status: link.live_status() }, &[])
+            })?,
+        ];
+        let mut threads = threads;
         let watched = link.clone();
         threads.push(
             std::thread::Builder::new()
@@ -216,12 +262,26 @@ impl RobotLink {
         Ok(link)
     }
 
-    fn serve(self: &Arc<Self>, op: Op, name: &str) -> Result<std::thread::JoinHandle<()>, LinkError> {
+    /// Serves `op`'s queries with `answer`, admitting requests of kind `Q`
+    /// of at most `max_bytes`.
+    fn serve<Q: Request + Send + 'static>(
+        self: &Arc<Self>,
+        op: Op,
+        name: &str,
+        max_bytes: usize,
+        answer: fn(&RobotLink, Q, Answered) -> Vec<u8>,
+    ) -> Result<std::thread::JoinHandle<()>, LinkError> {
         let weak = Arc::downgrade(self);
         let key_expr = self.keys.rpc(&self.options.robot, op);
-        Ok(transfer::serve(self.shared.clone(), key_expr, name, self.stopping.clone(), move |payload| {
+        let gate = Gate {
+            key: self.options.key.clone(),
+            me: self.options.robot.clone(),
+            max_bytes,
+            refusals: self.refusals.clone(),
+        };
+        Ok(transfer::serve(self.shared.clone(), key_expr, name, self.stopping.clone(), gate, move |request, re| {
             match weak.upgrade() {
-                Some(link) => link.answer(op, payload),
+                Some(link) => answer(&link, request, re),
                 None => Vec::new(),
             }
         })?)
@@ -255,66 +315,25 @@ impl RobotLink {
         Ok(())
     }
 
-    fn answer(&self, op: Op, payload: &[u8]) -> Vec<u8> {
+    /// A chunk of a file the lab asks for.
+    fn file(&self, request: &FileRequest, re: Answered) -> Vec<u8> {
         let key = &self.options.key;
-        match op {
-            Op::Dispatch => {
-                let (lab_id, outcome) = match key.open::<Dispatch>(payload) {
-                    Ok((dispatch, _)) => (dispatch.lab_id, self.dispatch(&dispatch)),
-                    Err(e) => {
-                        let reason = format!("refused: {e}");
-                        self.lab.deployer.audit("lab", "lab-dispatch", "a dispatch", Outcome::Refused(&reason));
-                        tracing::warn!("lab '{}': a dispatch was {reason}", key.lab());
-                        (0, DispatchOutcome::Refused { reasons: vec![reason] })
-                    }
-                };
-                key.seal(&DispatchReply { v: WIRE_VERSION, lab_id, outcome }, &[])
-            }
-            Op::Stop => {
-                let ack = match key.open::<Stop>(payload) {
-                    Ok((stop, _)) => self.stop(&stop),
-                    Err(e) => self.refuse("lab-stop", "a stop", format!("refused: {e}")),
-                };
-                key.seal(&ack, &[])
-            }
-            Op::Estop => {
-                let ack = match key.open::<Estop>(payload) {
-                    Ok((estop, _)) => self.estop(&estop),
-                    Err(e) => self.refuse("lab-estop", "an emergency stop", format!("refused: {e}")),
-                };
-                key.seal(&ack, &[])
-            }
-            Op::Results => match key.open::<ResultsRequest>(payload) {
-                Ok((request, _)) => key.seal(&self.results(request.lab_id), &[]),
-                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
-            },
-            Op::File => match key.open::<FileRequest>(payload) {
-                Ok((request, _)) => {
-                    if let FileSource::Named { path } = &request.source
-                        && let Some(NamedContent::StandIn(bytes)) =
-                            lock(&self.package).as_ref().and_then(|p| p.files.get(path)).cloned()
-                    {
-                        return transfer::chunk_of_bytes(key, &bytes, &request);
-                    }
-                    let path = self.file_path(&request.source);
-                    transfer::chunk_of(key, path.as_deref(), &request)
-                }
-                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
-            },
-            Op::Baseline => match key.open::<BaselineRequest>(payload) {
-                Ok(_) => {
-                    let _ = self.refresh_package();
-                    match lock(&self.package).as_ref() {
-                        Some(package) => key.seal(&package.message, &[]),
-                        None => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: "no baseline".into() }, &[]),
-                    }
-                }
-                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
-            },
-            Op::Live => match key.open::<LiveRequest>(payload) {
-                Ok(_) => key.seal(&Live { v: WIRE_VERSION, status: self.live_status() }, &[]),
-                Err(e) => key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
-            },
+        if let FileSource::Named { path } = &request.source
+            && let Some(NamedContent::StandIn(bytes)) =
+                lock(&self.package).as_ref().and_then(|p| p.files.get(path)).cloned()
+        {
+            return transfer::chunk_of_bytes(key, re, &bytes, request);
+        }
+        let path = self.file_path(&request.source);
+        transfer::chunk_of(key, re, path.as_deref(), request)
+    }
+
+    /// The robot's baseline, as its lab server gets it.
+    fn baseline(&self, re: Answered) -> Vec<u8> {
+        let _ = self.refresh_package();
+        match lock(&self.package).as_ref() {
+            Some(package) => self.options.key.seal(&Baseline { re, ..package.message.clone() }, &[]),
+            None => self.options.key.seal(&Ack { v: WIRE_VERSION, re, ok: false, message: "no baseline".into() }, &[]),
         }
     }
 
@@ -353,6 +372,10 @@ impl RobotLink {
         while !self.stopping.load(Ordering::Acquire) {
             if let Err(e) = self.refresh_package() {
                 tracing::warn!("{e}");
+            }
+            if let Some(line) = lock(&self.refusals).due(unix_now_ms()) {
+                tracing::warn!("lab '{}': {line}", self.options.key.lab());
+                self.lab.deployer.audit("lab", "lab-refusals", "lab messages", Outcome::Refused(&line));
             }
             let (state, times) = self.state();
             let Some(package) = lock(&self.package).clone() else {
@@ -410,6 +433,8 @@ impl RobotLink {
                     ends_unix_ms: times.map(|t| t.1),
                     locks: locks.map(|l| l.engaged().into_iter().map(|e| e.lock).collect()).unwrap_or_default(),
                     set: self.lab.deployer.active().ok().map(|(set, _)| set.id),
+                    period_ms: self.options.status_period.as_millis() as u64,
+                    refused: lock(&self.refusals).sum(),
                 };
                 if let Err(e) = publisher.put(self.options.key.seal(&status, &[])).wait() {
                     tracing::debug!("the lab status was not published: {e}");
@@ -446,13 +471,9 @@ impl RobotLink {
     /// host's lab, and says how it went (or why not).
     fn dispatch(&self, dispatch: &Dispatch) -> DispatchOutcome {
         let target = format!("lab experiment {}", dispatch.lab_id);
-        // A stale one is refused before anything, and audited like any.
-        let outcome = wire::fresh(dispatch.issued_unix_ms, unix_now_ms())
-            .map_err(|e| vec![format!("refused: {e}")])
-            .and_then(|()| {
-                self.heard_lab();
-                self.take(dispatch).and_then(|id| self.wait_start(id))
-            });
+        // Admitted (signed, for this robot, fresh, new): the lab is heard.
+        self.heard_lab();
+        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id));
         let outcome = match outcome {
             Ok(outcome) => outcome,
             Err(reasons) => DispatchOutcome::Refused { reasons },
@@ -539,7 +560,9 @@ impl RobotLink {
                 continue;
             }
             let source = FileSource::Blob { sha256: blob.sha256.clone() };
-            let bytes = transfer::fetch_blob(&self.shared, &self.options.key, &self.keys.blobs(), &source, blob)?;
+            let asker = Asker { shared: &self.shared, key: &self.options.key, skipped: &self.skipped };
+            let at = (self.keys.blobs(), wire::SERVER_TARGET);
+            let bytes = transfer::fetch_blob(asker, (&at.0, at.1), &source, blob)?;
             let writer = store.lock().map_err(|e| TransferError::Missing(e.to_string()))?;
             writer.put_blob(&bytes).map_err(|e| TransferError::Missing(e.to_string()))?;
         }
@@ -624,20 +647,8 @@ impl RobotLink {
         }
     }
 
-    /// Refuses a message that would change what runs (a stop, an
-    /// emergency stop), in the audit log as dispatches are: who tried is
-    /// not known, so the lab is named.
-    fn refuse(&self, action: &str, what: &str, reason: String) -> Ack {
-        self.lab.deployer.audit("lab", action, what, Outcome::Refused(&reason));
-        tracing::warn!("lab '{}': {what} was {reason}", self.options.key.lab());
-        Ack { v: WIRE_VERSION, ok: false, message: reason }
-    }
-
-    fn stop(&self, stop: &Stop) -> Ack {
-        let ack = |ok, message: String| Ack { v: WIRE_VERSION, ok, message };
-        if let Err(e) = wire::fresh(stop.issued_unix_ms, unix_now_ms()) {
-            return self.refuse("lab-stop", &format!("lab experiment {}", stop.lab_id), format!("refused: {e}"));
-        }
+    fn stop(&self, stop: &Stop, re: Answered) -> Ack {
+        let ack = |ok, message: String| Ack { v: WIRE_VERSION, re: re.clone(), ok, message };
         self.heard_lab();
         let by = lab_user(&self.options, &stop.by);
         let Ok(mut book) = self.lab.lock() else { return ack(false, "the lab's state is unusable".into()) };
@@ -665,25 +676,24 @@ impl RobotLink {
         ack(true, message)
     }
 
-    fn estop(&self, estop: &Estop) -> Ack {
-        if let Err(e) = wire::fresh(estop.issued_unix_ms, unix_now_ms()) {
-            return self.refuse("lab-estop", "an emergency stop", format!("refused: {e}"));
-        }
+    fn estop(&self, estop: &Estop, re: Answered) -> Ack {
         self.heard_lab();
         let user = Principal { name: lab_user(&self.options, &estop.by), role: Role::Viewer, platforms: Vec::new() };
         match self.lab.deployer.engage_lock(&user, &format!("lab '{}'", self.options.key.lab())) {
             Ok(engaged) => Ack {
                 v: WIRE_VERSION,
+                re,
                 ok: true,
                 message: if engaged.newly { "engaged".into() } else { "engaged already".into() },
             },
-            Err(e) => Ack { v: WIRE_VERSION, ok: false, message: e.to_string() },
+            Err(e) => Ack { v: WIRE_VERSION, re, ok: false, message: e.to_string() },
         }
     }
 
-    fn results(&self, lab_id: u64) -> wire::Results {
+    fn results(&self, lab_id: u64, re: Answered) -> wire::Results {
         let empty = wire::Results {
             v: WIRE_VERSION,
+            re: re.clone(),
             lab_id,
             found: false,
             state: None,
@@ -718,6 +728,7 @@ impl RobotLink {
         let skip = record.history.len().saturating_sub(wire::MAX_REASONS);
         wire::Results {
             v: WIRE_VERSION,
+            re,
             lab_id,
             found: true,
             state: Some(record.state),
@@ -849,6 +860,8 @@ fn package(lab: &Lab, set: u64) -> Result<Package, LinkError> {
     });
     let hash = crate::store::sha256_hex(canonical.to_string().as_bytes());
     let profile = Profile::new(hash.clone(), worlds, translators);
-    let message = Baseline { v: WIRE_VERSION, hash, set: set_manifest, files };
+    // Its binding is the request's, set as each is answered.
+    let re = Answered { robot: String::new(), nonce: String::new() };
+    let message = Baseline { v: WIRE_VERSION, re, hash, set: set_manifest, files };
     Ok(Package { set, message, profile, files: contents })
 }

@@ -7,8 +7,13 @@
 //! queued experiment goes to the first free robot that fits its target.
 //!
 //! - **Robots.** A robot's token says its name, state and profile; the
-//!   newest token of a robot wins while its old one is undeclared; a robot
-//!   without a token is lost. The first time a baseline hash is seen, the
+//!   newest token of a robot wins while its old one is undeclared. A robot
+//!   is online while it has a token and its signed statuses keep coming
+//!   (each fresh and newer than the last, within
+//!   [`wire::STATUS_SILENCE_PERIODS`] of its period): a token someone
+//!   re-declares keeps no dead robot listed. Every request names its
+//!   robot, a time and a fresh nonce, and only a reply bound to it is
+//!   taken ([`transfer::Asker`]). The first time a baseline hash is seen, the
 //!   lab fetches that baseline (its robot file, its components, the files
 //!   it names, secrets replaced by stand-ins) and stores it as a set: what
 //!   researchers stage against and experiments are checked against.
@@ -39,11 +44,11 @@ use thiserror::Error;
 use zenoh::Wait;
 
 use super::queue::{self, Seat, Unplaced};
-use super::transfer::{self, TransferError};
+use super::transfer::{self, Asker, Gate, TransferError};
 use super::wire::{
-    self, Ack, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop, FileRequest,
-    FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, Results, ResultsRequest, RobotState,
-    SetManifest, Status, Stop, TokenBody, WIRE_VERSION,
+    self, Ack, Asked, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop, FileRequest,
+    FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, RefusalTally, Results, ResultsRequest,
+    RobotState, SetManifest, Status, Stop, TokenBody, WIRE_VERSION,
 };
 use super::{Book, Lab, LabError, bundle};
 use crate::bridge::session::{self, SessionSettings, Shared};
@@ -120,8 +125,17 @@ struct Robot {
 }
 
 impl Robot {
+    /// It has a token, and its last fresh signed status came within its
+    /// silence limit ([`Status::silence_ms`]).
     fn online(&self) -> bool {
+        self.online_at(Instant::now())
+    }
+
+    fn online_at(&self, now: Instant) -> bool {
         self.current.is_some()
+            && self.status.as_ref().is_some_and(|(status, at)| {
+                now.saturating_duration_since(*at) <= Duration::from_millis(status.silence_ms())
+            })
     }
 
     fn may_retry(&self) -> bool {
@@ -159,6 +173,12 @@ pub struct LinkCounters {
     /// Tokens and statuses not signed with this lab's key (another lab,
     /// or an impostor), ignored.
     pub foreign: AtomicU64,
+    /// Signed statuses too old, too new, or not newer than the robot's
+    /// last (replayed), ignored.
+    pub stale_statuses: AtomicU64,
+    /// Replies to the lab's requests skipped: unsigned, refused, or bound
+    /// to another request or robot.
+    pub skipped_replies: AtomicU64,
 }
 
 /// The link's counters and robots at one moment (for /metrics).
@@ -167,9 +187,44 @@ pub struct LinkFigures {
     pub statuses: u64,
     pub tokens: u64,
     pub foreign: u64,
+    pub stale_statuses: u64,
+    pub skipped_replies: u64,
+    /// Requests this server's queryable refused.
+    pub refused: u64,
+    /// Requests the robots refused, as their statuses say.
+    pub robots_refused: u64,
     /// Robots tracked, and those a live token shows.
     pub known: usize,
     pub online: usize,
+}
+
+impl LinkFigures {
+    /// The refusals' metric families (docs/lab.md, "What holds against a
+    /// peer without the secret").
+    pub fn refusal_families(&self) -> Vec<crate::runtime::Family> {
+        use crate::runtime::{Family, MetricKind};
+        vec![
+            Family::new(
+                "subsume_lab_refused_requests",
+                "lab requests refused (not signed, stale, replayed, for another robot, busy): by the robots, as their statuses say, and by this server",
+                MetricKind::Counter,
+            )
+            .counter(vec![("by", "robots".into())], self.robots_refused)
+            .counter(vec![("by", "server".into())], self.refused),
+            Family::new(
+                "subsume_lab_skipped_replies",
+                "replies to the lab server's requests skipped: unsigned, refused, or bound to another request or robot",
+                MetricKind::Counter,
+            )
+            .counter(vec![], self.skipped_replies),
+            Family::new(
+                "subsume_lab_stale_statuses",
+                "signed robot statuses ignored: too old, too new, or not newer than the robot's last (replayed)",
+                MetricKind::Counter,
+            )
+            .counter(vec![], self.stale_statuses),
+        ]
+    }
 }
 
 /// The lab server's robots and its Zenoh side.
@@ -183,6 +238,8 @@ pub struct Fleet {
     robots: Mutex<BTreeMap<String, Robot>>,
     lab: Mutex<Weak<Lab>>,
     pub counters: LinkCounters,
+    /// Requests for blobs refused.
+    refusals: Arc<Mutex<RefusalTally>>,
     stopping: Arc<AtomicBool>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
     subscribers: Mutex<Vec<zenoh::pubsub::Subscriber<()>>>,
@@ -214,6 +271,7 @@ impl Fleet {
             robots: Mutex::new(BTreeMap::new()),
             lab: Mutex::new(Weak::new()),
             counters: LinkCounters::default(),
+            refusals: Arc::new(Mutex::new(RefusalTally::default())),
             stopping: Arc::new(AtomicBool::new(false)),
             threads: Mutex::new(Vec::new()),
             subscribers: Mutex::new(Vec::new()),
@@ -251,12 +309,19 @@ impl Fleet {
         let token = fleet.shared.session.liveliness().declare_token(fleet.keys.server_token(&fleet.shared.id)).wait();
         *lock(&fleet._token) = Some(token.map_err(zenoh)?);
         let weak = Arc::downgrade(&fleet);
+        let gate = Gate {
+            key: fleet.key.clone(),
+            me: wire::SERVER_TARGET.to_string(),
+            max_bytes: super::robot_link::MAX_SMALL_REQUEST_BYTES,
+            refusals: fleet.refusals.clone(),
+        };
         let blobs = transfer::serve(
             fleet.shared.clone(),
             fleet.keys.blobs(),
             "lab-blobs",
             fleet.stopping.clone(),
-            move |payload| weak.upgrade().map(|f| f.serve_blob(payload)).unwrap_or_default(),
+            gate,
+            move |request: FileRequest, re| weak.upgrade().map(|f| f.serve_blob(&request, re)).unwrap_or_default(),
         )?;
         let beating = fleet.clone();
         let heartbeat = std::thread::Builder::new()
@@ -279,11 +344,16 @@ impl Fleet {
 
     /// The link's counters and how many robots it tracks.
     pub fn link_figures(&self) -> LinkFigures {
+        let refused = lock(&self.refusals).sum();
         let robots = lock(&self.robots);
         LinkFigures {
             statuses: self.counters.statuses.load(Ordering::Relaxed),
             tokens: self.counters.tokens.load(Ordering::Relaxed),
             foreign: self.counters.foreign.load(Ordering::Relaxed),
+            stale_statuses: self.counters.stale_statuses.load(Ordering::Relaxed),
+            skipped_replies: self.counters.skipped_replies.load(Ordering::Relaxed),
+            refused,
+            robots_refused: robots.values().filter_map(|r| r.status.as_ref()).map(|(s, _)| s.refused).sum(),
             known: robots.len(),
             online: robots.values().filter(|r| r.online()).count(),
         }
@@ -291,6 +361,11 @@ impl Fleet {
 
     pub fn lab_name(&self) -> &str {
         self.key.lab()
+    }
+
+    /// Who asks the robots: this server, counting the replies it skips.
+    fn asker(&self) -> Asker<'_> {
+        Asker { shared: &self.shared, key: &self.key, skipped: &self.counters.skipped_replies }
     }
 
     fn wake(&self) {
@@ -363,25 +438,37 @@ impl Fleet {
                 return;
             }
         };
-        self.counters.statuses.fetch_add(1, Ordering::Relaxed);
+        // Fresh, and newer than the robot's last: a replayed status keeps
+        // no robot online.
+        if wire::fresh(status.at_unix_ms, unix_now_ms()).is_err() {
+            self.counters.stale_statuses.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
         let mut robots = lock(&self.robots);
-        if let Some(robot) = robots.get_mut(&status.name) {
-            robot.status = Some((status, Instant::now()));
+        if !robots.contains_key(&status.name) && robots.len() >= MAX_ROBOTS {
+            return;
+        }
+        let robot = robots.entry(status.name.clone()).or_default();
+        if robot.status.as_ref().is_some_and(|(last, _)| last.at_unix_ms >= status.at_unix_ms) {
+            self.counters.stale_statuses.fetch_add(1, Ordering::Relaxed);
+            return;
+        }
+        self.counters.statuses.fetch_add(1, Ordering::Relaxed);
+        let was_online = robot.online();
+        robot.status = Some((status, Instant::now()));
+        if !was_online && robot.online() {
+            drop(robots);
+            self.wake();
         }
     }
 
     /// A chunk of a blob a robot asks for: the blobs of this store only.
-    fn serve_blob(&self, payload: &[u8]) -> Vec<u8> {
-        match self.key.open::<FileRequest>(payload) {
-            Ok((request, _)) => {
-                let path = match &request.source {
-                    FileSource::Blob { sha256 } => Some(self.store.blob_path(sha256)).filter(|p| p.is_file()),
-                    _ => None,
-                };
-                transfer::chunk_of(&self.key, path.as_deref(), &request)
-            }
-            Err(e) => self.key.seal(&Ack { v: WIRE_VERSION, ok: false, message: format!("refused: {e}") }, &[]),
-        }
+    fn serve_blob(&self, request: &FileRequest, re: wire::Answered) -> Vec<u8> {
+        let path = match &request.source {
+            FileSource::Blob { sha256 } => Some(self.store.blob_path(sha256)).filter(|p| p.is_file()),
+            _ => None,
+        };
+        transfer::chunk_of(&self.key, re, path.as_deref(), request)
     }
 
     /// Every robot the lab knows, as the portal lists them, with the set
@@ -397,7 +484,7 @@ impl Fleet {
                     None => (token.as_ref()?.profile.clone(), token.as_ref()?.max_duration_s),
                 };
                 let status = robot.status.as_ref().map(|(s, _)| s);
-                let (state, experiment, stopped_by) = match &robot.current {
+                let (state, experiment, stopped_by) = match robot.current.as_ref().filter(|_| robot.online()) {
                     None => ("lost".to_string(), None, None),
                     Some(t) => match &t.state {
                         RobotState::Running { experiment } => ("running".into(), Some(*experiment), None),
@@ -485,21 +572,15 @@ impl Fleet {
                 None => robots.iter().filter(|(_, r)| r.online()).map(|(n, _)| n.clone()).collect(),
             }
         };
-        let estop = Estop { v: WIRE_VERSION, by: user.name.clone(), issued_unix_ms: unix_now_ms() };
         // Every robot at once: a STOP for all must not wait robot by robot.
         let answers = std::thread::scope(|scope| {
             let asks: Vec<_> = names
                 .iter()
                 .map(|robot| {
-                    let (estop, key_expr) = (&estop, self.keys.rpc(robot, Op::Estop));
+                    let estop = Estop { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()), by: user.name.clone() };
+                    let key_expr = self.keys.rpc(robot, Op::Estop);
                     scope.spawn(move || {
-                        match transfer::ask::<Estop, Ack>(
-                            &self.shared,
-                            &self.key,
-                            &key_expr,
-                            estop,
-                            transfer::QUERY_TIMEOUT,
-                        ) {
+                        match self.asker().ask::<Estop, Ack>(&key_expr, &estop, transfer::QUERY_TIMEOUT) {
                             Ok((ack, _)) if ack.ok => Ok(ack.message),
                             Ok((ack, _)) => Err(ack.message),
                             Err(e) => Err(e.to_string()),
@@ -517,9 +598,10 @@ impl Fleet {
         if !lock(&self.robots).get(name).is_some_and(Robot::online) {
             return Err(LabError::NotFound(format!("no robot '{}' is online", crate::contract::clip(name))));
         }
-        let request = LiveRequest { v: WIRE_VERSION };
+        let request = LiveRequest { v: WIRE_VERSION, to: Asked::new(name, unix_now_ms()) };
         let key_expr = self.keys.rpc(name, Op::Live);
-        transfer::ask::<LiveRequest, Live>(&self.shared, &self.key, &key_expr, &request, transfer::QUERY_TIMEOUT)
+        self.asker()
+            .ask::<LiveRequest, Live>(&key_expr, &request, transfer::QUERY_TIMEOUT)
             .map(|(live, _)| live.status)
             .map_err(|e| LabError::Host(format!("robot '{name}': {e}")))
     }
@@ -785,8 +867,8 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
         let set = manifest(lab.store(), record.set)?;
         Ok::<_, String>(Dispatch {
             v: WIRE_VERSION,
+            to: Asked::new(robot, unix_now_ms()),
             lab_id: id,
-            issued_unix_ms: unix_now_ms(),
             submitter: record.submitter.clone(),
             role: user.role,
             platforms: user.platforms.clone(),
@@ -799,8 +881,16 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
         Ok(message) => {
             let key_expr = fleet.keys.rpc(robot, Op::Dispatch);
             tracing::info!("experiment {id}: dispatched to robot {robot}");
-            transfer::ask::<Dispatch, DispatchReply>(&fleet.shared, &fleet.key, &key_expr, &message, DISPATCH_TIMEOUT)
-                .map(|(reply, _)| reply.outcome)
+            fleet
+                .asker()
+                .ask::<Dispatch, DispatchReply>(&key_expr, &message, DISPATCH_TIMEOUT)
+                .and_then(|(reply, _)| {
+                    if reply.lab_id == id {
+                        Ok(reply.outcome)
+                    } else {
+                        Err(TransferError::Missing(format!("it answered about experiment {}", reply.lab_id)))
+                    }
+                })
                 .unwrap_or_else(|e| DispatchOutcome::Refused { reasons: vec![format!("no answer: {e}")] })
         }
         Err(why) => DispatchOutcome::Refused { reasons: vec![format!("the lab could not send it: {why}")] },
@@ -863,9 +953,9 @@ fn refused(lab: &Lab, book: &mut Book, id: u64, robot: &str, reasons: Vec<String
 }
 
 fn stop(fleet: &Fleet, id: u64, robot: &str, by: &str) {
-    let message = Stop { v: WIRE_VERSION, lab_id: id, by: by.to_string(), issued_unix_ms: unix_now_ms() };
+    let message = Stop { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()), lab_id: id, by: by.to_string() };
     let key_expr = fleet.keys.rpc(robot, Op::Stop);
-    match transfer::ask::<Stop, Ack>(&fleet.shared, &fleet.key, &key_expr, &message, transfer::QUERY_TIMEOUT) {
+    match fleet.asker().ask::<Stop, Ack>(&key_expr, &message, transfer::QUERY_TIMEOUT) {
         Ok((ack, _)) => tracing::info!("experiment {id} on robot {robot}: stop by {by}: {}", ack.message),
         Err(e) => {
             tracing::warn!("experiment {id} on robot {robot}: the stop was not answered: {e}");
@@ -937,15 +1027,16 @@ fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
 /// The results of experiment `id` on `robot`, their files fetched into
 /// its folder; `None` while it still runs there.
 fn fetch_results(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) -> Result<Option<Results>, TransferError> {
-    let request = ResultsRequest { v: WIRE_VERSION, lab_id: id };
+    let request = ResultsRequest { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()), lab_id: id };
     let key_expr = fleet.keys.rpc(robot, Op::Results);
-    let (results, _) = transfer::ask::<ResultsRequest, Results>(
-        &fleet.shared,
-        &fleet.key,
-        &key_expr,
-        &request,
-        transfer::QUERY_TIMEOUT,
-    )?;
+    let (results, _) = fleet.asker().ask::<ResultsRequest, Results>(&key_expr, &request, transfer::QUERY_TIMEOUT)?;
+    // Bound to this request, and about the experiment asked.
+    if results.lab_id != id {
+        return Err(TransferError::Missing(format!(
+            "robot {robot} answered about experiment {}, not {id}",
+            results.lab_id
+        )));
+    }
     if !results.found {
         return Ok(Some(Results {
             state: Some(ExperimentState::Aborted),
@@ -970,7 +1061,7 @@ fn fetch_results(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) -> Result<Optio
         }
         let source = FileSource::Result { lab_id: id, name: file.name.clone() };
         let expected = BlobRef { sha256: file.sha256.clone(), bytes: file.bytes };
-        transfer::fetch_file(&fleet.shared, &fleet.key, &file_key, &source, &expected, &dest)?;
+        transfer::fetch_file(fleet.asker(), (&file_key, robot), &source, &expected, &dest)?;
     }
     tracing::info!("experiment {id}: {} result files fetched from robot {robot}", results.files.len());
     Ok(Some(results))
@@ -999,16 +1090,12 @@ fn fetch_baseline(lab: &Lab, fleet: &Fleet, robot: &str) {
 }
 
 fn import_baseline(lab: &Lab, fleet: &Fleet, robot: &str) -> Result<u64, String> {
-    let request = BaselineRequest { v: WIRE_VERSION };
+    let request = BaselineRequest { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()) };
     let key_expr = fleet.keys.rpc(robot, Op::Baseline);
-    let (baseline, _) = transfer::ask::<BaselineRequest, Baseline>(
-        &fleet.shared,
-        &fleet.key,
-        &key_expr,
-        &request,
-        transfer::QUERY_TIMEOUT,
-    )
-    .map_err(|e| e.to_string())?;
+    let (baseline, _) = fleet
+        .asker()
+        .ask::<BaselineRequest, Baseline>(&key_expr, &request, transfer::QUERY_TIMEOUT)
+        .map_err(|e| e.to_string())?;
     if let Some(set) = lab.lock().map_err(|e| e.to_string())?.lab.baselines.get(&baseline.hash) {
         return Ok(*set);
     }
@@ -1020,7 +1107,7 @@ fn import_baseline(lab: &Lab, fleet: &Fleet, robot: &str) -> Result<u64, String>
         }
         let source = FileSource::Blob { sha256: blob.sha256.clone() };
         let bytes =
-            transfer::fetch_blob(&fleet.shared, &fleet.key, &file_key, &source, blob).map_err(|e| e.to_string())?;
+            transfer::fetch_blob(fleet.asker(), (&file_key, robot), &source, blob).map_err(|e| e.to_string())?;
         store.lock().and_then(|w| w.put_blob(&bytes)).map_err(|e| e.to_string())?;
     }
     let dir = store.root().join("baselines").join(&baseline.hash);
@@ -1031,7 +1118,7 @@ fn import_baseline(lab: &Lab, fleet: &Fleet, robot: &str) -> Result<u64, String>
             continue;
         }
         let source = FileSource::Named { path: path.clone() };
-        transfer::fetch_file(&fleet.shared, &fleet.key, &file_key, &source, blob, &dest).map_err(|e| e.to_string())?;
+        transfer::fetch_file(fleet.asker(), (&file_key, robot), &source, blob, &dest).map_err(|e| e.to_string())?;
     }
     let sources: BTreeMap<String, String> =
         baseline.set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();

@@ -12,9 +12,21 @@
 //! under the lab's secret ([`LabKey`]): a robot obeys only messages of the
 //! lab it was configured with, a status cannot be replayed as a dispatch
 //! (the kind is signed), and a lab of another name or secret is refused
-//! before its header is read. Requests that change something (a dispatch,
-//! a stop) carry the time they were issued, refused beyond
-//! [`MAX_CLOCK_SKEW_MS`] (a captured request replayed later).
+//! before its header is read.
+//!
+//! Requests and replies are bound ([`Asked`], [`Answered`]): every request
+//! names the robot it is for, the time it was issued and a fresh random
+//! nonce; a robot refuses one naming another robot, one issued beyond
+//! [`MAX_CLOCK_SKEW_MS`] from its clock, and one whose nonce it has seen
+//! ([`Replays`]: a captured request replayed to it or to another robot).
+//! Its reply carries the request's nonce and its own name under the
+//! reply's MAC, and the asker takes only a reply bound to its request
+//! ([`bound`]): a reply captured from another exchange answers nothing.
+//! A message that does not verify gets no signed answer (no reply at all,
+//! or an unsigned fixed refusal), so nobody collects signed replies by
+//! sending junk; refusals are counted by [`Refusal`] class
+//! ([`RefusalTally`]) and audited at most once per
+//! [`REFUSAL_AUDIT_INTERVAL_MS`].
 //!
 //! A robot's liveliness token carries its name, state and profile in its
 //! key expression ([`TokenBody`], hex-encoded JSON with its MAC), so any
@@ -36,9 +48,10 @@ use thiserror::Error;
 use crate::contract::clip;
 use crate::store::experiments::{ExperimentState, RunResult, StateChange};
 
-/// The version of every message's header (`v`). A receiver refuses a
-/// newer one, never guesses at it.
-pub const WIRE_VERSION: u32 = 1;
+/// The version of every message's header (`v`). A receiver refuses any
+/// other, by name, never guesses at it: version 2 binds replies to their
+/// requests, and a host of version 1 could not tell them apart.
+pub const WIRE_VERSION: u32 = 2;
 
 /// The envelope's first bytes.
 pub const MAGIC: &[u8; 4] = b"SLB1";
@@ -54,6 +67,12 @@ pub const MAX_HEADER_BYTES: usize = (crate::config::limits::MAX_CONFIG_BYTES as 
 /// Largest message: a header and a chunk (a peer sending more is refused
 /// before anything is parsed).
 pub const MAX_MESSAGE_BYTES: usize = 4 + 32 + 1 + 4 + MAX_HEADER_BYTES + MAX_CHUNK_BYTES;
+
+/// Largest message the lab's Zenoh sessions reassemble (Zenoh's own
+/// `transport/link/rx/max_message_size`, 1 GiB by default): a lab message
+/// and Zenoh's framing. A peer sending more is dropped by Zenoh before the
+/// lab's code holds it.
+pub const MAX_ZENOH_MESSAGE_BYTES: usize = MAX_MESSAGE_BYTES + (64 << 10);
 
 /// Fewest bytes a lab's secret has: a guessable secret lets anyone on the
 /// Zenoh network send the robots work.
@@ -88,6 +107,24 @@ pub const MAX_TEXT_LEN: usize = 2000;
 /// How far a request's issue time may be from the receiver's clock: a
 /// captured dispatch or stop replayed later is refused.
 pub const MAX_CLOCK_SKEW_MS: u64 = 30_000;
+
+/// Random bytes of a request's nonce (hex in the header).
+pub const NONCE_BYTES: usize = 16;
+
+/// Most nonces a queryable remembers within the freshness window: the
+/// threat is the lab's own traffic (or a flood of replayed signed
+/// requests) growing a robot's memory. Past it, the oldest is forgotten
+/// and nothing issued at or before it is taken any more.
+pub const MAX_REMEMBERED_NONCES: usize = 4096;
+
+/// How often, at most, a robot's audit log gets a line about refused lab
+/// messages (their counts by class): a flood of junk queries must not
+/// write (and fsync) one line each.
+pub const REFUSAL_AUDIT_INTERVAL_MS: u64 = 10_000;
+
+/// What a request for the lab server itself (a blob of a set) names as
+/// its target: never a robot's name (`@` is not in a plain name).
+pub const SERVER_TARGET: &str = "@server";
 
 /// What a message is; signed with it, so one kind is never read as another.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -154,12 +191,322 @@ pub enum WireError {
     BadSignature { lab: String },
     #[error("the message's header does not read: {0}")]
     Header(String),
-    #[error("the message's version {got} is newer than this host's {WIRE_VERSION}")]
+    #[error(
+        "the message's version {got} is not this host's {WIRE_VERSION}: lab hosts of both versions cannot work together; run one version"
+    )]
     Version { got: u32 },
     #[error("the message is refused: {0}")]
     Invalid(String),
     #[error("the request was issued {skew_ms} ms from this host's clock; at most {MAX_CLOCK_SKEW_MS} are accepted")]
     Stale { skew_ms: u64 },
+    #[error("the request names robot '{named}', not this one")]
+    OtherTarget { named: String },
+    #[error("the request was seen already (a replay), or is older than the oldest one remembered")]
+    Replayed,
+    #[error("the reply is not bound to this request: {0}")]
+    Unbound(String),
+}
+
+impl WireError {
+    /// The class of a refusal, as counted and audited.
+    pub fn class(&self) -> Refusal {
+        match self {
+            WireError::BadSignature { .. } => Refusal::NotSigned,
+            WireError::TooLarge { .. }
+            | WireError::NotAnEnvelope
+            | WireError::Truncated
+            | WireError::UnknownKind(_)
+            | WireError::WrongKind { .. }
+            | WireError::Header(_)
+            | WireError::Invalid(_) => Refusal::Malformed,
+            WireError::Version { .. } => Refusal::Version,
+            WireError::Stale { .. } => Refusal::Stale,
+            WireError::OtherTarget { .. } => Refusal::OtherTarget,
+            WireError::Replayed => Refusal::Replayed,
+            WireError::Unbound(_) => Refusal::Unbound,
+        }
+    }
+
+    /// Whether the message was signed with the lab's key (the error came
+    /// after its MAC verified): only those may get an answer, and then an
+    /// unsigned one.
+    pub fn signed(&self) -> bool {
+        !matches!(
+            self,
+            WireError::BadSignature { .. }
+                | WireError::TooLarge { .. }
+                | WireError::NotAnEnvelope
+                | WireError::Truncated
+                | WireError::UnknownKind(_)
+        )
+    }
+}
+
+/// Why a message was refused, as counted: one word each.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub enum Refusal {
+    /// Not signed with the lab's key (junk, another lab, a forger).
+    NotSigned,
+    /// Not a lab message, cut short, too large, or breaking a bound.
+    Malformed,
+    /// Another wire version.
+    Version,
+    /// Issued too far from the receiver's clock.
+    Stale,
+    /// Seen already.
+    Replayed,
+    /// Naming another robot.
+    OtherTarget,
+    /// A reply bound to another request or robot (the asker's side).
+    Unbound,
+    /// Admitted, but the queryable's backlog was full.
+    Busy,
+}
+
+impl Refusal {
+    pub const ALL: [Refusal; 8] = [
+        Refusal::NotSigned,
+        Refusal::Malformed,
+        Refusal::Version,
+        Refusal::Stale,
+        Refusal::Replayed,
+        Refusal::OtherTarget,
+        Refusal::Unbound,
+        Refusal::Busy,
+    ];
+
+    pub fn word(self) -> &'static str {
+        match self {
+            Refusal::NotSigned => "not-signed",
+            Refusal::Malformed => "malformed",
+            Refusal::Version => "version",
+            Refusal::Stale => "stale",
+            Refusal::Replayed => "replayed",
+            Refusal::OtherTarget => "other-robot",
+            Refusal::Unbound => "unbound",
+            Refusal::Busy => "busy",
+        }
+    }
+}
+
+/// Refusals counted by class, and when they were last audited: at most
+/// one audit line per [`REFUSAL_AUDIT_INTERVAL_MS`], carrying the counts
+/// since the last (explicit time: `now_ms`).
+#[derive(Clone, Debug, Default)]
+pub struct RefusalTally {
+    total: BTreeMap<Refusal, u64>,
+    unaudited: BTreeMap<Refusal, u64>,
+    last_audit_ms: Option<u64>,
+}
+
+impl RefusalTally {
+    pub fn note(&mut self, class: Refusal) {
+        *self.total.entry(class).or_default() += 1;
+        *self.unaudited.entry(class).or_default() += 1;
+    }
+
+    /// Every refusal so far, by class.
+    pub fn totals(&self) -> &BTreeMap<Refusal, u64> {
+        &self.total
+    }
+
+    pub fn sum(&self) -> u64 {
+        self.total.values().sum()
+    }
+
+    /// The audit line due at `now_ms`, if any: the counts since the last
+    /// line, once the interval has passed since it.
+    pub fn due(&mut self, now_ms: u64) -> Option<String> {
+        if self.unaudited.is_empty()
+            || self.last_audit_ms.is_some_and(|at| now_ms.saturating_sub(at) < REFUSAL_AUDIT_INTERVAL_MS)
+        {
+            return None;
+        }
+        self.last_audit_ms = Some(now_ms);
+        let counts = std::mem::take(&mut self.unaudited);
+        let n: u64 = counts.values().sum();
+        let each: Vec<String> = counts.iter().map(|(class, count)| format!("{} {count}", class.word())).collect();
+        Some(format!("{n} lab messages refused since the last line ({})", each.join(", ")))
+    }
+}
+
+/// The unsigned refusal a queryable answers a signed request it will not
+/// obey with (a replay, a stale one, one for another robot): fixed text,
+/// no MAC, so it answers nothing.
+pub fn refusal_text(error: &WireError) -> String {
+    format!("refused ({}): {error}", error.class().word())
+}
+
+/// Who a request is for, when it was issued, and its nonce.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Asked {
+    /// The robot asked ([`SERVER_TARGET`] for the lab server).
+    pub robot: String,
+    pub issued_unix_ms: u64,
+    /// [`NONCE_BYTES`] random bytes in hex.
+    pub nonce: String,
+}
+
+impl Asked {
+    /// A request for `robot` issued at `now_ms`, with a fresh nonce.
+    pub fn new(robot: &str, now_ms: u64) -> Asked {
+        Asked { robot: robot.to_string(), issued_unix_ms: now_ms, nonce: nonce() }
+    }
+
+    fn check(&self) -> Result<(), Broken> {
+        if self.robot != SERVER_TARGET {
+            name_ok("the robot asked", &self.robot)?;
+        }
+        nonce_ok(&self.nonce)
+    }
+}
+
+/// A reply's binding: the answering robot and the request's nonce.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Answered {
+    pub robot: String,
+    pub nonce: String,
+}
+
+impl Answered {
+    /// The binding of `me`'s reply to `asked`.
+    pub fn to(asked: &Asked, me: &str) -> Answered {
+        Answered { robot: me.to_string(), nonce: asked.nonce.clone() }
+    }
+
+    fn check(&self) -> Result<(), Broken> {
+        if self.robot != SERVER_TARGET {
+            name_ok("the robot answering", &self.robot)?;
+        }
+        nonce_ok(&self.nonce)
+    }
+}
+
+fn nonce_ok(nonce: &str) -> Result<(), Broken> {
+    if nonce.len() == 2 * NONCE_BYTES && nonce.bytes().all(|b| b.is_ascii_hexdigit() && !b.is_ascii_uppercase()) {
+        Ok(())
+    } else {
+        Err(Broken(format!("'{}' is not a nonce ({NONCE_BYTES} bytes in hex)", clip(nonce))))
+    }
+}
+
+/// A fresh nonce: random bytes from the system; should it have none, a
+/// hash of the process, the time and a counter (a nonce needs to be
+/// unique, not secret).
+fn nonce() -> String {
+    let mut bytes = [0u8; NONCE_BYTES];
+    if getrandom::fill(&mut bytes).is_ok() {
+        return hex::encode(bytes);
+    }
+    static COUNTER: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = COUNTER.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let nanos = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH).map_or(0, |d| d.as_nanos());
+    let seed = format!("{}-{nanos}-{n}", std::process::id());
+    crate::store::sha256_hex(seed.as_bytes())[..2 * NONCE_BYTES].to_string()
+}
+
+/// A request: it says whom it asks, when, and its nonce.
+pub trait Request: Message {
+    fn asked(&self) -> &Asked;
+}
+
+/// A reply: it says who answers which request.
+pub trait Reply: Message {
+    fn answered(&self) -> &Answered;
+}
+
+/// Whether `reply` answers `asked`: its nonce, from the robot asked.
+pub fn bound(asked: &Asked, reply: &Answered) -> Result<(), WireError> {
+    if reply.nonce != asked.nonce {
+        return Err(WireError::Unbound("it answers another request (another nonce)".into()));
+    }
+    if reply.robot != asked.robot {
+        return Err(WireError::Unbound(format!(
+            "robot '{}' answered a request for '{}'",
+            clip(&reply.robot),
+            clip(&asked.robot)
+        )));
+    }
+    Ok(())
+}
+
+/// The requests one queryable admitted within the freshness window, by
+/// nonce: who it is (`me`), and the rules a request passes before it is
+/// obeyed (explicit time; a table test covers them).
+#[derive(Debug)]
+pub struct Replays {
+    me: String,
+    seen: std::collections::HashSet<String>,
+    by_time: std::collections::BTreeSet<(u64, String)>,
+    /// Nothing issued at or before this is taken: a nonce that old may
+    /// have been forgotten.
+    floor_ms: u64,
+    capacity: usize,
+}
+
+impl Replays {
+    pub fn new(me: &str) -> Replays {
+        Replays::with_capacity(me, MAX_REMEMBERED_NONCES)
+    }
+
+    pub fn with_capacity(me: &str, capacity: usize) -> Replays {
+        Replays {
+            me: me.to_string(),
+            seen: Default::default(),
+            by_time: Default::default(),
+            floor_ms: 0,
+            capacity: capacity.max(1),
+        }
+    }
+
+    /// Whether a request `asked` may be obeyed at `now_ms`: it names this
+    /// host, is fresh, and its nonce is new (then remembered).
+    pub fn admit(&mut self, asked: &Asked, now_ms: u64) -> Result<(), WireError> {
+        if asked.robot != self.me {
+            return Err(WireError::OtherTarget { named: clip(&asked.robot) });
+        }
+        fresh(asked.issued_unix_ms, now_ms)?;
+        // What can no longer pass the freshness check needs no memory.
+        while let Some((issued, _)) = self.by_time.first()
+            && issued.saturating_add(MAX_CLOCK_SKEW_MS) < now_ms
+        {
+            if let Some((_, nonce)) = self.by_time.pop_first() {
+                self.seen.remove(&nonce);
+            }
+        }
+        if asked.issued_unix_ms <= self.floor_ms || self.seen.contains(&asked.nonce) {
+            return Err(WireError::Replayed);
+        }
+        if self.seen.len() >= self.capacity
+            && let Some((issued, nonce)) = self.by_time.pop_first()
+        {
+            self.seen.remove(&nonce);
+            self.floor_ms = self.floor_ms.max(issued);
+            if asked.issued_unix_ms <= self.floor_ms {
+                return Err(WireError::Replayed);
+            }
+        }
+        self.seen.insert(asked.nonce.clone());
+        self.by_time.insert((asked.issued_unix_ms, asked.nonce.clone()));
+        Ok(())
+    }
+
+    /// These replays, taking nothing issued at or before `start_ms` (this
+    /// process's start): a request captured before a robot restarted is
+    /// not taken by the new process, which remembers none.
+    pub fn since(mut self, start_ms: u64) -> Replays {
+        self.floor_ms = self.floor_ms.max(start_ms);
+        self
+    }
+
+    /// How many nonces are remembered.
+    pub fn len(&self) -> usize {
+        self.seen.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.seen.is_empty()
+    }
 }
 
 /// A broken bound of a message's header: what is wrong.
@@ -309,7 +656,7 @@ impl LabKey {
             return Err(WireError::WrongKind { expected: M::KIND, got: kind });
         }
         let version: Versioned = serde_json::from_slice(header).map_err(|e| WireError::Header(clip(&e.to_string())))?;
-        if version.v > WIRE_VERSION {
+        if version.v != WIRE_VERSION {
             return Err(WireError::Version { got: version.v });
         }
         let message: M = serde_json::from_slice(header).map_err(|e| WireError::Header(clip(&e.to_string())))?;
@@ -599,7 +946,7 @@ impl LabKey {
             return Err(WireError::BadSignature { lab: self.lab.clone() });
         }
         let version: Versioned = serde_json::from_slice(&json).map_err(|e| WireError::Header(clip(&e.to_string())))?;
-        if version.v > WIRE_VERSION {
+        if version.v != WIRE_VERSION {
             return Err(WireError::Version { got: version.v });
         }
         let token: TokenBody = serde_json::from_slice(&json).map_err(|e| WireError::Header(clip(&e.to_string())))?;
@@ -648,6 +995,29 @@ pub struct Status {
     pub locks: Vec<String>,
     /// The set that runs.
     pub set: Option<u64>,
+    /// How often it publishes its status (ms): the lab server counts it
+    /// lost after [`STATUS_SILENCE_PERIODS`] of them without one.
+    pub period_ms: u64,
+    /// Lab messages its link refused so far (junk, replays, stale, for
+    /// another robot): the lab server's /metrics sums them.
+    pub refused: u64,
+}
+
+/// How many status periods without a fresh signed status make a robot
+/// lost (never less than [`MIN_STATUS_SILENCE_MS`]): a liveliness token
+/// someone re-declares must not keep a dead robot listed.
+pub const STATUS_SILENCE_PERIODS: u64 = 5;
+/// The least silence that makes a robot lost: a robot or lab server
+/// starved for seconds on a loaded machine (seen at a load of 20 on two
+/// cores: 3 s aborted running experiments) must not lose its experiments.
+/// A robot whose token goes is lost at once anyway.
+pub const MIN_STATUS_SILENCE_MS: u64 = 10_000;
+
+impl Status {
+    /// How long without a newer status makes this robot lost.
+    pub fn silence_ms(&self) -> u64 {
+        self.period_ms.saturating_mul(STATUS_SILENCE_PERIODS).max(MIN_STATUS_SILENCE_MS)
+    }
 }
 
 impl Message for Status {
@@ -717,8 +1087,8 @@ impl SetManifest {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Dispatch {
     pub v: u32,
+    pub to: Asked,
     pub lab_id: u64,
-    pub issued_unix_ms: u64,
     pub submitter: String,
     pub role: crate::store::users::Role,
     pub platforms: Vec<String>,
@@ -730,6 +1100,7 @@ pub struct Dispatch {
 impl Message for Dispatch {
     const KIND: Kind = Kind::Dispatch;
     fn check(&self) -> Result<(), Broken> {
+        self.to.check()?;
         name_ok("submitter", &self.submitter)?;
         text_ok("label", &self.label)?;
         if self.platforms.len() > 8 {
@@ -756,6 +1127,7 @@ pub enum DispatchOutcome {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct DispatchReply {
     pub v: u32,
+    pub re: Answered,
     pub lab_id: u64,
     #[serde(flatten)]
     pub outcome: DispatchOutcome,
@@ -764,6 +1136,7 @@ pub struct DispatchReply {
 impl Message for DispatchReply {
     const KIND: Kind = Kind::DispatchReply;
     fn check(&self) -> Result<(), Broken> {
+        self.re.check()?;
         match &self.outcome {
             DispatchOutcome::Refused { reasons } => texts_ok("reasons", reasons),
             DispatchOutcome::Started { .. } => Ok(()),
@@ -775,14 +1148,15 @@ impl Message for DispatchReply {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Stop {
     pub v: u32,
+    pub to: Asked,
     pub lab_id: u64,
     pub by: String,
-    pub issued_unix_ms: u64,
 }
 
 impl Message for Stop {
     const KIND: Kind = Kind::Stop;
     fn check(&self) -> Result<(), Broken> {
+        self.to.check()?;
         name_ok("who", &self.by)
     }
 }
@@ -791,13 +1165,18 @@ impl Message for Stop {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Estop {
     pub v: u32,
+    pub to: Asked,
     pub by: String,
-    pub issued_unix_ms: u64,
 }
+
+/// Largest stop or emergency stop accepted: both are a few hundred bytes,
+/// and a STOP's queryable checks nothing larger (junk on it costs little).
+pub const MAX_STOP_BYTES: usize = 4096;
 
 impl Message for Estop {
     const KIND: Kind = Kind::Estop;
     fn check(&self) -> Result<(), Broken> {
+        self.to.check()?;
         name_ok("who", &self.by)
     }
 }
@@ -806,6 +1185,7 @@ impl Message for Estop {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Ack {
     pub v: u32,
+    pub re: Answered,
     pub ok: bool,
     pub message: String,
 }
@@ -813,6 +1193,7 @@ pub struct Ack {
 impl Message for Ack {
     const KIND: Kind = Kind::Ack;
     fn check(&self) -> Result<(), Broken> {
+        self.re.check()?;
         text_ok("message", &self.message)
     }
 }
@@ -824,11 +1205,15 @@ impl Message for Ack {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ResultsRequest {
     pub v: u32,
+    pub to: Asked,
     pub lab_id: u64,
 }
 
 impl Message for ResultsRequest {
     const KIND: Kind = Kind::ResultsRequest;
+    fn check(&self) -> Result<(), Broken> {
+        self.to.check()
+    }
 }
 
 /// A file of an experiment's results on the robot.
@@ -843,6 +1228,7 @@ pub struct FileRef {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Results {
     pub v: u32,
+    pub re: Answered,
     pub lab_id: u64,
     /// Whether the robot knows the experiment at all.
     pub found: bool,
@@ -856,6 +1242,7 @@ pub struct Results {
 impl Message for Results {
     const KIND: Kind = Kind::Results;
     fn check(&self) -> Result<(), Broken> {
+        self.re.check()?;
         texts_ok("reasons", &self.reasons)?;
         if self.history.len() > MAX_REASONS {
             return Err(broken!("the history lists {}; at most {MAX_REASONS}", self.history.len()));
@@ -890,6 +1277,7 @@ pub enum FileSource {
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct FileRequest {
     pub v: u32,
+    pub to: Asked,
     #[serde(flatten)]
     pub source: FileSource,
     pub offset: u64,
@@ -899,6 +1287,7 @@ pub struct FileRequest {
 impl Message for FileRequest {
     const KIND: Kind = Kind::FileRequest;
     fn check(&self) -> Result<(), Broken> {
+        self.to.check()?;
         if self.len > MAX_CHUNK_BYTES as u64 {
             return Err(broken!("a chunk is at most {MAX_CHUNK_BYTES} bytes"));
         }
@@ -927,6 +1316,7 @@ pub fn named_path_ok(path: &str) -> Result<(), Broken> {
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Chunk {
     pub v: u32,
+    pub re: Answered,
     pub offset: u64,
     /// The whole file's size.
     pub total: u64,
@@ -937,6 +1327,7 @@ pub struct Chunk {
 impl Message for Chunk {
     const KIND: Kind = Kind::Chunk;
     fn check(&self) -> Result<(), Broken> {
+        self.re.check()?;
         self.missing.as_deref().map_or(Ok(()), |m| text_ok("why", m))
     }
 }
@@ -947,10 +1338,14 @@ impl Message for Chunk {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct BaselineRequest {
     pub v: u32,
+    pub to: Asked,
 }
 
 impl Message for BaselineRequest {
     const KIND: Kind = Kind::BaselineRequest;
+    fn check(&self) -> Result<(), Broken> {
+        self.to.check()
+    }
 }
 
 /// A robot's baseline as staged, with the files its built-ins name
@@ -959,6 +1354,7 @@ impl Message for BaselineRequest {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Baseline {
     pub v: u32,
+    pub re: Answered,
     pub hash: String,
     pub set: SetManifest,
     pub files: BTreeMap<String, BlobRef>,
@@ -967,6 +1363,7 @@ pub struct Baseline {
 impl Message for Baseline {
     const KIND: Kind = Kind::Baseline;
     fn check(&self) -> Result<(), Broken> {
+        self.re.check()?;
         sha_ok(&self.hash)?;
         self.set.check()?;
         if self.files.len() > MAX_NAMED_FILES {
@@ -983,10 +1380,14 @@ impl Message for Baseline {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct LiveRequest {
     pub v: u32,
+    pub to: Asked,
 }
 
 impl Message for LiveRequest {
     const KIND: Kind = Kind::LiveRequest;
+    fn check(&self) -> Result<(), Broken> {
+        self.to.check()
+    }
 }
 
 /// Largest live status carried (the portal's live status of one robot).
@@ -996,12 +1397,29 @@ pub const MAX_LIVE_BYTES: usize = 256 << 10;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Live {
     pub v: u32,
+    pub re: Answered,
     pub status: serde_json::Value,
 }
 
 impl Message for Live {
     const KIND: Kind = Kind::Live;
+    fn check(&self) -> Result<(), Broken> {
+        self.re.check()
+    }
 }
+
+/// `impl Request for T` and `impl Reply for T`, by their binding field.
+macro_rules! bound_messages {
+    (requests: $($request:ty),*; replies: $($reply:ty),*) => {
+        $(impl Request for $request { fn asked(&self) -> &Asked { &self.to } })*
+        $(impl Reply for $reply { fn answered(&self) -> &Answered { &self.re } })*
+    };
+}
+
+bound_messages!(
+    requests: Dispatch, Stop, Estop, ResultsRequest, FileRequest, BaselineRequest, LiveRequest;
+    replies: DispatchReply, Ack, Results, Chunk, Baseline, Live
+);
 
 #[cfg(test)]
 mod tests {
@@ -1011,6 +1429,11 @@ mod tests {
         LabKey::new(lab, secret.as_bytes()).unwrap_or_else(|e| panic!("{e}"))
     }
 
+    /// A request for `robot` issued at `at`, its nonce `n` repeated.
+    fn asked(robot: &str, at: u64, n: u8) -> Asked {
+        Asked { robot: robot.into(), issued_unix_ms: at, nonce: hex::encode([n; NONCE_BYTES]) }
+    }
+
     fn profile() -> Profile {
         Profile::new("a".repeat(64), vec!["lab.world".into()], vec!["ascii".into()])
     }
@@ -1018,8 +1441,8 @@ mod tests {
     fn dispatch() -> Dispatch {
         Dispatch {
             v: WIRE_VERSION,
+            to: asked("r1", 1000, 0xab),
             lab_id: 7,
-            issued_unix_ms: 1000,
             submitter: "ana".into(),
             role: crate::store::users::Role::Researcher,
             platforms: vec!["control".into()],
@@ -1055,7 +1478,10 @@ mod tests {
             assert!(lab.open::<Dispatch>(&changed).is_err(), "byte {at}");
         }
         // A signed status is not a dispatch.
-        let status = lab.seal(&Ack { v: 1, ok: true, message: String::new() }, b"");
+        let status = lab.seal(
+            &Ack { v: WIRE_VERSION, re: Answered::to(&asked("r1", 0, 1), "r1"), ok: true, message: String::new() },
+            b"",
+        );
         assert_eq!(
             lab.open::<Dispatch>(&status).err(),
             Some(WireError::WrongKind { expected: Kind::Dispatch, got: Kind::Ack })
@@ -1084,7 +1510,13 @@ mod tests {
     fn newer_versions_and_broken_bounds_are_refused_by_name() {
         let lab = key("lab-a", "0123456789abcdef-secret");
         let newer = Dispatch { v: WIRE_VERSION + 1, ..dispatch() };
-        assert_eq!(lab.open::<Dispatch>(&lab.seal(&newer, b"")).err(), Some(WireError::Version { got: 2 }));
+        assert_eq!(
+            lab.open::<Dispatch>(&lab.seal(&newer, b"")).err(),
+            Some(WireError::Version { got: WIRE_VERSION + 1 })
+        );
+        // A host of the version before refuses ours, and ours refuses its.
+        let older = Dispatch { v: 1, ..dispatch() };
+        assert_eq!(lab.open::<Dispatch>(&lab.seal(&older, b"")).err(), Some(WireError::Version { got: 1 }));
         let mut too_many = dispatch();
         for i in 0..=MAX_SOURCES {
             too_many.set.sources.insert(format!("c{i}.wasm"), BlobRef { sha256: "c".repeat(64), bytes: 1 });
@@ -1152,7 +1584,7 @@ mod tests {
 
     #[test]
     fn file_requests_name_only_result_files_and_relative_paths() {
-        let request = |source| FileRequest { v: 1, source, offset: 0, len: 10 };
+        let request = |source| FileRequest { v: WIRE_VERSION, to: asked("r1", 0, 2), source, offset: 0, len: 10 };
         let ok = [
             FileSource::Result { lab_id: 1, name: "run.mcap".into() },
             FileSource::Named { path: "worlds/lab.world".into() },
@@ -1173,6 +1605,141 @@ mod tests {
         let big =
             FileRequest { len: MAX_CHUNK_BYTES as u64 + 1, ..request(FileSource::Blob { sha256: "d".repeat(64) }) };
         assert!(big.check().is_err());
+    }
+
+    #[test]
+    fn a_robot_admits_a_request_for_it_fresh_and_new_only_once() {
+        let now = 1_000_000;
+        let mut replays = Replays::new("r1");
+        // (case, request, receiver's clock, expected): in order, on one
+        // robot's memory.
+        let cases: Vec<(&str, Asked, u64, Result<(), WireError>)> = vec![
+            ("a fresh request for r1", asked("r1", now, 1), now, Ok(())),
+            ("the same again (a replay)", asked("r1", now, 1), now + 10, Err(WireError::Replayed)),
+            (
+                "the same for r2 (replayed to another robot)",
+                asked("r2", now, 1),
+                now,
+                Err(WireError::OtherTarget { named: "r2".into() }),
+            ),
+            ("a new nonce", asked("r1", now, 2), now, Ok(())),
+            (
+                "issued too long ago",
+                asked("r1", now - MAX_CLOCK_SKEW_MS - 1, 3),
+                now,
+                Err(WireError::Stale { skew_ms: MAX_CLOCK_SKEW_MS + 1 }),
+            ),
+            (
+                "issued too far ahead",
+                asked("r1", now + MAX_CLOCK_SKEW_MS + 5, 4),
+                now,
+                Err(WireError::Stale { skew_ms: MAX_CLOCK_SKEW_MS + 5 }),
+            ),
+            ("at the edge of the window", asked("r1", now - MAX_CLOCK_SKEW_MS, 5), now, Ok(())),
+            (
+                "the first, replayed when it is stale",
+                asked("r1", now, 1),
+                now + MAX_CLOCK_SKEW_MS + 1,
+                Err(WireError::Stale { skew_ms: MAX_CLOCK_SKEW_MS + 1 }),
+            ),
+            (
+                "the server's target is not a robot's",
+                asked(SERVER_TARGET, now, 6),
+                now,
+                Err(WireError::OtherTarget { named: SERVER_TARGET.into() }),
+            ),
+        ];
+        for (case, request, at, expected) in cases {
+            assert_eq!(replays.admit(&request, at), expected, "{case}");
+        }
+        // A request issued before this process started (a capture replayed
+        // across a restart) is not taken; one after it is.
+        let mut restarted = Replays::new("r1").since(now);
+        assert_eq!(restarted.admit(&asked("r1", now - 5, 8), now), Err(WireError::Replayed));
+        assert_eq!(restarted.admit(&asked("r1", now + 1, 9), now + 1), Ok(()));
+        // Requests that can no longer pass the freshness check are forgotten.
+        assert_eq!(replays.admit(&asked("r1", now + 3 * MAX_CLOCK_SKEW_MS, 7), now + 3 * MAX_CLOCK_SKEW_MS), Ok(()));
+        assert_eq!(replays.len(), 1);
+    }
+
+    #[test]
+    fn the_nonce_memory_is_bounded_and_forgets_only_what_it_then_refuses() {
+        let now = 1_000_000;
+        let mut replays = Replays::with_capacity("r1", 3);
+        for n in 0..3u8 {
+            assert_eq!(replays.admit(&asked("r1", now + u64::from(n), n), now), Ok(()));
+        }
+        // Full: the oldest (issued at `now`) is forgotten, and nothing
+        // issued at or before it is taken any more.
+        assert_eq!(replays.admit(&asked("r1", now + 10, 10), now), Ok(()));
+        assert_eq!(replays.len(), 3);
+        assert_eq!(replays.admit(&asked("r1", now, 0), now), Err(WireError::Replayed), "the forgotten one, replayed");
+        assert_eq!(replays.admit(&asked("r1", now, 20), now), Err(WireError::Replayed), "as old as the floor");
+        assert_eq!(replays.admit(&asked("r1", now + 11, 21), now), Ok(()));
+        assert_eq!(replays.len(), 3);
+    }
+
+    #[test]
+    fn a_reply_is_taken_only_from_the_robot_asked_for_that_request() {
+        let request = asked("r1", 1000, 1);
+        // (case, reply's binding, expected)
+        let cases: Vec<(&str, Answered, bool)> = vec![
+            ("r1 answers this request", Answered::to(&request, "r1"), true),
+            ("r1's answer to another request", Answered::to(&asked("r1", 1000, 2), "r1"), false),
+            ("r2 answers with this request's nonce", Answered::to(&request, "r2"), false),
+            ("another request of r2's", Answered::to(&asked("r2", 1000, 3), "r2"), false),
+        ];
+        for (case, reply, ok) in cases {
+            assert_eq!(bound(&request, &reply).is_ok(), ok, "{case}");
+        }
+        // The binding is under the reply's MAC: changing it breaks the MAC.
+        let lab = key("lab-a", "0123456789abcdef-secret");
+        let ack = Ack { v: WIRE_VERSION, re: Answered::to(&request, "r1"), ok: true, message: "engaged".into() };
+        let sealed = lab.seal(&ack, b"");
+        let mut changed = sealed.clone();
+        let at = changed.windows(4).position(|w| w == b"\"r1\"").unwrap_or_else(|| panic!("no robot in the header"));
+        changed[at + 2] = b'2';
+        assert!(lab.open::<Ack>(&sealed).is_ok());
+        assert!(matches!(lab.open::<Ack>(&changed), Err(WireError::BadSignature { .. })));
+        // A request or reply without a well-made binding is refused.
+        let bad = Ack { re: Answered { robot: "r1".into(), nonce: "xyz".into() }, ..ack };
+        assert!(matches!(lab.open::<Ack>(&lab.seal(&bad, b"")), Err(WireError::Invalid(_))));
+    }
+
+    #[test]
+    fn only_signed_refusals_are_answered_and_every_class_is_counted() {
+        // (error, signed with the lab's key, class)
+        let cases = [
+            (WireError::BadSignature { lab: "l".into() }, false, Refusal::NotSigned),
+            (WireError::NotAnEnvelope, false, Refusal::Malformed),
+            (WireError::TooLarge { size: 1 }, false, Refusal::Malformed),
+            (WireError::Header("x".into()), true, Refusal::Malformed),
+            (WireError::Version { got: 1 }, true, Refusal::Version),
+            (WireError::Stale { skew_ms: 1 }, true, Refusal::Stale),
+            (WireError::Replayed, true, Refusal::Replayed),
+            (WireError::OtherTarget { named: "r2".into() }, true, Refusal::OtherTarget),
+        ];
+        for (error, signed, class) in cases {
+            assert_eq!((error.signed(), error.class()), (signed, class), "{error}");
+        }
+    }
+
+    #[test]
+    fn refusals_are_audited_at_most_once_an_interval_with_their_counts() {
+        let mut tally = RefusalTally::default();
+        assert_eq!(tally.due(0), None, "nothing refused, nothing to say");
+        tally.note(Refusal::NotSigned);
+        let first = tally.due(1_000).unwrap_or_default();
+        assert!(first.starts_with("1 lab messages refused") && first.contains("not-signed 1"), "{first}");
+        for _ in 0..1000 {
+            tally.note(Refusal::NotSigned);
+        }
+        tally.note(Refusal::Replayed);
+        assert_eq!(tally.due(1_000 + REFUSAL_AUDIT_INTERVAL_MS - 1), None, "within the interval");
+        let next = tally.due(1_000 + REFUSAL_AUDIT_INTERVAL_MS).unwrap_or_default();
+        assert!(next.contains("1001 lab messages") && next.contains("not-signed 1000, replayed 1"), "{next}");
+        assert_eq!(tally.due(1_000 + 5 * REFUSAL_AUDIT_INTERVAL_MS), None, "nothing new");
+        assert_eq!(tally.sum(), 1002);
     }
 
     #[test]
