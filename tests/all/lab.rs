@@ -855,6 +855,14 @@ fn a_real_robot_is_preflighted_against_a_simulated_controller() {
     }
     let (_, overview) = lab.call(&ana, "GET", "/api/v1/lab", "");
     assert!(overview["lab"]["held"].as_str().unwrap().contains("waits for the robot to be reset"), "{overview}");
+    // Held: the same at every look (no flapping), and no estimate of when.
+    for _ in 0..5 {
+        std::thread::sleep(Duration::from_millis(60));
+        let (_, overview) = lab.call(&ana, "GET", "/api/v1/lab", "");
+        assert!(overview["lab"]["held"].is_string(), "{overview}");
+        let waiting = lab.experiment(&ana, id);
+        assert!(waiting["eta_unix_ms"].is_null() && waiting["place"] == 1, "{waiting:#}");
+    }
     let (status, json) = lab.call(&ana, "POST", "/api/v1/lab/reset", "");
     assert_eq!(status, 403, "only an admin confirms: {json}");
     let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");

@@ -394,9 +394,15 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
         turnaround_ms: TURNAROUND.as_millis() as u64,
     };
     let next = queue::next_to_start(&view);
+    let awaits_reset = |id| book.lab.settings.reset == ResetPolicy::Manual && book.reset_confirmed != Some(id);
+    // The same answer at every look while nothing changes: the views (and
+    // the ETAs they hide while held) must not flap between looks.
     let held = match (next, &engaged) {
         (Some(_), Some(lock)) => {
             Some(format!("the emergency stop is engaged (by {}): the queue waits for its release", lock.by))
+        }
+        (Some(id), None) if awaits_reset(id) => {
+            Some(format!("experiment {id} waits for the robot to be reset (an admin confirms)"))
         }
         _ => None,
     };
@@ -408,10 +414,9 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
     if engaged.is_some() {
         return Next::Wait;
     }
-    if book.lab.settings.reset == ResetPolicy::Manual && book.reset_confirmed != Some(id) {
+    if awaits_reset(id) {
         if book.awaiting_reset != Some(id) {
             book.awaiting_reset = Some(id);
-            book.held = Some(format!("experiment {id} waits for the robot to be reset (an admin confirms)"));
             lab.notify();
         }
         return Next::Wait;

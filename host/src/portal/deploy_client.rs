@@ -261,11 +261,32 @@ impl Portal {
     pub(super) fn active_robot(&self) -> Result<(u64, String, String), DeployClientError> {
         let status = self.call("GET", "/api/v1/status", "application/json", b"", "reading the status")?;
         let set = status["set"].as_u64().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
-        let active =
-            self.call("GET", &format!("/api/v1/sets/{set}"), "application/json", b"", "reading the active set")?;
-        let name = active["set"]["config_name"].as_str().unwrap_or("robot.xml").to_string();
-        let text = active["config"].as_str().unwrap_or_default().to_string();
-        Ok((set, name, text))
+        self.robot_of(set, "the active set")
+    }
+
+    /// The lab's baseline: its set's id, its robot file's name and its
+    /// text (what an experiment builds on, whatever runs now).
+    pub(super) fn baseline_robot(&self) -> Result<(u64, String, String), DeployClientError> {
+        let lab = self.call("GET", "/api/v1/lab", "application/json", b"", "reading the lab")?;
+        let set = lab["lab"]["baseline"].as_u64().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
+        self.robot_of(set, "the lab's baseline")
+    }
+
+    /// Set `set`'s robot file's name and text (`what` names it).
+    fn robot_of(&self, set: u64, what: &str) -> Result<(u64, String, String), DeployClientError> {
+        let answer =
+            self.call("GET", &format!("/api/v1/sets/{set}"), "application/json", b"", &format!("reading {what}"))?;
+        let name = answer["set"]["config_name"].as_str().unwrap_or("robot.xml").to_string();
+        let Some(text) = answer["config"].as_str() else {
+            return Err(DeployClientError::Portal(ClientError::Refused {
+                address: self.address().to_string(),
+                status: 403,
+                message: format!(
+                    "{what} (set {set}) keeps its robot file on the robot (the owner's lab kit is off): give a robot file of your own with --robot"
+                ),
+            }));
+        };
+        Ok((set, name, text.to_string()))
     }
 
     /// Uploads component `component` of `platform`; the seconds it took

@@ -332,13 +332,17 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
         let robot = match local {
             Some(robot) => robot,
             None => {
-                let (set, name, text) = session.portal.active_robot()?;
-                let shown = format!("{name} (the active robot file)");
-                let file = format!("the running robot file {name}");
-                let robot = RobotFile::pointed(shown, name.clone(), text, &components, &file)?;
+                // The lab's baseline, never whatever runs now (another
+                // researcher's experiment, say).
+                let (set, name, text) = session.portal.baseline_robot()?;
+                let shown = format!("{name} (the lab's baseline)");
+                let file = format!("the baseline's robot file {name}");
+                let robot = RobotFile::pointed(shown, name.clone(), text.clone(), &components, &file)?;
                 let pointed: Vec<String> =
                     components.iter().map(|(c, _)| format!("{c} -> {}", upload_source(c))).collect();
-                (say.progress)(&format!("using the active robot file {name} (set {set}) with {}", pointed.join(", ")));
+                let with = if pointed.is_empty() { String::new() } else { format!(" with {}", pointed.join(", ")) };
+                let hash = hex::encode(Sha256::digest(text.as_bytes()));
+                (say.progress)(&format!("building on the lab's baseline {name} (set {set}, sha256 {hash}){with}"));
                 robot
             }
         };

@@ -4,9 +4,9 @@
 //! owner shared with the lab ([`Visibility::Lab`]) every user may see and
 //! run, read-only. What the robot's own people made (admins, developers,
 //! operators, the host itself: `boot`, `dev`, `lab`, `robot:NAME`) is the
-//! robot's: every user but a researcher sees it; a researcher gets its
-//! bytes and text only where the owner's lab kit setting lets them leave
-//! the robot (`kit`).
+//! robot's: every user sees its record; a researcher gets its bytes and
+//! text only where the owner's lab kit setting lets them leave the robot
+//! (`kit`).
 //!
 //! Invariant: one predicate per kind of thing, used by every route, archive
 //! and listing that hands it out.
@@ -40,18 +40,19 @@ impl Access {
         self.researchers.contains(owner) || owner.contains('@')
     }
 
-    /// Whether `reader` may see the record of something `owner` made.
+    /// Whether `reader` may see the record of something `owner` made:
+    /// their own, the robot's, or anything for an admin.
     pub fn may_see(&self, reader: &Principal, owner: &str) -> bool {
-        reader.role == Role::Admin
-            || reader.name == owner
-            || (reader.role != Role::Researcher && !self.is_researchers(owner))
+        reader.role == Role::Admin || reader.name == owner || !self.is_researchers(owner)
     }
 
     /// Whether `reader` may have the bytes or text of something `owner`
-    /// made: what they may see, and the robot's own when the kit lets it
-    /// leave the robot.
+    /// made: their own, anything for an admin, and the robot's for anyone
+    /// but a researcher, for her while the kit lets it leave the robot.
     pub fn may_read(&self, reader: &Principal, owner: &str) -> bool {
-        self.may_see(reader, owner) || (self.kit && !self.is_researchers(owner))
+        reader.role == Role::Admin
+            || reader.name == owner
+            || (!self.is_researchers(owner) && (reader.role != Role::Researcher || self.kit))
     }
 
     /// Whether `reader` may see upload `record` (and run it by name).
@@ -100,9 +101,9 @@ mod tests {
             ("ana", "ana", false, (true, true)),
             ("ana", "ben", false, (false, false)),
             ("ana", "ben", true, (false, false)),
-            ("ana", "boot", false, (false, false)),
-            ("ana", "boot", true, (false, true)),
-            ("ana", "dev", true, (false, true)),
+            ("ana", "boot", false, (true, false)),
+            ("ana", "boot", true, (true, true)),
+            ("ana", "dev", true, (true, true)),
             ("ana", "bob@lab1", true, (false, false)),
             ("dev", "ana", true, (false, false)),
             ("dev", "boot", false, (true, true)),
