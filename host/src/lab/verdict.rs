@@ -168,7 +168,7 @@ pub fn judge(criteria: &Criteria, observed: Observations) -> Verdict {
         envelope(GEOFENCE, "the envelope held the robot at its geofence");
     }
     if !criteria.allow_stop_zone {
-        envelope(STOP_ZONE, "the envelope's collision zone stopped the robot");
+        envelope(STOP_ZONE, "the envelope's stop zone stopped the robot");
     }
     Verdict { passed: reasons.is_empty(), reasons, criteria: *criteria, observed }
 }
@@ -264,7 +264,7 @@ mod tests {
                 },
                 vec![
                     "preflight: the envelope held the robot at its geofence once, first at 5.0 s while 'my-planner' held control",
-                    "preflight: the envelope's collision zone stopped the robot 3 times, first at 21.0 s while 'avoid' held control (stopped VEL 0.4 0)",
+                    "preflight: the envelope's stop zone stopped the robot 3 times, first at 21.0 s while 'avoid' held control (stopped VEL 0.4 0)",
                 ],
             ),
             (

@@ -440,7 +440,7 @@ impl Seen {
         let mut lines = Vec::new();
         let new_states = record.history.len() > self.states;
         for (i, change) in record.history.iter().enumerate().skip(self.states) {
-            let mut line = format!("experiment {id}: {}: {}", change.state, change.cause);
+            let mut line = format!("experiment {id}: {}", said(change.state, &change.cause));
             let latest = i + 1 == record.history.len();
             if latest
                 && change.state == ExperimentState::Running
@@ -478,6 +478,16 @@ impl Seen {
             lines.extend(record.reasons.iter().filter(|r| Some(r.as_str()) != cause).map(|r| format!("  {r}")));
         }
         lines
+    }
+}
+
+/// `STATE: CAUSE`, without the state twice when the cause names it
+/// already (`aborted: emergency stop by ...`, not `aborted: aborted: ...`).
+fn said(state: ExperimentState, cause: &str) -> String {
+    let name = state.name();
+    match cause.strip_prefix(name).and_then(|rest| rest.strip_prefix(": ")) {
+        Some(_) => cause.to_string(),
+        None => format!("{name}: {cause}"),
     }
 }
 
@@ -850,6 +860,22 @@ mod tests {
 
     /// The lines told at each poll of one experiment's life, as the portal
     /// shows it at each.
+    #[test]
+    fn a_state_is_said_once_even_when_its_cause_names_it() {
+        use ExperimentState::*;
+        let cases = [
+            (Aborted, "aborted: emergency stop by admin (portal)", "aborted: emergency stop by admin (portal)"),
+            (Cancelled, "cancelled by ana", "cancelled: cancelled by ana"),
+            (Failed, "failed: the host was too busy", "failed: the host was too busy"),
+            (Refused, "refused by its preflight", "refused: refused by its preflight"),
+            (Done, "its time is up", "done: its time is up"),
+            (Aborted, "aborted:no space", "aborted: aborted:no space"),
+        ];
+        for (state, cause, expected) in cases {
+            assert_eq!(super::said(state, cause), expected, "{cause}");
+        }
+    }
+
     #[test]
     fn each_state_is_told_once_with_the_queue_place_and_the_reasons_at_the_end() {
         use ExperimentState::*;
