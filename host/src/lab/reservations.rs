@@ -30,6 +30,7 @@ impl Lab {
             }
             let mut book = self.lock()?;
             let now = unix_now_ms();
+            check_times(start_ms, end_ms, now)?;
             if start_ms > now.saturating_add(MAX_BOOKING_AHEAD.as_millis() as u64) {
                 return Err(LabError::BadRequest(format!(
                     "a reservation starts at most {} days ahead",
@@ -92,6 +93,31 @@ impl Lab {
     }
 }
 
+/// Earliest time a request may name, ms since the Unix epoch (2001-09-09):
+/// anything smaller is seconds given where milliseconds were meant.
+const EARLIEST_MS: u64 = 1_000_000_000_000;
+
+/// What a window's times say before any rule of the queue: milliseconds,
+/// and not over already (a window in the past would otherwise be clamped
+/// to start now and read as ending before it starts).
+fn check_times(start_ms: u64, end_ms: u64, now_ms: u64) -> Result<(), LabError> {
+    for (field, at) in [("start_unix_ms", start_ms), ("end_unix_ms", end_ms)] {
+        if at < EARLIEST_MS {
+            return Err(LabError::BadRequest(format!(
+                "{field} {at} looks like seconds: times are milliseconds since the Unix epoch ({at}000?)"
+            )));
+        }
+    }
+    if end_ms <= now_ms {
+        return Err(LabError::BadRequest(format!(
+            "the window ends at {}, which is past already; the host's clock says {}",
+            utc_time(end_ms),
+            utc_time(now_ms)
+        )));
+    }
+    Ok(())
+}
+
 fn booking_error(e: queue::BookingError, user: &str) -> LabError {
     use queue::BookingError;
     match e {
@@ -109,5 +135,30 @@ fn booking_error(e: queue::BookingError, user: &str) -> LabError {
             message: format!("{user} has {} min booked that day; at most {} min a day", booked_s / 60, limit_s / 60),
             retry_after_s: None,
         },
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check_times;
+
+    #[test]
+    fn a_windows_times_are_milliseconds_and_not_past() {
+        let now = 1_795_874_709_000;
+        // (start, end, the error's words; None: accepted)
+        let cases = [
+            (now + 60_000, now + 120_000, None),
+            (now - 60_000, now + 60_000, None),
+            (1_795_874_769, 1_795_874_829, Some("start_unix_ms 1795874769 looks like seconds")),
+            (now + 1, 1_795_874_829, Some("end_unix_ms 1795874829 looks like seconds")),
+            (now - 120_000, now - 60_000, Some("which is past already")),
+        ];
+        for (start, end, words) in cases {
+            match (check_times(start, end, now), words) {
+                (Ok(()), None) => {}
+                (Err(e), Some(words)) => assert!(e.to_string().contains(words), "{e}"),
+                (got, _) => panic!("{start}..{end}: {got:?}"),
+            }
+        }
     }
 }

@@ -259,7 +259,10 @@ pub(super) async fn confirm_reset(
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 struct BookingRequest {
+    /// Also spelled as the answer spells it (`start_ms`).
+    #[serde(alias = "start_ms")]
     start_unix_ms: u64,
+    #[serde(alias = "end_ms")]
     end_unix_ms: u64,
     /// Whom for (admins may book for anyone); the caller when missing.
     #[serde(default)]
