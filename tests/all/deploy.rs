@@ -586,6 +586,27 @@ fn a_refused_submission_says_why_in_the_robot_files_own_lines_and_exits_1() {
     let params =
         r#"<param name="mode" value="trap-on-tick"/><param name="after" value="10"/><param name="drive" value="yes"/>"#;
     let trap = lab_robot(dir.path(), "trap.xml", "driver.wasm", params, WATCHFUL);
+    // Staged, then refused at once (over the robot's max-duration): the
+    // set it staged is forgotten, nothing is left behind.
+    let trap_driver = format!("driver={}", faulty.display());
+    let over = lab(
+        "ada",
+        &[
+            "submit",
+            "--robot",
+            trap.to_str().unwrap(),
+            "--component",
+            &trap_driver,
+            "--duration",
+            "3000",
+            &host.address,
+        ],
+    );
+    let (stdout, stderr) = out(&over);
+    assert!(!over.status.success(), "{stdout}");
+    assert!(stderr.contains("duration_s must be from"), "{stderr}");
+    assert!(stderr.contains("the submission was refused: set ") && stderr.contains(" is forgotten"), "{stderr}");
+    assert_eq!(sets(), before, "the refused submission's set is forgotten");
     let output = submit(&trap, &format!("driver={}", faulty.display()));
     let (stdout, stderr) = out(&output);
     assert_eq!(output.status.code(), Some(1), "{stdout}\n{stderr}");

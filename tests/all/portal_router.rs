@@ -201,6 +201,8 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("PUT", "/api/v1/worlds/w.world", b"bounds 0 0", Allowed::Control),
         ("GET", "/api/v1/sets", b"", Allowed::AnyUser),
         ("GET", "/api/v1/sets/1", b"", Allowed::AnyUser),
+        // No such set (or someone else's): 404 for every role.
+        ("DELETE", "/api/v1/sets/999", b"", Allowed::AnyUser),
         ("POST", "/api/v1/sets/999/activate", b"", Allowed::Developer),
         ("POST", "/api/v1/sets/1/replay", br#"{"recording":"rec-1.mcap"}"#, Allowed::Developer),
         ("POST", "/api/v1/rollback", b"", Allowed::Developer),

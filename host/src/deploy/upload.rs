@@ -7,6 +7,7 @@
 use super::{DeployError, Deployer, Permission, Platform, authorise};
 use crate::contract::{DescriptionDoc, clip, is_valid_name};
 use crate::sandbox::{MAX_COMPONENT_BYTES, preamble};
+use crate::store::StoreError;
 use crate::store::access::Visibility;
 use crate::store::users::{Principal, Role};
 use crate::store::{ComponentRecord, MAX_COMPONENTS_PER_USER, World, component_key, unix_now};
@@ -148,6 +149,32 @@ impl Deployer {
                 Ok(record)
             },
             |record| format!("visibility {}", record.visibility.name()),
+        )
+    }
+}
+
+impl Deployer {
+    /// Forgets set `id` that `user` staged (an admin: anyone's) and that
+    /// nothing needs: what a refused submission or activation left behind.
+    /// Someone else's set answers as a missing one.
+    pub fn forget_set(&self, user: &Principal, id: u64) -> Result<(), DeployError> {
+        let prepared = match self.store.set(id) {
+            Ok(set) if set.created_by == user.name || user.role == Role::Admin => Ok(()),
+            Ok(_) | Err(StoreError::NoSet(_)) => Err(DeployError::Store(StoreError::NoSet(id))),
+            Err(e) => Err(e.into()),
+        };
+        self.commit(
+            &user.name,
+            "forget-set",
+            &format!("set {id}"),
+            prepared,
+            |writer, ()| {
+                writer.forget_set(id).map_err(|e| match e {
+                    StoreError::Refused(why) => DeployError::Conflict(why),
+                    other => other.into(),
+                })
+            },
+            |()| "forgotten".to_string(),
         )
     }
 }

@@ -355,9 +355,19 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
         (say.progress)(&format!("staged {} as set {set}; submitting...", robot.shown));
         let body = json!({ "set": set, "duration_s": request.duration_s, "label": request.label.trim() });
         let what = format!("submitting set {set}");
-        let answer = session
-            .request("POST", "/api/v1/experiments", &body, &what, DEPLOY_LIMIT)
-            .map_err(|e| locate(e, &robot.shown, &position))?;
+        let answer = match session.request("POST", "/api/v1/experiments", &body, &what, DEPLOY_LIMIT) {
+            Ok(answer) => answer,
+            Err(e) => {
+                // A refused submission leaves nothing staged behind.
+                let forgotten = format!("forgetting set {set}");
+                match session.request("DELETE", &format!("/api/v1/sets/{set}"), &Value::Null, &forgotten, DEPLOY_LIMIT)
+                {
+                    Ok(_) => (say.progress)(&format!("the submission was refused: set {set} is forgotten")),
+                    Err(why) => (say.progress)(&format!("the submission was refused; set {set} stays: {why}")),
+                }
+                return Err(locate(e, &robot.shown, &position).into());
+            }
+        };
         let record: ExperimentRecord = session.parse(&answer["experiment"], &what)?;
         let label = if record.label.is_empty() { String::new() } else { format!(", \"{}\"", record.label) };
         (say.states)(&format!(

@@ -224,7 +224,7 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/worlds", get(list_worlds))
         .route("/worlds/{file}", put(upload_world).layer(DefaultBodyLimit::max(MAX_WORLD_UPLOAD_BYTES as usize)))
         .route("/sets", get(list_sets))
-        .route("/sets/{id}", get(get_set))
+        .route("/sets/{id}", get(get_set).delete(forget_set))
         .route("/logs", get(recent_logs))
         .route("/audit", get(audit_log))
         .route(

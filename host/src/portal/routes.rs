@@ -262,6 +262,19 @@ pub(super) async fn get_set(
     .await
 }
 
+/// Forgets a set the caller staged that nothing needs (an admin: anyone's):
+/// what a refused submission or activation left.
+pub(super) async fn forget_set(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    let id = set_id(&id)?;
+    let deployer = state.deployer.clone();
+    blocking(move || Ok(deployer.forget_set(&user, id)?)).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
 pub(super) async fn activate(
     State(state): State<Arc<PortalState>>,
     Authed(user): Authed,

@@ -495,6 +495,18 @@ impl StoreWriter<'_> {
         Ok(record)
     }
 
+    /// Forgets set `id`, which nothing may need (see [`Self::needed_sets`]):
+    /// a stager's set that a refused submission or activation left.
+    pub fn forget_set(&self, id: u64) -> Result<(), StoreError> {
+        self.set(id)?;
+        if self.needed_sets(&self.state()?)?.contains(&id) {
+            return Err(StoreError::Refused(format!(
+                "set {id} is needed (active, in the rollback history, a baseline or an experiment's)"
+            )));
+        }
+        std::fs::remove_file(self.set_path(id)).map_err(io(&self.set_path(id)))
+    }
+
     /// The sets something needs: the active one, the rollback history, the
     /// lab's baselines, and every experiment's that has not ended.
     fn needed_sets(&self, state: &StoreState) -> Result<BTreeSet<u64>, StoreError> {
