@@ -198,6 +198,21 @@ fn deploy_replaces_a_component_or_a_whole_robot_in_one_step_and_changes_nothing_
         assert_eq!(stderr.contains("uploading relay"), sent, "{case}: {stderr}");
         assert_eq!(active(&host.address, "relay").0, third, "{case}");
     }
+
+    // Staged, then its activation refused (a component that will not
+    // start): the set it staged is forgotten, nothing is left behind.
+    let sets = || subsume::store::Store::open(&store).unwrap().sets().unwrap().len();
+    let before = sets();
+    let refusing = dir.path().join("refusing.xml");
+    let bad = r#"<component name="bad" source="bad.wasm" rate="10"><param name="mode" value="error-on-init"/></component>
+    <component name="sink""#;
+    std::fs::write(&refusing, robot("refusing", "relay.wasm").replace(r#"<component name="sink""#, bad)).unwrap();
+    let bad_arg = format!("bad={}", support::guest("test-faulty").display());
+    let (ok, _, stderr) = deploy(&host.address, &["--component", &bad_arg, "--robot", refusing.to_str().unwrap()]);
+    assert!(!ok, "{stderr}");
+    assert!(stderr.contains("the activation was refused: set ") && stderr.contains(" is forgotten"), "{stderr}");
+    assert_eq!(sets(), before, "the refused activation's set is forgotten");
+    assert_eq!(active(&host.address, "relay").0, third);
 }
 
 /// The sha256 of `owner`'s stored upload `name`, if any.

@@ -245,14 +245,27 @@ impl Portal {
         }
         let set = self.stage(platform, &name, &text, &shown, &|line, column| (line, column))?;
         say(&format!("staged {shown} as set {set}; activating..."));
-        self.call(
+        let activated = self.call(
             "POST",
             &format!("/api/v1/sets/{set}/activate"),
             "application/json",
             b"",
             &format!("activating set {set}"),
-        )
-        .map_err(|e| locate(e, &format!("activating set {set}"), &|line, column| (line, column)))?;
+        );
+        if let Err(e) = activated {
+            // A refused activation leaves nothing staged behind.
+            match self.call(
+                "DELETE",
+                &format!("/api/v1/sets/{set}"),
+                "application/json",
+                b"",
+                &format!("forgetting set {set}"),
+            ) {
+                Ok(_) => say(&format!("the activation was refused: set {set} is forgotten")),
+                Err(why) => say(&format!("the activation was refused; set {set} stays: {why}")),
+            }
+            return Err(locate(e, &format!("activating set {set}"), &|line, column| (line, column)));
+        }
         say(&format!("set {set} is running"));
         Ok(Deployed { set, uploads })
     }
