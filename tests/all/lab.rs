@@ -970,18 +970,8 @@ fn a_researcher_drives_inside_their_reservation_and_is_cut_off_when_it_ends() {
 
 /// The names of the files in bundle folder `folder`, relative to it.
 fn bundle_files(folder: &Path) -> Vec<String> {
-    let mut names = Vec::new();
-    let mut stack = vec![folder.to_path_buf()];
-    while let Some(dir) = stack.pop() {
-        for entry in std::fs::read_dir(&dir).unwrap() {
-            let path = entry.unwrap().path();
-            if path.is_dir() {
-                stack.push(path);
-            } else {
-                names.push(path.strip_prefix(folder).unwrap().to_string_lossy().into_owned());
-            }
-        }
-    }
+    let mut names: Vec<String> =
+        every_file(folder).into_iter().map(|(path, _)| path.to_string_lossy().into_owned()).collect();
     names.sort();
     names
 }
