@@ -222,3 +222,42 @@ impl Notifier {
         self.outbox.lock().map_err(|_| OutboxError::Poisoned)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const SECRET: &str = "sixteen-bytes-or-more";
+
+    fn hook(url: &str, events: &str, secret: &str) -> String {
+        format!(r#"{{"url": "{url}", "events": {events}, "secret": "{secret}"}}"#)
+    }
+
+    #[test]
+    fn a_bad_webhooks_file_is_refused_naming_what_is_wrong() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join(WEBHOOKS_FILE);
+        assert!(read_webhooks(&path).unwrap().is_none(), "no file: no webhooks");
+        let good = hook("http://127.0.0.1:9/x", r#"["experiment.ended"]"#, SECRET);
+        std::fs::write(&path, format!(r#"{{"webhooks": [{good}]}}"#)).unwrap();
+        let hooks = read_webhooks(&path).unwrap().unwrap();
+        assert_eq!(hooks[0].events, [EventKind::ExperimentEnded]);
+        let many = vec![good.clone(); MAX_WEBHOOKS + 1].join(",");
+        for (body, why) in [
+            (format!(r#"{{"webhooks": [{many}]}}"#), "17 webhooks, at most 16"),
+            (format!(r#"{{"webhooks": [{}]}}"#, hook("https://a/", r#"["robot.lost"]"#, SECRET)), "webhook 0: url"),
+            (format!(r#"{{"webhooks": [{}]}}"#, hook("http://a/", r#"["robot.lost"]"#, "short")), "its secret must be"),
+            (format!(r#"{{"webhooks": [{}]}}"#, hook("http://a/", "[]", SECRET)), "no events"),
+            (
+                format!(r#"{{"webhooks": [{}]}}"#, hook("http://a/", r#"["experiment.exploded"]"#, SECRET)),
+                "unknown variant",
+            ),
+            (r#"{"webhooks": [], "extra": 1}"#.to_string(), "unknown field"),
+        ] {
+            std::fs::write(&path, &body).unwrap();
+            let e = read_webhooks(&path).unwrap_err().to_string();
+            assert!(e.contains(why) && e.contains(WEBHOOKS_FILE), "{body}: {e}");
+            assert!(!e.contains(SECRET), "a secret is never in an error: {e}");
+        }
+    }
+}
