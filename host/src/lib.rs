@@ -42,6 +42,7 @@ pub mod fsutil;
 pub mod lab;
 pub mod logfields;
 pub mod metrics;
+pub mod notify;
 pub mod portal;
 pub mod record;
 pub mod report;

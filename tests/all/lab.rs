@@ -1257,3 +1257,169 @@ fn submit_and_cancel_churn_is_bounded_and_erases_nothing_of_anyone_elses() {
     assert_eq!(bens_now["submitter"], "ben", "{bens_now:#}");
     assert_ne!(bens_now["state"], "cancelled", "{bens_now:#}");
 }
+
+/// A webhook receiver (tests/python/webhook_receiver.py: Python's
+/// http.server and hmac) on 127.0.0.1; killed when dropped.
+struct Receiver {
+    child: std::process::Child,
+    port: u16,
+}
+
+impl Receiver {
+    fn start(secret: &str, out: &Path, port: u16, fail: u32) -> Receiver {
+        use std::io::BufRead;
+        let mut child = Command::new(crate::support::python())
+            .arg(crate::support::repo_root().join("tests/python/webhook_receiver.py"))
+            .args([secret, &out.display().to_string(), "--port", &port.to_string(), "--fail", &fail.to_string()])
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut line = String::new();
+        std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+        let port = line.trim().strip_prefix("listening on ").unwrap().parse().unwrap();
+        Receiver { child, port }
+    }
+
+    fn url(&self) -> String {
+        format!("http://127.0.0.1:{}/hooks/lab", self.port)
+    }
+}
+
+impl Drop for Receiver {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The POSTs `out` received, waiting up to a minute for `count`.
+fn received(out: &Path, count: usize, host: &HostProcess) -> Vec<Json> {
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let text = std::fs::read_to_string(out).unwrap_or_default();
+        let lines: Vec<Json> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+        if lines.len() >= count {
+            return lines;
+        }
+        assert!(Instant::now() < deadline, "{} of {count} posts received: {lines:#?}\n{}", lines.len(), host.log());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+const HOOK_SECRET: &str = "a-webhook-secret-of-the-owner";
+
+fn configure_webhook(dir: &Path, url: &str) {
+    let config = serde_json::json!({ "webhooks": [{
+        "url": url,
+        "events": ["experiment.accepted", "experiment.refused", "experiment.started", "experiment.ended"],
+        "secret": HOOK_SECRET,
+    }]});
+    std::fs::write(dir.join("store/webhooks.json"), config.to_string()).unwrap();
+}
+
+/// (event, experiment id, state) of each acknowledged post, in order.
+fn acknowledged(posts: &[Json]) -> Vec<(String, u64, String)> {
+    posts
+        .iter()
+        .filter(|p| p["answered"] == 200)
+        .map(|p| {
+            let body = &p["body"];
+            (
+                body["event"].as_str().unwrap().to_string(),
+                body["experiment"]["id"].as_u64().unwrap(),
+                body["experiment"]["state"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn webhooks_tell_of_an_experiment_in_order_signed_and_retried() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let out = dir.path().join("posts.jsonl");
+    // The first two posts are answered 500: the first event is retried.
+    let receiver = Receiver::start(HOOK_SECRET, &out, 0, 2);
+    configure_webhook(dir.path(), &receiver.url());
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let posts = received(&out, 5, &lab.host);
+    assert!(posts.iter().all(|p| p["valid"] == true), "every signature verifies with Python's hmac: {posts:#?}");
+    assert_eq!(
+        acknowledged(&posts),
+        [
+            ("experiment.accepted".to_string(), id, "queued".to_string()),
+            ("experiment.started".to_string(), id, "running".to_string()),
+            ("experiment.ended".to_string(), id, "done".to_string()),
+        ],
+        "{posts:#?}"
+    );
+    // The refused posts were the first event, sent again until acknowledged.
+    let first = &posts[2]["event_id"];
+    assert_eq!((&posts[0]["event_id"], &posts[1]["event_id"]), (first, first), "{posts:#?}");
+    assert_eq!((&posts[0]["answered"], &posts[1]["answered"]), (&Json::from(500), &Json::from(500)));
+    assert!(lab.host.log().contains("not delivered (try 2)"), "{}", lab.host.log());
+}
+
+#[test]
+fn a_host_killed_with_undelivered_events_sends_them_after_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let out = dir.path().join("posts.jsonl");
+    // A receiver that is not there: its port, freed.
+    let port = Receiver::start(HOOK_SECRET, &out, 0, 0).port;
+    configure_webhook(dir.path(), &format!("http://127.0.0.1:{port}/hooks/lab"));
+    let mut lab = start(dir.path());
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let outbox = dir.path().join("store/outbox");
+    let waiting = || {
+        std::fs::read_dir(&outbox)
+            .unwrap()
+            .filter(|e| e.as_ref().unwrap().path().extension().is_some_and(|x| x == "json"))
+            .count()
+    };
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while waiting() < 3 {
+        assert!(Instant::now() < deadline, "{} events in the outbox\n{}", waiting(), lab.host.log());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    lab.host.child.kill().unwrap();
+    lab.host.child.wait().unwrap();
+
+    let _receiver = Receiver::start(HOOK_SECRET, &out, port, 0);
+    lab = start(dir.path());
+    let posts = received(&out, 3, &lab.host);
+    assert!(posts.iter().all(|p| p["valid"] == true), "{posts:#?}");
+    assert_eq!(
+        acknowledged(&posts),
+        [
+            ("experiment.accepted".to_string(), id, "queued".to_string()),
+            ("experiment.started".to_string(), id, "running".to_string()),
+            ("experiment.ended".to_string(), id, "done".to_string()),
+        ],
+        "{posts:#?}"
+    );
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while waiting() > 0 {
+        assert!(Instant::now() < deadline, "{} events still in the outbox\n{}", waiting(), lab.host.log());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // Acknowledged, none is sent again by the next start.
+    lab.host.child.kill().unwrap();
+    lab.host.child.wait().unwrap();
+    let lab = start(dir.path());
+    assert!(lab.host.log().contains("webhooks: 1 configured, 0 events waiting"), "{}", lab.host.log());
+    assert_eq!(received(&out, 3, &lab.host).len(), 3);
+}

@@ -69,6 +69,7 @@ use thiserror::Error;
 
 use self::preflight::PreflightCommand;
 use crate::deploy::{DeployError, Deployer, Diagnostics};
+use crate::notify::{self, ExperimentFacts, Notifier};
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentRecord, ExperimentState, IllegalTransition, LabState};
 use crate::store::users::{Principal, Role};
@@ -203,6 +204,8 @@ pub struct Lab {
     generation: tokio::sync::watch::Sender<u64>,
     stopping: AtomicBool,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    /// The owner's webhooks (`notify`), when the store's folder has any.
+    notifier: Option<Arc<Notifier>>,
 }
 
 fn visible(user: &Principal, record: &ExperimentRecord) -> bool {
@@ -227,6 +230,7 @@ impl Lab {
         let mut experiments = store.experiments()?;
         let lab = store.lab_state()?;
         runner::recover(&store, &mut experiments, matches!(options.role, LabRole::Server(_)))?;
+        let notifier = Notifier::start(store.root()).map_err(|e| LabError::Host(e.to_string()))?;
         let lab = Arc::new(Lab {
             deployer: deployer.clone(),
             options,
@@ -235,6 +239,7 @@ impl Lab {
             generation: tokio::sync::watch::channel(0).0,
             stopping: AtomicBool::new(false),
             threads: Mutex::new(Vec::new()),
+            notifier,
         });
         let preempt: Arc<dyn crate::deploy::Preempt> = lab.clone();
         deployer.experiments().on_preempt(Arc::downgrade(&preempt));
@@ -306,6 +311,17 @@ impl Lab {
         );
         drop(writer);
         tracing::info!("experiment {id} ({}): {}: {cause}", record.submitter, state.name());
+        if let (Some(notifier), Some(kind)) = (&self.notifier, notify::experiment_event(state.name())) {
+            let facts = ExperimentFacts {
+                id,
+                submitter: record.submitter.clone(),
+                state: state.name().to_string(),
+                reasons: record.reasons.clone(),
+            };
+            if let Err(e) = notifier.tell(kind, unix_now_ms(), Some(facts)) {
+                tracing::error!("experiment {id}: its {} webhook event is lost: {e}", state.name());
+            }
+        }
         self.notify();
         Ok(record)
     }
