@@ -7,7 +7,8 @@
 //! control loop's clock; finished frames wait in a [`FrameQueue`] of at most
 //! [`MAX_QUEUED_FRAMES`] that drops the oldest and counts the drops. The
 //! component takes them out in `poll`, never waiting: the control loop never
-//! waits on a picture.
+//! waits on a picture. The thread runs at the background's nice value
+//! (`runtime::scheduling::BACKGROUND_NICE`), below the loop's.
 //!
 //! Each frame is two values in the same cycle: `frame` (bytes: the JPEG
 //! file) and `frame-info` (text: JSON with its format, size, capture time
@@ -28,6 +29,7 @@ use crate::builtin::{
 use crate::config::ParamProblem;
 use crate::contract::{Value, ValueKind};
 use crate::runtime::control_loop::{Clock, Waker};
+use crate::runtime::scheduling;
 use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
 use crate::sim::SimRegistry;
 
@@ -274,6 +276,11 @@ impl CameraThread {
         let (q, c, s) = (queue.clone(), counters.clone(), stop.clone());
         let label = name.to_string();
         let thread = std::thread::Builder::new().name(format!("camera-{name}")).spawn(move || {
+            // A picture may wait; the loop may not: the kernel gives this
+            // thread about a tenth of the loop's share of a busy CPU.
+            if !scheduling::lower_to_background() {
+                tracing::debug!(component = label.as_str(), "the camera's thread keeps its priority");
+            }
             let period = settings.period_ns.max(1);
             let mut next_ns = clock.now_ns();
             let mut seq = 0;
@@ -421,6 +428,19 @@ mod tests {
     }
 
     const SETTINGS: CameraSettings = CameraSettings { width: 16, height: 16, period_ns: 1_000_000, quality: 80 };
+
+    #[cfg(target_os = "linux")]
+    #[test]
+    fn pictures_are_made_below_the_loops_priority() {
+        let (tell, nice) = mpsc::channel();
+        let snapshot: Snapshot = Box::new(move || {
+            let _ = tell.send(scheduling::thread_nice());
+            None
+        });
+        let _camera = CameraThread::start("nice", SETTINGS, snapshot, Clock::new(), Waker::default()).unwrap();
+        let seen = nice.recv_timeout(Duration::from_secs(10)).unwrap();
+        assert!(seen >= Some(scheduling::BACKGROUND_NICE), "{seen:?}");
+    }
 
     #[test]
     fn a_full_queue_drops_the_oldest_frames_and_counts_them() {
