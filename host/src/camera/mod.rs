@@ -24,14 +24,16 @@ use std::time::Duration;
 
 use self::render::{Scene, render};
 use crate::builtin::{
-    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, port, positive_up_to,
+    BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, builtin_of, port,
+    positive_up_to,
 };
-use crate::config::ParamProblem;
+use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::scheduling;
 use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
 use crate::sim::SimRegistry;
+use crate::sim::builtin::SimBuiltin;
 
 /// Widest and tallest picture: each frame is width x height x 3 bytes
 /// before encoding, rendered and encoded on the host's CPU.
@@ -133,6 +135,32 @@ impl Builtin for CameraBuiltin {
             )];
         }
         Vec::new()
+    }
+
+    /// A `sim:NAME` source names a `builtin:sim` component of the robot.
+    fn check_robot(&self, me: usize, params: &Params, view: &RobotView<'_>, registry: Registry) -> Vec<RobotProblem> {
+        let robot = view.robot;
+        let (Some(camera), Some(sim)) = (robot.components.get(me), sim_name(params.text("source").unwrap_or_default()))
+        else {
+            return Vec::new();
+        };
+        if view.failed.iter().any(|failed| failed == sim) {
+            return Vec::new();
+        }
+        let simulated = robot.components.iter().enumerate().any(|(index, c)| {
+            c.name == sim && builtin_of(robot, index, registry).is_some_and(|b| b.kind() == SimBuiltin.kind())
+        });
+        if simulated {
+            return Vec::new();
+        }
+        vec![RobotProblem {
+            offset: camera.offset,
+            message: format!(
+                "camera '{}': source 'sim:{}' names no builtin:sim component",
+                camera.name,
+                crate::contract::clip_to(sim, 64)
+            ),
+        }]
     }
 
     fn ports(&self, _params: &Params) -> Ports {
