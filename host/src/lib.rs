@@ -17,10 +17,10 @@
 //! - [`sandbox`]: wasmtime: engine, compile cache, guests and translators;
 //! - [`store`]: blobs, sets, state, users and the audit log, one writer;
 //! - [`builtin`]: the framework of native components;
-//! - [`arbiter`], [`envelope`], [`robot`], [`sim`], [`teleop`], [`bridge`]:
+//! - [`arbiter`], [`envelope`], [`robot`], [`sim`], [`camera`], [`teleop`], [`bridge`]:
 //!   the built-ins and what they own (subsumption; the safety envelope;
 //!   control strings, protocols, translators, the serial link; the
-//!   simulated robot; the network platform; Zenoh ports and the ROS 2 face);
+//!   simulated robot; its camera; the network platform; Zenoh ports and the ROS 2 face);
 //! - [`assemble`]: robot file + loader -> a wired graph; the registry;
 //! - [`report`]: the run report and the live status;
 //! - [`metrics`]: the live status as Prometheus (OpenMetrics) text;
@@ -34,6 +34,7 @@ pub mod arbiter;
 pub mod assemble;
 pub mod bridge;
 pub mod builtin;
+pub mod camera;
 pub mod config;
 pub mod contract;
 pub mod deploy;

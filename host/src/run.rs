@@ -268,7 +268,9 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     let criteria = read_criteria(options)?;
     let judge = options.verdict.is_some() || options.pace.is_some();
     let standings = Standings::default();
-    let mut services = Services::default().with(Arc::new(options.tls.clone()));
+    // The simulated robots, by name: a camera (`sim:NAME`) looks at one.
+    let mut services =
+        Services::default().with(Arc::new(options.tls.clone())).with(Arc::new(crate::sim::SimRegistry::default()));
     if judge {
         services = services.with(Arc::new(standings.clone()));
     }

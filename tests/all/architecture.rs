@@ -176,7 +176,7 @@ fn violations(krate: &Crate, rule: impl Fn(&str, &str, &str) -> bool) -> Vec<Str
     found
 }
 
-const BUILTIN_MODULES: &[&str] = &["arbiter", "bridge", "envelope", "robot", "sim", "teleop"];
+const BUILTIN_MODULES: &[&str] = &["arbiter", "bridge", "camera", "envelope", "robot", "sim", "teleop"];
 
 #[test]
 fn the_top_level_modules_form_no_cycle() {

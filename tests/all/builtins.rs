@@ -15,6 +15,7 @@ use crate::support;
 /// Parameters a built-in needs to be checked at all, beside the one tested.
 fn required(kind: &str) -> &'static [(&'static str, &'static str)] {
     match kind {
+        "camera" => &[("source", "sim:none")],
         "serial" => &[("device", "sim:none")],
         "sim" => &[("world", "demo.world")],
         _ => &[],
@@ -231,7 +232,7 @@ fn describe_builtin_prints_every_declared_parameter_with_its_bounds() {
     assert!(!output.status.success());
     assert!(
         String::from_utf8_lossy(&output.stderr)
-            .contains("unknown built-in 'nope' (known: arbiter, envelope, log, publish, ros2-publish, ros2-subscribe, serial, sim, teleop, zenoh, zenoh-publish, zenoh-subscribe)")
+            .contains("unknown built-in 'nope' (known: arbiter, camera, envelope, log, publish, ros2-publish, ros2-subscribe, serial, sim, teleop, zenoh, zenoh-publish, zenoh-subscribe)")
     );
 }
 

@@ -18,6 +18,7 @@ mod support;
 
 mod architecture;
 mod builtins;
+mod camera;
 mod config_cases;
 mod contracts;
 mod controllers;

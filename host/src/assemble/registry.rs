@@ -9,6 +9,7 @@ use crate::bridge::ros2_ports::{Ros2Publish, Ros2Subscribe};
 use crate::builtin::Builtin;
 use crate::builtin::log::Log;
 use crate::builtin::publish::Publish;
+use crate::camera::CameraBuiltin;
 use crate::config::BuiltinKind;
 use crate::envelope::EnvelopeBuiltin;
 use crate::robot::builtin::SerialBuiltin;
@@ -18,6 +19,7 @@ use crate::teleop::builtin::TeleopBuiltin;
 /// Every built-in, in alphabetical order of kind.
 pub const BUILTINS: &[&dyn Builtin] = &[
     &ArbiterBuiltin,
+    &CameraBuiltin,
     &EnvelopeBuiltin,
     &Log,
     &Publish,

@@ -205,6 +205,32 @@ pub fn is_pose(port: &PortLayout) -> bool {
     port.kind == ValueKind::Vector && port.name == "pose"
 }
 
+/// Whether an output is recorded as a picture (`foxglove.CompressedImage`):
+/// a bytes port called `frame` (`builtin:camera`'s), when the value is a
+/// JPEG file; anything else on it is recorded as a plain value.
+pub fn is_image(port: &PortLayout, value: &Value) -> bool {
+    port.kind == ValueKind::Bytes
+        && port.name == IMAGE_PORT
+        && matches!(value, Value::Bytes(b) if b.starts_with(JPEG_MAGIC))
+}
+
+/// The port a picture travels on, and the text port beside it whose JSON
+/// `capture_ns` (graph time) is the next picture's capture time.
+pub const IMAGE_PORT: &str = "frame";
+pub const IMAGE_INFO_PORT: &str = "frame-info";
+/// A JPEG file's first bytes (start of image, then a marker).
+const JPEG_MAGIC: &[u8] = &[0xff, 0xd8, 0xff];
+
+/// The capture time (graph time, ns) a `frame-info` text names.
+pub fn capture_ns_of(port: &PortLayout, value: &Value) -> Option<u64> {
+    match value {
+        Value::Text(text) if port.kind == ValueKind::Text && port.name == IMAGE_INFO_PORT => {
+            serde_json::from_str::<serde_json::Value>(text).ok()?.get("capture_ns")?.as_u64()
+        }
+        _ => None,
+    }
+}
+
 /// The recording's one time line: the host's [`Clock`] (graph time) on the
 /// wall clock's scale, `epoch_unix_ns + clock.now_ns()`, the wall clock
 /// read once, when the time line is made. Every message's log time is on

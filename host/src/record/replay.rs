@@ -24,7 +24,7 @@ use std::time::{Duration, Instant};
 use serde_json::Value as Json;
 use thiserror::Error;
 
-use super::schema::{self, FRAME_TRANSFORM, LASER_SCAN, POSE_IN_FRAME};
+use super::schema::{self, COMPRESSED_IMAGE, FRAME_TRANSFORM, LASER_SCAN, POSE_IN_FRAME};
 use super::{ComponentLayout, Layout, calls_topic, output_topic};
 use crate::assemble::{self, Loader, StartError};
 use crate::builtin::Services;
@@ -475,6 +475,7 @@ fn read_recording(
             let value = match schema_name.as_str() {
                 LASER_SCAN => schema::scan_from_laser_scan(&json),
                 POSE_IN_FRAME => schema::vector_from_pose(&json),
+                COMPRESSED_IMAGE => schema::bytes_from_compressed_image(&json),
                 FRAME_TRANSFORM => continue,
                 _ => schema::value_from_json(&json["value"]),
             };

@@ -13,6 +13,7 @@ use crate::contract::{Scan, Value};
 pub const LASER_SCAN: &str = "foxglove.LaserScan";
 pub const POSE_IN_FRAME: &str = "foxglove.PoseInFrame";
 pub const FRAME_TRANSFORM: &str = "foxglove.FrameTransform";
+pub const COMPRESSED_IMAGE: &str = "foxglove.CompressedImage";
 pub const LOG: &str = "foxglove.Log";
 /// subsume's own schemas.
 pub const VALUE: &str = "subsume.Value";
@@ -172,6 +173,24 @@ pub fn vector_from_pose(json: &Json) -> Option<Value> {
     Some(Value::Vector(read_numbers(json.get("value")?)?))
 }
 
+/// A JPEG frame as `foxglove.CompressedImage` (its bytes base64, as
+/// Foxglove's JSON encoding has them), taken at `capture_unix_ns`.
+pub fn compressed_image(jpeg: &[u8], frame: &str, capture_unix_ns: u64) -> Json {
+    use base64::Engine as _;
+    json!({
+        "timestamp": timestamp(capture_unix_ns),
+        "frame_id": frame,
+        "data": base64::engine::general_purpose::STANDARD.encode(jpeg),
+        "format": "jpeg",
+    })
+}
+
+/// Reads a [`compressed_image`] message back into its bytes.
+pub fn bytes_from_compressed_image(json: &Json) -> Option<Value> {
+    use base64::Engine as _;
+    base64::engine::general_purpose::STANDARD.decode(json.get("data")?.as_str()?).ok().map(Value::Bytes)
+}
+
 /// `foxglove.Log`'s levels.
 pub fn log_level(level: &tracing::Level) -> u8 {
     match *level {
@@ -272,6 +291,15 @@ pub fn schema(name: &str) -> Json {
             }),
             &["timestamp", "parent_frame_id", "child_frame_id", "translation", "rotation"],
         ),
+        COMPRESSED_IMAGE => object(
+            json!({
+                "timestamp": time_schema(),
+                "frame_id": { "type": "string" },
+                "data": { "type": "string", "contentEncoding": "base64" },
+                "format": { "type": "string" },
+            }),
+            &["timestamp", "frame_id", "data", "format"],
+        ),
         LOG => object(
             json!({
                 "timestamp": time_schema(),
@@ -328,6 +356,15 @@ pub fn schema(name: &str) -> Json {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_picture_comes_back_bit_for_bit_with_its_capture_time() {
+        let jpeg = vec![0xff, 0xd8, 0xff, 0xe0, 0, 1, 2, 254, 0xff, 0xd9];
+        let image = compressed_image(&jpeg, "camera", 1_700_000_000_250_000_000);
+        assert_eq!(image["timestamp"], json!({ "sec": 1_700_000_000u64, "nsec": 250_000_000u64 }));
+        assert_eq!(image["format"], "jpeg");
+        assert_eq!(bytes_from_compressed_image(&image), Some(Value::Bytes(jpeg)));
+    }
 
     #[test]
     fn values_come_back_bit_for_bit() {

@@ -13,10 +13,10 @@ use mcap::records::MessageHeader;
 use serde_json::{Value as Json, json};
 
 use super::live::Live;
-use super::schema::{self, FRAME_TRANSFORM, LASER_SCAN, POSE_IN_FRAME};
+use super::schema::{self, COMPRESSED_IMAGE, FRAME_TRANSFORM, LASER_SCAN, POSE_IN_FRAME};
 use super::{
     CHUNK_BYTES, Event, FLUSH_INTERVAL, Layout, MAX_TEXT_BYTES, RecordError, RecordOptions, RecordSummary, calls_topic,
-    is_pose, output_topic, rotated_path,
+    capture_ns_of, is_image, is_pose, output_topic, rotated_path,
 };
 use crate::contract::{Value, ValueKind};
 
@@ -83,6 +83,9 @@ pub(super) struct Writer {
     cut: bool,
     summary: RecordSummary,
     last_flush: Instant,
+    /// Per component: the capture time (graph ns) its last `frame-info`
+    /// named, for the picture that follows it.
+    capture_ns: HashMap<usize, u64>,
 }
 
 impl Writer {
@@ -103,6 +106,7 @@ impl Writer {
             cut: false,
             summary: RecordSummary::default(),
             last_flush: Instant::now(),
+            capture_ns: HashMap::new(),
         };
         if writer.options.path.is_some() {
             writer.open()?;
@@ -255,7 +259,15 @@ impl Writer {
                 let Some(spec) = component.outputs.get(port as usize) else { return Ok(()) };
                 let topic = output_topic(&component.name, &spec.name);
                 let unix = epoch + t;
+                if let Some(capture) = capture_ns_of(spec, &value) {
+                    self.capture_ns.insert(from, capture);
+                }
                 match &value {
+                    Value::Bytes(jpeg) if is_image(spec, &value) => {
+                        let captured = self.capture_ns.remove(&from).filter(|&c| c <= t).unwrap_or(t);
+                        let image = schema::compressed_image(jpeg, &component.name, epoch + captured);
+                        self.message(&topic, COMPRESSED_IMAGE, unix, &image)
+                    }
                     Value::Scan(scan) if spec.kind == ValueKind::Scan => {
                         self.message(&topic, LASER_SCAN, unix, &schema::laser_scan(scan, &component.name, unix))
                     }

@@ -340,6 +340,13 @@ impl SimControl {
         Ok(())
     }
 
+    /// The world and the robot's body it runs with (they never change
+    /// while it runs): what a camera needs besides the status.
+    pub fn world_and_body(&self) -> (World, Body) {
+        let core = self.shared.core();
+        (core.settings.world.clone(), core.settings.body)
+    }
+
     pub fn is_paused(&self) -> bool {
         self.shared.core().paused
     }
