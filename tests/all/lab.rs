@@ -1267,16 +1267,25 @@ struct Receiver {
 
 impl Receiver {
     fn start(secret: &str, out: &Path, port: u16, fail: u32) -> Receiver {
-        use std::io::BufRead;
-        let mut child = Command::new(crate::support::python())
-            .arg(crate::support::repo_root().join("tests/python/webhook_receiver.py"))
-            .args([secret, &out.display().to_string(), "--port", &port.to_string(), "--fail", &fail.to_string()])
-            .stdout(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
-        let mut line = String::new();
-        std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
-        let port = line.trim().strip_prefix("listening on ").unwrap().parse().unwrap();
+        Receiver::spawn(secret, out, port, fail, None)
+    }
+
+    /// `tls`: the folder of `make_test_pki`, whose server certificate it
+    /// serves HTTPS with.
+    fn spawn(secret: &str, out: &Path, port: u16, fail: u32, tls: Option<&Path>) -> Receiver {
+        let mut command = Command::new(crate::support::python());
+        command.arg(crate::support::repo_root().join("tests/python/webhook_receiver.py")).args([
+            secret,
+            &out.display().to_string(),
+            "--port",
+            &port.to_string(),
+            "--fail",
+            &fail.to_string(),
+        ]);
+        if let Some(pki) = tls {
+            command.arg("--tls").arg(pki.join("chain.pem")).arg(pki.join("server.key"));
+        }
+        let (child, port) = listening(command);
         Receiver { child, port }
     }
 
@@ -1290,6 +1299,17 @@ impl Drop for Receiver {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// Spawns `command` (a Python peer) and reads its "listening on PORT".
+fn listening(mut command: Command) -> (std::process::Child, u16) {
+    use std::io::BufRead;
+    let mut child = command.stdout(std::process::Stdio::piped()).spawn().unwrap();
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().unwrap()).read_line(&mut line).unwrap();
+    let port =
+        line.trim().strip_prefix("listening on ").unwrap_or_else(|| panic!("peer said {line:?}")).parse().unwrap();
+    (child, port)
 }
 
 /// The POSTs `out` received, waiting up to a minute for `count`.
@@ -1420,6 +1440,187 @@ fn a_host_killed_with_undelivered_events_sends_them_after_restart() {
     lab.host.child.kill().unwrap();
     lab.host.child.wait().unwrap();
     let lab = start(dir.path());
-    assert!(lab.host.log().contains("webhooks: 1 configured, 0 events waiting"), "{}", lab.host.log());
+    assert!(
+        lab.host.log().contains("notifications: 1 webhooks, mail not configured, 0 events waiting"),
+        "{}",
+        lab.host.log()
+    );
     assert_eq!(received(&out, 3, &lab.host).len(), 3);
+}
+
+#[test]
+fn an_https_webhook_is_verified_against_its_authority_and_an_untrusted_one_holds_up_no_other() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let pki = dir.path().join("pki");
+    std::fs::create_dir(&pki).unwrap();
+    crate::support::make_test_pki(&pki);
+    let trusted_out = dir.path().join("trusted.jsonl");
+    let untrusted_out = dir.path().join("untrusted.jsonl");
+    let trusted = Receiver::spawn(HOOK_SECRET, &trusted_out, 0, 0, Some(&pki));
+    let untrusted = Receiver::spawn(HOOK_SECRET, &untrusted_out, 0, 0, Some(&pki));
+    let events = ["experiment.accepted", "experiment.started", "experiment.ended"];
+    // The same server certificate: one hook trusts the test's authority,
+    // the other only the system's roots, which do not hold it.
+    let config = serde_json::json!({ "webhooks": [
+        { "url": format!("https://localhost:{}/hooks/lab", untrusted.port), "events": events, "secret": HOOK_SECRET },
+        { "url": format!("https://127.0.0.1:{}/hooks/lab", trusted.port), "events": events, "secret": HOOK_SECRET,
+          "ca": pki.join("ca.pem") },
+    ]});
+    std::fs::write(dir.path().join("store/webhooks.json"), config.to_string()).unwrap();
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let posts = received(&trusted_out, 3, &lab.host);
+    assert!(posts.iter().all(|p| p["valid"] == true), "{posts:#?}");
+    assert_eq!(
+        acknowledged(&posts),
+        [
+            ("experiment.accepted".to_string(), id, "queued".to_string()),
+            ("experiment.started".to_string(), id, "running".to_string()),
+            ("experiment.ended".to_string(), id, "done".to_string()),
+        ],
+        "all three over TLS while the untrusted hook keeps failing: {posts:#?}"
+    );
+    let log = lab.host.log();
+    assert!(
+        std::fs::read_to_string(&untrusted_out).unwrap_or_default().is_empty(),
+        "nothing is posted to a certificate not trusted"
+    );
+    assert!(
+        log.contains(&format!("https://localhost:{}/hooks/lab", untrusted.port)) && log.contains("not delivered"),
+        "{log}"
+    );
+    assert!(log.to_lowercase().contains("certificate"), "the log says why: {log}");
+}
+
+/// The test's SMTP server (Python's aiosmtpd: STARTTLS required, one
+/// login), each message it accepted a line of `out`.
+struct MailServer {
+    child: std::process::Child,
+    port: u16,
+}
+
+impl MailServer {
+    fn start(out: &Path, pki: &Path, fail: u32) -> MailServer {
+        let mut command = Command::new(crate::support::python());
+        command
+            .arg(crate::support::repo_root().join("tests/python/smtp_receiver.py"))
+            .arg(out)
+            .arg("--cert")
+            .arg(pki.join("chain.pem"))
+            .arg("--key")
+            .arg(pki.join("server.key"))
+            .args(["--user", "lab-mailer", "--password", MAIL_PASSWORD, "--fail", &fail.to_string()]);
+        let (child, port) = listening(command);
+        MailServer { child, port }
+    }
+}
+
+impl Drop for MailServer {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+const MAIL_PASSWORD: &str = "the-smtp-password-of-the-lab";
+
+/// The mails `out` holds, waiting up to a minute for `count`.
+fn mails(out: &Path, count: usize, host: &HostProcess) -> Vec<Json> {
+    received(out, count, host)
+}
+
+#[test]
+fn mail_tells_a_researcher_of_her_own_experiments_and_the_owner_of_everyones() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let pki = dir.path().join("pki");
+    std::fs::create_dir(&pki).unwrap();
+    crate::support::make_test_pki(&pki);
+    let out = dir.path().join("mails.jsonl");
+    // The server answers the first message "451 try again later": it is
+    // sent again.
+    let server = MailServer::start(&out, &pki, 1);
+    let config = serde_json::json!({
+        "server": "localhost", "port": server.port, "security": "starttls",
+        "from": "lab@robots.example.org", "user": "lab-mailer", "password": MAIL_PASSWORD,
+        "ca": pki.join("ca.pem"),
+        "owner": [{ "address": "owner@robots.example.org", "events": ["experiment.ended"] }],
+    });
+    std::fs::write(dir.path().join("store/mail.json"), config.to_string()).unwrap();
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let ben = lab.token("ben");
+    // Her own subscription: checked, kept, shown to her alone.
+    let (status, json) = lab.call(&ana, "GET", "/api/v1/lab/mail", "");
+    assert_eq!((status, &json["mail"]), (200, &Json::Null), "{json}");
+    for (bad, why) in [
+        (r#"{"address": "not an address", "events": ["experiment.ended"]}"#, "address"),
+        (r#"{"address": "ana@example.org", "events": ["robot.lost"]}"#, "own experiments"),
+        (r#"{"address": "ana@example.org", "events": ["experiment.ended"], "cc": "x"}"#, "unknown field"),
+    ] {
+        let (status, json) = lab.call(&ana, "PUT", "/api/v1/lab/mail", bad);
+        assert_eq!(status, 400, "{bad}: {json}");
+        assert!(json["error"].as_str().unwrap_or_default().contains(why), "{bad}: {json}");
+    }
+    let wanted = r#"{"address": "ana@example.org", "events": ["experiment.ended", "experiment.refused"]}"#;
+    let (status, json) = lab.call(&ana, "PUT", "/api/v1/lab/mail", wanted);
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["mail"]["address"], "ana@example.org");
+    let (_, json) = lab.call(&ben, "GET", "/api/v1/lab/mail", "");
+    assert_eq!(json["mail"], Json::Null, "ben sees his own subscription, not hers");
+
+    let mut ids = Vec::new();
+    for token in [&ana, &ben] {
+        let set = lab.stage(token, "mine.xml", &robot(7.0, ""));
+        let body = serde_json::json!({ "set": set, "duration_s": 1.0 }).to_string();
+        let (status, json) = lab.call(token, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        lab.wait_for(token, id, "done", Duration::from_secs(120));
+        ids.push(id);
+    }
+    let got = mails(&out, 3, &lab.host);
+    for mail in &got {
+        assert_eq!(mail["tls"], true, "over STARTTLS: {mail}");
+        assert_eq!(mail["login"], "lab-mailer", "logged in: {mail}");
+        assert_eq!(mail["from"], "lab@robots.example.org");
+    }
+    let to = |address: &str| -> Vec<String> {
+        got.iter().filter(|m| m["to"][0] == address).map(|m| m["subject"].as_str().unwrap().to_string()).collect()
+    };
+    assert_eq!(to("ana@example.org"), [format!("[subsume lab] experiment {} done", ids[0])], "{got:#?}");
+    assert_eq!(
+        to("owner@robots.example.org"),
+        [format!("[subsume lab] experiment {} done", ids[0]), format!("[subsume lab] experiment {} done", ids[1])],
+        "the owner hears of everyone's; ben, not subscribed, of nothing: {got:#?}"
+    );
+    assert_eq!(got.len(), 3, "{got:#?}");
+    let body = got.iter().find(|m| m["to"][0] == "ana@example.org").unwrap()["body"].as_str().unwrap().to_string();
+    assert!(body.contains(&format!("Experiment {} by ana is now done", ids[0])), "{body}");
+    assert!(lab.host.log().contains("not delivered (try 1)"), "the 451 was retried: {}", lab.host.log());
+    assert!(!lab.host.log().contains(MAIL_PASSWORD), "the password is never logged");
+    // Ending it: no more mail for her.
+    let (status, json) = lab.call(&ana, "DELETE", "/api/v1/lab/mail", "");
+    assert_eq!((status, &json["mail"]), (200, &Json::Null), "{json}");
+    let audit = std::fs::read_to_string(dir.path().join("store/audit.log")).unwrap_or_default();
+    assert!(audit.contains("mail-subscription"), "audited: {audit}");
+}
+
+#[test]
+fn a_lab_without_mail_says_so_when_a_user_subscribes() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let (status, json) =
+        lab.call(&ana, "PUT", "/api/v1/lab/mail", r#"{"address": "a@b.org", "events": ["experiment.ended"]}"#);
+    assert_eq!(status, 409, "{json}");
+    assert!(json["error"].as_str().unwrap().contains("sends no mail"), "{json}");
 }

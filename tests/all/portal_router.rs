@@ -235,6 +235,10 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/lab/reservations", br#"{"start_unix_ms": 0, "end_unix_ms": 1}"#, Allowed::Submit),
         ("DELETE", "/api/v1/lab/reservations/999", b"", Allowed::AnyUser),
         ("GET", "/api/v1/lab/kit", b"", Allowed::Submit),
+        // Her own mail subscription; this portal sends no mail: 409.
+        ("GET", "/api/v1/lab/mail", b"", Allowed::AnyUser),
+        ("PUT", "/api/v1/lab/mail", br#"{"address": "a@b.org", "events": ["experiment.ended"]}"#, Allowed::AnyUser),
+        ("DELETE", "/api/v1/lab/mail", b"", Allowed::AnyUser),
         // A lab server's robots: on a robot, any user hears it is no lab
         // server (tests/all/labnet.rs drives them on a lab server).
         ("GET", "/api/v1/robots", b"", Allowed::AnyUser),

@@ -2,20 +2,22 @@
 an implementation no one here wrote, on the other side of subsume's signed
 POSTs.
 
-Usage: webhook_receiver.py SECRET OUT_FILE [--port N] [--fail N]
+Usage: webhook_receiver.py SECRET OUT_FILE [--port N] [--fail N] [--tls CERT KEY]
 
 Prints "listening on PORT" once bound to 127.0.0.1. Each POST is checked the
 way docs/lab.md tells receivers to (HMAC-SHA256 over TIMESTAMP.BODY with
 the hook's secret, compared in constant time) and appended to OUT_FILE as
 one JSON line {"valid": bool, "event_id": header, "body": parsed body}. The
 first N POSTs are answered 500 (and still written, with "answered": 500),
-the others 200.
+the others 200. With --tls, it serves HTTPS with that certificate chain and
+key (Python's ssl module).
 """
 
 import argparse
 import hashlib
 import hmac
 import json
+import ssl
 import sys
 from http.server import HTTPServer, BaseHTTPRequestHandler
 
@@ -24,6 +26,7 @@ parser.add_argument("secret")
 parser.add_argument("out")
 parser.add_argument("--port", type=int, default=0)
 parser.add_argument("--fail", type=int, default=0)
+parser.add_argument("--tls", nargs=2, metavar=("CERT", "KEY"))
 args = parser.parse_args()
 state = {"posts": 0}
 
@@ -61,5 +64,9 @@ class Receiver(BaseHTTPRequestHandler):
 
 
 server = HTTPServer(("127.0.0.1", args.port), Receiver)
+if args.tls:
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    context.load_cert_chain(*args.tls)
+    server.socket = context.wrap_socket(server.socket, server_side=True)
 print(f"listening on {server.server_address[1]}", flush=True)
 server.serve_forever()

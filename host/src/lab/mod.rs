@@ -38,6 +38,7 @@
 pub mod bundle;
 mod cancel;
 mod kit;
+mod mail;
 pub mod materialize;
 mod metrics;
 mod owner;
@@ -58,6 +59,7 @@ pub use self::metrics::{LabMetrics, PREFLIGHT_BUCKETS_S};
 pub use self::robots::RobotStop;
 pub use self::submit::{MAX_SUBMISSIONS_PER_WINDOW, SUBMISSION_WINDOW_MS, Submission};
 pub use self::views::{ExperimentView, LabView};
+pub use crate::notify::mail::Subscription as MailSubscription;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::PathBuf;

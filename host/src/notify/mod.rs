@@ -1,12 +1,17 @@
 //! People are told (docs/lab.md, "People are told"): the lab's events sent
-//! to the owner's webhooks. This module owns the webhooks' configuration
-//! (`webhooks.json` beside the store, read at start), the [`Event`] and its
-//! JSON, the [`outbox`] on disk where every event waits until its receiver
-//! acknowledged it, and the delivery thread ([`webhook`]: signed POSTs,
-//! retried with backoff). The lab hands it events from one place
-//! (`Lab::transition`); writing an event to the outbox is the only work
-//! done there, delivery is off every lock, on a thread of its own.
+//! to the owner's webhooks and by mail. This module owns the webhooks'
+//! configuration (`webhooks.json` beside the store, read at start), the
+//! mail's ([`mail`]: `mail.json`, and the researchers' own subscriptions),
+//! the [`Event`] and its JSON, the [`outbox`] on disk where every event
+//! waits until its receiver acknowledged it, and the delivery thread
+//! ([`delivery`]: each destination in order, retried with backoff; a
+//! [`webhook`] gets a signed POST, an address a mail). The lab hands it
+//! events (`Lab::transition` for experiments); writing an event to the
+//! outbox is the only work done there, delivery is off every lock, on a
+//! thread of its own.
 
+pub mod delivery;
+pub mod mail;
 pub mod outbox;
 pub mod webhook;
 
@@ -17,8 +22,9 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use self::mail::{MAIL_FILE, MAILTO, MailError, Mailer, SUBSCRIPTIONS_FILE, Subscription, Subscriptions};
 use self::outbox::{Outbox, OutboxError};
-use self::webhook::Url;
+use self::webhook::{Url, WebhookError};
 
 /// The webhooks' configuration file, in the store's folder.
 pub const WEBHOOKS_FILE: &str = "webhooks.json";
@@ -49,10 +55,11 @@ pub enum EventKind {
     /// Done, cancelled, aborted or failed (the state and reasons say which).
     #[serde(rename = "experiment.ended")]
     ExperimentEnded,
-    /// Declared for configurations; nothing emits it yet.
+    /// The robot left service (a failed reset or self-test, a low battery,
+    /// an admin).
     #[serde(rename = "robot.maintenance.started")]
     RobotMaintenanceStarted,
-    /// Declared for configurations; nothing emits it yet.
+    /// The robot is back in service.
     #[serde(rename = "robot.maintenance.ended")]
     RobotMaintenanceEnded,
     /// Declared for configurations; nothing emits it yet.
@@ -101,6 +108,9 @@ pub struct Webhook {
     pub events: Vec<EventKind>,
     /// The HMAC-SHA256 key; never logged nor shown.
     pub secret: String,
+    /// For an `https://` hook: a PEM file of the authority that signed its
+    /// certificate; by default the system's roots.
+    pub ca: Option<PathBuf>,
 }
 
 #[derive(Deserialize)]
@@ -116,16 +126,22 @@ pub enum NotifyError {
     Config { path: PathBuf, message: String },
     #[error(transparent)]
     Outbox(#[from] OutboxError),
-    #[error("cannot start the webhooks' delivery thread: {0}")]
+    #[error(transparent)]
+    Mail(#[from] MailError),
+    #[error(transparent)]
+    Webhook(#[from] WebhookError),
+    #[error("{0}: no longer configured; the event is not sent")]
+    Gone(String),
+    #[error("cannot start the notifications' delivery thread: {0}")]
     Thread(std::io::Error),
 }
 
-/// A webhook checked: its URL parsed.
-#[derive(Clone, Debug)]
+/// A webhook checked: its URL parsed, its client made.
 pub(crate) struct Hook {
     pub url: Url,
     pub events: Vec<EventKind>,
     pub secret: Vec<u8>,
+    pub agent: ureq::Agent,
 }
 
 /// Reads and checks `path`'s webhooks; `Ok(None)` when there is no file.
@@ -154,65 +170,125 @@ pub fn read_webhooks(path: &Path) -> Result<Option<Vec<Webhook>>, NotifyError> {
         if hook.events.is_empty() {
             return Err(bad(format!("webhook {n} ({}): no events", hook.url)));
         }
+        if hook.ca.is_some() && !hook.url.starts_with("https://") {
+            return Err(bad(format!("webhook {n} ({}): a ca is only for an https:// hook", hook.url)));
+        }
     }
     Ok(Some(file.webhooks))
 }
 
-/// The host's webhooks: events in, signed POSTs out.
+/// The host's notifications: events in, signed POSTs and mails out.
 pub struct Notifier {
     hooks: Vec<Hook>,
+    mailer: Option<Mailer>,
+    subscriptions: Mutex<Subscriptions>,
     outbox: Mutex<Outbox>,
     /// Wakes the delivery thread when an event is written.
     written: Condvar,
 }
 
 impl Notifier {
-    /// The webhooks configured beside the store in `store_dir`, with their
-    /// outbox there and the delivery thread started; `None` when no file
-    /// configures any.
+    /// The webhooks and mail configured beside the store in `store_dir`,
+    /// with their outbox there and the delivery thread started; `None`
+    /// when no file configures either.
     pub fn start(store_dir: &Path) -> Result<Option<Arc<Notifier>>, NotifyError> {
-        let Some(webhooks) = read_webhooks(&store_dir.join(WEBHOOKS_FILE))? else {
+        let webhooks_path = store_dir.join(WEBHOOKS_FILE);
+        let mail_path = store_dir.join(MAIL_FILE);
+        let webhooks = read_webhooks(&webhooks_path)?;
+        let mail = mail::read_mail_config(&mail_path)?;
+        if webhooks.is_none() && mail.is_none() {
             return Ok(None);
-        };
-        let mut hooks = Vec::new();
-        for webhook in webhooks {
-            let url = Url::parse(&webhook.url)
-                .map_err(|e| NotifyError::Config { path: store_dir.join(WEBHOOKS_FILE), message: e.to_string() })?;
-            hooks.push(Hook { url, events: webhook.events, secret: webhook.secret.into_bytes() });
         }
+        let mut hooks = Vec::new();
+        for webhook in webhooks.unwrap_or_default() {
+            let bad = |message: String| NotifyError::Config { path: webhooks_path.clone(), message };
+            let url = Url::parse(&webhook.url).map_err(|e| bad(e.to_string()))?;
+            let agent = webhook::agent(&url, webhook.ca.as_deref()).map_err(|e| bad(e.to_string()))?;
+            hooks.push(Hook { url, events: webhook.events, secret: webhook.secret.into_bytes(), agent });
+        }
+        let mailer = mail.map(|config| Mailer::new(config, &mail_path)).transpose()?;
+        let subscriptions = Subscriptions::open(&store_dir.join(SUBSCRIPTIONS_FILE))?;
         let outbox = Outbox::open(&store_dir.join(OUTBOX_DIR), outbox::MAX_OUTBOX_ENTRIES)?;
-        tracing::info!("webhooks: {} configured, {} events waiting in the outbox", hooks.len(), outbox.len());
-        let notifier = Arc::new(Notifier { hooks, outbox: Mutex::new(outbox), written: Condvar::new() });
+        tracing::info!(
+            "notifications: {} webhooks, mail {}, {} events waiting in the outbox",
+            hooks.len(),
+            if mailer.is_some() { "configured" } else { "not configured" },
+            outbox.len()
+        );
+        let notifier = Arc::new(Notifier {
+            hooks,
+            mailer,
+            subscriptions: Mutex::new(subscriptions),
+            outbox: Mutex::new(outbox),
+            written: Condvar::new(),
+        });
         let deliverer = notifier.clone();
         std::thread::Builder::new()
-            .name("webhooks".into())
-            .spawn(move || webhook::deliver_forever(&deliverer))
+            .name("notifications".into())
+            .spawn(move || delivery::deliver_forever(&deliverer))
             .map_err(NotifyError::Thread)?;
         Ok(Some(notifier))
     }
 
-    /// Writes `kind` about `experiment` to the outbox once per webhook that
-    /// asked for it (fsynced before this returns) and wakes the delivery.
+    /// Writes `kind` (about `experiment`) to the outbox once per webhook
+    /// that asked for it, once per owner address, and once for the
+    /// experiment's submitter when she subscribed to it (fsynced before
+    /// this returns), and wakes the delivery.
     pub fn tell(&self, kind: EventKind, at_ms: u64, experiment: Option<ExperimentFacts>) -> Result<(), NotifyError> {
+        let mut destinations: Vec<String> =
+            self.hooks.iter().filter(|h| h.events.contains(&kind)).map(|h| h.url.text.clone()).collect();
+        if let Some(mailer) = &self.mailer {
+            destinations.extend(mailer.owner_addresses(kind).map(|a| format!("{MAILTO}{a}")));
+            if let Some(facts) = &experiment {
+                let subscriptions = self.subscriptions.lock().map_err(|_| OutboxError::Poisoned)?;
+                if let Some(s) = subscriptions.get(&facts.submitter).filter(|s| s.events.contains(&kind)) {
+                    destinations.push(format!("{MAILTO}{}", s.address));
+                }
+            }
+        }
+        if destinations.is_empty() {
+            return Ok(());
+        }
         let mut outbox = self.outbox.lock().map_err(|_| OutboxError::Poisoned)?;
-        for hook in self.hooks.iter().filter(|h| h.events.contains(&kind)) {
+        for destination in destinations {
             let id = outbox.next_id();
             let event = Event { id, event: kind, at_ms, experiment: experiment.clone() };
-            outbox.push(&hook.url.text, &event)?;
+            outbox.push(&destination, &event)?;
         }
         drop(outbox);
         self.written.notify_all();
         Ok(())
     }
 
+    /// Whether this lab sends mail.
+    pub fn mails(&self) -> bool {
+        self.mailer.is_some()
+    }
+
+    /// `user`'s mail subscription.
+    pub fn subscription(&self, user: &str) -> Result<Option<Subscription>, NotifyError> {
+        let subscriptions = self.subscriptions.lock().map_err(|_| OutboxError::Poisoned)?;
+        Ok(subscriptions.get(user).cloned())
+    }
+
+    /// Sets (or with `None`, ends) `user`'s mail subscription.
+    pub fn subscribe(&self, user: &str, subscription: Option<Subscription>) -> Result<(), NotifyError> {
+        let mut subscriptions = self.subscriptions.lock().map_err(|_| OutboxError::Poisoned)?;
+        Ok(subscriptions.set(user, subscription)?)
+    }
+
     pub(crate) fn hook(&self, url: &str) -> Option<&Hook> {
         self.hooks.iter().find(|h| h.url.text == url)
     }
 
-    /// Waits up to `timeout` for an event to be written.
-    pub(crate) fn wait(&self, timeout: Duration) {
+    pub(crate) fn mailer(&self) -> Option<&Mailer> {
+        self.mailer.as_ref()
+    }
+
+    /// Waits up to `timeout` for an event written after `last_id`.
+    pub(crate) fn wait_for_news(&self, last_id: u64, timeout: Duration) {
         if let Ok(outbox) = self.outbox.lock()
-            && outbox.is_empty()
+            && outbox.last_id() == last_id
         {
             let _ = self.written.wait_timeout(outbox, timeout);
         }
@@ -245,7 +321,7 @@ mod tests {
         let many = vec![good.clone(); MAX_WEBHOOKS + 1].join(",");
         for (body, why) in [
             (format!(r#"{{"webhooks": [{many}]}}"#), "17 webhooks, at most 16"),
-            (format!(r#"{{"webhooks": [{}]}}"#, hook("https://a/", r#"["robot.lost"]"#, SECRET)), "webhook 0: url"),
+            (format!(r#"{{"webhooks": [{}]}}"#, hook("ftp://a/", r#"["robot.lost"]"#, SECRET)), "webhook 0: url"),
             (format!(r#"{{"webhooks": [{}]}}"#, hook("http://a/", r#"["robot.lost"]"#, "short")), "its secret must be"),
             (format!(r#"{{"webhooks": [{}]}}"#, hook("http://a/", "[]", SECRET)), "no events"),
             (

@@ -125,6 +125,17 @@ impl Outbox {
         self.entries.values().next().cloned()
     }
 
+    /// Each destination's oldest waiting event, oldest first.
+    pub fn oldest_per_destination(&self) -> Vec<Entry> {
+        let mut seen = std::collections::BTreeSet::new();
+        self.entries.values().filter(|e| seen.insert(e.hook.as_str())).cloned().collect()
+    }
+
+    /// The last id given: it changes whenever an event is written.
+    pub fn last_id(&self) -> u64 {
+        self.last_id
+    }
+
     /// Forgets event `id` (delivered, or given up): its file is removed.
     pub fn remove(&mut self, id: u64) -> Result<(), OutboxError> {
         if self.entries.remove(&id).is_none() {

@@ -212,6 +212,39 @@ pub(super) async fn put_settings(
     Ok(Json(json!({ "settings": settings })))
 }
 
+/// The caller's own mail subscription (`null` when she has none).
+pub(super) async fn get_mail(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let subscription = blocking(move || lab.mail_subscription(&user)).await?;
+    Ok(Json(json!({ "mail": subscription })))
+}
+
+/// Sets the caller's own mail subscription.
+pub(super) async fn put_mail(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    bytes: Bytes,
+) -> Result<Json<Json_>, ApiError> {
+    let subscription: crate::lab::MailSubscription =
+        body(&bytes, r#"{"address": "you@example.org", "events": ["experiment.ended", "experiment.refused"]}"#)?;
+    let lab = state.lab.clone();
+    let subscription = blocking(move || lab.set_mail_subscription(&user, Some(subscription))).await?;
+    Ok(Json(json!({ "mail": subscription })))
+}
+
+/// Ends the caller's own mail subscription.
+pub(super) async fn delete_mail(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let subscription = blocking(move || lab.set_mail_subscription(&user, None)).await?;
+    Ok(Json(json!({ "mail": subscription })))
+}
+
 #[derive(serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 struct BaselineRequest {

@@ -241,6 +241,10 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/lab/pause", post(lab::pause))
         .route("/lab/resume", post(lab::resume))
         .route("/lab/kit", get(lab::kit))
+        .route(
+            "/lab/mail",
+            get(lab::get_mail).put(lab::put_mail).delete(lab::delete_mail).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
+        )
         .route("/robots", get(lab::robots))
         .route("/robots/stop", post(lab::stop_all))
         .route("/robots/{name}/live", get(lab::robot_live))
