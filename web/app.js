@@ -1228,6 +1228,22 @@ function experimentNow(x) {
   return now;
 }
 
+
+// How the algorithm did, apart from the run's status (done says it ran to
+// its end): the same words as `subsume lab show` (RunOutcome::said).
+function outcomeText(o) {
+  const parts = [];
+  if (o.goal_reached === true) parts.push('goal reached');
+  if (o.goal_reached === false) parts.push('goal not reached');
+  parts.push(o.collisions === 0 ? 'no collision' : o.collisions === 1 ? '1 collision' : `${o.collisions} collisions`);
+  const at = (f) => (f.at_s == null ? '' : ` at ${f.at_s.toFixed(1)} s`);
+  if (o.faults.length === 0) parts.push('no fault');
+  else if (o.faults.length === 1) parts.push(`component '${o.faults[0].component}' faulted${at(o.faults[0])}: ${o.faults[0].reason}`);
+  else parts.push(`${o.faults.length} faults (first: '${o.faults[0].component}'${at(o.faults[0])}: ${o.faults[0].reason})`);
+  const kinds = Object.entries(o.interventions);
+  parts.push(kinds.length === 0 ? 'no intervention' : `interventions: ${kinds.map(([c, n]) => `${c} ${n}`).join(', ')}`);
+  return parts.join(', ');
+}
 function experimentCard(x) {
   const card = el('div', { class: `experiment state-${x.state}`, 'data-experiment': String(x.id), 'data-state': x.state });
   const actions = el('span', { class: 'exp-actions' });
@@ -1261,6 +1277,7 @@ function experimentCard(x) {
   if (x.run) {
     card.append(el('div', { class: 'run' }, `On the robot: ${x.run.ran_s.toFixed(1)} s; ${x.run.late_cycles} control cycles late ` +
       `beyond the watchdog's margin (worst ${x.run.worst_lateness_ms.toFixed(1)} ms)`));
+    if (x.run.outcome) card.append(el('div', { class: 'outcome' }, `Outcome: ${outcomeText(x.run.outcome)}`));
   }
   if (x.recording_expired) card.append(el('p', { class: 'hint' }, "its recordings expired (the lab's retention cap); the record stays"));
   const details = el('details', {}, el('summary', {}, 'States with their causes, components'),

@@ -1073,3 +1073,52 @@ fn a_portal_on_the_other_scheme_is_told_apart_from_an_unreachable_one() {
         assert!(!ok && stderr.contains(&says), "{case}: {stderr}");
     }
 }
+
+/// The run's status and its outcome are apart: a run whose component
+/// faulted on the robot (the owner's criteria allow faults) ends `done`,
+/// `lab submit` exits 0, and both it and `lab show` say the outcome: the
+/// fault, with its component and time.
+#[test]
+fn a_run_that_faults_on_the_robot_is_done_and_its_outcome_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    add_admin(&dir.path().join("store"));
+    let host = gentle_lab(dir.path());
+    let token = support::login(&host.address, "admin", PASSWORD);
+    let (_, overview) = http(&host.address, "GET", "/api/v1/lab", Some(&token), b"");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["criteria"]["allow_faults"] = serde_json::Value::Bool(true);
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/lab/settings", Some(&token), settings.to_string().as_bytes());
+    assert_eq!(status, 200, "{json}");
+    let faulty = unique_guest(dir.path(), "test-faulty", "trap");
+    let params =
+        r#"<param name="mode" value="trap-on-tick"/><param name="after" value="10"/><param name="drive" value="yes"/>"#;
+    let trap = lab_robot(dir.path(), "trap.xml", "driver.wasm", params, WATCHFUL);
+    let driver = format!("driver={}", faulty.display());
+    let output = lab(
+        "ada",
+        &["submit", "--robot", trap.to_str().unwrap(), "--component", &driver, "--duration", "3", &host.address],
+    );
+    let (stdout, stderr) = out(&output);
+    assert_eq!(output.status.code(), Some(0), "done is the run's status: {stdout}\n{stderr}");
+    assert_eq!(
+        told_states(&stdout, 1),
+        ["checking", "preflight", "queued", "running", "finishing", "done"],
+        "{stdout}"
+    );
+    let outcome = stdout.lines().find_map(|l| l.strip_prefix("outcome of experiment 1: ")).expect(&stdout).to_string();
+    assert!(outcome.contains("component 'driver' faulted at ") && outcome.contains("trap"), "{outcome}");
+    assert!(outcome.contains("no collision"), "{outcome}");
+
+    let output = lab("ada", &["show", "1", &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stderr}");
+    assert!(stdout.contains("experiment 1: done"), "{stdout}");
+    let shown = stdout.lines().find_map(|l| l.trim().strip_prefix("outcome")).expect(&stdout).trim().to_string();
+    assert_eq!(shown, outcome, "lab show and lab submit say it alike");
+    let output = lab("ada", &["show", "1", "--json", &host.address]);
+    let record: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let faults = &record["run"]["outcome"]["faults"];
+    assert_eq!(faults[0]["component"], "driver", "{record:#}");
+    assert!(faults[0]["at_s"].as_f64().unwrap() > 0.5, "after 10 good ticks at 10 Hz: {record:#}");
+}

@@ -1380,6 +1380,10 @@ fn webhooks_tell_of_an_experiment_in_order_signed_and_retried() {
         ],
         "{posts:#?}"
     );
+    // The ended event carries the run's outcome apart from its status.
+    let ended = posts.iter().rev().find(|p| p["body"]["event"] == "experiment.ended").unwrap();
+    let outcome = &ended["body"]["experiment"]["outcome"];
+    assert!(outcome["collisions"].is_u64() && outcome["faults"].is_array(), "{ended:#}");
     // The refused posts were the first event, sent again until acknowledged.
     let first = &posts[2]["event_id"];
     assert_eq!((&posts[0]["event_id"], &posts[1]["event_id"]), (first, first), "{posts:#?}");
@@ -1604,6 +1608,7 @@ fn mail_tells_a_researcher_of_her_own_experiments_and_the_owner_of_everyones() {
     assert_eq!(got.len(), 3, "{got:#?}");
     let body = got.iter().find(|m| m["to"][0] == "ana@example.org").unwrap()["body"].as_str().unwrap().to_string();
     assert!(body.contains(&format!("Experiment {} by ana is now done", ids[0])), "{body}");
+    assert!(body.contains("Outcome: goal ") && body.contains("collision"), "the outcome beside the status: {body}");
     assert!(lab.host.log().contains("not delivered (try 1)"), "the 451 was retried: {}", lab.host.log());
     assert!(!lab.host.log().contains(MAIL_PASSWORD), "the password is never logged");
     // Ending it: no more mail for her.

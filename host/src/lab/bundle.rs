@@ -200,6 +200,7 @@ pub fn write_run_results(
         run.ran_s = report.duration_s;
         run.worst_lateness_ms = report.loop_lateness.max_ms;
         run.late_cycles = report.loop_lateness.histogram.count_above((watchdog_margin_ms * 1e6) as u64);
+        run.outcome = Some(super::preflight::outcome(report));
         match serde_json::to_vec_pretty(report) {
             Ok(bytes) => {
                 if let Err(e) = crate::fsutil::write_atomically(&dir.join(REPORT), &bytes) {

@@ -319,6 +319,7 @@ impl Lab {
                 submitter: record.submitter.clone(),
                 state: state.name().to_string(),
                 reasons: record.reasons.clone(),
+                outcome: record.run.as_ref().and_then(|r| r.outcome.clone()),
             };
             if let Err(e) = notifier.tell(kind, unix_now_ms(), Some(facts)) {
                 tracing::error!("experiment {id}: its {} webhook event is lost: {e}", state.name());

@@ -30,6 +30,7 @@ use crate::runtime::control_loop::CycleHook;
 use crate::runtime::graph::ComponentState;
 use crate::runtime::{Standing, Standings};
 use crate::sim::SimSection;
+use crate::store::experiments::{FaultSeen, MAX_OUTCOME_FAULTS, RunOutcome};
 
 /// Most CPU time a preflight may use, beyond its simulated duration: a
 /// preflight whose components use their whole budgets on every call runs
@@ -193,13 +194,20 @@ pub fn observe(
             });
         }
     }
+    observed.faults.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
+    seen_in_sections(report, &mut observed);
+    Ok(observed)
+}
+
+/// What `report`'s sections say: the collisions of its simulated robots and
+/// whether they reached the goal, and the envelope's interventions.
+fn seen_in_sections(report: &Report, observed: &mut Observations) {
     for (name, sim) in report.sections.of::<SimSection>() {
         let status = &sim.simulation;
         observed.collisions += status.collisions;
         observed.contacts.extend(status.contacts.iter().map(|c| ContactAt::of(name, c)));
         observed.goal_reached = Some(observed.goal_reached.unwrap_or(true) && status.goal_reached);
     }
-    observed.faults.sort_by(|a, b| a.at_s.total_cmp(&b.at_s));
     observed.contacts.sort_by(|a, b| a.time_s.total_cmp(&b.time_s));
     for (_, envelope) in report.sections.of::<EnvelopeStatus>() {
         for (cause, count) in &envelope.causes {
@@ -218,7 +226,32 @@ pub fn observe(
             }
         }
     }
-    Ok(observed)
+}
+
+/// How the algorithm did in a run on the robot, from the run's `report`
+/// alone (the robot's run has no holder timeline): its components' faults,
+/// collisions, the envelope's interventions by cause, the goal.
+pub fn outcome(report: &Report) -> RunOutcome {
+    let mut seen = Observations::default();
+    seen_in_sections(report, &mut seen);
+    let faults = report
+        .components
+        .iter()
+        .filter(|c| c.faults > 0 || c.fault.is_some())
+        .map(|c| FaultSeen {
+            component: c.name.clone(),
+            at_s: c.faulted_at_s,
+            reason: c.fault.clone().unwrap_or_else(|| format!("faulted {} times and was restarted", c.faults)),
+        })
+        .take(MAX_OUTCOME_FAULTS)
+        .collect();
+    let interventions = seen
+        .envelope
+        .iter()
+        .filter(|(_, seen)| seen.count > 0)
+        .map(|(cause, seen)| (cause.clone(), seen.count))
+        .collect();
+    RunOutcome { faults, collisions: seen.collisions, interventions, goal_reached: seen.goal_reached }
 }
 
 /// The verdict of the run of `config` (see [`observe`]).

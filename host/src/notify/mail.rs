@@ -245,6 +245,9 @@ pub fn compose(event: &Event) -> (String, String) {
                 "Experiment {} by {} is now {} ({when}).\n\nEvent: {what}\nEvent id: {}\n",
                 e.id, e.submitter, e.state, event.id
             );
+            if let Some(outcome) = &e.outcome {
+                body.push_str(&format!("Outcome: {}\n", outcome.said()));
+            }
             if !e.reasons.is_empty() {
                 body.push_str("\nReasons:\n");
                 for reason in &e.reasons {
@@ -389,6 +392,7 @@ mod tests {
                 submitter: "ana".into(),
                 state: "refused".into(),
                 reasons: vec!["preflight: 3 collisions".into()],
+                outcome: None,
             }),
         };
         let (subject, body) = compose(&event);

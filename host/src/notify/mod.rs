@@ -22,6 +22,8 @@ use std::time::Duration;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::store::experiments::RunOutcome;
+
 use self::mail::{MAIL_FILE, MAILTO, MailError, Mailer, SUBSCRIPTIONS_FILE, Subscription, Subscriptions};
 use self::outbox::{Outbox, OutboxError};
 use self::webhook::{Url, WebhookError};
@@ -84,9 +86,14 @@ pub struct Event {
 pub struct ExperimentFacts {
     pub id: u64,
     pub submitter: String,
-    /// The state it entered (`queued`, `refused`, `running`, `done`, ...).
+    /// The state it entered (`queued`, `refused`, `running`, `done`, ...):
+    /// the run's status.
     pub state: String,
     pub reasons: Vec<String>,
+    /// How the algorithm did, once it ran (the goal, collisions, faults,
+    /// the envelope's interventions), apart from the status.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outcome: Option<RunOutcome>,
 }
 
 /// The event an experiment entering state `state` (its name) makes, if any.

@@ -188,7 +188,13 @@ mod tests {
             id,
             event: EventKind::ExperimentEnded,
             at_ms: 1_700_000_000_000 + id,
-            experiment: Some(ExperimentFacts { id: 7, submitter: "ana".into(), state: "done".into(), reasons: vec![] }),
+            experiment: Some(ExperimentFacts {
+                id: 7,
+                submitter: "ana".into(),
+                state: "done".into(),
+                reasons: vec![],
+                outcome: None,
+            }),
         }
     }
 

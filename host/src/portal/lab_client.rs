@@ -410,6 +410,9 @@ fn follow(session: &mut Session, id: u64, say: &mut Say<'_>) -> Result<Experimen
                     (say.states)(&line);
                 }
                 if experiment.record.state.is_final() {
+                    if let Some(outcome) = experiment.record.run.as_ref().and_then(|r| r.outcome.as_ref()) {
+                        (say.states)(&format!("outcome of experiment {id}: {}", outcome.said()));
+                    }
                     return Ok(experiment);
                 }
             }
@@ -819,6 +822,9 @@ pub fn show_text(experiment: &Experiment, now_ms: u64) -> String {
                 run.ran_s, run.late_cycles, run.worst_lateness_ms
             ),
         );
+        if let Some(outcome) = &run.outcome {
+            field("outcome", outcome.said());
+        }
     }
     if !r.results.is_empty() || r.recording_expired {
         let bytes: u64 = r.results.iter().map(|f| f.bytes).sum();

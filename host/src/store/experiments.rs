@@ -200,6 +200,75 @@ pub struct RunResult {
     pub late_cycles: u64,
     /// The worst lateness of a cycle, ms.
     pub worst_lateness_ms: f64,
+    /// How the algorithm did (the run's status is the experiment's state:
+    /// `done` says it ran to its end, not that it did well).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub outcome: Option<RunOutcome>,
+}
+
+/// How an algorithm did in its run on the robot, from the run's report:
+/// its components' faults, the collisions its simulated robots counted,
+/// the envelope's interventions by kind, and the world's goal.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RunOutcome {
+    /// Each component that faulted, with when (seconds from the run's
+    /// start) and why; at most [`MAX_OUTCOME_FAULTS`].
+    pub faults: Vec<FaultSeen>,
+    /// Collisions (simulated robots; a real robot counts none).
+    pub collisions: u64,
+    /// The envelope's interventions, by cause (`stop-zone`, `geofence`,
+    /// ...): each cause that happened, with its count.
+    pub interventions: BTreeMap<String, u64>,
+    /// Whether the world's goal was reached (simulated robots only).
+    pub goal_reached: Option<bool>,
+}
+
+/// Faults kept in an outcome: a component restarted on every fault must
+/// not grow the record without end.
+pub const MAX_OUTCOME_FAULTS: usize = 16;
+
+/// A component's fault in a run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct FaultSeen {
+    pub component: String,
+    pub at_s: Option<f64>,
+    pub reason: String,
+}
+
+impl RunOutcome {
+    /// One line, as `lab submit`, `lab show`, the portal and the mails say
+    /// it: `goal reached, no collision, no fault, no intervention`.
+    pub fn said(&self) -> String {
+        let mut parts = Vec::new();
+        match self.goal_reached {
+            Some(true) => parts.push("goal reached".to_string()),
+            Some(false) => parts.push("goal not reached".to_string()),
+            None => {}
+        }
+        parts.push(match self.collisions {
+            0 => "no collision".to_string(),
+            1 => "1 collision".to_string(),
+            n => format!("{n} collisions"),
+        });
+        parts.push(match self.faults.as_slice() {
+            [] => "no fault".to_string(),
+            [f] => format!("component '{}' faulted{}: {}", f.component, at(f.at_s), f.reason),
+            [f, rest @ ..] => {
+                format!("{} faults (first: '{}'{}: {})", rest.len() + 1, f.component, at(f.at_s), f.reason)
+            }
+        });
+        if self.interventions.is_empty() {
+            parts.push("no intervention".to_string());
+        } else {
+            let kinds: Vec<String> = self.interventions.iter().map(|(cause, n)| format!("{cause} {n}")).collect();
+            parts.push(format!("interventions: {}", kinds.join(", ")));
+        }
+        parts.join(", ")
+    }
+}
+
+fn at(at_s: Option<f64>) -> String {
+    at_s.map(|s| format!(" at {s:.1} s")).unwrap_or_default()
 }
 
 /// A file of an experiment's results.
@@ -654,5 +723,44 @@ mod tests {
         let bytes = serde_json::to_vec(&state).unwrap_or_default();
         let read = LabState::parse(&bytes).unwrap_or_default();
         assert_eq!((read.next_experiment, read.next_reservation), (1, 1));
+    }
+
+    #[test]
+    fn an_outcome_is_said_in_one_line_apart_from_the_status() {
+        let fault = |c: &str, at: Option<f64>| FaultSeen { component: c.into(), at_s: at, reason: "trapped".into() };
+        let kinds = |k: &[(&str, u64)]| k.iter().map(|(c, n)| (c.to_string(), *n)).collect::<BTreeMap<_, _>>();
+        let cases = [
+            (RunOutcome::default(), "no collision, no fault, no intervention"),
+            (
+                RunOutcome { goal_reached: Some(true), ..RunOutcome::default() },
+                "goal reached, no collision, no fault, no intervention",
+            ),
+            (
+                RunOutcome {
+                    goal_reached: Some(false),
+                    collisions: 2,
+                    faults: vec![fault("planner", Some(3.26))],
+                    interventions: kinds(&[("stop-zone", 4), ("geofence", 1)]),
+                },
+                "goal not reached, 2 collisions, component 'planner' faulted at 3.3 s: trapped, \
+                 interventions: geofence 1, stop-zone 4",
+            ),
+            (
+                RunOutcome {
+                    collisions: 1,
+                    faults: vec![fault("a", None), fault("b", Some(1.0))],
+                    ..RunOutcome::default()
+                },
+                "1 collision, 2 faults (first: 'a': trapped), no intervention",
+            ),
+        ];
+        for (outcome, said) in cases {
+            assert_eq!(outcome.said(), said);
+            let json = serde_json::to_string(&outcome).unwrap_or_default();
+            assert_eq!(serde_json::from_str::<RunOutcome>(&json).ok(), Some(outcome), "{json}");
+        }
+        // A record written before outcomes existed still reads.
+        let old = r#"{"started_ms": 1, "ended_ms": 2, "ran_s": 1.0, "late_cycles": 0, "worst_lateness_ms": 0.1}"#;
+        assert_eq!(serde_json::from_str::<RunResult>(old).ok().map(|r| r.outcome), Some(None));
     }
 }
