@@ -1,11 +1,13 @@
 // {{name}}: a subsume robot component, made by `subsume new`.
 //
 // A starting point that already drives a robot: while something in the
-// middle third of the range scan is nearer than `threshold`, it emits
-// `VEL <creep-speed> <turn>` on every tick, turning toward the side with
-// more room; otherwise it stays silent, and a lower-priority source drives.
-// Its ports and parameters match the demo's obstacle avoider, so it can
-// take that one's place in subsume's config/demo.xml.
+// front cone (`cone` radians wide, centred on the heading) is nearer than
+// `threshold`, it emits `VEL <creep-speed> <turn>` on every tick, turning
+// toward the side whose nearest reading is farther; otherwise it stays
+// silent, and a lower-priority source drives. The rays spread evenly over
+// `fov` from right to left. Its ports and parameters match the demo's
+// obstacle avoider, so it can take that one's place in subsume's
+// config/demo.xml, and passes the lab's preflight there unchanged.
 //
 // build/component.h (made by wit-bindgen from wit/robot.wit) declares the
 // exports to write and the host functions to call. Ownership follows the
@@ -19,7 +21,7 @@
 
 #include "component.h"
 
-static double threshold = 0.5, turn_rate = 1.2, creep_speed = 0.0;
+static double threshold = 0.5, fov = 3.14159, cone = 1.6, turn_rate = 1.2, creep_speed = 0.0;
 static component_list_f64_t ranges;
 
 static void port(subsume_robot_types_list_port_spec_t *list, const char *name, subsume_robot_types_value_kind_t kind,
@@ -43,14 +45,16 @@ void exports_component_describe(component_description_t *ret) {
   component_string_dup(&ret->name, "{{name}}");
   component_string_dup(&ret->version, "0.1.0");
   component_string_dup(&ret->summary, "Turns away from what is close in front");
-  port(&ret->inputs, "ranges", SUBSUME_ROBOT_TYPES_VALUE_KIND_VECTOR, "ranges in metres, rays from right to left");
+  port(&ret->inputs, "ranges", SUBSUME_ROBOT_TYPES_VALUE_KIND_VECTOR, "ranges in metres, rays from -fov/2 (right) to +fov/2 (left)");
   port(&ret->outputs, "cmd", SUBSUME_ROBOT_TYPES_VALUE_KIND_COMMAND,
        "VEL commands while something is close; silent otherwise");
-  ret->params.len = 3;
-  ret->params.ptr = malloc(3 * sizeof *ret->params.ptr);
+  ret->params.len = 5;
+  ret->params.ptr = malloc(5 * sizeof *ret->params.ptr);
   param(&ret->params.ptr[0], "threshold", "0.5", "nearer than this in front (metres) is too close");
-  param(&ret->params.ptr[1], "turn-rate", "1.2", "turn rate while turning away, rad/s");
-  param(&ret->params.ptr[2], "creep-speed", "0.0", "forward speed while turning away, m/s");
+  param(&ret->params.ptr[1], "fov", "3.14159", "angle the rays cover, radians");
+  param(&ret->params.ptr[2], "cone", "1.6", "width of the watched front cone, radians");
+  param(&ret->params.ptr[3], "turn-rate", "1.2", "turn rate while turning away, rad/s");
+  param(&ret->params.ptr[4], "creep-speed", "0.0", "forward speed while turning away, m/s");
   ret->default_priority.is_some = true;
   ret->default_priority.val = 3;
 }
@@ -65,10 +69,16 @@ bool exports_component_init(component_list_param_t *params, component_string_t *
     memcpy(value, p->value.ptr, p->value.len < sizeof value - 1 ? p->value.len : sizeof value - 1);
     double number = strtod(value, NULL);
     if (strcmp(name, "threshold") == 0) threshold = number;
+    if (strcmp(name, "fov") == 0) fov = number;
+    if (strcmp(name, "cone") == 0) cone = number;
     if (strcmp(name, "turn-rate") == 0) turn_rate = number;
     if (strcmp(name, "creep-speed") == 0) creep_speed = number;
   }
   component_list_param_free(params);
+  if (!(fov > 0.0 && cone > 0.0)) {
+    component_string_dup(err, "fov and cone must be positive");  // refuses to start
+    return false;
+  }
   char line[128];
   snprintf(line, sizeof line, "ready: turning away from anything nearer than %g m", threshold);
   component_string_t message;
@@ -89,19 +99,23 @@ bool exports_component_on_input(uint32_t port, component_value_t *value, compone
   return true;
 }
 
-static double nearest(const double *rays, size_t n) {
-  double least = INFINITY;
-  for (size_t i = 0; i < n; i++) least = fmin(least, rays[i]);
+// The nearest reading among the rays whose angle (counter-clockwise from
+// ahead, evenly over fov) lies in [from, to].
+static double nearest(double from, double to) {
+  double least = INFINITY, step = ranges.len > 1 ? fov / (double)(ranges.len - 1) : 0.0;
+  for (size_t i = 0; i < ranges.len; i++) {
+    double angle = -fov / 2 + step * (double)i;
+    if (angle >= from && angle <= to) least = fmin(least, ranges.ptr[i]);
+  }
   return least;
 }
 
 bool exports_component_tick(uint64_t now_ns, component_string_t *err) {
   (void)now_ns;
   (void)err;
-  size_t third = ranges.len / 3;
-  double *right = ranges.ptr, *front = ranges.ptr + third, *left = ranges.ptr + ranges.len - third;
-  if (nearest(front, ranges.len - 2 * third) < threshold) {
-    double turn = nearest(left, third) >= nearest(right, third) ? turn_rate : -turn_rate;
+  if (nearest(-cone / 2, cone / 2) < threshold) {
+    // Left: angles above 0; right: below (a ray straight ahead is neither).
+    double turn = nearest(1e-9, INFINITY) >= nearest(-INFINITY, -1e-9) ? turn_rate : -turn_rate;
     char text[96];
     snprintf(text, sizeof text, "VEL %.3f %.3f", creep_speed, turn);
     subsume_robot_host_value_t cmd = {.tag = SUBSUME_ROBOT_TYPES_VALUE_COMMAND};

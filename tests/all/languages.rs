@@ -385,11 +385,19 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
             .tempfile_in(support::repo_root().join("config"))
             .unwrap();
         std::fs::write(copy.path(), demo.replace(rust_avoider, &wasm.display().to_string())).unwrap();
+        // As the lab's preflight judges a 60 s experiment, under its
+        // default criteria: no collision, no fault, no intervention.
         let report = dir.join("demo-report.json");
+        let criteria = dir.join("criteria.json");
+        std::fs::write(&criteria, LAB_CRITERIA).unwrap();
         let run = subsume()
             .arg("run")
             .arg(copy.path())
-            .args(["--speed", "max", "--duration", "4", "--report"])
+            .args(["--speed", "max", "--duration", "60", "--criteria"])
+            .arg(&criteria)
+            .arg("--verdict")
+            .arg(dir.join("demo-verdict.json"))
+            .arg("--report")
             .arg(&report)
             .args(FREE_TELEOP_PORTS)
             .stderr(std::process::Stdio::piped())
@@ -426,6 +434,7 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
         drop(demo_copy);
         assert!(output.status.success(), "{what}: {}", text(&output.stderr));
         assert!(!text(&output.stderr).contains("portal on "), "{what} started a portal: {}", text(&output.stderr));
+        let folder = report_dir(&report).to_path_buf();
         let report: Json = read_report(&report);
         assert_all_running(&report);
         let held = report["arbiter"]["held_s"].as_array().unwrap();
@@ -448,8 +457,22 @@ fn subsume_new_makes_projects_that_build_with_their_documented_command_load_and_
                 report["components"].as_array().unwrap().iter().find(|c| c["name"] == "avoid").unwrap()["calls"]
                     .as_u64();
             assert!(calls.unwrap_or_default() > 50, "{what}: {}", report["components"]);
+            // A newcomer's first submission: the template unchanged in the
+            // demo passes the lab's preflight.
+            let verdict: Json =
+                serde_json::from_slice(&std::fs::read(folder.join("demo-verdict.json")).unwrap()).unwrap();
+            assert_eq!(verdict["passed"], true, "{what}: {:#}", verdict["reasons"]);
         }
     }
+}
+
+/// The lab's default criteria (docs/lab.md): no collision, no fault, no
+/// intervention of the geofence or the stop zone.
+const LAB_CRITERIA: &str =
+    r#"{"max_collisions": 0, "allow_faults": false, "allow_geofence": false, "allow_stop_zone": false}"#;
+
+fn report_dir(report: &std::path::Path) -> &std::path::Path {
+    report.parent().unwrap()
 }
 
 /// The arguments of the `subsume run` line `subsume new` printed, with a
