@@ -1122,3 +1122,70 @@ fn a_run_that_faults_on_the_robot_is_done_and_its_outcome_says_so() {
     assert_eq!(faults[0]["component"], "driver", "{record:#}");
     assert!(faults[0]["at_s"].as_f64().unwrap() > 0.5, "after 10 good ticks at 10 Hz: {record:#}");
 }
+
+/// `subsume lab reserve`, `reservations`, `unreserve` and `settings`, each
+/// as its user may, with the portal's reasons when refused.
+#[test]
+fn reservations_and_the_owners_settings_from_the_command_line() {
+    let dir = tempfile::tempdir().unwrap();
+    add_admin(&dir.path().join("store"));
+    let host = gentle_lab(dir.path());
+    let admin = |args: &[&str]| {
+        subsume().arg("lab").args(args).env("SUBSUME_USER", "admin").env("SUBSUME_PASSWORD", PASSWORD).output().unwrap()
+    };
+    let output = lab("ada", &["reserve", "--start", "+60", "--minutes", "20", &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.starts_with("reservation 1 for ada:"), "{stdout}");
+    assert!(stdout.contains("(20 min)") || stdout.contains("20 min"), "{stdout}");
+    // Bob's window overlaps hers: the portal's reason, exit 1.
+    let output = lab("bob", &["reserve", "--start", "+70", "--minutes", "5", &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert!(!output.status.success(), "{stdout}");
+    assert!(stderr.contains("overlaps") || stderr.contains("reserved"), "{stderr}");
+    for (bad, why) in [("yesterday", "neither +MINUTES nor a UTC time"), ("+x", "+MINUTES takes a number")] {
+        let output = lab("bob", &["reserve", "--start", bad, "--minutes", "5", &host.address]);
+        assert!(!output.status.success());
+        assert!(out(&output).1.contains(why), "{bad}: {}", out(&output).1);
+    }
+    let output = lab("bob", &["reservations", &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stderr}");
+    let line = stdout.lines().next().unwrap_or_default().to_string();
+    assert!(line.contains("ada") && line.contains(" UTC to ") && line.contains("-"), "with its date: {stdout}");
+    let output = lab("bob", &["reservations", "--json", &host.address]);
+    let listed: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(listed.as_array().map(Vec::len), Some(1), "{listed}");
+
+    // The owner's settings: admins only.
+    let output = lab("ada", &["settings", &host.address]);
+    assert!(!output.status.success());
+    assert!(out(&output).1.contains("ada is not an admin of this lab"), "{}", out(&output).1);
+    let output = admin(&["settings", &host.address]);
+    assert!(output.status.success(), "{}", out(&output).1);
+    let mut settings: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(settings["kit"], true, "{settings}");
+    settings["max_duration_s"] = serde_json::json!(90.0);
+    let file = dir.path().join("settings.json");
+    std::fs::write(&file, settings.to_string()).unwrap();
+    let output = admin(&["settings", "--set", file.to_str().unwrap(), &host.address]);
+    assert!(output.status.success(), "{}", out(&output).1);
+    let output = admin(&["settings", &host.address]);
+    let stored: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(stored["max_duration_s"], 90.0, "{stored}");
+    settings["max_duration_s"] = serde_json::json!(-1.0);
+    std::fs::write(&file, settings.to_string()).unwrap();
+    let output = admin(&["settings", "--set", file.to_str().unwrap(), &host.address]);
+    assert!(!output.status.success(), "a bad value is refused by the portal");
+    let output = admin(&["settings", &host.address]);
+    let stored: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    assert_eq!(stored["max_duration_s"], 90.0, "a refused change changed nothing: {stored}");
+
+    let output = lab("bob", &["unreserve", "1", &host.address]);
+    assert!(!output.status.success(), "not his: {}", out(&output).0);
+    let output = lab("ada", &["unreserve", "1", &host.address]);
+    assert!(output.status.success(), "{}", out(&output).1);
+    assert_eq!(out(&output).0, "reservation 1 cancelled\n");
+    let output = lab("ada", &["reservations", &host.address]);
+    assert_eq!(out(&output).0, "no reservations\n");
+}

@@ -68,6 +68,46 @@ enum LabAction {
         #[command(flatten)]
         login: LoginFlags,
     },
+    /// Book the robot for a window in which only your experiments start
+    /// (the owner's limits on length and time a day apply).
+    Reserve {
+        /// When it starts: `+MINUTES` from now, or a UTC time as
+        /// `2026-11-29T10:00:00Z`.
+        #[arg(long, value_name = "TIME")]
+        start: String,
+        /// How long it lasts, in minutes.
+        #[arg(long, value_name = "MINUTES")]
+        minutes: f64,
+        /// Whom for (admins only; yourself by default).
+        #[arg(long = "for", value_name = "USER")]
+        for_user: Option<String>,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// List the reservations not over yet, with their dates.
+    Reservations {
+        /// Print the portal's records as JSON.
+        #[arg(long)]
+        json: bool,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// Cancel a reservation (your own; an admin: any).
+    Unreserve {
+        /// The reservation's id.
+        id: u64,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
+    /// Print the owner's settings as JSON (admins), or replace them with
+    /// a file's (`--set FILE.json`, as printed; the portal checks them).
+    Settings {
+        /// The settings to store, as `subsume lab settings` prints them.
+        #[arg(long, value_name = "FILE.json")]
+        set: Option<PathBuf>,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
     /// Download the lab kit (the lab's robot in its preflight form, its
     /// components, world and criteria) into a new or empty folder; then
     /// `subsume run DIR/robot.xml --http off --speed max --duration 60
@@ -191,6 +231,23 @@ struct SubmitArgs {
     login: LoginFlags,
 }
 
+/// A reservation's start: `+MINUTES` from `now_ms`, or an RFC 3339 time
+/// (`2026-11-29T10:00:00Z`).
+fn reservation_start(text: &str, now_ms: u64) -> anyhow::Result<u64> {
+    if let Some(minutes) = text.strip_prefix('+') {
+        let minutes: f64 = minutes
+            .parse()
+            .ok()
+            .filter(|m: &f64| m.is_finite() && *m >= 0.0)
+            .ok_or_else(|| anyhow::anyhow!("--start {text}: +MINUTES takes a number of minutes from now"))?;
+        return Ok(now_ms.saturating_add((minutes * 60_000.0).round() as u64));
+    }
+    let at: jiff::Timestamp = text.parse().map_err(|e| {
+        anyhow::anyhow!("--start {text}: neither +MINUTES nor a UTC time like 2026-11-29T10:00:00Z ({e})")
+    })?;
+    u64::try_from(at.as_millisecond()).map_err(|_| anyhow::anyhow!("--start {text}: before 1970"))
+}
+
 /// The client's login from the shared flags.
 fn to_login(flags: LoginFlags) -> Login {
     flags.login()
@@ -247,6 +304,47 @@ impl LabCommand {
                 let record = lab_client::cancel(&to_login(login), id)?;
                 let cause = record.history.last().map_or("", |c| c.cause.as_str());
                 println!("experiment {id}: {}: {cause}", record.state);
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Reserve { start, minutes, for_user, login } => {
+                let now = now_ms();
+                let start_ms = reservation_start(&start, now)?;
+                if !(minutes.is_finite() && minutes > 0.0 && minutes <= 30.0 * 24.0 * 60.0) {
+                    anyhow::bail!("--minutes must be more than 0 and at most 30 days' worth, got {minutes}");
+                }
+                let end_ms = start_ms.saturating_add((minutes * 60_000.0).round() as u64);
+                let r = lab_client::reserve(&to_login(login), start_ms, end_ms, for_user.as_deref())?;
+                println!("reservation {} for {}:", r.id, r.user);
+                print!("{}", lab_client::reservations_text(std::slice::from_ref(&r), now));
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Reservations { json, login } => {
+                let reservations = lab_client::reservations(&to_login(login))?;
+                if json {
+                    print_json(&reservations)?;
+                } else {
+                    print!("{}", lab_client::reservations_text(&reservations, now_ms()));
+                }
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Unreserve { id, login } => {
+                lab_client::unreserve(&to_login(login), id)?;
+                println!("reservation {id} cancelled");
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Settings { set, login } => {
+                use anyhow::Context as _;
+                let login = to_login(login);
+                let settings = match set {
+                    None => lab_client::settings(&login)?,
+                    Some(file) => {
+                        let text = std::fs::read(&file).with_context(|| format!("cannot read {}", file.display()))?;
+                        let wanted: serde_json::Value = serde_json::from_slice(&text)
+                            .with_context(|| format!("{}: not JSON; nothing was sent", file.display()))?;
+                        lab_client::set_settings(&login, &wanted)?
+                    }
+                };
+                print_json(&settings)?;
                 Ok(ExitCode::SUCCESS)
             }
             LabAction::Results { id, output, login } => {

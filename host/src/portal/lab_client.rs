@@ -37,7 +37,7 @@ use super::deploy_client::{
 use crate::contract::clip;
 use crate::deploy::{Diagnostics, SourceMap, read_and_parse, utc_time};
 use crate::lab::{MAX_DURATION_CAP_S, MIN_DURATION_S};
-use crate::store::experiments::{ExperimentRecord, ExperimentState, MAX_LABEL_LEN};
+use crate::store::experiments::{ExperimentRecord, ExperimentState, MAX_LABEL_LEN, Reservation};
 
 /// How often a followed experiment is asked for.
 pub const POLL_INTERVAL: Duration = Duration::from_millis(500);
@@ -134,6 +134,8 @@ pub enum LabClientError {
         MAX_UNREACHABLE.as_secs()
     )]
     Lost { address: String, id: u64, reason: String },
+    #[error("{user} is not an admin of this lab: only admins see and change its settings")]
+    NotAdmin { user: String },
 }
 
 impl From<ClientError> for LabClientError {
@@ -541,6 +543,82 @@ pub fn list(login: &Login) -> Result<Vec<Experiment>, LabClientError> {
         let answer = session.request("GET", "/api/v1/experiments", &Value::Null, what, MAX_LIST_ANSWER_BYTES)?;
         session.parse(&answer["experiments"], what)
     })
+}
+
+/// Books the robot from `start_ms` to `end_ms` (ms since the Unix epoch)
+/// for the caller (or, for an admin, for `user`).
+pub fn reserve(login: &Login, start_ms: u64, end_ms: u64, user: Option<&str>) -> Result<Reservation, LabClientError> {
+    in_session(login, |session| {
+        let mut body = json!({ "start_ms": start_ms, "end_ms": end_ms });
+        if let Some(user) = user {
+            body["user"] = json!(user);
+        }
+        let what = "booking the robot";
+        let answer = session.request("POST", "/api/v1/lab/reservations", &body, what, DEPLOY_LIMIT)?;
+        session.parse(&answer["reservation"], what)
+    })
+}
+
+/// The reservations not over yet, soonest first.
+pub fn reservations(login: &Login) -> Result<Vec<Reservation>, LabClientError> {
+    in_session(login, |session| {
+        let what = "reading the lab's reservations";
+        let answer = session.request("GET", "/api/v1/lab", &Value::Null, what, MAX_LIST_ANSWER_BYTES)?;
+        let mut reservations: Vec<Reservation> = session.parse(&answer["lab"]["reservations"], what)?;
+        reservations.sort_by_key(|r| r.start_ms);
+        Ok(reservations)
+    })
+}
+
+/// Cancels reservation `id` (one's own; an admin: any).
+pub fn unreserve(login: &Login, id: u64) -> Result<(), LabClientError> {
+    in_session(login, |session| {
+        let what = format!("cancelling reservation {id}");
+        session.request("DELETE", &format!("/api/v1/lab/reservations/{id}"), &Value::Null, &what, DEPLOY_LIMIT)?;
+        Ok(())
+    })
+}
+
+/// The owner's settings (admins), as `GET /api/v1/lab` shows them.
+pub fn settings(login: &Login) -> Result<Value, LabClientError> {
+    in_session(login, |session| {
+        let what = "reading the lab's settings";
+        let answer = session.request("GET", "/api/v1/lab", &Value::Null, what, DEPLOY_LIMIT)?;
+        match &answer["lab"]["settings"] {
+            Value::Null => Err(LabClientError::NotAdmin { user: login.user.clone() }),
+            settings => Ok(settings.clone()),
+        }
+    })
+}
+
+/// Replaces the owner's settings (admins) with `settings`; the portal's
+/// answer, as stored.
+pub fn set_settings(login: &Login, settings: &Value) -> Result<Value, LabClientError> {
+    in_session(login, |session| {
+        let what = "changing the lab's settings";
+        let answer = session.request("PUT", "/api/v1/lab/settings", settings, what, DEPLOY_LIMIT)?;
+        Ok(answer["settings"].clone())
+    })
+}
+
+/// `subsume lab reservations`'s text: one line each, with its date.
+pub fn reservations_text(reservations: &[Reservation], now_ms: u64) -> String {
+    if reservations.is_empty() {
+        return "no reservations\n".into();
+    }
+    let mut out = String::new();
+    for r in reservations {
+        let now = if r.contains(now_ms) { "  (now)" } else { "" };
+        out.push_str(&format!(
+            "{:>4}  {:<12}  {} to {} ({}){now}\n",
+            r.id,
+            r.user,
+            crate::walltime::shown_at(r.start_ms, 0),
+            crate::walltime::shown_at(r.end_ms, 0),
+            span(r.end_ms.saturating_sub(r.start_ms))
+        ));
+    }
+    out
 }
 
 /// Experiment `id`.
