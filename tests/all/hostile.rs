@@ -540,3 +540,34 @@ fn a_javascript_timer_does_not_hold_the_loop() {
     assert_eq!(timer["messages_out"], 3, "three commands before the timers, none from them: {timer}");
     support::kept_its_rate(&report, timer, 20.0, 0.1, 0.0, "timer");
 }
+
+/// A component that compares its wall clock with its monotonic clock, to
+/// behave in a preflight (simulated time, as fast as the machine goes) and
+/// misbehave on the robot, sees them advance alike both ways: it cannot
+/// tell the two apart (issue 39's evasion: a planner that faulted 3 s into
+/// its robot run after a clean preflight).
+#[test]
+fn no_component_tells_simulated_time_from_real_time_by_its_clocks() {
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let body = r#"<robot name="evasion">
+  <platform name="control">
+    <component name="sim" source="builtin:sim"><param name="world" value="WORLD"/></component>
+    <component name="sly" source="GUEST(test-faulty)" rate="20"><param name="mode" value="clock-evasion"/></component>
+  </platform>
+</robot>"#;
+    std::fs::write(dir.path().join("open.world"), "bounds 0 0 10 10\nstart 5 5 0\ngoal 9 9 0.3\n").unwrap();
+    let body = body.replace("WORLD", &dir.path().join("open.world").display().to_string());
+    for (what, args) in [
+        ("simulated time, as fast as it goes", &["run", "--http", "off", "--speed", "max", "--duration", "30"][..]),
+        ("real time", &["run", "--http", "off", "--duration", "2.5"][..]),
+    ] {
+        let (output, report) = run_robot(dir.path(), &body, args);
+        assert!(output.status.success(), "{what}: {}", String::from_utf8_lossy(&output.stderr));
+        let sly = component(report.as_ref().unwrap(), "sly");
+        assert_eq!(sly["state"], "running", "{what}: {sly}");
+        // It says (as an error of its tick) when its clocks disagree.
+        assert_eq!((&sly["errors"], &sly["last_error"]), (&Json::from(0), &Json::Null), "{what}: {sly}");
+        assert!(sly["calls"].as_u64().unwrap_or_default() > 40, "{what}: it ran past its first second: {sly}");
+    }
+}

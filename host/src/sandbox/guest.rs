@@ -40,8 +40,10 @@ pub struct GuestState {
     pub(super) outbox: Outbox,
     /// The host clock at the start of the current call (the cycle's time).
     pub(super) now_ns: u64,
-    /// The wall clock as the current call sees it, read at its first ask.
-    pub(super) wall_at_call: Option<Duration>,
+    /// The wall clock's anchor: the system's wall time when this instance
+    /// first asked, and the cycle's time then. The wall clock a guest reads
+    /// is the anchor moved on by the cycle's time since (`wasi.rs`).
+    pub(super) wall_anchor: Option<(Duration, u64)>,
     /// The current call's time limits (the epoch callback's state).
     pub(super) call: CallBudget,
     /// Values emitted in the current call, against `max_emits`.
@@ -252,7 +254,7 @@ pub(super) fn new_store(
         outputs,
         outbox: Vec::new(),
         now_ns: 0,
-        wall_at_call: None,
+        wall_anchor: None,
         call: CallBudget::new(guest.budget, guest.wall_capped),
         emits: 0,
         max_emits: guest.max_emits,
@@ -271,11 +273,10 @@ pub(super) fn new_store(
 
 /// Prepares `store` for a call under `budget` (CPU time; the wall-clock cap
 /// follows from it): the first epoch check comes at the next tick, and the
-/// call sees the wall clock afresh.
+/// call's wall clock follows from its cycle's time.
 pub(super) fn arm(store: &mut Store<GuestState>, budget: Duration) {
     let state = store.data_mut();
     state.call.reset(budget);
-    state.wall_at_call = None;
     state.last_words.clear();
     store.set_epoch_deadline(1);
 }

@@ -5,8 +5,11 @@
 //! - `wasi:clocks/monotonic-clock`: the cycle's time (`now-ns`), constant
 //!   within a call; a subscription is ready at once when it is already due
 //!   (a zero sleep) and never within the call otherwise;
-//! - `wasi:clocks/wall-clock`: the wall time when the call first asked,
-//!   constant within the call;
+//! - `wasi:clocks/wall-clock`: the system's wall time when the instance
+//!   first asked, moved on by the cycle's time since: constant within a
+//!   call, and advancing exactly as the monotonic clock does, on simulated
+//!   time too, so no guest can tell a preflight from the robot by its
+//!   clocks;
 //! - `wasi:io/poll`: `poll` and `block` never wait: they return what is
 //!   ready now, and when nothing is, the call traps with [`BlockingCall`]
 //!   (a sleep, a timer or a read that would wait);
@@ -58,7 +61,7 @@ pub(super) fn add_to_linker(linker: &mut Linker<GuestState>) -> wasmtime::Result
 struct CycleClocksView<'a> {
     table: &'a mut ResourceTable,
     now_ns: u64,
-    wall: &'a mut Option<Duration>,
+    wall_anchor: &'a mut Option<(Duration, u64)>,
 }
 
 struct CycleClocks;
@@ -68,7 +71,7 @@ impl HasData for CycleClocks {
 }
 
 fn cycle_clocks(state: &mut GuestState) -> CycleClocksView<'_> {
-    CycleClocksView { table: &mut state.table, now_ns: state.now_ns, wall: &mut state.wall_at_call }
+    CycleClocksView { table: &mut state.table, now_ns: state.now_ns, wall_anchor: &mut state.wall_anchor }
 }
 
 impl CycleClocksView<'_> {
@@ -101,9 +104,11 @@ impl monotonic_clock::Host for CycleClocksView<'_> {
 
 impl wall_clock::Host for CycleClocksView<'_> {
     fn now(&mut self) -> wasmtime::Result<wall_clock::Datetime> {
-        let now = *self
-            .wall
-            .get_or_insert_with(|| SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default());
+        let now_ns = self.now_ns;
+        let (wall, at_ns) = *self.wall_anchor.get_or_insert_with(|| {
+            (SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).unwrap_or_default(), now_ns)
+        });
+        let now = wall.saturating_add(Duration::from_nanos(now_ns.saturating_sub(at_ns)));
         Ok(wall_clock::Datetime { seconds: now.as_secs(), nanoseconds: now.subsec_nanos() })
     }
 
@@ -189,8 +194,12 @@ mod tests {
     use super::*;
     use crate::sandbox::random_seed;
 
-    fn view<'a>(table: &'a mut ResourceTable, wall: &'a mut Option<Duration>, now_ns: u64) -> CycleClocksView<'a> {
-        CycleClocksView { table, now_ns, wall }
+    fn view<'a>(
+        table: &'a mut ResourceTable,
+        wall_anchor: &'a mut Option<(Duration, u64)>,
+        now_ns: u64,
+    ) -> CycleClocksView<'a> {
+        CycleClocksView { table, now_ns, wall_anchor }
     }
 
     #[test]
@@ -242,7 +251,7 @@ mod tests {
     }
 
     #[test]
-    fn the_wall_clock_stands_still_within_a_call() {
+    fn the_wall_clock_stands_still_within_a_call_and_moves_with_the_cycles_time() {
         let mut table = ResourceTable::new();
         let mut wall = None;
         let mut clocks = view(&mut table, &mut wall, 0);
@@ -252,11 +261,13 @@ mod tests {
         assert_eq!((first.seconds, first.nanoseconds), (second.seconds, second.nanoseconds));
         let unix = SystemTime::now().duration_since(SystemTime::UNIX_EPOCH).unwrap().as_secs();
         assert!(first.seconds.abs_diff(unix) <= 1);
-        // The next call sees the time again.
-        wall = None;
-        let mut clocks = view(&mut table, &mut wall, 0);
-        let third = wall_clock::Host::now(&mut clocks).unwrap();
-        assert!((third.seconds, third.nanoseconds) > (first.seconds, first.nanoseconds));
+        // A later call sees the anchor moved on by the cycle's time, not
+        // by the wall time that passed: ten simulated seconds later, ten
+        // seconds later, however fast they went by.
+        let mut clocks = view(&mut table, &mut wall, 10_000_000_000);
+        let later = wall_clock::Host::now(&mut clocks).unwrap();
+        let ns = |d: &wall_clock::Datetime| u128::from(d.seconds) * 1_000_000_000 + u128::from(d.nanoseconds);
+        assert_eq!(ns(&later) - ns(&first), 10_000_000_000);
     }
 
     #[test]

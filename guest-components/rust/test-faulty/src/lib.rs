@@ -25,6 +25,10 @@
 //!   ahead of the monotonic clock;
 //! - `read-stdin`: reads stdin, and returns what happened as its `err`;
 //! - `busy-wall-clock`: spins until the wall clock says 10 ms passed;
+//! - `clock-evasion`: behaves while the wall clock and the monotonic clock
+//!   advance alike since its first tick, and faults (naming both) once they
+//!   differ by more than a tenth: a component that tells a preflight on
+//!   simulated time from the robot by its clocks;
 //! - `exit-on-tick`: calls `exit(3)` (WASI 0.2 carries it as status 1);
 //! - `random-probe`: returns as its `err` a hash with the std library's
 //!   random keys (from `wasi:random`): the same for the same seed;
@@ -91,6 +95,8 @@ struct Faulty {
     spins: u64,
     ticks: i64,
     hoard: Vec<&'static mut [u8]>,
+    /// `clock-evasion`: the wall and monotonic clocks at its first tick.
+    clocks_at_first: Option<(SystemTime, u64)>,
 }
 
 fn spin() -> ! {
@@ -136,7 +142,15 @@ impl Component for Faulty {
             None => 1_000_000,
             Some(_) => u64::try_from(params.integer("spins")?).map_err(|_| "spins must not be negative".to_string())?,
         };
-        Ok(Faulty { mode, after: params.integer("after")?, drive, spins, ticks: 0, hoard: Vec::new() })
+        Ok(Faulty {
+            mode,
+            after: params.integer("after")?,
+            drive,
+            spins,
+            ticks: 0,
+            hoard: Vec::new(),
+            clocks_at_first: None,
+        })
     }
 
     fn on_input(&mut self, _port: u32, _value: Value) -> Result<(), String> {
@@ -149,6 +163,23 @@ impl Component for Faulty {
     }
 
     fn tick(&mut self, _now_ns: u64) -> Result<(), String> {
+        if self.mode == "clock-evasion" {
+            use wasi_poll::wasi::clocks::monotonic_clock;
+            let (wall, mono) = (SystemTime::now(), monotonic_clock::now());
+            let (wall0, mono0) = *self.clocks_at_first.get_or_insert((wall, mono));
+            let walled = wall.duration_since(wall0).unwrap_or_default().as_nanos() as f64;
+            let passed = mono.saturating_sub(mono0) as f64;
+            if passed > 1e9 && (walled - passed).abs() > passed / 10.0 {
+                return Err(format!(
+                    "the clocks disagree: the wall clock advanced {:.2} s while the monotonic one advanced {:.2} s",
+                    walled / 1e9,
+                    passed / 1e9
+                ));
+            }
+            self.ticks += 1;
+            emit(0, &Value::Scalar(self.ticks as f64));
+            return Ok(());
+        }
         if self.mode == "busy-on-tick" {
             let mut spun: u64 = 0;
             for _ in 0..self.spins {
