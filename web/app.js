@@ -1121,11 +1121,18 @@ async function refreshLabSets() {
   const mine = (x) => (me && x.created_by === me.name ? 0 : 1);
   const ordered = sets.slice().sort((a, b) => mine(a) - mine(b) || b.id - a.id);
   const option = (x) => el('option', { value: String(x.id) }, `set ${x.id}: ${x.config_name} (by ${x.created_by}, ${x.status})`);
-  // A choice the user made stays chosen; otherwise the first is.
+  // A choice the user made stays chosen; otherwise her newest own set, or
+  // the lab's baseline; never someone else's staged set (an admin sees
+  // every user's).
   const pick = $('lab-set');
   const kept = pick.dataset.chosen;
-  pick.replaceChildren(...ordered.map(option));
+  const own = ordered.find((x) => mine(x) === 0);
+  const baseline = lab ? ordered.find((x) => x.id === lab.baseline) : undefined;
+  const fallback = own || baseline;
+  const placeholder = fallback ? [] : [el('option', { value: '' }, '(choose a set)')];
+  pick.replaceChildren(...placeholder, ...ordered.map(option));
   if (ordered.some((x) => String(x.id) === kept)) pick.value = kept;
+  else pick.value = fallback ? String(fallback.id) : '';
   const base = $('lab-baseline-set');
   const keptBase = base.dataset.chosen || String(lab ? lab.baseline : '');
   base.replaceChildren(...sets.slice().sort((a, b) => b.id - a.id).map(option));

@@ -116,7 +116,10 @@ try {
   await tab(ana, 'lab');
   check(!(await visible(ana, '#lab-admin')), 'the researcher sees the admin section');
   check(await ana.textContent('#lab-experiments-title') === 'My experiments', 'the researcher\'s list is not titled hers');
-  check(await ana.$eval('#lab-set', (s) => s.options[0].value) === String(set), 'the researcher\'s own set is not offered first');
+  // The list is drawn when the tab opens (a request): wait for it.
+  const ownFirst = await ana.waitForFunction((v) => document.querySelector('#lab-set').options[0]?.value === v,
+    String(set), { timeout: 10000 }).then(() => true, () => false);
+  check(ownFirst, 'the researcher\'s own set is not offered first');
   // Every state each experiment card shows, in order, as the page draws it.
   await ana.evaluate(() => {
     window.seen = {};
@@ -241,6 +244,17 @@ try {
 
   step('over the daily robot minutes: 429, with when it frees');
   await tab(admin, 'lab');
+  {
+    // The admin sees every user's sets; her form offers her own or the
+    // baseline, never another user's staged set.
+    await admin.waitForFunction(() => document.querySelector('#lab-set').options.length > 1);
+    const chosen = await admin.$eval('#lab-set', (s) => s.value);
+    const { sets } = await getJson(admin, '/sets');
+    const { baseline } = (await getJson(admin, '/lab')).lab;
+    const picked = sets.find((x) => String(x.id) === chosen);
+    check(chosen === '' || (picked && (picked.created_by === adminName || picked.id === baseline)),
+      `the admin's form preselects set ${chosen}, someone else's`);
+  }
   await saveSettings(() => admin.fill('#lab-setting-limits-robot-minutes-per-day', '0.2'));
   check((await getJson(admin, '/lab')).lab.settings.limits.robot_minutes_per_day === 0.2, 'the setting was not stored');
   await ana.selectOption('#lab-set', String(set));
