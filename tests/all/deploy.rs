@@ -1189,3 +1189,46 @@ fn reservations_and_the_owners_settings_from_the_command_line() {
     let output = lab("ada", &["reservations", &host.address]);
     assert_eq!(out(&output).0, "no reservations\n");
 }
+
+/// With the owner's `end_run_on_breach`, the criteria judge the robot's
+/// run too: a driver that passes the preflight (the owner's open preflight
+/// world) but meets the robot's wall ends early, aborted, the stop zone
+/// named; the outcome says what happened.
+#[test]
+fn the_owners_criteria_end_a_robot_run_early_when_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    add_admin(&dir.path().join("store"));
+    let commander_path = support::guest("test-commander").display().to_string();
+    let boot = lab_robot(dir.path(), "boot.xml", &commander_path, &commander("VEL 0.45 0", 100_000_000), WATCHFUL);
+    let host = lab_host(dir.path(), &boot);
+    let token = support::login(&host.address, "admin", PASSWORD);
+    let open = b"bounds 0 0 40 8\nstart 1 4 0\ngoal 39 4 0.3\n";
+    let (status, json) = http(&host.address, "PUT", "/api/v1/worlds/open.world", Some(&token), open);
+    assert_eq!(status, 201, "{json}");
+    let (_, overview) = http(&host.address, "GET", "/api/v1/lab", Some(&token), b"");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["preflight_world"] = serde_json::json!("open.world");
+    settings["criteria"]["end_run_on_breach"] = serde_json::Value::Bool(true);
+    let (status, json) =
+        http(&host.address, "PUT", "/api/v1/lab/settings", Some(&token), settings.to_string().as_bytes());
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["settings"]["criteria"]["end_run_on_breach"], true, "{json}");
+
+    let output = lab("ada", &["submit", "--duration", "60", &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert_eq!(output.status.code(), Some(1), "{stdout}\n{stderr}");
+    let states = told_states(&stdout, 1);
+    assert_eq!(states.first().map(String::as_str), Some("checking"), "{stdout}");
+    assert!(states.contains(&"queued".to_string()), "the preflight passed: {stdout}");
+    assert_eq!(states.last().map(String::as_str), Some("aborted"), "{stdout}");
+    assert!(
+        stdout.contains("aborted: ended early by the owner's criteria: the envelope's stop zone stopped the robot"),
+        "{stdout}"
+    );
+    let outcome = stdout.lines().find_map(|l| l.strip_prefix("outcome of experiment 1: ")).expect(&stdout).to_string();
+    assert!(outcome.contains("stop-zone"), "{outcome}");
+    let output = lab("ada", &["show", "1", "--json", &host.address]);
+    let record: serde_json::Value = serde_json::from_slice(&output.stdout).unwrap();
+    let ran = record["run"]["ran_s"].as_f64().unwrap();
+    assert!(ran < 40.0, "it ended at its first stop, long before its 60 s: {ran} s");
+}

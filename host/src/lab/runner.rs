@@ -19,9 +19,10 @@ use super::preflight::{self, Outcome, PreflightError, PreflightFiles};
 use super::queue::{self, QueueView};
 use super::{Book, Lab, LabError, TURNAROUND, bundle, run_recording};
 use crate::deploy::{DeployError, RunningExperiment};
+use crate::report::LiveStatus;
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
-use crate::store::experiments::{ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy};
+use crate::store::experiments::{Criteria, ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy};
 use crate::store::users::Principal;
 use crate::store::{Outcome as AuditOutcome, Store};
 
@@ -43,6 +44,9 @@ pub(super) struct OnRobot {
     pub ends_ns: u64,
     pub started_unix_ms: u64,
     pub ends_unix_ms: u64,
+    /// With the owner's `end_run_on_breach`: the criteria it ran under, and
+    /// the live status the runner judges against them while it runs.
+    pub watch: Option<(Criteria, tokio::sync::watch::Receiver<Arc<Option<LiveStatus>>>)>,
 }
 
 /// How an experiment on the robot ends.
@@ -339,6 +343,18 @@ fn grant(lab: &Lab, book: &mut Book) {
     }
 }
 
+/// How the running experiment breaks the owner's criteria so far, by its
+/// latest live status (published every `LIVE_PERIOD` while watched).
+fn breach_so_far(running: &OnRobot) -> Option<String> {
+    let (criteria, live) = running.watch.as_ref()?;
+    let status = live.borrow().clone();
+    let status = status.as_ref().as_ref()?;
+    if status.experiment.as_ref().map(|e| e.id) != Some(running.id) {
+        return None;
+    }
+    super::verdict::breach(criteria, &super::preflight::outcome(&status.report))
+}
+
 /// What the runner does now.
 fn decide(lab: &Lab, book: &mut Book) -> Next {
     grant(lab, book);
@@ -370,6 +386,14 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 id,
                 state: ExperimentState::Aborted,
                 cause: format!("aborted: emergency stop by {} ({})", lock.by, lock.how),
+                pause: false,
+            });
+        }
+        if let Some(why) = breach_so_far(&running) {
+            return Next::End(Ending {
+                id,
+                state: ExperimentState::Aborted,
+                cause: format!("aborted: ended early by the owner's criteria: {why}"),
                 pause: false,
             });
         }
@@ -508,6 +532,8 @@ fn start_on_robot(
         )),
         other => failed(other.to_string()),
     })?;
+    let criteria = record.settings.criteria;
+    let watch = criteria.end_run_on_breach.then(|| (criteria, lab.deployer.live().subscribe()));
     Ok(OnRobot {
         id: record.id,
         baseline,
@@ -515,6 +541,7 @@ fn start_on_robot(
         ends_ns: started_ns + duration_ms * 1_000_000,
         started_unix_ms,
         ends_unix_ms: started_unix_ms + duration_ms,
+        watch,
     })
 }
 

@@ -15,6 +15,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::sim::physics::Contact;
 pub use crate::store::experiments::Criteria;
+use crate::store::experiments::RunOutcome;
 
 /// Holder changes kept by a run (past it, the holder is unknown): a holder
 /// switching every cycle for an hour must not grow the run's memory.
@@ -173,9 +174,42 @@ pub fn judge(criteria: &Criteria, observed: Observations) -> Verdict {
     Verdict { passed: reasons.is_empty(), reasons, criteria: *criteria, observed }
 }
 
+/// The first way a run on the robot, as `outcome` says so far, breaks
+/// `criteria` (what `end_run_on_breach` ends it for); `None` while it
+/// keeps them.
+pub fn breach(criteria: &Criteria, outcome: &RunOutcome) -> Option<String> {
+    if !criteria.allow_faults
+        && let Some(fault) = outcome.faults.first()
+    {
+        let at = fault.at_s.map(|s| format!(" at {s:.1} s")).unwrap_or_default();
+        return Some(format!("component '{}' faulted{at}: {}", fault.component, fault.reason));
+    }
+    if outcome.collisions > u64::from(criteria.max_collisions) {
+        return Some(format!("{} collisions (at most {} allowed)", outcome.collisions, criteria.max_collisions));
+    }
+    let fired = |cause: &str| {
+        outcome.interventions.get(cause).copied().filter(|n| *n > 0).map(|n| match n {
+            1 => "once".to_string(),
+            n => format!("{n} times"),
+        })
+    };
+    if !criteria.allow_stop_zone
+        && let Some(n) = fired(STOP_ZONE)
+    {
+        return Some(format!("the envelope's stop zone stopped the robot {n}"));
+    }
+    if !criteria.allow_geofence
+        && let Some(n) = fired(GEOFENCE)
+    {
+        return Some(format!("the envelope held the robot at its geofence {n}"));
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::experiments::FaultSeen;
 
     fn timeline(changes: &[(f64, Option<&str>)]) -> HolderTimeline {
         let mut t = HolderTimeline::default();
@@ -281,6 +315,31 @@ mod tests {
             let verdict = judge(&criteria, seen);
             assert_eq!(verdict.reasons, expected, "{case}");
             assert_eq!(verdict.passed, expected.is_empty(), "{case}");
+        }
+    }
+
+    #[test]
+    fn a_run_on_the_robot_breaks_the_criteria_by_its_first_breach() {
+        let strict = Criteria::default();
+        let lenient =
+            Criteria { max_collisions: 2, allow_faults: true, allow_geofence: true, allow_stop_zone: true, ..strict };
+        let fault = FaultSeen { component: "planner".into(), at_s: Some(3.26), reason: "trapped".into() };
+        let outcome = |faults: Vec<FaultSeen>, collisions: u64, kinds: &[(&str, u64)]| RunOutcome {
+            faults,
+            collisions,
+            interventions: kinds.iter().map(|(c, n)| (c.to_string(), *n)).collect(),
+            goal_reached: None,
+        };
+        let cases = [
+            (strict, outcome(vec![], 0, &[("acceleration", 9)]), None),
+            (strict, outcome(vec![fault.clone()], 3, &[]), Some("component 'planner' faulted at 3.3 s: trapped")),
+            (lenient, outcome(vec![fault.clone()], 2, &[(STOP_ZONE, 4)]), None),
+            (lenient, outcome(vec![], 3, &[]), Some("3 collisions (at most 2 allowed)")),
+            (strict, outcome(vec![], 0, &[(STOP_ZONE, 4)]), Some("the envelope's stop zone stopped the robot 4 times")),
+            (strict, outcome(vec![], 0, &[(GEOFENCE, 1)]), Some("the envelope held the robot at its geofence once")),
+        ];
+        for (criteria, outcome, want) in cases {
+            assert_eq!(breach(&criteria, &outcome).as_deref(), want, "{criteria:?} {outcome:?}");
         }
     }
 }

@@ -535,6 +535,11 @@ pub struct Criteria {
     pub allow_geofence: bool,
     /// Whether the envelope's collision (stop) zone may stop it.
     pub allow_stop_zone: bool,
+    /// On the robot too: a run that breaks these criteria (a fault, more
+    /// collisions, the stop zone or the geofence) ends early, aborted with
+    /// the breach named. Off by default: the criteria judge the preflight.
+    #[serde(default)]
+    pub end_run_on_breach: bool,
 }
 
 /// How the robot gets back to its start before each experiment.
