@@ -1629,3 +1629,93 @@ fn a_lab_without_mail_says_so_when_a_user_subscribes() {
     assert_eq!(status, 409, "{json}");
     assert!(json["error"].as_str().unwrap().contains("sends no mail"), "{json}");
 }
+
+/// An admin takes the robot out of service: nothing starts, the queued
+/// submitter sees why and no ETA, a restart keeps it, the owner's webhook
+/// hears of both ends of it, and the queue goes on once it ends.
+#[test]
+fn maintenance_holds_the_queue_with_its_reason_through_a_restart_until_an_admin_ends_it() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let out = dir.path().join("posts.jsonl");
+    let receiver = Receiver::start(HOOK_SECRET, &out, 0, 0);
+    let config = serde_json::json!({ "webhooks": [{
+        "url": receiver.url(),
+        "events": ["robot.maintenance.started", "robot.maintenance.ended"],
+        "secret": HOOK_SECRET,
+    }]});
+    std::fs::write(dir.path().join("store/webhooks.json"), config.to_string()).unwrap();
+    let mut lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let reason = r#"{"reason": "the left wheel slips: new tyre"}"#;
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/lab/maintenance", reason);
+    assert_eq!(status, 403, "a researcher may not: {json}");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/maintenance", r#"{"reason": "  "}"#);
+    assert_eq!(status, 400, "a reason is needed: {json}");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/maintenance", reason);
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["maintenance"]["by"], "boss");
+    let (status, _) = lab.call(&boss, "POST", "/api/v1/lab/maintenance", reason);
+    assert_eq!(status, 409, "in maintenance already");
+
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "queued", Duration::from_secs(120));
+    // The runner looked at the head of the queue and holds it: the reason
+    // is in the lab's view, the experiment waits without an ETA.
+    let held = |lab: &Lab, token: &str| {
+        let deadline = Instant::now() + Duration::from_secs(30);
+        loop {
+            let (_, view) = lab.call(token, "GET", "/api/v1/lab", "");
+            if view["lab"]["held"].as_str().is_some_and(|h| h.contains("maintenance")) {
+                return view;
+            }
+            assert!(Instant::now() < deadline, "never held: {view:#}");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+    };
+    let view = held(&lab, &ana);
+    assert!(view["lab"]["held"].as_str().unwrap().contains("the left wheel slips: new tyre"), "{view:#}");
+    assert_eq!(view["lab"]["maintenance"]["reason"], "the left wheel slips: new tyre");
+    let experiment = lab.experiment(&ana, id);
+    assert_eq!(
+        (&experiment["state"], &experiment["eta_unix_ms"]),
+        (&Json::from("queued"), &Json::Null),
+        "{experiment:#}"
+    );
+
+    // A restart keeps it: stored with the lab's state.
+    lab.host.child.kill().unwrap();
+    lab.host.child.wait().unwrap();
+    lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let view = held(&lab, &ana);
+    assert_eq!(view["lab"]["maintenance"]["by"], "boss", "{view:#}");
+    assert_eq!(lab.experiment(&ana, id)["state"], "queued");
+
+    // From the command line, as the admin: back in service; it runs.
+    let output = crate::support::subsume()
+        .args(["lab", "maintenance", "--end", &lab.address])
+        .env("SUBSUME_USER", "boss")
+        .env("SUBSUME_PASSWORD", PASSWORD)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", String::from_utf8_lossy(&output.stderr));
+    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let (status, _) = lab.call(&boss, "DELETE", "/api/v1/lab/maintenance", "");
+    assert_eq!(status, 409, "not in maintenance any more");
+
+    let posts = received(&out, 2, &lab.host);
+    let events: Vec<(&str, &str)> = posts
+        .iter()
+        .map(|p| (p["body"]["event"].as_str().unwrap(), p["body"]["robot"]["reason"].as_str().unwrap_or_default()))
+        .collect();
+    assert_eq!(events[0], ("robot.maintenance.started", "the left wheel slips: new tyre (by boss)"), "{posts:#?}");
+    assert_eq!(events[1].0, "robot.maintenance.ended", "{posts:#?}");
+    assert!(posts.iter().all(|p| p["valid"] == true && p["body"]["robot"]["name"] == "lab"), "{posts:#?}");
+    let audit = std::fs::read_to_string(dir.path().join("store/audit.log")).unwrap_or_default();
+    assert!(audit.contains("maintenance-start") && audit.contains("maintenance-end"), "{audit}");
+}

@@ -235,6 +235,8 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/lab/reservations", br#"{"start_unix_ms": 0, "end_unix_ms": 1}"#, Allowed::Submit),
         ("DELETE", "/api/v1/lab/reservations/999", b"", Allowed::AnyUser),
         ("GET", "/api/v1/lab/kit", b"", Allowed::Submit),
+        ("POST", "/api/v1/lab/maintenance", br#"{"reason": "a wheel to change"}"#, Allowed::Admin),
+        ("DELETE", "/api/v1/lab/maintenance", b"", Allowed::Admin),
         // Her own mail subscription; this portal sends no mail: 409.
         ("GET", "/api/v1/lab/mail", b"", Allowed::AnyUser),
         ("PUT", "/api/v1/lab/mail", br#"{"address": "a@b.org", "events": ["experiment.ended"]}"#, Allowed::AnyUser),

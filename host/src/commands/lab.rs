@@ -84,6 +84,18 @@ enum LabAction {
         #[command(flatten)]
         login: LoginFlags,
     },
+    /// Take the robot out of service with a reason (admins): no experiment
+    /// starts until `--end`; queued ones wait and are told why.
+    Maintenance {
+        /// Why it is out of service (shown to everyone in the queue).
+        #[arg(long, value_name = "TEXT", required_unless_present = "end", conflicts_with = "end")]
+        reason: Option<String>,
+        /// Bring it back into service.
+        #[arg(long)]
+        end: bool,
+        #[command(flatten)]
+        login: LoginFlags,
+    },
     /// List the reservations not over yet, with their dates.
     Reservations {
         /// Print the portal's records as JSON.
@@ -316,6 +328,21 @@ impl LabCommand {
                 let r = lab_client::reserve(&to_login(login), start_ms, end_ms, for_user.as_deref())?;
                 println!("reservation {} for {}:", r.id, r.user);
                 print!("{}", lab_client::reservations_text(std::slice::from_ref(&r), now));
+                Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Maintenance { reason, end: _, login } => {
+                match &reason {
+                    Some(reason) => {
+                        lab_client::maintenance(&to_login(login), Some(reason))?;
+                        println!(
+                            "the robot is in maintenance: {reason}; no experiment starts until `subsume lab maintenance --end`"
+                        );
+                    }
+                    None => {
+                        lab_client::maintenance(&to_login(login), None)?;
+                        println!("the robot is back in service; the queue goes on");
+                    }
+                }
                 Ok(ExitCode::SUCCESS)
             }
             LabAction::Reservations { json, login } => {

@@ -39,6 +39,7 @@ pub mod bundle;
 mod cancel;
 mod kit;
 mod mail;
+mod maintenance;
 pub mod materialize;
 mod metrics;
 mod owner;

@@ -67,7 +67,7 @@ impl Lab {
         self.audited(&user.name, "lab-reset", "reset", confirmed, |id| format!("for experiment {id}"))
     }
 
-    fn admin_change(
+    pub(super) fn admin_change(
         &self,
         user: &Principal,
         action: &str,

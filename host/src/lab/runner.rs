@@ -421,10 +421,19 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
     let awaits_reset = |id| book.lab.settings.reset == ResetPolicy::Manual && book.reset_confirmed != Some(id);
     // The same answer at every look while nothing changes: the views (and
     // the ETAs they hide while held) must not flap between looks.
+    let maintenance = book.lab.maintenance.clone();
     let held = match (next, &engaged) {
         (Some(_), Some(lock)) => {
             Some(format!("the emergency stop is engaged (by {}): the queue waits for its release", lock.by))
         }
+        (Some(_), None) if maintenance.is_some() => maintenance.as_ref().map(|m| {
+            format!(
+                "the robot is in maintenance since {} ({}: {}): the queue waits for an admin to end it",
+                crate::walltime::shown(m.since_ms),
+                m.by,
+                m.reason
+            )
+        }),
         (Some(id), None) if awaits_reset(id) => {
             Some(format!("experiment {id} waits for the robot to be reset (an admin confirms)"))
         }
@@ -435,7 +444,7 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
         lab.notify();
     }
     let Some(id) = next else { return Next::Wait };
-    if engaged.is_some() {
+    if engaged.is_some() || maintenance.is_some() {
         return Next::Wait;
     }
     if awaits_reset(id) {

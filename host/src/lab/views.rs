@@ -80,6 +80,7 @@ impl Lab {
             baseline: self.baseline(&book.lab),
             reservations: book.lab.reservations.iter().filter(|r| r.end_ms > now).cloned().collect(),
             reserved_now: queue::reservation_at(&book.lab.reservations, now).cloned(),
+            maintenance: book.lab.maintenance.clone(),
             settings: (user.role == Role::Admin).then(|| book.lab.settings.clone()),
             now_unix_ms: now,
             robots: self.fleet().map(|f| f.robots_with(now, &book.lab.baselines)),
@@ -160,6 +161,8 @@ pub struct LabView {
     pub reservations: Vec<Reservation>,
     /// The reservation in effect now.
     pub reserved_now: Option<Reservation>,
+    /// Why the robot is out of service, when it is: no experiment starts.
+    pub maintenance: Option<crate::store::experiments::Maintenance>,
     /// On a lab server: every robot it knows.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub robots: Option<Vec<server::RobotView>>,

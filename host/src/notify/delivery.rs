@@ -134,7 +134,10 @@ mod tests {
     }
 
     fn entry(hook: &str, id: u64) -> Entry {
-        Entry { hook: hook.into(), event: Event { id, event: EventKind::ExperimentEnded, at_ms: 0, experiment: None } }
+        Entry {
+            hook: hook.into(),
+            event: Event { id, event: EventKind::ExperimentEnded, at_ms: 0, experiment: None, robot: None },
+        }
     }
 
     #[test]

@@ -257,7 +257,13 @@ pub fn compose(event: &Event) -> (String, String) {
             body.push_str(&format!("\n`subsume lab show {}` shows it whole.\n", e.id));
             (format!("[subsume lab] experiment {} {}", e.id, e.state), body)
         }
-        None => (format!("[subsume lab] {what}"), format!("Event: {what} ({when})\nEvent id: {}\n", event.id)),
+        None => match &event.robot {
+            Some(robot) => (
+                format!("[subsume lab] robot {}: {what}", robot.name),
+                format!("Robot {}: {what} ({when}).\n\n{}\n\nEvent id: {}\n", robot.name, robot.reason, event.id),
+            ),
+            None => (format!("[subsume lab] {what}"), format!("Event: {what} ({when})\nEvent id: {}\n", event.id)),
+        },
     }
 }
 
@@ -394,6 +400,7 @@ mod tests {
                 reasons: vec!["preflight: 3 collisions".into()],
                 outcome: None,
             }),
+            robot: None,
         };
         let (subject, body) = compose(&event);
         assert_eq!(subject, "[subsume lab] experiment 4 refused");

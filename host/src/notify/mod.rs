@@ -79,6 +79,17 @@ pub struct Event {
     /// When it happened, milliseconds since the Unix epoch.
     pub at_ms: u64,
     pub experiment: Option<ExperimentFacts>,
+    /// The robot an event about a robot is about.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robot: Option<RobotFacts>,
+}
+
+/// The robot a `robot.*` event is about.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RobotFacts {
+    pub name: String,
+    /// Why it left (or came back into) service, and who said so.
+    pub reason: String,
 }
 
 /// The experiment an event is about.
@@ -242,6 +253,22 @@ impl Notifier {
     /// experiment's submitter when she subscribed to it (fsynced before
     /// this returns), and wakes the delivery.
     pub fn tell(&self, kind: EventKind, at_ms: u64, experiment: Option<ExperimentFacts>) -> Result<(), NotifyError> {
+        self.tell_about(kind, at_ms, experiment, None)
+    }
+
+    /// Writes `kind` about `robot` to the outbox, as [`Notifier::tell`]
+    /// does about an experiment.
+    pub fn tell_robot(&self, kind: EventKind, at_ms: u64, robot: RobotFacts) -> Result<(), NotifyError> {
+        self.tell_about(kind, at_ms, None, Some(robot))
+    }
+
+    fn tell_about(
+        &self,
+        kind: EventKind,
+        at_ms: u64,
+        experiment: Option<ExperimentFacts>,
+        robot: Option<RobotFacts>,
+    ) -> Result<(), NotifyError> {
         let mut destinations: Vec<String> =
             self.hooks.iter().filter(|h| h.events.contains(&kind)).map(|h| h.url.text.clone()).collect();
         if let Some(mailer) = &self.mailer {
@@ -259,7 +286,7 @@ impl Notifier {
         let mut outbox = self.outbox.lock().map_err(|_| OutboxError::Poisoned)?;
         for destination in destinations {
             let id = outbox.next_id();
-            let event = Event { id, event: kind, at_ms, experiment: experiment.clone() };
+            let event = Event { id, event: kind, at_ms, experiment: experiment.clone(), robot: robot.clone() };
             outbox.push(&destination, &event)?;
         }
         drop(outbox);

@@ -195,6 +195,7 @@ mod tests {
                 reasons: vec![],
                 outcome: None,
             }),
+            robot: None,
         }
     }
 

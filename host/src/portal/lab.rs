@@ -212,6 +212,34 @@ pub(super) async fn put_settings(
     Ok(Json(json!({ "settings": settings })))
 }
 
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MaintenanceRequest {
+    reason: String,
+}
+
+/// Takes the robot out of service (admins), with a reason.
+pub(super) async fn enter_maintenance(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    bytes: Bytes,
+) -> Result<Json<Json_>, ApiError> {
+    let request: MaintenanceRequest = body(&bytes, r#"{"reason": "why the robot is out of service"}"#)?;
+    let lab = state.lab.clone();
+    let maintenance = blocking(move || lab.enter_maintenance(&user, &request.reason)).await?;
+    Ok(Json(json!({ "maintenance": maintenance })))
+}
+
+/// Brings the robot back into service (admins).
+pub(super) async fn end_maintenance(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    blocking(move || lab.end_maintenance(&user)).await?;
+    Ok(Json(json!({ "maintenance": null })))
+}
+
 /// The caller's own mail subscription (`null` when she has none).
 pub(super) async fn get_mail(
     State(state): State<Arc<PortalState>>,

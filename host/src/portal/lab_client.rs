@@ -559,6 +559,19 @@ pub fn reserve(login: &Login, start_ms: u64, end_ms: u64, user: Option<&str>) ->
     })
 }
 
+/// Takes the robot out of service (admins) with `reason`, or with `None`
+/// brings it back.
+pub fn maintenance(login: &Login, reason: Option<&str>) -> Result<Value, LabClientError> {
+    in_session(login, |session| {
+        let (method, body, what) = match reason {
+            Some(reason) => ("POST", json!({ "reason": reason }), "taking the robot out of service"),
+            None => ("DELETE", Value::Null, "bringing the robot back into service"),
+        };
+        let answer = session.request(method, "/api/v1/lab/maintenance", &body, what, DEPLOY_LIMIT)?;
+        Ok(answer["maintenance"].clone())
+    })
+}
+
 /// The reservations not over yet, soonest first.
 pub fn reservations(login: &Login) -> Result<Vec<Reservation>, LabClientError> {
     in_session(login, |session| {

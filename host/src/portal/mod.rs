@@ -242,6 +242,10 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/lab/resume", post(lab::resume))
         .route("/lab/kit", get(lab::kit))
         .route(
+            "/lab/maintenance",
+            post(lab::enter_maintenance).delete(lab::end_maintenance).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
+        )
+        .route(
             "/lab/mail",
             get(lab::get_mail).put(lab::put_mail).delete(lab::delete_mail).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
         )

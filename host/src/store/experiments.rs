@@ -621,7 +621,23 @@ pub struct LabState {
     /// (set ids in this store).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub baselines: BTreeMap<String, u64>,
+    /// The robot is out of service: no experiment starts until an admin
+    /// ends it (docs/lab.md, "Maintenance").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub maintenance: Option<Maintenance>,
 }
+
+/// Why and since when the robot is out of service, and who said so.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Maintenance {
+    pub reason: String,
+    pub by: String,
+    pub since_ms: u64,
+}
+
+/// Longest reason for maintenance, characters: it is shown to every user
+/// in the queue and sent in notifications.
+pub const MAX_MAINTENANCE_REASON: usize = 500;
 
 impl Default for LabState {
     fn default() -> LabState {
@@ -634,6 +650,7 @@ impl Default for LabState {
             paused: false,
             reservations: Vec::new(),
             baselines: BTreeMap::new(),
+            maintenance: None,
         }
     }
 }
