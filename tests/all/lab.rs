@@ -1719,3 +1719,71 @@ fn maintenance_holds_the_queue_with_its_reason_through_a_restart_until_an_admin_
     let audit = std::fs::read_to_string(dir.path().join("store/audit.log")).unwrap_or_default();
     assert!(audit.contains("maintenance-start") && audit.contains("maintenance-end"), "{audit}");
 }
+
+/// A tmpfs of `mib` MiB mounted at `dir` for one test (as root, as CI
+/// runs), unmounted when dropped.
+struct Tmpfs(PathBuf);
+
+impl Tmpfs {
+    fn mount(dir: &Path, mib: u32) -> Tmpfs {
+        std::fs::create_dir_all(dir).unwrap();
+        let output = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={mib}m"), "tmpfs"])
+            .arg(dir)
+            .output()
+            .unwrap_or_else(|e| panic!("mount is needed for the full-disk test: {e}"));
+        assert!(output.status.success(), "mounting a tmpfs needs root: {}", String::from_utf8_lossy(&output.stderr));
+        Tmpfs(dir.to_path_buf())
+    }
+}
+
+impl Drop for Tmpfs {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg("-l").arg(&self.0).output();
+    }
+}
+
+/// A full disk under the store: staging and submitting answer 507 naming
+/// the cause, the store and the lab show exactly what they showed before,
+/// and once space is freed the same requests succeed.
+#[test]
+fn a_full_disk_answers_507_and_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let _disk = Tmpfs::mount(&dir.path().join("store"), 16);
+    setup(dir.path());
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let good = lab.stage(&ana, "good.xml", &robot(7.0, ""));
+    let look = |lab: &Lab| {
+        let (_, sets) = lab.call(&ana, "GET", "/api/v1/sets", "");
+        let (_, experiments) = lab.call(&ana, "GET", "/api/v1/experiments", "");
+        (sets["sets"].as_array().map(Vec::len), experiments["experiments"].as_array().map(Vec::len))
+    };
+    let before = look(&lab);
+    // Fill what is left of the disk.
+    let filler = dir.path().join("store/filler");
+    let mut file = std::fs::File::create(&filler).unwrap();
+    let chunk = vec![0u8; 1 << 20];
+    while std::io::Write::write_all(&mut file, &chunk).is_ok() {}
+    let _ = file.sync_all();
+    let mut tail = vec![0u8; 4096];
+    while std::io::Write::write_all(&mut file, &tail).is_ok() {}
+    tail.truncate(1);
+    while std::io::Write::write_all(&mut file, &tail).is_ok() {}
+    drop(file);
+
+    let (status, json) = lab.call(&ana, "PUT", "/api/v1/platforms/control/configs/more.xml", &robot(6.0, ""));
+    assert_eq!(status, 507, "{json}");
+    assert!(json["error"].as_str().unwrap_or_default().contains("disk is full"), "{json}");
+    let body = serde_json::json!({ "set": good, "duration_s": 2.0 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 507, "{json}");
+    assert_eq!(look(&lab), before, "nothing of either request was kept, nor shown");
+
+    std::fs::remove_file(&filler).unwrap();
+    lab.stage(&ana, "more.xml", &robot(6.0, ""));
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "with space again: {json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+}
