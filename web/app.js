@@ -1341,6 +1341,7 @@ const LAB_SETTINGS_FIELDS = [
   ['criteria.allow_geofence', 'Preflight: the geofence may hold the robot', 'boolean'],
   ['criteria.allow_stop_zone', "Preflight: the envelope's stop zone may stop it", 'boolean'],
   ['criteria.end_run_on_breach', 'On the robot too: a run that breaks these criteria ends early', 'boolean'],
+  ['stuck_after_min_s', 'A queued experiment never started is refused after (s, at least; or twice its first ETA)', 'number'],
   ['reset', 'Before each experiment the robot is reset by', ['sim', 'manual']],
   ['preflight_world', "Preflight world (an uploaded world; empty: each set's own)", 'optional'],
   ['reference_recording', 'Reference recording to replay against (empty: none)', 'optional'],

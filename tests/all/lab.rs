@@ -1787,3 +1787,46 @@ fn a_full_disk_answers_507_and_changes_nothing() {
     let id = json["experiment"]["id"].as_u64().unwrap();
     lab.wait_for(&ana, id, "done", Duration::from_secs(120));
 }
+
+/// Nothing silently stuck: a queued experiment that cannot start (the
+/// robot in maintenance) is refused once it has waited the owner's
+/// `stuck_after_min_s` (twice its first ETA when that is longer), with
+/// why; its submitter's webhook hears it.
+#[test]
+fn a_queued_experiment_that_never_starts_is_refused_saying_why() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let out = dir.path().join("posts.jsonl");
+    let receiver = Receiver::start(HOOK_SECRET, &out, 0, 0);
+    configure_webhook(dir.path(), &receiver.url());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    assert_eq!(settings["stuck_after_min_s"], 900, "15 minutes by default: {settings}");
+    settings["stuck_after_min_s"] = Json::from(0);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 400, "{json}");
+    settings["stuck_after_min_s"] = Json::from(3);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/maintenance", r#"{"reason": "a motor to swap"}"#);
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(120));
+    let queued_at = refused["history"].as_array().unwrap().iter().find(|c| c["state"] == "queued").unwrap()["at_ms"]
+        .as_u64()
+        .unwrap();
+    let refused_at = refused["history"].as_array().unwrap().last().unwrap()["at_ms"].as_u64().unwrap();
+    assert!(refused_at >= queued_at + 3000, "not before its 3 s: {refused:#}");
+    let reason = refused["reasons"][0].as_str().unwrap_or_default();
+    assert!(reason.contains("did not start in time (it never had an estimate; at least 3 s)"), "{reason}");
+    assert!(reason.contains("maintenance") && reason.contains("a motor to swap"), "says why: {reason}");
+    let posts = received(&out, 2, &lab.host);
+    let told: Vec<&str> = posts.iter().map(|p| p["body"]["event"].as_str().unwrap()).collect();
+    assert_eq!(told, ["experiment.accepted", "experiment.refused"], "{posts:#?}");
+}

@@ -423,6 +423,7 @@ mod tests {
                 ResultFile { name: RUN_RECORDING.into(), bytes: 1000 },
             ],
             recording_expired: false,
+            first_wait_ms: None,
             origin: None,
             placement: None,
         }

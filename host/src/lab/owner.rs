@@ -113,5 +113,8 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
     {
         return bad(format!("preflight_world must name an uploaded world, got '{}'", clip(name)));
     }
+    if !(1..=7 * 24 * 3600).contains(&settings.stuck_after_min_s) {
+        return bad(format!("stuck_after_min_s must be from 1 to 604800 (a week), got {}", settings.stuck_after_min_s));
+    }
     Ok(())
 }

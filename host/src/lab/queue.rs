@@ -291,6 +291,14 @@ pub fn place(queued: &[Unplaced], online: &[Seat]) -> Vec<(u64, String)> {
     placed
 }
 
+/// When a queued experiment that has not started is refused (ms since
+/// the Unix epoch): `queued_at_ms` plus twice the wait its first ETA said
+/// (`first_wait_ms`; none while the queue was held), and at least
+/// `min_wait_ms`.
+pub fn stuck_at(queued_at_ms: u64, first_wait_ms: Option<u64>, min_wait_ms: u64) -> u64 {
+    queued_at_ms.saturating_add(first_wait_ms.unwrap_or(0).saturating_mul(2).max(min_wait_ms))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -482,6 +490,19 @@ mod tests {
         for (case, queued, online, expected) in cases {
             let expected: Vec<(u64, String)> = expected.into_iter().map(|(id, r)| (id, r.to_string())).collect();
             assert_eq!(super::place(&queued, &online), expected, "{case}");
+        }
+    }
+
+    #[test]
+    fn a_queued_experiment_is_stuck_after_twice_its_first_eta_and_at_least_the_minimum() {
+        let min = 15 * 60_000;
+        for (queued, first_wait, want) in [
+            (1_000, None, 1_000 + min),
+            (1_000, Some(60_000), 1_000 + min),
+            (1_000, Some(10 * 60_000), 1_000 + 20 * 60_000),
+            (u64::MAX - 5, Some(u64::MAX), u64::MAX),
+        ] {
+            assert_eq!(stuck_at(queued, first_wait, min), want, "{queued} {first_wait:?}");
         }
     }
 }

@@ -355,6 +355,62 @@ fn breach_so_far(running: &OnRobot) -> Option<String> {
     super::verdict::breach(criteria, &super::preflight::outcome(&status.report))
 }
 
+/// Notes each queued experiment's first ETA, and refuses those that have
+/// waited past `queue::stuck_at`, saying why (nothing silently stuck).
+fn refuse_stuck(lab: &Lab, book: &mut Book) {
+    let now = unix_now_ms();
+    let min_ms = book.lab.settings.stuck_after_min_s.saturating_mul(1000);
+    let queued: Vec<(u64, u64, Option<u64>)> = book
+        .experiments
+        .values()
+        .filter(|r| r.state == ExperimentState::Queued)
+        .map(|r| {
+            let at =
+                r.history.iter().rev().find(|c| c.state == ExperimentState::Queued).map_or(r.submitted_ms, |c| c.at_ms);
+            (r.id, at, r.first_wait_ms)
+        })
+        .collect();
+    if queued.is_empty() {
+        return;
+    }
+    let etas = if queued.iter().any(|(_, _, first)| first.is_none()) { lab.etas(book, now) } else { Vec::new() };
+    for (id, queued_at, first_wait) in queued {
+        let noted =
+            first_wait.is_none().then(|| etas.iter().find(|(e, _)| *e == id).and_then(|(_, eta)| *eta)).flatten();
+        if let Some(eta) = noted
+            && let Some(mut record) = book.experiments.get(&id).cloned()
+        {
+            record.first_wait_ms = Some(eta.saturating_sub(queued_at));
+            match lab.store().lock().and_then(|w| w.put_experiment(&record)) {
+                Ok(()) => {
+                    book.experiments.insert(id, record);
+                }
+                Err(e) => tracing::error!("experiment {id}: its first ETA was not stored: {e}"),
+            }
+        }
+        let first_wait = book.experiments.get(&id).and_then(|r| r.first_wait_ms);
+        if now < queue::stuck_at(queued_at, first_wait, min_ms) {
+            continue;
+        }
+        let waited = crate::deploy::utc_time(queued_at);
+        let estimate = match first_wait {
+            Some(w) => format!("twice its first estimate of {} s", w.div_ceil(1000)),
+            None => "it never had an estimate".to_string(),
+        };
+        let why = match &book.held {
+            Some(held) => format!(": {held}"),
+            None => String::new(),
+        };
+        let cause = format!(
+            "refused: queued at {waited}, it did not start in time ({estimate}; at least {} s){why}",
+            min_ms / 1000
+        );
+        if let Err(e) = lab.transition(book, id, ExperimentState::Refused, &cause, vec![cause.clone()]) {
+            tracing::error!("experiment {id}: {e}");
+        }
+    }
+}
+
 /// What the runner does now.
 fn decide(lab: &Lab, book: &mut Book) -> Next {
     grant(lab, book);
@@ -405,6 +461,7 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 pause: false,
             });
         }
+        refuse_stuck(lab, book);
         return Next::Wait;
     }
     let now = unix_now_ms();
@@ -418,7 +475,8 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
         turnaround_ms: TURNAROUND.as_millis() as u64,
     };
     let next = queue::next_to_start(&view);
-    let awaits_reset = |id| book.lab.settings.reset == ResetPolicy::Manual && book.reset_confirmed != Some(id);
+    let (manual, confirmed) = (book.lab.settings.reset == ResetPolicy::Manual, book.reset_confirmed);
+    let awaits_reset = |id| manual && confirmed != Some(id);
     // The same answer at every look while nothing changes: the views (and
     // the ETAs they hide while held) must not flap between looks.
     let maintenance = book.lab.maintenance.clone();
@@ -443,6 +501,8 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
         book.held = held;
         lab.notify();
     }
+    // After `held`: an ETA noted while the queue is held would be wrong.
+    refuse_stuck(lab, book);
     let Some(id) = next else { return Next::Wait };
     if engaged.is_some() || maintenance.is_some() {
         return Next::Wait;

@@ -323,6 +323,11 @@ pub struct ExperimentRecord {
     /// Its recordings were removed by the retention cap; the record stays.
     #[serde(default)]
     pub recording_expired: bool,
+    /// How long its first ETA said it would wait, from when it was queued
+    /// (ms): it is refused, never started, after twice that (or the
+    /// owner's `stuck_after_min_s`, whichever is longer).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub first_wait_ms: Option<u64>,
     /// On a robot of a lab: the lab that dispatched it (docs/lab.md,
     /// "Several robots").
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -419,6 +424,7 @@ impl ExperimentRecord {
             run: None,
             results: Vec::new(),
             recording_expired: false,
+            first_wait_ms: None,
             origin: None,
             placement: None,
         }
@@ -573,6 +579,19 @@ pub struct LabSettings {
     /// Whether researchers may download the lab kit (the baseline's robot
     /// file and components).
     pub kit: bool,
+    /// The least a queued experiment waits before, never started, it is
+    /// refused (seconds): it is refused after twice its first ETA, or
+    /// this, whichever is longer (docs/lab.md, "Nothing silently stuck").
+    #[serde(default = "default_stuck_after_min_s")]
+    pub stuck_after_min_s: u64,
+}
+
+/// 15 minutes: a queue held that long (an emergency stop, maintenance) is
+/// told to its submitters rather than left to wait without end.
+pub const DEFAULT_STUCK_AFTER_MIN_S: u64 = 15 * 60;
+
+fn default_stuck_after_min_s() -> u64 {
+    DEFAULT_STUCK_AFTER_MIN_S
 }
 
 impl Default for LabSettings {
@@ -586,6 +605,7 @@ impl Default for LabSettings {
             reference_recording: None,
             retention_bytes: 10 << 30,
             kit: true,
+            stuck_after_min_s: DEFAULT_STUCK_AFTER_MIN_S,
         }
     }
 }
