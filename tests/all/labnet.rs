@@ -544,6 +544,14 @@ fn nine_experiments_of_three_researchers_spread_over_three_robots_in_namespaces_
         assert!(read["channels"]["/planner/cmd"]["count"].as_u64().is_some_and(|n| n > 10), "{read:#}");
         let preflight = read_mcap(&bundle.join("preflight.mcap"), false);
         assert!(preflight["complete"].as_bool().unwrap(), "{preflight:#}");
+        // No file spells out a folder of the robots' or the lab server's
+        // machines (all of them live under the test's folder).
+        let folder = dir.path().display().to_string();
+        for entry in walk(&bundle) {
+            let bytes = std::fs::read(&entry).unwrap();
+            let text = String::from_utf8_lossy(&bytes);
+            assert!(!text.contains(&folder), "{} spells out {folder}", entry.display());
+        }
     }
     assert!(ran_on.len() >= 2, "nine experiments ran on {ran_on:?} only");
     // Every robot runs its baseline again, and the lab sees them idle.
@@ -1508,4 +1516,18 @@ fn a_lab_link_off_loopback_without_tls_and_authentication_is_refused_unless_allo
     let allowed = serve(&["--allow-plain-zenoh"]);
     allowed.lines_until(0, "allowed by --allow-plain-zenoh (a closed network only)", Duration::from_secs(60));
     allowed.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
+}
+
+/// Every file under `dir`, recursively.
+fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut files = Vec::new();
+    for entry in std::fs::read_dir(dir).unwrap() {
+        let path = entry.unwrap().path();
+        if path.is_dir() {
+            files.extend(walk(&path));
+        } else {
+            files.push(path);
+        }
+    }
+    files
 }

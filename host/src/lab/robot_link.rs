@@ -711,6 +711,20 @@ impl RobotLink {
         };
         drop(book);
         let dir = self.lab.store().experiment_dir(record.id);
+        if record.state.is_final() {
+            // Its text leaves this machine: this robot's folders named,
+            // never spelled out (the lab server hides only its own).
+            for name in [bundle::REPORT, bundle::LOG] {
+                if record.results.iter().any(|f| f.name == name)
+                    && let Err(e) = bundle::hide_in_place(&dir.join(name), &self.hidden)
+                {
+                    tracing::warn!(
+                        "experiment {}: its {name} could not have this robot's folders hidden: {e}",
+                        record.id
+                    );
+                }
+            }
+        }
         let files = if record.state.is_final() {
             record
                 .results
