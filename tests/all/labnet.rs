@@ -843,6 +843,38 @@ fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_re
     assert_eq!(refused["placement"]["refusals"], 2, "{refused:#}");
 }
 
+/// A robot its owner takes out of service is listed `maintenance` by the
+/// lab server, which sends its experiments to the other robot; back in
+/// service, it takes work again.
+#[test]
+fn a_lab_server_routes_around_a_robot_in_maintenance() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 2);
+    let r1 = lab.robot("r1");
+    let owner = support::login(&r1.address, "owner", PASSWORD);
+    let reason = br#"{"reason": "a bumper to glue"}"#;
+    let (status, json) = http(&r1.address, "POST", "/api/v1/lab/maintenance", Some(&owner), reason);
+    assert_eq!(status, 200, "{json}");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r1" && r["state"] == "maintenance")
+    });
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let ids: Vec<u64> = (0..2).map(|_| lab.submit(&ana, set, 2.0, None)).collect();
+    for id in &ids {
+        let done = lab.wait_for(&ana, *id, "done", Duration::from_secs(180));
+        assert_eq!(done["state"], "done", "{done:#}\n{}", lab.logs());
+        assert_eq!(done["placement"]["robot"], "r2", "not to the robot in maintenance: {done:#}");
+    }
+    let (status, json) = http(&r1.address, "DELETE", "/api/v1/lab/maintenance", Some(&owner), b"");
+    assert_eq!(status, 200, "{json}");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["state"] == "idle"));
+    let id = lab.submit(&ana, set, 2.0, Some("r1"));
+    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
+    assert_eq!((&done["state"], &done["placement"]["robot"]), (&Json::from("done"), &Json::from("r1")), "{done:#}");
+}
+
 /// Robot `robot`'s live status, as its own portal gives it to its owner.
 fn robot_status(robot: &Robot) -> Json {
     let token = support::login(&robot.address, "owner", PASSWORD);

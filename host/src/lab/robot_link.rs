@@ -350,7 +350,7 @@ impl RobotLink {
         if let Some(lock) = locks.and_then(|l| l.engaged().into_iter().next()) {
             return (RobotState::Stopped { by: crate::contract::clip(&lock.by) }, None);
         }
-        if book.lab.paused {
+        if book.lab.paused || book.lab.maintenance.is_some() {
             return (RobotState::Maintenance, None);
         }
         (RobotState::Idle, None)
@@ -532,7 +532,9 @@ impl RobotLink {
                 return Err(format!("busy: it runs the lab's experiment {experiment}"));
             }
             RobotState::Stopped { by } => return Err(format!("its emergency stop is engaged (by {by})")),
-            RobotState::Maintenance => return Err("it is in maintenance: its owner paused its queue".into()),
+            RobotState::Maintenance => {
+                return Err("it is in maintenance: its owner paused its queue or took it out of service".into());
+            }
         }
         let book = self.lab.lock().map_err(|e| e.to_string())?;
         let other = book

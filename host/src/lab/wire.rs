@@ -828,7 +828,8 @@ pub enum RobotState {
     Running { experiment: u64 },
     /// An emergency stop is engaged (by whom).
     Stopped { by: String },
-    /// Its owner paused its queue: it takes no work.
+    /// Its owner paused its queue, or an admin took it out of service
+    /// (`lab/maintenance.rs`): it takes no work.
     Maintenance,
 }
 
