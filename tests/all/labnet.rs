@@ -564,6 +564,23 @@ fn nine_experiments_of_three_researchers_spread_over_three_robots_in_namespaces_
 #[test]
 fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost() {
     let dir = tempfile::tempdir().unwrap();
+    // The owner's webhook hears of the lost robot (Python's http.server
+    // and hmac on the other side).
+    let posts = dir.path().join("posts.jsonl");
+    let mut receiver = std::process::Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/webhook_receiver.py"))
+        .args(["a-webhook-secret-of-the-owner", posts.to_str().unwrap()])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut line = String::new();
+    std::io::BufRead::read_line(&mut std::io::BufReader::new(receiver.stdout.take().unwrap()), &mut line).unwrap();
+    let port = line.trim().strip_prefix("listening on ").unwrap().to_string();
+    let hooks = serde_json::json!({ "webhooks": [{
+        "url": format!("http://127.0.0.1:{port}/hooks"), "events": ["robot.lost"], "secret": "a-webhook-secret-of-the-owner",
+    }]});
+    std::fs::create_dir_all(dir.path().join("lab/store")).unwrap();
+    std::fs::write(dir.path().join("lab/store/webhooks.json"), hooks.to_string()).unwrap();
     let lab = LabNet::start(dir.path(), 2);
     let ana = lab.token("ana");
     let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
@@ -588,6 +605,22 @@ fn a_robot_whose_link_is_cut_mid_run_aborts_by_itself_and_the_lab_marks_it_lost(
     assert_eq!(lost["state"], "aborted", "{lost:#}");
     let cause = lost["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
     assert!(cause.contains("robot lost"), "{cause}");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let text = std::fs::read_to_string(&posts).unwrap_or_default();
+        if let Some(post) = text.lines().map(|l| serde_json::from_str::<Json>(l).unwrap()).next() {
+            assert_eq!(post["valid"], true, "{post:#}");
+            assert_eq!(
+                (&post["body"]["event"], &post["body"]["robot"]["name"]),
+                (&Json::from("robot.lost"), &Json::from("r1"))
+            );
+            break;
+        }
+        assert!(Instant::now() < deadline, "no robot.lost event\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let _ = receiver.kill();
+    let _ = receiver.wait();
     // The robot, on its own: the experiment aborted, the baseline back.
     r1.host.lines_until(from, "back to the baseline", Duration::from_secs(30));
     let noticed = cut_at.elapsed();

@@ -55,10 +55,17 @@ impl Lab {
     }
 
     fn tell_robot(&self, kind: EventKind, reason: &str) {
-        let Some(notifier) = &self.notifier else { return };
         let name = self.deployer.active().map(|(_, config)| config.name.clone()).unwrap_or_else(|_| "robot".into());
-        if let Err(e) = notifier.tell_robot(kind, unix_now_ms(), RobotFacts { name, reason: reason.to_string() }) {
-            tracing::error!("the robot's maintenance event is lost: {e}");
+        self.tell_about_robot(kind, &name, reason);
+    }
+
+    /// Tells the owner's webhooks and mail `kind` about robot `name` (this
+    /// host's, or one of a lab server's).
+    pub(super) fn tell_about_robot(&self, kind: EventKind, name: &str, reason: &str) {
+        let Some(notifier) = &self.notifier else { return };
+        let facts = RobotFacts { name: name.to_string(), reason: reason.to_string() };
+        if let Err(e) = notifier.tell_robot(kind, unix_now_ms(), facts) {
+            tracing::error!("robot {name}: its {kind:?} event is lost: {e}");
         }
     }
 }

@@ -122,6 +122,9 @@ struct Robot {
     stops_sent: BTreeSet<u64>,
     fetching_baseline: bool,
     baseline_error: Option<String>,
+    /// Online at the last plan: going offline after it is told once
+    /// (`robot.lost`).
+    told_online: bool,
 }
 
 impl Robot {
@@ -680,6 +683,15 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
     let mut actions = Vec::new();
     let mut robots = lock(&fleet.robots);
     let relearned = fleet.started.elapsed() >= fleet.relearn;
+    // A robot that was online and is not any more: the owner is told once.
+    for (name, robot) in robots.iter_mut() {
+        let online = robot.online();
+        if robot.told_online && !online {
+            let reason = "it left the lab: its token went or its signed statuses stopped".to_string();
+            lab.tell_about_robot(crate::notify::EventKind::RobotLost, name, &reason);
+        }
+        robot.told_online = online;
+    }
     // Baselines not seen before are fetched once.
     for (name, robot) in robots.iter_mut() {
         if let Some(token) = &robot.current

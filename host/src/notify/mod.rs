@@ -64,7 +64,8 @@ pub enum EventKind {
     /// The robot is back in service.
     #[serde(rename = "robot.maintenance.ended")]
     RobotMaintenanceEnded,
-    /// Declared for configurations; nothing emits it yet.
+    /// A lab server's robot left the lab (its token went, or its signed
+    /// statuses stopped).
     #[serde(rename = "robot.lost")]
     RobotLost,
 }
