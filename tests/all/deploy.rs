@@ -506,7 +506,17 @@ fn lab_submit_follows_an_experiment_to_done_and_unpacks_results_the_mcap_package
     assert_eq!(told_states(&stdout, 1), DONE, "{stdout}");
     assert!(stdout.contains("experiment 1: running: started on the robot") && stdout.contains("(ends at "), "{stdout}");
     assert!(stderr.contains("lab: uploaded driver in "), "{stderr}");
-    assert!(stdout.trim_end().ends_with("sha256 checked)"), "{stdout}");
+    // `lab submit --results` and `lab results` say the bundle alike.
+    let said = |text: &str| {
+        let line = text.lines().find(|l| l.starts_with("results of experiment 1: ")).expect(text);
+        line.split_once(" (").expect(line).1.to_string()
+    };
+    let submitted = said(&stdout);
+    assert!(submitted.contains("sha256 checked: the result files `lab show` counts, with experiment.json"), "{stdout}");
+    let again = dir.path().join("results/again");
+    let output = lab("ada", &["results", "1", &host.address, "-o", again.to_str().unwrap()]);
+    assert!(output.status.success(), "{}", out(&output).1);
+    assert_eq!(said(&out(&output).0), submitted);
     check_sums(&results);
     assert_eq!(sha256(&results.join("components/driver.wasm")), sha256(&v2));
     let record: serde_json::Value =

@@ -376,11 +376,7 @@ impl LabCommand {
             }
             LabAction::Results { id, output, login } => {
                 let unpacked = lab_client::results(&to_login(login), id, &output)?;
-                println!(
-                    "results of experiment {id}: {} ({} files, sha256 checked)",
-                    unpacked.dir.display(),
-                    unpacked.files
-                );
+                println!("{}", lab_client::unpacked_text(id, &unpacked));
                 Ok(ExitCode::SUCCESS)
             }
             LabAction::Kit { output, login } => {

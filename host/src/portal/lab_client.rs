@@ -385,13 +385,7 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
                 let what = format!("the results of experiment {}", record.id);
                 let path = format!("/api/v1/experiments/{}/results", record.id);
                 let unpacked = download(session, &path, &what, dir)?;
-                (say.states)(&format!(
-                    "results of experiment {}: {} ({} files, {}, sha256 checked)",
-                    record.id,
-                    dir.display(),
-                    unpacked.files,
-                    size(unpacked.bytes)
-                ));
+                (say.states)(&unpacked_text(record.id, &unpacked));
                 Some(unpacked)
             }
             None => None,
@@ -880,6 +874,19 @@ pub fn list_text(experiments: &[Experiment], now_ms: u64) -> String {
     out
 }
 
+/// What `lab submit --results` and `lab results` say of an unpacked
+/// bundle, alike: its files and bytes as unpacked, and that they are the
+/// result files `lab show` counts plus the bundle's own.
+pub fn unpacked_text(id: u64, unpacked: &Unpacked) -> String {
+    format!(
+        "results of experiment {id}: {} ({} files, {}, sha256 checked: the result files `lab show` counts, \
+         with experiment.json, robot.xml, the components and SHA256SUMS)",
+        unpacked.dir.display(),
+        unpacked.files,
+        size(unpacked.bytes)
+    )
+}
+
 /// `subsume lab show`'s text.
 pub fn show_text(experiment: &Experiment, now_ms: u64) -> String {
     let r = &experiment.record;
@@ -920,7 +927,14 @@ pub fn show_text(experiment: &Experiment, now_ms: u64) -> String {
     if !r.results.is_empty() || r.recording_expired {
         let bytes: u64 = r.results.iter().map(|f| f.bytes).sum();
         let expired = if r.recording_expired { "; its recordings expired" } else { "" };
-        field("results", format!("{} result files, {}{expired}", r.results.len(), size(bytes)));
+        field(
+            "results",
+            format!(
+                "{} result files, {}{expired} (the bundle adds experiment.json, robot.xml, the components and SHA256SUMS)",
+                r.results.len(),
+                size(bytes)
+            ),
+        );
     }
     out.push_str("  history\n");
     for change in &r.history {
