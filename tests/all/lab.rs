@@ -1830,3 +1830,51 @@ fn a_queued_experiment_that_never_starts_is_refused_saying_why() {
     let told: Vec<&str> = posts.iter().map(|p| p["body"]["event"].as_str().unwrap()).collect();
     assert_eq!(told, ["experiment.accepted", "experiment.refused"], "{posts:#?}");
 }
+
+/// The owner's duty cycle: after `run_s` of experiments the robot rests
+/// `rest_s` before the next starts, and the lab says so while it does.
+#[test]
+fn the_duty_cycle_rests_the_robot_between_experiments_and_says_so() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    assert_eq!(settings["duty_cycle"], Json::Null, "off by default");
+    settings["duty_cycle"] = serde_json::json!({ "run_s": 0, "rest_s": 4 });
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 400, "{json}");
+    settings["duty_cycle"] = serde_json::json!({ "run_s": 2, "rest_s": 4 });
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
+    let ids: Vec<u64> = (0..2)
+        .map(|_| {
+            let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+            assert_eq!(status, 201, "{json}");
+            json["experiment"]["id"].as_u64().unwrap()
+        })
+        .collect();
+    lab.wait_for(&ana, ids[0], "done", Duration::from_secs(120));
+    let deadline = Instant::now() + Duration::from_secs(30);
+    loop {
+        let (_, view) = lab.call(&ana, "GET", "/api/v1/lab", "");
+        let held = view["lab"]["held"].as_str().unwrap_or_default().to_string();
+        if held.contains("rests until") {
+            assert!(held.contains("duty cycle: 2 s of experiments, then 4 s of rest"), "{held}");
+            break;
+        }
+        let second = lab.experiment(&ana, ids[1]);
+        assert!(second["state"] == "queued" && Instant::now() < deadline, "never said it rests: {view:#} {second:#}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let second = lab.wait_for(&ana, ids[1], "done", Duration::from_secs(120));
+    let at = |record: &Json, state: &str| {
+        record["history"].as_array().unwrap().iter().find(|c| c["state"] == state).unwrap()["at_ms"].as_u64().unwrap()
+    };
+    let first = lab.experiment(&ana, ids[0]);
+    let rested = at(&second, "running") - at(&first, "done");
+    assert!(rested >= 3_900, "the second started {rested} ms after the first ended, before its 4 s of rest");
+}

@@ -193,6 +193,11 @@ struct Book {
     held: Option<String>,
     /// Who may drive by reservation now, until when.
     granted: Option<(String, u64)>,
+    /// The duty cycle: robot time run since the last rest (ms), and until
+    /// when the robot rests (ms since the Unix epoch). Not kept over a
+    /// restart: a restart starts a fresh cycle.
+    duty_counted_ms: u64,
+    resting_until_ms: Option<u64>,
 }
 
 /// The remote lab of one robot host.

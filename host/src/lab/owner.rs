@@ -113,6 +113,14 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
     {
         return bad(format!("preflight_world must name an uploaded world, got '{}'", clip(name)));
     }
+    if let Some(duty) = settings.duty_cycle
+        && !((1..=24 * 3600).contains(&duty.run_s) && (1..=24 * 3600).contains(&duty.rest_s))
+    {
+        return bad(format!(
+            "duty_cycle.run_s and rest_s must be from 1 to 86400 (a day), got {} and {}",
+            duty.run_s, duty.rest_s
+        ));
+    }
     if !(1..=7 * 24 * 3600).contains(&settings.stuck_after_min_s) {
         return bad(format!("stuck_after_min_s must be from 1 to 604800 (a week), got {}", settings.stuck_after_min_s));
     }

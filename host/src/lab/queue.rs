@@ -20,9 +20,11 @@
 //!    `max-duration` allows it; when no online robot of its target allows
 //!    it, to the first free one of its target, which refuses it with its
 //!    reason rather than leave it waiting for ever; a robot takes one
-//!    experiment at a time.
+//!    experiment at a time;
+//! 7. with the owner's duty cycle ([`after_run`]), the robot rests once it
+//!    has run its experiments for `run_s`, before the next starts.
 
-pub use crate::store::experiments::{Limits, Reservation, Target};
+pub use crate::store::experiments::{DutyCycle, Limits, Reservation, Target};
 
 /// One day, ms: the window of the robot-minutes limit.
 pub const DAY_MS: u64 = 24 * 3600 * 1000;
@@ -299,6 +301,19 @@ pub fn stuck_at(queued_at_ms: u64, first_wait_ms: Option<u64>, min_wait_ms: u64)
     queued_at_ms.saturating_add(first_wait_ms.unwrap_or(0).saturating_mul(2).max(min_wait_ms))
 }
 
+/// The duty cycle after a run of `ran_ms`: the robot time counted since
+/// the last rest, and until when the robot rests (ms since the Unix
+/// epoch), if it now must.
+pub fn after_run(duty: Option<DutyCycle>, counted_ms: u64, ran_ms: u64, now_ms: u64) -> (u64, Option<u64>) {
+    let Some(duty) = duty else { return (0, None) };
+    let counted = counted_ms.saturating_add(ran_ms);
+    if counted >= duty.run_s.saturating_mul(1000) {
+        (0, Some(now_ms.saturating_add(duty.rest_s.saturating_mul(1000))))
+    } else {
+        (counted, None)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -503,6 +518,20 @@ mod tests {
             (u64::MAX - 5, Some(u64::MAX), u64::MAX),
         ] {
             assert_eq!(stuck_at(queued, first_wait, min), want, "{queued} {first_wait:?}");
+        }
+    }
+
+    #[test]
+    fn the_duty_cycle_rests_the_robot_once_its_run_time_is_used() {
+        let duty = Some(DutyCycle { run_s: 60, rest_s: 30 });
+        for (duty, counted, ran, want) in [
+            (None, 0, 3_600_000, (0, None)),
+            (duty, 0, 20_000, (20_000, None)),
+            (duty, 40_000, 19_999, (59_999, None)),
+            (duty, 40_000, 20_000, (0, Some(1_000 + 30_000))),
+            (duty, 0, 90_000, (0, Some(1_000 + 30_000))),
+        ] {
+            assert_eq!(after_run(duty, counted, ran, 1_000), want, "{duty:?} {counted} {ran}");
         }
     }
 }

@@ -480,6 +480,10 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
     // The same answer at every look while nothing changes: the views (and
     // the ETAs they hide while held) must not flap between looks.
     let maintenance = book.lab.maintenance.clone();
+    if book.resting_until_ms.is_some_and(|until| now >= until) {
+        book.resting_until_ms = None;
+    }
+    let resting = book.resting_until_ms.zip(book.lab.settings.duty_cycle);
     let held = match (next, &engaged) {
         (Some(_), Some(lock)) => {
             Some(format!("the emergency stop is engaged (by {}): the queue waits for its release", lock.by))
@@ -490,6 +494,14 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 crate::walltime::shown(m.since_ms),
                 m.by,
                 m.reason
+            )
+        }),
+        (Some(_), None) if resting.is_some() => resting.map(|(until, duty)| {
+            format!(
+                "the robot rests until {} (the owner's duty cycle: {} s of experiments, then {} s of rest)",
+                crate::walltime::shown(until),
+                duty.run_s,
+                duty.rest_s
             )
         }),
         (Some(id), None) if awaits_reset(id) => {
@@ -504,7 +516,7 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
     // After `held`: an ETA noted while the queue is held would be wrong.
     refuse_stuck(lab, book);
     let Some(id) = next else { return Next::Wait };
-    if engaged.is_some() || maintenance.is_some() {
+    if engaged.is_some() || maintenance.is_some() || resting.is_some() {
         return Next::Wait;
     }
     if awaits_reset(id) {
@@ -629,6 +641,13 @@ fn end(lab: &Lab, ending: &Ending) {
     let ran_ns = lab.deployer.graph_now_ns().saturating_sub(running.started_ns);
     let ended = lab.deployer.end_experiment(id, running.baseline, &ending.cause, ran_ns);
     let Ok(mut book) = lab.lock() else { return };
+    let duty = book.lab.settings.duty_cycle;
+    let (counted, rest) = queue::after_run(duty, book.duty_counted_ms, ran_ns / 1_000_000, unix_now_ms());
+    book.duty_counted_ms = counted;
+    if let Some(until) = rest {
+        tracing::info!("the robot rests until {} (its duty cycle)", crate::walltime::shown(until));
+        book.resting_until_ms = Some(until);
+    }
     let (state, cause, mut reasons) = match &ended {
         Ok(_) => (ending.state, ending.cause.clone(), Vec::new()),
         Err(e) => {

@@ -584,6 +584,19 @@ pub struct LabSettings {
     /// this, whichever is longer (docs/lab.md, "Nothing silently stuck").
     #[serde(default = "default_stuck_after_min_s")]
     pub stuck_after_min_s: u64,
+    /// Motors and batteries that need rest: after `run_s` seconds of
+    /// experiments the robot rests `rest_s` before the next starts. Off
+    /// (`null`) by default.
+    #[serde(default)]
+    pub duty_cycle: Option<DutyCycle>,
+}
+
+/// Run at most `run_s` seconds of experiments, then rest `rest_s`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DutyCycle {
+    pub run_s: u64,
+    pub rest_s: u64,
 }
 
 /// 15 minutes: a queue held that long (an emergency stop, maintenance) is
@@ -606,6 +619,7 @@ impl Default for LabSettings {
             retention_bytes: 10 << 30,
             kit: true,
             stuck_after_min_s: DEFAULT_STUCK_AFTER_MIN_S,
+            duty_cycle: None,
         }
     }
 }
