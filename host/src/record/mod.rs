@@ -24,6 +24,7 @@ pub mod readable;
 pub mod replay;
 
 pub mod schema;
+pub mod video;
 mod writer;
 
 use std::collections::BTreeMap;
