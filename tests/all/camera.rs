@@ -217,3 +217,33 @@ fn an_experiments_bundle_has_a_video_of_its_camera_that_ffprobe_reads_and_chromi
     assert!(played["ready_state"].as_u64().unwrap() >= 2, "{played}");
     assert!(played["colours"].as_u64().unwrap() >= 4, "the last frame is blank: {played}");
 }
+
+/// The demo's world in its recording: one `foxglove.SceneUpdate` on
+/// `/world/scene` (JSON, as every foxglove schema of the recording), whose
+/// cubes are the world file's walls, box sides and bounds and whose
+/// cylinders are its circles, checked by the `mcap` package (PyPI) against
+/// the world file read on its own (tests/python/camera_scene.py).
+#[test]
+fn the_recording_holds_the_simulated_world_as_a_foxglove_scene() {
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("scene.mcap");
+    let mut args = vec!["run", "config/demo-camera.xml", "--duration", "1", "--record", file.to_str().unwrap()];
+    args.extend(FREE_TELEOP_PORTS);
+    let output = subsume().args(&args).output().unwrap();
+    assert!(output.status.success(), "{}", text(&output.stderr));
+    let read = Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/camera_scene.py"))
+        .arg(&file)
+        .arg(support::repo_root().join("config/worlds/demo.world"))
+        .output()
+        .unwrap();
+    assert!(read.status.success(), "{}", text(&read.stderr));
+    let read: Json = serde_json::from_slice(&read.stdout).unwrap();
+    assert_eq!(read["messages"], 1, "{read}");
+    assert_eq!(read["schema"], "foxglove.SceneUpdate", "{read}");
+    assert_eq!((read["encoding"].as_str(), read["message_encoding"].as_str()), (Some("jsonschema"), Some("json")));
+    // bounds (4 sides), a box (4), a wall; a circle.
+    assert_eq!((read["segments"].as_u64(), read["cubes"].as_u64()), (Some(9), Some(9)), "{read}");
+    assert_eq!((read["circles"].as_u64(), read["cylinders"].as_u64()), (Some(1), Some(1)), "{read}");
+    assert_eq!(read["problems"], serde_json::json!([]), "{read}");
+}
