@@ -247,3 +247,74 @@ fn the_recording_holds_the_simulated_world_as_a_foxglove_scene() {
     assert_eq!((read["circles"].as_u64(), read["cylinders"].as_u64()), (Some(1), Some(1)), "{read}");
     assert_eq!(read["problems"], serde_json::json!([]), "{read}");
 }
+
+/// The vision example (guest-components/rust/vision-marker) in the demo
+/// with the camera: for every frame it says how bright the picture is and
+/// where the robot's blue is, as Pillow (PyPI) finds them in the same
+/// recorded JPEG (another decoder), within its budget and without a fault;
+/// `subsume replay` gives its outputs back bit for bit, and with another
+/// marker colour they diverge.
+#[test]
+fn the_vision_example_finds_the_robot_in_the_frames_and_replays_bit_for_bit() {
+    support::guest_dir();
+    let dir = tempfile::tempdir().unwrap();
+    let file = dir.path().join("vision.mcap");
+    let report_path = dir.path().join("report.json");
+    let mut args = vec!["run", "config/demo-camera.xml", "--duration", "4", "--record", file.to_str().unwrap()];
+    args.extend(["--report", report_path.to_str().unwrap()]);
+    args.extend(FREE_TELEOP_PORTS);
+    let output = subsume().args(&args).output().unwrap();
+    assert!(output.status.success(), "{}", text(&output.stderr));
+
+    let report = read_report(&report_path);
+    let vision = support::component(&report, "vision");
+    let sent = report["camera"]["frames_sent"].as_u64().unwrap();
+    assert_eq!((vision["state"].as_str(), vision["faults"].as_u64()), (Some("running"), Some(0)), "{vision}");
+    // A frame each (the last one sent may come as the run stops).
+    let calls = vision["calls"].as_u64().unwrap();
+    assert_eq!(vision["errors"].as_u64(), Some(0), "{vision}");
+    assert!(calls + 1 >= sent && calls <= sent && calls > 5, "{calls} calls for {sent} frames: {vision}");
+    assert_eq!(vision["messages_out"].as_u64(), Some(2 * calls), "{vision}");
+
+    let frames = Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/camera_frames.py"))
+        .args([file.to_str().unwrap(), "/camera/frame", "/motors/pose"])
+        .output()
+        .unwrap();
+    assert!(frames.status.success(), "{}", text(&frames.stderr));
+    let frames: Json = serde_json::from_slice(&frames.stdout).unwrap();
+    let frames = frames["frames"].as_array().unwrap();
+    let read = support::read_mcap(&file, false, &["/vision/marker", "/vision/brightness"]);
+    let markers = read["values"]["/vision/marker"].as_array().unwrap();
+    let brightness = read["values"]["/vision/brightness"].as_array().unwrap();
+    assert_eq!(markers.len(), brightness.len());
+    assert!(markers.len() <= frames.len() && markers.len() + 1 >= frames.len(), "one answer per frame");
+    for ((frame, marker), bright) in frames.iter().zip(markers).zip(brightness) {
+        let marker: Vec<f64> =
+            marker["value"]["vector"].as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect();
+        let drawn = frame["robot_px"].as_array().unwrap_or_else(|| panic!("Pillow finds no robot in {frame}"));
+        let (dx, dy) = (marker[0] - drawn[0].as_f64().unwrap(), marker[1] - drawn[1].as_f64().unwrap());
+        assert!(marker[2] > 10.0 && dx.hypot(dy) <= 1.0, "the guest says {marker:?}, Pillow {drawn:?}");
+        let (guest, pillow) = (bright["value"]["scalar"].as_f64().unwrap(), frame["luma"].as_f64().unwrap());
+        assert!((guest - pillow).abs() <= 1.0, "brightness: the guest says {guest}, Pillow {pillow}");
+    }
+
+    // Replay: the same outputs bit for bit; another colour diverges.
+    let replay = |extra: &[&str]| {
+        let mut command = subsume();
+        command.args(["replay", file.to_str().unwrap(), "config/demo-camera.xml", "--only", "vision", "--json"]);
+        let output = command.args(extra).output().unwrap();
+        let json: Json = serde_json::from_slice(&output.stdout).unwrap_or(Json::Null);
+        (output.status.code(), json, text(&output.stderr))
+    };
+    let (code, json, log) = replay(&[]);
+    assert_eq!(code, Some(0), "{json} {log}");
+    assert_eq!(json["divergences"], serde_json::json!([]), "{json}");
+    // Every recorded output compared (replay leaves the last call's out
+    // when the recording stops right after it).
+    let (compared, recorded) = (json["compared"].as_u64().unwrap(), 2 * markers.len() as u64);
+    assert!(compared <= recorded && compared + 2 >= recorded && compared + 4 >= 2 * calls, "{json}");
+    let (code, json, log) = replay(&["--param", "vision.marker-colour=220,90,30"]);
+    assert_eq!(code, Some(1), "{json} {log}");
+    assert_eq!(json["divergences"][0]["port"], "marker", "{json}");
+}
