@@ -3,7 +3,8 @@ package (PyPI) and decodes each JPEG with Pillow (PyPI): decoders no one
 here wrote. Prints one JSON object on stdout:
 
     {"frames": [{"log_time": ns, "stamp_ns": ns, "format": "jpeg", "width": w,
-                 "height": h, "mode": "RGB", "robot_px": [x, y] | null}],
+                 "height": h, "mode": "RGB", "robot_px": [x, y] | null,
+                 "luma": mean of Pillow's ITU-R 601-2 luma}],
      "poses": [[log_time, x, y, heading], ...]}
 
 robot_px is the centre of the pixels of the robot's colour (blue, within a
@@ -18,7 +19,7 @@ import json
 import sys
 
 from mcap.reader import make_reader
-from PIL import Image
+from PIL import Image, ImageStat
 
 # The robot's colour (host/src/camera/render.rs ROBOT) and how far a JPEG
 # pixel may stray from it.
@@ -65,6 +66,7 @@ def main() -> None:
                     "height": image.size[1],
                     "mode": image.mode,
                     "robot_px": robot_centre(image),
+                    "luma": ImageStat.Stat(image.convert("L")).mean[0],
                 }
             )
     json.dump({"frames": frames, "poses": poses}, sys.stdout)

@@ -10,6 +10,8 @@
 //! run.mcap (.1.mcap ...)   the recording of the run on the robot
 //! report.json              the run's report (envelope interventions, collisions, goal, faults, call times)
 //! log.txt                  the host's log while it ran (from the recording)
+//! video-CAMERA.webm        each camera's video of the run (VP9, made by ffmpeg from its frames)
+//! video.txt                why a camera has no video (no ffmpeg on the robot, ...), if one has none
 //! preflight.mcap, preflight-report.json, preflight-verdict.json, preflight.log
 //! SHA256SUMS               every other file's sha256 (`sha256sum -c SHA256SUMS`)
 //! ```
@@ -40,6 +42,8 @@ pub const LOG: &str = "log.txt";
 pub const ROBOT: &str = "robot.xml";
 pub const RECORD: &str = "experiment.json";
 pub const SUMS: &str = "SHA256SUMS";
+/// Why a camera of the run has no video (absent when every camera has one).
+pub const VIDEO_NOTE: &str = "video.txt";
 
 /// Largest recording the log is read from (the whole file is read into
 /// memory): past it the log says so instead.
@@ -54,7 +58,7 @@ pub const MAX_LOG_LINES: usize = 200_000;
 /// (MCAP offsets would break; what they carry is hidden as they are
 /// written) and the components' bytes.
 fn hides_folders(name: &str) -> bool {
-    !name.ends_with(".mcap") && !name.ends_with(".wasm")
+    !name.ends_with(".mcap") && !name.ends_with(".wasm") && !crate::record::video::is_video_name(name)
 }
 
 /// A copy of `reader` with `hidden`'s folders named, a line at a time, in
@@ -126,6 +130,8 @@ pub fn is_result_file(name: &str) -> bool {
         "preflight.log",
     ];
     KEPT.contains(&name)
+        || name == VIDEO_NOTE
+        || crate::record::video::is_video_name(name)
         || name.strip_prefix("run.").and_then(|r| r.strip_suffix(".mcap")).is_some_and(|n| n.parse::<u32>().is_ok())
         || name.strip_prefix("files/").is_some_and(|f| !f.contains('/') && !f.starts_with('.'))
 }
@@ -228,6 +234,7 @@ pub fn write_run_results(
         }
     }
     write_log(&dir, record.id);
+    write_videos(&dir, record.id);
     record.run = Some(run);
     record.results = scan(store, record.id);
 }
@@ -236,6 +243,28 @@ fn write_log(dir: &Path, id: u64) {
     let log = log_of(&dir.join(RUN_RECORDING));
     if let Err(e) = crate::fsutil::write_atomically(&dir.join(LOG), log.as_bytes()) {
         tracing::error!("experiment {id}: cannot write its log: {e}");
+    }
+}
+
+/// Makes each camera's video of the run from its recording, and says in
+/// [`VIDEO_NOTE`] why a camera has none.
+fn write_videos(dir: &Path, id: u64) {
+    let recording = dir.join(RUN_RECORDING);
+    let files: Vec<PathBuf> =
+        (0..).map(|n| crate::record::rotated_path(&recording, n)).take_while(|file| file.exists()).collect();
+    let outcome = crate::record::video::make_videos(&files, dir, Path::new(crate::record::video::FFMPEG));
+    let note = dir.join(VIDEO_NOTE);
+    if outcome.missing.is_empty() {
+        let _ = std::fs::remove_file(&note);
+        return;
+    }
+    let mut text = String::new();
+    for (camera, why) in &outcome.missing {
+        tracing::warn!("experiment {id}: camera {camera} has no video: {why}");
+        text.push_str(&format!("camera {camera}: no video: {why}\n"));
+    }
+    if let Err(e) = crate::fsutil::write_atomically(&note, text.as_bytes()) {
+        tracing::error!("experiment {id}: cannot write {VIDEO_NOTE}: {e}");
     }
 }
 
@@ -503,7 +532,20 @@ mod tests {
         {
             assert!(is_result_file(name), "{name}");
         }
-        for name in ["experiment.json", "run.x.mcap", "../x", "files/../x", "files/.hidden", "preflight-run", "other"] {
+        for name in ["video-camera.webm", VIDEO_NOTE] {
+            assert!(is_result_file(name), "{name}");
+        }
+        for name in [
+            "video-../x.webm",
+            "video-.webm",
+            "experiment.json",
+            "run.x.mcap",
+            "../x",
+            "files/../x",
+            "files/.hidden",
+            "preflight-run",
+            "other",
+        ] {
             assert!(!is_result_file(name), "{name}");
         }
     }

@@ -45,7 +45,12 @@ impl Live {
         let channel = match self.channels.get(topic) {
             Some(channel) => channel.clone(),
             None => {
-                let text = schema::schema(schema_name).to_string().into_bytes();
+                let text = match schema_name {
+                    super::scene::SCENE_UPDATE => super::scene::schema(),
+                    _ => schema::schema(schema_name),
+                }
+                .to_string()
+                .into_bytes();
                 let built = ChannelBuilder::new(topic)
                     .message_encoding("json")
                     .schema(Schema::new(schema_name, "jsonschema", text))

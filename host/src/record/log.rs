@@ -101,6 +101,7 @@ mod tests {
         let clock = Clock::simulated(Pace::Lockstep);
         let epoch = 1_700_000_000_000_000_000;
         let layout = Layout {
+            worlds: Vec::new(),
             robot: "talk".into(),
             components: vec![ComponentLayout {
                 name: "talker".into(),

@@ -23,7 +23,9 @@ pub mod log;
 pub mod readable;
 pub mod replay;
 
+pub mod scene;
 pub mod schema;
+pub mod video;
 mod writer;
 
 use std::collections::BTreeMap;
@@ -167,6 +169,9 @@ pub struct Layout {
     /// component's sha256), written into its `subsume.recording`
     /// metadata.
     pub about: BTreeMap<String, String>,
+    /// The simulators' worlds, written as a `foxglove.SceneUpdate`
+    /// ([`scene`]).
+    pub worlds: Vec<(String, crate::sim::world::World)>,
 }
 
 impl Layout {
@@ -185,7 +190,7 @@ impl Layout {
                     .collect(),
             })
             .collect();
-        Layout { robot: config.name.clone(), components, about: BTreeMap::new() }
+        Layout { robot: config.name.clone(), components, about: BTreeMap::new(), worlds: scene::worlds_of(config) }
     }
 }
 

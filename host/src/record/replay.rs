@@ -590,7 +590,7 @@ mod tests {
         graph.connect(counter, 0, echo, 0, Policy::Queue { depth: 8 });
         let recorder = Recorder::start(
             &RecordOptions::new(path.clone()),
-            Layout { robot: "pairs".into(), components: layouts(), about: Default::default() },
+            Layout { robot: "pairs".into(), components: layouts(), about: Default::default(), worlds: Vec::new() },
             Timeline::new(0, Clock::new()),
         )
         .unwrap();

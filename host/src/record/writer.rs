@@ -86,6 +86,8 @@ pub(super) struct Writer {
     /// Per component: the capture time (graph ns) its last `frame-info`
     /// named, for the picture that follows it.
     capture_ns: HashMap<usize, u64>,
+    /// The latest log time written (a scene written later is stamped so).
+    last_unix_ns: u64,
 }
 
 impl Writer {
@@ -107,6 +109,7 @@ impl Writer {
             summary: RecordSummary::default(),
             last_flush: Instant::now(),
             capture_ns: HashMap::new(),
+            last_unix_ns: 0,
         };
         if writer.options.path.is_some() {
             writer.open()?;
@@ -159,7 +162,17 @@ impl Writer {
         open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
         self.summary.files.push(path);
         self.file = Some(open);
-        Ok(())
+        self.write_scene()
+    }
+
+    /// The simulators' worlds, if there are any (docs/recording.md).
+    fn write_scene(&mut self) -> Result<(), RecordError> {
+        if self.layout.worlds.is_empty() {
+            return Ok(());
+        }
+        let at = self.last_unix_ns.max(self.epoch_unix_ns);
+        let scene = super::scene::scene_update(&self.layout.worlds, at);
+        self.message(super::scene::SCENE_TOPIC, super::scene::SCENE_UPDATE, at, &scene)
     }
 
     /// Finishes the open file (summary and footer).
@@ -308,8 +321,9 @@ impl Writer {
                 &schema::log(level, &name, clip(&self.hidden(message)), unix_ns),
             ),
             Event::Layout(layout) => {
+                let moved = layout.worlds != self.layout.worlds;
                 self.layout = layout;
-                Ok(())
+                if moved { self.write_scene() } else { Ok(()) }
             }
             Event::Stop => Ok(()),
         }
@@ -325,6 +339,7 @@ impl Writer {
         let path = self.path();
         let epoch = self.epoch_unix_ns;
         let data = serde_json::to_vec(message).unwrap_or_default();
+        self.last_unix_ns = self.last_unix_ns.max(unix_ns);
         if let Some(live) = &mut self.live {
             live.log(topic, schema_name, unix_ns, &data);
         }
@@ -336,7 +351,11 @@ impl Writer {
                 let schema_id = match open.schemas.get(schema_name) {
                     Some(&id) => id,
                     None => {
-                        let text = schema::schema(schema_name).to_string();
+                        let text = match schema_name {
+                            super::scene::SCENE_UPDATE => super::scene::schema(),
+                            _ => schema::schema(schema_name),
+                        }
+                        .to_string();
                         let id = open.mcap.add_schema(schema_name, "jsonschema", text.as_bytes()).map_err(error)?;
                         open.schemas.insert(schema_name, id);
                         id
