@@ -145,12 +145,19 @@ fn pipe(mut from: TcpStream, mut to: TcpStream) {
 /// `subsume lab serve` on `store`, its Zenoh listener on `zenoh_port`: the
 /// process and its portal's address.
 fn spawn_server(store: &Path, zenoh_port: u16) -> (HostProcess, String) {
-    spawn_server_at(store, "127.0.0.1", &format!("tcp/127.0.0.1:{zenoh_port}"), None)
+    spawn_server_at(store, "127.0.0.1", &format!("tcp/127.0.0.1:{zenoh_port}"), None, &[])
 }
 
 /// `subsume lab serve` on `store`, its portal on `ip`, its Zenoh listener
-/// on `listen`, in namespace 0 of `namespaces` when given.
-fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Namespaces>) -> (HostProcess, String) {
+/// on `listen`, in namespace 0 of `namespaces` when given, with `extra`
+/// arguments.
+fn spawn_server_at(
+    store: &Path,
+    ip: &str,
+    listen: &str,
+    namespaces: Option<&Namespaces>,
+    extra: &[String],
+) -> (HostProcess, String) {
     let mut command = support::subsume();
     command
         .arg("--store")
@@ -160,6 +167,7 @@ fn spawn_server_at(store: &Path, ip: &str, listen: &str, namespaces: Option<&Nam
         // starve them.
         .args(["--preflight-priority", "normal"])
         .args(["--listen", listen])
+        .args(extra)
         .env_remove("SUBSUME_HTTP");
     if namespaces.is_some() {
         // Plain Zenoh between namespaces the test made: a closed network.
@@ -303,6 +311,8 @@ struct LabNet {
     /// The lab server's Zenoh listener.
     zenoh: String,
     robots: Vec<Robot>,
+    /// What `lab serve` was given beside the usual.
+    server_args: Vec<String>,
     /// Last: removed after every host has stopped.
     namespaces: Option<Namespaces>,
 }
@@ -317,16 +327,23 @@ impl LabNet {
     /// As [`LabNet::start`]; with `also`, every robot also connects to
     /// that Zenoh endpoint, with that Zenoh config file.
     fn start_with(dir: &Path, robots: usize, also: Option<(&str, &Path)>) -> LabNet {
-        LabNet::start_on(dir, robots, also, None)
+        LabNet::start_on(dir, robots, also, None, &[])
     }
 
     /// As [`LabNet::start`], each host in its own network namespace (0 the
     /// lab server), joined by veth links into a hub.
     fn start_in_namespaces(dir: &Path, robots: usize) -> LabNet {
-        LabNet::start_on(dir, robots, None, Some(Namespaces::new(robots + 1)))
+        LabNet::start_on(dir, robots, None, Some(Namespaces::new(robots + 1)), &[])
     }
 
-    fn start_on(dir: &Path, robots: usize, also: Option<(&str, &Path)>, namespaces: Option<Namespaces>) -> LabNet {
+    fn start_on(
+        dir: &Path,
+        robots: usize,
+        also: Option<(&str, &Path)>,
+        namespaces: Option<Namespaces>,
+        server_args: &[&str],
+    ) -> LabNet {
+        let server_args: Vec<String> = server_args.iter().map(|a| a.to_string()).collect();
         support::guest_dir();
         let store = dir.join("lab").join("store");
         support::add_user(&store, "boss", "admin", &[], PASSWORD);
@@ -337,7 +354,7 @@ impl LabNet {
         let zenoh_port = free_port();
         let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
         let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
-        let (server, address) = spawn_server_at(&store, &server_ip, &zenoh, namespaces.as_ref());
+        let (server, address) = spawn_server_at(&store, &server_ip, &zenoh, namespaces.as_ref(), &server_args);
         let secret = store.join("lab.secret");
         let robots = (1..=robots)
             .map(|n| {
@@ -385,7 +402,7 @@ impl LabNet {
                 Robot { name, host, address, link }
             })
             .collect();
-        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots, namespaces };
+        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots, server_args, namespaces };
         let boss = lab.token("boss");
         lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
             robots.len() == lab.robots.len()
@@ -408,7 +425,7 @@ impl LabNet {
     fn restart_server(&mut self) {
         let ip = self.namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
         let store = self.dir.join("lab").join("store");
-        let (server, address) = spawn_server_at(&store, &ip, &self.zenoh, self.namespaces.as_ref());
+        let (server, address) = spawn_server_at(&store, &ip, &self.zenoh, self.namespaces.as_ref(), &self.server_args);
         self.server = server;
         self.address = address;
     }
@@ -906,6 +923,96 @@ fn a_lab_server_routes_around_a_robot_in_maintenance() {
     let id = lab.submit(&ana, set, 2.0, Some("r1"));
     let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
     assert_eq!((&done["state"], &done["placement"]["robot"]), (&Json::from("done"), &Json::from("r1")), "{done:#}");
+}
+
+/// Every local record robot `robot` holds of lab experiment `lab_id`.
+fn local_records(robot: &Robot, lab_id: u64) -> Vec<Json> {
+    let token = support::login(&robot.address, "owner", PASSWORD);
+    let (status, json) = http(&robot.address, "GET", "/api/v1/experiments", Some(&token), b"");
+    assert_eq!(status, 200, "{json}");
+    json["experiments"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|r| r["origin"]["lab"] == LAB && r["origin"]["id"] == lab_id)
+        .cloned()
+        .collect()
+}
+
+/// The robot whose answer to a dispatch never comes (its process stopped
+/// past the lab's dispatch timeout) gets the experiment withdrawn, not
+/// refused; when it comes back it does not start the late copy behind
+/// the lab's back (it came after its start-by time), and the experiment
+/// then runs once, `done`, on the robot both sides name. The other robot
+/// was free meanwhile: the lab holds the experiment until the silent robot
+/// says it will not run it.
+#[test]
+fn a_dispatch_whose_answer_never_comes_is_withdrawn_and_runs_once_where_both_sides_agree() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start_on(dir.path(), 2, None, None, &["--dispatch-timeout", "3"]);
+    let (r1, r2) = (lab.robot("r1"), lab.robot("r2"));
+    // r2 out of service: the first dispatch can only go to r1.
+    let owner2 = support::login(&r2.address, "owner", PASSWORD);
+    let reason = br#"{"reason": "held out for the first dispatch"}"#;
+    let (status, json) = http(&r2.address, "POST", "/api/v1/lab/maintenance", Some(&owner2), reason);
+    assert_eq!(status, 200, "{json}");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r2" && r["state"] == "maintenance")
+    });
+    // Queued (its preflight passed) while the lab's queue is paused.
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200, "{json}");
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 3.0, None);
+    let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(180));
+    assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+    // r1 cannot answer: its process is stopped, its link held open.
+    support::signal(r1.host.child.id(), "STOP");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/resume", "");
+    assert_eq!(status, 200, "{json}");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let after_timeout = loop {
+        let experiment = lab.experiment(&ana, id);
+        let said = experiment["history"].to_string();
+        if said.contains("did not answer its dispatch") || said.contains("refused it") {
+            break experiment;
+        }
+        assert!(Instant::now() < deadline, "no word of the unanswered dispatch: {experiment:#}\n{}", lab.logs());
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    // r2 is free now; r1 stays stopped past its start-by time.
+    let (status, json) = http(&r2.address, "DELETE", "/api/v1/lab/maintenance", Some(&owner2), b"");
+    assert_eq!(status, 200, "{json}");
+    std::thread::sleep(Duration::from_secs(3));
+    support::signal(r1.host.child.id(), "CONT");
+    let ended = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
+    assert_eq!(ended["state"], "done", "{ended:#}\n{}", lab.logs());
+    let causes = ended["history"].to_string();
+    assert!(after_timeout["history"].to_string().contains("did not answer its dispatch"), "{after_timeout:#}");
+    assert!(!causes.contains("refused"), "a lost answer is not a refusal: {ended:#}");
+    assert_eq!(ended["placement"]["refusals"], 0, "{ended:#}");
+    assert!(causes.contains("withdrawn from robot r1"), "{ended:#}\n{}", lab.logs());
+    // Both sides agree: the robot the lab names ran it once, as the
+    // local experiment the lab names; no other copy ever ran anywhere.
+    let ran_on = ended["placement"]["robot"].as_str().unwrap().to_string();
+    let local_id = ended["placement"]["local_id"].clone();
+    let mut runs = Vec::new();
+    for robot in [r1, r2] {
+        for record in local_records(robot, id) {
+            let started = record["history"].as_array().unwrap().iter().any(|c| c["state"] == "running");
+            if started {
+                runs.push((robot.name.clone(), record["id"].clone(), record["state"].clone()));
+            } else {
+                assert_eq!(record["state"], "cancelled", "{}: {record:#}", robot.name);
+            }
+        }
+    }
+    assert_eq!(runs, vec![(ran_on, local_id, Json::from("done"))], "{}", lab.logs());
+    // r1 refused the late copy, or had it withdrawn before it came.
+    let r1_said = robot_audit(r1).iter().map(|line| line.to_string()).collect::<Vec<_>>().join("\n");
+    assert!(r1_said.contains("lab-withdraw") || r1_said.contains("after its lab stopped waiting"), "{r1_said}");
 }
 
 /// Robot `robot`'s live status, as its own portal gives it to its owner.

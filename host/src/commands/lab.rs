@@ -160,6 +160,13 @@ struct ServeArgs {
     #[arg(long, value_name = "SECONDS", default_value = "15",
           value_parser = |t: &str| super::flags::seconds_within(t, std::time::Duration::ZERO, std::time::Duration::from_secs(3600)))]
     relearn: std::time::Duration,
+    /// How long the lab waits for a robot's answer to a dispatch (1 to
+    /// 600). A robot that does not answer in time has the experiment
+    /// withdrawn (it starts it only before this time, less a fifth) and
+    /// it goes back to the queue.
+    #[arg(long, value_name = "SECONDS", default_value = "150",
+          value_parser = |t: &str| super::flags::seconds_within(t, subsume::lab::server::MIN_DISPATCH_TIMEOUT, subsume::lab::server::MAX_DISPATCH_TIMEOUT))]
+    dispatch_timeout: std::time::Duration,
     /// The certificate chain (PEM) the portal serves TLS with.
     #[arg(long, value_name = "FILE", env = "SUBSUME_TLS_CERT")]
     tls_cert: Option<PathBuf>,
@@ -196,7 +203,12 @@ impl ServeArgs {
             logs: context.logs.clone(),
             cache_dir: context.cache_dir.clone(),
             tls: subsume::tls::HostTls { identity, allow_plain_remote: self.allow_plain_http },
-            fleet: subsume::lab::server::FleetOptions { key, session, relearn: self.relearn },
+            fleet: subsume::lab::server::FleetOptions {
+                key,
+                session,
+                relearn: self.relearn,
+                dispatch_timeout: self.dispatch_timeout,
+            },
             preflight_priority: self.preflight_priority,
             // As `subsume run`: a first admin for a person at a terminal,
             // a hint for a service unit or a pipe.

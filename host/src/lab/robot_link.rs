@@ -75,6 +75,12 @@ pub const MIN_STATUS_PERIOD: Duration = Duration::from_millis(100);
 /// answers (the reset and the activation).
 pub const START_WAIT: Duration = Duration::from_secs(60);
 
+/// Most lab experiments a robot remembers as withdrawn (a dispatch its lab
+/// gave up on before it came): the threat is the lab's own withdrawals
+/// growing a robot's memory. Past it the oldest is forgotten; a late
+/// dispatch of it is still refused by its start-by time.
+pub const MAX_WITHDRAWN: usize = 1024;
+
 /// How often the token, the status and the lost-lab watch are looked at.
 const WATCH: Duration = Duration::from_millis(100);
 
@@ -137,6 +143,10 @@ pub struct RobotLink {
     /// Replies this robot skipped when it asked its lab server (blobs).
     skipped: AtomicU64,
     package: Mutex<Option<Package>>,
+    /// Lab experiments withdrawn before they came (oldest first), with the
+    /// withdrawal's issue time: a dispatch of it issued before that is
+    /// refused; a new dispatch of it, issued after, is taken.
+    withdrawn: Mutex<std::collections::VecDeque<(u64, u64)>>,
     stopping: Arc<AtomicBool>,
     threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
     _heartbeats: Mutex<Option<zenoh::pubsub::Subscriber<()>>>,
@@ -187,6 +197,7 @@ impl RobotLink {
             refusals: Arc::new(Mutex::new(RefusalTally::default())),
             skipped: AtomicU64::new(0),
             package: Mutex::new(None),
+            withdrawn: Mutex::new(std::collections::VecDeque::new()),
             stopping: Arc::new(AtomicBool::new(false)),
             threads: Mutex::new(Vec::new()),
             _heartbeats: Mutex::new(None),
@@ -473,7 +484,7 @@ impl RobotLink {
         let target = format!("lab experiment {}", dispatch.lab_id);
         // Admitted (signed, for this robot, fresh, new): the lab is heard.
         self.heard_lab();
-        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id));
+        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id, dispatch.start_by_unix_ms));
         let outcome = match outcome {
             Ok(outcome) => outcome,
             Err(reasons) => DispatchOutcome::Refused { reasons },
@@ -493,6 +504,10 @@ impl RobotLink {
         if let Some(id) = self.lab.lock().ok().and_then(|b| local_id(&b.experiments, &lab_name, dispatch.lab_id)) {
             return Ok(id);
         }
+        if withdrawn_before(&lock(&self.withdrawn), dispatch.lab_id, dispatch.to.issued_unix_ms) {
+            return Err(vec!["its lab withdrew this dispatch of it before it came here".into()]);
+        }
+        late(dispatch.start_by_unix_ms, unix_now_ms()).map_err(|why| vec![why])?;
         self.busy(dispatch.duration_s).map_err(|why| vec![why])?;
         let baseline_dir = lock(&self.package)
             .as_ref()
@@ -608,6 +623,7 @@ impl RobotLink {
             id: dispatch.lab_id,
             role: dispatch.role,
             platforms: dispatch.platforms.clone(),
+            start_by_unix_ms: dispatch.start_by_unix_ms,
         });
         let stored = self.lab.store().lock().and_then(|writer| writer.add_experiment(&mut book.lab, record));
         let record = stored.map_err(|e| vec![format!("failed: {e}")])?;
@@ -619,13 +635,20 @@ impl RobotLink {
         Ok(id)
     }
 
-    /// Waits (at most [`START_WAIT`]) for local experiment `id` to run.
-    fn wait_start(&self, id: u64) -> Result<DispatchOutcome, Vec<String>> {
+    /// Waits (at most [`START_WAIT`], and never past the lab's start-by
+    /// time) for local experiment `id` to run. One that has not started
+    /// by then is cancelled here: the lab gets a refusal, or nothing, and
+    /// it must never start later behind the lab's back.
+    fn wait_start(&self, id: u64, start_by_unix_ms: Option<u64>) -> Result<DispatchOutcome, Vec<String>> {
+        let wait = match start_by_unix_ms {
+            Some(start_by) => START_WAIT.min(Duration::from_millis(start_by.saturating_sub(unix_now_ms()))),
+            None => START_WAIT,
+        };
         let book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
-        let (book, _) = self
+        let (mut book, _) = self
             .lab
             .changed
-            .wait_timeout_while(book, START_WAIT, |b| {
+            .wait_timeout_while(book, wait, |b| {
                 b.running.as_ref().is_none_or(|r| r.id != id)
                     && b.experiments.get(&id).is_some_and(|r| !r.state.is_final())
             })
@@ -645,7 +668,18 @@ impl RobotLink {
                 }
                 Err(reasons)
             }
-            _ => Err(vec![format!("it did not start here within {} s", START_WAIT.as_secs())]),
+            Some(record) if record.state == ExperimentState::Queued && book.starting != Some(id) => {
+                let why = format!("it did not start here within {:.1} s", wait.as_secs_f64());
+                let cause = format!("cancelled: {why}, and its lab stops waiting for it");
+                if let Err(e) =
+                    self.lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])
+                {
+                    return Err(vec![why, e.to_string()]);
+                }
+                Err(vec![why])
+            }
+            // Starting this instant: the lab learns it from the token.
+            _ => Err(vec![format!("it did not start here within {:.1} s", wait.as_secs_f64())]),
         }
     }
 
@@ -655,9 +689,27 @@ impl RobotLink {
         let by = lab_user(&self.options, &stop.by);
         let Ok(mut book) = self.lab.lock() else { return ack(false, "the lab's state is unusable".into()) };
         let Some(id) = local_id(&book.experiments, self.options.key.lab(), stop.lab_id) else {
-            return ack(false, format!("no lab experiment {} here", stop.lab_id));
+            if !stop.withdraw {
+                return ack(false, format!("no lab experiment {} here", stop.lab_id));
+            }
+            drop(book);
+            remember_withdrawn(&mut lock(&self.withdrawn), stop.lab_id, stop.to.issued_unix_ms);
+            let message = "withdrawn: it never came here, and will not be taken if it does".to_string();
+            self.lab.deployer.audit(
+                &by,
+                "lab-withdraw",
+                &format!("lab experiment {}", stop.lab_id),
+                Outcome::Ok(&message),
+            );
+            return ack(true, message);
         };
         let state = book.experiments.get(&id).map(|r| r.state);
+        if stop.withdraw && !(state == Some(ExperimentState::Queued) && book.starting != Some(id)) {
+            // Started (or ended) before the lab's start-by time: the lab
+            // adopts the run rather than losing it.
+            let said = state.map_or("gone", |s| s.name());
+            return ack(false, format!("it is {said} here as experiment {id}: not withdrawn"));
+        }
         let message = match state {
             Some(s) if s.is_final() => format!("it ended already ({})", s.name()),
             Some(ExperimentState::Queued) if book.starting != Some(id) => {
@@ -807,6 +859,37 @@ fn local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str, lab_id: u6
     experiments.values().rev().find(|r| r.origin.as_ref().is_some_and(|o| o.lab == lab && o.id == lab_id)).map(|r| r.id)
 }
 
+/// Why a dispatch that must start by `start_by_unix_ms` is not taken at
+/// `now_ms` (it came after its lab stopped waiting).
+fn late(start_by_unix_ms: Option<u64>, now_ms: u64) -> Result<(), String> {
+    match start_by_unix_ms {
+        Some(start_by) if now_ms >= start_by => Err(format!(
+            "it came {:.1} s after its lab stopped waiting for the answer",
+            (now_ms - start_by) as f64 / 1000.0
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// Remembers lab experiment `lab_id` as withdrawn by a withdrawal issued
+/// at `issued_ms`, forgetting the oldest past [`MAX_WITHDRAWN`].
+fn remember_withdrawn(withdrawn: &mut std::collections::VecDeque<(u64, u64)>, lab_id: u64, issued_ms: u64) {
+    if let Some(entry) = withdrawn.iter_mut().find(|(id, _)| *id == lab_id) {
+        entry.1 = entry.1.max(issued_ms);
+        return;
+    }
+    if withdrawn.len() >= MAX_WITHDRAWN {
+        withdrawn.pop_front();
+    }
+    withdrawn.push_back((lab_id, issued_ms));
+}
+
+/// Whether a dispatch of lab experiment `lab_id` issued at `issued_ms` was
+/// withdrawn (by a withdrawal issued after it, on the same lab clock).
+fn withdrawn_before(withdrawn: &std::collections::VecDeque<(u64, u64)>, lab_id: u64, issued_ms: u64) -> bool {
+    withdrawn.iter().any(|(id, at)| *id == lab_id && issued_ms <= *at)
+}
+
 /// A check's refusal as the reasons a dispatch answer carries.
 fn check_reasons(e: LabError) -> Vec<String> {
     match e {
@@ -880,4 +963,42 @@ fn package(lab: &Lab, set: u64) -> Result<Package, LinkError> {
     let re = Answered { robot: String::new(), nonce: String::new() };
     let message = Baseline { v: WIRE_VERSION, re, hash, set: set_manifest, files };
     Ok(Package { set, message, profile, files: contents })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_dispatch_is_late_from_its_start_by_time_on() {
+        // (start-by, now, late)
+        let cases =
+            [(None, 5_000, false), (Some(5_000), 4_999, false), (Some(5_000), 5_000, true), (Some(5_000), 9_000, true)];
+        for (start_by, now, expected) in cases {
+            let said = late(start_by, now);
+            assert_eq!(said.is_err(), expected, "{start_by:?} at {now}: {said:?}");
+        }
+        assert_eq!(late(Some(5_000), 6_500).unwrap_err(), "it came 1.5 s after its lab stopped waiting for the answer");
+    }
+
+    #[test]
+    fn a_withdrawal_refuses_the_dispatches_issued_before_it_and_takes_later_ones() {
+        let mut withdrawn = std::collections::VecDeque::new();
+        remember_withdrawn(&mut withdrawn, 7, 10_000);
+        // (lab id, dispatch issued at, refused)
+        let cases = [(7, 9_000, true), (7, 10_000, true), (7, 10_001, false), (8, 9_000, false)];
+        for (lab_id, issued, expected) in cases {
+            assert_eq!(withdrawn_before(&withdrawn, lab_id, issued), expected, "{lab_id} at {issued}");
+        }
+        // A later withdrawal of the same experiment moves its time on.
+        remember_withdrawn(&mut withdrawn, 7, 20_000);
+        assert!(withdrawn_before(&withdrawn, 7, 15_000));
+        assert_eq!(withdrawn.len(), 1);
+        // Bounded: the oldest is forgotten.
+        for id in 100..100 + MAX_WITHDRAWN as u64 {
+            remember_withdrawn(&mut withdrawn, id, 1);
+        }
+        assert_eq!(withdrawn.len(), MAX_WITHDRAWN);
+        assert!(!withdrawn_before(&withdrawn, 7, 15_000));
+    }
 }

@@ -537,6 +537,19 @@ fn start(lab: &Lab, id: u64) {
         if record.state != ExperimentState::Queued {
             return Ok(None);
         }
+        // A lab's dispatch starts only before the lab stops waiting for
+        // its answer: later, the lab has placed it elsewhere or refused it.
+        if let Some(start_by) = record.origin.as_ref().and_then(|o| o.start_by_unix_ms)
+            && unix_now_ms() >= start_by
+        {
+            let cause = format!(
+                "cancelled: its lab '{}' stopped waiting for it at {} before it could start here",
+                record.origin.as_ref().map_or("", |o| o.lab.as_str()),
+                crate::deploy::utc_time(start_by)
+            );
+            lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])?;
+            return Ok(None);
+        }
         book.starting = Some(id);
         let baseline = lab.baseline(&book.lab);
         Ok::<_, LabError>(Some((record, baseline, book.lab.settings.reset)))

@@ -64,9 +64,21 @@ pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(500);
 /// How long the dispatcher waits for nothing before it looks again.
 pub const POLL: Duration = Duration::from_millis(50);
 
-/// How long a robot may take to answer a dispatch: it fetches the set's
-/// blobs, checks the set and starts it (`robot_link::START_WAIT`).
+/// How long a robot may take to answer a dispatch, by default: it fetches
+/// the set's blobs, checks the set and starts it
+/// (`robot_link::START_WAIT`). `lab serve --dispatch-timeout`.
 pub const DISPATCH_TIMEOUT: Duration = Duration::from_secs(150);
+
+/// The shortest and longest `--dispatch-timeout`: shorter, a robot that
+/// fetches a large set cannot answer in time; longer, a robot that lost
+/// the answer holds an experiment for as long.
+pub const MIN_DISPATCH_TIMEOUT: Duration = Duration::from_secs(1);
+pub const MAX_DISPATCH_TIMEOUT: Duration = Duration::from_secs(600);
+
+/// The start-by time a dispatch carries is this part of the dispatch
+/// timeout before the lab stops waiting: the robot's answer has that long
+/// to come back.
+const ANSWER_MARGIN_DIVISOR: u32 = 5;
 
 /// How long the lab gives its robots to show their tokens after it
 /// starts, before an experiment whose robot has none is lost, by default.
@@ -98,6 +110,8 @@ pub struct FleetOptions {
     pub session: SessionSettings,
     /// How long robots have to show their tokens after a start.
     pub relearn: Duration,
+    /// How long the lab waits for a robot's answer to a dispatch.
+    pub dispatch_timeout: Duration,
 }
 
 /// One robot as the lab knows it.
@@ -120,6 +134,8 @@ struct Robot {
     retry_at: Option<Instant>,
     /// Experiments a stop was sent to it for.
     stops_sent: BTreeSet<u64>,
+    /// Experiments whose dispatch it did not answer, being withdrawn now.
+    withdrawing: BTreeSet<u64>,
     fetching_baseline: bool,
     baseline_error: Option<String>,
     /// Online at the last plan: going offline after it is told once
@@ -238,6 +254,7 @@ pub struct Fleet {
     store: Arc<Store>,
     started: Instant,
     relearn: Duration,
+    dispatch_timeout: Duration,
     robots: Mutex<BTreeMap<String, Robot>>,
     lab: Mutex<Weak<Lab>>,
     pub counters: LinkCounters,
@@ -271,6 +288,7 @@ impl Fleet {
             store,
             started: Instant::now(),
             relearn: options.relearn,
+            dispatch_timeout: options.dispatch_timeout.clamp(MIN_DISPATCH_TIMEOUT, MAX_DISPATCH_TIMEOUT),
             robots: Mutex::new(BTreeMap::new()),
             lab: Mutex::new(Weak::new()),
             counters: LinkCounters::default(),
@@ -618,6 +636,7 @@ enum Action {
     Dispatch { id: u64, robot: String },
     Fetch { id: u64, robot: String },
     Stop { id: u64, robot: String, by: String },
+    Withdraw { id: u64, robot: String },
     Baseline { robot: String },
 }
 
@@ -667,6 +686,7 @@ fn dispatch_loop(lab: &Arc<Lab>, fleet: &Arc<Fleet>) {
                 Action::Dispatch { id, robot } => dispatch(&lab, &fleet, id, &robot),
                 Action::Fetch { id, robot } => fetch(&lab, &fleet, id, &robot),
                 Action::Stop { id, robot, by } => stop(&fleet, id, &robot, &by),
+                Action::Withdraw { id, robot } => withdraw(&lab, &fleet, id, &robot),
                 Action::Baseline { robot } => fetch_baseline(&lab, &fleet, &robot),
             });
             if let Err(e) = spawned {
@@ -703,16 +723,16 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
             actions.push(Action::Baseline { robot: name.clone() });
         }
     }
-    let placed: Vec<(u64, ExperimentState, String, bool)> = book
+    let placed: Vec<(u64, ExperimentState, String, bool, Option<u64>)> = book
         .experiments
         .values()
         .filter_map(|r| {
             let p = r.placement.as_ref()?;
-            Some((r.id, r.state, p.robot.clone()?, p.fetch_pending))
+            Some((r.id, r.state, p.robot.clone()?, p.fetch_pending, p.unanswered_start_by_ms))
         })
         .collect();
     let mut busy: BTreeSet<String> = BTreeSet::new();
-    for (id, state, name, pending) in placed {
+    for (id, state, name, pending, unanswered) in placed {
         let robot = robots.entry(name.clone()).or_default();
         let running_here = matches!(&robot.current, Some(t) if t.state == RobotState::Running { experiment: id });
         match state {
@@ -754,8 +774,24 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
                 if running_here {
                     busy.insert(name.clone());
                     robot.accepted.insert(id, Instant::now());
+                    if let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) {
+                        placement.unanswered_start_by_ms = None;
+                    }
                     let cause = format!("runs on robot {name} (its token says so)");
                     let _ = lab.transition(book, id, ExperimentState::Running, &cause, vec![]);
+                } else if let Some(start_by) = unanswered {
+                    // Held on that robot until it says it will not run it,
+                    // or can no longer start it by any clock.
+                    busy.insert(name.clone());
+                    if unix_now_ms() >= start_by.saturating_add(wire::MAX_CLOCK_SKEW_MS) {
+                        let cause = format!(
+                            "robot {name} never answered its dispatch, and cannot start it after {}; back in the queue",
+                            utc_time(start_by)
+                        );
+                        requeue(lab, book, id, &cause);
+                    } else if robot.online() && robot.withdrawing.insert(id) {
+                        actions.push(Action::Withdraw { id, robot: name.clone() });
+                    }
                 } else if (relearned || robot.online())
                     && let Some(record) = book.experiments.get_mut(&id)
                     && let Some(placement) = record.placement.as_mut()
@@ -869,6 +905,9 @@ fn manifest(store: &Store, set: u64) -> Result<SetManifest, String> {
 }
 
 fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
+    let issued_ms = unix_now_ms();
+    let margin = fleet.dispatch_timeout / ANSWER_MARGIN_DIVISOR;
+    let start_by = issued_ms + (fleet.dispatch_timeout - margin).as_millis() as u64;
     let prepared = (|| {
         let record = lab.lock().map_err(|e| e.to_string())?.experiments.get(&id).cloned().ok_or("no record")?;
         let user = lab
@@ -879,7 +918,7 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
         let set = manifest(lab.store(), record.set)?;
         Ok::<_, String>(Dispatch {
             v: WIRE_VERSION,
-            to: Asked::new(robot, unix_now_ms()),
+            to: Asked::new(robot, issued_ms),
             lab_id: id,
             submitter: record.submitter.clone(),
             role: user.role,
@@ -887,6 +926,7 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
             label: record.label.clone(),
             duration_s: record.duration_s,
             set,
+            start_by_unix_ms: Some(start_by),
         })
     })();
     let answer = match prepared {
@@ -895,7 +935,7 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
             tracing::info!("experiment {id}: dispatched to robot {robot}");
             fleet
                 .asker()
-                .ask::<Dispatch, DispatchReply>(&key_expr, &message, DISPATCH_TIMEOUT)
+                .ask::<Dispatch, DispatchReply>(&key_expr, &message, fleet.dispatch_timeout)
                 .and_then(|(reply, _)| {
                     if reply.lab_id == id {
                         Ok(reply.outcome)
@@ -903,9 +943,9 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
                         Err(TransferError::Missing(format!("it answered about experiment {}", reply.lab_id)))
                     }
                 })
-                .unwrap_or_else(|e| DispatchOutcome::Refused { reasons: vec![format!("no answer: {e}")] })
+                .map_err(|e| e.to_string())
         }
-        Err(why) => DispatchOutcome::Refused { reasons: vec![format!("the lab could not send it: {why}")] },
+        Err(why) => Ok(DispatchOutcome::Refused { reasons: vec![format!("the lab could not send it: {why}")] }),
     };
     let Ok(mut book) = lab.lock() else { return };
     book.dispatching.remove(&id);
@@ -913,7 +953,11 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
     let entry = robots.entry(robot.to_string()).or_default();
     entry.dispatching = None;
     match answer {
-        DispatchOutcome::Started { local_id, ends_unix_ms, .. } => {
+        Err(why) => {
+            drop(robots);
+            unanswered(lab, &mut book, id, robot, &why, start_by);
+        }
+        Ok(DispatchOutcome::Started { local_id, ends_unix_ms, .. }) => {
             entry.accepted.insert(id, Instant::now());
             drop(robots);
             if let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) {
@@ -924,9 +968,92 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
                 tracing::error!("experiment {id}: {e}");
             }
         }
-        DispatchOutcome::Refused { reasons } => {
+        Ok(DispatchOutcome::Refused { reasons }) => {
             drop(robots);
             refused(lab, &mut book, id, robot, reasons);
+        }
+    }
+}
+
+/// Robot `robot` did not answer the dispatch of experiment `id` (no
+/// verified reply in time): it stays placed there, marked, until the
+/// robot says it will not run it (`plan` withdraws it) or runs it. Not a
+/// refusal: a lost answer must not end an experiment, nor let it run
+/// twice.
+fn unanswered(lab: &Lab, book: &mut Book, id: u64, robot: &str, why: &str, start_by: u64) {
+    let Some(record) = book.experiments.get_mut(&id) else { return };
+    if record.state != ExperimentState::Queued {
+        return;
+    }
+    tracing::warn!("experiment {id}: robot {robot} did not answer its dispatch: {why}");
+    if let Some(by) = book.cancels.remove(&id) {
+        let cause = format!("cancelled by {by}");
+        let _ = lab.transition(book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()]);
+        return;
+    }
+    let placement = record.placement.get_or_insert_with(Default::default);
+    placement.unanswered_start_by_ms = Some(start_by);
+    let cause = format!(
+        "robot {robot} did not answer its dispatch ({why}); the lab withdraws it there before placing it again"
+    );
+    if let Err(e) = lab.transition(book, id, ExperimentState::Queued, &cause, vec![]) {
+        tracing::error!("experiment {id}: {e}");
+    }
+}
+
+/// Experiment `id` goes back to the queue, placed nowhere (`cause` says
+/// why); not counted as a refusal.
+fn requeue(lab: &Lab, book: &mut Book, id: u64, cause: &str) {
+    let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) else { return };
+    placement.robot = None;
+    placement.unanswered_start_by_ms = None;
+    if let Err(e) = lab.transition(book, id, ExperimentState::Queued, cause, vec![]) {
+        tracing::error!("experiment {id}: {e}");
+    }
+}
+
+/// Withdraws experiment `id` from robot `robot`, which did not answer its
+/// dispatch: back in the queue once the robot says it will not run it;
+/// running there if the robot says it started it.
+fn withdraw(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
+    let message =
+        Stop { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()), lab_id: id, by: "lab".into(), withdraw: true };
+    let key_expr = fleet.keys.rpc(robot, Op::Stop);
+    let answer = fleet.asker().ask::<Stop, Ack>(&key_expr, &message, transfer::QUERY_TIMEOUT);
+    let Ok(mut book) = lab.lock() else { return };
+    let mut robots = lock(&fleet.robots);
+    let entry = robots.entry(robot.to_string()).or_default();
+    entry.withdrawing.remove(&id);
+    let still = book.experiments.get(&id).is_some_and(|r| {
+        r.state == ExperimentState::Queued
+            && r.placement
+                .as_ref()
+                .is_some_and(|p| p.robot.as_deref() == Some(robot) && p.unanswered_start_by_ms.is_some())
+    });
+    let ack = match answer {
+        Ok((ack, _)) => ack,
+        // Sent again at the next look while the robot is online.
+        Err(e) => return tracing::warn!("experiment {id}: its withdrawal from robot {robot} was not answered: {e}"),
+    };
+    if !still {
+        return;
+    }
+    if ack.ok {
+        drop(robots);
+        let cause = format!(
+            "withdrawn from robot {robot}, which did not answer its dispatch ({}); back in the queue",
+            ack.message
+        );
+        requeue(lab, &mut book, id, &cause);
+    } else {
+        entry.accepted.insert(id, Instant::now());
+        drop(robots);
+        if let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) {
+            placement.unanswered_start_by_ms = None;
+        }
+        let cause = format!("runs on robot {robot}, whose answer to its dispatch was lost ({})", ack.message);
+        if let Err(e) = lab.transition(&mut book, id, ExperimentState::Running, &cause, vec![]) {
+            tracing::error!("experiment {id}: {e}");
         }
     }
 }
@@ -965,7 +1092,8 @@ fn refused(lab: &Lab, book: &mut Book, id: u64, robot: &str, reasons: Vec<String
 }
 
 fn stop(fleet: &Fleet, id: u64, robot: &str, by: &str) {
-    let message = Stop { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()), lab_id: id, by: by.to_string() };
+    let message =
+        Stop { v: WIRE_VERSION, to: Asked::new(robot, unix_now_ms()), lab_id: id, by: by.to_string(), withdraw: false };
     let key_expr = fleet.keys.rpc(robot, Op::Stop);
     match fleet.asker().ask::<Stop, Ack>(&key_expr, &message, transfer::QUERY_TIMEOUT) {
         Ok((ack, _)) => tracing::info!("experiment {id} on robot {robot}: stop by {by}: {}", ack.message),

@@ -1096,6 +1096,13 @@ pub struct Dispatch {
     pub label: String,
     pub duration_s: f64,
     pub set: SetManifest,
+    /// The lab stops waiting for the answer at this time (ms since the
+    /// Unix epoch, the lab server's clock): the robot takes it and starts
+    /// it only before then, so a dispatch whose answer was lost never runs
+    /// behind the lab's back (docs/lab.md, "When a dispatch goes
+    /// unanswered").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_by_unix_ms: Option<u64>,
 }
 
 impl Message for Dispatch {
@@ -1110,6 +1117,11 @@ impl Message for Dispatch {
         self.platforms.iter().try_for_each(|p| name_ok("platform", p))?;
         if !self.duration_s.is_finite() || self.duration_s <= 0.0 {
             return Err(broken!("duration {} is not a positive number of seconds", self.duration_s));
+        }
+        if let Some(start_by) = self.start_by_unix_ms
+            && start_by < self.to.issued_unix_ms
+        {
+            return Err(broken!("its start-by time {start_by} is before its issue time {}", self.to.issued_unix_ms));
         }
         self.set.check()
     }
@@ -1152,6 +1164,12 @@ pub struct Stop {
     pub to: Asked,
     pub lab_id: u64,
     pub by: String,
+    /// A withdrawal of a dispatch the lab got no answer to: the robot
+    /// cancels it if it is only queued there, remembers it as withdrawn
+    /// if it never came (a late copy is then refused), and never stops
+    /// it once it runs (it answers `ok: false` and the lab adopts the run).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub withdraw: bool,
 }
 
 impl Message for Stop {
@@ -1455,6 +1473,7 @@ mod tests {
                 platform: Some("control".into()),
                 sources: BTreeMap::from([("planner.wasm".to_string(), BlobRef { sha256: "b".repeat(64), bytes: 10 })]),
             },
+            start_by_unix_ms: Some(151_000),
         }
     }
 
@@ -1528,6 +1547,11 @@ mod tests {
             ("a negative duration", Dispatch { duration_s: -1.0, ..dispatch() }, "duration -1"),
             ("too many sources", too_many, "at most 64"),
             ("a long label", Dispatch { label: "x".repeat(MAX_TEXT_LEN + 1), ..dispatch() }, "label is"),
+            (
+                "a start-by before its issue",
+                Dispatch { start_by_unix_ms: Some(999), ..dispatch() },
+                "start-by time 999",
+            ),
         ];
         // JSON has no NaN: serde writes null, refused as it is read.
         let nan = Dispatch { duration_s: f64::NAN, ..dispatch() };

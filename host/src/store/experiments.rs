@@ -345,6 +345,10 @@ pub struct Origin {
     pub id: u64,
     pub role: crate::store::users::Role,
     pub platforms: Vec<String>,
+    /// It starts only before this time (ms since the Unix epoch): the lab
+    /// stopped waiting for the dispatch's answer then.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_by_unix_ms: Option<u64>,
 }
 
 /// Which robots may run an experiment of a lab server.
@@ -372,6 +376,13 @@ pub struct Placement {
     pub refusals: u32,
     /// What the robot recorded is still to be fetched (it was lost).
     pub fetch_pending: bool,
+    /// Its dispatch to `robot` went unanswered; the robot starts it only
+    /// before this time (ms since the Unix epoch, the lab server's clock).
+    /// It stays placed there until the robot says it will not run it (a
+    /// withdrawal), or runs it, or the time plus the largest clock skew
+    /// has passed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub unanswered_start_by_ms: Option<u64>,
 }
 
 impl AppliedSettings {
