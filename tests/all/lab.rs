@@ -1878,3 +1878,166 @@ fn the_duty_cycle_rests_the_robot_between_experiments_and_says_so() {
     let rested = at(&second, "running") - at(&first, "done");
     assert!(rested >= 3_900, "the second started {rested} ms after the first ended, before its 4 s of rest");
 }
+
+/// A real robot (a pseudo-terminal playing its motor controller, which
+/// gives odometry, ranges and its battery) with the owner's self-test: a
+/// healthy controller passes it after the run, into the bundle and the
+/// lab's history; a battery run down below the owner's threshold fails it
+/// after the next run, which still ends `done`. The robot is then out of
+/// service by the self-test, saying why: the next experiment waits, and
+/// /metrics says so. Charged above the owner's second threshold, it comes
+/// back by itself and the waiting experiment runs.
+#[test]
+fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_service_until_it_is_charged() {
+    use std::sync::{Arc, Mutex, atomic::AtomicBool, atomic::Ordering};
+    let dir = tempfile::tempdir().unwrap();
+    let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
+    let real = |goal_x: f64| {
+        robot(goal_x, "")
+            .replace(
+                r#"<component name="robot-sim" source="builtin:sim">
+      <param name="world" value="lab.world"/>
+      <param name="rays" value="9"/>
+      <param name="fov" value="3.14159"/>
+    </component>"#,
+                "",
+            )
+            .replace("sim:robot-sim", &device)
+    };
+    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
+    let store = dir.path().join("store");
+    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
+    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
+    // The controller: feedback every 50 ms, with the battery the test sets.
+    let battery_mv = Arc::new(Mutex::new(12_400u32));
+    let going = Arc::new(AtomicBool::new(true));
+    let controller = {
+        let (battery_mv, going) = (battery_mv.clone(), going.clone());
+        std::thread::spawn(move || {
+            let mut sent = Instant::now();
+            while going.load(Ordering::Relaxed) {
+                motors.read();
+                if sent.elapsed() >= Duration::from_millis(50) {
+                    let volts = *battery_mv.lock().unwrap();
+                    motors.write(
+                        format!("O 1000 1000 0\nR 3000 3000 3000 3000 3000 3000 3000 3000 3000\nP {volts}\n")
+                            .as_bytes(),
+                    );
+                    sent = Instant::now();
+                }
+            }
+        })
+    };
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
+    assert_eq!(status, 201, "{json}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["preflight_world"] = Json::String("arena.world".into());
+    settings["reset"] = Json::String("manual".into());
+    // A window shorter than the owner may set is refused by name.
+    settings["self_test"] = serde_json::json!({"window_ms": 50, "min_battery_v": 11.0});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 400, "{json}");
+    assert!(json["error"].as_str().unwrap().contains("self_test.window_ms must be from 200 to 10000"), "{json}");
+    settings["self_test"] = serde_json::json!({"window_ms": 1000, "min_battery_v": 11.0, "resume_battery_v": 10.0});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 400, "{json}");
+    assert!(json["error"].as_str().unwrap().contains("resume_battery_v must be above min_battery_v"), "{json}");
+    settings["self_test"] = serde_json::json!({"window_ms": 1000, "min_battery_v": 11.0, "resume_battery_v": 12.2});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &real(7.0));
+    let run = |expected_reset: bool| {
+        let body = serde_json::json!({ "set": set, "duration_s": 2 }).to_string();
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        if expected_reset {
+            let deadline = Instant::now() + Duration::from_secs(120);
+            while lab.experiment(&ana, id)["awaiting_reset"] != true {
+                assert!(Instant::now() < deadline, "never waited for the reset");
+                std::thread::sleep(Duration::from_millis(50));
+            }
+            let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
+            assert_eq!(status, 200, "{json}");
+        }
+        id
+    };
+    let first = run(true);
+    assert_eq!(lab.wait_for(&ana, first, "done", Duration::from_secs(120))["state"], "done");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let tests = overview["lab"]["self_tests"].as_array().unwrap().clone();
+    assert_eq!(tests.len(), 1, "{overview:#}");
+    assert_eq!((&tests[0]["passed"], &tests[0]["experiment"]), (&Json::Bool(true), &Json::from(first)), "{tests:#?}");
+    let said = tests[0]["checks"].to_string();
+    assert!(said.contains("feedback messages in 1.0 s") && said.contains("battery 12.40 V"), "{said}");
+    assert!(overview["lab"]["maintenance"].is_null(), "{overview:#}");
+    // Researchers do not see the owner's history.
+    let (_, seen) = lab.call(&ana, "GET", "/api/v1/lab", "");
+    assert!(seen["lab"].get("self_tests").is_none(), "{seen:#}");
+    // The bundle holds the self-test that followed the run.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, first, &out);
+    let kept: Json = serde_json::from_slice(&std::fs::read(bundle.join("selftest.json")).unwrap()).unwrap();
+    assert_eq!(kept, tests[0]);
+    // The battery runs down: the next run completes; its self-test fails.
+    *battery_mv.lock().unwrap() = 10_400;
+    let second = run(true);
+    assert_eq!(lab.wait_for(&ana, second, "done", Duration::from_secs(120))["state"], "done");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let maintenance = overview["lab"]["maintenance"].clone();
+    assert_eq!(maintenance["by"], "self-test", "{overview:#}");
+    let reason = maintenance["reason"].as_str().unwrap();
+    assert!(reason.contains(&format!("the self-test after experiment {second} failed")), "{reason}");
+    assert!(reason.contains("battery 10.40 V is under 11.00 V"), "{reason}");
+    let tests = overview["lab"]["self_tests"].as_array().unwrap();
+    assert_eq!((tests.len(), &tests[1]["passed"]), (2, &Json::Bool(false)), "{tests:#?}");
+    // Out of service: the next experiment waits, saying why.
+    let third = {
+        let body = serde_json::json!({ "set": set, "duration_s": 2 }).to_string();
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        json["experiment"]["id"].as_u64().unwrap()
+    };
+    let queued = lab.wait_for(&ana, third, "queued", Duration::from_secs(120));
+    assert_eq!(queued["state"], "queued", "{queued:#}");
+    std::thread::sleep(Duration::from_secs(2));
+    let (_, overview) = lab.call(&ana, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["held"].as_str().unwrap_or_default().contains("maintenance"), "{overview:#}");
+    assert_eq!(lab.experiment(&ana, third)["state"], "queued");
+    let (status, metrics) = crate::support::http_bytes(&lab.address, "GET", "/metrics", Some(&boss), b"");
+    let metrics = String::from_utf8_lossy(&metrics);
+    assert_eq!(status, 200);
+    assert!(
+        metrics.contains("subsume_lab_self_test_passed 0") && metrics.contains("subsume_lab_maintenance 1"),
+        "{metrics}"
+    );
+    // Charged, but not yet above the second threshold: still out.
+    *battery_mv.lock().unwrap() = 11_600;
+    std::thread::sleep(Duration::from_secs(2));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert_eq!(overview["lab"]["maintenance"]["by"], "self-test", "{overview:#}");
+    // Charged above it: back in service by itself, and the queue goes on.
+    *battery_mv.lock().unwrap() = 12_600;
+    let deadline = Instant::now() + Duration::from_secs(30);
+    while lab.experiment(&ana, third)["awaiting_reset"] != true {
+        let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+        assert!(Instant::now() < deadline, "the charged robot never came back: {overview:#}");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["maintenance"].is_null(), "{overview:#}");
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(lab.wait_for(&ana, third, "done", Duration::from_secs(120))["state"], "done");
+    let (_, audit) = lab.call(&boss, "GET", "/api/v1/audit", "");
+    let ended = audit["entries"].as_array().unwrap().iter().any(|e| {
+        e["action"] == "maintenance-end" && e["user"] == "self-test" && e.to_string().contains("the battery is charged")
+    });
+    assert!(ended, "{audit:#}");
+    going.store(false, Ordering::Relaxed);
+    controller.join().unwrap();
+}

@@ -12,6 +12,7 @@
 //! log.txt                  the host's log while it ran (from the recording)
 //! video-CAMERA.webm        each camera's video of the run (VP9, made by ffmpeg from its frames)
 //! video.txt                why a camera has no video (no ffmpeg on the robot, ...), if one has none
+//! selftest.json            the robot's self-test after the run, when the owner has one (docs/lab.md)
 //! preflight.mcap, preflight-report.json, preflight-verdict.json, preflight.log
 //! SHA256SUMS               every other file's sha256 (`sha256sum -c SHA256SUMS`)
 //! ```
@@ -131,6 +132,7 @@ pub fn is_result_file(name: &str) -> bool {
     ];
     KEPT.contains(&name)
         || name == VIDEO_NOTE
+        || name == super::selftest::SELF_TEST_FILE
         || crate::record::video::is_video_name(name)
         || name.strip_prefix("run.").and_then(|r| r.strip_suffix(".mcap")).is_some_and(|n| n.parse::<u32>().is_ok())
         || name.strip_prefix("files/").is_some_and(|f| !f.contains('/') && !f.starts_with('.'))
@@ -236,6 +238,19 @@ pub fn write_run_results(
     write_log(&dir, record.id);
     write_videos(&dir, record.id);
     record.run = Some(run);
+    record.results = scan(store, record.id);
+}
+
+/// Writes the self-test that followed experiment `record`'s run into its
+/// folder, with its result files.
+pub fn write_self_test(store: &Store, record: &mut ExperimentRecord, test: &crate::store::experiments::SelfTest) {
+    let path = store.experiment_dir(record.id).join(super::selftest::SELF_TEST_FILE);
+    let written = serde_json::to_vec_pretty(test)
+        .map_err(|e| e.to_string())
+        .and_then(|bytes| crate::fsutil::write_atomically(&path, &bytes).map_err(|e| e.to_string()));
+    if let Err(e) = written {
+        tracing::error!("experiment {}: cannot write its self-test: {e}", record.id);
+    }
     record.results = scan(store, record.id);
 }
 

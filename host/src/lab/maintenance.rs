@@ -20,7 +20,12 @@ impl Lab {
                 "a reason for maintenance is 1 to {MAX_MAINTENANCE_REASON} characters without control characters"
             )));
         }
-        let entered = Maintenance { reason: reason.to_string(), by: user.name.clone(), since_ms: unix_now_ms() };
+        let entered = Maintenance {
+            reason: reason.to_string(),
+            by: user.name.clone(),
+            since_ms: unix_now_ms(),
+            ends_at_battery_v: None,
+        };
         let lab = self.admin_change(user, "maintenance-start", "the robot", |lab| {
             if let Some(already) = &lab.maintenance {
                 return Err(LabError::Conflict(format!(
@@ -54,7 +59,7 @@ impl Lab {
         Ok(())
     }
 
-    fn tell_robot(&self, kind: EventKind, reason: &str) {
+    pub(super) fn tell_robot(&self, kind: EventKind, reason: &str) {
         let name = self.deployer.active().map(|(_, config)| config.name.clone()).unwrap_or_else(|_| "robot".into());
         self.tell_about_robot(kind, &name, reason);
     }

@@ -29,6 +29,8 @@ impl Lab {
             queued: book.experiments.values().filter(|r| r.state == ExperimentState::Queued).count() as u64,
             preflight_wall_s: preflight_s,
             link,
+            last_self_test: book.lab.self_tests.last().map(|t| t.passed),
+            in_maintenance: book.lab.maintenance.is_some(),
         }
     }
 }
@@ -41,6 +43,10 @@ pub struct LabMetrics {
     pub preflight_wall_s: Vec<f64>,
     /// A lab server's link to its robots.
     pub link: Option<server::LinkFigures>,
+    /// Whether the newest self-test passed (none run: absent).
+    pub last_self_test: Option<bool>,
+    /// The robot is out of service.
+    pub in_maintenance: bool,
 }
 
 /// The bounds (seconds) of the preflight-duration histogram's buckets.
@@ -59,6 +65,17 @@ impl LabMetrics {
         let mut queue =
             Family::new("subsume_experiment_queue_length", "experiments queued for the robot", MetricKind::Gauge);
         queue.samples.push((vec![], Sample::Gauge(self.queued as f64)));
+        let mut self_test = Family::new(
+            "subsume_lab_self_test_passed",
+            "1 if the robot's newest self-test passed, 0 if it failed (docs/lab.md, Self-test)",
+            MetricKind::Gauge,
+        );
+        if let Some(passed) = self.last_self_test {
+            self_test.samples.push((vec![], Sample::Gauge(if passed { 1.0 } else { 0.0 })));
+        }
+        let mut maintenance =
+            Family::new("subsume_lab_maintenance", "1 while the robot is out of service", MetricKind::Gauge);
+        maintenance.samples.push((vec![], Sample::Gauge(if self.in_maintenance { 1.0 } else { 0.0 })));
         let mut preflight = Family::new(
             "subsume_preflight_seconds",
             "wall-clock time of each preflight (the experiment in the simulator)",
@@ -74,7 +91,7 @@ impl LabMetrics {
         let sum = self.preflight_wall_s.iter().sum();
         let count = self.preflight_wall_s.len() as u64;
         preflight.samples.push((vec![], Sample::Buckets { buckets, sum, count }));
-        let mut families = vec![states, queue, preflight];
+        let mut families = vec![states, queue, preflight, self_test, maintenance];
         if let Some(link) = &self.link {
             families.push(
                 Family::new(

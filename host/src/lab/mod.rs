@@ -49,6 +49,7 @@ mod reservations;
 pub mod robot_link;
 mod robots;
 mod runner;
+pub mod selftest;
 pub mod server;
 mod submit;
 pub mod transfer;
@@ -198,6 +199,9 @@ struct Book {
     /// restart: a restart starts a fresh cycle.
     duty_counted_ms: u64,
     resting_until_ms: Option<u64>,
+    /// While the robot is out of service for a low battery alone: the live
+    /// status, watched for the battery coming back (`selftest`).
+    battery_watch: Option<tokio::sync::watch::Receiver<std::sync::Arc<Option<crate::report::LiveStatus>>>>,
 }
 
 /// The remote lab of one robot host.

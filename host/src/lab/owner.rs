@@ -121,6 +121,32 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
             duty.run_s, duty.rest_s
         ));
     }
+    if let Some(test) = settings.self_test {
+        let window = crate::store::experiments::SELF_TEST_WINDOW_MS;
+        if !window.contains(&test.window_ms) {
+            return bad(format!(
+                "self_test.window_ms must be from {} to {}, got {}",
+                window.start(),
+                window.end(),
+                test.window_ms
+            ));
+        }
+        if let Some(volts) = test.min_battery_v
+            && !(volts.is_finite() && (0.0..=1000.0).contains(&volts))
+        {
+            return bad(format!("self_test.min_battery_v must be from 0 to 1000 volts, got {volts}"));
+        }
+        match (test.min_battery_v, test.resume_battery_v) {
+            (_, None) => {}
+            (Some(least), Some(resume)) if resume.is_finite() && resume > least && resume <= 1000.0 => {}
+            (least, Some(resume)) => {
+                return bad(format!(
+                    "self_test.resume_battery_v must be above min_battery_v ({}) and at most 1000 volts, got {resume}",
+                    least.map_or("none".to_string(), |v| v.to_string())
+                ));
+            }
+        }
+    }
     if !(1..=7 * 24 * 3600).contains(&settings.stuck_after_min_s) {
         return bad(format!("stuck_after_min_s must be from 1 to 604800 (a week), got {}", settings.stuck_after_min_s));
     }

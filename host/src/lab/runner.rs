@@ -479,6 +479,7 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
     let awaits_reset = |id| manual && confirmed != Some(id);
     // The same answer at every look while nothing changes: the views (and
     // the ETAs they hide while held) must not flap between looks.
+    lab.watch_battery(book);
     let maintenance = book.lab.maintenance.clone();
     if book.resting_until_ms.is_some_and(|until| now >= until) {
         book.resting_until_ms = None;
@@ -653,6 +654,13 @@ fn end(lab: &Lab, ending: &Ending) {
     };
     let ran_ns = lab.deployer.graph_now_ns().saturating_sub(running.started_ns);
     let ended = lab.deployer.end_experiment(id, running.baseline, &ending.cause, ran_ns);
+    // The owner's self-test, on the baseline now back, before anything
+    // else can start (the experiment is still the running one).
+    let self_test = lab.lock().ok().and_then(|book| book.lab.settings.self_test);
+    let self_test = match (&ended, self_test) {
+        (Ok(_), Some(settings)) => Some(lab.self_test(Some(id), &settings)),
+        _ => None,
+    };
     let Ok(mut book) = lab.lock() else { return };
     let duty = book.lab.settings.duty_cycle;
     let (counted, rest) = queue::after_run(duty, book.duty_counted_ms, ran_ns / 1_000_000, unix_now_ms());
@@ -674,6 +682,12 @@ fn end(lab: &Lab, ending: &Ending) {
     let ended = ended.unwrap_or_default();
     if let Some(record) = book.experiments.get_mut(&id) {
         bundle::write_run_results(lab.store(), record, &ended, running.started_unix_ms, LATE_CYCLE_MS);
+        if let Some(test) = &self_test {
+            bundle::write_self_test(lab.store(), record, test);
+        }
+    }
+    if let Some(test) = self_test {
+        lab.keep_self_test(&mut book, test);
     }
     book.running = None;
     book.cancels.remove(&id);

@@ -82,6 +82,7 @@ impl Lab {
             reserved_now: queue::reservation_at(&book.lab.reservations, now).cloned(),
             maintenance: book.lab.maintenance.clone(),
             settings: (user.role == Role::Admin).then(|| book.lab.settings.clone()),
+            self_tests: (user.role == Role::Admin).then(|| book.lab.self_tests.clone()),
             now_unix_ms: now,
             robots: self.fleet().map(|f| f.robots_with(now, &book.lab.baselines)),
         })
@@ -163,6 +164,9 @@ pub struct LabView {
     pub reserved_now: Option<Reservation>,
     /// Why the robot is out of service, when it is: no experiment starts.
     pub maintenance: Option<crate::store::experiments::Maintenance>,
+    /// The robot's newest self-tests, oldest first (admins only).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub self_tests: Option<Vec<crate::store::experiments::SelfTest>>,
     /// On a lab server: every robot it knows.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub robots: Option<Vec<server::RobotView>>,

@@ -289,6 +289,9 @@ pub struct SerialStatus {
     pub openings_written: u64,
     /// Polls that gave bytes to send (sensor requests, keep-alives).
     pub polls_sent: u64,
+    /// The battery's voltage as the controller last reported it, where
+    /// its protocol reports one (the lab's self-test reads it).
+    pub battery_v: Option<f64>,
 }
 
 impl NamedSection for SerialStatus {
@@ -557,7 +560,10 @@ impl SerialLink {
                     None => (1, Value::Vector(ranges)),
                 },
                 Feedback::Bumper(hit) => (2, Value::Flag(hit)),
-                Feedback::Battery(volts) => (3, Value::Scalar(volts)),
+                Feedback::Battery(volts) => {
+                    self.stats.battery_v = Some(volts);
+                    (3, Value::Scalar(volts))
+                }
             };
             out.push(item);
         }

@@ -600,7 +600,56 @@ pub struct LabSettings {
     /// (`null`) by default.
     #[serde(default)]
     pub duty_cycle: Option<DutyCycle>,
+    /// The checks run on the robot after every experiment, once its
+    /// baseline is back (docs/lab.md, "Self-test"). Off (`null`) by
+    /// default; a failed one takes the robot out of service.
+    #[serde(default)]
+    pub self_test: Option<SelfTestSettings>,
 }
+
+/// The owner's self-test: what is checked after every run.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SelfTestSettings {
+    /// How long the robot is watched (ms, 200 to 10000): every serial
+    /// link must give feedback within it.
+    pub window_ms: u64,
+    /// The least battery voltage, where a link reports one.
+    #[serde(default)]
+    pub min_battery_v: Option<f64>,
+    /// A robot out of service for a low battery alone comes back by itself
+    /// once every battery reads at least this (above `min_battery_v`:
+    /// charged, not just over the line). `None`: an admin ends it.
+    #[serde(default)]
+    pub resume_battery_v: Option<f64>,
+}
+
+/// Shortest and longest self-test window: shorter, a link polled at 5 Hz
+/// may look silent; longer, the robot idles that long after every run.
+pub const SELF_TEST_WINDOW_MS: std::ops::RangeInclusive<u64> = 200..=10_000;
+
+/// One self-test, as run after an experiment (or asked by an admin).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SelfTest {
+    pub at_ms: u64,
+    /// The experiment it followed, if any.
+    pub experiment: Option<u64>,
+    pub passed: bool,
+    pub checks: Vec<SelfTestCheck>,
+}
+
+/// One check of a self-test, and what it found.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SelfTestCheck {
+    /// `feedback`, `components` or `battery`.
+    pub check: String,
+    pub passed: bool,
+    pub detail: String,
+}
+
+/// Most self-tests kept in the lab's state (the newest): the owner's
+/// history, bounded so the state file stays small.
+pub const MAX_SELF_TESTS: usize = 50;
 
 /// Run at most `run_s` seconds of experiments, then rest `rest_s`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -631,6 +680,7 @@ impl Default for LabSettings {
             kit: true,
             stuck_after_min_s: DEFAULT_STUCK_AFTER_MIN_S,
             duty_cycle: None,
+            self_test: None,
         }
     }
 }
@@ -670,14 +720,21 @@ pub struct LabState {
     /// ends it (docs/lab.md, "Maintenance").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub maintenance: Option<Maintenance>,
+    /// The newest self-tests, oldest first (at most [`MAX_SELF_TESTS`]).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub self_tests: Vec<SelfTest>,
 }
 
 /// Why and since when the robot is out of service, and who said so.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Maintenance {
     pub reason: String,
     pub by: String,
     pub since_ms: u64,
+    /// Entered by the self-test for a low battery alone: it ends by itself
+    /// once every battery reads at least this (volts).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ends_at_battery_v: Option<f64>,
 }
 
 /// Longest reason for maintenance, characters: it is shown to every user
@@ -696,6 +753,7 @@ impl Default for LabState {
             reservations: Vec::new(),
             baselines: BTreeMap::new(),
             maintenance: None,
+            self_tests: Vec::new(),
         }
     }
 }

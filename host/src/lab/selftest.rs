@@ -1,0 +1,334 @@
+//! The self-test after every run (docs/lab.md, "Self-test"): once an
+//! experiment has ended and the baseline is back, the robot is watched for
+//! the owner's window, and checked: every serial link connected and giving
+//! feedback, no component of the baseline faulted, the battery above the
+//! owner's threshold where a link reports one. The result goes into the
+//! experiment's bundle (`selftest.json`) and the lab's history (the newest
+//! [`MAX_SELF_TESTS`]); a failed one takes the robot out of service.
+//!
+//! [`judge`] is the pure decision over two live reports, a window apart;
+//! [`Lab::self_test`] takes them from the running baseline.
+
+use std::time::{Duration, Instant};
+
+use super::{Book, LAB_AUDIT_USER, Lab};
+use crate::notify::EventKind;
+use crate::report::{ComponentRunState, Report};
+use crate::robot::serial::SerialStatus;
+use crate::store::Outcome;
+use crate::store::experiments::{MAX_SELF_TESTS, Maintenance, SelfTest, SelfTestCheck, SelfTestSettings};
+use crate::walltime::unix_now_ms;
+
+/// The name a self-test that takes the robot out of service goes by.
+pub const SELF_TEST_USER: &str = "self-test";
+
+/// How long the self-test waits for the running baseline's live status
+/// (published every control cycle while watched): longer means the loop
+/// is not running.
+pub const LIVE_WAIT: Duration = Duration::from_secs(3);
+
+/// The file of an experiment's bundle that holds the self-test after it.
+pub const SELF_TEST_FILE: &str = "selftest.json";
+
+/// The checks of `settings` over the robot's live reports `before` and
+/// `after`, taken `window_s` apart.
+pub fn judge(before: &Report, after: &Report, window_s: f64, settings: &SelfTestSettings) -> Vec<SelfTestCheck> {
+    let check = |name: &str, failures: Vec<String>, passed: String| SelfTestCheck {
+        check: name.to_string(),
+        passed: failures.is_empty(),
+        detail: if failures.is_empty() { passed } else { failures.join("; ") },
+    };
+    let faulted: Vec<String> = after
+        .components
+        .iter()
+        .filter(|c| c.state == ComponentRunState::Faulted)
+        .map(|c| format!("component '{}' faulted: {}", c.name, c.fault.as_deref().unwrap_or("no reason given")))
+        .collect();
+    let running = after.components.len();
+    let mut checks = vec![check("components", faulted, format!("{running} components running, none faulted"))];
+    let links: Vec<(&str, &SerialStatus)> = after.sections.of::<SerialStatus>().collect();
+    let mut silent = Vec::new();
+    let mut heard = Vec::new();
+    for (name, link) in &links {
+        let earlier = before.sections.of::<SerialStatus>().find(|(n, _)| n == name).map(|(_, s)| s.feedback_messages);
+        let messages = link.feedback_messages.saturating_sub(earlier.unwrap_or(link.feedback_messages));
+        if !link.connected {
+            silent.push(format!("link '{name}' is not connected to {}", link.device));
+        } else if messages == 0 {
+            silent.push(format!("link '{name}' ({}) gave no feedback in {window_s:.1} s", link.device));
+        } else {
+            heard.push(format!("link '{name}': {messages} feedback messages in {window_s:.1} s"));
+        }
+    }
+    let fresh = if links.is_empty() { "no serial link in the baseline".to_string() } else { heard.join("; ") };
+    checks.push(check("feedback", silent, fresh));
+    if let Some(least) = settings.min_battery_v {
+        let readings: Vec<(&str, f64)> = links.iter().filter_map(|(n, s)| s.battery_v.map(|v| (*n, v))).collect();
+        let low: Vec<String> = readings
+            .iter()
+            .filter(|(_, v)| *v < least)
+            .map(|(n, v)| format!("link '{n}': battery {v:.2} V is under {least:.2} V"))
+            .collect();
+        let fine = if readings.is_empty() {
+            "no link reports a battery".to_string()
+        } else {
+            readings.iter().map(|(n, v)| format!("link '{n}': battery {v:.2} V")).collect::<Vec<_>>().join("; ")
+        };
+        checks.push(check("battery", low, fine));
+    }
+    checks
+}
+
+impl Lab {
+    /// Runs the owner's self-test on the running baseline now (after
+    /// experiment `experiment`, if any): two live reports `window_ms`
+    /// apart, judged. Takes at least the window; holds no lock.
+    pub(super) fn self_test(&self, experiment: Option<u64>, settings: &SelfTestSettings) -> SelfTest {
+        let window = Duration::from_millis(settings.window_ms);
+        let mut live = self.deployer.live().subscribe();
+        let mut next_report = || {
+            live.borrow_and_update();
+            let deadline = Instant::now() + LIVE_WAIT;
+            loop {
+                if live.has_changed().unwrap_or(false) {
+                    let status = live.borrow_and_update().clone();
+                    if let Some(status) = status.as_ref().as_ref().filter(|s| s.experiment.is_none()) {
+                        return Some(status.report.clone());
+                    }
+                }
+                if Instant::now() >= deadline {
+                    return None;
+                }
+                std::thread::sleep(Duration::from_millis(10));
+            }
+        };
+        let before = next_report();
+        std::thread::sleep(window);
+        let after = next_report();
+        let checks = match (before, after) {
+            (Some(before), Some(after)) => judge(&before, &after, window.as_secs_f64(), settings),
+            _ => vec![SelfTestCheck {
+                check: "live".into(),
+                passed: false,
+                detail: format!("the baseline published no live status within {} s", LIVE_WAIT.as_secs()),
+            }],
+        };
+        SelfTest { at_ms: unix_now_ms(), experiment, passed: checks.iter().all(|c| c.passed), checks }
+    }
+
+    /// Keeps `test` in the lab's history; a failed one takes the robot out
+    /// of service (unless it is already), audited and told to the owner.
+    pub(super) fn keep_self_test(&self, book: &mut Book, test: SelfTest) {
+        let mut lab = book.lab.clone();
+        lab.self_tests.push(test.clone());
+        let over = lab.self_tests.len().saturating_sub(MAX_SELF_TESTS);
+        lab.self_tests.drain(..over);
+        let failed: Vec<String> =
+            test.checks.iter().filter(|c| !c.passed).map(|c| format!("{}: {}", c.check, c.detail)).collect();
+        let after = test.experiment.map_or_else(String::new, |id| format!(" after experiment {id}"));
+        let reason = crate::contract::clip_to(
+            &format!("the self-test{after} failed: {}", failed.join("; ")),
+            crate::store::experiments::MAX_MAINTENANCE_REASON,
+        );
+        let enters = !test.passed && lab.maintenance.is_none();
+        if enters {
+            // A low battery alone clears by itself once charged.
+            let battery_alone = test.checks.iter().all(|c| c.passed || c.check == "battery");
+            let resume = book.lab.settings.self_test.and_then(|s| s.resume_battery_v);
+            lab.maintenance = Some(Maintenance {
+                reason: reason.clone(),
+                by: SELF_TEST_USER.into(),
+                since_ms: test.at_ms,
+                ends_at_battery_v: resume.filter(|_| battery_alone),
+            });
+        }
+        let stored = self.store().lock().and_then(|writer| writer.put_lab_state(&lab));
+        if let Err(e) = stored {
+            // The robot still must not take work: kept in memory.
+            tracing::error!("the self-test's result was not stored: {e}");
+        }
+        book.lab = lab;
+        let outcome = if test.passed { "passed".to_string() } else { reason.clone() };
+        self.audit(LAB_AUDIT_USER, "self-test", &format!("the robot{after}"), Outcome::Ok(&outcome));
+        if enters {
+            tracing::warn!("out of service: {reason}");
+            self.tell_robot(EventKind::RobotMaintenanceStarted, &format!("{reason} (by {SELF_TEST_USER})"));
+        }
+        self.notify();
+    }
+}
+
+impl Lab {
+    /// While the robot is out of service for a low battery alone: ends it
+    /// once every battery the live status reports reads at least its
+    /// threshold (called by the runner at every look, under the book).
+    pub(super) fn watch_battery(&self, book: &mut Book) {
+        let Some(resume) = book.lab.maintenance.as_ref().and_then(|m| m.ends_at_battery_v) else {
+            book.battery_watch = None;
+            return;
+        };
+        let live = book.battery_watch.get_or_insert_with(|| self.deployer.live().subscribe());
+        if !live.has_changed().unwrap_or(false) {
+            return;
+        }
+        let status = live.borrow_and_update().clone();
+        let Some(status) = status.as_ref().as_ref() else { return };
+        let readings: Vec<(String, f64)> = status
+            .report
+            .sections
+            .of::<SerialStatus>()
+            .filter_map(|(name, link)| link.battery_v.map(|v| (name.to_string(), v)))
+            .collect();
+        if readings.is_empty() || readings.iter().any(|(_, v)| *v < resume) {
+            return;
+        }
+        let said = readings.iter().map(|(n, v)| format!("link '{n}': {v:.2} V")).collect::<Vec<_>>().join("; ");
+        let mut lab = book.lab.clone();
+        let Some(ended) = lab.maintenance.take() else { return };
+        if let Err(e) = self.store().lock().and_then(|writer| writer.put_lab_state(&lab)) {
+            return tracing::error!("the robot stays out of service: its end was not stored: {e}");
+        }
+        book.lab = lab;
+        book.battery_watch = None;
+        let detail =
+            format!("back in service: the battery is charged ({said}, at least {resume:.2} V); was: {}", ended.reason);
+        tracing::info!("{detail}");
+        self.audit(SELF_TEST_USER, "maintenance-end", "the robot", Outcome::Ok(&detail));
+        self.tell_robot(EventKind::RobotMaintenanceEnded, &detail);
+        self.notify();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::report::{ComponentReport, LoopLateness, MessageTotals, Section, Sections, StoppedBy};
+
+    fn component(name: &str, fault: Option<&str>) -> ComponentReport {
+        ComponentReport {
+            name: name.into(),
+            platform: "control".into(),
+            source: "builtin:x".into(),
+            rate_hz: 10.0,
+            priority: None,
+            state: if fault.is_some() { ComponentRunState::Faulted } else { ComponentRunState::Running },
+            fault: fault.map(String::from),
+            faulted_at_s: None,
+            calls: 0,
+            ticks: 0,
+            missed_ticks: 0,
+            call_time_ms: 0.0,
+            messages_in: 0,
+            messages_out: 0,
+            messages_dropped: 0,
+            errors: 0,
+            last_error: None,
+            restarts: 0,
+            faults: 0,
+            call_times: Default::default(),
+        }
+    }
+
+    fn report(components: Vec<ComponentReport>, links: Vec<(&str, SerialStatus)>) -> Report {
+        Report {
+            format: 1,
+            robot: "lab".into(),
+            config: "robot.xml".into(),
+            stopped_by: StoppedBy::Running,
+            duration_s: 1.0,
+            cycles: 10,
+            components,
+            connections: Vec::new(),
+            messages: MessageTotals { routed: 0, delivered: 0, dropped: 0 },
+            loop_lateness: LoopLateness {
+                cycles: 0,
+                total_ms: 0.0,
+                max_ms: 0.0,
+                waited_for_cpu_ms: 0.0,
+                histogram: Default::default(),
+            },
+            sections: Sections(
+                links
+                    .into_iter()
+                    .map(|(name, status)| Section {
+                        key: "serial".into(),
+                        component: name.into(),
+                        status: std::sync::Arc::new(status),
+                    })
+                    .collect(),
+            ),
+        }
+    }
+
+    fn link(connected: bool, feedback_messages: u64, battery_v: Option<f64>) -> SerialStatus {
+        SerialStatus {
+            device: "/dev/ttyUSB0".into(),
+            connected,
+            feedback_messages,
+            battery_v,
+            ..SerialStatus::default()
+        }
+    }
+
+    #[test]
+    fn each_check_passes_or_fails_with_what_it_saw() {
+        let settings = SelfTestSettings { window_ms: 1000, min_battery_v: Some(11.0), resume_battery_v: None };
+        let healthy = || vec![component("motors", None), component("avoid", None)];
+        // (case, before, after, expected (check, passed, words in its detail))
+        type Expected = Vec<(&'static str, bool, &'static str)>;
+        let cases: Vec<(&str, Report, Report, Expected)> = vec![
+            (
+                "all well",
+                report(healthy(), vec![("motors", link(true, 10, Some(12.4)))]),
+                report(healthy(), vec![("motors", link(true, 30, Some(12.3)))]),
+                vec![
+                    ("components", true, "2 components running"),
+                    ("feedback", true, "link 'motors': 20 feedback messages in 1.0 s"),
+                    ("battery", true, "battery 12.30 V"),
+                ],
+            ),
+            (
+                "a silent link and a low battery",
+                report(healthy(), vec![("motors", link(true, 30, Some(10.2)))]),
+                report(healthy(), vec![("motors", link(true, 30, Some(10.2)))]),
+                vec![
+                    ("components", true, ""),
+                    ("feedback", false, "link 'motors' (/dev/ttyUSB0) gave no feedback in 1.0 s"),
+                    ("battery", false, "battery 10.20 V is under 11.00 V"),
+                ],
+            ),
+            (
+                "a link gone and a faulted component",
+                report(healthy(), vec![("motors", link(true, 5, None))]),
+                report(
+                    vec![component("motors", None), component("avoid", Some("trapped"))],
+                    vec![("motors", link(false, 9, None))],
+                ),
+                vec![
+                    ("components", false, "component 'avoid' faulted: trapped"),
+                    ("feedback", false, "link 'motors' is not connected to /dev/ttyUSB0"),
+                    ("battery", true, "no link reports a battery"),
+                ],
+            ),
+            (
+                "no serial link",
+                report(healthy(), vec![]),
+                report(healthy(), vec![]),
+                vec![("components", true, ""), ("feedback", true, "no serial link"), ("battery", true, "no link")],
+            ),
+        ];
+        for (case, before, after, expected) in cases {
+            let checks = judge(&before, &after, 1.0, &settings);
+            assert_eq!(checks.len(), expected.len(), "{case}: {checks:#?}");
+            for (check, (name, passed, words)) in checks.iter().zip(expected) {
+                assert_eq!((check.check.as_str(), check.passed), (name, passed), "{case}: {check:#?}");
+                assert!(check.detail.contains(words), "{case}: {check:#?}");
+            }
+        }
+        // Without a battery threshold, no battery check.
+        let quiet = SelfTestSettings { window_ms: 1000, min_battery_v: None, resume_battery_v: None };
+        let same = report(healthy(), vec![("motors", link(true, 3, Some(1.0)))]);
+        let checks = judge(&same, &report(healthy(), vec![("motors", link(true, 4, Some(1.0)))]), 1.0, &quiet);
+        assert_eq!(checks.iter().map(|c| c.check.as_str()).collect::<Vec<_>>(), ["components", "feedback"]);
+    }
+}
