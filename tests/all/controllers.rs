@@ -231,7 +231,7 @@ fn a_roboclaw_that_answers_late_is_not_flooded_with_reads_and_no_answer_is_taken
 }
 
 #[test]
-fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_and_its_encoders_become_odometry() {
+fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_its_encoders_become_odometry_and_its_battery_is_read() {
     // VEL 0.2 0.5 on a 0.3 m base at 2000 counts/m: M1 (left) 250, M2 550.
     let peer = Peer::start("roboclaw_peer.py", &["128".into(), "250".into(), "550".into()]);
     let dir = tempfile::tempdir().unwrap();
@@ -243,12 +243,19 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_and_its_encoders_become_
     let refs = &summary["references"];
     let received = hex(&summary["received"]);
     let (drive, halt, read) = (hex(&refs["drive"]), hex(&refs["halt"]), hex(&refs["read"]));
+    let battery = hex(&refs["battery"]);
 
     // Every byte is one of basicmicro's SpeedM1M2(128, 250, 550),
-    // SpeedM1M2(128, 0, 0) or GetEncoders(128); the last is the STOP.
+    // SpeedM1M2(128, 0, 0), GetEncoders(128) or ReadMainBatteryVoltage(128);
+    // the last is the STOP.
     let mut rest = received.as_slice();
-    let (mut drives, mut reads) = (0, 0);
+    let (mut drives, mut reads, mut battery_reads) = (0, 0, 0);
     while !rest.is_empty() {
+        if rest.starts_with(&battery) {
+            battery_reads += 1;
+            rest = &rest[battery.len()..];
+            continue;
+        }
         if rest.starts_with(&drive) {
             drives += 1;
             rest = &rest[drive.len()..];
@@ -265,11 +272,16 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_and_its_encoders_become_
     assert!(drives >= 10 && reads >= 10, "{drives} drives, {reads} reads");
     assert_eq!((summary["bad_crc"].as_u64(), summary["unparsed"].as_u64()), (Some(0), Some(0)));
     assert_eq!(summary["reads"].as_u64(), Some(reads), "every read was answered");
+    // One poll in ten reads the battery, the first among them.
+    assert_eq!(summary["battery_reads"].as_u64(), Some(battery_reads), "every battery read was answered");
+    assert!(battery_reads >= 1 && battery_reads <= reads / 8 + 1, "{battery_reads} battery reads, {reads} reads");
     assert!(summary["writes"].as_u64().unwrap() >= drives);
 
-    // Every ACK and encoder answer decoded cleanly.
+    // Every ACK, encoder and battery answer decoded cleanly; the battery
+    // basicmicro reads as 124 tenths is 12.4 V on the host.
     let serial = &report["serial"];
     assert_eq!(serial["malformed_feedback"], 0, "{serial}");
+    assert_eq!(serial["battery_v"].as_f64(), Some(12.4), "{serial}");
     assert!(serial["polls_sent"].as_u64().unwrap() >= 10, "{serial}");
     // The host's last pose is the dead reckoning of a prefix of the answers.
     let last = vector(logged(&stderr, "pose-log").last().expect("no pose was logged"));
@@ -435,10 +447,19 @@ fn create2_counts_wrap_garbage_is_skipped_and_a_silent_stream_is_asked_for_again
 }
 
 #[test]
-fn roboclaw_acks_and_encoder_answers_that_start_with_ff_are_told_apart() {
+fn roboclaw_acks_encoder_and_battery_answers_are_told_apart() {
     let sandbox = sandbox();
     let params = [("wheel-base", "0.3"), ("counts-per-metre", "1000"), ("address", "129")];
     let mut claw = translator(&sandbox, "translator-roboclaw", &params);
+    // The first poll of ten reads the main battery: 12.4 V, byte by byte.
+    assert_eq!(poll_bytes(&mut claw), [129, 24]);
+    let mut volts = vec![129, 24, 0, 124];
+    volts.extend(crc16(&volts).to_be_bytes());
+    let mut feedback = Vec::new();
+    for byte in &volts[2..] {
+        feedback.extend(decode(&mut claw, std::slice::from_ref(byte)));
+    }
+    assert_eq!(feedback, vec![Feedback::Battery(12.4)]);
     assert_eq!(poll_bytes(&mut claw), [129, 78]);
     // An ACK, then the answer: counters -1 and -1 (they start with FF).
     let answer = |m1: i32, m2: i32| {

@@ -5,13 +5,15 @@ against the basicmicro package.
 
 The host is expected to drive M1/M2 at these encoder speeds (counts/s).
 basicmicro (PyPI, 2.0.10; nobody here wrote it) is the reference: the bytes
-its SpeedM1M2 (command 37 with its CRC16) and GetEncoders (78) write are
-what the host must send, and every encoder answer sent here is first read
-back through its GetEncoders, CRC check included.
+its SpeedM1M2 (command 37 with its CRC16), GetEncoders (78) and
+ReadMainBatteryVoltage (24) write are what the host must send, and every
+encoder or battery answer sent here is first read back through its
+GetEncoders or ReadMainBatteryVoltage, CRC check included.
 
 The controller side: a write (37) with a good CRC is answered 0xFF (ACK)
 and sets the speeds; a bad CRC gets no answer, as on the RoboClaw. A read
-(78) is answered `enc1 enc2 crc`. The counters follow the speeds. With
+(78) is answered `enc1 enc2 crc`; a read of the main battery (24),
+`volts crc` (12.4 V). The counters follow the speeds. With
 LAG_S, every answer leaves that many seconds after its request (a slow
 controller or adapter).
 
@@ -30,6 +32,9 @@ import peer_common
 
 MIXED_SPEED = 37
 READ_ENCODERS = 78
+READ_MAIN_BATTERY = 24
+# The main battery this controller reports, tenths of a volt (12.4 V).
+BATTERY_TENTHS = 124
 TICK = 0.005
 
 
@@ -85,6 +90,16 @@ def read_request(claw, address):
     return bytes(claw._port.written)
 
 
+def battery_request(claw, address):
+    """What ReadMainBatteryVoltage writes, given a good answer."""
+    claw._port.written.clear()
+    data = struct.pack(">H", BATTERY_TENTHS)
+    claw._port.answer = bytearray(data + struct.pack(">H", crc16(claw, bytes([address, READ_MAIN_BATTERY]) + data)))
+    ok, tenths = claw.ReadMainBatteryVoltage(address)
+    assert ok and tenths == BATTERY_TENTHS, (ok, tenths)
+    return bytes(claw._port.written)
+
+
 def crc16(claw, data):
     claw.crc_clear()
     for byte in data:
@@ -108,6 +123,7 @@ class Controller:
         self.writes = 0
         self.bad_crc = 0
         self.reads = 0
+        self.battery_reads = 0
         self.unparsed = 0
         self.readings = []
 
@@ -116,13 +132,17 @@ class Controller:
         self.pending += data
         while len(self.pending) >= 2:
             address, command = self.pending[0], self.pending[1]
-            if address != self.address or command not in (MIXED_SPEED, READ_ENCODERS):
+            if address != self.address or command not in (MIXED_SPEED, READ_ENCODERS, READ_MAIN_BATTERY):
                 self.unparsed += 1
                 del self.pending[0]
                 continue
             if command == READ_ENCODERS:
                 del self.pending[:2]
                 self.answer_read()
+                continue
+            if command == READ_MAIN_BATTERY:
+                del self.pending[:2]
+                self.answer_battery()
                 continue
             if len(self.pending) < 12:
                 return
@@ -148,6 +168,16 @@ class Controller:
         assert ok and (enc1, enc2) == tuple(enc), (ok, enc1, enc2, enc)
         self.reads += 1
         self.readings.append(enc)
+        self.send(answer)
+
+    def answer_battery(self):
+        data = struct.pack(">H", BATTERY_TENTHS)
+        answer = data + struct.pack(">H", crc16(self.claw, bytes([self.address, READ_MAIN_BATTERY]) + data))
+        # basicmicro must read the answer back as this voltage.
+        self.claw._port.answer = bytearray(answer)
+        ok, tenths = self.claw.ReadMainBatteryVoltage(self.address)
+        assert ok and tenths == BATTERY_TENTHS, (ok, tenths)
+        self.battery_reads += 1
         self.send(answer)
 
     def send(self, data):
@@ -177,6 +207,7 @@ def main():
         "drive": take(claw, lambda: claw.SpeedM1M2(address, m1, m2)).hex(),
         "halt": take(claw, lambda: claw.SpeedM1M2(address, 0, 0)).hex(),
         "read": read_request(claw, address).hex(),
+        "battery": battery_request(claw, address).hex(),
     }
     pty = peer_common.Pty()
     controller = Controller(address, claw, lag)
@@ -189,6 +220,7 @@ def main():
             "writes": controller.writes,
             "bad_crc": controller.bad_crc,
             "reads": controller.reads,
+            "battery_reads": controller.battery_reads,
             "unparsed": controller.unparsed,
             "readings": controller.readings,
         }

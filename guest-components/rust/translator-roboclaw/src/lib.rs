@@ -8,7 +8,9 @@
 //! - Poll (every `poll-ms`, 50 by default): 78, "read encoder counters":
 //!   `address 78` (a read carries no CRC); the answer is `enc1(u32) enc2(u32) crc16`, the CRC taken
 //!   over the address, the command and the data. Counts become odometry by
-//!   dead reckoning from `origin-x/y/heading`.
+//!   dead reckoning from `origin-x/y/heading`. Every tenth poll, from the
+//!   first, reads the main battery instead: 24, "read main battery
+//!   voltage": `address 24`; the answer is `volts(u16, tenths) crc16`.
 //! - The CRC is CRC16-CCITT (XModem: polynomial 0x1021, initial 0), sent
 //!   high byte first.
 //!
@@ -22,9 +24,14 @@ use subsume_guest::{Decoded, Feedback, LinkPlan, Params, Translator};
 
 const MIXED_SPEED: u8 = 37;
 const READ_ENCODERS: u8 = 78;
+const READ_MAIN_BATTERY: u8 = 24;
 const ACK: u8 = 0xFF;
 /// Encoder answer: two u32 and the CRC.
 const ENCODER_REPLY_BYTES: usize = 10;
+/// Main battery answer: a u16 (tenths of a volt) and the CRC.
+const BATTERY_REPLY_BYTES: usize = 4;
+/// One poll in this many reads the main battery (the first among them).
+const BATTERY_EVERY: u32 = 10;
 /// Most encoder reads outstanding: no new read is sent while this many
 /// await their answers (a slow controller, or a busy host, is not flooded
 /// with reads whose answers would then arrive past what is expected and be
@@ -60,7 +67,10 @@ struct RoboClaw {
     left_is_m1: bool,
     poll_ms: u32,
     buffer: Vec<u8>,
-    pending_reads: u32,
+    /// The reads sent and not yet answered, oldest first (their commands).
+    pending: std::collections::VecDeque<u8>,
+    /// Polls sent, for the battery's turn.
+    polls: u32,
     /// When the oldest read still awaiting its answer was sent (or the last
     /// answer came, if later).
     waiting_since_ns: u64,
@@ -78,12 +88,13 @@ impl RoboClaw {
         bytes
     }
 
-    /// Whether the buffer starts with a well-formed encoder answer.
-    fn encoder_reply_at_start(&self) -> bool {
-        let Some(reply) = self.buffer.get(..ENCODER_REPLY_BYTES) else { return false };
-        let mut covered = vec![self.address, READ_ENCODERS];
-        covered.extend_from_slice(&reply[..8]);
-        crc16(&covered) == u16::from_be_bytes([reply[8], reply[9]])
+    /// Whether the buffer starts with a well-formed answer to read
+    /// `command` of `size` bytes (its data and the CRC).
+    fn reply_at_start(&self, command: u8, size: usize) -> bool {
+        let Some(reply) = self.buffer.get(..size) else { return false };
+        let mut covered = vec![self.address, command];
+        covered.extend_from_slice(&reply[..size - 2]);
+        crc16(&covered) == u16::from_be_bytes([reply[size - 2], reply[size - 1]])
     }
 
     fn encoders(&mut self, reply: &[u8], out: &mut Vec<Feedback>) {
@@ -141,7 +152,8 @@ impl Translator for RoboClaw {
             left_is_m1,
             poll_ms,
             buffer: Vec::new(),
-            pending_reads: 0,
+            pending: std::collections::VecDeque::new(),
+            polls: 0,
             waiting_since_ns: 0,
             now_ns: 0,
             counts: None,
@@ -166,17 +178,27 @@ impl Translator for RoboClaw {
         self.buffer.extend_from_slice(bytes);
         let mut garbage = false;
         while let Some(&first) = self.buffer.first() {
-            if self.pending_reads > 0 && self.encoder_reply_at_start() {
-                let reply: Vec<u8> = self.buffer.drain(..ENCODER_REPLY_BYTES).collect();
-                self.pending_reads -= 1;
+            let expected = self.pending.front().map(|&command| {
+                (command, if command == READ_MAIN_BATTERY { BATTERY_REPLY_BYTES } else { ENCODER_REPLY_BYTES })
+            });
+            if let Some((command, size)) = expected
+                && self.reply_at_start(command, size)
+            {
+                let reply: Vec<u8> = self.buffer.drain(..size).collect();
+                self.pending.pop_front();
                 self.waiting_since_ns = self.now_ns;
-                self.encoders(&reply, &mut decoded.feedback);
+                if command == READ_MAIN_BATTERY {
+                    let tenths = u16::from_be_bytes([reply[0], reply[1]]);
+                    decoded.feedback.push(Feedback::Battery(f64::from(tenths) / 10.0));
+                } else {
+                    self.encoders(&reply, &mut decoded.feedback);
+                }
                 garbage = false;
                 continue;
             }
             // An answer to a read may still be arriving: wait for it whole
             // before taking its first byte for anything else.
-            if self.pending_reads > 0 && self.buffer.len() < ENCODER_REPLY_BYTES {
+            if expected.is_some_and(|(_, size)| self.buffer.len() < size) {
                 break;
             }
             self.buffer.remove(0);
@@ -196,18 +218,20 @@ impl Translator for RoboClaw {
 
     fn poll(&mut self, now_ns: u64) -> Vec<u8> {
         self.now_ns = now_ns;
-        if self.pending_reads >= MAX_PENDING_READS {
+        if self.pending.len() as u32 >= MAX_PENDING_READS {
             if now_ns.saturating_sub(self.waiting_since_ns) < READS_LOST_AFTER_NS {
                 return Vec::new();
             }
-            self.pending_reads = 0;
+            self.pending.clear();
         }
-        if self.pending_reads == 0 {
+        if self.pending.is_empty() {
             self.waiting_since_ns = now_ns;
         }
-        self.pending_reads += 1;
+        let command = if self.polls.is_multiple_of(BATTERY_EVERY) { READ_MAIN_BATTERY } else { READ_ENCODERS };
+        self.polls = self.polls.wrapping_add(1);
+        self.pending.push_back(command);
         // A read is the address and the command alone: the CRC comes back.
-        vec![self.address, READ_ENCODERS]
+        vec![self.address, command]
     }
 }
 
