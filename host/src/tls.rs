@@ -171,6 +171,23 @@ pub fn read_authority(ca: &Path) -> Result<Vec<CertificateDer<'static>>, TlsErro
 /// Linux the distribution's bundle (Debian's `/etc/ssl/certs`, found
 /// with openssl-probe), or the files `SSL_CERT_FILE` and `SSL_CERT_DIR`
 /// name when set. At least one.
+/// `ureq`'s TLS settings (rustls, the ring provider) trusting the
+/// authority in `ca`, or the system's roots: the one way the host's HTTPS
+/// clients (the command line's portal client, the webhooks) trust a server.
+pub fn ureq_tls(ca: Option<&Path>) -> Result<ureq::tls::TlsConfig, TlsError> {
+    let roots = match ca {
+        Some(ca) => read_authority(ca)?,
+        None => system_roots()?,
+    };
+    let roots: Vec<ureq::tls::Certificate<'static>> =
+        roots.iter().map(|c| ureq::tls::Certificate::from_der(c.as_ref()).to_owned()).collect();
+    Ok(ureq::tls::TlsConfig::builder()
+        .provider(ureq::tls::TlsProvider::Rustls)
+        .root_certs(ureq::tls::RootCerts::new_with_certs(&roots))
+        .unversioned_rustls_crypto_provider(Arc::new(rustls::crypto::ring::default_provider()))
+        .build())
+}
+
 pub fn system_roots() -> Result<Vec<CertificateDer<'static>>, TlsError> {
     let found = rustls_native_certs::load_native_certs();
     if found.certs.is_empty() {

@@ -7,13 +7,11 @@
 //! while it talks.
 
 use std::path::Path;
-use std::sync::Arc;
 use std::time::Duration;
 
 use hmac::{Hmac, Mac};
 use sha2::Sha256;
 use thiserror::Error;
-use tokio_rustls::rustls;
 
 /// Longest webhook URL, bytes.
 pub const MAX_URL_BYTES: usize = 2048;
@@ -102,21 +100,7 @@ pub fn agent(url: &Url, ca: Option<&Path>) -> Result<ureq::Agent, WebhookError> 
             return Err(bad(format!("ca {} is given for a plain http:// hook", ca.display())));
         }
         (None, false) => {}
-        (ca, true) => {
-            let roots = match ca {
-                Some(ca) => crate::tls::read_authority(ca),
-                None => crate::tls::system_roots(),
-            }
-            .map_err(|e| bad(e.to_string()))?;
-            let roots: Vec<ureq::tls::Certificate<'static>> =
-                roots.iter().map(|c| ureq::tls::Certificate::from_der(c.as_ref()).to_owned()).collect();
-            let tls = ureq::tls::TlsConfig::builder()
-                .provider(ureq::tls::TlsProvider::Rustls)
-                .root_certs(ureq::tls::RootCerts::new_with_certs(&roots))
-                .unversioned_rustls_crypto_provider(Arc::new(rustls::crypto::ring::default_provider()))
-                .build();
-            config = config.tls_config(tls);
-        }
+        (ca, true) => config = config.tls_config(crate::tls::ureq_tls(ca).map_err(|e| bad(e.to_string()))?),
     }
     Ok(config.build().new_agent())
 }

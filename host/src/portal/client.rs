@@ -20,7 +20,6 @@
 
 use std::net::IpAddr;
 use std::path::PathBuf;
-use std::sync::Arc;
 use std::time::Duration;
 
 use serde_json::{Value, json};
@@ -224,20 +223,7 @@ impl Connection {
         match (&login.ca, url.secure) {
             (Some(ca), false) => return Err(ClientError::CaWithoutTls { ca: ca.clone(), address: shown }),
             (None, false) => {}
-            (ca, true) => {
-                let roots = match ca {
-                    Some(ca) => tls::read_authority(ca)?,
-                    None => tls::system_roots()?,
-                };
-                let roots: Vec<ureq::tls::Certificate<'static>> =
-                    roots.iter().map(|c| ureq::tls::Certificate::from_der(c.as_ref()).to_owned()).collect();
-                let tls = ureq::tls::TlsConfig::builder()
-                    .provider(ureq::tls::TlsProvider::Rustls)
-                    .root_certs(ureq::tls::RootCerts::new_with_certs(&roots))
-                    .unversioned_rustls_crypto_provider(Arc::new(rustls::crypto::ring::default_provider()))
-                    .build();
-                config = config.tls_config(tls);
-            }
+            (ca, true) => config = config.tls_config(tls::ureq_tls(ca.as_deref())?),
         }
         Ok(Connection { agent: config.build().new_agent(), url, shown, ca: login.ca.clone() })
     }
