@@ -373,7 +373,10 @@ fn refuse_stuck(lab: &Lab, book: &mut Book) {
     if queued.is_empty() {
         return;
     }
-    let etas = if queued.iter().any(|(_, _, first)| first.is_none()) { lab.etas(book, now) } else { Vec::new() };
+    // A held queue has no ETAs: none is computed at every look while it
+    // holds (the runner looks every 50 ms).
+    let unestimated = queued.iter().any(|(_, _, first)| first.is_none());
+    let etas = if unestimated && book.held.is_none() { lab.etas(book, now) } else { Vec::new() };
     for (id, queued_at, first_wait) in queued {
         let noted =
             first_wait.is_none().then(|| etas.iter().find(|(e, _)| *e == id).and_then(|(_, eta)| *eta)).flatten();
