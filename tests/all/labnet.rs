@@ -895,7 +895,9 @@ fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_re
 
 /// A robot its owner takes out of service is listed `maintenance` by the
 /// lab server, which sends its experiments to the other robot; back in
-/// service, it takes work again.
+/// service, it takes work again, and what its run left beside the
+/// recording (its self-test after the run, its camera's video) reaches the
+/// lab server's bundle.
 #[test]
 fn a_lab_server_routes_around_a_robot_in_maintenance() {
     let dir = tempfile::tempdir().unwrap();
@@ -920,9 +922,38 @@ fn a_lab_server_routes_around_a_robot_in_maintenance() {
     let (status, json) = http(&r1.address, "DELETE", "/api/v1/lab/maintenance", Some(&owner), b"");
     assert_eq!(status, 200, "{json}");
     lab.wait_robots(&boss, Duration::from_secs(30), |robots| robots.iter().all(|r| r["state"] == "idle"));
+    // Its owner has it test itself after every run: the self-test reaches
+    // the lab server's bundle with the run's files.
+    let (status, json) = http(&r1.address, "GET", "/api/v1/lab", Some(&owner), b"");
+    assert_eq!(status, 200, "{json}");
+    let mut settings = json["lab"]["settings"].clone();
+    settings["self_test"] = serde_json::json!({"window_ms": 500});
+    let (status, json) =
+        http(&r1.address, "PUT", "/api/v1/lab/settings", Some(&owner), settings.to_string().as_bytes());
+    assert_eq!(status, 200, "{json}");
+    // Ana's set has a camera: its video comes back with the run's files.
+    let camera = r#"<component name="camera" source="builtin:camera">
+      <param name="source" value="sim:robot-sim"/>
+      <param name="width" value="160"/>
+      <param name="height" value="120"/>
+      <param name="rate" value="5"/>
+    </component>"#;
+    let set = lab.stage(&ana, "camera.xml", &robot(7.0, camera));
     let id = lab.submit(&ana, set, 2.0, Some("r1"));
     let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
     assert_eq!((&done["state"], &done["placement"]["robot"]), (&Json::from("done"), &Json::from("r1")), "{done:#}");
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, id, &out);
+    let test: Json = serde_json::from_slice(&std::fs::read(bundle.join("selftest.json")).unwrap()).unwrap();
+    assert_eq!(test["passed"], true, "{test:#}");
+    assert!(test["checks"].to_string().contains("feedback messages"), "{test:#}");
+    let video = std::fs::metadata(bundle.join("video-camera.webm")).map(|m| m.len()).unwrap_or(0);
+    assert!(
+        video > 0,
+        "the robot's video did not reach the lab: {:?}",
+        std::fs::read_dir(&bundle).unwrap().collect::<Vec<_>>()
+    );
 }
 
 /// Every local record robot `robot` holds of lab experiment `lab_id`.

@@ -783,7 +783,7 @@ impl RobotLink {
             record
                 .results
                 .iter()
-                .filter(|f| f.name.ends_with(".mcap") || f.name == bundle::REPORT || f.name == bundle::LOG)
+                .filter(|f| sent_to_lab(&f.name))
                 .filter_map(|f| {
                     let digest = transfer::digest_file(&dir.join(&f.name)).ok()?;
                     Some(wire::FileRef { name: f.name.clone(), bytes: digest.bytes, sha256: digest.sha256 })
@@ -857,6 +857,15 @@ impl RobotLink {
 /// The local id of lab `lab`'s experiment `lab_id`, if it came here.
 fn local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str, lab_id: u64) -> Option<u64> {
     experiments.values().rev().find(|r| r.origin.as_ref().is_some_and(|o| o.lab == lab && o.id == lab_id)).map(|r| r.id)
+}
+
+/// Whether a result file of a lab's experiment goes back to the lab: what
+/// the run left here (recordings, report, log, videos, the self-test after
+/// it). The robot file and its files are the lab server's own.
+fn sent_to_lab(name: &str) -> bool {
+    name.ends_with(".mcap")
+        || [bundle::REPORT, bundle::LOG, bundle::VIDEO_NOTE, super::selftest::SELF_TEST_FILE].contains(&name)
+        || crate::record::video::is_video_name(name)
 }
 
 /// Why a dispatch that must start by `start_by_unix_ms` is not taken at
