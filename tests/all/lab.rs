@@ -2038,6 +2038,43 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
         e["action"] == "maintenance-end" && e["user"] == "self-test" && e.to_string().contains("the battery is charged")
     });
     assert!(ended, "{audit:#}");
+    // An admin runs the self-test from the command line: a low battery
+    // fails it (exit 1) and takes the robot out of service; charged over
+    // the least (not yet the resume threshold), it passes, and that ends
+    // the maintenance the self-test began. A researcher may not run it.
+    let selftest = |user: &str| {
+        crate::support::subsume()
+            .args(["lab", "selftest", &lab.address])
+            .env("SUBSUME_USER", user)
+            .env("SUBSUME_PASSWORD", PASSWORD)
+            .output()
+            .unwrap()
+    };
+    *battery_mv.lock().unwrap() = 10_400;
+    std::thread::sleep(Duration::from_millis(300));
+    let failed = selftest("boss");
+    let said = String::from_utf8_lossy(&failed.stdout);
+    assert_eq!(failed.status.code(), Some(1), "{said}{}", String::from_utf8_lossy(&failed.stderr));
+    assert!(said.contains("FAIL battery: link 'motors': battery 10.40 V is under 11.00 V"), "{said}");
+    assert!(said.contains("ok   feedback: link 'motors'"), "{said}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert_eq!(overview["lab"]["maintenance"]["by"], "self-test", "{overview:#}");
+    *battery_mv.lock().unwrap() = 11_500;
+    std::thread::sleep(Duration::from_millis(300));
+    let passed = selftest("boss");
+    let said = String::from_utf8_lossy(&passed.stdout);
+    assert!(passed.status.success(), "{said}{}", String::from_utf8_lossy(&passed.stderr));
+    assert!(
+        said.contains("ok   battery: link 'motors': battery 11.50 V") && said.contains("the self-test passed"),
+        "{said}"
+    );
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["maintenance"].is_null(), "{overview:#}");
+    let tests = overview["lab"]["self_tests"].as_array().unwrap();
+    assert_eq!(tests.last().unwrap()["experiment"], Json::Null, "{tests:#?}");
+    let refused = selftest("ana");
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("may not run the self-test"), "{refused:?}");
     going.store(false, Ordering::Relaxed);
     controller.join().unwrap();
 }

@@ -96,6 +96,13 @@ enum LabAction {
         #[command(flatten)]
         login: LoginFlags,
     },
+    /// Run the owner's self-test now, on the idle robot (admins): prints each
+    /// check; a passed one ends a maintenance the self-test began, a failed
+    /// one takes the robot out of service. Exits 1 when it fails.
+    Selftest {
+        #[command(flatten)]
+        login: LoginFlags,
+    },
     /// List the reservations not over yet, with their dates.
     Reservations {
         /// Print the portal's records as JSON.
@@ -341,6 +348,20 @@ impl LabCommand {
                 println!("reservation {} for {}:", r.id, r.user);
                 print!("{}", lab_client::reservations_text(std::slice::from_ref(&r), now));
                 Ok(ExitCode::SUCCESS)
+            }
+            LabAction::Selftest { login } => {
+                let test = lab_client::self_test(&to_login(login))?;
+                for check in &test.checks {
+                    let mark = if check.passed { "ok  " } else { "FAIL" };
+                    println!("{mark} {}: {}", check.check, check.detail);
+                }
+                if test.passed {
+                    println!("the self-test passed");
+                    Ok(ExitCode::SUCCESS)
+                } else {
+                    println!("the self-test failed: the robot is out of service until an admin ends it");
+                    Ok(ExitCode::from(1))
+                }
             }
             LabAction::Maintenance { reason, end: _, login } => {
                 match &reason {

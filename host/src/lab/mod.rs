@@ -201,6 +201,8 @@ struct Book {
     resting_until_ms: Option<u64>,
     /// While the robot is out of service for a low battery alone: the live
     /// status, watched for the battery coming back (`selftest`).
+    /// An admin's self-test runs now: nothing starts meanwhile.
+    self_testing: bool,
     battery_watch: Option<tokio::sync::watch::Receiver<std::sync::Arc<Option<crate::report::LiveStatus>>>>,
 }
 

@@ -11,7 +11,7 @@
 
 use std::time::{Duration, Instant};
 
-use super::{Book, LAB_AUDIT_USER, Lab};
+use super::{Book, LAB_AUDIT_USER, Lab, LabError};
 use crate::notify::EventKind;
 use crate::report::{ComponentRunState, Report};
 use crate::robot::serial::SerialStatus;
@@ -159,6 +159,56 @@ impl Lab {
 }
 
 impl Lab {
+    /// Runs the owner's self-test now, asked by admin `user` (the robot
+    /// idle: no experiment runs or starts meanwhile). Kept in the history
+    /// as after a run; a failed one takes the robot out of service, and a
+    /// passed one ends a maintenance the self-test began.
+    pub fn run_self_test(&self, user: &crate::store::users::Principal) -> Result<SelfTest, LabError> {
+        let use_case = || {
+            if user.role != crate::store::users::Role::Admin {
+                return Err(LabError::Forbidden(format!("{} may not run the self-test (admins may)", user.name)));
+            }
+            let settings = {
+                let mut book = self.lock()?;
+                let settings = book.lab.settings.self_test.ok_or_else(|| {
+                    LabError::Conflict("the owner's settings have no self-test (self_test: null)".into())
+                })?;
+                if let Some(id) = book.running.as_ref().map(|r| r.id).or(book.starting) {
+                    return Err(LabError::Conflict(format!(
+                        "experiment {id} runs on the robot: the self-test runs on the baseline, after it"
+                    )));
+                }
+                if book.self_testing {
+                    return Err(LabError::Conflict("a self-test runs already".into()));
+                }
+                book.self_testing = true;
+                settings
+            };
+            let test = self.self_test(None, &settings);
+            // Cleared first: nothing after it leaves the queue held.
+            let mut book = self.lock()?;
+            book.self_testing = false;
+            let ends = test.passed && book.lab.maintenance.as_ref().is_some_and(|m| m.by == SELF_TEST_USER);
+            self.keep_self_test(&mut book, test.clone());
+            if ends {
+                let mut lab = book.lab.clone();
+                let ended = lab.maintenance.take();
+                self.store().lock()?.put_lab_state(&lab)?;
+                book.lab = lab;
+                drop(book);
+                let was = ended.map_or_else(String::new, |m| m.reason);
+                let detail = format!("back in service: the self-test {} ran passed; was: {was}", user.name);
+                self.audit(SELF_TEST_USER, "maintenance-end", "the robot", Outcome::Ok(&detail));
+                self.tell_robot(EventKind::RobotMaintenanceEnded, &detail);
+                self.notify();
+            }
+            Ok(test)
+        };
+        self.audited(&user.name, "self-test", "the robot", use_case, |test| {
+            if test.passed { "passed".to_string() } else { "failed".to_string() }
+        })
+    }
+
     /// While the robot is out of service for a low battery alone: ends it
     /// once every battery the live status reports reads at least its
     /// threshold (called by the runner at every look, under the book).

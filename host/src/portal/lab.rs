@@ -230,6 +230,16 @@ pub(super) async fn enter_maintenance(
     Ok(Json(json!({ "maintenance": maintenance })))
 }
 
+/// Runs the owner's self-test now (admins): its result.
+pub(super) async fn run_self_test(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let test = blocking(move || lab.run_self_test(&user)).await?;
+    Ok(Json(json!({ "self_test": test })))
+}
+
 /// Brings the robot back into service (admins).
 pub(super) async fn end_maintenance(
     State(state): State<Arc<PortalState>>,

@@ -566,6 +566,15 @@ pub fn maintenance(login: &Login, reason: Option<&str>) -> Result<Value, LabClie
     })
 }
 
+/// Runs the owner's self-test now (admins): its result.
+pub fn self_test(login: &Login) -> Result<crate::store::experiments::SelfTest, LabClientError> {
+    in_session(login, |session| {
+        let what = "running the self-test";
+        let answer = session.request("POST", "/api/v1/lab/selftest", &Value::Null, what, DEPLOY_LIMIT)?;
+        session.parse(&answer["self_test"], what)
+    })
+}
+
 /// The reservations not over yet, soonest first.
 pub fn reservations(login: &Login) -> Result<Vec<Reservation>, LabClientError> {
     in_session(login, |session| {

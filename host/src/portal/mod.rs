@@ -241,6 +241,7 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/lab/pause", post(lab::pause))
         .route("/lab/resume", post(lab::resume))
         .route("/lab/kit", get(lab::kit))
+        .route("/lab/selftest", post(lab::run_self_test))
         .route(
             "/lab/maintenance",
             post(lab::enter_maintenance).delete(lab::end_maintenance).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),
