@@ -1,5 +1,6 @@
 //! The fields of a `tracing` event as the host's log sinks keep them: the
-//! message, the component it names, and every other field as ` name=value`.
+//! message, the component it names, the user whose work it names
+//! (`owner`), and every other field as ` name=value`.
 //! One visitor for every sink (the portal's log ring, the recording's log
 //! channel), so both show a line the same way.
 
@@ -10,6 +11,9 @@ use tracing::field::{Field, Visit};
 pub struct LogFields {
     pub message: String,
     pub component: Option<String>,
+    /// The user whose work the line names (a field `owner`): the portal
+    /// shows the line only to those who may see her work (`store::access`).
+    pub owner: Option<String>,
     /// The other fields, each as ` name=value`.
     pub extra: String,
 }
@@ -28,6 +32,7 @@ impl Visit for LogFields {
         match field.name() {
             "message" => self.message = value.to_string(),
             "component" => self.component = Some(value.to_string()),
+            "owner" => self.owner = Some(value.to_string()),
             other => self.extra.push_str(&format!(" {other}={value}")),
         }
     }
@@ -36,6 +41,7 @@ impl Visit for LogFields {
         match field.name() {
             "message" => self.message = format!("{value:?}"),
             "component" => self.component = Some(format!("{value:?}").trim_matches('"').to_string()),
+            "owner" => self.owner = Some(format!("{value:?}").trim_matches('"').to_string()),
             other => self.extra.push_str(&format!(" {other}={value:?}")),
         }
     }

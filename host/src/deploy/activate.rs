@@ -117,6 +117,7 @@ impl Deployer {
                         tracing::error!("set {id} runs, but the store could not record it: {e}");
                     }
                     tracing::info!(
+                        owner = %set.created_by,
                         "set {id} ({}) is active; {} by {}",
                         set.config_name,
                         if rollback { "rolled back" } else { "activated" },

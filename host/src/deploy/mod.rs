@@ -239,6 +239,7 @@ impl Deployer {
             Some(id) if state.boot_config_sha256.as_deref() == Some(sha.as_str()) => {
                 let set = store.set(id)?;
                 tracing::info!(
+                    owner = %set.created_by,
                     "restoring set {id} ({}, by {}) from {}",
                     set.config_name,
                     set.created_by,

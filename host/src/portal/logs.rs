@@ -26,6 +26,18 @@ pub struct LogLine {
     pub level: String,
     pub component: Option<String>,
     pub message: String,
+    /// The user whose work the line names, if it names someone's: shown
+    /// only to those who may see her work (`store::access`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub owner: Option<String>,
+}
+
+impl LogLine {
+    /// Whether `reader` may see this line: it names no one's work, or
+    /// work `reader` may see.
+    pub fn visible_to(&self, reader: &crate::store::users::Principal, access: &crate::store::access::Access) -> bool {
+        self.owner.as_deref().is_none_or(|owner| access.may_see(reader, owner))
+    }
 }
 
 /// The newest lines and a broadcast of new ones.
@@ -84,6 +96,7 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RingLayer {
             message.truncate(cut);
         }
         let time = crate::walltime::unix_now_s_f64();
-        self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component: fields.component, message });
+        let (component, owner) = (fields.component, fields.owner);
+        self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component, message, owner });
     }
 }
