@@ -510,6 +510,7 @@ fn every_read_route_and_cli_read_shows_each_asker_what_is_hers_to_see_and_nothin
     let store = dir.path().join("store");
     crate::support::add_user(&store, "dev", "developer", &["control"], PASSWORD);
     crate::support::add_user(&store, "vera", "viewer", &[], PASSWORD);
+    let began = Instant::now();
     let lab = crate::lab::start(dir.path());
     let tokens: BTreeMap<&str, String> =
         ASKERS.iter().filter(|(_, r)| *r != Role::Nobody).map(|(n, _)| (*n, lab.token(n))).collect();
@@ -578,6 +579,7 @@ fn every_read_route_and_cli_read_shows_each_asker_what_is_hers_to_see_and_nothin
             std::thread::sleep(Duration::from_millis(100));
         }
     }
+    eprintln!("ownership: the host up and three experiments done in {:.1} s", began.elapsed().as_secs_f64());
     // The admin's set is the robot's own: the lab's baseline, so the kit.
     let boss = &tokens["boss"];
     let (status, json) =
@@ -616,6 +618,7 @@ fn every_read_route_and_cli_read_shows_each_asker_what_is_hers_to_see_and_nothin
             cells += n;
             wrong.extend(w);
         }
+        eprintln!("ownership: {world:?} asked, {cells} cells so far, at {:.1} s", began.elapsed().as_secs_f64());
     }
     // Every route of the table, each owner's thing where it names one, for
     // every asker in every world.
