@@ -63,9 +63,12 @@ enum Kind {
     FileText,
     /// The experiment's label (its record).
     Label,
+    /// A line her set's components write to the host log while it runs.
+    LogLine,
 }
 
-const KINDS: [Kind; 5] = [Kind::ComponentName, Kind::ComponentBytes, Kind::FileName, Kind::FileText, Kind::Label];
+const KINDS: [Kind; 6] =
+    [Kind::ComponentName, Kind::ComponentBytes, Kind::FileName, Kind::FileText, Kind::Label, Kind::LogLine];
 
 /// One cell's setting: the owner's lab kit, and whether every upload is
 /// shared with the lab.
@@ -104,6 +107,9 @@ fn allowed(kind: Kind, owner: &str, asker: &str, world: World) -> bool {
         Kind::FileText => reads(asker, owner, world),
         // Experiments are their submitter's and the admins'.
         Kind::Label => role_of(asker) == Role::Admin || asker == owner,
+        // What her set logs while it runs is hers; the robot's set's
+        // lines are everyone's.
+        Kind::LogLine => sees(asker, owner),
     }
 }
 
@@ -221,7 +227,7 @@ const ROUTES: &[Route] = &[
     route("/api/v1/worlds", Body::Whole, any_user, &[]),
     route("/api/v1/sets", Body::Whole, any_user, &[FileName]),
     route("/api/v1/sets/{set}", Body::Whole, set, &[FileName, FileText]),
-    route("/api/v1/logs", Body::Whole, any_user, &[]),
+    route("/api/v1/logs", Body::Whole, any_user, &[LogLine]),
     route("/api/v1/audit", Body::Whole, developers, &[]),
     route("/api/v1/experiments", Body::Whole, any_user, &[Label]),
     route("/api/v1/experiments/{exp}", Body::Whole, experiment, &[Label]),
@@ -242,7 +248,7 @@ const ROUTES: &[Route] = &[
     route("/api/v1/openapi.json", Body::Whole, anyone, &[]),
     route("/api/v1/status", Body::Whole, any_user, &[]),
     route("/api/v1/history", Body::Whole, any_user, &[]),
-    route("/api/v1/events", Body::Stream, any_user, &[]),
+    route("/api/v1/events", Body::Stream, any_user, &[LogLine]),
     route("/api/v1/world", Body::Whole, any_user, &[]),
     route("/api/v1/locks", Body::Whole, any_user, &[]),
     route("/api/v1/recordings", Body::Whole, developers, &[]),
@@ -526,6 +532,7 @@ fn every_read_route_and_cli_read_shows_each_asker_what_is_hers_to_see_and_nothin
                 FileName => "file",
                 FileText => "text",
                 Label => "label",
+                LogLine => "logline",
             };
             markers.insert((owner, kind), format!("{tag}-{owner}-q{run}z"));
         }
@@ -551,13 +558,23 @@ fn every_read_route_and_cli_read_shows_each_asker_what_is_hers_to_see_and_nothin
         // The text marker is a parameter's value: the bundle and the kit
         // hold the robot file rewritten (comments go), parameters kept;
         // the set's wiring (its record) has no parameters. At rate 0 with
-        // no input, the component never publishes it.
+        // no input, the component never publishes it. The log marker is
+        // published twice a second to a log sink: the set's own log lines.
         let note = format!(
             r#"<component name="note" source="builtin:publish" rate="0">
       <param name="kind" value="text"/>
       <param name="value" value="{}"/>
-    </component>"#,
-            markers[&(owner, FileText)]
+    </component>
+    <component name="chatter" source="builtin:publish" rate="2">
+      <param name="kind" value="text"/>
+      <param name="value" value="{}"/>
+    </component>
+    <component name="diary" source="builtin:log" rate="0">
+      <param name="interval" value="0.5"/>
+    </component>
+    <connect from="chatter.out" to="diary.in"/>"#,
+            markers[&(owner, FileText)],
+            markers[&(owner, LogLine)]
         );
         let xml = crate::lab::robot(7.0, &note).replace(&planner_path, &format!("{component}.wasm"));
         let set = lab.stage(token, &format!("{}.xml", markers[&(owner, FileName)]), &xml);

@@ -26,17 +26,19 @@ pub struct LogLine {
     pub level: String,
     pub component: Option<String>,
     pub message: String,
-    /// The user whose work the line names, if it names someone's: shown
-    /// only to those who may see her work (`store::access`).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub owner: Option<String>,
+    /// The users whose work the line names: the one its `owner` field
+    /// names (an upload, an activation), or, for a line of a component,
+    /// whoever's set runs (`logfields::running_owners`). Shown only to those
+    /// who may see the work of each (`store::access`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub owners: Vec<String>,
 }
 
 impl LogLine {
     /// Whether `reader` may see this line: it names no one's work, or
-    /// work `reader` may see.
+    /// only work `reader` may see.
     pub fn visible_to(&self, reader: &crate::store::users::Principal, access: &crate::store::access::Access) -> bool {
-        self.owner.as_deref().is_none_or(|owner| access.may_see(reader, owner))
+        self.owners.iter().all(|owner| access.may_see(reader, owner))
     }
 }
 
@@ -96,7 +98,12 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RingLayer {
             message.truncate(cut);
         }
         let time = crate::walltime::unix_now_s_f64();
-        let (component, owner) = (fields.component, fields.owner);
-        self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component, message, owner });
+        let owners = match (fields.owner, &fields.component) {
+            (Some(owner), _) => vec![owner],
+            (None, Some(_)) => crate::logfields::running_owners(),
+            (None, None) => Vec::new(),
+        };
+        let component = fields.component;
+        self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component, message, owners });
     }
 }
