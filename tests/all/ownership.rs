@@ -8,7 +8,8 @@
 //! and the command line's reads ([`CLI_READS`]) are asked by each owner, the
 //! other researcher, the admin, a developer, a viewer and nobody (no
 //! session), with the uploads private and shared with the lab, and the
-//! owner's lab kit off and on. No answer body and no file of an archive
+//! owner's lab kit off and on, and once more while one of Ana's experiments
+//! runs (the live views). No answer body and no file of an archive
 //! holds a marker its asker may not read, and every route shows the markers
 //! its asker may read (so the matrix cannot pass on empty answers). The
 //! expectations are written from the documented model ([`allowed`]), not
@@ -637,9 +638,42 @@ fn every_read_route_and_cli_read_shows_each_asker_what_is_hers_to_see_and_nothin
         }
         eprintln!("ownership: {world:?} asked, {cells} cells so far, at {:.1} s", began.elapsed().as_secs_f64());
     }
+    // While Ana's experiment runs (her set again, long enough to be asked
+    // about), the lab's and the robot's live views are hers for no one
+    // else: no label, file or log line of hers in anyone else's answer.
+    let ana = &tokens["ana"];
+    let body = serde_json::json!({ "set": owned["ana"].set, "duration_s": 30.0, "label": markers[&("ana", Label)] });
+    let (status, json) = lab.call(ana, "POST", "/api/v1/experiments", &body.to_string());
+    assert_eq!(status, 201, "{json}");
+    let running = json["experiment"]["id"].as_u64().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while lab.experiment(ana, running)["state"] != "running" {
+        assert!(Instant::now() < deadline, "{:#}", lab.experiment(ana, running));
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // Her lines reach the log while it runs.
+    std::thread::sleep(Duration::from_secs(1));
+    let world = World { kit: false, shared: true };
+    let found: Vec<(usize, Vec<String>)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = ASKERS
+            .iter()
+            .map(|(asker, _)| {
+                let (lab, owned, markers) = (&lab, &owned, &markers);
+                let token = tokens.get(asker).map(String::as_str);
+                scope.spawn(move || ask_everything(lab, asker, token, world, owned, markers))
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    assert_eq!(lab.experiment(ana, running)["state"], "running", "the matrix was asked while it ran");
+    for (n, w) in found {
+        cells += n;
+        wrong.extend(w.into_iter().map(|w| format!("(while Ana's experiment ran) {w}")));
+    }
+    eprintln!("ownership: asked while an experiment ran, {cells} cells, at {:.1} s", began.elapsed().as_secs_f64());
     // Every route of the table, each owner's thing where it names one, for
     // every asker in every world.
     let per_world: usize = ROUTES.iter().map(|r| if r.path.contains('{') { OWNERS.len() } else { 1 }).sum();
-    assert!(cells >= per_world * ASKERS.len() * 4, "only {cells} cells asked");
+    assert!(cells >= per_world * ASKERS.len() * 5, "only {cells} cells asked");
     assert!(wrong.is_empty(), "{} of {cells} cells wrong:\n{}", wrong.len(), wrong.join("\n"));
 }

@@ -341,9 +341,24 @@ async fn fresh_live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
     live.borrow().clone()
 }
 
-pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+/// The live status as `user` may see it: everyone watches the robot, but
+/// an experiment's label and its robot file's name are its submitter's
+/// and the admins' (`lab::sees_experiments_of`).
+fn live_status_for(user: &User, status: &Option<LiveStatus>) -> Json_ {
+    let mut value = serde_json::to_value(status).unwrap_or_default();
+    if let Some(status) = status
+        && let Some(experiment) = &status.experiment
+        && !crate::lab::sees_experiments_of(user, &experiment.submitter)
+    {
+        value["experiment"]["label"] = Json_::String(String::new());
+        value["config"] = Json_::String(format!("experiment {}'s robot file", experiment.id));
+    }
+    value
+}
+
+pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(user): Authed) -> Json<Json_> {
     let current = fresh_live_status(&state).await;
-    Json(serde_json::to_value(&*current).unwrap_or_default())
+    Json(live_status_for(&user, &current))
 }
 
 /// The plots' history kept on the host (`GET /history`): a sample a
@@ -412,11 +427,12 @@ pub(super) async fn events(State(state): State<Arc<PortalState>>, Authed(user): 
         .filter_map(|line| Event::default().event("log").json_data(line).ok())
         .map(Ok)
         .collect();
-    let statuses = futures_util::stream::unfold(live, |mut live| async move {
+    let watcher = user.clone();
+    let statuses = futures_util::stream::unfold((live, watcher), |(mut live, watcher)| async move {
         live.changed().await.ok()?;
         let value = live.borrow_and_update().clone();
-        let event = Event::default().event("status").json_data(&*value).unwrap_or_default();
-        Some((Ok(event), live))
+        let event = Event::default().event("status").json_data(live_status_for(&watcher, &value)).unwrap_or_default();
+        Some((Ok(event), (live, watcher)))
     });
     let lines = futures_util::stream::unfold((logs, user, access), |(mut logs, user, access)| async move {
         loop {
