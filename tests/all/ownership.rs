@@ -166,6 +166,14 @@ fn no_mail(asker: &str, _: &str, _: World) -> u16 {
     if role_of(asker) == Role::Nobody { 401 } else { 409 }
 }
 
+fn admins(asker: &str, _: &str, _: World) -> u16 {
+    match role_of(asker) {
+        Role::Nobody => 401,
+        Role::Admin => 200,
+        _ => 403,
+    }
+}
+
 fn a_lab_server_only(asker: &str, _: &str, _: World) -> u16 {
     if role_of(asker) == Role::Nobody { 401 } else { 404 }
 }
@@ -269,7 +277,9 @@ struct CliRead {
 }
 
 const CLI_READS: &[CliRead] = &[
+    CliRead { args: &["list", "{host}"], status: any_user, shows: &[Label], only: None, unpacks: false },
     CliRead { args: &["list", "{host}", "--json"], status: any_user, shows: &[Label], only: None, unpacks: false },
+    CliRead { args: &["show", "{exp}", "{host}"], status: experiment, shows: &[Label], only: None, unpacks: false },
     CliRead {
         args: &["show", "{exp}", "{host}", "--json"],
         status: experiment,
@@ -277,6 +287,8 @@ const CLI_READS: &[CliRead] = &[
         only: None,
         unpacks: false,
     },
+    CliRead { args: &["reservations", "{host}", "--json"], status: any_user, shows: &[], only: None, unpacks: false },
+    CliRead { args: &["settings", "{host}"], status: admins, shows: &[], only: None, unpacks: false },
     CliRead {
         args: &["results", "{exp}", "{host}", "-o", "{out}"],
         status: experiment,
