@@ -16,7 +16,7 @@ use std::time::{Duration, Instant};
 use crate::support::{HostProcess, http};
 use serde_json::Value as Json;
 
-const PASSWORD: &str = "lab-test-password";
+pub(crate) const PASSWORD: &str = "lab-test-password";
 const RESEARCHERS: [&str; 3] = ["ana", "ben", "cy"];
 
 /// The baseline: the demo's behaviours in an open arena, the envelope
@@ -81,16 +81,16 @@ pub(crate) fn robot(goal_x: f64, extra: &str) -> String {
     xml
 }
 
-struct Lab {
-    host: HostProcess,
-    address: String,
+pub(crate) struct Lab {
+    pub(crate) host: HostProcess,
+    pub(crate) address: String,
 }
 
 /// `subsume run` of the baseline in `dir` with its portal on a free port,
 /// on the store in `dir/store`. Its preflights run at `normal` priority:
 /// at the default (`idle`), or at `background`, the tests running beside
 /// this one starve them (the priorities are `lab::preflight`'s unit test).
-fn start(dir: &Path) -> Lab {
+pub(crate) fn start(dir: &Path) -> Lab {
     crate::support::guest_dir();
     let mut command = crate::support::subsume();
     command
@@ -105,7 +105,7 @@ fn start(dir: &Path) -> Lab {
     Lab { host, address }
 }
 
-fn setup(dir: &Path) {
+pub(crate) fn setup(dir: &Path) {
     std::fs::write(dir.join("robot.xml"), robot(8.0, "")).unwrap();
     std::fs::write(dir.join("lab.world"), WORLD).unwrap();
     let store = dir.join("store");
@@ -116,17 +116,17 @@ fn setup(dir: &Path) {
 }
 
 impl Lab {
-    fn token(&self, user: &str) -> String {
+    pub(crate) fn token(&self, user: &str) -> String {
         crate::support::login(&self.address, user, PASSWORD)
     }
 
-    fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
+    pub(crate) fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
         http(&self.address, method, path, Some(token), body.as_bytes())
     }
 
     /// Stages `xml` as `user`'s robot file for the control platform: the
     /// set's id.
-    fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
+    pub(crate) fn stage(&self, token: &str, file: &str, xml: &str) -> u64 {
         self.stage_for(token, "control", file, xml)
     }
 
@@ -136,7 +136,7 @@ impl Lab {
         json["set"]["id"].as_u64().unwrap()
     }
 
-    fn experiment(&self, token: &str, id: u64) -> Json {
+    pub(crate) fn experiment(&self, token: &str, id: u64) -> Json {
         let (status, json) = self.call(token, "GET", &format!("/api/v1/experiments/{id}"), "");
         assert_eq!(status, 200, "{json}");
         json["experiment"].clone()

@@ -31,6 +31,7 @@ mod labnet;
 mod languages;
 mod memory;
 mod outputs;
+mod ownership;
 mod portal;
 mod portal_router;
 mod record;

@@ -174,8 +174,10 @@ try {
     await ana.waitForSelector(`#health tr[data-component="${c.name}"] td.sha[title="${c.sha256}"]`);
   }
   await shotOf(ana, 'lab-3-banner');
+  // A viewer sees that it runs, by whom and until when; its label is the
+  // submitter's and the admins' (docs/portal.md, "Who sees what").
   await tab(viewer, 'components');
-  await viewer.waitForSelector(`#lab-banner:has-text("${bannerText}")`);
+  await viewer.waitForSelector(`#lab-banner:has-text("Experiment ${first} by ${researcher} runs set ${set}:")`);
   check(!(await visible(viewer, '#lab-banner-stop')), 'a viewer may stop someone\'s experiment');
   await admin.waitForSelector(`#lab-banner:has-text("${bannerText}")`);
   check(await visible(admin, '#lab-banner-stop'), 'the admin has no stop button');

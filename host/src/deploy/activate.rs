@@ -117,6 +117,7 @@ impl Deployer {
                         tracing::error!("set {id} runs, but the store could not record it: {e}");
                     }
                     tracing::info!(
+                        owner = %set.created_by,
                         "set {id} ({}) is active; {} by {}",
                         set.config_name,
                         if rollback { "rolled back" } else { "activated" },
@@ -160,6 +161,9 @@ impl Deployer {
         experiment: Option<std::sync::Arc<crate::report::ExperimentTag>>,
     ) -> Result<(), DeployError> {
         self.refuse_headless("swap a set in")?;
+        // Until the swap is done a component's log line may be either
+        // set's: it names the work of both owners.
+        crate::logfields::set_running_owners(&[&active.set.created_by, &ready.set.created_by]);
         let (done, old_graph) = std::sync::mpsc::sync_channel(1);
         let request = SwapRequest {
             graph: ready.built.graph,
@@ -170,7 +174,11 @@ impl Deployer {
             done,
             report,
         };
-        self.slot.hand_over(request, &old_graph, &self.waker)?;
+        if let Err(e) = self.slot.hand_over(request, &old_graph, &self.waker) {
+            crate::logfields::set_running_owners(&[&active.set.created_by]);
+            return Err(e);
+        }
+        crate::logfields::set_running_owners(&[&ready.set.created_by]);
         if let Some(robot) = self.services.get::<RunningRobot>() {
             robot.rename(&ready.config.name);
         }
@@ -253,8 +261,10 @@ impl Deployer {
                 carry.sim_ptys.insert(name.clone(), pty.clone());
             }
         }
+        let building = crate::logfields::Building::of(&set.created_by);
         let built = assemble::build(&config, &mut loader, self.clock.clone(), &self.waker, &self.services, &carry)
             .map_err(DeployError::Start)?;
+        drop(building);
         Ok(Ready { set, config: Arc::new(config), built, carry: pairs, envelope })
     }
 }

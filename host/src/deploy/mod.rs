@@ -239,6 +239,7 @@ impl Deployer {
             Some(id) if state.boot_config_sha256.as_deref() == Some(sha.as_str()) => {
                 let set = store.set(id)?;
                 tracing::info!(
+                    owner = %set.created_by,
                     "restoring set {id} ({}, by {}) from {}",
                     set.config_name,
                     set.created_by,
@@ -253,6 +254,8 @@ impl Deployer {
         if let Some(robot) = services.get::<RunningRobot>() {
             robot.rename(&config.name);
         }
+        // A component's log lines name the work of the set's owner.
+        crate::logfields::set_running_owners(&[&set.created_by]);
         let built = assemble::build(&config, &mut loader, clock.clone(), &waker, &services, &Carry::default())
             .map_err(DeployError::Start)?;
         let config = Arc::new(config);

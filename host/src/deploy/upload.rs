@@ -43,6 +43,7 @@ impl Deployer {
                 let record = ComponentRecord { sha256: stored, ..record };
                 writer.put_component(record.clone())?;
                 tracing::info!(
+                    owner = %record.uploaded_by,
                     "component '{}' uploaded by {} ({} bytes)",
                     record.key(),
                     record.uploaded_by,

@@ -223,7 +223,14 @@ pub struct Lab {
 }
 
 fn visible(user: &Principal, record: &ExperimentRecord) -> bool {
-    user.role == Role::Admin || record.submitter == user.name
+    sees_experiments_of(user, &record.submitter)
+}
+
+/// Whether `user` may see the experiments `submitter` submitted (their
+/// records, labels, robot files' names, results): their own, and anyone's
+/// for an admin. The rest see that one runs, not what it is.
+pub fn sees_experiments_of(user: &Principal, submitter: &str) -> bool {
+    user.role == Role::Admin || submitter == user.name
 }
 
 fn not_found(id: u64) -> LabError {

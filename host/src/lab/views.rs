@@ -71,8 +71,16 @@ impl Lab {
     pub fn overview(&self, user: &Principal) -> Result<LabView, LabError> {
         let book = self.lock()?;
         let now = unix_now_ms();
+        // Everyone sees that an experiment runs and until when; its label
+        // is its submitter's.
+        let running = self.deployer.experiments().running().map(|mut running| {
+            if !super::sees_experiments_of(user, &running.submitter) {
+                running.label.clear();
+            }
+            running
+        });
         Ok(LabView {
-            running: self.deployer.experiments().running(),
+            running,
             queued: book.experiments.values().filter(|r| r.state == ExperimentState::Queued).count(),
             paused: book.lab.paused,
             held: book.held.clone(),

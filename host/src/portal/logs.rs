@@ -26,6 +26,20 @@ pub struct LogLine {
     pub level: String,
     pub component: Option<String>,
     pub message: String,
+    /// The users whose work the line names: the one its `owner` field
+    /// names (an upload, an activation), or, for a line of a component,
+    /// whoever's set runs (`logfields::running_owners`). Shown only to those
+    /// who may see the work of each (`store::access`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub owners: Vec<String>,
+}
+
+impl LogLine {
+    /// Whether `reader` may see this line: it names no one's work, or
+    /// only work `reader` may see.
+    pub fn visible_to(&self, reader: &crate::store::users::Principal, access: &crate::store::access::Access) -> bool {
+        self.owners.iter().all(|owner| access.may_see(reader, owner))
+    }
 }
 
 /// The newest lines and a broadcast of new ones.
@@ -84,6 +98,12 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RingLayer {
             message.truncate(cut);
         }
         let time = crate::walltime::unix_now_s_f64();
-        self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component: fields.component, message });
+        let owners = match (fields.owner, &fields.component) {
+            (Some(owner), _) => vec![owner],
+            (None, Some(_)) => crate::logfields::running_owners(),
+            (None, None) => Vec::new(),
+        };
+        let component = fields.component;
+        self.0.push(LogLine { time, level: level.as_str().to_lowercase(), component, message, owners });
     }
 }

@@ -341,9 +341,24 @@ async fn fresh_live_status(state: &PortalState) -> Arc<Option<LiveStatus>> {
     live.borrow().clone()
 }
 
-pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
+/// The live status as `user` may see it: everyone watches the robot, but
+/// an experiment's label and its robot file's name are its submitter's
+/// and the admins' (`lab::sees_experiments_of`).
+fn live_status_for(user: &User, status: &Option<LiveStatus>) -> Json_ {
+    let mut value = serde_json::to_value(status).unwrap_or_default();
+    if let Some(status) = status
+        && let Some(experiment) = &status.experiment
+        && !crate::lab::sees_experiments_of(user, &experiment.submitter)
+    {
+        value["experiment"]["label"] = Json_::String(String::new());
+        value["config"] = Json_::String(format!("experiment {}'s robot file", experiment.id));
+    }
+    value
+}
+
+pub(super) async fn status(State(state): State<Arc<PortalState>>, Authed(user): Authed) -> Json<Json_> {
     let current = fresh_live_status(&state).await;
-    Json(serde_json::to_value(&*current).unwrap_or_default())
+    Json(live_status_for(&user, &current))
 }
 
 /// The plots' history kept on the host (`GET /history`): a sample a
@@ -392,31 +407,40 @@ pub(super) async fn metrics(
 }
 
 /// Server-sent events: `status` (the live status, 5 per second) and `log`
-/// (each new log line; the recent ones first).
-pub(super) async fn events(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Response {
+/// (each new log line; the recent ones first), but the lines naming work
+/// the caller may not see (`LogLine::owner`, `store::access`).
+pub(super) async fn events(State(state): State<Arc<PortalState>>, Authed(user): Authed) -> Response {
     use axum::response::sse::{Event, KeepAlive, Sse};
     use futures_util::StreamExt as _;
+    let deployer = state.deployer.clone();
+    let access = match blocking(move || Ok(deployer.access()?)).await {
+        Ok(access) => Arc::new(access),
+        Err(e) => return e.into_response(),
+    };
     let live = state.deployer.live().subscribe();
     let logs = state.logs.subscribe();
     let backlog: Vec<Result<Event, std::convert::Infallible>> = state
         .logs
         .recent()
         .into_iter()
+        .filter(|line| line.visible_to(&user, &access))
         .filter_map(|line| Event::default().event("log").json_data(line).ok())
         .map(Ok)
         .collect();
-    let statuses = futures_util::stream::unfold(live, |mut live| async move {
+    let watcher = user.clone();
+    let statuses = futures_util::stream::unfold((live, watcher), |(mut live, watcher)| async move {
         live.changed().await.ok()?;
         let value = live.borrow_and_update().clone();
-        let event = Event::default().event("status").json_data(&*value).unwrap_or_default();
-        Some((Ok(event), live))
+        let event = Event::default().event("status").json_data(live_status_for(&watcher, &value)).unwrap_or_default();
+        Some((Ok(event), (live, watcher)))
     });
-    let lines = futures_util::stream::unfold(logs, |mut logs| async move {
+    let lines = futures_util::stream::unfold((logs, user, access), |(mut logs, user, access)| async move {
         loop {
             match logs.recv().await {
+                Ok(line) if !line.visible_to(&user, &access) => continue,
                 Ok(line) => {
                     let event = Event::default().event("log").json_data(line).unwrap_or_default();
-                    return Some((Ok(event), logs));
+                    return Some((Ok(event), (logs, user, access)));
                 }
                 Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => continue,
                 Err(tokio::sync::broadcast::error::RecvError::Closed) => return None,
@@ -478,8 +502,16 @@ pub(super) async fn sim_control(
     Ok(Json(serde_json::to_value(status).unwrap_or_default()))
 }
 
-pub(super) async fn recent_logs(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Json<Json_> {
-    Json(json!({ "lines": state.logs.recent() }))
+/// The host's recent log lines, but those naming work the caller may not
+/// see (`LogLine::owner`, `store::access`).
+pub(super) async fn recent_logs(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    let deployer = state.deployer.clone();
+    let access = blocking(move || Ok(deployer.access()?)).await?;
+    let lines: Vec<_> = state.logs.recent().into_iter().filter(|line| line.visible_to(&user, &access)).collect();
+    Ok(Json(json!({ "lines": lines })))
 }
 
 pub(super) async fn audit_log(
@@ -487,8 +519,15 @@ pub(super) async fn audit_log(
     Authed(user): Authed,
 ) -> Result<Json<Json_>, ApiError> {
     authorise(&user, Permission::ReadAudit)?;
-    let store = state.deployer.store.clone();
-    let entries = blocking(move || Ok(store.audit_entries(MAX_AUDIT_READ)?)).await?;
+    let deployer = state.deployer.clone();
+    // A researcher's actions name her work: a developer sees the robot's
+    // people's entries, an admin every one (`store::access`).
+    let entries = blocking(move || {
+        let access = deployer.access()?;
+        let entries = deployer.store.audit_entries(MAX_AUDIT_READ)?;
+        Ok(entries.into_iter().filter(|entry| access.may_see(&user, &entry.user)).collect::<Vec<_>>())
+    })
+    .await?;
     Ok(Json(json!({ "entries": entries })))
 }
 
