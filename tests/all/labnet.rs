@@ -1134,8 +1134,21 @@ fn the_submitter_watches_their_robot_live_and_any_user_stops_one_robot_or_all() 
         assert_eq!(status, expected, "{name} with {token:?}: {json}");
         assert!(json["status"].is_null(), "{json}");
     }
-    let (status, _) = live(Some(&vic), "r1");
-    assert_eq!(status, 200, "a viewer may watch");
+    // Everyone may watch; another's experiment's label and robot file's
+    // name are hers and the admins' (as on the robot's own portal).
+    let (_, own) = live(Some(&ana), "r1");
+    assert_eq!(own["status"]["experiment"]["label"], "several robots", "{own:#}");
+    assert!(own["status"]["config"].as_str().unwrap().contains("ana.xml"), "{own:#}");
+    for token in [&vic, &ben] {
+        let (status, json) = live(Some(token), "r1");
+        assert_eq!(status, 200, "a viewer or another researcher may watch: {json}");
+        let seen = &json["status"];
+        assert_eq!(
+            (&seen["experiment"]["submitter"], &seen["experiment"]["label"]),
+            (&Json::from("ana"), &Json::from(""))
+        );
+        assert!(!seen.to_string().contains("ana.xml") && !seen.to_string().contains("several robots"), "{seen:#}");
+    }
 
     // STOP for r1, by a user who submitted nothing: r1's emergency stop.
     let (status, json) = lab.call(&cy, "POST", "/api/v1/robots/r1/stop", "");

@@ -233,6 +233,19 @@ pub fn sees_experiments_of(user: &Principal, submitter: &str) -> bool {
     user.role == Role::Admin || submitter == user.name
 }
 
+/// A live status (as JSON) as `user` may see it: everyone watches the
+/// robot, but the running experiment's label and its robot file's name are
+/// its submitter's and the admins' ([`sees_experiments_of`]). The robot's
+/// portal and a lab server's `/robots/{name}/live` both show it so.
+pub fn live_status_for(user: &Principal, status: &mut serde_json::Value) {
+    let hidden = status["experiment"]["submitter"].as_str().is_some_and(|s| !sees_experiments_of(user, s));
+    if hidden {
+        let id = status["experiment"]["id"].clone();
+        status["experiment"]["label"] = serde_json::Value::String(String::new());
+        status["config"] = serde_json::Value::String(format!("experiment {id}'s robot file"));
+    }
+}
+
 fn not_found(id: u64) -> LabError {
     LabError::NotFound(format!("no experiment {id}"))
 }

@@ -27,8 +27,12 @@ impl Lab {
     }
 
     /// Robot `name`'s live status, asked of it now (any logged-in user).
-    pub fn robot_live(&self, name: &str) -> Result<serde_json::Value, LabError> {
-        self.fleet_or_refuse()?.live(name)
+    /// As `user` may see it (`live_status_for`): another's experiment's
+    /// label and robot file name hidden.
+    pub fn robot_live(&self, user: &Principal, name: &str) -> Result<serde_json::Value, LabError> {
+        let mut status = self.fleet_or_refuse()?.live(name)?;
+        super::live_status_for(user, &mut status);
+        Ok(status)
     }
 
     /// The lab's STOP: engages the emergency stop of robot `name`, or of

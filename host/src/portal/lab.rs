@@ -379,11 +379,11 @@ pub(super) async fn robots(
 /// One robot's live status, asked of it now (any logged-in user).
 pub(super) async fn robot_live(
     State(state): State<Arc<PortalState>>,
-    Authed(_user): Authed,
+    Authed(user): Authed,
     Path(name): Path<String>,
 ) -> Result<Json<Json_>, ApiError> {
     let lab = state.lab.clone();
-    let status = blocking(move || lab.robot_live(&name)).await?;
+    let status = blocking(move || lab.robot_live(&user, &name)).await?;
     Ok(Json(json!({ "status": status })))
 }
 
