@@ -210,7 +210,8 @@ pub fn log_of(path: &Path) -> String {
 
 /// Writes what experiment `record`'s run on the robot left (the report,
 /// the log from its recording) into its folder, and fills in its run
-/// summary and result files. `watchdog_margin_ms`: how late a cycle may
+/// summary and result files. The videos are made before, by
+/// [`write_videos`], with no lock held (ffmpeg takes seconds). `watchdog_margin_ms`: how late a cycle may
 /// start before the serial link's watchdog could stop the robot for it.
 pub fn write_run_results(
     store: &Store,
@@ -236,7 +237,6 @@ pub fn write_run_results(
         }
     }
     write_log(&dir, record.id);
-    write_videos(&dir, record.id);
     record.run = Some(run);
     record.results = scan(store, record.id);
 }
@@ -261,9 +261,12 @@ fn write_log(dir: &Path, id: u64) {
     }
 }
 
-/// Makes each camera's video of the run from its recording, and says in
-/// [`VIDEO_NOTE`] why a camera has none.
-fn write_videos(dir: &Path, id: u64) {
+/// Makes each camera's video of experiment `id`'s run from its recording
+/// (stopped), and says in [`VIDEO_NOTE`] why a camera has none. Seconds of
+/// ffmpeg: called with no lock held, before [`write_run_results`].
+pub fn write_videos(store: &Store, id: u64) {
+    let dir = store.experiment_dir(id);
+    let dir = dir.as_path();
     let recording = dir.join(RUN_RECORDING);
     let files: Vec<PathBuf> =
         (0..).map(|n| crate::record::rotated_path(&recording, n)).take_while(|file| file.exists()).collect();

@@ -667,6 +667,9 @@ fn end(lab: &Lab, ending: &Ending) {
         (Ok(_), Some(settings)) => Some(lab.self_test(Some(id), &settings)),
         _ => None,
     };
+    // The cameras' videos, before the lab's lock: seconds of ffmpeg must
+    // not hold the portal's views and the queue.
+    bundle::write_videos(lab.store(), id);
     let Ok(mut book) = lab.lock() else { return };
     let duty = book.lab.settings.duty_cycle;
     let (counted, rest) = queue::after_run(duty, book.duty_counted_ms, ran_ns / 1_000_000, unix_now_ms());
@@ -779,6 +782,8 @@ pub(super) fn host_stopped(lab: &Lab, report: Option<&crate::report::Report>) {
     let id = running.id;
     lab.deployer.forget_experiment();
     let ended = crate::deploy::Ended { report: report.cloned(), recording: None };
+    // The host stops: nothing waits on the lab's lock any more.
+    bundle::write_videos(lab.store(), id);
     if let Some(record) = book.experiments.get_mut(&id) {
         bundle::write_run_results(lab.store(), record, &ended, running.started_unix_ms, LATE_CYCLE_MS);
     }
