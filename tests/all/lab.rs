@@ -2078,3 +2078,101 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     going.store(false, Ordering::Relaxed);
     controller.join().unwrap();
 }
+
+/// Many at once: six researchers change their own mail subscriptions
+/// (subscribe with a new address, or unsubscribe) while two admins take the
+/// robot out of service and back, forty times each. Nothing is lost: each
+/// researcher ends with exactly the subscription she last asked for, and
+/// the maintenance state, the successful starts and ends, and their audit
+/// lines agree.
+#[test]
+fn concurrent_mail_subscriptions_and_maintenance_lose_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let store = dir.path().join("store");
+    let users: Vec<String> = (0..6).map(|n| format!("user{n}")).collect();
+    for user in &users {
+        crate::support::add_user(&store, user, "researcher", &["control"], PASSWORD);
+    }
+    crate::support::add_user(&store, "boss2", "admin", &[], PASSWORD);
+    // Mail configured (never sent here: no experiment runs).
+    let config = serde_json::json!({
+        "server": "127.0.0.1", "port": 9, "security": "plain",
+        "from": "lab@robots.example.org", "owner": [],
+    });
+    std::fs::write(store.join("mail.json"), config.to_string()).unwrap();
+    let lab = start(dir.path());
+    const ROUNDS: usize = 40;
+    let subscribers: Vec<(String, String)> = users.iter().map(|u| (u.clone(), lab.token(u))).collect();
+    let admins = [lab.token("boss"), lab.token("boss2")];
+    let (last, toggles) = std::thread::scope(|scope| {
+        let mail: Vec<_> = subscribers
+            .iter()
+            .map(|(user, token)| {
+                let lab = &lab;
+                scope.spawn(move || {
+                    let mut last = None;
+                    for round in 0..ROUNDS {
+                        // Two subscriptions, then an unsubscription, in turn.
+                        if round % 3 == 2 {
+                            let (status, json) = lab.call(token, "DELETE", "/api/v1/lab/mail", "");
+                            assert_eq!(status, 200, "{user}: {json}");
+                            last = None;
+                        } else {
+                            let address = format!("{user}-{round}@example.org");
+                            let body = serde_json::json!({ "address": address, "events": ["experiment.ended"] });
+                            let (status, json) = lab.call(token, "PUT", "/api/v1/lab/mail", &body.to_string());
+                            assert_eq!(status, 200, "{user}: {json}");
+                            last = Some(address);
+                        }
+                    }
+                    (user.clone(), last)
+                })
+            })
+            .collect();
+        let maintenance: Vec<_> = admins
+            .iter()
+            .enumerate()
+            .map(|(a, token)| {
+                let lab = &lab;
+                scope.spawn(move || {
+                    let (mut started, mut ended) = (0usize, 0usize);
+                    for round in 0..ROUNDS {
+                        let (status, json) = if round % 2 == 0 {
+                            let body = serde_json::json!({ "reason": format!("admin {a}, round {round}") });
+                            lab.call(token, "POST", "/api/v1/lab/maintenance", &body.to_string())
+                        } else {
+                            lab.call(token, "DELETE", "/api/v1/lab/maintenance", "")
+                        };
+                        match (round % 2, status) {
+                            (0, 200) => started += 1,
+                            (1, 200) => ended += 1,
+                            (_, 409) => {}
+                            _ => panic!("admin {a}, round {round}: {status} {json}"),
+                        }
+                    }
+                    (started, ended)
+                })
+            })
+            .collect();
+        let last: Vec<(String, Option<String>)> = mail.into_iter().map(|t| t.join().unwrap()).collect();
+        let toggles: Vec<(usize, usize)> = maintenance.into_iter().map(|t| t.join().unwrap()).collect();
+        (last, toggles)
+    });
+    for ((user, wanted), (_, token)) in last.iter().zip(&subscribers) {
+        let (status, json) = lab.call(token, "GET", "/api/v1/lab/mail", "");
+        assert_eq!(status, 200, "{json}");
+        assert_eq!(json["mail"]["address"].as_str(), wanted.as_deref(), "{user}: {json}");
+    }
+    let started: usize = toggles.iter().map(|t| t.0).sum();
+    let ended: usize = toggles.iter().map(|t| t.1).sum();
+    let (_, overview) = lab.call(&admins[0], "GET", "/api/v1/lab", "");
+    let inside = !overview["lab"]["maintenance"].is_null();
+    assert_eq!(started, ended + usize::from(inside), "{started} starts, {ended} ends, in maintenance: {inside}");
+    assert!(started >= 1, "no admin ever took the robot out");
+    let (_, audit) = lab.call(&admins[0], "GET", "/api/v1/audit", "");
+    let count = |action: &str| {
+        audit["entries"].as_array().unwrap().iter().filter(|e| e["action"] == action && e["result"] == "ok").count()
+    };
+    assert_eq!((count("maintenance-start"), count("maintenance-end")), (started, ended), "{audit:#}");
+}
