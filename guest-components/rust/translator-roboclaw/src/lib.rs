@@ -222,7 +222,11 @@ impl Translator for RoboClaw {
             if now_ns.saturating_sub(self.waiting_since_ns) < READS_LOST_AFTER_NS {
                 return Vec::new();
             }
+            // The part of a lost answer still waiting goes with it: read
+            // against the next read's size, it would be taken apart
+            // differently depending on when it came.
             self.pending.clear();
+            self.buffer.clear();
         }
         if self.pending.is_empty() {
             self.waiting_since_ns = now_ns;
