@@ -1645,7 +1645,13 @@ fn through_the_lab_router_with_access_control_a_third_users_rogue_queryable_is_n
     let robot_rogue = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "r2", &r2_password]);
     assert_eq!(robot_rogue.line(Duration::from_secs(60)), "ready");
     let ana = lab.token("ana");
-    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    // Ana's own component, which r1 does not hold: r1 fetches it from the
+    // lab server's blobs through the router.
+    let counter = std::fs::read(support::guest("test-counter")).unwrap();
+    let (status, json) =
+        http(&lab.address, "PUT", "/api/v1/platforms/control/components/counter", Some(&ana), &counter);
+    assert_eq!(status, 201, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, r#"<component name="count" source="counter.wasm" rate="10"/>"#));
     let id = lab.submit(&ana, set, 2.0, Some("r1"));
     let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
     assert_eq!(done["state"], "done", "{done:#}\n{}", lab.logs());
@@ -1657,6 +1663,10 @@ fn through_the_lab_router_with_access_control_a_third_users_rogue_queryable_is_n
     // The lab's STOP reaches r1 through the router.
     let long = lab.submit(&ana, set, 110.0, Some("r1"));
     assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");
+    // The lab's heartbeats reach r1 (which would abort after `--lab-lost`
+    // without them), and its statuses the lab (which would mark it lost).
+    std::thread::sleep(Duration::from_secs_f64(LOST_AFTER_S * 3.0));
+    assert_eq!(lab.experiment(&ana, long)["state"], "running", "{}", lab.logs());
     let (status, json) = lab.call(&ana, "POST", "/api/v1/robots/r1/stop", "");
     assert_eq!(status, 200, "{json}");
     assert_eq!(json["stopped"], serde_json::json!([{"robot": "r1", "engaged": true, "message": "engaged"}]));
