@@ -45,6 +45,11 @@
 //!   flood during a STOP leaves it engaging at once and the robot's audit
 //!   log bounded; a robot's token declared again keeps the robot neither
 //!   listed nor its experiment alive.
+//! - Through a Zenoh router of `eclipse-zenoh` (`tests/python/zenoh_router.py`)
+//!   on the shipped `config/zenoh-lab-router.json5`, its access control
+//!   on: a third user's and another robot's complete queryables on a
+//!   robot's keys are never asked, a session without credentials is
+//!   refused, and the robot works (`done`, its results, the STOP).
 //! - A robot whose owner marked another baseline refuses an experiment the
 //!   lab passed (an envelope difference; a platform its submitter does not
 //!   hold): back in the queue once with the reason, then `refused`.
@@ -327,13 +332,13 @@ impl LabNet {
     /// As [`LabNet::start`]; with `also`, every robot also connects to
     /// that Zenoh endpoint, with that Zenoh config file.
     fn start_with(dir: &Path, robots: usize, also: Option<(&str, &Path)>) -> LabNet {
-        LabNet::start_on(dir, robots, also, None, &[])
+        LabNet::start_on(dir, robots, also, None, &[], None)
     }
 
     /// As [`LabNet::start`], each host in its own network namespace (0 the
     /// lab server), joined by veth links into a hub.
     fn start_in_namespaces(dir: &Path, robots: usize) -> LabNet {
-        LabNet::start_on(dir, robots, None, Some(Namespaces::new(robots + 1)), &[])
+        LabNet::start_on(dir, robots, None, Some(Namespaces::new(robots + 1)), &[], None)
     }
 
     fn start_on(
@@ -342,8 +347,9 @@ impl LabNet {
         also: Option<(&str, &Path)>,
         namespaces: Option<Namespaces>,
         server_args: &[&str],
+        through: Option<&LabRouter>,
     ) -> LabNet {
-        let server_args: Vec<String> = server_args.iter().map(|a| a.to_string()).collect();
+        let mut server_args: Vec<String> = server_args.iter().map(|a| a.to_string()).collect();
         support::guest_dir();
         let store = dir.join("lab").join("store");
         support::add_user(&store, "boss", "admin", &[], PASSWORD);
@@ -351,10 +357,20 @@ impl LabNet {
             support::add_user(&store, name, "researcher", &["control"], PASSWORD);
         }
         support::add_user(&store, VIEWER, "viewer", &[], PASSWORD);
-        let zenoh_port = free_port();
+        let zenoh_port = through.map_or_else(free_port, |router| router.port);
         let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
         let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
-        let (server, address) = spawn_server_at(&store, &server_ip, &zenoh, namespaces.as_ref(), &server_args);
+        // Through a router, the lab server is one of its clients (its own
+        // user) and listens on nothing.
+        let listen = match through {
+            Some(router) => {
+                server_args.extend(["--zenoh-config".into(), router.client_config("lab-server")]);
+                server_args.extend(["--connect".into(), zenoh.clone()]);
+                String::new()
+            }
+            None => zenoh.clone(),
+        };
+        let (server, address) = spawn_server_at(&store, &server_ip, &listen, namespaces.as_ref(), &server_args);
         let secret = store.join("lab.secret");
         let robots = (1..=robots)
             .map(|n| {
@@ -381,6 +397,9 @@ impl LabNet {
                 if let Some((endpoint, config)) = also {
                     connect = format!("{connect},{endpoint}");
                     command.arg("--lab-zenoh-config").arg(config);
+                }
+                if let Some(router) = through {
+                    command.arg("--lab-zenoh-config").arg(router.client_config(&name));
                 }
                 command
                     .args(["--http", &format!("{robot_ip}:0"), "--allow-plain-http"])
@@ -980,7 +999,7 @@ fn local_records(robot: &Robot, lab_id: u64) -> Vec<Json> {
 #[test]
 fn a_dispatch_whose_answer_never_comes_is_withdrawn_and_runs_once_where_both_sides_agree() {
     let dir = tempfile::tempdir().unwrap();
-    let lab = LabNet::start_on(dir.path(), 2, None, None, &["--dispatch-timeout", "3"]);
+    let lab = LabNet::start_on(dir.path(), 2, None, None, &["--dispatch-timeout", "3"], None);
     let (r1, r2) = (lab.robot("r1"), lab.robot("r2"));
     // r2 out of service: the first dispatch can only go to r1.
     let owner2 = support::login(&r2.address, "owner", PASSWORD);
@@ -1543,6 +1562,139 @@ fn a_rogue_complete_queryable_on_a_robots_keys_takes_nothing_experiments_end_don
         assert!(answered["answered"][op].as_u64().unwrap() > 0, "{op}: {answered}");
     }
     assert!(lab_metric(&lab, "subsume_lab_skipped_replies_total") >= 5.0 * 4.0, "{}", lab.logs());
+}
+
+/// A Zenoh router of the `eclipse-zenoh` package
+/// (`tests/python/zenoh_router.py`) on the shipped
+/// `config/zenoh-lab-router.json5`, made for this test's lab: its lab name
+/// for `lab`, and `r1`, `r2` for its robots `robot1`, `robot2` (what docs/lab.md
+/// tells an owner to change), listening on loopback, with a users file of
+/// the lab server's, the robots' and a third user's passwords.
+struct LabRouter {
+    child: std::process::Child,
+    port: u16,
+    dir: PathBuf,
+}
+
+/// The password of the router's third user, `mallory`, who is neither the
+/// lab server nor a robot.
+const MALLORY_PASSWORD: &str = "mallory-router-password";
+
+impl LabRouter {
+    fn start(dir: &Path) -> LabRouter {
+        let dir = dir.join("router");
+        std::fs::create_dir_all(&dir).unwrap();
+        let shipped = std::fs::read_to_string(support::repo_root().join("config/zenoh-lab-router.json5")).unwrap();
+        let config = shipped
+            .replace("subsume/lab/lab/", &format!("subsume/lab/{LAB}/"))
+            .replace("robot1", "r1")
+            .replace("robot2", "r2");
+        std::fs::write(dir.join("router.json5"), config).unwrap();
+        let users =
+            ["lab-server", "r1", "r2"].iter().map(|u| format!("{u}:{}\n", Self::password(u))).collect::<String>();
+        std::fs::write(dir.join("users.txt"), format!("{users}mallory:{MALLORY_PASSWORD}\n")).unwrap();
+        let port = free_port();
+        let mut child = std::process::Command::new(support::python())
+            .arg(support::repo_root().join("tests/python/zenoh_router.py"))
+            .arg(dir.join("router.json5"))
+            .args(["--listen", &format!("tcp/127.0.0.1:{port}")])
+            .arg("--users")
+            .arg(dir.join("users.txt"))
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let mut lines = std::io::BufRead::lines(std::io::BufReader::new(child.stdout.take().unwrap()));
+        let ready = lines.next().and_then(Result::ok).unwrap_or_default();
+        assert!(ready.contains("\"ready\""), "the router did not start: {ready:?}");
+        // What it says later (its log) goes to the test's output.
+        std::thread::spawn(move || lines.map_while(Result::ok).for_each(|line| eprintln!("router: {line}")));
+        LabRouter { child, port, dir }
+    }
+
+    fn password(user: &str) -> String {
+        format!("{user}-router-password")
+    }
+
+    /// A client config (JSON5) that logs in to this router as `user`.
+    fn client_config(&self, user: &str) -> String {
+        let path = self.dir.join(format!("{user}.json5"));
+        let config = serde_json::json!({
+            "mode": "client",
+            // A client listens on nothing: every message goes through the router.
+            "listen": { "endpoints": [] },
+            "scouting": { "multicast": { "enabled": false } },
+            "transport": { "auth": { "usrpwd": { "user": user, "password": Self::password(user) } } },
+        });
+        std::fs::write(&path, config.to_string()).unwrap();
+        path.to_str().unwrap().to_string()
+    }
+}
+
+impl Drop for LabRouter {
+    fn drop(&mut self) {
+        drop(self.child.stdin.take());
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+#[test]
+fn through_the_lab_router_with_access_control_a_third_users_rogue_queryable_is_never_asked_and_the_robot_works() {
+    let dir = tempfile::tempdir().unwrap();
+    let router = LabRouter::start(dir.path());
+    let lab = LabNet::start_on(dir.path(), 1, None, None, &[], Some(&router));
+    let secret = std::fs::read_to_string(dir.path().join("lab").join("store").join("lab.secret")).unwrap();
+    // Without a user and password the router refuses the session.
+    let anonymous = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim()]);
+    let said: Json = serde_json::from_str(&anonymous.line(Duration::from_secs(60))).unwrap();
+    assert!(said["refused"].is_string(), "{said}");
+    // A third user of the router declares complete queryables on every rpc
+    // key of r1, ready to answer first.
+    let rogue = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "mallory", MALLORY_PASSWORD]);
+    assert_eq!(rogue.line(Duration::from_secs(60)), "ready");
+    // So does robot r2's user (a robot taken over), on r1's keys.
+    let r2_password = LabRouter::password("r2");
+    let robot_rogue = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "r2", &r2_password]);
+    assert_eq!(robot_rogue.line(Duration::from_secs(60)), "ready");
+    let ana = lab.token("ana");
+    // Ana's own component, which r1 does not hold: r1 fetches it from the
+    // lab server's blobs through the router.
+    let counter = std::fs::read(support::guest("test-counter")).unwrap();
+    let (status, json) =
+        http(&lab.address, "PUT", "/api/v1/platforms/control/components/counter", Some(&ana), &counter);
+    assert_eq!(status, 201, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, r#"<component name="count" source="counter.wasm" rate="10"/>"#));
+    let id = lab.submit(&ana, set, 2.0, Some("r1"));
+    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
+    assert_eq!(done["state"], "done", "{done:#}\n{}", lab.logs());
+    // r1 works through the router: its results, whole.
+    let out = lab.dir.join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = download_results(&lab.address, &ana, id, &out);
+    assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    // The lab's STOP reaches r1 through the router.
+    let long = lab.submit(&ana, set, 110.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");
+    // The lab's heartbeats reach r1 (which would abort after `--lab-lost`
+    // without them), and its statuses the lab (which would mark it lost).
+    std::thread::sleep(Duration::from_secs_f64(LOST_AFTER_S * 3.0));
+    assert_eq!(lab.experiment(&ana, long)["state"], "running", "{}", lab.logs());
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/robots/r1/stop", "");
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["stopped"], serde_json::json!([{"robot": "r1", "engaged": true, "message": "engaged"}]));
+    wait_stopped_by(lab.robot("r1"), &format!("ana@{LAB}"));
+    let aborted = lab.wait_for(&ana, long, "aborted", Duration::from_secs(120));
+    assert!(aborted.to_string().contains("emergency stop by ana@testlab"), "{aborted:#}");
+    // The router never let the rogue's queryables in: not one query of the
+    // lab's reached them, and the lab skipped no reply.
+    for (who, rogue) in [("mallory", rogue), ("r2", robot_rogue)] {
+        let answered = rogue.finish(Duration::from_secs(30));
+        for op in ["dispatch", "stop", "estop", "results", "file", "baseline", "live"] {
+            assert_eq!(answered["answered"][op], 0, "{who}, {op}: {answered}");
+        }
+    }
+    assert_eq!(lab_metric(&lab, "subsume_lab_skipped_replies_total"), 0.0, "{}", lab.logs());
 }
 
 #[test]

@@ -3,7 +3,7 @@ the eclipse-zenoh package (tests/all/labnet.rs drives it; docs/lab.md,
 "What holds against a peer without the secret"). Each attack is a
 subcommand:
 
-    lab_attack.py rogue ENDPOINT LAB ROBOT CAPTURED_SECRET
+    lab_attack.py rogue ENDPOINT LAB ROBOT CAPTURED_SECRET [USER PASSWORD]
         Declares complete queryables on every rpc key of ROBOT and answers
         each query, at once, with garbage, an unsigned refusal, a reply
         carrying the query's own nonce but signed with a made-up secret,
@@ -12,6 +12,10 @@ subcommand:
         gives it the lab's secret only to stand for them: they never carry
         the nonce of a query they answer). Prints "ready", runs until its
         standard input closes, then prints the queries it answered by op.
+        With USER and PASSWORD it logs in to a router as that user (a
+        third user of a router with access control, such as
+        config/zenoh-lab-router.json5); a session the router refuses is
+        printed as {"refused": WHY}.
 
     lab_attack.py capture ENDPOINT LAB ROBOT OTHER_ROBOT
         Declares a (not complete) queryable on ROBOT's dispatch key, takes
@@ -40,6 +44,7 @@ import sys
 import threading
 import time
 
+import zenoh
 from lab_forge import MAGIC, seal
 from lab_tokens import client
 
@@ -85,8 +90,12 @@ def captured_reply(op, robot, request):
     return ACK, {"v": 2, "re": re, "ok": False, "message": "rogue: captured"}
 
 
-def rogue(endpoint, lab, robot, captured_secret):
-    session = client(endpoint)
+def rogue(endpoint, lab, robot, captured_secret, user=None, password=None):
+    try:
+        session = client(endpoint, user, password)
+    except zenoh.ZError as why:
+        print(json.dumps({"refused": str(why)}), flush=True)
+        return
     answered = {op: 0 for op in OPS}
     lock = threading.Lock()
 

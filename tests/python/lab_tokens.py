@@ -15,12 +15,16 @@ import sys
 import zenoh
 
 
-def client(endpoint):
-    """A Zenoh client session to `endpoint` only (no scouting)."""
+def client(endpoint, user=None, password=None):
+    """A Zenoh client session to `endpoint` only (no scouting), as `user`
+    with `password` when given (a router's user/password authentication)."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if user is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
     return zenoh.open(conf)
 
 
