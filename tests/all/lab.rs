@@ -73,6 +73,21 @@ const REVERSE: &str = r#"<component name="reverse" source="builtin:publish" rate
 
 pub(crate) const WORLD: &str = "bounds 0 0 10 8\nstart 1 1 0\ngoal 8 1 0.3\ncircle 8 6 0.4\n";
 
+/// The lab's robot file without its simulator: its serial link drives
+/// `device` (a pseudo-terminal the test plays the controller on).
+fn real_robot(goal_x: f64, device: &str) -> String {
+    robot(goal_x, "")
+        .replace(
+            r#"<component name="robot-sim" source="builtin:sim">
+      <param name="world" value="lab.world"/>
+      <param name="rays" value="9"/>
+      <param name="fov" value="3.14159"/>
+    </component>"#,
+            "",
+        )
+        .replace("sim:robot-sim", device)
+}
+
 pub(crate) fn robot(goal_x: f64, extra: &str) -> String {
     let mut xml = BASELINE.replace("GOAL_X", &goal_x.to_string()).replace("EXTRA", extra);
     for name in ["avoider", "planner", "range-filter"] {
@@ -800,18 +815,7 @@ fn a_cancel_racing_the_start_has_one_outcome() {
 fn a_real_robot_is_preflighted_against_a_simulated_controller() {
     let dir = tempfile::tempdir().unwrap();
     let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
-    let real = |goal_x: f64| {
-        robot(goal_x, "")
-            .replace(
-                r#"<component name="robot-sim" source="builtin:sim">
-      <param name="world" value="lab.world"/>
-      <param name="rays" value="9"/>
-      <param name="fov" value="3.14159"/>
-    </component>"#,
-                "",
-            )
-            .replace("sim:robot-sim", &device)
-    };
+    let real = |goal_x: f64| real_robot(goal_x, &device);
     std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
     let store = dir.path().join("store");
     crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
@@ -1892,18 +1896,7 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     use std::sync::{Arc, Mutex, atomic::AtomicBool, atomic::Ordering};
     let dir = tempfile::tempdir().unwrap();
     let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
-    let real = |goal_x: f64| {
-        robot(goal_x, "")
-            .replace(
-                r#"<component name="robot-sim" source="builtin:sim">
-      <param name="world" value="lab.world"/>
-      <param name="rays" value="9"/>
-      <param name="fov" value="3.14159"/>
-    </component>"#,
-                "",
-            )
-            .replace("sim:robot-sim", &device)
-    };
+    let real = |goal_x: f64| real_robot(goal_x, &device);
     std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
     let store = dir.path().join("store");
     crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);

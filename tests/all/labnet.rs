@@ -530,6 +530,18 @@ impl LabNet {
         }
     }
 
+    /// Runs `set` for 2 s on robot `robot` as the user of `token`: it ends
+    /// `done`, and its results come back with the run's recording whole.
+    fn run_to_done_with_whole_results(&self, token: &str, set: u64, robot: &str) {
+        let id = self.submit(token, set, 2.0, Some(robot));
+        let done = self.wait_for(token, id, "done", Duration::from_secs(180));
+        assert_eq!(done["state"], "done", "{done:#}\n{}", self.logs());
+        let out = self.dir.join(format!("results-{id}"));
+        std::fs::create_dir_all(&out).unwrap();
+        let bundle = download_results(&self.address, token, id, &out);
+        assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    }
+
     fn robot(&self, name: &str) -> &Robot {
         self.robots.iter().find(|r| r.name == name).unwrap()
     }
@@ -1535,14 +1547,8 @@ fn a_rogue_complete_queryable_on_a_robots_keys_takes_nothing_experiments_end_don
     assert_eq!(rogue.line(Duration::from_secs(60)), "ready");
     let ana = lab.token("ana");
     let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
-    let id = lab.submit(&ana, set, 2.0, Some("r1"));
-    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
-    assert_eq!(done["state"], "done", "{done:#}\n{}", lab.logs());
-    // Its results came from r1, whole, past the rogue's chunks.
-    let out = lab.dir.join("results");
-    std::fs::create_dir_all(&out).unwrap();
-    let bundle = download_results(&lab.address, &ana, id, &out);
-    assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    // Its results come from r1, whole, past the rogue's chunks.
+    lab.run_to_done_with_whole_results(&ana, set, "r1");
     // The lab's STOP reaches r1 through the rogue's answers.
     let long = lab.submit(&ana, set, 110.0, Some("r1"));
     assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");
@@ -1665,14 +1671,8 @@ fn through_the_lab_router_with_access_control_a_third_users_rogue_queryable_is_n
         http(&lab.address, "PUT", "/api/v1/platforms/control/components/counter", Some(&ana), &counter);
     assert_eq!(status, 201, "{json}");
     let set = lab.stage(&ana, "ana.xml", &robot(7.0, r#"<component name="count" source="counter.wasm" rate="10"/>"#));
-    let id = lab.submit(&ana, set, 2.0, Some("r1"));
-    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
-    assert_eq!(done["state"], "done", "{done:#}\n{}", lab.logs());
     // r1 works through the router: its results, whole.
-    let out = lab.dir.join("results");
-    std::fs::create_dir_all(&out).unwrap();
-    let bundle = download_results(&lab.address, &ana, id, &out);
-    assert!(read_mcap(&bundle.join("run.mcap"), false)["complete"].as_bool().unwrap());
+    lab.run_to_done_with_whole_results(&ana, set, "r1");
     // The lab's STOP reaches r1 through the router.
     let long = lab.submit(&ana, set, 110.0, Some("r1"));
     assert_eq!(lab.wait_for(&ana, long, "running", Duration::from_secs(180))["state"], "running");

@@ -191,16 +191,7 @@ impl Lab {
             let ends = test.passed && book.lab.maintenance.as_ref().is_some_and(|m| m.by == SELF_TEST_USER);
             self.keep_self_test(&mut book, test.clone());
             if ends {
-                let mut lab = book.lab.clone();
-                let ended = lab.maintenance.take();
-                self.store().lock()?.put_lab_state(&lab)?;
-                book.lab = lab;
-                drop(book);
-                let was = ended.map_or_else(String::new, |m| m.reason);
-                let detail = format!("back in service: the self-test {} ran passed; was: {was}", user.name);
-                self.audit(SELF_TEST_USER, "maintenance-end", "the robot", Outcome::Ok(&detail));
-                self.tell_robot(EventKind::RobotMaintenanceEnded, &detail);
-                self.notify();
+                self.end_self_test_maintenance(&mut book, &format!("the self-test {} ran passed", user.name))?;
             }
             Ok(test)
         };
@@ -233,19 +224,26 @@ impl Lab {
             return;
         }
         let said = readings.iter().map(|(n, v)| format!("link '{n}': {v:.2} V")).collect::<Vec<_>>().join("; ");
-        let mut lab = book.lab.clone();
-        let Some(ended) = lab.maintenance.take() else { return };
-        if let Err(e) = self.store().lock().and_then(|writer| writer.put_lab_state(&lab)) {
-            return tracing::error!("the robot stays out of service: its end was not stored: {e}");
+        let why = format!("the battery is charged ({said}, at least {resume:.2} V)");
+        if let Err(e) = self.end_self_test_maintenance(book, &why) {
+            tracing::error!("the robot stays out of service: its end was not stored: {e}");
         }
+    }
+
+    /// Ends the maintenance the self-test began (`why`: what brought the
+    /// robot back): stored, audited as the self-test's, told to the owner.
+    fn end_self_test_maintenance(&self, book: &mut Book, why: &str) -> Result<(), LabError> {
+        let mut lab = book.lab.clone();
+        let Some(ended) = lab.maintenance.take() else { return Ok(()) };
+        self.store().lock()?.put_lab_state(&lab)?;
         book.lab = lab;
         book.battery_watch = None;
-        let detail =
-            format!("back in service: the battery is charged ({said}, at least {resume:.2} V); was: {}", ended.reason);
+        let detail = format!("back in service: {why}; was: {}", ended.reason);
         tracing::info!("{detail}");
         self.audit(SELF_TEST_USER, "maintenance-end", "the robot", Outcome::Ok(&detail));
         self.tell_robot(EventKind::RobotMaintenanceEnded, &detail);
         self.notify();
+        Ok(())
     }
 }
 
