@@ -219,6 +219,23 @@ pub(crate) fn download_results(address: &str, token: &str, id: u64, into: &Path)
     folder
 }
 
+/// Downloads the lab kit as `token` and unpacks it into `out` (GNU tar):
+/// its folder, `out/lab-kit`.
+fn fetch_kit(lab: &Lab, token: &str, out: &Path) -> PathBuf {
+    let kit = out.join("kit.tar");
+    let fetched = Command::new("curl")
+        .args(["-s", "-f", "-o"])
+        .arg(&kit)
+        .args(["-H", &format!("Authorization: Bearer {token}")])
+        .arg(format!("http://{}/api/v1/lab/kit", lab.address))
+        .status()
+        .unwrap();
+    assert!(fetched.success());
+    let unpacked = Command::new("tar").arg("-xf").arg(&kit).arg("-C").arg(out).status().unwrap();
+    assert!(unpacked.success());
+    out.join("lab-kit")
+}
+
 /// The states an experiment went through, in order.
 fn states(experiment: &Json) -> Vec<String> {
     experiment["history"].as_array().unwrap().iter().map(|c| c["state"].as_str().unwrap().to_string()).collect()
@@ -891,17 +908,7 @@ fn a_real_robot_is_preflighted_against_a_simulated_controller() {
     );
     // The kit: the baseline in its preflight form, which `subsume run`
     // judges as the lab does.
-    let kit = out.join("kit.tar");
-    let fetched = Command::new("curl")
-        .args(["-s", "-f", "-o"])
-        .arg(&kit)
-        .args(["-H", &format!("Authorization: Bearer {ana}")])
-        .arg(format!("http://{}/api/v1/lab/kit", lab.address))
-        .status()
-        .unwrap();
-    assert!(fetched.success());
-    let unpacked = Command::new("tar").arg("-xf").arg(&kit).arg("-C").arg(&out).status().unwrap();
-    assert!(unpacked.success());
+    fetch_kit(&lab, &ana, &out);
     let verdict = out.join("kit-verdict.json");
     let run = crate::support::subsume()
         .arg("run")
@@ -2168,4 +2175,186 @@ fn concurrent_mail_subscriptions_and_maintenance_lose_nothing() {
         audit["entries"].as_array().unwrap().iter().filter(|e| e["action"] == action && e["result"] == "ok").count()
     };
     assert_eq!((count("maintenance-start"), count("maintenance-end")), (started, ended), "{audit:#}");
+}
+
+/// The reset set of the lab's baseline: the same robot, with the planner
+/// replaced by the homing component (uploaded as `homing`) driving to
+/// (`x`, `y`, `heading`).
+fn reset_robot(x: f64, y: f64, heading: f64) -> String {
+    let planner = format!(r#"source="{}""#, crate::support::guest("planner").display());
+    let goal = r#"<param name="goal-x" value="8"/>
+      <param name="goal-y" value="1.0"/>"#;
+    let xml = robot(8.0, "");
+    assert!(xml.contains(&planner) && xml.contains(goal), "the baseline's planner changed: {xml}");
+    xml.replace(&planner, r#"source="homing.wasm""#).replace(
+        goal,
+        &format!(
+            r#"<param name="goal-x" value="{x}"/>
+      <param name="goal-y" value="{y}"/>
+      <param name="goal-heading" value="{heading}"/>
+      <param name="tolerance" value="0.1"/>
+      <param name="heading-tolerance" value="0.1"/>
+      <param name="max-speed" value="0.5"/>
+      <param name="max-turn" value="1.5"/>"#
+        ),
+    )
+}
+
+/// The simulated robot's pose as the portal's live status shows it.
+fn sim_pose(lab: &Lab, token: &str) -> (f64, f64, f64) {
+    let (status, json) = lab.call(token, "GET", "/api/v1/status", "");
+    assert_eq!(status, 200, "{json}");
+    let sim = &json["sim"];
+    (
+        sim["x"].as_f64().unwrap_or(f64::NAN),
+        sim["y"].as_f64().unwrap_or(f64::NAN),
+        sim["heading"].as_f64().unwrap_or(f64::NAN),
+    )
+}
+
+/// Issue 40, reset by driving: with the `drive` policy, before each
+/// experiment the owner's reset set (the homing component above the
+/// avoider, under the robot's own envelope) drives the simulated robot
+/// back from wherever the baseline left it (nothing resets the simulated
+/// world) to the start pose; the outcome is on the record, and the
+/// experiment starts there (the preflight's simulated robot too). A
+/// reset that cannot reach its pose in time takes the robot out of
+/// service `by: reset`, and leaves the experiment queued, the baseline running; fixed
+/// and back in service, the experiment runs. Bad settings are refused by
+/// name.
+#[test]
+fn a_drive_reset_brings_the_robot_back_before_each_experiment_and_one_that_cannot_takes_it_out_of_service() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let baseline = lab.active_set(&boss);
+    let homing = std::fs::read(crate::support::guest("homing")).unwrap();
+    let (status, json) = http(&lab.address, "PUT", "/api/v1/platforms/control/components/homing", Some(&boss), &homing);
+    assert_eq!(status, 201, "{json}");
+    let reset_set = lab.stage(&boss, "reset.xml", &reset_robot(1.0, 1.0, 0.0));
+    // A reset set that loosens the envelope is not one.
+    let envelope = r#"<component name="envelope" source="builtin:envelope" rate="20">"#;
+    let loose =
+        reset_robot(1.0, 1.0, 0.0).replace(envelope, &format!(r#"{envelope}<param name="max-speed" value="2.0"/>"#));
+    assert_ne!(loose, reset_robot(1.0, 1.0, 0.0));
+    let loose_set = lab.stage(&boss, "loose.xml", &loose);
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    let drive = |set: u64, x: f64, y: f64, timeout_s: u64| {
+        serde_json::json!({
+            "set": set, "pose": {"x": x, "y": y, "heading": 0.0},
+            "tolerance": {"position_m": 0.3, "heading_rad": 0.3}, "timeout_s": timeout_s, "settle_s": 1.0
+        })
+    };
+    settings["reset"] = Json::String("drive".into());
+    let refused = [
+        (Json::Null, "reset: drive needs drive_reset"),
+        (drive(reset_set, 1.0, 1.0, 0), "drive_reset.timeout_s must be from 1 to 600, got 0"),
+        (drive(9999, 1.0, 1.0, 60), "drive_reset.set: "),
+        (drive(loose_set, 1.0, 1.0, 60), "an experiment runs with the robot's own envelope settings"),
+    ];
+    for (given, expected) in refused {
+        settings["drive_reset"] = given;
+        let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+        assert_eq!(status, 400, "{expected}: {json}");
+        assert!(json["error"].as_str().unwrap().contains(expected), "{expected}: {json}");
+    }
+    settings["drive_reset"] = drive(reset_set, 1.0, 1.0, 90);
+    let (status, json) = lab.call(&ana, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 403, "{json}");
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    // The preflight (and the kit, which is the baseline in the preflight's
+    // form) starts the simulated robot at the start pose.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let kit = fetch_kit(&lab, &boss, &out);
+    let world = std::fs::read_to_string(kit.join("files/robot-sim-world-lab.world")).unwrap();
+    assert!(world.contains("start 1 1 0 # the lab's reset pose") && !world.contains("start 1 1 0\n"), "{world}");
+    // The baseline drives the robot away from the start, toward (8, 1).
+    let wait_driven_away = || {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while sim_pose(&lab, &boss).0 < 3.0 {
+            assert!(Instant::now() < deadline, "the baseline never drove away: {:?}", sim_pose(&lab, &boss));
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    };
+    wait_driven_away();
+    let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
+    let submit = || {
+        let body = serde_json::json!({ "set": set, "duration_s": 3 }).to_string();
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        json["experiment"]["id"].as_u64().unwrap()
+    };
+    let first = submit();
+    let done = lab.wait_for(&ana, first, "done", Duration::from_secs(240));
+    assert_eq!(done["state"], "done", "{done:#}");
+    let reset = &done["reset"];
+    assert_eq!(reset["passed"], true, "{done:#}");
+    let from = (reset["from"]["x"].as_f64().unwrap(), reset["from"]["y"].as_f64().unwrap());
+    assert!(from.0 >= 3.0, "the reset began where the baseline left the robot: {reset}");
+    let (x, y, heading) = (
+        reset["pose"]["x"].as_f64().unwrap(),
+        reset["pose"]["y"].as_f64().unwrap(),
+        reset["pose"]["heading"].as_f64().unwrap(),
+    );
+    assert!((x - 1.0).hypot(y - 1.0) <= 0.3 && heading.sin().atan2(heading.cos()).abs() <= 0.3, "{reset}");
+    // Driving 2 m and more at most 0.5 m/s, then the settle.
+    assert!(reset["took_s"].as_f64().unwrap() >= 5.0, "{reset}");
+    // The reset came before the run, and the run started at the start pose:
+    // its recorded first pose is where the reset ended.
+    let bundle = lab.results(&ana, first, &out);
+    let recorded = read_mcap(&bundle.join("run.mcap"), false);
+    let first_pose = &recorded["first"]["/motors/pose"]["value"];
+    let (px, py) = (first_pose[0].as_f64().unwrap(), first_pose[1].as_f64().unwrap());
+    assert!((px - x).hypot(py - y) < 0.2, "the run's first pose ({px}, {py}) vs the reset's ({x}, {y})");
+    let (_, audit) = lab.call(&boss, "GET", "/api/v1/audit", "");
+    let actions: Vec<String> = audit["entries"].as_array().unwrap().iter().map(|e| e["action"].to_string()).collect();
+    for action in ["reset-start", "reset-end"] {
+        assert!(actions.iter().any(|a| a.contains(action)), "no {action} in {actions:?}");
+    }
+    assert_eq!(lab.active_set(&boss), baseline);
+    // A timeout too short to drive back the 2 m and more the baseline
+    // takes the robot away again: the reset cannot make it.
+    settings["drive_reset"] = drive(reset_set, 1.0, 1.0, 1);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    wait_driven_away();
+    let second = submit();
+    let deadline = Instant::now() + Duration::from_secs(240);
+    let maintenance = loop {
+        let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+        if !overview["lab"]["maintenance"].is_null() {
+            break overview["lab"]["maintenance"].clone();
+        }
+        assert!(
+            Instant::now() < deadline,
+            "the failed reset never took the robot out: {overview:#}\n{}",
+            lab.host.log()
+        );
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert_eq!(maintenance["by"], "reset", "{maintenance:#}");
+    let reason = maintenance["reason"].as_str().unwrap();
+    assert!(reason.contains(&format!("the reset before experiment {second} failed")), "{reason}");
+    assert!(
+        reason.contains("after 1 s, not at the start pose (1.00, 1.00, 0.00 rad) within 0.30 m and 0.30 rad"),
+        "{reason}"
+    );
+    let waiting = lab.experiment(&ana, second);
+    assert_eq!(waiting["state"], "queued", "{waiting:#}");
+    assert_eq!(waiting["reset"]["passed"], false, "{waiting:#}");
+    assert_eq!(lab.active_set(&boss), baseline, "the baseline runs again after the failed reset");
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(lab.experiment(&ana, second)["state"], "queued");
+    // Fixed, and back in service: the experiment runs, from the start.
+    settings["drive_reset"] = drive(reset_set, 1.0, 1.0, 90);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let (status, json) = lab.call(&boss, "DELETE", "/api/v1/lab/maintenance", "");
+    assert_eq!(status, 200, "{json}");
+    let done = lab.wait_for(&ana, second, "done", Duration::from_secs(240));
+    assert_eq!((&done["state"], &done["reset"]["passed"]), (&Json::from("done"), &Json::Bool(true)), "{done:#}");
 }

@@ -72,6 +72,9 @@ pub struct ExperimentGate {
     /// after it): what robot files are staged against meanwhile.
     before: Mutex<Option<(SetRecord, Arc<RobotConfig>)>>,
     preempt: Mutex<Option<Weak<dyn Preempt>>>,
+    /// The experiment the lab's reset set drives the robot back for, while
+    /// it does (`reset.rs`).
+    resetting: Mutex<Option<u64>>,
 }
 
 impl ExperimentGate {
@@ -86,8 +89,19 @@ impl ExperimentGate {
         }
     }
 
-    fn set_before(&self, before: Option<(SetRecord, Arc<RobotConfig>)>) {
+    pub(super) fn set_before(&self, before: Option<(SetRecord, Arc<RobotConfig>)>) {
         if let Ok(mut slot) = self.before.lock() {
+            *slot = before;
+        }
+    }
+
+    /// The experiment the lab's reset runs for, while one runs.
+    pub fn resetting(&self) -> Option<u64> {
+        self.resetting.lock().ok().and_then(|r| *r)
+    }
+
+    pub(super) fn set_resetting(&self, before: Option<u64>) {
+        if let Ok(mut slot) = self.resetting.lock() {
             *slot = before;
         }
     }
@@ -109,6 +123,11 @@ impl ExperimentGate {
     /// ends for anyone but an admin; for an admin, the experiment is ended
     /// first and the answer says so.
     pub(super) fn admit(&self, user: &Principal, what: &str) -> Result<Option<String>, DeployError> {
+        if let Some(before) = self.resetting() {
+            return Err(DeployError::Conflict(format!(
+                "the lab drives the robot back to its start before experiment {before}: nobody changes what runs until the reset ends"
+            )));
+        }
         let Some(running) = self.running() else { return Ok(None) };
         if user.role != Role::Admin {
             let left_s = running.ends_unix_ms.saturating_sub(unix_now_ms()).div_ceil(1000);
@@ -158,7 +177,7 @@ fn simulated_robots(config: &RobotConfig) -> impl Iterator<Item = &crate::config
     config.components.iter().filter(move |c| matches!(c.source, ComponentSource::Builtin(k) if Some(k) == sim))
 }
 
-fn lab_user() -> Principal {
+pub(super) fn lab_user() -> Principal {
     Principal::host(LAB_USER)
 }
 
@@ -354,24 +373,7 @@ impl Deployer {
         let mut active = self.lock_active()?;
         let recordings = self.recordings_service()?;
         let target = format!("set {baseline} (after experiment {id})");
-        let prepared = self.store.set(baseline).map_err(DeployError::from).and_then(|set| {
-            if active.set.id == baseline && self.experiments.running().is_none() {
-                return Err(DeployError::Conflict(format!("the baseline (set {baseline}) runs already")));
-            }
-            self.build_beside(&lab_user(), set, &active)
-        });
-        let prepared = match prepared {
-            Ok(ready) => Ok(ready),
-            Err(e) => {
-                if let Some(locks) = self.services.get::<Locks>() {
-                    locks.engage(LAB_LOCK, LAB_USER, "the baseline did not start after an experiment", unix_now_ms());
-                }
-                tracing::error!(
-                    "experiment {id} ended, but the baseline (set {baseline}) did not start: {e}; the emergency stop is engaged"
-                );
-                Err(e)
-            }
-        };
+        let prepared = self.build_baseline_or_stop(&active, baseline, &format!("experiment {id}"));
         self.commit(
             LAB_USER,
             "experiment-end",
@@ -386,7 +388,6 @@ impl Deployer {
                 self.swap_in_reporting(ready, &mut active, Some((ran_ns, sender)), None)?;
                 self.experiments.set(None);
                 self.experiments.set_before(None);
-                self.experiments.set_before(None);
                 if writer.state()?.active != Some(baseline) {
                     writer.mark_active(baseline)?;
                 }
@@ -394,6 +395,40 @@ impl Deployer {
             },
             |_| format!("experiment {id} {stopped_by}; the baseline (set {baseline}) runs"),
         )
+    }
+
+    /// The baseline (set `baseline`) built beside what runs after `what`
+    /// (an experiment, a reset). If it cannot be built, the emergency stop
+    /// is engaged first: the robot never goes on under what ran.
+    pub(super) fn build_baseline_or_stop(
+        &self,
+        active: &super::Deployment,
+        baseline: u64,
+        what: &str,
+    ) -> Result<Ready, DeployError> {
+        let built = self.store.set(baseline).map_err(DeployError::from).and_then(|set| {
+            if active.set.id == baseline
+                && self.experiments.running().is_none()
+                && self.experiments.resetting().is_none()
+            {
+                return Err(DeployError::Conflict(format!("the baseline (set {baseline}) runs already")));
+            }
+            self.build_beside(&lab_user(), set, active)
+        });
+        if let Err(e) = &built {
+            self.engage_lab_stop(&format!("the baseline did not start after {what}"));
+            tracing::error!(
+                "{what} ended, but the baseline (set {baseline}) did not start: {e}; the emergency stop is engaged"
+            );
+        }
+        built
+    }
+
+    /// Engages the lab's emergency stop for `why`.
+    pub(super) fn engage_lab_stop(&self, why: &str) {
+        if let Some(locks) = self.services.get::<Locks>() {
+            locks.engage(LAB_LOCK, LAB_USER, why, unix_now_ms());
+        }
     }
 
     /// Forgets the running experiment without a swap: the host is

@@ -32,6 +32,7 @@ mod history;
 mod lab_sets;
 mod recordings;
 mod replay;
+mod reset;
 mod sim;
 mod stage;
 mod swap;

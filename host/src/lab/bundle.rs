@@ -490,6 +490,7 @@ mod tests {
             first_wait_ms: None,
             origin: None,
             placement: None,
+            reset: None,
         }
     }
 

@@ -45,8 +45,15 @@ impl Lab {
         };
         let dir = tempfile::tempdir().map_err(|e| LabError::Host(format!("cannot make the kit's folder: {e}")))?;
         let comment = format!("the lab's baseline (set {baseline}) in its preflight form: the lab kit (docs/lab.md)");
-        let written = materialize::write_preflight_form(self.store(), &set, world.as_ref(), dir.path(), &comment)
-            .map_err(|e| LabError::Host(e.to_string()))?;
+        let written = materialize::write_preflight_form(
+            self.store(),
+            &set,
+            world.as_ref(),
+            settings.start_pose(),
+            dir.path(),
+            &comment,
+        )
+        .map_err(|e| LabError::Host(e.to_string()))?;
         let criteria = serde_json::to_vec_pretty(&settings.criteria).map_err(|e| LabError::Host(e.to_string()))?;
         let readme = format!(
             "The lab's robot (set {baseline}), as the lab's preflight runs it.\n\n\

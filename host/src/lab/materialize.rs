@@ -24,9 +24,10 @@ use std::path::{Path, PathBuf};
 use thiserror::Error;
 
 use crate::assemble::registry;
-use crate::builtin::{PreflightContext, check_values};
+use crate::builtin::{Builtin, PreflightContext, check_values};
 use crate::config::SourceMap;
 use crate::config::raw::{self, RawComponent, RawParam, Spanned};
+use crate::store::experiments::Pose;
 use crate::store::{SetRecord, Store, StoreError};
 
 /// Largest file a built-in names that is copied (a world, a translator):
@@ -79,16 +80,48 @@ fn io(path: &Path) -> impl Fn(std::io::Error) -> MaterializeError + '_ {
     move |source| MaterializeError::Io { path: path.to_path_buf(), source }
 }
 
+/// The world file `bytes` with its `start` line set to `pose` (the lab's
+/// reset-by-driving start pose, docs/lab.md): the preflight's simulated
+/// robot starts where the robot will. Other lines are kept; a file that is
+/// not text is kept as it is (its check says why).
+pub fn world_with_start(bytes: &[u8], pose: Pose) -> Vec<u8> {
+    let Ok(text) = std::str::from_utf8(bytes) else { return bytes.to_vec() };
+    let start = format!("start {} {} {}", pose.x, pose.y, pose.heading);
+    let mut found = false;
+    let mut lines: Vec<String> = text
+        .lines()
+        .map(|line| {
+            if line.split_whitespace().next() == Some("start") {
+                found = true;
+                format!("{start} # the lab's reset pose")
+            } else {
+                line.to_string()
+            }
+        })
+        .collect();
+    if !found {
+        lines.push(start);
+    }
+    let mut out = lines.join("\n");
+    out.push('\n');
+    out.into_bytes()
+}
+
 /// Writes set `set` into `dir` (which must exist) in its preflight form,
-/// its simulated robots in `world` when given; `comment` heads the robot
-/// file.
+/// its simulated robots in `world` when given, starting at `start` when
+/// given; `comment` heads the robot file.
 pub fn write_preflight_form(
     store: &Store,
     set: &SetRecord,
     world: Option<&PreflightWorld>,
+    start: Option<Pose>,
     dir: &Path,
     comment: &str,
 ) -> Result<Written, MaterializeError> {
+    let started = |bytes: Vec<u8>| match start {
+        Some(pose) => world_with_start(&bytes, pose),
+        None => bytes,
+    };
     let damaged = |reason: String| MaterializeError::Damaged { set: set.id, reason };
     let text = String::from_utf8(store.blob(&set.config_sha256)?)
         .map_err(|e| damaged(format!("the robot file is not utf-8: {e}")))?;
@@ -103,7 +136,7 @@ pub fn write_preflight_form(
     let mut out = Folder { dir, files: Vec::new() };
     let world_file = match world {
         Some(world) => {
-            let bytes = store.blob(&world.sha256)?;
+            let bytes = started(store.blob(&world.sha256)?);
             Some(out.write("files/preflight.world", &bytes)?)
         }
         None => None,
@@ -157,7 +190,12 @@ pub fn write_preflight_form(
                     continue;
                 };
                 let Some(file) = decl.file(&file) else { continue };
-                let bytes = named_file(store, set, file)?;
+                let mut bytes = named_file(store, set, file)?;
+                if decl.name == crate::sim::builtin::WORLD_PARAM
+                    && builtin.kind() == crate::sim::builtin::SimBuiltin.kind()
+                {
+                    bytes = started(bytes);
+                }
                 let base =
                     Path::new(file).file_name().map_or_else(|| "file".into(), |n| n.to_string_lossy().into_owned());
                 let written = out.write(&format!("files/{name}-{}-{}", decl.name, safe_name(&base)), &bytes)?;
@@ -349,5 +387,34 @@ impl Folder<'_> {
         self.files.retain(|(name, _)| name != relative);
         self.files.push((relative.to_string(), bytes.len() as u64));
         Ok(relative.to_string())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_reset_pose_replaces_the_worlds_start_and_the_world_still_reads() {
+        let pose = Pose { x: 2.5, y: 1.0, heading: -0.5 };
+        let cases: [(&str, &[u8], &str); 3] = [
+            ("a start line", b"bounds 0 0 10 8\nstart 1 1 0.6\ngoal 8 1 0.3\n", "start 2.5 1 -0.5"),
+            (
+                "indented, among comments",
+                b"# a world\nbounds 0 0 10 8\n  start   1 1 0\ngoal 8 1 0.3",
+                "start 2.5 1 -0.5",
+            ),
+            ("no start line (the check says so without it)", b"bounds 0 0 10 8\ngoal 8 1 0.3\n", "start 2.5 1 -0.5"),
+        ];
+        for (case, world, expected) in cases {
+            let written = String::from_utf8(world_with_start(world, pose)).unwrap();
+            assert_eq!(written.lines().filter(|l| l.trim_start().starts_with("start")).count(), 1, "{case}: {written}");
+            assert!(written.contains(expected), "{case}: {written}");
+            let parsed = crate::sim::world::parse(Path::new("w.world"), &written);
+            let (at, heading) = parsed.unwrap_or_else(|e| panic!("{case}: {e}")).start;
+            assert_eq!((at.x, at.y, heading), (2.5, 1.0, -0.5), "{case}");
+        }
+        let binary = [0xff, 0xfe, b's'];
+        assert_eq!(world_with_start(&binary, pose), binary.to_vec(), "not text: kept as it is");
     }
 }

@@ -46,6 +46,7 @@ mod owner;
 pub mod preflight;
 pub mod queue;
 mod reservations;
+pub mod reset;
 pub mod robot_link;
 mod robots;
 mod runner;

@@ -4,14 +4,18 @@
 
 use super::{Lab, LabError, MAX_DURATION_CAP_S, MIN_DURATION_S};
 use crate::contract::clip;
-use crate::store::experiments::{LabSettings, LabState};
+use crate::store::experiments::{
+    DriveReset, LabSettings, LabState, MAX_RESET_SETTLE_S, MAX_RESET_TIMEOUT_S, ResetPolicy,
+};
 use crate::store::users::{Principal, Role};
 
 impl Lab {
     /// Changes the owner's settings (admins).
     pub fn set_settings(&self, user: &Principal, settings: LabSettings) -> Result<LabSettings, LabError> {
+        let reset_set = self.check_reset_set(user, &settings);
         self.admin_change(user, "lab-settings", "lab", |lab| {
             check_settings(&settings)?;
+            reset_set?;
             lab.settings = settings.clone();
             Ok(format!(
                 "max-duration {} s, {} queued and {} robot-minutes a day per user",
@@ -19,6 +23,28 @@ impl Lab {
             ))
         })
         .map(|lab| lab.settings)
+    }
+
+    /// With the `drive` reset policy: the reset set must be stored, run
+    /// here (not on a lab server), validate, and keep the baseline's
+    /// envelope (as an experiment's set must).
+    fn check_reset_set(&self, user: &Principal, settings: &LabSettings) -> Result<(), LabError> {
+        let Some(drive) = settings.drive_reset.as_ref().filter(|_| settings.reset == ResetPolicy::Drive) else {
+            return Ok(());
+        };
+        if self.fleet().is_some() {
+            return Err(LabError::BadRequest(
+                "reset: the lab server runs no robot: the drive reset is each robot's own lab setting".into(),
+            ));
+        }
+        if user.role != Role::Admin {
+            return Ok(());
+        }
+        let baseline = self.baseline(&self.lock()?.lab);
+        self.deployer
+            .check_experiment_set(user, drive.set, baseline)
+            .map(|_| ())
+            .map_err(|e| LabError::BadRequest(format!("drive_reset.set: {e}")))
     }
 
     /// Marks set `set` as the baseline (admins); it must validate.
@@ -147,8 +173,43 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
             }
         }
     }
+    match (&settings.reset, &settings.drive_reset) {
+        (ResetPolicy::Drive, None) => {
+            return bad("reset: drive needs drive_reset (the reset set, the start pose and its tolerances)".into());
+        }
+        (_, Some(drive)) => check_drive_reset(drive)?,
+        _ => {}
+    }
     if !(1..=7 * 24 * 3600).contains(&settings.stuck_after_min_s) {
         return bad(format!("stuck_after_min_s must be from 1 to 604800 (a week), got {}", settings.stuck_after_min_s));
+    }
+    Ok(())
+}
+
+fn check_drive_reset(drive: &DriveReset) -> Result<(), LabError> {
+    let bad = |why: String| Err(LabError::BadRequest(format!("drive_reset.{why}")));
+    let pose = drive.pose;
+    if ![pose.x, pose.y, pose.heading].iter().all(|v| v.is_finite() && v.abs() <= 1e6) {
+        return bad(format!("pose must be finite metres and radians, got ({}, {}, {})", pose.x, pose.y, pose.heading));
+    }
+    let tolerance = drive.tolerance;
+    if !(tolerance.position_m.is_finite() && tolerance.position_m > 0.0 && tolerance.position_m <= 10.0) {
+        return bad(format!("tolerance.position_m must be above 0 and at most 10 m, got {}", tolerance.position_m));
+    }
+    let pi = std::f64::consts::PI;
+    if !(tolerance.heading_rad.is_finite() && tolerance.heading_rad > 0.0 && tolerance.heading_rad <= pi) {
+        return bad(format!("tolerance.heading_rad must be above 0 and at most pi, got {}", tolerance.heading_rad));
+    }
+    if !(1..=MAX_RESET_TIMEOUT_S).contains(&drive.timeout_s) {
+        return bad(format!("timeout_s must be from 1 to {MAX_RESET_TIMEOUT_S}, got {}", drive.timeout_s));
+    }
+    if !(drive.settle_s.is_finite() && (0.0..=MAX_RESET_SETTLE_S).contains(&drive.settle_s)) {
+        return bad(format!("settle_s must be from 0 to {MAX_RESET_SETTLE_S}, got {}", drive.settle_s));
+    }
+    if let Some(link) = &drive.link
+        && (link.is_empty() || link.len() > 64)
+    {
+        return bad(format!("link must name a serial link of the reset set, got '{}'", clip(link)));
     }
     Ok(())
 }

@@ -22,7 +22,9 @@ use crate::deploy::{DeployError, RunningExperiment};
 use crate::report::LiveStatus;
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
-use crate::store::experiments::{Criteria, ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy};
+use crate::store::experiments::{
+    Criteria, DriveReset, ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy,
+};
 use crate::store::users::Principal;
 use crate::store::{Outcome as AuditOutcome, Store};
 
@@ -184,7 +186,14 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
         "set {} of {}, in its preflight form (docs/lab.md), written by subsume for experiment {id}",
         set.id, set.created_by
     );
-    let written = match materialize::write_preflight_form(lab.store(), &set, world.as_ref(), &run_dir, &comment) {
+    let written = match materialize::write_preflight_form(
+        lab.store(),
+        &set,
+        world.as_ref(),
+        settings.start_pose(),
+        &run_dir,
+        &comment,
+    ) {
         Ok(written) => written,
         Err(MaterializeError::NotSimulable(why)) => {
             let reason = format!("preflight: {why}");
@@ -559,13 +568,19 @@ fn start(lab: &Lab, id: u64) {
         }
         book.starting = Some(id);
         let baseline = lab.baseline(&book.lab);
-        Ok::<_, LabError>(Some((record, baseline, book.lab.settings.reset)))
+        let drive = book.lab.settings.drive_reset.clone().filter(|_| book.lab.settings.reset == ResetPolicy::Drive);
+        Ok::<_, LabError>(Some((record, baseline, book.lab.settings.reset, drive)))
     })();
-    let (record, baseline, reset) = match prepared {
+    let (record, baseline, reset, drive) = match prepared {
         Ok(Some(prepared)) => prepared,
         Ok(None) => return,
         Err(e) => return fail(lab, id, &format!("failed: {e}")),
     };
+    if let Some(drive) = drive
+        && !reset_by_driving(lab, id, baseline, &drive)
+    {
+        return;
+    }
     let outcome = start_on_robot(lab, &record, baseline, reset);
     let Ok(mut book) = lab.lock() else { return };
     book.starting = None;
@@ -585,6 +600,31 @@ fn start(lab: &Lab, id: u64) {
             let _ = lab.transition(&mut book, id, state, &cause, vec![reason]);
         }
     }
+}
+
+/// The owner's reset by driving before experiment `id`: its outcome goes
+/// on the record; false (the experiment stays queued, the robot out of
+/// service) when it failed.
+fn reset_by_driving(lab: &Lab, id: u64, baseline: u64, drive: &DriveReset) -> bool {
+    let outcome = lab.drive_reset(id, baseline, drive);
+    let Ok(mut book) = lab.lock() else { return false };
+    let passed = outcome.passed;
+    if let Some(record) = book.experiments.get(&id) {
+        let mut record = record.clone();
+        record.reset = Some(outcome.clone());
+        match lab.store().lock().and_then(|w| w.put_experiment(&record)) {
+            Ok(()) => {
+                book.experiments.insert(id, record);
+            }
+            Err(e) => tracing::error!("experiment {id}: its reset's outcome was not stored: {e}"),
+        }
+    }
+    if !passed {
+        book.starting = None;
+        lab.keep_failed_reset(&mut book, id, &outcome);
+        lab.notify();
+    }
+    passed
 }
 
 fn start_on_robot(

@@ -292,6 +292,9 @@ pub struct SerialStatus {
     /// The battery's voltage as the controller last reported it, where
     /// its protocol reports one (the lab's self-test reads it).
     pub battery_v: Option<f64>,
+    /// The pose `[x m, y m, heading rad]` the controller's odometry last
+    /// reported (the lab's reset by driving reads it).
+    pub pose: Option<[f64; 3]>,
 }
 
 impl NamedSection for SerialStatus {
@@ -554,7 +557,10 @@ impl SerialLink {
         for feedback in self.feedback.drain(..) {
             self.stats.feedback_messages += 1;
             let item = match feedback {
-                Feedback::Odometry { x, y, heading } => (0, Value::Vector(vec![x, y, heading])),
+                Feedback::Odometry { x, y, heading } => {
+                    self.stats.pose = Some([x, y, heading]);
+                    (0, Value::Vector(vec![x, y, heading]))
+                }
                 Feedback::Ranges(ranges) => match &self.scan {
                     Some(geometry) => (1, Value::Scan(geometry.scan(ranges))),
                     None => (1, Value::Vector(ranges)),

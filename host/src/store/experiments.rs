@@ -335,6 +335,9 @@ pub struct ExperimentRecord {
     /// On a lab server: which robots may run it, and which does.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub placement: Option<Placement>,
+    /// The reset by driving before it ran (the `drive` policy).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub reset: Option<ResetOutcome>,
 }
 
 /// Where a robot's experiment came from: lab `lab`'s experiment `id`,
@@ -438,6 +441,7 @@ impl ExperimentRecord {
             first_wait_ms: None,
             origin: None,
             placement: None,
+            reset: None,
         }
     }
 
@@ -568,6 +572,9 @@ pub enum ResetPolicy {
     Sim,
     /// A person puts the robot back; an admin confirms in the portal.
     Manual,
+    /// The owner's reset set drives the robot back to its start pose
+    /// ([`DriveReset`]).
+    Drive,
 }
 
 /// The owner's settings of the lab.
@@ -605,6 +612,81 @@ pub struct LabSettings {
     /// default; a failed one takes the robot out of service.
     #[serde(default)]
     pub self_test: Option<SelfTestSettings>,
+    /// With the `drive` reset policy: the set that drives the robot back,
+    /// and where to (docs/lab.md, "Reset by driving").
+    #[serde(default)]
+    pub drive_reset: Option<DriveReset>,
+}
+
+impl LabSettings {
+    /// The start pose the reset by driving brings the robot to, with the
+    /// `drive` policy (the preflight's simulated robot starts there too).
+    pub fn start_pose(&self) -> Option<Pose> {
+        self.drive_reset.as_ref().filter(|_| self.reset == ResetPolicy::Drive).map(|d| d.pose)
+    }
+}
+
+/// The owner's reset by driving: before each experiment, set `set` runs
+/// until the robot's pose is within `tolerance` of `pose`, and still is
+/// after `settle_s` at rest, or `timeout_s` has passed (a failure: the
+/// robot goes out of service).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DriveReset {
+    /// The reset set (a staged set; it keeps the robot's envelope).
+    pub set: u64,
+    /// The start pose.
+    pub pose: Pose,
+    pub tolerance: PoseTolerance,
+    /// Longest a reset drives (s, 1 to 600).
+    pub timeout_s: u64,
+    /// How long the robot must hold the pose at rest (s, 0 to 60).
+    pub settle_s: f64,
+    /// The serial link whose odometry is the robot's pose; `None`: the
+    /// first (by name) that reports one.
+    #[serde(default)]
+    pub link: Option<String>,
+}
+
+/// A pose in the robot's odometry frame: metres, and radians
+/// counter-clockwise from +x.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Pose {
+    pub x: f64,
+    pub y: f64,
+    pub heading: f64,
+}
+
+/// How far from the start pose still counts as at it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PoseTolerance {
+    pub position_m: f64,
+    pub heading_rad: f64,
+}
+
+/// Longest reset by driving (s): beyond it a robot that cannot get back
+/// is better out of service than holding the queue.
+pub const MAX_RESET_TIMEOUT_S: u64 = 600;
+/// Longest settle time (s).
+pub const MAX_RESET_SETTLE_S: f64 = 60.0;
+
+/// How a reset by driving went (on the record of the experiment it was
+/// for).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ResetOutcome {
+    /// When it began (ms since the Unix epoch).
+    pub at_ms: u64,
+    pub passed: bool,
+    /// Seconds from the reset set's start to the end of the settle.
+    pub took_s: f64,
+    /// The pose when it began, and when it ended (`None`: none reported).
+    pub from: Option<Pose>,
+    pub pose: Option<Pose>,
+    /// Why it failed.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
 }
 
 /// The owner's self-test: what is checked after every run.
@@ -681,6 +763,7 @@ impl Default for LabSettings {
             stuck_after_min_s: DEFAULT_STUCK_AFTER_MIN_S,
             duty_cycle: None,
             self_test: None,
+            drive_reset: None,
         }
     }
 }

@@ -514,6 +514,7 @@ impl StoreWriter<'_> {
         let lab = self.lab_state()?;
         needed.extend(lab.baseline);
         needed.extend(lab.baselines.values().copied());
+        needed.extend(lab.settings.drive_reset.as_ref().map(|d| d.set));
         needed.extend(self.experiments()?.values().filter(|r| !r.state.is_final()).map(|r| r.set));
         Ok(needed)
     }
