@@ -52,6 +52,7 @@ pub mod run;
 pub mod runtime;
 pub mod sandbox;
 pub mod scaffold;
+pub mod score;
 pub mod sim;
 pub mod store;
 pub mod teleop;

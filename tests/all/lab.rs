@@ -2358,3 +2358,94 @@ fn a_drive_reset_brings_the_robot_back_before_each_experiment_and_one_that_canno
     let done = lab.wait_for(&ana, second, "done", Duration::from_secs(240));
     assert_eq!((&done["state"], &done["reset"]["passed"]), (&Json::from("done"), &Json::Bool(true)), "{done:#}");
 }
+
+/// Issue 41, a task and a score anyone recomputes: with the owner's task
+/// (reach a goal; ranked by the time to it), every run's score is computed
+/// from its recording when it ends, kept on the record (its outcome, beside
+/// its state) and in its bundle (`task.json`, `score.json`). `subsume score`
+/// recomputes it from the bundle alone, bit for bit, and says when the
+/// bundle's score differs; a scorer no one here wrote (Python over the
+/// `mcap` package) finds the same path length, time to the goal and
+/// energy. A bad task is refused by name.
+#[test]
+fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_it_bit_for_bit() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    let task = serde_json::json!({
+        "name": "reach-6", "description": "drive from (1, 1) to (6, 1)",
+        "goal": {"x": 6.0, "y": 1.0, "radius": 0.4}, "metric": "time_to_goal"
+    });
+    let refused = [
+        ("name", serde_json::json!("Reach 6"), "task.name must be 1 to 64 of a-z, 0-9 and '-', got 'Reach 6'"),
+        ("pose", serde_json::json!("motors"), "task.pose must name an output port as COMPONENT.PORT, got 'motors'"),
+        ("metric", serde_json::json!("speed"), "unknown variant `speed`"),
+    ];
+    for (field, value, expected) in refused {
+        let mut bad = task.clone();
+        bad[field] = value;
+        settings["task"] = bad;
+        let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+        assert!(status == 400 || status == 422, "{field}: {status} {json}");
+        assert!(json.to_string().contains(expected), "{field}: {json}");
+    }
+    settings["task"] = task.clone();
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 25 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(240));
+    assert_eq!(done["state"], "done", "{done:#}");
+    let score = done["score"].clone();
+    assert_eq!((&score["task"], &score["metric"]), (&Json::from("reach-6"), &Json::from("time_to_goal")), "{done:#}");
+    assert_eq!(score["sub_scores"]["goal_reached"], 1.0, "{score:#}");
+    let to_goal = score["value"].as_f64().unwrap();
+    assert!((5.0..25.0).contains(&to_goal), "{score:#}");
+    assert_eq!(score["sub_scores"]["time_to_goal_s"].as_f64(), Some(to_goal));
+    // The bundle holds the task and the score the record shows.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, id, &out);
+    let kept: Json = serde_json::from_slice(&std::fs::read(bundle.join("score.json")).unwrap()).unwrap();
+    assert_eq!(kept, score);
+    let kept_task: Json = serde_json::from_slice(&std::fs::read(bundle.join("task.json")).unwrap()).unwrap();
+    assert_eq!(kept_task["goal"], task["goal"], "{kept_task:#}");
+    // Anyone recomputes it from the bundle, with no network: bit for bit.
+    let rescore = |folder: &Path| crate::support::subsume().arg("score").arg(folder).output().unwrap();
+    let again = rescore(&bundle);
+    let said = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success() && said.contains("identical"), "{said}{}", String::from_utf8_lossy(&again.stderr));
+    assert!(said.contains(&format!("time_to_goal_s = {to_goal}")), "{said}");
+    // An independent scorer over the same recording finds the same numbers.
+    let independent = Command::new(crate::support::python())
+        .arg(crate::support::repo_root().join("tests/python/score_check.py"))
+        .arg(bundle.join("run.mcap"))
+        .arg(bundle.join("task.json"))
+        .output()
+        .unwrap();
+    assert!(independent.status.success(), "{}", String::from_utf8_lossy(&independent.stderr));
+    let found: Json = serde_json::from_slice(&independent.stdout).unwrap();
+    assert_eq!(found["poses"], score["poses"], "{found} vs {score}");
+    for name in ["path_length_m", "goal_reached", "time_to_goal_s", "energy"] {
+        let (ours, theirs) = (score["sub_scores"][name].as_f64().unwrap(), found[name].as_f64().unwrap());
+        assert!((ours - theirs).abs() <= 1e-9 * ours.abs().max(1.0), "{name}: {ours} vs {theirs}");
+    }
+    assert!(score["sub_scores"]["path_length_m"].as_f64().unwrap() > 4.5, "{score:#}");
+    // A bundle whose score was changed is caught.
+    let changed = std::fs::read_to_string(bundle.join("score.json")).unwrap().replacen(&to_goal.to_string(), "1.5", 1);
+    std::fs::write(bundle.join("score.json"), changed).unwrap();
+    let caught = rescore(&bundle);
+    assert_eq!(caught.status.code(), Some(1), "{}", String::from_utf8_lossy(&caught.stdout));
+    assert!(String::from_utf8_lossy(&caught.stdout).contains("differs"));
+    // A folder without a task says which file it lacks.
+    std::fs::remove_file(bundle.join("task.json")).unwrap();
+    let lost = rescore(&bundle);
+    let said = String::from_utf8_lossy(&lost.stderr);
+    assert!(!lost.status.success() && said.contains("task.json") && said.contains("No such file"), "{said}");
+}

@@ -15,6 +15,7 @@ mod new;
 mod release;
 mod replay;
 mod run;
+mod score;
 mod teleop;
 mod user;
 
@@ -57,6 +58,7 @@ struct GlobalFlags {
 enum Command {
     Run(run::RunCommand),
     Replay(replay::ReplayCommand),
+    Score(score::ScoreCommand),
     User(user::UserCommand),
     Check(check::CheckCommand),
     Estop(estop::EstopCommand),
@@ -99,6 +101,7 @@ impl Cli {
         match self.command {
             Command::Run(command) => command.execute(&context),
             Command::Replay(command) => command.execute(&context),
+            Command::Score(command) => command.execute(&context),
             Command::User(command) => command.execute(&context),
             Command::Check(command) => command.execute(&context),
             Command::Estop(command) => command.execute(&context),

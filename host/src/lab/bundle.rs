@@ -133,6 +133,8 @@ pub fn is_result_file(name: &str) -> bool {
     KEPT.contains(&name)
         || name == VIDEO_NOTE
         || name == super::selftest::SELF_TEST_FILE
+        || name == crate::score::TASK_FILE
+        || name == crate::score::SCORE_FILE
         || crate::record::video::is_video_name(name)
         || name.strip_prefix("run.").and_then(|r| r.strip_suffix(".mcap")).is_some_and(|n| n.parse::<u32>().is_ok())
         || name.strip_prefix("files/").is_some_and(|f| !f.contains('/') && !f.starts_with('.'))
@@ -259,6 +261,24 @@ fn write_log(dir: &Path, id: u64) {
     if let Err(e) = crate::fsutil::write_atomically(&dir.join(LOG), log.as_bytes()) {
         tracing::error!("experiment {id}: cannot write its log: {e}");
     }
+}
+
+/// Scores experiment `id`'s run (its recording, stopped) against `task`:
+/// `task.json` and `score.json` written in its folder, for anyone to
+/// recompute (`subsume score`). Reads the whole recording: called with no
+/// lock held, before [`write_run_results`].
+pub fn write_score(
+    store: &Store,
+    id: u64,
+    task: &crate::store::task::Task,
+) -> Result<crate::store::task::Score, String> {
+    let dir = store.experiment_dir(id);
+    let score = crate::score::score_files(task, &dir.join(RUN_RECORDING)).map_err(|e| e.to_string())?;
+    let task_json = serde_json::to_vec_pretty(task).map_err(|e| e.to_string())?;
+    crate::fsutil::write_atomically(&dir.join(crate::score::TASK_FILE), &task_json).map_err(|e| e.to_string())?;
+    crate::fsutil::write_atomically(&dir.join(crate::score::SCORE_FILE), &crate::score::encode(&score))
+        .map_err(|e| e.to_string())?;
+    Ok(score)
 }
 
 /// Makes each camera's video of experiment `id`'s run from its recording
@@ -478,6 +498,7 @@ mod tests {
                 reset: ResetPolicy::Sim,
                 preflight_world: None,
                 baseline: None,
+                task: None,
             },
             components: Vec::new(),
             preflight: None,
@@ -491,6 +512,7 @@ mod tests {
             origin: None,
             placement: None,
             reset: None,
+            score: None,
         }
     }
 

@@ -7,6 +7,7 @@ use crate::contract::clip;
 use crate::store::experiments::{
     DriveReset, LabSettings, LabState, MAX_RESET_SETTLE_S, MAX_RESET_TIMEOUT_S, ResetPolicy,
 };
+use crate::store::task::{MAX_TASK_DESCRIPTION, MAX_TASK_NAME, Task};
 use crate::store::users::{Principal, Role};
 
 impl Lab {
@@ -180,6 +181,9 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
         (_, Some(drive)) => check_drive_reset(drive)?,
         _ => {}
     }
+    if let Some(task) = &settings.task {
+        check_task(task)?;
+    }
     if !(1..=7 * 24 * 3600).contains(&settings.stuck_after_min_s) {
         return bad(format!("stuck_after_min_s must be from 1 to 604800 (a week), got {}", settings.stuck_after_min_s));
     }
@@ -210,6 +214,38 @@ fn check_drive_reset(drive: &DriveReset) -> Result<(), LabError> {
         && (link.is_empty() || link.len() > 64)
     {
         return bad(format!("link must name a serial link of the reset set, got '{}'", clip(link)));
+    }
+    Ok(())
+}
+
+fn check_task(task: &Task) -> Result<(), LabError> {
+    let bad = |why: String| Err(LabError::BadRequest(format!("task.{why}")));
+    let name_ok = |n: &str| {
+        !n.is_empty()
+            && n.len() <= MAX_TASK_NAME
+            && n.bytes().all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'-')
+    };
+    if !name_ok(&task.name) {
+        return bad(format!("name must be 1 to {MAX_TASK_NAME} of a-z, 0-9 and '-', got '{}'", clip(&task.name)));
+    }
+    if task.description.chars().count() > MAX_TASK_DESCRIPTION {
+        return bad(format!("description is at most {MAX_TASK_DESCRIPTION} characters"));
+    }
+    let goal = task.goal;
+    if ![goal.x, goal.y, goal.radius].iter().all(|v| v.is_finite() && v.abs() <= 1e6) || goal.radius <= 0.0 {
+        return bad(format!(
+            "goal must be finite metres with a positive radius, got ({}, {}, {})",
+            goal.x, goal.y, goal.radius
+        ));
+    }
+    if !(task.wheel_base_m.is_finite() && task.wheel_base_m > 0.0 && task.wheel_base_m <= 10.0) {
+        return bad(format!("wheel_base_m must be above 0 and at most 10, got {}", task.wheel_base_m));
+    }
+    for (field, port) in [("pose", &task.pose), ("commands", &task.commands)] {
+        let shaped = port.split_once('.').is_some_and(|(c, p)| !c.is_empty() && !p.is_empty() && !p.contains('.'));
+        if !shaped || port.len() > 128 || port.chars().any(|c| c.is_control() || c == '/') {
+            return bad(format!("{field} must name an output port as COMPONENT.PORT, got '{}'", clip(port)));
+        }
     }
     Ok(())
 }

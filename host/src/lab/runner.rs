@@ -690,13 +690,14 @@ fn start_on_robot(
 /// are written, the record gets its final state.
 fn end(lab: &Lab, ending: &Ending) {
     let id = ending.id;
-    let running = {
+    let (running, task) = {
         let Ok(mut book) = lab.lock() else { return };
         let Some(running) = book.running.clone().filter(|r| r.id == id) else { return };
         if let Err(e) = lab.transition(&mut book, id, ExperimentState::Finishing, &ending.cause, vec![]) {
             tracing::error!("experiment {id}: {e}");
         }
-        running
+        let task = book.experiments.get(&id).and_then(|r| r.settings.task.clone());
+        (running, task)
     };
     let ran_ns = lab.deployer.graph_now_ns().saturating_sub(running.started_ns);
     let ended = lab.deployer.end_experiment(id, running.baseline, &ending.cause, ran_ns);
@@ -710,6 +711,11 @@ fn end(lab: &Lab, ending: &Ending) {
     // The cameras' videos, before the lab's lock: seconds of ffmpeg must
     // not hold the portal's views and the queue.
     bundle::write_videos(lab.store(), id);
+    // The score, from the recording alone, before the lab's lock too.
+    let score = match (&ended, &task) {
+        (Ok(_), Some(task)) => Some(bundle::write_score(lab.store(), id, task)),
+        _ => None,
+    };
     let Ok(mut book) = lab.lock() else { return };
     let duty = book.lab.settings.duty_cycle;
     let (counted, rest) = queue::after_run(duty, book.duty_counted_ms, ran_ns / 1_000_000, unix_now_ms());
@@ -728,9 +734,16 @@ fn end(lab: &Lab, ending: &Ending) {
     if state != ExperimentState::Done && reasons.is_empty() {
         reasons.push(ending.cause.clone());
     }
+    if let Some(Err(why)) = &score {
+        tracing::error!("experiment {id}: its run could not be scored: {why}");
+        reasons.push(format!("its run could not be scored: {why}"));
+    }
     let ended = ended.unwrap_or_default();
     if let Some(record) = book.experiments.get_mut(&id) {
         bundle::write_run_results(lab.store(), record, &ended, running.started_unix_ms, LATE_CYCLE_MS);
+        if let Some(Ok(score)) = score {
+            record.score = Some(score);
+        }
         if let Some(test) = &self_test {
             bundle::write_self_test(lab.store(), record, test);
         }

@@ -290,6 +290,10 @@ pub struct AppliedSettings {
     /// set's own.
     pub preflight_world: Option<String>,
     pub baseline: Option<u64>,
+    /// The owner's task its run is scored against (docs/lab.md, "Tasks
+    /// and scores").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub task: Option<crate::store::task::Task>,
 }
 
 /// One experiment.
@@ -338,6 +342,10 @@ pub struct ExperimentRecord {
     /// The reset by driving before it ran (the `drive` policy).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub reset: Option<ResetOutcome>,
+    /// Its run's score against its task (its outcome; `state` is its
+    /// status): in its bundle as `score.json`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub score: Option<crate::store::task::Score>,
 }
 
 /// Where a robot's experiment came from: lab `lab`'s experiment `id`,
@@ -399,6 +407,7 @@ impl AppliedSettings {
             reset: settings.reset,
             preflight_world: settings.preflight_world.clone(),
             baseline: Some(baseline),
+            task: settings.task.clone(),
         }
     }
 }
@@ -442,6 +451,7 @@ impl ExperimentRecord {
             origin: None,
             placement: None,
             reset: None,
+            score: None,
         }
     }
 
@@ -616,6 +626,10 @@ pub struct LabSettings {
     /// and where to (docs/lab.md, "Reset by driving").
     #[serde(default)]
     pub drive_reset: Option<DriveReset>,
+    /// The task every run is scored against (docs/lab.md, "Tasks and
+    /// scores"). Off (`null`) by default.
+    #[serde(default)]
+    pub task: Option<crate::store::task::Task>,
 }
 
 impl LabSettings {
@@ -764,6 +778,7 @@ impl Default for LabSettings {
             duty_cycle: None,
             self_test: None,
             drive_reset: None,
+            task: None,
         }
     }
 }

@@ -34,6 +34,7 @@ pub mod access;
 pub mod audit;
 pub mod experiments;
 pub mod records;
+pub mod task;
 pub mod users;
 
 use std::collections::{BTreeMap, BTreeSet};

@@ -1,0 +1,394 @@
+//! Scoring a run against the owner's task (docs/lab.md, "Tasks and
+//! scores"): every sub-score is computed from the run's recording alone
+//! (its poses, commands and status messages, on the recording's time
+//! line), in file order, so the same bytes give the same numbers bit for
+//! bit: on the robot at the end of a run, and on anyone's machine from the
+//! bundle (`subsume score BUNDLE_DIR`).
+//!
+//! [`score_recording`] is pure over the recording's bytes;
+//! [`score_bundle`] reads a bundle's `task.json` and recordings.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde_json::Value as Json;
+use thiserror::Error;
+
+use crate::store::task::{Metric, Score, Task};
+
+/// A bundle's task, the one its score was computed for.
+pub const TASK_FILE: &str = "task.json";
+/// A bundle's score.
+pub const SCORE_FILE: &str = "score.json";
+/// The run's recording in a bundle (and its rotated files after it).
+pub const RUN_RECORDING: &str = "run.mcap";
+/// Largest recording scored (all its files): as `subsume replay` reads.
+pub const MAX_SCORED_BYTES: u64 = 4 << 30;
+
+/// Why a run could not be scored.
+#[derive(Debug, Error)]
+pub enum ScoreError {
+    #[error("{path}: {source}")]
+    Read {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: not a task: {why}")]
+    Task { path: PathBuf, why: String },
+    #[error("{path}: {why}")]
+    Recording { path: PathBuf, why: String },
+    #[error("{path}: message {index} on {topic}: {why}")]
+    Message { path: PathBuf, index: u64, topic: String, why: String },
+    #[error("{path}: the recording has no poses on {topic} (the task's pose port)")]
+    NoPoses { path: PathBuf, topic: String },
+}
+
+/// The topic a task's `COMPONENT.PORT` is recorded on.
+fn topic_of(port: &str) -> String {
+    match port.split_once('.') {
+        Some((component, port)) => crate::record::output_topic(component, port),
+        None => format!("/{port}"),
+    }
+}
+
+/// What the sums see of a recording, in file order.
+#[derive(Default)]
+struct Tally {
+    epoch_ns: Option<u64>,
+    first_ns: Option<u64>,
+    last_ns: u64,
+    poses: u64,
+    last_pose: Option<(f64, f64)>,
+    path_length_m: f64,
+    reached_at_ns: Option<u64>,
+    commands: u64,
+    /// The command in force (left, right wheel speeds, m/s) since when.
+    wheels: Option<((f64, f64), u64)>,
+    energy: f64,
+    collisions: Option<f64>,
+    interventions: Option<BTreeMap<String, f64>>,
+}
+
+/// The wheel speeds a command asks for: `VEL v w` on a base of `base` m;
+/// anything else (STOP, a GOTO the link refuses) is at rest.
+fn wheels(command: &str, base: f64) -> (f64, f64) {
+    let mut words = command.split_ascii_whitespace();
+    if words.next() != Some("VEL") {
+        return (0.0, 0.0);
+    }
+    let mut number = || words.next().and_then(|w| w.parse::<f64>().ok()).filter(|n| n.is_finite());
+    match (number(), number()) {
+        (Some(v), Some(w)) => (v - w * base / 2.0, v + w * base / 2.0),
+        _ => (0.0, 0.0),
+    }
+}
+
+impl Tally {
+    /// The energy of the command in force from its start to `until_ns`.
+    fn close_command(&mut self, until_ns: u64) {
+        if let Some(((left, right), since)) = self.wheels {
+            let dt = until_ns.saturating_sub(since) as f64 / 1e9;
+            self.energy += (left * left + right * right) * dt;
+        }
+    }
+}
+
+/// Scores the run recorded in `files` (its recording and the rotated files
+/// after it, in order; `path` names it in errors) against `task`.
+pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Score, ScoreError> {
+    let pose_topic = topic_of(&task.pose);
+    let commands_topic = topic_of(&task.commands);
+    let mut tally = Tally::default();
+    let mut index = 0u64;
+    for bytes in files {
+        if !bytes.starts_with(mcap::MAGIC) {
+            return Err(ScoreError::Recording { path: path.into(), why: "not an MCAP file".into() });
+        }
+        let readable = crate::record::readable::readable(bytes);
+        let stream = mcap::MessageStream::new_with_options(readable.bytes, mcap::read::Options::IgnoreEndMagic.into())
+            .map_err(|e| ScoreError::Recording { path: path.into(), why: e.to_string() })?;
+        for message in stream {
+            index += 1;
+            // A file cut short (a killed host) is scored up to where it ends,
+            // as replay reads it.
+            let Ok(message) = message else { break };
+            let topic = message.channel.topic.as_str();
+            let bad =
+                |why: &str| ScoreError::Message { path: path.into(), index, topic: topic.to_string(), why: why.into() };
+            let epoch = match tally.epoch_ns {
+                Some(epoch) => epoch,
+                None => {
+                    let epoch = message
+                        .channel
+                        .metadata
+                        .get("epoch_unix_ns")
+                        .and_then(|e| e.parse::<u64>().ok())
+                        .ok_or_else(|| bad("its channel has no epoch_unix_ns"))?;
+                    *tally.epoch_ns.insert(epoch)
+                }
+            };
+            let t = message.log_time.saturating_sub(epoch);
+            tally.first_ns.get_or_insert(t);
+            tally.last_ns = tally.last_ns.max(t);
+            if topic == pose_topic {
+                let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
+                let value = json["value"].as_array().ok_or_else(|| bad("no value [x, y, heading]"))?;
+                let (Some(x), Some(y)) = (value.first().and_then(Json::as_f64), value.get(1).and_then(Json::as_f64))
+                else {
+                    return Err(bad("the value is not [x, y, heading]"));
+                };
+                tally.poses += 1;
+                if let Some((px, py)) = tally.last_pose {
+                    tally.path_length_m += (x - px).hypot(y - py);
+                }
+                tally.last_pose = Some((x, y));
+                if tally.reached_at_ns.is_none() && (x - task.goal.x).hypot(y - task.goal.y) <= task.goal.radius {
+                    tally.reached_at_ns = Some(t);
+                }
+            } else if topic == commands_topic {
+                let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
+                let command = json["value"]["command"].as_str().ok_or_else(|| bad("no value {command}"))?;
+                tally.commands += 1;
+                tally.close_command(t);
+                tally.wheels = Some((wheels(command, task.wheel_base_m), t));
+            } else if topic.starts_with("/subsume/status/") {
+                let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
+                match json["kind"].as_str() {
+                    Some("sim") => tally.collisions = json["status"]["collisions"].as_f64(),
+                    Some("envelope") => {
+                        let causes = json["status"]["causes"].as_object().map(|causes| {
+                            causes.iter().filter_map(|(k, v)| v.as_f64().map(|n| (k.clone(), n))).collect()
+                        });
+                        tally.interventions = causes;
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    if tally.poses == 0 {
+        return Err(ScoreError::NoPoses { path: path.into(), topic: pose_topic });
+    }
+    let end = tally.last_ns;
+    tally.close_command(end);
+    let mut sub_scores = BTreeMap::new();
+    sub_scores.insert(Metric::GoalReached.name().to_string(), if tally.reached_at_ns.is_some() { 1.0 } else { 0.0 });
+    if let Some(at) = tally.reached_at_ns {
+        sub_scores.insert(Metric::TimeToGoal.name().to_string(), at as f64 / 1e9);
+    }
+    sub_scores.insert(Metric::PathLength.name().to_string(), tally.path_length_m);
+    sub_scores.insert(Metric::Energy.name().to_string(), tally.energy);
+    if let Some(collisions) = tally.collisions {
+        sub_scores.insert(Metric::Collisions.name().to_string(), collisions);
+    }
+    if let Some(causes) = &tally.interventions {
+        sub_scores.insert(Metric::Interventions.name().to_string(), causes.values().sum());
+        for (cause, count) in causes {
+            sub_scores.insert(format!("interventions.{cause}"), *count);
+        }
+    }
+    Ok(Score {
+        task: task.name.clone(),
+        metric: task.metric,
+        value: sub_scores.get(task.metric.name()).copied(),
+        sub_scores,
+        poses: tally.poses,
+        commands: tally.commands,
+        recorded_s: end.saturating_sub(tally.first_ns.unwrap_or(0)) as f64 / 1e9,
+    })
+}
+
+/// `score` as `score.json` holds it.
+pub fn encode(score: &Score) -> Vec<u8> {
+    let mut bytes = serde_json::to_vec_pretty(score).unwrap_or_default();
+    bytes.push(b'\n');
+    bytes
+}
+
+/// The recording files of the run whose first file is `recording`.
+pub fn recording_files(recording: &Path) -> Vec<PathBuf> {
+    (0..).map(|n| crate::record::rotated_path(recording, n)).take_while(|file| file.exists()).collect()
+}
+
+/// Scores the run recorded in `recording` (and its rotated files) against
+/// `task`, reading at most [`MAX_SCORED_BYTES`].
+pub fn score_files(task: &Task, recording: &Path) -> Result<Score, ScoreError> {
+    let mut files = Vec::new();
+    let mut total = 0u64;
+    let paths = recording_files(recording);
+    if paths.is_empty() {
+        return Err(ScoreError::Read {
+            path: recording.into(),
+            source: std::io::Error::new(std::io::ErrorKind::NotFound, "no such recording"),
+        });
+    }
+    for path in paths {
+        let size = std::fs::metadata(&path).map_err(|source| ScoreError::Read { path: path.clone(), source })?.len();
+        total += size;
+        if total > MAX_SCORED_BYTES {
+            return Err(ScoreError::Recording {
+                path: recording.into(),
+                why: format!("more than {MAX_SCORED_BYTES} bytes of recording"),
+            });
+        }
+        files.push(std::fs::read(&path).map_err(|source| ScoreError::Read { path: path.clone(), source })?);
+    }
+    score_recording(task, &files, recording)
+}
+
+/// Reads `dir/task.json`.
+pub fn read_task(dir: &Path) -> Result<Task, ScoreError> {
+    let path = dir.join(TASK_FILE);
+    let bytes = std::fs::read(&path).map_err(|source| ScoreError::Read { path: path.clone(), source })?;
+    serde_json::from_slice(&bytes).map_err(|e| ScoreError::Task { path, why: e.to_string() })
+}
+
+/// Scores the bundle in `dir` (its `task.json` and `run.mcap`): the score,
+/// and its bytes as `score.json` holds them.
+pub fn score_bundle(dir: &Path) -> Result<(Score, Vec<u8>), ScoreError> {
+    let task = read_task(dir)?;
+    let score = score_files(&task, &dir.join(RUN_RECORDING))?;
+    let bytes = encode(&score);
+    Ok((score, bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::task::Goal;
+
+    fn task(metric: Metric) -> Task {
+        Task {
+            name: "reach".into(),
+            description: String::new(),
+            goal: Goal { x: 3.0, y: 0.0, radius: 0.5 },
+            metric,
+            pose: "motors.pose".into(),
+            commands: "envelope.cmd".into(),
+            wheel_base_m: 0.4,
+        }
+    }
+
+    /// An MCAP file of `messages` (topic, ns since the epoch, JSON), written
+    /// with the `mcap` crate as the recorder writes them.
+    fn recording(messages: &[(&str, u64, Json)]) -> Vec<u8> {
+        let epoch = 1_000_000_000_000u64;
+        let mut out = std::io::Cursor::new(Vec::new());
+        {
+            let mut writer = mcap::Writer::new(&mut out).unwrap();
+            let schema = writer.add_schema("subsume.Value", "jsonschema", b"{}").unwrap();
+            let mut channels = BTreeMap::new();
+            for (n, (topic, t, json)) in messages.iter().enumerate() {
+                let channel = *channels.entry(*topic).or_insert_with(|| {
+                    let metadata = BTreeMap::from([("epoch_unix_ns".to_string(), epoch.to_string())]);
+                    writer.add_channel(schema, topic, "json", &metadata).unwrap()
+                });
+                let header = mcap::records::MessageHeader {
+                    channel_id: channel,
+                    sequence: n as u32,
+                    log_time: epoch + t,
+                    publish_time: epoch + t,
+                };
+                writer.write_to_known_channel(&header, json.to_string().as_bytes()).unwrap();
+            }
+            writer.finish().unwrap();
+        }
+        out.into_inner()
+    }
+
+    fn pose(t_ms: u64, x: f64, y: f64) -> (&'static str, u64, Json) {
+        ("/motors/pose", t_ms * 1_000_000, serde_json::json!({"value": [x, y, 0.0]}))
+    }
+
+    fn command(t_ms: u64, text: &str) -> (&'static str, u64, Json) {
+        ("/envelope/cmd", t_ms * 1_000_000, serde_json::json!({"t": t_ms * 1_000_000, "value": {"command": text}}))
+    }
+
+    #[test]
+    fn each_sub_score_is_what_the_recording_says() {
+        let bytes = recording(&[
+            pose(0, 0.0, 0.0),
+            command(0, "VEL 0.5 0"),
+            pose(1000, 1.0, 0.0),
+            command(2000, "VEL 0 1"),
+            pose(2000, 2.0, 0.0),
+            (
+                "/subsume/status/envelope",
+                2_500_000_000,
+                serde_json::json!({"kind": "envelope", "status": {"causes": {"stop_zone": 2, "geofence": 1}}}),
+            ),
+            pose(3000, 2.75, 0.0),
+            command(3000, "STOP"),
+            (
+                "/subsume/status/robot-sim",
+                3_500_000_000,
+                serde_json::json!({"kind": "sim", "status": {"collisions": 1}}),
+            ),
+            pose(4000, 2.75, 0.0),
+        ]);
+        let score = score_recording(&task(Metric::TimeToGoal), &[bytes], Path::new("run.mcap")).unwrap();
+        let expected: BTreeMap<String, f64> = [
+            ("goal_reached", 1.0),
+            ("time_to_goal_s", 3.0),
+            ("path_length_m", 2.75),
+            // 2 s at 0.5 m/s on both wheels, then 1 s turning at 0.2 m/s
+            // each way, then rest until the end.
+            ("energy", 2.0 * 0.5 + 1.0 * 0.08),
+            ("collisions", 1.0),
+            ("interventions", 3.0),
+            ("interventions.geofence", 1.0),
+            ("interventions.stop_zone", 2.0),
+        ]
+        .into_iter()
+        .map(|(k, v)| (k.to_string(), v))
+        .collect();
+        assert_eq!(score.sub_scores.len(), expected.len(), "{score:#?}");
+        for (name, value) in &expected {
+            assert!((score.sub_scores[name] - value).abs() < 1e-12, "{name}: {score:#?}");
+        }
+        assert_eq!((score.value, score.poses, score.commands, score.recorded_s), (Some(3.0), 5, 3, 4.0));
+    }
+
+    #[test]
+    fn the_metric_picks_its_sub_score_and_an_undefined_one_has_no_value() {
+        let never = recording(&[pose(0, 0.0, 0.0), pose(1000, 1.0, 0.0)]);
+        let cases = [
+            (Metric::TimeToGoal, None),
+            (Metric::GoalReached, Some(0.0)),
+            (Metric::PathLength, Some(1.0)),
+            (Metric::Collisions, None),
+            (Metric::Interventions, None),
+            (Metric::Energy, Some(0.0)),
+        ];
+        for (metric, expected) in cases {
+            let score = score_recording(&task(metric), std::slice::from_ref(&never), Path::new("run.mcap")).unwrap();
+            assert_eq!(score.value, expected, "{metric:?}");
+        }
+    }
+
+    #[test]
+    fn a_recording_that_cannot_be_scored_says_why() {
+        let no_poses = recording(&[command(0, "STOP")]);
+        let bad_pose = recording(&[("/motors/pose", 0, serde_json::json!({"value": "here"}))]);
+        let cases: [(&str, Vec<u8>, &str); 3] = [
+            ("no poses", no_poses, "run.mcap: the recording has no poses on /motors/pose (the task's pose port)"),
+            ("a pose without [x, y]", bad_pose, "run.mcap: message 1 on /motors/pose: no value [x, y, heading]"),
+            ("not mcap", b"hello".to_vec(), "run.mcap: not an MCAP file"),
+        ];
+        for (case, bytes, expected) in cases {
+            let error = score_recording(&task(Metric::PathLength), &[bytes], Path::new("run.mcap")).unwrap_err();
+            assert_eq!(error.to_string(), expected, "{case}");
+        }
+    }
+
+    #[test]
+    fn the_same_bytes_score_the_same_bits() {
+        let bytes =
+            recording(&[pose(0, 0.1, 0.2), command(5, "VEL 0.31 -0.7"), pose(13, 0.4, 0.9), pose(29, 1.7, 0.3)]);
+        let first =
+            encode(&score_recording(&task(Metric::Energy), std::slice::from_ref(&bytes), Path::new("a")).unwrap());
+        let again = encode(&score_recording(&task(Metric::Energy), &[bytes], Path::new("a")).unwrap());
+        assert_eq!(first, again);
+    }
+}

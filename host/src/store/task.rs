@@ -1,0 +1,107 @@
+//! The owner's task and a run's score, as stored (docs/lab.md, "Tasks and
+//! scores"): what a submission is measured by, and what it measured. The
+//! score is computed from the run's recording alone (`crate::score`), so
+//! anyone with the bundle recomputes it bit for bit.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+/// Longest task name and description.
+pub const MAX_TASK_NAME: usize = 64;
+pub const MAX_TASK_DESCRIPTION: usize = 2000;
+
+/// A task: a goal region, and the metric a run is ranked by.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Task {
+    /// `[a-z0-9-]`, 1 to 64.
+    pub name: String,
+    #[serde(default)]
+    pub description: String,
+    pub goal: Goal,
+    pub metric: Metric,
+    /// The output port whose poses `[x, y, heading]` are the robot's
+    /// (`COMPONENT.PORT`).
+    #[serde(default = "default_pose_port")]
+    pub pose: String,
+    /// The output port whose commands reach the motors (energy).
+    #[serde(default = "default_commands_port")]
+    pub commands: String,
+    /// The distance between the wheels (m), for the commanded wheel speeds.
+    #[serde(default = "default_wheel_base_m")]
+    pub wheel_base_m: f64,
+}
+
+/// A disc the robot must reach.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Goal {
+    pub x: f64,
+    pub y: f64,
+    pub radius: f64,
+}
+
+/// What a run is ranked by (built in; each is also a sub-score).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Metric {
+    /// Seconds from the run's start to the first pose inside the goal
+    /// (lower is better; none when it never got there).
+    TimeToGoal,
+    /// 1 when a pose was inside the goal, else 0 (higher is better).
+    GoalReached,
+    /// Metres between successive poses (lower is better).
+    PathLength,
+    /// Contacts the simulator counted (lower is better; simulated robots).
+    Collisions,
+    /// The envelope's interventions, every cause (lower is better).
+    Interventions,
+    /// The integral of the squared commanded wheel speeds, m^2/s (lower
+    /// is better).
+    Energy,
+}
+
+impl Metric {
+    /// Its name as a sub-score.
+    pub fn name(self) -> &'static str {
+        match self {
+            Metric::TimeToGoal => "time_to_goal_s",
+            Metric::GoalReached => "goal_reached",
+            Metric::PathLength => "path_length_m",
+            Metric::Collisions => "collisions",
+            Metric::Interventions => "interventions",
+            Metric::Energy => "energy",
+        }
+    }
+}
+
+fn default_pose_port() -> String {
+    "motors.pose".into()
+}
+
+fn default_commands_port() -> String {
+    "envelope.cmd".into()
+}
+
+fn default_wheel_base_m() -> f64 {
+    0.3
+}
+
+/// A run's score (`score.json` in its bundle): the task's metric and
+/// every sub-score, from its recording.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Score {
+    pub task: String,
+    pub metric: Metric,
+    /// The metric's value (`None`: undefined for this run, e.g. the time
+    /// to a goal never reached, or collisions without a simulator).
+    pub value: Option<f64>,
+    /// Every sub-score that the recording defines, by name.
+    pub sub_scores: BTreeMap<String, f64>,
+    /// The poses and commands it was computed from, and the recording's
+    /// length (s), for a reader to check it against.
+    pub poses: u64,
+    pub commands: u64,
+    pub recorded_s: f64,
+}
