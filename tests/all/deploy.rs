@@ -1246,7 +1246,8 @@ fn the_owners_criteria_end_a_robot_run_early_when_asked() {
 /// Every `subsume lab` command docs/lab.md shows, as written there, run
 /// against a real robot in the order the document gives them (the
 /// placeholders filled: HOST, ID, DIR; the submit's component and
-/// duration made this test robot's). Each either succeeds or, for
+/// duration made this test robot's; `router-config` needs no robot and
+/// prints into its file). Each either succeeds or, for
 /// `cancel` of an experiment already ended, is refused by the portal for
 /// that reason: none fails on its arguments or on a route the robot lacks.
 #[test]
@@ -1320,7 +1321,18 @@ fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_robot() {
         assert!(!stderr.contains("no such API route"), "`{command}`: {stderr}");
         ran.push(words[2].clone());
     }
-    for needed in ["submit", "list", "show", "results", "reserve", "reservations", "unreserve", "kit", "maintenance"] {
+    for needed in [
+        "submit",
+        "list",
+        "show",
+        "results",
+        "reserve",
+        "reservations",
+        "unreserve",
+        "kit",
+        "maintenance",
+        "router-config",
+    ] {
         assert!(ran.iter().any(|c| c == needed), "docs/lab.md shows no `lab {needed}`: {ran:?}");
     }
 }

@@ -46,8 +46,9 @@
 //!   log bounded; a robot's token declared again keeps the robot neither
 //!   listed nor its experiment alive.
 //! - Through a Zenoh router of `eclipse-zenoh` (`tests/python/zenoh_router.py`)
-//!   on the shipped `config/zenoh-lab-router.json5`, its access control
-//!   on: a third user's and another robot's complete queryables on a
+//!   on the config `subsume lab router-config` prints for the lab (as
+//!   shipped in `config/zenoh-lab-router.json5` for lab `lab`), its access
+//!   control on: a third user's and another robot's complete queryables on a
 //!   robot's keys are never asked, a session without credentials is
 //!   refused, and the robot works (`done`, its results, the STOP).
 //! - A robot whose owner marked another baseline refuses an experiment the
@@ -1570,12 +1571,61 @@ fn a_rogue_complete_queryable_on_a_robots_keys_takes_nothing_experiments_end_don
     assert!(lab_metric(&lab, "subsume_lab_skipped_replies_total") >= 5.0 * 4.0, "{}", lab.logs());
 }
 
+/// `subsume lab router-config ARGS`, the real binary: its stdout, or its
+/// exit code and stderr.
+fn router_config(args: &[&str]) -> Result<String, (Option<i32>, String)> {
+    let output = std::process::Command::new(support::BIN)
+        .args(["lab", "router-config"])
+        .args(args)
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8(output.stdout).unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    if output.status.success() { Ok(stdout) } else { Err((output.status.code(), stderr)) }
+}
+
+/// `config/zenoh-lab-router.json5` is exactly what `subsume lab
+/// router-config --lab lab --robot robot1 --robot robot2` prints
+/// (`BLESS=1` rewrites it).
+#[test]
+fn the_shipped_lab_router_config_is_what_the_generator_prints_for_lab_lab_and_two_robots() {
+    let made = router_config(&["--lab", "lab", "--robot", "robot1", "--robot", "robot2"]).unwrap();
+    let path = support::repo_root().join("config/zenoh-lab-router.json5");
+    if std::env::var_os("BLESS").is_some() {
+        std::fs::write(&path, &made).unwrap();
+    }
+    let shipped = std::fs::read_to_string(&path).unwrap();
+    assert!(shipped == made, "{} differs from the generator's (BLESS=1 to rewrite):\n{made}", path.display());
+}
+
+/// `subsume lab router-config` refuses, exit 1 with the reason naming the
+/// thing, a bad lab or robot name, a robot named twice, none, or one with
+/// the lab server's user name.
+#[test]
+fn lab_router_config_refuses_bad_names_duplicates_and_no_robots() {
+    let cases: [(&[&str], &str); 5] = [
+        (&["--lab", "my lab", "--robot", "r1"], "lab name 'my lab' is not a plain name"),
+        (&["--lab", "lab", "--robot", "r1", "--robot", "r/2"], "robot name 'r/2' is not a plain name"),
+        (&["--lab", "lab", "--robot", "r1", "--robot", "r1"], "robot 'r1' is named twice"),
+        (&["--lab", "lab"], "no robots: name each of the lab's robots with --robot NAME"),
+        (
+            &["--lab", "lab", "--robot", "boss", "--lab-server-user", "boss"],
+            "robot 'boss' has the lab server's user name",
+        ),
+    ];
+    for (args, says) in cases {
+        let (code, stderr) = router_config(args).unwrap_err();
+        assert_eq!(code, Some(1), "{args:?}: {stderr}");
+        assert!(stderr.contains(says), "{args:?}: {stderr}");
+    }
+}
+
 /// A Zenoh router of the `eclipse-zenoh` package
-/// (`tests/python/zenoh_router.py`) on the shipped
-/// `config/zenoh-lab-router.json5`, made for this test's lab: its lab name
-/// for `lab`, and `r1`, `r2` for its robots `robot1`, `robot2` (what docs/lab.md
-/// tells an owner to change), listening on loopback, with a users file of
-/// the lab server's, the robots' and a third user's passwords.
+/// (`tests/python/zenoh_router.py`) on the config `subsume lab
+/// router-config` prints for this test's lab and its robots `r1`, `r2`
+/// (listening on loopback, with a users file of the lab server's, the
+/// robots' and a third user's passwords), run as it is printed.
 struct LabRouter {
     child: std::process::Child,
     port: u16,
@@ -1590,22 +1640,30 @@ impl LabRouter {
     fn start(dir: &Path) -> LabRouter {
         let dir = dir.join("router");
         std::fs::create_dir_all(&dir).unwrap();
-        let shipped = std::fs::read_to_string(support::repo_root().join("config/zenoh-lab-router.json5")).unwrap();
-        let config = shipped
-            .replace("subsume/lab/lab/", &format!("subsume/lab/{LAB}/"))
-            .replace("robot1", "r1")
-            .replace("robot2", "r2");
-        std::fs::write(dir.join("router.json5"), config).unwrap();
+        let users_file = dir.join("users.txt");
         let users =
             ["lab-server", "r1", "r2"].iter().map(|u| format!("{u}:{}\n", Self::password(u))).collect::<String>();
-        std::fs::write(dir.join("users.txt"), format!("{users}mallory:{MALLORY_PASSWORD}\n")).unwrap();
+        std::fs::write(&users_file, format!("{users}mallory:{MALLORY_PASSWORD}\n")).unwrap();
         let port = free_port();
+        let listen = format!("tcp/127.0.0.1:{port}");
+        let users_path = users_file.to_str().unwrap();
+        let config = router_config(&[
+            "--lab",
+            LAB,
+            "--robot",
+            "r1",
+            "--robot",
+            "r2",
+            "--listen",
+            &listen,
+            "--users-file",
+            users_path,
+        ])
+        .unwrap_or_else(|e| panic!("subsume lab router-config: {e:?}"));
+        std::fs::write(dir.join("router.json5"), config).unwrap();
         let mut child = std::process::Command::new(support::python())
             .arg(support::repo_root().join("tests/python/zenoh_router.py"))
             .arg(dir.join("router.json5"))
-            .args(["--listen", &format!("tcp/127.0.0.1:{port}")])
-            .arg("--users")
-            .arg(dir.join("users.txt"))
             .stdin(std::process::Stdio::piped())
             .stdout(std::process::Stdio::piped())
             .spawn()

@@ -1,11 +1,13 @@
 //! `subsume lab`: the remote lab from the command line (docs/lab.md):
 //! submit an experiment and follow it to its end, list, show and cancel
-//! experiments, unpack their results, unpack the lab kit. The work is
-//! `subsume::portal::lab_client`'s; this file parses and prints.
+//! experiments, unpack their results, unpack the lab kit, print a lab's
+//! Zenoh router config. The work is `subsume::portal::lab_client`'s (and
+//! `subsume::lab::router_config`'s); this file parses and prints.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 
+use subsume::lab::router_config::{self, RouterConfigOptions};
 use subsume::portal::deploy_client::component_arg;
 use subsume::portal::lab_client::{self, Login, Say, SubmitRequest, list_text, now_ms, show_text};
 use subsume::store::experiments::ExperimentState;
@@ -26,6 +28,12 @@ enum LabAction {
     /// portal, on no robot of its own; robots join with `subsume run ...
     /// --lab NAME` (docs/lab.md, "Several robots").
     Serve(ServeArgs),
+    /// Print the Zenoh 1.10 router config (JSON5) of a lab and its robots:
+    /// usrpwd auth and access control that let the lab server's user do
+    /// everything under the lab's keys, each robot's user (its robot's
+    /// name) only its own keys, and everyone else nothing (docs/lab.md,
+    /// "A Zenoh router that lets each peer touch only its own keys").
+    RouterConfig(RouterConfigArgs),
     /// Upload components and/or a robot file, stage them and submit them as
     /// an experiment, then print each state it enters until it ends: exit 0
     /// when it is `done`, 1 otherwise (with the reasons).
@@ -235,6 +243,26 @@ impl ServeArgs {
 }
 
 #[derive(clap::Args)]
+struct RouterConfigArgs {
+    /// The lab's name (as `subsume lab serve --lab NAME`).
+    #[arg(long, value_name = "NAME")]
+    lab: String,
+    /// A robot of the lab (as `subsume run ... --lab-robot NAME`), also its
+    /// user's name on the router; once per robot.
+    #[arg(long = "robot", value_name = "NAME")]
+    robots: Vec<String>,
+    /// The router's listen endpoint.
+    #[arg(long, value_name = "ENDPOINT", default_value = router_config::DEFAULT_LISTEN)]
+    listen: String,
+    /// The router's users file (`user:password` per line).
+    #[arg(long, value_name = "PATH", default_value = router_config::DEFAULT_USERS_FILE)]
+    users_file: String,
+    /// The lab server's user on the router.
+    #[arg(long, value_name = "USER", default_value = router_config::DEFAULT_LAB_SERVER_USER)]
+    lab_server_user: String,
+}
+
+#[derive(clap::Args)]
 struct SubmitArgs {
     /// A component of the robot and its file: uploaded under NAME
     /// (repeatable); the robot file's component NAME runs it.
@@ -293,6 +321,17 @@ impl LabCommand {
     pub fn execute(self, context: &super::Context) -> anyhow::Result<ExitCode> {
         match self.action {
             LabAction::Serve(args) => args.execute(context),
+            LabAction::RouterConfig(args) => {
+                let options = RouterConfigOptions {
+                    lab: args.lab,
+                    robots: args.robots,
+                    listen: args.listen,
+                    users_file: args.users_file,
+                    lab_server_user: args.lab_server_user,
+                };
+                print!("{}", router_config::router_config(&options)?);
+                Ok(ExitCode::SUCCESS)
+            }
             LabAction::Submit(args) => {
                 let request = SubmitRequest {
                     login: to_login(args.login),

@@ -15,7 +15,8 @@
 //! `robots` (a lab server's robots and STOP). Pure decisions: `queue`
 //! (what starts next, ETAs, limits, reservations, a lab server's
 //! placement), `verdict` (the preflight's verdict), and the preflight
-//! outcome's state in `runner`. Two threads drive the lab: the checker,
+//! outcome's state in `runner`, and a lab's Zenoh router config
+//! (`router_config`). Two threads drive the lab: the checker,
 //! and on a robot the runner ([`runner`]) or on a lab server the
 //! dispatcher ([`server`]).
 //!
@@ -49,6 +50,7 @@ mod reservations;
 pub mod reset;
 pub mod robot_link;
 mod robots;
+pub mod router_config;
 mod runner;
 pub mod selftest;
 pub mod server;
