@@ -12,8 +12,10 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use serde_json::Value as Json;
+use sha2::{Digest, Sha256};
 use thiserror::Error;
 
+use crate::assemble::registry;
 use crate::store::task::{Metric, Score, Task};
 
 /// A bundle's task, the one its score was computed for.
@@ -22,6 +24,10 @@ pub const TASK_FILE: &str = "task.json";
 pub const SCORE_FILE: &str = "score.json";
 /// The run's recording in a bundle (and its rotated files after it).
 pub const RUN_RECORDING: &str = "run.mcap";
+/// The preflight's recording in a bundle, and its score: the simulator's
+/// side, to compare with the robot's.
+pub const PREFLIGHT_RECORDING: &str = "preflight.mcap";
+pub const PREFLIGHT_SCORE_FILE: &str = "preflight-score.json";
 /// Largest recording scored (all its files): as `subsume replay` reads.
 pub const MAX_SCORED_BYTES: u64 = 4 << 30;
 
@@ -42,6 +48,8 @@ pub enum ScoreError {
     Message { path: PathBuf, index: u64, topic: String, why: String },
     #[error("{path}: the recording has no poses on {topic} (the task's pose port)")]
     NoPoses { path: PathBuf, topic: String },
+    #[error("{path}: cannot write: {why}")]
+    Write { path: PathBuf, why: String },
 }
 
 /// The topic a task's `COMPONENT.PORT` is recorded on.
@@ -49,6 +57,20 @@ fn topic_of(port: &str) -> String {
     match port.split_once('.') {
         Some((component, port)) => crate::record::output_topic(component, port),
         None => format!("/{port}"),
+    }
+}
+
+/// The status sections' kinds the score reads (as the registry names the
+/// built-ins).
+struct StatusKinds {
+    sim: Option<String>,
+    envelope: Option<String>,
+}
+
+impl StatusKinds {
+    fn registered() -> StatusKinds {
+        let named = |builtin: &dyn crate::builtin::Builtin| registry::kind_of(builtin).map(|k| k.to_string());
+        StatusKinds { sim: named(&crate::sim::builtin::SimBuiltin), envelope: named(&crate::envelope::EnvelopeBuiltin) }
     }
 }
 
@@ -99,8 +121,13 @@ impl Tally {
 pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Score, ScoreError> {
     let pose_topic = topic_of(&task.pose);
     let commands_topic = topic_of(&task.commands);
+    let kinds = StatusKinds::registered();
     let mut tally = Tally::default();
     let mut index = 0u64;
+    let mut hash = Sha256::new();
+    for bytes in files {
+        hash.update(bytes);
+    }
     for bytes in files {
         if !bytes.starts_with(mcap::MAGIC) {
             return Err(ScoreError::Recording { path: path.into(), why: "not an MCAP file".into() });
@@ -154,15 +181,14 @@ pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Sc
                 tally.wheels = Some((wheels(command, task.wheel_base_m), t));
             } else if topic.starts_with("/subsume/status/") {
                 let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
-                match json["kind"].as_str() {
-                    Some("sim") => tally.collisions = json["status"]["collisions"].as_f64(),
-                    Some("envelope") => {
-                        let causes = json["status"]["causes"].as_object().map(|causes| {
-                            causes.iter().filter_map(|(k, v)| v.as_f64().map(|n| (k.clone(), n))).collect()
-                        });
-                        tally.interventions = causes;
-                    }
-                    _ => {}
+                let kind = json["kind"].as_str();
+                if kind.is_some() && kind == kinds.sim.as_deref() {
+                    tally.collisions = json["status"]["collisions"].as_f64();
+                } else if kind.is_some() && kind == kinds.envelope.as_deref() {
+                    let causes = json["status"]["causes"]
+                        .as_object()
+                        .map(|causes| causes.iter().filter_map(|(k, v)| v.as_f64().map(|n| (k.clone(), n))).collect());
+                    tally.interventions = causes;
                 }
             }
         }
@@ -196,6 +222,7 @@ pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Sc
         poses: tally.poses,
         commands: tally.commands,
         recorded_s: end.saturating_sub(tally.first_ns.unwrap_or(0)) as f64 / 1e9,
+        recording_sha256: hex::encode(hash.finalize()),
     })
 }
 
@@ -247,8 +274,13 @@ pub fn read_task(dir: &Path) -> Result<Task, ScoreError> {
 /// Scores the bundle in `dir` (its `task.json` and `run.mcap`): the score,
 /// and its bytes as `score.json` holds them.
 pub fn score_bundle(dir: &Path) -> Result<(Score, Vec<u8>), ScoreError> {
+    score_bundle_recording(dir, RUN_RECORDING)
+}
+
+/// Scores `recording` of the bundle in `dir` against its `task.json`.
+pub fn score_bundle_recording(dir: &Path, recording: &str) -> Result<(Score, Vec<u8>), ScoreError> {
     let task = read_task(dir)?;
-    let score = score_files(&task, &dir.join(RUN_RECORDING))?;
+    let score = score_files(&task, &dir.join(recording))?;
     let bytes = encode(&score);
     Ok((score, bytes))
 }
@@ -267,6 +299,8 @@ mod tests {
             pose: "motors.pose".into(),
             commands: "envelope.cmd".into(),
             wheel_base_m: 0.4,
+            board: Default::default(),
+            pseudonyms: true,
         }
     }
 
@@ -307,6 +341,8 @@ mod tests {
 
     #[test]
     fn each_sub_score_is_what_the_recording_says() {
+        let kinds = StatusKinds::registered();
+        let (sim, envelope) = (kinds.sim.unwrap(), kinds.envelope.unwrap());
         let bytes = recording(&[
             pose(0, 0.0, 0.0),
             command(0, "VEL 0.5 0"),
@@ -316,15 +352,11 @@ mod tests {
             (
                 "/subsume/status/envelope",
                 2_500_000_000,
-                serde_json::json!({"kind": "envelope", "status": {"causes": {"stop_zone": 2, "geofence": 1}}}),
+                serde_json::json!({"kind": envelope, "status": {"causes": {"stop_zone": 2, "geofence": 1}}}),
             ),
             pose(3000, 2.75, 0.0),
             command(3000, "STOP"),
-            (
-                "/subsume/status/robot-sim",
-                3_500_000_000,
-                serde_json::json!({"kind": "sim", "status": {"collisions": 1}}),
-            ),
+            ("/subsume/status/robot-sim", 3_500_000_000, serde_json::json!({"kind": sim, "status": {"collisions": 1}})),
             pose(4000, 2.75, 0.0),
         ]);
         let score = score_recording(&task(Metric::TimeToGoal), &[bytes], Path::new("run.mcap")).unwrap();

@@ -2366,7 +2366,9 @@ fn a_drive_reset_brings_the_robot_back_before_each_experiment_and_one_that_canno
 /// recomputes it from the bundle alone, bit for bit, and says when the
 /// bundle's score differs; a scorer no one here wrote (Python over the
 /// `mcap` package) finds the same path length, time to the goal and
-/// energy. A bad task is refused by name.
+/// energy. The preflight's score of the same task (the simulator's side)
+/// is kept and recomputed beside it, with the gap between the two. A bad
+/// task is refused by name.
 #[test]
 fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_it_bit_for_bit() {
     let dir = tempfile::tempdir().unwrap();
@@ -2437,6 +2439,45 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
         assert!((ours - theirs).abs() <= 1e-9 * ours.abs().max(1.0), "{name}: {ours} vs {theirs}");
     }
     assert!(score["sub_scores"]["path_length_m"].as_f64().unwrap() > 4.5, "{score:#}");
+    // The preflight's score, from its simulated run of the same task,
+    // beside the robot's: on the record, in the bundle, recomputed too.
+    let preflight = done["preflight"]["score"].clone();
+    assert_eq!(preflight["sub_scores"]["goal_reached"], 1.0, "{done:#}");
+    let kept: Json = serde_json::from_slice(&std::fs::read(bundle.join("preflight-score.json")).unwrap()).unwrap();
+    assert_eq!(kept, preflight);
+    let simulated = preflight["value"].as_f64().unwrap();
+    assert!(said.contains("identical: ") && said.contains("preflight-score.json matches"), "{said}");
+    assert!(said.contains(&format!("time_to_goal_s: robot {to_goal}, simulator {simulated}, gap")), "{said}");
+    // The leaderboard: ana's run ranked first; ana sees her name and
+    // experiment, ben a pseudonym and no id, an admin both.
+    let board = |token: &str, name: &str| lab.call(token, "GET", &format!("/api/v1/tasks/{name}/leaderboard"), "");
+    let (status, json) = board(&ana, "reach-6");
+    assert_eq!(status, 200, "{json}");
+    let entry = &json["leaderboard"]["entries"][0];
+    assert_eq!(
+        (&entry["rank"], &entry["user"], &entry["experiment"]),
+        (&Json::from(1), &Json::from("ana"), &Json::from(id))
+    );
+    assert_eq!((&entry["value"], &json["leaderboard"]["better"]), (&Json::from(to_goal), &Json::from("lower")));
+    assert_eq!(entry["preflight_value"].as_f64(), Some(simulated));
+    // The recording the score came from is the bundle's run.mcap.
+    let sums = std::fs::read_to_string(bundle.join("SHA256SUMS")).unwrap();
+    let recording = entry["recording_sha256"].as_str().unwrap();
+    assert!(sums.contains(&format!("{recording}  run.mcap")), "{recording} not in {sums}");
+    let ben = lab.token("ben");
+    let (_, json) = board(&ben, "reach-6");
+    let entry = &json["leaderboard"]["entries"][0];
+    assert_eq!(
+        (&entry["user"], entry.get("experiment"), &entry["yours"]),
+        (&Json::from("participant-1"), None, &Json::Bool(false))
+    );
+    assert!(!json.to_string().contains("ana"), "{json}");
+    let (_, json) = board(&boss, "reach-6");
+    assert_eq!(json["leaderboard"]["entries"][0]["user"], "ana");
+    let (status, json) = board(&ben, "other");
+    assert_eq!((status, json["error"].as_str()), (404, Some("no task 'other' in this lab")), "{json}");
+    let (status, _) = http(&lab.address, "GET", "/api/v1/tasks/reach-6/leaderboard", None, b"");
+    assert_eq!(status, 401);
     // A bundle whose score was changed is caught.
     let changed = std::fs::read_to_string(bundle.join("score.json")).unwrap().replacen(&to_goal.to_string(), "1.5", 1);
     std::fs::write(bundle.join("score.json"), changed).unwrap();

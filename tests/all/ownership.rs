@@ -166,6 +166,11 @@ fn no_mail(asker: &str, _: &str, _: World) -> u16 {
     if role_of(asker) == Role::Nobody { 401 } else { 409 }
 }
 
+/// This lab has no task: 404 saying so.
+fn no_task(asker: &str, _: &str, _: World) -> u16 {
+    if role_of(asker) == Role::Nobody { 401 } else { 404 }
+}
+
 fn admins(asker: &str, _: &str, _: World) -> u16 {
     match role_of(asker) {
         Role::Nobody => 401,
@@ -252,6 +257,7 @@ const ROUTES: &[Route] = &[
     },
     // This lab sends no mail: 409 saying so.
     route("/api/v1/lab/mail", Body::Whole, no_mail, &[]),
+    route("/api/v1/tasks/reach/leaderboard", Body::Whole, no_task, &[]),
     route("/api/v1/robots", Body::Whole, a_lab_server_only, &[]),
     route("/api/v1/robots/lab/live", Body::Whole, a_lab_server_only, &[]),
     route("/api/v1/openapi.json", Body::Whole, anyone, &[]),

@@ -125,7 +125,7 @@ pub fn is_result_file(name: &str) -> bool {
         LOG,
         ROBOT,
         RUN_RECORDING,
-        "preflight.mcap",
+        PREFLIGHT_RECORDING,
         "preflight-report.json",
         "preflight-verdict.json",
         "preflight.log",
@@ -135,6 +135,7 @@ pub fn is_result_file(name: &str) -> bool {
         || name == super::selftest::SELF_TEST_FILE
         || name == crate::score::TASK_FILE
         || name == crate::score::SCORE_FILE
+        || name == crate::score::PREFLIGHT_SCORE_FILE
         || crate::record::video::is_video_name(name)
         || name.strip_prefix("run.").and_then(|r| r.strip_suffix(".mcap")).is_some_and(|n| n.parse::<u32>().is_ok())
         || name.strip_prefix("files/").is_some_and(|f| !f.contains('/') && !f.starts_with('.'))
@@ -271,13 +272,34 @@ pub fn write_score(
     store: &Store,
     id: u64,
     task: &crate::store::task::Task,
-) -> Result<crate::store::task::Score, String> {
+) -> Result<crate::store::task::Score, crate::score::ScoreError> {
+    write_score_of(store, id, task, RUN_RECORDING, crate::score::SCORE_FILE)
+}
+
+/// The preflight's recording in an experiment's folder, and its score.
+pub const PREFLIGHT_RECORDING: &str = crate::score::PREFLIGHT_RECORDING;
+pub const PREFLIGHT_SCORE: &str = crate::score::PREFLIGHT_SCORE_FILE;
+
+/// Scores the recording `recording` of experiment `id`'s folder against
+/// `task` into `score_file`, with `task.json` beside it.
+pub fn write_score_of(
+    store: &Store,
+    id: u64,
+    task: &crate::store::task::Task,
+    recording: &str,
+    score_file: &str,
+) -> Result<crate::store::task::Score, crate::score::ScoreError> {
+    use crate::score::ScoreError;
     let dir = store.experiment_dir(id);
-    let score = crate::score::score_files(task, &dir.join(RUN_RECORDING)).map_err(|e| e.to_string())?;
-    let task_json = serde_json::to_vec_pretty(task).map_err(|e| e.to_string())?;
-    crate::fsutil::write_atomically(&dir.join(crate::score::TASK_FILE), &task_json).map_err(|e| e.to_string())?;
-    crate::fsutil::write_atomically(&dir.join(crate::score::SCORE_FILE), &crate::score::encode(&score))
-        .map_err(|e| e.to_string())?;
+    let score = crate::score::score_files(task, &dir.join(recording))?;
+    let task_path = dir.join(crate::score::TASK_FILE);
+    let task_json = serde_json::to_vec_pretty(task)
+        .map_err(|e| ScoreError::Write { path: task_path.clone(), why: e.to_string() })?;
+    let write = |path: PathBuf, bytes: &[u8]| {
+        crate::fsutil::write_atomically(&path, bytes).map_err(|e| ScoreError::Write { path, why: e.to_string() })
+    };
+    write(task_path, &task_json)?;
+    write(dir.join(score_file), &crate::score::encode(&score))?;
     Ok(score)
 }
 

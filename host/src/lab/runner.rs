@@ -228,6 +228,20 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
         let _ = std::fs::rename(run_dir.join(name), to);
     }
     let _ = std::fs::remove_dir_all(&run_dir);
+    // The preflight's score, beside the run's to come (before the lock: it
+    // reads the whole recording).
+    let preflight_score = match (&outcome, &record.settings.task) {
+        (Ok(Outcome::Judged { .. }), Some(task)) => {
+            match bundle::write_score_of(lab.store(), id, task, bundle::PREFLIGHT_RECORDING, bundle::PREFLIGHT_SCORE) {
+                Ok(score) => Some(score),
+                Err(why) => {
+                    tracing::warn!("experiment {id}: its preflight could not be scored: {why}");
+                    None
+                }
+            }
+        }
+        _ => None,
+    };
     let mut book = lab.lock()?;
     if let Some(record) = book.experiments.get_mut(&id) {
         record.results = bundle::scan(lab.store(), id);
@@ -241,6 +255,7 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
             simulated_s: verdict.observed.simulated_s,
             wall_s: *wall_s,
             replay,
+            score: preflight_score,
         });
     }
     match after_preflight(outcome, lab.is_stopping()) {

@@ -230,6 +230,17 @@ pub(super) async fn enter_maintenance(
     Ok(Json(json!({ "maintenance": maintenance })))
 }
 
+/// A task's leaderboard (any user of the lab).
+pub(super) async fn leaderboard(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(name): Path<String>,
+) -> Result<Json<Json_>, ApiError> {
+    let lab = state.lab.clone();
+    let board = blocking(move || lab.leaderboard(&user, &name)).await?;
+    Ok(Json(json!({ "leaderboard": board })))
+}
+
 /// Runs the owner's self-test now (admins): its result.
 pub(super) async fn run_self_test(
     State(state): State<Arc<PortalState>>,

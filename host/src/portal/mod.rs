@@ -242,6 +242,7 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/lab/resume", post(lab::resume))
         .route("/lab/kit", get(lab::kit))
         .route("/lab/selftest", post(lab::run_self_test))
+        .route("/tasks/{name}/leaderboard", get(lab::leaderboard))
         .route(
             "/lab/maintenance",
             post(lab::enter_maintenance).delete(lab::end_maintenance).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)),

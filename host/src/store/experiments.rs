@@ -186,6 +186,11 @@ pub struct PreflightResult {
     /// named: information, never a refusal.
     #[serde(default)]
     pub replay: Option<serde_json::Value>,
+    /// Its score against the experiment's task, from its recording (in
+    /// the bundle as `preflight-score.json`): the simulator's side of the
+    /// run's score.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub score: Option<crate::store::task::Score>,
 }
 
 /// What the run on the robot left.

@@ -31,6 +31,28 @@ pub struct Task {
     /// The distance between the wheels (m), for the commanded wheel speeds.
     #[serde(default = "default_wheel_base_m")]
     pub wheel_base_m: f64,
+    /// Which run of each user the leaderboard ranks.
+    #[serde(default)]
+    pub board: BoardChoice,
+    /// Whether the leaderboard shows other users by pseudonym
+    /// (`participant-N`) rather than by name (admins always see names).
+    #[serde(default = "default_pseudonyms")]
+    pub pseudonyms: bool,
+}
+
+/// Which of a user's scored runs the leaderboard ranks.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum BoardChoice {
+    /// Their best by the metric.
+    #[default]
+    Best,
+    /// Their latest.
+    Latest,
+}
+
+fn default_pseudonyms() -> bool {
+    true
 }
 
 /// A disc the robot must reach.
@@ -63,6 +85,11 @@ pub enum Metric {
 }
 
 impl Metric {
+    /// Whether a higher value ranks first (else a lower one does).
+    pub fn higher_is_better(self) -> bool {
+        self == Metric::GoalReached
+    }
+
     /// Its name as a sub-score.
     pub fn name(self) -> &'static str {
         match self {
@@ -104,4 +131,8 @@ pub struct Score {
     pub poses: u64,
     pub commands: u64,
     pub recorded_s: f64,
+    /// The sha256 of the recording it was computed from (its files, in
+    /// order, as one stream): `run.mcap`'s line of the bundle's
+    /// `SHA256SUMS` when it is one file.
+    pub recording_sha256: String,
 }
