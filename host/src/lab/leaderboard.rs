@@ -227,8 +227,10 @@ mod tests {
         Principal { name: name.into(), role, platforms: Vec::new() }
     }
 
-    /// (user shown, rank, value, experiment shown) of each entry.
-    fn shown(board: &Board) -> Vec<(String, Option<usize>, Option<f64>, Option<u64>)> {
+    /// (user shown, rank, value, experiment shown) of an entry.
+    type Shown = (String, Option<usize>, Option<f64>, Option<u64>);
+
+    fn shown(board: &Board) -> Vec<Shown> {
         board.entries.iter().map(|e| (e.user.clone(), e.rank, e.value, e.experiment)).collect()
     }
 
