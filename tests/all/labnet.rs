@@ -971,6 +971,14 @@ fn a_lab_server_routes_around_a_robot_in_maintenance() {
       <param name="rate" value="5"/>
     </component>"#;
     let set = lab.stage(&ana, "camera.xml", &robot(7.0, camera));
+    // The lab server's task: the run is scored there, from the recording
+    // that came back.
+    let (_, json) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = json["lab"]["settings"].clone();
+    settings["task"] =
+        serde_json::json!({"name": "reach", "goal": {"x": 7.0, "y": 1.0, "radius": 0.5}, "metric": "path_length"});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
     let id = lab.submit(&ana, set, 2.0, Some("r1"));
     let done = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
     assert_eq!((&done["state"], &done["placement"]["robot"]), (&Json::from("done"), &Json::from("r1")), "{done:#}");
@@ -986,6 +994,13 @@ fn a_lab_server_routes_around_a_robot_in_maintenance() {
         "the robot's video did not reach the lab: {:?}",
         std::fs::read_dir(&bundle).unwrap().collect::<Vec<_>>()
     );
+    let score: Json = serde_json::from_slice(&std::fs::read(bundle.join("score.json")).unwrap()).unwrap();
+    assert_eq!(score["task"], "reach", "{score:#}");
+    assert_eq!(done["score"], score, "{done:#}");
+    assert!(score["sub_scores"]["path_length_m"].as_f64().unwrap() > 0.0, "{score:#}");
+    let again = support::subsume().arg("score").arg(&bundle).output().unwrap();
+    let said = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success() && said.contains("identical"), "{said}");
 }
 
 /// Every local record robot `robot` holds of lab experiment `lab_id`.

@@ -1109,6 +1109,12 @@ fn stop(fleet: &Fleet, id: u64, robot: &str, by: &str) {
 /// experiment its final state there (unless it ended here already).
 fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
     let outcome = fetch_results(lab, fleet, id, robot);
+    // The lab's own score of the run, from the recording just fetched
+    // (before the lock: it reads the recording whole).
+    let score = match &outcome {
+        Ok(Some(_)) => score_fetched(lab, id),
+        _ => None,
+    };
     let Ok(mut book) = lab.lock() else { return };
     {
         let mut robots = lock(&fleet.robots);
@@ -1133,6 +1139,11 @@ fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
     record.results = bundle::scan(&store, id);
     if let Some(run) = results.run.clone() {
         record.run = Some(run);
+    }
+    match score {
+        Some(Ok(score)) => record.score = Some(score),
+        Some(Err(e)) => record.add_reason(format!("its run could not be scored: {e}")),
+        None => {}
     }
     if let Some(placement) = record.placement.as_mut() {
         placement.fetch_pending = false;
@@ -1162,6 +1173,21 @@ fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
         return;
     }
     super::runner::retain(lab, &mut book);
+}
+
+/// Scores experiment `id`'s fetched run against the task it was submitted
+/// under (the lab server's), when it has one and a recording came back.
+fn score_fetched(lab: &Lab, id: u64) -> Option<Result<crate::store::task::Score, crate::score::ScoreError>> {
+    let task = lab.lock().ok()?.experiments.get(&id)?.settings.task.clone()?;
+    let recording = lab.store().experiment_dir(id).join(bundle::RUN_RECORDING);
+    if !recording.exists() {
+        return None;
+    }
+    let score = bundle::write_score(lab.store(), id, &task);
+    if let Err(e) = &score {
+        tracing::warn!("experiment {id}: its run could not be scored: {e}");
+    }
+    Some(score)
 }
 
 /// The results of experiment `id` on `robot`, their files fetched into
