@@ -356,6 +356,7 @@ impl Lab {
                 state: state.name().to_string(),
                 reasons: record.reasons.clone(),
                 outcome: record.run.as_ref().and_then(|r| r.outcome.clone()),
+                score: record.score.clone(),
             };
             if let Err(e) = notifier.tell(kind, unix_now_ms(), Some(facts)) {
                 tracing::error!("experiment {id}: its {} webhook event is lost: {e}", state.name());

@@ -248,6 +248,10 @@ pub fn compose(event: &Event) -> (String, String) {
             if let Some(outcome) = &e.outcome {
                 body.push_str(&format!("Outcome: {}\n", outcome.said()));
             }
+            if let Some(score) = &e.score {
+                let value = score.value.map_or_else(|| "none".to_string(), |v| v.to_string());
+                body.push_str(&format!("Score: task {}: {} = {value}\n", score.task, score.metric.name()));
+            }
             if !e.reasons.is_empty() {
                 body.push_str("\nReasons:\n");
                 for reason in &e.reasons {
@@ -399,6 +403,7 @@ mod tests {
                 state: "refused".into(),
                 reasons: vec!["preflight: 3 collisions".into()],
                 outcome: None,
+                score: None,
             }),
             robot: None,
         };
@@ -407,6 +412,38 @@ mod tests {
         for part in
             ["Experiment 4 by ana is now refused", "experiment.refused", "- preflight: 3 collisions", "2023-11-14"]
         {
+            assert!(body.contains(part), "{part} in {body}");
+        }
+    }
+
+    #[test]
+    fn a_mail_of_an_ended_run_says_its_score_apart_from_its_state() {
+        let score = crate::store::task::Score {
+            task: "reach-6".into(),
+            metric: crate::store::task::Metric::TimeToGoal,
+            value: Some(17.25),
+            sub_scores: Default::default(),
+            poses: 10,
+            commands: 5,
+            recorded_s: 25.0,
+            recording_sha256: String::new(),
+        };
+        let event = Event {
+            id: 10,
+            event: EventKind::ExperimentEnded,
+            at_ms: 1_700_000_000_000,
+            experiment: Some(ExperimentFacts {
+                id: 5,
+                submitter: "ana".into(),
+                state: "done".into(),
+                reasons: Vec::new(),
+                outcome: None,
+                score: Some(score),
+            }),
+            robot: None,
+        };
+        let (_, body) = compose(&event);
+        for part in ["Experiment 5 by ana is now done", "Score: task reach-6: time_to_goal_s = 17.25\n"] {
             assert!(body.contains(part), "{part} in {body}");
         }
     }

@@ -106,6 +106,9 @@ pub struct ExperimentFacts {
     /// the envelope's interventions), apart from the status.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub outcome: Option<RunOutcome>,
+    /// Its score against the owner's task, once its run ended scored.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub score: Option<crate::store::task::Score>,
 }
 
 /// The event an experiment entering state `state` (its name) makes, if any.

@@ -194,6 +194,7 @@ mod tests {
                 state: "done".into(),
                 reasons: vec![],
                 outcome: None,
+                score: None,
             }),
             robot: None,
         }

@@ -917,6 +917,16 @@ pub fn show_text(experiment: &Experiment, now_ms: u64) -> String {
     if experiment.awaiting_reset {
         field("waiting", "for the robot to be reset (an admin confirms it in the portal)".into());
     }
+    if let Some(reset) = &r.reset {
+        let at = |p: &Option<crate::store::experiments::Pose>| {
+            p.map_or("no pose".to_string(), |p| format!("({:.2}, {:.2}, {:.2} rad)", p.x, p.y, p.heading))
+        };
+        let how = match &reset.error {
+            None => format!("driven back in {:.1} s from {} to {}", reset.took_s, at(&reset.from), at(&reset.pose)),
+            Some(error) => format!("failed after {:.1} s: {error}", reset.took_s),
+        };
+        field("reset", how);
+    }
     if let Some(p) = &r.preflight {
         let verdict = if p.passed { "passed" } else { "refused" };
         field("preflight", format!("{verdict}: {} s simulated in {:.1} s", p.simulated_s, p.wall_s));
@@ -932,6 +942,15 @@ pub fn show_text(experiment: &Experiment, now_ms: u64) -> String {
         if let Some(outcome) = &run.outcome {
             field("outcome", outcome.said());
         }
+    }
+    if let Some(score) = &r.score {
+        let shown = |v: Option<f64>| v.map_or_else(|| "none".to_string(), |v| v.to_string());
+        let simulated = r
+            .preflight
+            .as_ref()
+            .and_then(|p| p.score.as_ref())
+            .map_or(String::new(), |p| format!(" (the preflight's: {})", shown(p.value)));
+        field("score", format!("task {}: {} = {}{simulated}", score.task, score.metric.name(), shown(score.value)));
     }
     if !r.results.is_empty() || r.recording_expired {
         let bytes: u64 = r.results.iter().map(|f| f.bytes).sum();
@@ -1221,5 +1240,54 @@ mod tests {
         std::fs::write(full.join("x"), "").unwrap();
         let text = results(&login(), 1, &full).unwrap_err().to_string();
         assert!(text.ends_with("is not empty; give a new or empty folder"), "{text}");
+    }
+
+    #[test]
+    fn show_says_the_reset_and_the_score_apart_from_the_state() {
+        let mut shown = experiment(&[(ExperimentState::Done, 2000, "its time is up")]);
+        shown.record.reset = Some(crate::store::experiments::ResetOutcome {
+            at_ms: 1500,
+            passed: true,
+            took_s: 12.34,
+            from: Some(crate::store::experiments::Pose { x: 7.4, y: 1.0, heading: 0.1 }),
+            pose: Some(crate::store::experiments::Pose { x: 1.02, y: 0.98, heading: 0.03 }),
+            error: None,
+        });
+        let score = crate::store::task::Score {
+            task: "reach-6".into(),
+            metric: crate::store::task::Metric::TimeToGoal,
+            value: Some(17.25),
+            sub_scores: Default::default(),
+            poses: 10,
+            commands: 5,
+            recorded_s: 25.0,
+            recording_sha256: String::new(),
+        };
+        shown.record.score = Some(score.clone());
+        shown.record.preflight = Some(crate::store::experiments::PreflightResult {
+            passed: true,
+            reasons: Vec::new(),
+            simulated_s: 25.0,
+            wall_s: 1.0,
+            replay: None,
+            score: Some(crate::store::task::Score { value: None, ..score }),
+        });
+        let text = show_text(&shown, 3000);
+        assert!(text.contains("experiment 7: done"), "{text}");
+        assert!(
+            text.contains("  reset      driven back in 12.3 s from (7.40, 1.00, 0.10 rad) to (1.02, 0.98, 0.03 rad)\n"),
+            "{text}"
+        );
+        assert!(text.contains("  score      task reach-6: time_to_goal_s = 17.25 (the preflight's: none)\n"), "{text}");
+        shown.record.reset = shown.record.reset.map(|r| crate::store::experiments::ResetOutcome {
+            passed: false,
+            error: Some("the emergency stop was engaged (by ana: portal)".into()),
+            ..r
+        });
+        let text = show_text(&shown, 3000);
+        assert!(
+            text.contains("  reset      failed after 12.3 s: the emergency stop was engaged (by ana: portal)\n"),
+            "{text}"
+        );
     }
 }
