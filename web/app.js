@@ -1215,8 +1215,42 @@ function renderLab() {
   if (labExperiments.length > MAX_EXPERIMENTS_SHOWN) shown.push(el('p', { class: 'hint' }, `and ${labExperiments.length - MAX_EXPERIMENTS_SHOWN} older ones`));
   $('lab-experiments').replaceChildren(...shown);
   applyRole($('lab-experiments'));
+  renderBoard();
   renderReservations();
   renderLabAdmin();
+}
+
+// The owner's task's leaderboard (GET /api/v1/tasks/NAME/leaderboard):
+// fetched again when the lab changes, one request at a time.
+let boardFetching = false;
+let boardAgain = false;
+const number = (v) => (v == null ? '-' : String(Math.round(v * 1000) / 1000));
+async function renderBoard() {
+  const task = lab && lab.task;
+  $('lab-board').hidden = !task;
+  if (!task) return;
+  if (boardFetching) { boardAgain = true; return; }
+  boardFetching = true;
+  try {
+    const { leaderboard: board } = await api('GET', `/tasks/${encodeURIComponent(task.name)}/leaderboard`);
+    $('lab-board-title').textContent = `Leaderboard: ${board.task}`;
+    $('lab-board-task').textContent = `${board.description ? board.description + '. ' : ''}Ranked by ${board.metric} (${board.better} is better), each user's ${board.board} run that ended done.`;
+    const rows = board.entries.map((e) => el('tr', { 'data-rank': e.rank == null ? '' : String(e.rank), class: e.yours ? 'yours' : '' },
+      el('td', { class: 'rank' }, e.rank == null ? '-' : String(e.rank)),
+      el('td', { class: 'user' }, e.user + (e.experiment != null ? ` (experiment ${e.experiment})` : '')),
+      el('td', { class: 'value' }, number(e.value)),
+      el('td', { class: 'preflight-value' }, number(e.preflight_value)),
+      el('td', { class: 'gap' }, number(e.gap)),
+      el('td', {}, when(e.ended_ms)),
+      el('td', { class: 'sha', title: e.recording_sha256 }, e.recording_sha256.slice(0, 12))));
+    $('lab-board-table').querySelector('tbody').replaceChildren(...rows);
+    $('lab-board-said').textContent = rows.length ? '' : 'no scored run yet';
+  } catch (err) {
+    $('lab-board-said').textContent = `the leaderboard did not load: ${err.message}`;
+  } finally {
+    boardFetching = false;
+    if (boardAgain) { boardAgain = false; renderBoard(); }
+  }
 }
 
 // Where an experiment is now, in words.
@@ -1286,6 +1320,16 @@ function experimentCard(x) {
       `beyond the watchdog's margin (worst ${x.run.worst_lateness_ms.toFixed(1)} ms)`));
     if (x.run.outcome) card.append(el('div', { class: 'outcome' }, `Outcome: ${outcomeText(x.run.outcome)}`));
   }
+  if (x.score) {
+    const simulated = x.preflight && x.preflight.score ? ` (the preflight's: ${number(x.preflight.score.value)})` : '';
+    card.append(el('div', { class: 'score' }, `Score: task ${x.score.task}: ${x.score.metric} = ${number(x.score.value)}${simulated}`));
+  }
+  if (x.reset) {
+    const at = (p) => (p ? `(${p.x.toFixed(2)}, ${p.y.toFixed(2)}, ${p.heading.toFixed(2)} rad)` : 'no pose');
+    card.append(el('div', { class: 'reset', 'data-passed': String(x.reset.passed) }, x.reset.passed
+      ? `Reset by driving: back in ${x.reset.took_s.toFixed(1)} s from ${at(x.reset.from)} to ${at(x.reset.pose)}`
+      : `Reset by driving failed after ${x.reset.took_s.toFixed(1)} s: ${x.reset.error}`));
+  }
   if (x.recording_expired) card.append(el('p', { class: 'hint' }, "its recordings expired (the lab's retention cap); the record stays"));
   const details = el('details', {}, el('summary', {}, 'States with their causes, components'),
     el('table', { class: 'history' }, ...x.history.map((h) => el('tr', {}, el('td', {}, when(h.at_ms)), el('td', {}, h.state), el('td', {}, h.cause)))),
@@ -1342,7 +1386,7 @@ const LAB_SETTINGS_FIELDS = [
   ['criteria.allow_stop_zone', "Preflight: the envelope's stop zone may stop it", 'boolean'],
   ['criteria.end_run_on_breach', 'On the robot too: a run that breaks these criteria ends early', 'boolean'],
   ['stuck_after_min_s', 'A queued experiment never started is refused after (s, at least; or twice its first ETA)', 'number'],
-  ['reset', 'Before each experiment the robot is reset by', ['sim', 'manual']],
+  ['reset', 'Before each experiment the robot is reset by', ['sim', 'manual', 'drive']],
   ['preflight_world', "Preflight world (an uploaded world; empty: each set's own)", 'optional'],
   ['reference_recording', 'Reference recording to replay against (empty: none)', 'optional'],
   ['retention_bytes', 'Results kept, at most (MiB)', 'mebibytes'],

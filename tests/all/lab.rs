@@ -2367,8 +2367,10 @@ fn a_drive_reset_brings_the_robot_back_before_each_experiment_and_one_that_canno
 /// bundle's score differs; a scorer no one here wrote (Python over the
 /// `mcap` package) finds the same path length, time to the goal and
 /// energy. The preflight's score of the same task (the simulator's side)
-/// is kept and recomputed beside it, with the gap between the two. A bad
-/// task is refused by name.
+/// is kept and recomputed beside it, with the gap between the two. The
+/// task's leaderboard ranks the run, under its submitter's name for her
+/// and admins, a pseudonym for others, over the API and in the portal's
+/// Lab tab in Chromium. A bad task is refused by name.
 #[test]
 fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_it_bit_for_bit() {
     let dir = tempfile::tempdir().unwrap();
@@ -2478,6 +2480,16 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
     assert_eq!((status, json["error"].as_str()), (404, Some("no task 'other' in this lab")), "{json}");
     let (status, _) = http(&lab.address, "GET", "/api/v1/tasks/reach-6/leaderboard", None, b"");
     assert_eq!(status, 401);
+    // The same in the portal's Lab tab, in Chromium (tests/browser/leaderboard.mjs).
+    let artifacts = crate::support::repo_root().join("target/browser-artifacts");
+    let url = format!("http://{}/", lab.address);
+    let shown = crate::support::browser(
+        "leaderboard.mjs",
+        &artifacts,
+        &[],
+        &[&url, &"ana", &"ben", &PASSWORD, &id.to_string()],
+    );
+    assert!(shown.contains(&format!("ok: experiment {id} ranked 1")), "{shown}");
     // A bundle whose score was changed is caught.
     let changed = std::fs::read_to_string(bundle.join("score.json")).unwrap().replacen(&to_goal.to_string(), "1.5", 1);
     std::fs::write(bundle.join("score.json"), changed).unwrap();

@@ -90,6 +90,12 @@ impl Lab {
             reserved_now: queue::reservation_at(&book.lab.reservations, now).cloned(),
             maintenance: book.lab.maintenance.clone(),
             settings: (user.role == Role::Admin).then(|| book.lab.settings.clone()),
+            task: book.lab.settings.task.as_ref().map(|task| TaskSummary {
+                name: task.name.clone(),
+                description: task.description.clone(),
+                metric: task.metric,
+                better: if task.metric.higher_is_better() { "higher" } else { "lower" },
+            }),
             self_tests: (user.role == Role::Admin).then(|| book.lab.self_tests.clone()),
             now_unix_ms: now,
             robots: self.fleet().map(|f| f.robots_with(now, &book.lab.baselines)),
@@ -156,6 +162,16 @@ pub struct ExperimentView {
     pub awaiting_reset: bool,
 }
 
+/// The owner's task as everyone sees it.
+#[derive(Clone, Debug, Serialize)]
+pub struct TaskSummary {
+    pub name: String,
+    pub description: String,
+    pub metric: crate::store::task::Metric,
+    /// `lower` or `higher`: which value ranks first.
+    pub better: &'static str,
+}
+
 /// The lab as a user sees it.
 #[derive(Clone, Debug, Serialize)]
 pub struct LabView {
@@ -180,6 +196,9 @@ pub struct LabView {
     pub robots: Option<Vec<server::RobotView>>,
     /// The owner's settings (admins only).
     pub settings: Option<LabSettings>,
+    /// The owner's task, for everyone: what runs are scored against, and
+    /// the name of its leaderboard.
+    pub task: Option<TaskSummary>,
     /// The host's clock when this view was made (ms since the Unix epoch):
     /// a client whose own clock is off counts down to `running`'s end and
     /// to ETAs from it.
