@@ -2502,3 +2502,79 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
     let said = String::from_utf8_lossy(&lost.stderr);
     assert!(!lost.status.success() && said.contains("task.json") && said.contains("No such file"), "{said}");
 }
+
+/// Issue 40: an admin's self-test racing the experiments' starts. While
+/// experiments follow one another (each with the self-test after it), an
+/// admin asks for the self-test again and again, from two threads at once.
+/// Each ask either runs on the idle robot and passes, or is refused (409)
+/// because an experiment runs or starts, or a self-test runs already; no
+/// experiment starts under a self-test (which would see no baseline and
+/// fail), so the robot never goes out of service, every experiment ends
+/// `done`, and every self-test kept passed.
+#[test]
+fn an_admins_self_test_racing_the_experiments_starts_never_fails_nor_holds_one_up() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["self_test"] = serde_json::json!({"window_ms": 200});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
+    let ids: Vec<u64> = (0..3)
+        .map(|_| {
+            // Longer than the self-test waits for the baseline's status
+            // (`selftest::LIVE_WAIT`, 3 s): one started under a self-test
+            // would fail it.
+            let body = serde_json::json!({ "set": set, "duration_s": 5 }).to_string();
+            let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+            assert_eq!(status, 201, "{json}");
+            json["experiment"]["id"].as_u64().unwrap()
+        })
+        .collect();
+    let finished = std::sync::atomic::AtomicBool::new(false);
+    let answers: Vec<(u16, Json)> = std::thread::scope(|scope| {
+        let askers: Vec<_> = (0..2)
+            .map(|_| {
+                scope.spawn(|| {
+                    let mut answers = Vec::new();
+                    while !finished.load(std::sync::atomic::Ordering::Relaxed) {
+                        answers.push(lab.call(&boss, "POST", "/api/v1/lab/selftest", ""));
+                    }
+                    answers
+                })
+            })
+            .collect();
+        for id in &ids {
+            let ended = lab.wait_for(&ana, *id, "done", Duration::from_secs(240));
+            assert_eq!(ended["state"], "done", "{ended:#}");
+        }
+        finished.store(true, std::sync::atomic::Ordering::Relaxed);
+        askers.into_iter().flat_map(|a| a.join().unwrap()).collect()
+    });
+    let ran = answers.iter().filter(|(status, _)| *status == 200).count();
+    for (status, json) in &answers {
+        match status {
+            200 => assert_eq!(json["self_test"]["passed"], true, "{json:#}"),
+            409 => {
+                let why = json["error"].as_str().unwrap_or_default();
+                assert!(
+                    why.contains("runs on the robot: the self-test runs on the baseline, after it")
+                        || why.contains("a self-test runs already"),
+                    "{json}"
+                );
+            }
+            _ => panic!("the self-test answered {status}: {json}"),
+        }
+    }
+    assert!(ran >= 2, "only {ran} of {} asks ran", answers.len());
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["maintenance"].is_null(), "{overview:#}");
+    let tests = overview["lab"]["self_tests"].as_array().unwrap();
+    assert!(tests.iter().all(|t| t["passed"] == true), "{tests:#?}");
+    for id in &ids {
+        assert_eq!(lab.experiment(&ana, *id)["state"], "done");
+    }
+}

@@ -581,6 +581,11 @@ fn start(lab: &Lab, id: u64) {
             lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])?;
             return Ok(None);
         }
+        // An admin's self-test began since the runner decided: it runs on
+        // the baseline, so the start waits for it (decided again after).
+        if book.self_testing {
+            return Ok(None);
+        }
         book.starting = Some(id);
         let baseline = lab.baseline(&book.lab);
         let drive = book.lab.settings.drive_reset.clone().filter(|_| book.lab.settings.reset == ResetPolicy::Drive);
