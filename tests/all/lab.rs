@@ -2399,6 +2399,26 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
     settings["task"] = task.clone();
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
     assert_eq!(status, 200, "{json}");
+    // The kit carries the task: a researcher scores her local run as the
+    // lab will (the baseline's planner passes through the goal).
+    let local = dir.path().join("local");
+    std::fs::create_dir_all(&local).unwrap();
+    let kit = fetch_kit(&lab, &ana, &local);
+    let kit_task: Json = serde_json::from_slice(&std::fs::read(kit.join("task.json")).unwrap()).unwrap();
+    assert_eq!((&kit_task["name"], &kit_task["goal"]), (&task["name"], &task["goal"]), "{kit_task:#}");
+    let ran = crate::support::subsume()
+        .arg("run")
+        .arg(kit.join("robot.xml"))
+        .args(["--http", "off", "--speed", "max", "--duration", "25", "--record"])
+        .arg(kit.join("run.mcap"))
+        .output()
+        .unwrap();
+    assert!(ran.status.success(), "{}", String::from_utf8_lossy(&ran.stderr));
+    let scored = crate::support::subsume().arg("score").arg(&kit).output().unwrap();
+    let said = String::from_utf8_lossy(&scored.stdout);
+    assert!(scored.status.success(), "{said}{}", String::from_utf8_lossy(&scored.stderr));
+    assert!(said.contains("run: task reach-6: time_to_goal_s = ") && said.contains("goal_reached = 1"), "{said}");
+    assert!(said.contains("score.json is not in the bundle: nothing to compare"), "{said}");
     let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
     let body = serde_json::json!({ "set": set, "duration_s": 25 }).to_string();
     let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
@@ -2519,7 +2539,9 @@ fn an_admins_self_test_racing_the_experiments_starts_never_fails_nor_holds_one_u
     let (ana, boss) = (lab.token("ana"), lab.token("boss"));
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
     let mut settings = overview["lab"]["settings"].clone();
-    settings["self_test"] = serde_json::json!({"window_ms": 200});
+    // A window long enough that a loaded machine's simulated robot still
+    // answers within it (the self-test's own sensitivity is not under test).
+    settings["self_test"] = serde_json::json!({"window_ms": 1000});
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
     assert_eq!(status, 200, "{json}");
     let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));

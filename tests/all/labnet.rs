@@ -959,7 +959,7 @@ fn a_lab_server_routes_around_a_robot_in_maintenance() {
     let (status, json) = http(&r1.address, "GET", "/api/v1/lab", Some(&owner), b"");
     assert_eq!(status, 200, "{json}");
     let mut settings = json["lab"]["settings"].clone();
-    settings["self_test"] = serde_json::json!({"window_ms": 500});
+    settings["self_test"] = serde_json::json!({"window_ms": 1000});
     let (status, json) =
         http(&r1.address, "PUT", "/api/v1/lab/settings", Some(&owner), settings.to_string().as_bytes());
     assert_eq!(status, 200, "{json}");

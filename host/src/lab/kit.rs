@@ -64,10 +64,21 @@ impl Lab {
              robot's safety settings: an experiment may not change them.\n",
             settings.max_duration_s
         );
-        let mut entries = vec![
-            ("criteria.json".to_string(), bundle::Source::Bytes(criteria)),
-            ("README.txt".to_string(), bundle::Source::Bytes(readme.into_bytes())),
-        ];
+        let mut readme = readme;
+        let mut entries = vec![("criteria.json".to_string(), bundle::Source::Bytes(criteria))];
+        // The owner's task: a researcher scores her local run as the lab
+        // will score hers on the robot.
+        if let Some(task) = &settings.task {
+            let task_json = serde_json::to_vec_pretty(task).map_err(|e| LabError::Host(e.to_string()))?;
+            entries.push((crate::score::TASK_FILE.to_string(), bundle::Source::Bytes(task_json)));
+            readme.push_str(&format!(
+                "\nThe lab scores every run against its task '{}' (task.json). Score yours as it will:\n\n    \
+                 subsume run robot.xml --http off --speed max --duration 60 --record run.mcap\n    \
+                 subsume score .\n",
+                task.name
+            ));
+        }
+        entries.push(("README.txt".to_string(), bundle::Source::Bytes(readme.into_bytes())));
         for (name, _) in &written.files {
             entries.push((name.clone(), bundle::Source::File(dir.path().join(name))));
         }

@@ -93,7 +93,12 @@ impl Component for Homing {
             .param(param("goal-y", ParamKind::Number, "0.0", "start y, metres"))
             .param(param("goal-heading", ParamKind::Number, "0.0", "start heading, radians"))
             .param(param("tolerance", ParamKind::Number, "0.1", "distance that counts as at the position, metres"))
-            .param(param("heading-tolerance", ParamKind::Number, "0.1", "heading error that counts as aligned, radians"))
+            .param(param(
+                "heading-tolerance",
+                ParamKind::Number,
+                "0.1",
+                "heading error that counts as aligned, radians",
+            ))
             .param(param("max-speed", ParamKind::Number, "0.3", "top forward speed, m/s"))
             .param(param("max-turn", ParamKind::Number, "1.0", "top turn rate, rad/s"))
             .param(param("heading-gain", ParamKind::Number, "2.0", "turn rate per radian of heading error"))
