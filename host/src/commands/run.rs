@@ -186,6 +186,7 @@ pub fn run_options(
         max_total_bytes: host.record_max_total_mib.map_or(u64::MAX, |mib| mib.saturating_mul(1 << 20)),
         live,
         hidden: Default::default(),
+        for_owner: None,
     });
     let identity = TlsIdentity::from_options(host.tls_cert.as_deref(), host.tls_key.as_deref())?;
     let fault_injection = match std::env::var("SUBSUME_FAULT_INJECTION") {

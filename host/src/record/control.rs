@@ -179,6 +179,7 @@ impl Recordings {
             max_total_bytes: u64::MAX,
             live: None,
             hidden: Default::default(),
+            for_owner: None,
         };
         probe.check()?;
         Ok(Recordings {
@@ -213,7 +214,7 @@ impl Recordings {
     /// Starts a recording of the running graph, `layout` its names, for
     /// user `by`; the control thread attaches it before its next cycle.
     pub fn start(&self, by: &str, layout: Layout) -> Result<RecordingInfo, RecordingError> {
-        self.start_when(by, layout, None, None)
+        self.start_when(by, layout, None, None, false)
     }
 
     /// Starts a recording that the control thread attaches to the next
@@ -222,12 +223,14 @@ impl Recordings {
     /// running now is recorded. If that swap does not happen, the caller
     /// [`Recordings::abandon`]s it.
     pub fn start_after_swap(&self, by: &str, layout: Layout, after: u64) -> Result<RecordingInfo, RecordingError> {
-        self.start_when(by, layout, Some(after), None)
+        self.start_when(by, layout, Some(after), None, false)
     }
 
     /// Like [`Recordings::start_after_swap`], into the file `path` (an
     /// `.mcap` path the host made, outside this folder: an experiment's
-    /// results); it is not listed with this folder's recordings.
+    /// results, handed to `by`, its submitter: log lines naming another
+    /// user's work are left out); it is not listed with this folder's
+    /// recordings.
     pub fn start_after_swap_to(
         &self,
         by: &str,
@@ -235,7 +238,7 @@ impl Recordings {
         after: u64,
         path: PathBuf,
     ) -> Result<RecordingInfo, RecordingError> {
-        self.start_when(by, layout, Some(after), Some(path))
+        self.start_when(by, layout, Some(after), Some(path), true)
     }
 
     /// Whether a recording could start now: the refusals of
@@ -266,6 +269,7 @@ impl Recordings {
         layout: Layout,
         after_swap: Option<u64>,
         to: Option<PathBuf>,
+        only_theirs: bool,
     ) -> Result<RecordingInfo, RecordingError> {
         let mut running = self.running.lock().map_err(|_| RecordingError::Poisoned)?;
         self.refusal(running.as_ref())?;
@@ -289,6 +293,7 @@ impl Recordings {
             max_total_bytes: u64::MAX,
             live: None,
             hidden,
+            for_owner: only_theirs.then(|| by.to_string()),
         };
         let recorder = Recorder::start(&options, layout, self.timeline.clone())?;
         let sink = recorder.sink.clone();

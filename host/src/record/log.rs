@@ -53,6 +53,12 @@ impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for RecordLogLayer {
         let Ok(slot) = SINK.lock() else { return };
         let Some(sink) = slot.as_ref() else { return };
         let fields = LogFields::of(event);
+        // A line naming another user's work is not hers to read.
+        if let (Some(only), Some(owner)) = (&sink.for_owner, &fields.owner)
+            && **only != **owner
+        {
+            return;
+        }
         let unix_ns = sink.timeline.now_unix_ns();
         let name = fields.component.unwrap_or_else(|| metadata.target().to_string());
         sink.send(Event::Log {
@@ -140,5 +146,39 @@ mod tests {
         let expected: Vec<(u64, String)> = ticks.iter().map(|&t| (t, format!("tick at {}", t - epoch))).collect();
         assert_eq!(lines, expected);
         assert_eq!(ticks.last().map(|t| t - epoch), Some(9_000_000_000));
+    }
+
+    /// A recording handed to one user (a lab experiment's, to its
+    /// submitter) leaves out the lines that name another user's work
+    /// (their `owner` field); her own lines and the host's stay.
+    #[test]
+    fn a_recording_for_one_user_leaves_out_lines_naming_another_users_work() {
+        let _alone = TEST_RECORDING.lock().unwrap_or_else(std::sync::PoisonError::into_inner);
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("hers.mcap");
+        let layout =
+            Layout { worlds: Vec::new(), robot: "r".into(), components: Vec::new(), about: Default::default() };
+        let options = RecordOptions { for_owner: Some("ana".into()), ..RecordOptions::new(path.clone()) };
+        let clock = Clock::simulated(Pace::Lockstep);
+        let recorder = Recorder::start(&options, layout, Timeline::new(1_000, clock)).unwrap();
+        let subscriber = tracing_subscriber::registry().with(layer());
+        tracing::subscriber::with_default(subscriber, || {
+            tracing::info!(owner = "ben", "component 'ben/secret' uploaded by ben");
+            tracing::info!(owner = "ana", "component 'ana/mine' uploaded by ana");
+            tracing::info!("the host's own line");
+        });
+        recorder.finish().unwrap();
+        let bytes = std::fs::read(&path).unwrap();
+        let mut said = Vec::new();
+        for message in mcap::MessageStream::new(&bytes).unwrap() {
+            let message = message.unwrap();
+            if message.channel.topic == "/subsume/log" {
+                let json: serde_json::Value = serde_json::from_slice(&message.data).unwrap();
+                said.push(json["message"].as_str().unwrap().to_string());
+            }
+        }
+        let said = said.join("\n");
+        assert!(!said.contains("ben/secret"), "{said}");
+        assert!(said.contains("ana/mine") && said.contains("the host's own line"), "{said}");
     }
 }

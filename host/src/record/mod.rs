@@ -109,6 +109,10 @@ pub struct RecordOptions {
     /// lines, fault reasons and metadata): a recording from the portal or
     /// of a lab experiment is handed to a remote user.
     pub hidden: crate::fsutil::HiddenPaths,
+    /// The one user the recording is handed to (a lab experiment's
+    /// submitter): log lines that name another user's work (their
+    /// `owner` field) are left out of it. `None`: every line.
+    pub for_owner: Option<String>,
 }
 
 impl RecordOptions {
@@ -119,6 +123,7 @@ impl RecordOptions {
             max_total_bytes: u64::MAX,
             live: None,
             hidden: Default::default(),
+            for_owner: None,
         }
     }
 
@@ -322,6 +327,9 @@ struct Sink {
     dropped: Arc<AtomicU64>,
     /// When the log's lines happen (the tap's events carry graph time).
     timeline: Timeline,
+    /// Log lines naming another user's work are left out
+    /// ([`RecordOptions::for_owner`]).
+    for_owner: Option<Arc<str>>,
 }
 
 impl Sink {
@@ -378,7 +386,7 @@ impl Recorder {
         if let Some(path) = &options.path {
             tracing::info!("recording to {}", path.display());
         }
-        let sink = Sink { sender, dropped, timeline };
+        let sink = Sink { sender, dropped, timeline, for_owner: options.for_owner.as_deref().map(Arc::from) };
         log::install(sink.clone());
         Ok(Recorder { sink, writer: Some(handle) })
     }
