@@ -423,8 +423,11 @@ fn the_opening_is_sent_again_on_every_reconnect_before_any_command() {
     command(&mut link, "STOP", 100 * MS);
     assert_eq!(read_lines(&mut master, 2), vec!["HELLO", "S"]);
     // The count is the status's: it may come a moment after the bytes (a
-    // fresh-clone run on a loaded machine read 1 here).
-    wait_until("the second opening is counted", || link.status().openings_written == 2);
+    // fresh-clone run on a loaded machine read 1 here). At least two: a
+    // loaded machine may make the link reopen once more, and each reopening
+    // counts its opening (a fresh-clone run timed out waiting for exactly 2,
+    // the bytes above having come in order).
+    wait_until("the second opening is counted", || link.status().openings_written >= 2);
 }
 
 /// Every module's tests share this process, and a child one of them spawns
