@@ -258,7 +258,8 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
             score: preflight_score,
         });
     }
-    match after_preflight(outcome, lab.is_stopping()) {
+    let cancel_asked = book.cancels.contains_key(&id);
+    match after_preflight(outcome, lab.is_stopping(), cancel_asked) {
         AfterPreflight::Enter { state, cause, reasons } => {
             lab.transition(&mut book, id, state, &cause, reasons)?;
         }
@@ -288,9 +289,15 @@ enum AfterPreflight {
 /// The preflight outcome's mapping to a state, pure: passed -> queued;
 /// judged and failed, did not start, or too slow -> refused (the
 /// submitter's); starved or broken -> failed (the host's); cancelled ->
-/// cancelled, unless the host is `stopping`.
-fn after_preflight(outcome: Result<Outcome, PreflightError>, stopping: bool) -> AfterPreflight {
+/// cancelled, unless the host is `stopping`. A cancel asked for while it
+/// ran (`cancel_asked`) wins over whatever outcome came first: the
+/// preflight may end by itself between the ask and its next look, and the
+/// one who asked waits for the experiment to end.
+fn after_preflight(outcome: Result<Outcome, PreflightError>, stopping: bool, cancel_asked: bool) -> AfterPreflight {
     let enter = |state, cause: String, reasons| AfterPreflight::Enter { state, cause, reasons };
+    if cancel_asked {
+        return AfterPreflight::Cancelled;
+    }
     match outcome {
         Ok(Outcome::Judged { verdict, wall_s }) if verdict.passed => enter(
             ExperimentState::Queued,
@@ -588,7 +595,7 @@ fn start(lab: &Lab, id: u64) {
         }
         book.starting = Some(id);
         let baseline = lab.baseline(&book.lab);
-        let drive = book.lab.settings.drive_reset.clone().filter(|_| book.lab.settings.reset == ResetPolicy::Drive);
+        let drive = book.lab.settings.drive_reset().cloned();
         Ok::<_, LabError>(Some((record, baseline, book.lab.settings.reset, drive)))
     })();
     let (record, baseline, reset, drive) = match prepared {
@@ -885,10 +892,11 @@ mod tests {
     fn every_preflight_outcome_has_its_state() {
         let strings = |r: &[&str]| r.iter().map(|s| s.to_string()).collect::<Vec<_>>();
         let crashed = PreflightError::Crashed { status: "signal 9".into(), last: "oom".into() };
-        let cases: Vec<(&str, Result<Outcome, PreflightError>, bool, AfterPreflight)> = vec![
+        let cases: Vec<(&str, Result<Outcome, PreflightError>, bool, bool, AfterPreflight)> = vec![
             (
                 "passed",
                 Ok(judged(true, &[])),
+                false,
                 false,
                 AfterPreflight::Enter {
                     state: ExperimentState::Queued,
@@ -900,6 +908,7 @@ mod tests {
                 "judged and failed",
                 Ok(judged(false, &["preflight: collision at 3.0 s"])),
                 false,
+                false,
                 AfterPreflight::Enter {
                     state: ExperimentState::Refused,
                     cause: "refused by its preflight".into(),
@@ -910,6 +919,7 @@ mod tests {
                 "did not start",
                 Ok(Outcome::DidNotStart(strings(&["robot.xml:3:5: unknown port"]))),
                 false,
+                false,
                 AfterPreflight::Enter {
                     state: ExperimentState::Refused,
                     cause: "refused: it did not start in the simulator".into(),
@@ -919,6 +929,7 @@ mod tests {
             (
                 "too slow",
                 Ok(Outcome::TooSlow { limit: Duration::from_secs(120) }),
+                false,
                 false,
                 AfterPreflight::Enter {
                     state: ExperimentState::Refused,
@@ -932,6 +943,7 @@ mod tests {
                 "starved: the host's",
                 Ok(Outcome::Starved { cpu: Duration::from_millis(1500), waited: Duration::from_secs(600) }),
                 false,
+                false,
                 AfterPreflight::Enter {
                     state: ExperimentState::Failed,
                     cause: "failed: the host was too busy to run its preflight (it got 1.5 s of cpu in 600 s); submit it again".into(),
@@ -944,6 +956,7 @@ mod tests {
                 "crashed: the host's",
                 Err(crashed),
                 false,
+                false,
                 AfterPreflight::Enter {
                     state: ExperimentState::Failed,
                     cause: "failed: the preflight process ended without a verdict (signal 9); its last words: oom".into(),
@@ -952,11 +965,17 @@ mod tests {
                     ]),
                 },
             ),
-            ("cancelled", Err(PreflightError::Cancelled), false, AfterPreflight::Cancelled),
-            ("the host stops", Err(PreflightError::Cancelled), true, AfterPreflight::Stays),
+            ("cancelled", Err(PreflightError::Cancelled), false, true, AfterPreflight::Cancelled),
+            ("the host stops", Err(PreflightError::Cancelled), true, false, AfterPreflight::Stays),
+            // The preflight passed by itself just after the cancel was
+            // asked for (a fresh-clone CI run lost that cancel: the
+            // experiment went to the queue, the canceller waited 30 s).
+            ("a cancel asked as it passed", Ok(judged(true, &[])), false, true, AfterPreflight::Cancelled),
+            ("a cancel asked as it failed", Ok(judged(false, &["preflight: collision"])), false, true, AfterPreflight::Cancelled),
+            ("a cancel asked as the host stops", Err(PreflightError::Cancelled), true, true, AfterPreflight::Cancelled),
         ];
-        for (case, outcome, stopping, expected) in cases {
-            assert_eq!(after_preflight(outcome, stopping), expected, "{case}");
+        for (case, outcome, stopping, cancel_asked, expected) in cases {
+            assert_eq!(after_preflight(outcome, stopping, cancel_asked), expected, "{case}");
         }
     }
 }
