@@ -30,7 +30,7 @@ impl Lab {
     /// here (not on a lab server), validate, and keep the baseline's
     /// envelope (as an experiment's set must).
     fn check_reset_set(&self, user: &Principal, settings: &LabSettings) -> Result<(), LabError> {
-        let Some(drive) = settings.drive_reset.as_ref().filter(|_| settings.reset == ResetPolicy::Drive) else {
+        let Some(drive) = settings.drive_reset() else {
             return Ok(());
         };
         if self.fleet().is_some() {

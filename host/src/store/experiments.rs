@@ -641,7 +641,13 @@ impl LabSettings {
     /// The start pose the reset by driving brings the robot to, with the
     /// `drive` policy (the preflight's simulated robot starts there too).
     pub fn start_pose(&self) -> Option<Pose> {
-        self.drive_reset.as_ref().filter(|_| self.reset == ResetPolicy::Drive).map(|d| d.pose)
+        self.drive_reset().map(|d| d.pose)
+    }
+
+    /// The reset by driving, when the policy is `drive` (settings kept
+    /// under another policy do nothing).
+    pub fn drive_reset(&self) -> Option<&DriveReset> {
+        self.drive_reset.as_ref().filter(|_| self.reset == ResetPolicy::Drive)
     }
 }
 
