@@ -787,6 +787,113 @@ fn the_lab_kit_run_locally_gives_the_verdict_the_labs_preflight_gave() {
     assert_eq!(local, lab, "the kit's verdict differs from the lab's preflight's");
 }
 
+/// docs/lab.md's path from the kit to the lab: the kit's robot file,
+/// changed (the driver's parameters, its file moved), run on the
+/// researcher's machine and submitted as it is. The lab runs its baseline
+/// with those changes (its own component recognised by its sha256, so
+/// nothing is uploaded), and its preflight's verdict is the local one. A
+/// change the kit cannot carry (a built-in's parameter) is refused at its
+/// line before anything is sent.
+#[test]
+fn the_lab_kits_robot_file_changed_and_run_locally_submits_as_it_is_with_the_same_verdict() {
+    let dir = tempfile::tempdir().unwrap();
+    let commander_path = support::guest("test-commander").display().to_string();
+    let boot = lab_robot(dir.path(), "boot.xml", &commander_path, &commander("VEL 0.45 0", 100_000_000), WATCHFUL);
+    let host = lab_host(dir.path(), &boot);
+    let kit = dir.path().join("kit");
+    let output = lab("ada", &["kit", &host.address, "-o", kit.to_str().unwrap()]);
+    assert!(output.status.success(), "{}", out(&output).1);
+    let manifest: serde_json::Value = serde_json::from_slice(&std::fs::read(kit.join("kit.json")).unwrap()).unwrap();
+    assert_eq!(manifest["baseline"], 1, "{manifest}");
+    assert_eq!(manifest["components"]["driver"]["sha256"], sha256(&kit.join("components/driver.wasm")));
+    // Her changes: a gentler command for a shorter time, and the driver's
+    // file where she keeps hers.
+    std::fs::rename(kit.join("components/driver.wasm"), dir.path().join("driver.wasm")).unwrap();
+    let robot = kit.join("robot.xml");
+    let text = std::fs::read_to_string(&robot).unwrap();
+    let changed = text
+        .replace("components/driver.wasm", "../driver.wasm")
+        .replace(r#"value="VEL 0.45 0""#, r#"value="VEL 0.2 0""#)
+        .replace(r#"value="100000000""#, r#"value="15""#);
+    assert_ne!(changed, text);
+    std::fs::write(&robot, &changed).unwrap();
+    let verdict = dir.path().join("verdict.json");
+    let output = subsume()
+        .arg("run")
+        .arg(&robot)
+        .args(["--http", "off", "--speed", "max", "--duration", "5", "--criteria"])
+        .arg(kit.join("criteria.json"))
+        .arg("--verdict")
+        .arg(&verdict)
+        .output()
+        .unwrap();
+    assert!(output.status.success(), "{}", out(&output).1);
+
+    let results = dir.path().join("results");
+    let output = lab(
+        "ada",
+        &[
+            "submit",
+            "--robot",
+            robot.to_str().unwrap(),
+            "--duration",
+            "5",
+            "--results",
+            results.to_str().unwrap(),
+            &host.address,
+        ],
+    );
+    let (stdout, stderr) = out(&output);
+    assert!(output.status.success(), "{stdout}\n{stderr}");
+    let both = format!("{stdout}{stderr}");
+    let base_sha = sha256(&boot);
+    assert!(
+        both.contains(&format!(
+            "building on the lab's baseline boot.xml (set 1, sha256 {base_sha}) with the changes of {}: driver: command VEL 0.45 0 -> VEL 0.2 0; driver: ticks 100000000 -> 15",
+            robot.display()
+        )),
+        "{both}"
+    );
+    assert!(!both.contains("uploading"), "the lab's own driver was uploaded again:\n{both}");
+    let states = told_states(&stdout, 1);
+    assert_eq!(
+        (states.first().map(String::as_str), states.last().map(String::as_str)),
+        (Some("checking"), Some("done")),
+        "{stdout}"
+    );
+    let read = |path: &Path| serde_json::from_slice::<serde_json::Value>(&std::fs::read(path).unwrap()).unwrap();
+    let (local, lab_verdict) = (read(&verdict), read(&results.join("preflight-verdict.json")));
+    assert_eq!(local["passed"], true, "{local}");
+    assert_eq!(local, lab_verdict, "the kit's verdict differs from the lab's preflight's");
+    // The robot ran the baseline's own built-ins, with her driver's changes.
+    let ran = std::fs::read_to_string(results.join("robot.xml")).unwrap();
+    assert!(ran.contains(r#"value="VEL 0.2 0""#) && ran.contains(r#"name="ticks" value="15""#), "{ran}");
+
+    // A built-in's attributes are the lab's: refused at its line, nothing
+    // sent.
+    let quicker = changed.replacen(
+        r#"<component name="arbiter" source="builtin:arbiter" rate="20""#,
+        r#"<component name="arbiter" source="builtin:arbiter" rate="50""#,
+        1,
+    );
+    assert_ne!(quicker, changed);
+    std::fs::write(&robot, &quicker).unwrap();
+    let line = quicker.lines().position(|l| l.contains(r#"name="arbiter""#)).unwrap() + 1;
+    let output = lab("ada", &["submit", "--robot", robot.to_str().unwrap(), "--duration", "5", &host.address]);
+    let (stdout, stderr) = out(&output);
+    assert!(!output.status.success(), "{stdout}");
+    assert!(
+        stderr.contains(&format!(
+            "{}:{line}:5: 'arbiter' (builtin:arbiter) is the lab's own, here in its preflight form: an experiment cannot change it from the kit; nothing was sent",
+            robot.display()
+        )),
+        "{stderr}"
+    );
+    let ada = support::login(&host.address, "ada", RESEARCHER_PASSWORD);
+    let (_, listed) = http(&host.address, "GET", "/api/v1/experiments", Some(&ada), b"");
+    assert_eq!(listed["experiments"].as_array().map(Vec::len), Some(1), "{listed}");
+}
+
 /// One argument of a command line.
 type Arg<'a> = &'a dyn AsRef<std::ffi::OsStr>;
 

@@ -3,6 +3,7 @@
 //! own machine and get the verdict the preflight would give. The owner's
 //! `kit` setting turns it off for everyone but admins.
 
+use super::kit_submission::{KIT_MANIFEST, KitComponent, KitManifest};
 use super::{Lab, LabError, bundle, materialize};
 use crate::store::users::{Principal, Role};
 
@@ -60,12 +61,18 @@ impl Lab {
              Check an experiment's components the way the lab will, for up to {} s:\n\n    \
              subsume run robot.xml --http off --speed max --duration 60 --criteria criteria.json\n\n\
              It ends with the verdict the preflight would give. Replace a component's source in\n\
-             robot.xml with your own .wasm to try yours. The envelope component's parameters are the\n\
-             robot's safety settings: an experiment may not change them.\n",
+             robot.xml with your own .wasm to try yours, and submit that same file:\n\n    \
+             subsume lab submit --robot robot.xml --duration 60 HOST\n\n\
+             sends the lab's robot with your changes (kit.json says what the kit was written from).\n\
+             The envelope component's parameters are the robot's safety settings: an experiment may\n\
+             not change them.\n",
             settings.max_duration_s
         );
         let mut readme = readme;
-        let mut entries = vec![("criteria.json".to_string(), bundle::Source::Bytes(criteria))];
+        let mut entries = vec![
+            ("criteria.json".to_string(), bundle::Source::Bytes(criteria)),
+            (KIT_MANIFEST.to_string(), bundle::Source::Bytes(manifest(baseline, &set.config_sha256, &written)?)),
+        ];
         // The owner's task: a researcher scores her local run as the lab
         // will score hers on the robot.
         if let Some(task) = &settings.task {
@@ -84,4 +91,21 @@ impl Lab {
         }
         Ok((dir, bundle::Contents { folder: "lab-kit".into(), entries }))
     }
+}
+
+/// The kit's manifest (`kit.json`): the baseline it is of, its robot file
+/// as written, and each WASM component's file and sha256.
+fn manifest(baseline: u64, baseline_sha256: &str, written: &materialize::Written) -> Result<Vec<u8>, LabError> {
+    let robot = std::fs::read_to_string(&written.robot)
+        .map_err(|e| LabError::Host(format!("cannot read the kit's {}: {e}", written.robot.display())))?;
+    let components = written
+        .components
+        .iter()
+        .filter_map(|(name, _, sha)| {
+            let sha256 = sha.clone()?;
+            Some((name.clone(), KitComponent { file: materialize::component_file(name), sha256 }))
+        })
+        .collect();
+    let manifest = KitManifest { baseline, baseline_sha256: baseline_sha256.to_string(), robot, components };
+    serde_json::to_vec_pretty(&manifest).map_err(|e| LabError::Host(e.to_string()))
 }

@@ -154,7 +154,7 @@ pub fn write_preflight_form(
             let Some(kind) = source.strip_prefix("builtin:") else {
                 let sha = set.sources.get(&source).ok_or_else(|| damaged(format!("no stored bytes for '{source}'")))?;
                 let bytes = store.blob(sha)?;
-                let file = out.write(&format!("components/{name}.wasm"), &bytes)?;
+                let file = out.write(&component_file(&name), &bytes)?;
                 component.source.value = file;
                 components.push((name, source, Some(sha.clone())));
                 continue;
@@ -232,6 +232,11 @@ pub fn write_preflight_form(
     let text = raw::write(&robot, comment);
     let robot_file = out.write(ROBOT_FILE, text.as_bytes())?;
     Ok(Written { robot: dir.join(robot_file), files: out.files, components })
+}
+
+/// Where a WASM component's bytes are written, relative to the folder.
+pub fn component_file(component: &str) -> String {
+    format!("components/{component}.wasm")
 }
 
 fn spanned(value: &str) -> Spanned<String> {

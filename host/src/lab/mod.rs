@@ -39,6 +39,7 @@
 pub mod bundle;
 mod cancel;
 mod kit;
+pub mod kit_submission;
 pub mod leaderboard;
 mod mail;
 mod maintenance;

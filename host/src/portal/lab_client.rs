@@ -36,6 +36,7 @@ use super::deploy_client::{
 };
 use crate::contract::clip;
 use crate::deploy::{Diagnostics, SourceMap, read_and_parse, utc_time};
+use crate::lab::kit_submission::{KIT_MANIFEST, KitError, KitManifest, kit_submission};
 use crate::lab::{MAX_DURATION_CAP_S, MIN_DURATION_S};
 use crate::store::experiments::{ExperimentRecord, ExperimentState, MAX_LABEL_LEN, Reservation};
 
@@ -136,6 +137,10 @@ pub enum LabClientError {
     Lost { address: String, id: u64, reason: String },
     #[error("{user} is not an admin of this lab: only admins see and change its settings")]
     NotAdmin { user: String },
+    /// The lab kit's robot file cannot be submitted as it is; nothing was
+    /// sent.
+    #[error("{0}; nothing was sent")]
+    Kit(#[from] KitError),
 }
 
 impl From<ClientError> for LabClientError {
@@ -296,6 +301,19 @@ fn local_robot(path: &Path, components: &[(String, Vec<u8>)]) -> Result<RobotFil
     RobotFile::pointed(shown.clone(), file_name(path)?, text, components, &shown)
 }
 
+/// The lab kit's manifest beside robot file `path`, when it is a kit's.
+fn kit_beside(path: &Path) -> Result<Option<KitManifest>, LabClientError> {
+    let manifest = path.parent().unwrap_or(Path::new(".")).join(KIT_MANIFEST);
+    let bytes = match std::fs::read(&manifest) {
+        Ok(bytes) => bytes,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(KitError::Manifest(format!("{}: {e}", manifest.display())).into()),
+    };
+    serde_json::from_slice(&bytes)
+        .map(Some)
+        .map_err(|e| KitError::Manifest(format!("{}: {e}", manifest.display())).into())
+}
+
 fn check_request(request: &SubmitRequest) -> Result<(), LabClientError> {
     let duration = request.duration_s;
     if !duration.is_finite() || !(MIN_DURATION_S..=MAX_DURATION_CAP_S).contains(&duration) {
@@ -327,13 +345,45 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
     // component or a broken robot file changes nothing remotely.
     let components = read_components(&request.components)?;
     let local = request.robot.as_deref().map(|path| local_robot(path, &components)).transpose()?;
+    let kit = request.robot.as_deref().map(kit_beside).transpose()?.flatten();
     in_session_on(connection, &request.login, |session| {
-        if !components.is_empty() {
-            session.portal.check_may_change(&request.platform)?;
-        }
-        let robot = match local {
-            Some(robot) => robot,
-            None => {
+        let mut components = components;
+        let robot = match (local, kit, request.robot.as_deref()) {
+            (Some(local), Some(manifest), Some(path)) => {
+                // The lab kit's robot file: the baseline with her changes.
+                let (set, name, text) = session.portal.baseline_robot()?;
+                let dir = path.parent().unwrap_or(Path::new("."));
+                let sha_of = |source: &str| {
+                    std::fs::read(dir.join(source)).ok().map(|bytes| hex::encode(Sha256::digest(&bytes)))
+                };
+                let sent = kit_submission(&manifest, path, &local.original, set, &text, &sha_of)?;
+                // Her --component flags come last: they win.
+                let kit_uploads: Vec<(String, PathBuf)> = sent
+                    .uploads
+                    .iter()
+                    .filter(|(c, _)| !components.iter().any(|(given, _)| given == c))
+                    .map(|(c, source)| (c.clone(), dir.join(source)))
+                    .collect();
+                let mut all = read_components(&kit_uploads)?;
+                all.append(&mut components);
+                components = all;
+                let shown = format!("{} (on the lab's baseline set {set})", local.shown);
+                let file = format!("the baseline's robot file {name}");
+                let robot = RobotFile::pointed(shown, name.clone(), sent.text, &components, &file)?;
+                let hash = hex::encode(Sha256::digest(text.as_bytes()));
+                let changes = if sent.changes.is_empty() {
+                    "no changes: the kit as it came".to_string()
+                } else {
+                    sent.changes.join("; ")
+                };
+                (say.progress)(&format!(
+                    "building on the lab's baseline {name} (set {set}, sha256 {hash}) with the changes of {}: {changes}",
+                    local.shown
+                ));
+                robot
+            }
+            (Some(robot), _, _) => robot,
+            (None, _, _) => {
                 // The lab's baseline, never whatever runs now (another
                 // researcher's experiment, say).
                 let (set, name, text) = session.portal.baseline_robot()?;
@@ -348,6 +398,9 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
                 robot
             }
         };
+        if !components.is_empty() {
+            session.portal.check_may_change(&request.platform)?;
+        }
         for (component, bytes) in &components {
             session.portal.upload(&request.platform, component, bytes, say.progress)?;
         }
