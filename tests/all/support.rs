@@ -872,11 +872,16 @@ pub fn kept_its_rate(
     let expected = report["duration_s"].as_f64().unwrap() * hz;
     let ticks = component["ticks"].as_f64().unwrap();
     let missed = component["missed_ticks"].as_f64().unwrap();
-    assert!(
-        (ticks + missed - expected).abs() <= 2.0,
-        "{what}: {ticks} ticks and {missed} missed, expected {expected} on the schedule"
-    );
     let waited_ms = report["loop_lateness"]["waited_for_cpu_ms"].as_f64().unwrap();
+    // Missed ticks are counted at the next cycle: the ones due after the
+    // loop's last cycle, when it waited for a cpu at the end of the run
+    // (which `duration_s` counts), are in neither figure.
+    let uncounted = waited_ms * hz / 1e3;
+    assert!(
+        ticks + missed - expected <= 2.0 && expected - (ticks + missed) <= 2.0 + uncounted,
+        "{what}: {ticks} ticks and {missed} missed, expected {expected} on the schedule \
+         (up to {uncounted:.0} fewer while the loop waited {waited_ms} ms for a cpu)"
+    );
     let explained = (waited_ms + offender_ms) * hz / 1e3 + 2.0;
     let allowed = explained.max(expected * tolerance);
     assert!(

@@ -892,7 +892,9 @@ mod tests {
     fn every_preflight_outcome_has_its_state() {
         let strings = |r: &[&str]| r.iter().map(|s| s.to_string()).collect::<Vec<_>>();
         let crashed = PreflightError::Crashed { status: "signal 9".into(), last: "oom".into() };
-        let cases: Vec<(&str, Result<Outcome, PreflightError>, bool, bool, AfterPreflight)> = vec![
+        // (case, outcome, the host stopping, a cancel asked, what it makes)
+        type Case = (&'static str, Result<Outcome, PreflightError>, bool, bool, AfterPreflight);
+        let cases: Vec<Case> = vec![
             (
                 "passed",
                 Ok(judged(true, &[])),
