@@ -47,8 +47,8 @@
 //!   listed nor its experiment alive.
 //! - Through a Zenoh router of `eclipse-zenoh` (`tests/python/zenoh_router.py`)
 //!   on the config `subsume lab router-config` prints for the lab (as
-//!   shipped in `config/zenoh-lab-router.json5` for lab `lab`), its access
-//!   control on: a third user's and another robot's complete queryables on a
+//!   shipped in `config/zenoh-lab-router.json5` for lab `lab`), over TLS
+//!   (`--tls-cert`, `--tls-key`), its access control on: a third user's and another robot's complete queryables on a
 //!   robot's keys are never asked, a session without credentials is
 //!   refused, and the robot works (`done`, its results, the STOP).
 //! - A robot whose owner marked another baseline refuses an experiment the
@@ -360,7 +360,10 @@ impl LabNet {
         support::add_user(&store, VIEWER, "viewer", &[], PASSWORD);
         let zenoh_port = through.map_or_else(free_port, |router| router.port);
         let server_ip = namespaces.as_ref().map_or_else(|| "127.0.0.1".to_string(), |n| n.address(0));
-        let zenoh = format!("tcp/{server_ip}:{zenoh_port}");
+        let zenoh = match through {
+            Some(_) => LabRouter::endpoint(zenoh_port),
+            None => format!("tcp/{server_ip}:{zenoh_port}"),
+        };
         // Through a router, the lab server is one of its clients (its own
         // user) and listens on nothing.
         let listen = match through {
@@ -389,7 +392,10 @@ impl LabNet {
                     ),
                     None => {
                         let relay = Relay::new(zenoh_port);
-                        let connect = format!("tcp/127.0.0.1:{}", relay.port);
+                        let connect = match through {
+                            Some(_) => LabRouter::endpoint(relay.port),
+                            None => format!("tcp/127.0.0.1:{}", relay.port),
+                        };
                         (Link::Relay(relay), connect, "127.0.0.1".to_string())
                     }
                 };
@@ -1504,7 +1510,16 @@ struct Attack {
 
 impl Attack {
     fn start(args: &[&str]) -> Attack {
-        let mut child = std::process::Command::new(support::python())
+        Self::trusting(None, args)
+    }
+
+    /// As [`Attack::start`], its TLS links trusting authority `ca` (PEM).
+    fn trusting(ca: Option<&str>, args: &[&str]) -> Attack {
+        let mut command = std::process::Command::new(support::python());
+        if let Some(ca) = ca {
+            command.env("ZENOH_ROOT_CA", ca);
+        }
+        let mut child = command
             .arg(support::repo_root().join("tests/python/lab_attack.py"))
             .args(args)
             .stdin(std::process::Stdio::piped())
@@ -1660,8 +1675,12 @@ impl LabRouter {
             ["lab-server", "r1", "r2"].iter().map(|u| format!("{u}:{}\n", Self::password(u))).collect::<String>();
         std::fs::write(&users_file, format!("{users}mallory:{MALLORY_PASSWORD}\n")).unwrap();
         let port = free_port();
-        let listen = format!("tcp/127.0.0.1:{port}");
+        // Over TLS, as on the internet: the router's certificate from a
+        // test authority every client trusts.
+        support::make_test_pki(&dir);
+        let listen = format!("tls/127.0.0.1:{port}");
         let users_path = users_file.to_str().unwrap();
+        let (certificate, key) = (dir.join("chain.pem"), dir.join("server.key"));
         let config = router_config(&[
             "--lab",
             LAB,
@@ -1673,6 +1692,10 @@ impl LabRouter {
             &listen,
             "--users-file",
             users_path,
+            "--tls-cert",
+            certificate.to_str().unwrap(),
+            "--tls-key",
+            key.to_str().unwrap(),
         ])
         .unwrap_or_else(|e| panic!("subsume lab router-config: {e:?}"));
         std::fs::write(dir.join("router.json5"), config).unwrap();
@@ -1695,6 +1718,16 @@ impl LabRouter {
         format!("{user}-router-password")
     }
 
+    /// The authority that signed the router's certificate (PEM).
+    fn authority(&self) -> String {
+        self.dir.join("ca.pem").to_str().unwrap().to_string()
+    }
+
+    /// Its endpoint (`PORT`: the router's, or a relay's to it).
+    fn endpoint(port: u16) -> String {
+        format!("tls/127.0.0.1:{port}")
+    }
+
     /// A client config (JSON5) that logs in to this router as `user`.
     fn client_config(&self, user: &str) -> String {
         let path = self.dir.join(format!("{user}.json5"));
@@ -1703,7 +1736,10 @@ impl LabRouter {
             // A client listens on nothing: every message goes through the router.
             "listen": { "endpoints": [] },
             "scouting": { "multicast": { "enabled": false } },
-            "transport": { "auth": { "usrpwd": { "user": user, "password": Self::password(user) } } },
+            "transport": {
+                "link": { "tls": { "root_ca_certificate": self.authority() } },
+                "auth": { "usrpwd": { "user": user, "password": Self::password(user) } },
+            },
         });
         std::fs::write(&path, config.to_string()).unwrap();
         path.to_str().unwrap().to_string()
@@ -1719,22 +1755,25 @@ impl Drop for LabRouter {
 }
 
 #[test]
-fn through_the_lab_router_with_access_control_a_third_users_rogue_queryable_is_never_asked_and_the_robot_works() {
+fn through_the_lab_router_over_tls_with_access_control_a_third_users_rogue_queryable_is_never_asked_and_the_robot_works()
+ {
     let dir = tempfile::tempdir().unwrap();
     let router = LabRouter::start(dir.path());
     let lab = LabNet::start_on(dir.path(), 1, None, None, &[], Some(&router));
     let secret = std::fs::read_to_string(dir.path().join("lab").join("store").join("lab.secret")).unwrap();
     // Without a user and password the router refuses the session.
-    let anonymous = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim()]);
+    let ca = router.authority();
+    let anonymous = Attack::trusting(Some(&ca), &["rogue", &lab.zenoh, LAB, "r1", secret.trim()]);
     let said: Json = serde_json::from_str(&anonymous.line(Duration::from_secs(60))).unwrap();
     assert!(said["refused"].is_string(), "{said}");
     // A third user of the router declares complete queryables on every rpc
     // key of r1, ready to answer first.
-    let rogue = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "mallory", MALLORY_PASSWORD]);
+    let rogue =
+        Attack::trusting(Some(&ca), &["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "mallory", MALLORY_PASSWORD]);
     assert_eq!(rogue.line(Duration::from_secs(60)), "ready");
     // So does robot r2's user (a robot taken over), on r1's keys.
     let r2_password = LabRouter::password("r2");
-    let robot_rogue = Attack::start(&["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "r2", &r2_password]);
+    let robot_rogue = Attack::trusting(Some(&ca), &["rogue", &lab.zenoh, LAB, "r1", secret.trim(), "r2", &r2_password]);
     assert_eq!(robot_rogue.line(Duration::from_secs(60)), "ready");
     let ana = lab.token("ana");
     // Ana's own component, which r1 does not hold: r1 fetches it from the

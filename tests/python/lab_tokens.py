@@ -10,6 +10,7 @@ JSON object per line.
 """
 
 import json
+import os
 import sys
 
 import zenoh
@@ -17,11 +18,15 @@ import zenoh
 
 def client(endpoint, user=None, password=None):
     """A Zenoh client session to `endpoint` only (no scouting), as `user`
-    with `password` when given (a router's user/password authentication)."""
+    with `password` when given (a router's user/password authentication).
+    A tls/ endpoint's certificate is checked against the authority in the
+    PEM file $ZENOH_ROOT_CA when it is set."""
     conf = zenoh.Config()
     conf.insert_json5("mode", json.dumps("client"))
     conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
     conf.insert_json5("scouting/multicast/enabled", "false")
+    if os.environ.get("ZENOH_ROOT_CA"):
+        conf.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(os.environ["ZENOH_ROOT_CA"]))
     if user is not None:
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
         conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))

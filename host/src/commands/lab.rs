@@ -260,6 +260,13 @@ struct RouterConfigArgs {
     /// The lab server's user on the router.
     #[arg(long, value_name = "USER", default_value = router_config::DEFAULT_LAB_SERVER_USER)]
     lab_server_user: String,
+    /// The router's certificate chain (PEM), for a tls/ listen endpoint;
+    /// needs --tls-key.
+    #[arg(long, value_name = "PATH")]
+    tls_cert: Option<String>,
+    /// The private key (PEM) of --tls-cert.
+    #[arg(long, value_name = "PATH")]
+    tls_key: Option<String>,
 }
 
 #[derive(clap::Args)]
@@ -328,6 +335,8 @@ impl LabCommand {
                     listen: args.listen,
                     users_file: args.users_file,
                     lab_server_user: args.lab_server_user,
+                    tls_certificate: args.tls_cert,
+                    tls_private_key: args.tls_key,
                 };
                 print!("{}", router_config::router_config(&options)?);
                 Ok(ExitCode::SUCCESS)

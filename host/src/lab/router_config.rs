@@ -43,6 +43,11 @@ pub struct RouterConfigOptions {
     pub users_file: String,
     /// The lab server's user on the router.
     pub lab_server_user: String,
+    /// The router's certificate chain and its private key (PEM files), on
+    /// the router's machine: needed, and only allowed, with a `tls/`
+    /// listen endpoint.
+    pub tls_certificate: Option<String>,
+    pub tls_private_key: Option<String>,
 }
 
 impl RouterConfigOptions {
@@ -54,6 +59,8 @@ impl RouterConfigOptions {
             listen: DEFAULT_LISTEN.to_string(),
             users_file: DEFAULT_USERS_FILE.to_string(),
             lab_server_user: DEFAULT_LAB_SERVER_USER.to_string(),
+            tls_certificate: None,
+            tls_private_key: None,
         }
     }
 }
@@ -76,6 +83,16 @@ pub enum RouterConfigError {
     Endpoint(String),
     #[error("users file '{0}' is not a path: empty, or with a control character")]
     UsersFile(String),
+    #[error(
+        "listen endpoint '{0}' is tls/: give the router's certificate chain and key (--tls-cert PATH --tls-key PATH)"
+    )]
+    TlsWithoutCertificate(String),
+    #[error("--tls-cert and --tls-key are for a tls/ listen endpoint, and '{0}' is not one")]
+    CertificateWithoutTls(String),
+    #[error("--tls-cert and --tls-key go together: one was given without the other")]
+    HalfACertificate,
+    #[error("{what} '{path}' is not a path: empty, or with a control character")]
+    TlsFile { what: &'static str, path: String },
 }
 
 fn name_ok(what: &'static str, name: &str) -> Result<(), RouterConfigError> {
@@ -108,10 +125,30 @@ fn check(options: &RouterConfigOptions) -> Result<(), RouterConfigError> {
     if !endpoint_ok {
         return Err(RouterConfigError::Endpoint(clip(&options.listen)));
     }
-    if options.users_file.is_empty() || options.users_file.chars().any(char::is_control) {
+    if !path_ok(&options.users_file) {
         return Err(RouterConfigError::UsersFile(clip(&options.users_file)));
     }
+    let tls = options.listen.starts_with("tls/");
+    match (&options.tls_certificate, &options.tls_private_key) {
+        (None, None) if tls => return Err(RouterConfigError::TlsWithoutCertificate(clip(&options.listen))),
+        (None, None) => {}
+        (Some(_), Some(_)) if !tls => return Err(RouterConfigError::CertificateWithoutTls(clip(&options.listen))),
+        (Some(certificate), Some(key)) => {
+            for (what, path) in [("--tls-cert", certificate), ("--tls-key", key)] {
+                if !path_ok(path) {
+                    return Err(RouterConfigError::TlsFile { what, path: clip(path) });
+                }
+            }
+        }
+        _ => return Err(RouterConfigError::HalfACertificate),
+    }
     Ok(())
+}
+
+/// A path written into the config: not empty, no control character (so
+/// it cannot end a comment or a string early).
+fn path_ok(path: &str) -> bool {
+    !path.is_empty() && !path.chars().any(char::is_control)
 }
 
 /// Text as a JSON (and JSON5) string.
@@ -228,6 +265,27 @@ const OWN_RULES: [Shape; 3] = [
     (&[], "tells-its-status-and-token", &["put", "liveliness_token"], "ingress"),
 ];
 
+/// The `link` block of the router's TLS listener, when it has one.
+fn tls_link(options: &RouterConfigOptions) -> String {
+    let (Some(certificate), Some(key)) = (&options.tls_certificate, &options.tls_private_key) else {
+        return String::new();
+    };
+    format!(
+        "    link: {{
+      // The router's certificate chain and key (PEM). Each client trusts
+      // the authority that signed it (its root_ca_certificate) and logs in
+      // with its user and password over the encrypted link.
+      tls: {{
+        listen_certificate: {},
+        listen_private_key: {},
+      }},
+    }},
+",
+        quoted(certificate),
+        quoted(key)
+    )
+}
+
 /// The keys of one robot's rule `suffix`, under `prefix`
 /// (`subsume/lab/LAB`).
 fn own_keys(prefix: &str, suffix: &str, robot: &str) -> Vec<String> {
@@ -250,6 +308,10 @@ fn command_lines(options: &RouterConfigOptions) -> String {
     }
     if options.lab_server_user != DEFAULT_LAB_SERVER_USER {
         units.push(format!("--lab-server-user {}", options.lab_server_user));
+    }
+    if let (Some(certificate), Some(key)) = (&options.tls_certificate, &options.tls_private_key) {
+        units.push(format!("--tls-cert {}", quoted(certificate)));
+        units.push(format!("--tls-key {}", quoted(key)));
     }
     let mut lines: Vec<String> = Vec::new();
     let mut line = String::new();
@@ -334,7 +396,7 @@ pub fn router_config(options: &RouterConfigOptions) -> Result<String, RouterConf
 {{
   mode: \"router\",
   listen: {{
-    // Off a closed network, use tls/ endpoints (transport/link/tls).
+    // Off a closed network, a tls/ endpoint (--tls-cert, --tls-key).
     endpoints: [{listen}],
   }},
   scouting: {{
@@ -342,12 +404,13 @@ pub fn router_config(options: &RouterConfigOptions) -> Result<String, RouterConf
     gossip: {{ enabled: false }},
   }},
   transport: {{
-    auth: {{
+{link}    auth: {{
       usrpwd: {{
 ",
         lab = options.lab,
         command = command_lines(options),
         listen = quoted(&options.listen),
+        link = tls_link(options),
     );
     comment(&mut out, 8, &format!("`user:password` per line: {server}, {}.", options.robots.join(", ")));
     let _ = write!(
@@ -453,13 +516,19 @@ mod tests {
         options.listen = "tls/[::]:7448".into();
         options.users_file = "/srv/lab \"users\".txt".into();
         options.lab_server_user = "boss".into();
+        options.tls_certificate = Some("/etc/subsume/router.pem".into());
+        options.tls_private_key = Some("/etc/subsume/router.key".into());
         let text = made(&options).unwrap();
         let config = zenoh::Config::from_json5(&text).unwrap();
         assert_eq!(config.get_json("listen/endpoints").unwrap(), r#"["tls/[::]:7448"]"#);
+        assert_eq!(config.get_json("transport/link/tls/listen_certificate").unwrap(), r#""/etc/subsume/router.pem""#);
+        assert_eq!(config.get_json("transport/link/tls/listen_private_key").unwrap(), r#""/etc/subsume/router.key""#);
         assert_eq!(config.get_json("transport/auth/usrpwd/dictionary_file").unwrap(), r#""/srv/lab \"users\".txt""#);
         assert!(config.get_json("access_control/subjects").unwrap().contains(r#"["boss"]"#), "{text}");
         let command = "//     subsume lab router-config --lab lab --robot r1 --listen tls/[::]:7448 \\\n\
-                       //       --users-file \"/srv/lab \\\"users\\\".txt\" --lab-server-user boss\n";
+                       //       --users-file \"/srv/lab \\\"users\\\".txt\" --lab-server-user boss \\\n\
+                       //       --tls-cert \"/etc/subsume/router.pem\" \\\n\
+                       //       --tls-key \"/etc/subsume/router.key\"\n";
         assert!(text.contains(command), "{text}");
     }
 
@@ -499,6 +568,24 @@ mod tests {
             assert_eq!(refused(&|o| o.listen = bad.into()), RouterConfigError::Endpoint(clip(bad)), "{bad:?}");
         }
         assert!(matches!(refused(&|o| o.users_file = String::new()), RouterConfigError::UsersFile(_)));
+        let tls = |o: &mut RouterConfigOptions| o.listen = "tls/0.0.0.0:7447".into();
+        assert_eq!(refused(&tls), RouterConfigError::TlsWithoutCertificate("tls/0.0.0.0:7447".into()));
+        let pem = |o: &mut RouterConfigOptions| {
+            o.tls_certificate = Some("r.pem".into());
+            o.tls_private_key = Some("r.key".into());
+        };
+        assert_eq!(refused(&pem), RouterConfigError::CertificateWithoutTls(DEFAULT_LISTEN.into()));
+        let half = |o: &mut RouterConfigOptions| {
+            tls(o);
+            o.tls_certificate = Some("r.pem".into());
+        };
+        assert_eq!(refused(&half), RouterConfigError::HalfACertificate);
+        let bad_key = |o: &mut RouterConfigOptions| {
+            tls(o);
+            pem(o);
+            o.tls_private_key = Some("r.key\n}".into());
+        };
+        assert_eq!(refused(&bad_key), RouterConfigError::TlsFile { what: "--tls-key", path: "r.key?}".into() });
         let newline = refused(&|o| o.users_file = "/a\n}".into());
         assert_eq!(newline.to_string(), "users file '/a?}' is not a path: empty, or with a control character");
         assert_eq!(
