@@ -246,3 +246,193 @@ fn garbage_oversized_and_stalled_cameras_are_dropped_counted_logged_once_and_the
     );
     support::kept_its_rate(&report, counter, 100.0, 0.05, 0.0, "counter beside bad cameras");
 }
+
+/// A live camera stream asked over HTTP/1.0 (so the portal sends the
+/// multipart body as it is, not in chunks).
+struct Watch {
+    stream: std::net::TcpStream,
+    buf: Vec<u8>,
+}
+
+impl Watch {
+    /// Asks `path` as `token`: the status, and the watch when it is 200
+    /// (the body otherwise).
+    fn open(address: &str, token: Option<&str>, path: &str) -> (u16, Result<Watch, String>) {
+        use std::io::Write;
+        let mut stream = std::net::TcpStream::connect(address).unwrap();
+        stream.set_read_timeout(Some(Duration::from_secs(20))).unwrap();
+        let auth = token.map(|t| format!("Authorization: Bearer {t}\r\n")).unwrap_or_default();
+        write!(stream, "GET {path} HTTP/1.0\r\nHost: {address}\r\n{auth}\r\n").unwrap();
+        let mut watch = Watch { stream, buf: Vec::new() };
+        let head = watch.until(b"\r\n\r\n").expect("an answer's head");
+        let head = String::from_utf8_lossy(&head).into_owned();
+        let status: u16 = head.split(' ').nth(1).unwrap().parse().unwrap();
+        if status != 200 {
+            let mut body = std::mem::take(&mut watch.buf);
+            let _ = std::io::Read::read_to_end(&mut watch.stream, &mut body);
+            return (status, Err(String::from_utf8_lossy(&body).into_owned()));
+        }
+        assert!(
+            head.to_ascii_lowercase().contains("content-type: multipart/x-mixed-replace; boundary=subsume-frame"),
+            "{head}"
+        );
+        (status, Ok(watch))
+    }
+
+    /// Bytes up to and including `end`; `None` at the end of the stream.
+    fn until(&mut self, end: &[u8]) -> Option<Vec<u8>> {
+        loop {
+            if let Some(at) = self.buf.windows(end.len()).position(|w| w == end) {
+                let rest = self.buf.split_off(at + end.len());
+                return Some(std::mem::replace(&mut self.buf, rest));
+            }
+            let mut chunk = [0; 65536];
+            let got = std::io::Read::read(&mut self.stream, &mut chunk).unwrap_or(0);
+            if got == 0 {
+                return None;
+            }
+            self.buf.extend_from_slice(&chunk[..got]);
+        }
+    }
+
+    /// The next frame's JPEG bytes; `None` once the stream ends.
+    fn frame(&mut self) -> Option<Vec<u8>> {
+        let head = self.until(b"\r\n\r\n")?;
+        let head = String::from_utf8_lossy(&head).into_owned();
+        assert!(head.trim_start().starts_with("--subsume-frame\r\n"), "{head}");
+        assert!(head.contains("Content-Type: image/jpeg"), "{head}");
+        let length: usize = head
+            .lines()
+            .find_map(|l| l.strip_prefix("Content-Length: "))
+            .unwrap_or_else(|| panic!("no length: {head}"))
+            .trim()
+            .parse()
+            .unwrap();
+        while self.buf.len() < length + 2 {
+            let mut chunk = [0; 65536];
+            let got = std::io::Read::read(&mut self.stream, &mut chunk).unwrap_or(0);
+            if got == 0 {
+                return None;
+            }
+            self.buf.extend_from_slice(&chunk[..got]);
+        }
+        let rest = self.buf.split_off(length);
+        let jpeg = std::mem::replace(&mut self.buf, rest);
+        Some(jpeg)
+    }
+}
+
+/// A JPEG file of `width` x `height` (its SOF0 header, as jpeg-encoder
+/// writes it).
+fn assert_picture(jpeg: &[u8], width: u16, height: u16) {
+    assert_eq!(&jpeg[..2], &[0xff, 0xd8], "start of image");
+    assert_eq!(&jpeg[jpeg.len() - 2..], &[0xff, 0xd9], "end of image");
+    let sof = jpeg.windows(2).position(|w| w == [0xff, 0xc0]).unwrap();
+    let [h0, h1] = height.to_be_bytes();
+    let [w0, w1] = width.to_be_bytes();
+    assert_eq!(&jpeg[sof + 5..sof + 9], &[h0, h1, w0, w1]);
+}
+
+const LIVE_CAMERA: &str = r#"<component name="overhead" source="builtin:camera">
+      <param name="source" value="sim:robot-sim"/>
+      <param name="width" value="160"/>
+      <param name="height" value="120"/>
+      <param name="rate" value="10"/>
+    </component>"#;
+
+/// The portal's live camera by role: the owner (admin) and an operator
+/// watch it; a researcher only during her own experiment (not before, not
+/// another researcher's, and her stream ends with it); a viewer and a
+/// developer never; nobody without a session; a camera that does not run
+/// is 404.
+#[test]
+fn the_live_camera_is_shown_to_the_owner_operators_and_a_researcher_only_during_her_experiment() {
+    let dir = tempfile::tempdir().unwrap();
+    let robot = crate::lab::robot(8.0, LIVE_CAMERA);
+    std::fs::write(dir.path().join("robot.xml"), &robot).unwrap();
+    std::fs::write(dir.path().join("lab.world"), crate::lab::WORLD).unwrap();
+    let store = dir.path().join("store");
+    let password = crate::lab::PASSWORD;
+    for (name, role, platforms) in [
+        ("boss", "admin", &[][..]),
+        ("olga", "operator", &[]),
+        ("ana", "researcher", &["control"]),
+        ("ben", "researcher", &["control"]),
+        ("vera", "viewer", &[]),
+        ("dev", "developer", &["control"]),
+    ] {
+        support::add_user(&store, name, role, platforms, password);
+    }
+    let lab = crate::lab::start(dir.path());
+    let address = lab.address.clone();
+    let token = |name: &str| support::login(&address, name, password);
+    let (boss, olga, ana, ben, vera, dev) =
+        (token("boss"), token("olga"), token("ana"), token("ben"), token("vera"), token("dev"));
+    let live = "/api/v1/cameras/overhead/live";
+
+    for (who, token) in [("boss", &boss), ("olga", &olga)] {
+        let (status, watch) = Watch::open(&address, Some(token), live);
+        assert_eq!(status, 200, "{who}: {watch:?}", watch = watch.as_ref().err());
+        let mut watch = watch.unwrap();
+        for _ in 0..3 {
+            assert_picture(&watch.frame().expect("a frame"), 160, 120);
+        }
+    }
+    let (status, json) = support::http(&address, "GET", "/api/v1/cameras", Some(&olga), b"");
+    assert_eq!((status, json["cameras"].clone()), (200, serde_json::json!(["overhead"])), "{json}");
+    for (who, token, expected) in
+        [("ana", Some(&ana), 403), ("vera", Some(&vera), 403), ("dev", Some(&dev), 403), ("nobody", None, 401)]
+    {
+        let (status, body) = Watch::open(&address, token.map(String::as_str), live);
+        assert_eq!(status, expected, "{who}: {body:?}", body = body.as_ref().err());
+        let body: Json = serde_json::from_str(body.as_ref().err().unwrap()).unwrap();
+        assert!(body["error"].is_string(), "{who}: {body}");
+    }
+    let (status, _) = Watch::open(&address, Some(&boss), "/api/v1/cameras/nowhere/live");
+    assert_eq!(status, 404);
+
+    // Ana's experiment: she watches while it runs, Ben does not.
+    let (status, json) =
+        support::http(&address, "PUT", "/api/v1/platforms/control/configs/ana.xml", Some(&ana), robot.as_bytes());
+    assert_eq!(status, 201, "{json}");
+    let set = json["set"]["id"].as_u64().unwrap();
+    let body = serde_json::json!({ "set": set, "duration_s": 6.0, "label": "watched" });
+    let (status, json) =
+        support::http(&address, "POST", "/api/v1/experiments", Some(&ana), body.to_string().as_bytes());
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let state = |id: u64| {
+        let (_, json) = support::http(&address, "GET", &format!("/api/v1/experiments/{id}"), Some(&ana), b"");
+        json["experiment"]["state"].as_str().unwrap_or("").to_string()
+    };
+    let deadline = Instant::now() + Duration::from_secs(180);
+    while state(id) != "running" {
+        assert!(
+            !["done", "failed", "aborted", "refused", "cancelled"].contains(&state(id).as_str()),
+            "{}",
+            lab.host.log()
+        );
+        assert!(Instant::now() < deadline, "experiment {id} never ran:\n{}", lab.host.log());
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let (status, watch) = Watch::open(&address, Some(&ana), live);
+    assert_eq!(status, 200, "ana during her experiment: {:?}", watch.as_ref().err());
+    let mut watch = watch.unwrap();
+    assert_picture(&watch.frame().expect("a frame"), 160, 120);
+    let (status, body) = Watch::open(&address, Some(&ben), live);
+    assert_eq!(status, 403, "ben during ana's experiment: {:?}", body.as_ref().err());
+    // Her stream ends with her experiment.
+    let mut frames = 1;
+    while watch.frame().is_some() {
+        frames += 1;
+        assert!(Instant::now() < deadline, "the stream outlived the experiment");
+    }
+    while !["done", "failed", "aborted"].contains(&state(id).as_str()) {
+        assert!(Instant::now() < deadline, "experiment {id} never ended");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(frames >= 10, "{frames} frames in a 6 s experiment at 10 fps");
+    eprintln!("ana watched {frames} frames; the experiment was {} after her stream ended", state(id));
+    let (status, body) = Watch::open(&address, Some(&ana), live);
+    assert_eq!(status, 403, "ana after her experiment: {:?}", body.as_ref().err());
+}
