@@ -8,7 +8,7 @@
 //! frames, never holds the camera or the loop.
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, PoisonError, Weak};
 
 use tokio::sync::watch;
 
@@ -17,29 +17,40 @@ use super::Frame;
 /// The newest frame of a camera, once there is one.
 pub type Latest = Option<Arc<Frame>>;
 
-/// Every running camera's feed, by component name.
+/// Every running camera's feed, by component name: the feeds of cameras
+/// of that name, oldest first (while a new set is built beside the running
+/// one, both have one; the newest is watched, and when it goes, because
+/// its set did not start, the one before is watched again). Held weakly:
+/// a camera's feed ends with the camera.
 #[derive(Debug, Default)]
 pub struct LiveCameras {
-    feeds: Mutex<BTreeMap<String, Arc<watch::Sender<Latest>>>>,
+    feeds: Mutex<BTreeMap<String, Vec<Weak<watch::Sender<Latest>>>>>,
 }
 
 impl LiveCameras {
-    /// A feed for camera `name`, replacing the one of a camera of that name
-    /// in the set before (its watchers' streams end).
+    /// A feed for camera `name`, watched instead of the one of a camera of
+    /// that name in the set before (whose watchers' streams end with it).
     pub fn publish(self: &Arc<Self>, name: &str) -> LiveFeed {
         let sender = Arc::new(watch::Sender::new(None));
-        self.feeds.lock().unwrap_or_else(PoisonError::into_inner).insert(name.to_string(), sender.clone());
+        let mut feeds = self.feeds.lock().unwrap_or_else(PoisonError::into_inner);
+        feeds.entry(name.to_string()).or_default().push(Arc::downgrade(&sender));
         LiveFeed { name: name.to_string(), sender, cameras: self.clone() }
     }
 
     /// The newest frames of camera `name`, if it runs.
     pub fn watch(&self, name: &str) -> Option<watch::Receiver<Latest>> {
-        self.feeds.lock().unwrap_or_else(PoisonError::into_inner).get(name).map(|sender| sender.subscribe())
+        let feeds = self.feeds.lock().unwrap_or_else(PoisonError::into_inner);
+        feeds.get(name)?.iter().rev().find_map(Weak::upgrade).map(|sender| sender.subscribe())
     }
 
     /// The running cameras' names.
     pub fn names(&self) -> Vec<String> {
-        self.feeds.lock().unwrap_or_else(PoisonError::into_inner).keys().cloned().collect()
+        let feeds = self.feeds.lock().unwrap_or_else(PoisonError::into_inner);
+        feeds
+            .iter()
+            .filter(|(_, senders)| senders.iter().any(|s| s.strong_count() > 0))
+            .map(|(n, _)| n.clone())
+            .collect()
     }
 }
 
@@ -64,8 +75,12 @@ impl LiveFeed {
 impl Drop for LiveFeed {
     fn drop(&mut self) {
         let mut feeds = self.cameras.feeds.lock().unwrap_or_else(PoisonError::into_inner);
-        if feeds.get(&self.name).is_some_and(|sender| Arc::ptr_eq(sender, &self.sender)) {
-            feeds.remove(&self.name);
+        if let Some(senders) = feeds.get_mut(&self.name) {
+            let mine = Arc::downgrade(&self.sender);
+            senders.retain(|sender| !sender.ptr_eq(&mine) && sender.strong_count() > 0);
+            if senders.is_empty() {
+                feeds.remove(&self.name);
+            }
         }
     }
 }
@@ -92,13 +107,25 @@ mod tests {
         assert!(watcher.has_changed().unwrap());
         assert_eq!(watcher.borrow_and_update().as_ref().unwrap().seq, 2);
         assert_eq!(cameras.names(), vec!["overhead".to_string()]);
-        // The next set's camera of the same name takes the name; the old
-        // one's end does not remove it.
+        // The next set's camera of the same name is watched; the old one's
+        // end does not remove it.
         let next = cameras.publish("overhead");
+        let mut on_next = cameras.watch("overhead").unwrap();
+        next.offer(&frame(7));
+        assert_eq!(on_next.borrow_and_update().as_ref().unwrap().seq, 7);
         drop(feed);
         assert!(watcher.has_changed().is_err(), "the old camera's watchers end");
         assert!(cameras.watch("overhead").is_some());
         drop(next);
         assert!(cameras.watch("overhead").is_none());
+        assert!(cameras.names().is_empty());
+        // A set that did not start: its camera goes, the running one is
+        // watched again.
+        let running = cameras.publish("overhead");
+        let failed = cameras.publish("overhead");
+        drop(failed);
+        let mut again = cameras.watch("overhead").unwrap();
+        running.offer(&frame(9));
+        assert_eq!(again.borrow_and_update().as_ref().unwrap().seq, 9);
     }
 }
