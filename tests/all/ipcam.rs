@@ -344,7 +344,9 @@ const LIVE_CAMERA: &str = r#"<component name="overhead" source="builtin:camera">
 /// watch it; a researcher only during her own experiment (not before, not
 /// another researcher's, and her stream ends with it); a viewer and a
 /// developer never; nobody without a session; a camera that does not run
-/// is 404.
+/// is 404. The Live tab in Chromium (tests/browser/cameras.mjs) plays it
+/// for the admin and the operator and shows none to a viewer or a
+/// researcher without an experiment.
 #[test]
 fn the_live_camera_is_shown_to_the_owner_operators_and_a_researcher_only_during_her_experiment() {
     let dir = tempfile::tempdir().unwrap();
@@ -390,6 +392,27 @@ fn the_live_camera_is_shown_to_the_owner_operators_and_a_researcher_only_during_
     }
     let (status, _) = Watch::open(&address, Some(&boss), "/api/v1/cameras/nowhere/live");
     assert_eq!(status, 404);
+
+    // The portal's Live tab in Chromium: the camera plays for those who may
+    // watch, and is not there for the others.
+    let artifacts = dir.path().join("browser");
+    let url = format!("http://{address}/");
+    let users: [&dyn AsRef<std::ffi::OsStr>; 6] =
+        [&url, &password, &"boss:watch", &"olga:watch", &"vera:none", &"ana:none"];
+    let seen: Json =
+        serde_json::from_str(support::browser("cameras.mjs", &artifacts, &[], &users).lines().last().unwrap()).unwrap();
+    for who in ["boss", "olga"] {
+        let shown = &seen[who];
+        assert_eq!((shown["cameras"].as_u64(), shown["width"].as_u64()), (Some(1), Some(160)), "{who}: {seen}");
+        assert_eq!((shown["height"].as_u64(), shown["changed"].as_bool()), (Some(120), Some(true)), "{who}: {seen}");
+    }
+    for who in ["vera", "ana"] {
+        assert_eq!(
+            (seen[who]["cameras"].as_u64(), seen[who]["hidden"].as_bool()),
+            (Some(0), Some(true)),
+            "{who}: {seen}"
+        );
+    }
 
     // Ana's experiment: she watches while it runs, Ben does not.
     let (status, json) =
