@@ -60,8 +60,10 @@ const COUNTER: &str = r#"<component name="counter" source="GUEST(test-counter)" 
 
 fn run(dir: &std::path::Path, cameras: &str, seconds: &str, record: Option<&std::path::Path>) -> (String, Json) {
     support::guest_dir();
+    // The counter first: the cameras are built (and start receiving) once
+    // the WASM component is compiled, just before the loop starts.
     let body = format!(
-        "<robot name=\"ipcam\">\n  <platform name=\"control\">\n    {cameras}\n    {COUNTER}\n  </platform>\n</robot>"
+        "<robot name=\"ipcam\">\n  <platform name=\"control\">\n    {COUNTER}\n    {cameras}\n  </platform>\n</robot>"
     );
     let robot = support::robot_file(dir, &body);
     let report = dir.join("report.json");
@@ -225,13 +227,13 @@ fn garbage_oversized_and_stalled_cameras_are_dropped_counted_logged_once_and_the
     assert_eq!(oversized["stale"], false, "{oversized}");
 
     // Stalled: three frames, then nothing: stale, its age shown; given up
-    // after the frame timeout, dialled again (three more), said once.
+    // after the frame timeout and dialled again (still nothing), said once.
     let stall = camera_section(&report, "stall");
-    assert_eq!(stall["frames_sent"], 6, "{stall}\n{log}");
-    assert_eq!(stall["stream_errors"], 1, "{stall}");
-    assert_eq!(stall["reconnects"], 1, "{stall}");
+    assert_eq!(stall["frames_sent"], 3, "{stall}\n{log}");
+    assert!(stall["stream_errors"].as_u64().unwrap() >= 1, "{stall}");
+    assert!(stall["reconnects"].as_u64().unwrap() >= 1, "{stall}");
     assert_eq!(stall["stale"], true, "{stall}");
-    assert!(stall["last_frame_age_s"].as_f64().unwrap() > 2.0, "{stall}");
+    assert!(stall["last_frame_age_s"].as_f64().unwrap() > 5.0, "{stall}");
     assert_eq!(said(&log, "(the camera stalled)"), 1, "{log}");
 
     for name in ["garbage", "oversized", "stall"] {

@@ -7,7 +7,8 @@ an IP camera does, with its fault:
   must give the connection up and dial again);
 - oversized: good frames alternating with parts larger than the camera's
   limit, announced by Content-Length or not;
-- stall: three good frames, then nothing while the connection stays open.
+- stall: three good frames on the first connection, then nothing while
+  the connection stays open (and nothing at all on the next ones).
 
 The good frames are 160x120 JPEGs made by Pillow (PyPI). Prints
 `garbage PORT`, `oversized PORT`, `stall PORT` (one line each) and runs
@@ -78,10 +79,15 @@ def oversized(conn: socket.socket, big: int) -> None:
         time.sleep(1 / RATE_HZ)
 
 
+STALLS = {"connections": 0}
+
+
 def stall(conn: socket.socket, _big: int) -> None:
-    for _ in range(3):
-        conn.sendall(part(GOOD))
-        time.sleep(1 / RATE_HZ)
+    STALLS["connections"] += 1
+    if STALLS["connections"] == 1:
+        for _ in range(3):
+            conn.sendall(part(GOOD))
+            time.sleep(1 / RATE_HZ)
     time.sleep(3600)
 
 
