@@ -172,8 +172,23 @@ for (const button of document.querySelectorAll('#tabs button')) {
 function showTab(name) { document.querySelector(`#tabs button[data-tab="${name}"]`).click(); }
 
 // ---- live view -----------------------------------------------------------
+// The running cameras live, each an MJPEG stream an <img> plays, for those
+// who may watch them (the owner, operators, a researcher during her own
+// experiment: docs/portal.md); nothing for the rest. Asked again when the
+// set changes (a researcher's experiment starts or ends).
+async function refreshCameras() {
+  const box = $('cameras');
+  let names = [];
+  try { names = (await api('GET', '/cameras')).cameras; } catch (err) { names = []; }
+  box.replaceChildren(...names.map((name) => el('figure', {},
+    el('img', { src: `/api/v1/cameras/${encodeURIComponent(name)}/live?set=${$('active-set').dataset.set || ''}`, alt: `camera ${name} live`, 'data-camera': name }),
+    el('figcaption', {}, `camera ${name}`))));
+  box.hidden = names.length === 0;
+}
+
 async function startLive() {
   try { world = await api('GET', '/world'); } catch (err) { world = null; $('map-note').textContent = err.message; }
+  refreshCameras();
   await loadPlotHistory();
   if (events) events.close();
   events = new EventSource('/api/v1/events');
@@ -193,6 +208,7 @@ function renderStatus(s) {
   if (String(s.set) !== $('active-set').dataset.set) {
     $('active-set').dataset.set = String(s.set);
     api('GET', '/world').then((w) => { world = w; }).catch(() => { world = null; });
+    refreshCameras();
   }
   $('active-set').textContent = `set ${s.set} (${s.robot})`;
   // Whose code drives (docs/lab.md): the experiment the set runs as.

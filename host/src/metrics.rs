@@ -273,6 +273,34 @@ mod tests {
                 ],
             ),
             (
+                Box::new(crate::camera::CameraSection {
+                    source: "http",
+                    url: Some("http://cam/".into()),
+                    width: 320,
+                    height: 240,
+                    frames_made: 31,
+                    frames_sent: 32,
+                    frames_dropped: 33,
+                    frames_late: 0,
+                    encode_failures: 0,
+                    busy_s: 0.5,
+                    last_frame_age_s: 3.5,
+                    stale: true,
+                    frames_rejected: Some(34),
+                    frames_skipped: Some(0),
+                    stream_errors: Some(2),
+                    reconnects: Some(35),
+                    connected: Some(false),
+                }),
+                &[
+                    ("subsume_camera_frames", "/frames_sent"),
+                    ("subsume_camera_frames_dropped", "/frames_dropped"),
+                    ("subsume_camera_frame_age_seconds", "/last_frame_age_s"),
+                    ("subsume_camera_frames_rejected", "/frames_rejected"),
+                    ("subsume_camera_reconnects", "/reconnects"),
+                ],
+            ),
+            (
                 Box::new(teleop()),
                 &[
                     ("subsume_teleop_commands_released", "/commands/released"),
@@ -292,7 +320,8 @@ mod tests {
                     Sample::Gauge(v) => *v,
                     Sample::Histogram(_) | Sample::Buckets { .. } => panic!("{}", family.name),
                 };
-                let value = if family.name.ends_with("_seconds") { value * 1e3 } else { value };
+                let value =
+                    if family.name.ends_with("_seconds") && pointer.ends_with("_ms") { value * 1e3 } else { value };
                 assert_eq!(value, shown, "{} against {pointer}", family.name);
             }
         }

@@ -600,6 +600,8 @@ fn run_with_portal(options: &RunOptions, portal: &PortalOptions, shutdown: Shutd
         .with(Arc::new(RunningRobot::default()))
         .with(Arc::new(Standings::default()))
         .with(Arc::new(crate::sim::SimRegistry::default()))
+        // The cameras' newest frames, for the portal's live view.
+        .with(Arc::new(crate::camera::live::LiveCameras::default()))
         .with(Arc::new(Locks::with_waker(shutdown.waker())))
         .with(Arc::new(options.tls.clone()));
     let clock = options.clock();

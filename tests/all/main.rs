@@ -26,6 +26,7 @@ mod deploy;
 mod e2e;
 mod estop;
 mod hostile;
+mod ipcam;
 mod lab;
 mod labnet;
 mod languages;

@@ -1,10 +1,13 @@
 //! `builtin:camera`: a camera whose frames are JPEG pictures on an output
-//! port (docs/camera.md). Its one source today is the simulator
-//! (`source="sim:NAME"`, a `builtin:sim` component): the simulated world
-//! seen from above ([`render`]). V4L2 devices and IP cameras are not done.
+//! port (docs/camera.md). Its sources: the simulator (`source="sim:NAME"`,
+//! a `builtin:sim` component): the simulated world seen from above
+//! ([`render`]); and an IP camera streaming MJPEG over HTTP
+//! (`source="http://HOST:PORT/PATH"`, [`mjpeg`]). V4L2 devices and RTSP
+//! are not done.
 //!
-//! Rendering and encoding run on the camera's own thread, paced on the
-//! control loop's clock; finished frames wait in a [`FrameQueue`] of at most
+//! Rendering and encoding, or receiving and checking, run on the camera's
+//! own thread (the simulator's paced on the control loop's clock); finished
+//! frames wait in a [`FrameQueue`] of at most
 //! [`MAX_QUEUED_FRAMES`] that drops the oldest and counts the drops. The
 //! component takes them out in `poll`, never waiting: the control loop never
 //! waits on a picture. The thread runs at the background's nice value
@@ -14,14 +17,19 @@
 //! file) and `frame-info` (text: JSON with its format, size, capture time
 //! on the loop's clock, and sequence number).
 
+pub mod live;
+pub mod mjpeg;
 pub mod render;
 
+use std::collections::HashSet;
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
+use self::live::{LiveCameras, LiveFeed};
+use self::mjpeg::{HttpSource, Part, Socket, StreamError};
 use self::render::{Scene, render};
 use crate::builtin::{
     BuildContext, Builtin, BuiltinError, CheckContext, ParamDecl, ParamType, Params, Ports, Registry, builtin_of, port,
@@ -31,7 +39,7 @@ use crate::config::{ParamProblem, RobotProblem, RobotView};
 use crate::contract::{Value, ValueKind};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::scheduling;
-use crate::runtime::{CallError, Component, NamedSection, Outbox, StatusSection};
+use crate::runtime::{CallError, Component, Family, NamedSection, Outbox, Sample, StatusSection};
 use crate::sim::SimRegistry;
 use crate::sim::builtin::SimBuiltin;
 
@@ -51,8 +59,16 @@ pub const MAX_QUEUED_FRAMES: usize = 4;
 /// simulated clock moves only with the loop).
 const CLOCK_POLL: Duration = Duration::from_millis(1);
 
+/// A camera is stale (its status says so) when its last frame is older
+/// than this many frame periods, and at least [`STALE_AFTER_MIN`]: a
+/// component looking at its pictures is looking at the past.
+pub const STALE_AFTER_PERIODS: u64 = 3;
+pub const STALE_AFTER_MIN: Duration = Duration::from_secs(1);
+
 /// The prefix of a `source` naming a simulated robot.
 const SIM_SOURCE: &str = "sim:";
+/// The scheme of an IP camera's `source`.
+const HTTP_SOURCE: &str = "http://";
 /// Output ports.
 const OUTPUT_FRAME: u32 = 0;
 const OUTPUT_INFO: u32 = 1;
@@ -63,35 +79,35 @@ const PARAMS: &[ParamDecl] = &[
         ty: ParamType::Required,
         default: "",
         unit: "",
-        doc: "sim:NAME: the builtin:sim component NAME's world seen from above (the only source so far)",
+        doc: "sim:NAME: the builtin:sim component NAME's world seen from above; http://HOST[:PORT]/PATH: an IP camera's MJPEG stream",
     },
     ParamDecl {
         name: "width",
         ty: ParamType::Integer { min: MIN_SIDE_PX, max: MAX_WIDTH_PX },
         default: "320",
         unit: "px",
-        doc: "picture width",
+        doc: "picture width (sim: sources; an IP camera's frames keep their own size)",
     },
     ParamDecl {
         name: "height",
         ty: ParamType::Integer { min: MIN_SIDE_PX, max: MAX_HEIGHT_PX },
         default: "240",
         unit: "px",
-        doc: "picture height",
+        doc: "picture height (sim: sources)",
     },
     ParamDecl {
         name: "rate",
         ty: positive_up_to(MAX_RATE_HZ),
         default: "5",
         unit: "Hz",
-        doc: "frames per second, on the control loop's clock",
+        doc: "frames per second, on the control loop's clock (an IP camera: at most this many are kept)",
     },
     ParamDecl {
         name: "quality",
         ty: ParamType::Integer { min: 1, max: 100 },
         default: "80",
         unit: "",
-        doc: "JPEG quality",
+        doc: "JPEG quality (sim: sources)",
     },
 ];
 
@@ -101,6 +117,40 @@ pub struct CameraBuiltin;
 /// The simulated robot a `source` names.
 fn sim_name(source: &str) -> Option<&str> {
     source.strip_prefix(SIM_SOURCE).filter(|name| !name.is_empty())
+}
+
+/// What a `source` names.
+enum Source<'a> {
+    Sim(&'a str),
+    Http(HttpSource),
+}
+
+/// `source` as a camera source, or why it is none.
+fn source_of(source: &str) -> Result<Source<'_>, String> {
+    if let Some(sim) = sim_name(source) {
+        return Ok(Source::Sim(sim));
+    }
+    let shown = crate::contract::clip_to(source, 64);
+    let is_http = source.get(..HTTP_SOURCE.len()).is_some_and(|s| s.eq_ignore_ascii_case(HTTP_SOURCE));
+    if is_http {
+        return mjpeg::parse_source(source).map(Source::Http).map_err(|e| match e {
+            // Not echoed: the password.
+            mjpeg::UrlError::Credentials => format!("is an http:// URL that {e}"),
+            e => format!("is an http:// URL that {e}: '{shown}'"),
+        });
+    }
+    let unsupported = match source.split_once("://") {
+        Some((scheme, _)) if !scheme.is_empty() && scheme.chars().all(|c| c.is_ascii_alphanumeric() || c == '+') => {
+            format!(
+                "the scheme {}:// is not supported (RTSP, https:// and V4L2 devices are not yet)",
+                scheme.to_ascii_lowercase()
+            )
+        }
+        _ => "V4L2 devices and other sources are not supported yet".to_string(),
+    };
+    Err(format!(
+        "must be sim:NAME (a builtin:sim component) or http://HOST[:PORT]/PATH (an IP camera's MJPEG stream); {unsupported}: '{shown}'"
+    ))
 }
 
 /// A picture side from parameter `name` (checked against its bounds).
@@ -116,7 +166,7 @@ impl Builtin for CameraBuiltin {
     }
 
     fn summary(&self) -> &'static str {
-        "A camera: JPEG frames of the simulated world seen from above"
+        "A camera: JPEG frames of the simulated world seen from above, or of an IP camera's MJPEG stream"
     }
 
     fn params(&self) -> &'static [ParamDecl] {
@@ -124,17 +174,10 @@ impl Builtin for CameraBuiltin {
     }
 
     fn check(&self, params: &Params, _ctx: &mut CheckContext<'_>) -> Vec<ParamProblem> {
-        let source = params.text("source").unwrap_or_default();
-        if sim_name(source).is_none() {
-            let shown = crate::contract::clip_to(source, 64);
-            return vec![ParamProblem::new(
-                "source",
-                format!(
-                    "must be sim:NAME, naming a builtin:sim component (V4L2 and IP cameras are not supported yet), not '{shown}'"
-                ),
-            )];
+        match source_of(params.text("source").unwrap_or_default()) {
+            Ok(_) => Vec::new(),
+            Err(why) => vec![ParamProblem::new("source", why)],
         }
-        Vec::new()
     }
 
     /// A `sim:NAME` source names a `builtin:sim` component of the robot.
@@ -178,11 +221,22 @@ impl Builtin for CameraBuiltin {
     }
 
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
-        let source = params.text("source")?;
-        let sim = sim_name(source).ok_or_else(|| BuiltinError::Param {
-            name: "source".into(),
-            why: format!("is not sim:NAME: '{source}'"),
-        })?;
+        let source =
+            source_of(params.text("source")?).map_err(|why| BuiltinError::Param { name: "source".into(), why })?;
+        let period_ns = (1e9 / params.number("rate")?).round() as u64;
+        let name = ctx.component()?.name.clone();
+        // The portal's live view, where the host has one.
+        let live = ctx.services.get::<LiveCameras>().map(|cameras| cameras.publish(&name));
+        let sim = match source {
+            Source::Sim(sim) => sim,
+            Source::Http(source) => {
+                let url = source.to_string();
+                let camera =
+                    CameraThread::start_http(&name, source, period_ns, ctx.clock.clone(), ctx.waker.clone(), live)
+                        .map_err(|e| BuiltinError::io("the camera's thread", e))?;
+                return Ok(Box::new(CameraComponent::new(camera, "http").with_url(url)));
+            }
+        };
         let control = ctx.services.get::<SimRegistry>().and_then(|registry| registry.get(sim)).ok_or_else(|| {
             BuiltinError::Refused(format!("source 'sim:{sim}' names no running builtin:sim component"))
         })?;
@@ -190,7 +244,7 @@ impl Builtin for CameraBuiltin {
         let settings = CameraSettings {
             width: side(params, "width")?,
             height: side(params, "height")?,
-            period_ns: (1e9 / params.number("rate")?).round() as u64,
+            period_ns,
             quality: u8::try_from(params.integer("quality")?)
                 .map_err(|_| BuiltinError::Param { name: "quality".into(), why: "is out of range".into() })?,
         };
@@ -200,8 +254,7 @@ impl Builtin for CameraBuiltin {
                 Scene { world: &world, body, pose: (status.x, status.y, status.heading), ranges: &status.ranges };
             Some(render(&scene, u32::from(settings.width), u32::from(settings.height)).rgb)
         });
-        let name = ctx.component()?.name.clone();
-        let camera = CameraThread::start(&name, settings, snapshot, ctx.clock.clone(), ctx.waker.clone())
+        let camera = CameraThread::start(&name, settings, snapshot, ctx.clock.clone(), ctx.waker.clone(), live)
             .map_err(|e| BuiltinError::io("the camera's thread", e))?;
         Ok(Box::new(CameraComponent::new(camera, "sim")))
     }
@@ -275,8 +328,21 @@ struct Counters {
     encode_failures: AtomicU64,
     /// Frame times skipped because the previous frame took longer.
     late: AtomicU64,
-    /// Nanoseconds of wall time spent rendering and encoding.
+    /// Nanoseconds of wall time spent rendering and encoding (or receiving
+    /// and checking).
     busy_ns: AtomicU64,
+    /// Parts of an IP camera's stream that were not frames: not JPEG, too
+    /// large, or too wide.
+    rejected: AtomicU64,
+    /// Frames an IP camera sent sooner than `rate` allows.
+    skipped: AtomicU64,
+    /// Connections to an IP camera given up (stalled, closed, garbage,
+    /// refused).
+    stream_errors: AtomicU64,
+    /// Connections to an IP camera opened after the first.
+    reconnects: AtomicU64,
+    /// An IP camera's stream is open.
+    connected: AtomicBool,
 }
 
 /// The camera's thread and what it shares.
@@ -286,17 +352,21 @@ pub struct CameraThread {
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
     settings: CameraSettings,
+    /// An IP camera's open socket, shut to stop the thread mid-read.
+    socket: Option<Socket>,
 }
 
 impl CameraThread {
     /// Starts taking a picture with `snapshot` every `settings.period_ns` on
-    /// `clock`, encoding it and queueing it; `waker` brings the loop round.
+    /// `clock`, encoding it and queueing it (and offering it to `live`);
+    /// `waker` brings the loop round.
     pub fn start(
         name: &str,
         settings: CameraSettings,
         mut snapshot: Snapshot,
         clock: Clock,
         waker: Waker,
+        live: Option<LiveFeed>,
     ) -> std::io::Result<CameraThread> {
         let queue = Arc::new(FrameQueue::new(MAX_QUEUED_FRAMES));
         let counters = Arc::new(Counters::default());
@@ -325,7 +395,12 @@ impl CameraThread {
                 let Some(rgb) = snapshot() else { continue };
                 match encode(&rgb, settings) {
                     Ok(jpeg) => {
-                        q.push(Frame { jpeg, width: settings.width, height: settings.height, capture_ns: now, seq });
+                        let frame =
+                            Frame { jpeg, width: settings.width, height: settings.height, capture_ns: now, seq };
+                        if let Some(live) = &live {
+                            live.offer(&frame);
+                        }
+                        q.push(frame);
                         seq += 1;
                         c.made.fetch_add(1, Ordering::Relaxed);
                         waker.wake();
@@ -340,13 +415,124 @@ impl CameraThread {
                 c.busy_ns.fetch_add(busy, Ordering::Relaxed);
             }
         })?;
-        Ok(CameraThread { queue, counters, stop, thread: Some(thread), settings })
+        Ok(CameraThread { queue, counters, stop, thread: Some(thread), settings, socket: None })
+    }
+
+    /// Starts reading the MJPEG stream of `source`: each whole JPEG frame,
+    /// at most one per three quarters of `period_ns` (on `clock`), is
+    /// queued with its capture time (when its last byte came); `waker`
+    /// brings the loop round. A part that is not a frame is dropped and
+    /// counted; a connection that fails, stalls or loses its framing is
+    /// dialled again after a backoff. Each kind of fault is logged once.
+    /// Each frame queued is offered to `live`.
+    pub fn start_http(
+        name: &str,
+        source: HttpSource,
+        period_ns: u64,
+        clock: Clock,
+        waker: Waker,
+        live: Option<LiveFeed>,
+    ) -> std::io::Result<CameraThread> {
+        let queue = Arc::new(FrameQueue::new(MAX_QUEUED_FRAMES));
+        let counters = Arc::new(Counters::default());
+        let stop = Arc::new(AtomicBool::new(false));
+        let socket: Socket = Arc::new(Mutex::new(None));
+        let (q, c, s, sock) = (queue.clone(), counters.clone(), stop.clone(), socket.clone());
+        let label = name.to_string();
+        let thread = std::thread::Builder::new().name(format!("camera-{name}")).spawn(move || {
+            if !scheduling::lower_to_background() {
+                tracing::debug!(component = label.as_str(), "the camera's thread keeps its priority");
+            }
+            let url = source.to_string();
+            let mut said: HashSet<&'static str> = HashSet::new();
+            let mut backoff = mjpeg::RECONNECT_MIN;
+            let mut opened = 0u64;
+            let mut seq = 0u64;
+            let mut last_kept: Option<u64> = None;
+            let min_gap = period_ns.saturating_mul(3) / 4;
+            while !s.load(Ordering::Relaxed) {
+                let failure = match mjpeg::Stream::open(&source, &sock, &s) {
+                    Err(e) => e,
+                    Ok(mut stream) => {
+                        opened += 1;
+                        if opened > 1 {
+                            c.reconnects.fetch_add(1, Ordering::Relaxed);
+                        }
+                        if said.insert("connected") {
+                            tracing::info!(component = label.as_str(), "camera {url}: receiving its MJPEG stream");
+                        }
+                        c.connected.store(true, Ordering::Relaxed);
+                        loop {
+                            let part = match stream.next_part() {
+                                Ok(part) => part,
+                                Err(e) => break e,
+                            };
+                            let started = std::time::Instant::now();
+                            match part {
+                                Part::Frame { jpeg, width, height } => {
+                                    backoff = mjpeg::RECONNECT_MIN;
+                                    let now = clock.now_ns();
+                                    if last_kept.is_some_and(|last| now.saturating_sub(last) < min_gap) {
+                                        c.skipped.fetch_add(1, Ordering::Relaxed);
+                                        continue;
+                                    }
+                                    last_kept = Some(now);
+                                    let frame = Frame { jpeg, width, height, capture_ns: now, seq };
+                                    if let Some(live) = &live {
+                                        live.offer(&frame);
+                                    }
+                                    q.push(frame);
+                                    seq += 1;
+                                    c.made.fetch_add(1, Ordering::Relaxed);
+                                    waker.wake();
+                                }
+                                Part::Rejected(why) => {
+                                    c.rejected.fetch_add(1, Ordering::Relaxed);
+                                    if said.insert(why.kind()) {
+                                        tracing::warn!(
+                                            component = label.as_str(),
+                                            "camera {url}: {why}; such frames are dropped and counted (frames_rejected), this is said once"
+                                        );
+                                    }
+                                }
+                            }
+                            let busy = u64::try_from(started.elapsed().as_nanos()).unwrap_or(u64::MAX);
+                            c.busy_ns.fetch_add(busy, Ordering::Relaxed);
+                            if s.load(Ordering::Relaxed) {
+                                break StreamError::Ended;
+                            }
+                        }
+                    }
+                };
+                c.connected.store(false, Ordering::Relaxed);
+                mjpeg::shut(&sock);
+                if s.load(Ordering::Relaxed) {
+                    break;
+                }
+                c.stream_errors.fetch_add(1, Ordering::Relaxed);
+                if said.insert(failure.kind()) {
+                    tracing::warn!(
+                        component = label.as_str(),
+                        "camera {url}: {failure}; dialling again (from {} ms up to {} s apart; this is said once)",
+                        mjpeg::RECONNECT_MIN.as_millis(),
+                        mjpeg::RECONNECT_MAX.as_secs()
+                    );
+                }
+                mjpeg::pause(backoff, &s);
+                backoff = (backoff * 2).min(mjpeg::RECONNECT_MAX);
+            }
+        })?;
+        let settings = CameraSettings { width: 0, height: 0, period_ns, quality: 0 };
+        Ok(CameraThread { queue, counters, stop, thread: Some(thread), settings, socket: Some(socket) })
     }
 }
 
 impl Drop for CameraThread {
     fn drop(&mut self) {
-        self.stop.store(true, Ordering::Relaxed);
+        self.stop.store(true, Ordering::SeqCst);
+        if let Some(socket) = &self.socket {
+            mjpeg::shut(socket);
+        }
         if let Some(thread) = self.thread.take() {
             let _ = thread.join();
         }
@@ -369,12 +555,43 @@ pub fn encode(rgb: &[u8], settings: CameraSettings) -> Result<Vec<u8>, jpeg_enco
 pub struct CameraComponent {
     camera: CameraThread,
     source: &'static str,
+    /// An IP camera's URL.
+    url: Option<String>,
     sent: u64,
+    /// The size of the last frame sent.
+    size: (u16, u16),
+    /// The loop's time at the first and the latest call.
+    first_ns: Option<u64>,
+    now_ns: u64,
+    /// The capture time of the last frame sent.
+    last_capture_ns: Option<u64>,
 }
 
 impl CameraComponent {
     pub fn new(camera: CameraThread, source: &'static str) -> CameraComponent {
-        CameraComponent { camera, source, sent: 0 }
+        let size = (camera.settings.width, camera.settings.height);
+        CameraComponent { camera, source, url: None, sent: 0, size, first_ns: None, now_ns: 0, last_capture_ns: None }
+    }
+
+    /// The camera's URL, shown in its status.
+    pub fn with_url(mut self, url: String) -> CameraComponent {
+        self.url = Some(url);
+        self
+    }
+
+    /// How long (ns on the loop's clock) the loop has gone without a new
+    /// picture at its latest call: since the last frame's capture, or since
+    /// the camera started when none came yet.
+    fn age_ns(&self) -> u64 {
+        let since = self.last_capture_ns.or(self.first_ns).unwrap_or(self.now_ns);
+        self.now_ns.saturating_sub(since)
+    }
+
+    /// The last picture is older than [`STALE_AFTER_PERIODS`] periods (and
+    /// [`STALE_AFTER_MIN`]).
+    fn stale(&self) -> bool {
+        let min = u64::try_from(STALE_AFTER_MIN.as_nanos()).unwrap_or(u64::MAX);
+        self.age_ns() > self.camera.settings.period_ns.saturating_mul(STALE_AFTER_PERIODS).max(min)
     }
 }
 
@@ -391,8 +608,12 @@ fn frame_info(frame: &Frame) -> String {
 }
 
 impl Component for CameraComponent {
-    fn poll(&mut self, _now_ns: u64, out: &mut Outbox) {
+    fn poll(&mut self, now_ns: u64, out: &mut Outbox) {
+        self.first_ns.get_or_insert(now_ns);
+        self.now_ns = self.now_ns.max(now_ns);
         for frame in self.camera.queue.take() {
+            self.size = (frame.width, frame.height);
+            self.last_capture_ns = Some(frame.capture_ns);
             out.push((OUTPUT_INFO, Value::Text(frame_info(&frame))));
             out.push((OUTPUT_FRAME, Value::Bytes(frame.jpeg)));
             self.sent += 1;
@@ -406,16 +627,25 @@ impl Component for CameraComponent {
 
     fn status(&self) -> Option<Box<dyn StatusSection>> {
         let c = &self.camera.counters;
+        let http = self.url.is_some();
         Some(Box::new(CameraSection {
             source: self.source,
-            width: self.camera.settings.width,
-            height: self.camera.settings.height,
+            url: self.url.clone(),
+            width: self.size.0,
+            height: self.size.1,
             frames_made: c.made.load(Ordering::Relaxed),
             frames_sent: self.sent,
             frames_dropped: self.camera.queue.dropped(),
             frames_late: c.late.load(Ordering::Relaxed),
             encode_failures: c.encode_failures.load(Ordering::Relaxed),
             busy_s: c.busy_ns.load(Ordering::Relaxed) as f64 / 1e9,
+            last_frame_age_s: self.age_ns() as f64 / 1e9,
+            stale: self.stale(),
+            frames_rejected: http.then(|| c.rejected.load(Ordering::Relaxed)),
+            frames_skipped: http.then(|| c.skipped.load(Ordering::Relaxed)),
+            stream_errors: http.then(|| c.stream_errors.load(Ordering::Relaxed)),
+            reconnects: http.then(|| c.reconnects.load(Ordering::Relaxed)),
+            connected: http.then(|| c.connected.load(Ordering::Relaxed)),
         }))
     }
 }
@@ -435,12 +665,70 @@ pub struct CameraSection {
     /// Frame times skipped because the one before took longer than a period.
     pub frames_late: u64,
     pub encode_failures: u64,
-    /// Wall time the camera's thread spent rendering and encoding.
+    /// Wall time the camera's thread spent rendering and encoding (an IP
+    /// camera: checking the frames it received).
     pub busy_s: f64,
+    /// How long the loop has gone without a new picture (since the camera
+    /// started, before the first), at the latest cycle.
+    pub last_frame_age_s: f64,
+    /// `last_frame_age_s` is past [`STALE_AFTER_PERIODS`] frame periods
+    /// (and [`STALE_AFTER_MIN`]).
+    pub stale: bool,
+    /// An IP camera's URL.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub url: Option<String>,
+    /// An IP camera's parts that were not frames (not JPEG, larger than
+    /// `mjpeg::MAX_FRAME_BYTES`, or wider than the size limits).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frames_rejected: Option<u64>,
+    /// An IP camera's frames that came sooner than `rate` allows.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub frames_skipped: Option<u64>,
+    /// An IP camera's connections given up (failed, stalled, closed,
+    /// garbage).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub stream_errors: Option<u64>,
+    /// An IP camera's connections opened after the first.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reconnects: Option<u64>,
+    /// An IP camera's stream is open now.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub connected: Option<bool>,
 }
 
 impl NamedSection for CameraSection {
     const SECTION: &'static str = "camera";
+
+    fn families(&self, component: &str) -> Vec<Family> {
+        let mut rows = vec![
+            ("subsume_camera_frames", "frames the loop took and sent on 'frame'", Sample::Counter(self.frames_sent)),
+            (
+                "subsume_camera_frames_dropped",
+                "frames pushed out of the full queue before the loop took them",
+                Sample::Counter(self.frames_dropped),
+            ),
+            (
+                "subsume_camera_frame_age_seconds",
+                "how long the loop has gone without a new picture",
+                Sample::Gauge(self.last_frame_age_s),
+            ),
+        ];
+        if let Some(rejected) = self.frames_rejected {
+            rows.push((
+                "subsume_camera_frames_rejected",
+                "an IP camera's parts that were not frames (not JPEG, too large, too wide)",
+                Sample::Counter(rejected),
+            ));
+        }
+        if let Some(reconnects) = self.reconnects {
+            rows.push((
+                "subsume_camera_reconnects",
+                "an IP camera's connections opened again",
+                Sample::Counter(reconnects),
+            ));
+        }
+        Family::each(("camera", component), &rows)
+    }
 }
 
 #[cfg(test)]
@@ -465,7 +753,7 @@ mod tests {
             let _ = tell.send(scheduling::thread_nice());
             None
         });
-        let _camera = CameraThread::start("nice", SETTINGS, snapshot, Clock::new(), Waker::default()).unwrap();
+        let _camera = CameraThread::start("nice", SETTINGS, snapshot, Clock::new(), Waker::default(), None).unwrap();
         let seen = nice.recv_timeout(Duration::from_secs(10)).unwrap();
         assert!(seen >= Some(scheduling::BACKGROUND_NICE), "{seen:?}");
     }
@@ -503,7 +791,7 @@ mod tests {
             Some(vec![0; 16 * 16 * 3])
         });
         let clock = Clock::new();
-        let camera = CameraThread::start("test", SETTINGS, snapshot, clock, Waker::default()).unwrap();
+        let camera = CameraThread::start("test", SETTINGS, snapshot, clock, Waker::default(), None).unwrap();
         let mut component = CameraComponent::new(camera, "test");
         let mut out = Outbox::new();
         // Stalled: every call returns at once with nothing.

@@ -309,6 +309,45 @@ impl Deployer {
         &self.live
     }
 
+    /// The newest frames of the running camera `name`, for `user`, if she
+    /// may watch the robot ([`Deployer::may_watch_cameras`]).
+    pub fn watch_camera(
+        &self,
+        user: &Principal,
+        name: &str,
+    ) -> Result<tokio::sync::watch::Receiver<crate::camera::live::Latest>, DeployError> {
+        self.may_watch_cameras(user)?;
+        self.services.get::<crate::camera::live::LiveCameras>().and_then(|cameras| cameras.watch(name)).ok_or_else(
+            || DeployError::NotFound(format!("no camera '{}' runs on this robot", crate::contract::clip_to(name, 64))),
+        )
+    }
+
+    /// The running cameras' names.
+    pub fn camera_names(&self) -> Vec<String> {
+        self.services.get::<crate::camera::live::LiveCameras>().map(|cameras| cameras.names()).unwrap_or_default()
+    }
+
+    /// Whether `user` may watch the robot's cameras now: the owner (admin)
+    /// and operators, who may watch the robot; a researcher only while her
+    /// own experiment runs on it (a camera sees the lab, and other people's
+    /// runs); no one else.
+    pub fn may_watch_cameras(&self, user: &Principal) -> Result<(), DeployError> {
+        use crate::store::users::Role;
+        match user.role {
+            Role::Admin | Role::Operator => Ok(()),
+            Role::Researcher if self.experiments.running().is_some_and(|e| e.submitter == user.name) => Ok(()),
+            Role::Researcher => Err(DeployError::Forbidden(format!(
+                "{} may watch the cameras only while her own experiment runs on the robot",
+                user.name
+            ))),
+            role => Err(DeployError::Forbidden(format!(
+                "{} may not watch the cameras (role {}): the owner, operators, and a researcher during her own experiment may",
+                user.name,
+                role.name()
+            ))),
+        }
+    }
+
     /// The plots' history (a sample a second, the last
     /// [`HISTORY_SAMPLES`]) and the graph time now, seconds: for whoever
     /// may see the live status.

@@ -287,6 +287,8 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/history", get(history))
         .route("/events", get(events))
         .route("/world", get(world))
+        .route("/cameras", get(cameras))
+        .route("/cameras/{name}/live", get(camera_live))
         .route("/sim/{action}", post(sim_control))
         .route("/estop", post(estop))
         .route("/release", post(release).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))

@@ -447,6 +447,73 @@ pub(super) async fn events(State(state): State<Arc<PortalState>>, Authed(user): 
     Sse::new(stream).keep_alive(KeepAlive::default()).into_response()
 }
 
+/// The boundary between the frames of a live camera stream.
+const LIVE_BOUNDARY: &str = "subsume-frame";
+/// How often a live camera stream with no new frame checks that its
+/// watcher may still watch: a researcher's stream ends within this of her
+/// experiment's end.
+const LIVE_RECHECK: Duration = Duration::from_secs(1);
+
+/// The running cameras (`GET /cameras`), for whoever may watch them.
+pub(super) async fn cameras(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+) -> Result<Json<Json_>, ApiError> {
+    state.deployer.may_watch_cameras(&user)?;
+    Ok(Json(json!({ "cameras": state.deployer.camera_names() })))
+}
+
+/// A camera live (`GET /cameras/{name}/live`): its newest frames as an
+/// MJPEG stream (`multipart/x-mixed-replace`, which a browser's `<img>`
+/// shows), for whoever may watch the robot (`Deployer::may_watch_cameras`:
+/// the owner, operators, a researcher during her own experiment). A slow
+/// watcher skips frames (only the newest waits). The stream ends when the
+/// camera stops (a new set) or the watcher may no longer watch.
+pub(super) async fn camera_live(
+    State(state): State<Arc<PortalState>>,
+    Authed(user): Authed,
+    Path(name): Path<String>,
+) -> Response {
+    let receiver = match state.deployer.watch_camera(&user, &name) {
+        Ok(receiver) => receiver,
+        Err(e) => return ApiError::from(e).into_response(),
+    };
+    let deployer = state.deployer.clone();
+    let frames = futures_util::stream::unfold((receiver, deployer, user), |(mut frames, deployer, user)| async move {
+        loop {
+            match tokio::time::timeout(LIVE_RECHECK, frames.changed()).await {
+                Ok(Ok(())) => {}
+                Ok(Err(_)) => return None,
+                Err(_) => {
+                    deployer.may_watch_cameras(&user).ok()?;
+                    continue;
+                }
+            }
+            deployer.may_watch_cameras(&user).ok()?;
+            let latest = frames.borrow_and_update().clone();
+            let Some(frame) = latest else { continue };
+            let mut part = format!(
+                "--{LIVE_BOUNDARY}\r\nContent-Type: image/jpeg\r\nContent-Length: {}\r\nX-Capture-Ns: {}\r\nX-Seq: {}\r\n\r\n",
+                frame.jpeg.len(),
+                frame.capture_ns,
+                frame.seq
+            )
+            .into_bytes();
+            part.extend_from_slice(&frame.jpeg);
+            part.extend_from_slice(b"\r\n");
+            return Some((Ok::<_, std::convert::Infallible>(Bytes::from(part)), (frames, deployer, user)));
+        }
+    });
+    (
+        [
+            (axum::http::header::CONTENT_TYPE, format!("multipart/x-mixed-replace; boundary={LIVE_BOUNDARY}")),
+            (axum::http::header::CACHE_CONTROL, "no-store".to_string()),
+        ],
+        axum::body::Body::from_stream(frames),
+    )
+        .into_response()
+}
+
 pub(super) async fn world(State(state): State<Arc<PortalState>>, Authed(_): Authed) -> Result<Json<Json_>, ApiError> {
     let deployer = state.deployer.clone();
     let view = blocking(move || Ok(deployer.sim_view()?)).await?;

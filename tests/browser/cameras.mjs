@@ -1,0 +1,56 @@
+// The Live tab's cameras in Debian's headless Chromium (tests/all/ipcam.rs):
+// each user logs in; one who may watch sees each camera's MJPEG stream
+// playing in an <img> (a picture of the camera's size, and a newer one a
+// moment later); one who may not sees no camera. Prints one JSON line:
+// {USER: {"cameras": N, "width": W, "height": H, "changed": bool}}.
+//
+// Usage: node cameras.mjs URL PASSWORD USER:watch|none ...
+import { openPage, logIn, step, check } from './harness.mjs';
+
+const [url, password, ...users] = process.argv.slice(2);
+const results = {};
+for (const entry of users) {
+  const [user, expect] = entry.split(':');
+  const { browser, page, shot } = await openPage(30000);
+  try {
+    await logIn(page, url, user, password);
+    await page.waitForFunction(() => document.getElementById('active-set').textContent.startsWith('set '));
+    if (expect === 'watch') {
+      step(`${user} sees the camera live`);
+      await page.waitForFunction(() => {
+        const img = document.querySelector('#cameras img');
+        return img && img.complete && img.naturalWidth > 0;
+      });
+      const picture = () => page.evaluate(() => {
+        const img = document.querySelector('#cameras img');
+        const canvas = document.createElement('canvas');
+        canvas.width = img.naturalWidth;
+        canvas.height = img.naturalHeight;
+        canvas.getContext('2d').drawImage(img, 0, 0);
+        return { width: img.naturalWidth, height: img.naturalHeight, data: canvas.toDataURL() };
+      });
+      const first = await picture();
+      let later = first;
+      const until = Date.now() + 10000;
+      while (later.data === first.data && Date.now() < until) {
+        await page.waitForTimeout(200);
+        later = await picture();
+      }
+      await shot(`cameras-${user}`);
+      const count = await page.evaluate(() => document.querySelectorAll('#cameras img').length);
+      const hidden = await page.evaluate(() => document.getElementById('cameras').hidden);
+      check(!hidden, `${user}: the cameras are hidden`);
+      results[user] = { cameras: count, width: first.width, height: first.height, changed: later.data !== first.data };
+    } else {
+      step(`${user} sees no camera`);
+      await page.waitForTimeout(1500);
+      await shot(`cameras-${user}`);
+      const count = await page.evaluate(() => document.querySelectorAll('#cameras img').length);
+      const hidden = await page.evaluate(() => document.getElementById('cameras').hidden);
+      results[user] = { cameras: count, hidden };
+    }
+  } finally {
+    await browser.close();
+  }
+}
+console.log(JSON.stringify(results));
