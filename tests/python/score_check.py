@@ -17,6 +17,13 @@ time line (log time less the channel's `epoch_unix_ns`):
                   speeds (v -/+ w * wheel_base_m / 2), each command held
                   until the next message on that port, the last until the
                   last message of the recording
+
+and what the scoring component guest-components/rust/scorer-goal-distance
+computes from the same streams:
+
+  final_distance_m     from the last pose to the goal's centre
+  commands             the commands recorded
+  goal_distance_score  final_distance_m + 0.1 * path_length_m
 """
 
 import json
@@ -75,6 +82,12 @@ def main() -> None:
         left, right = wheels(command, base)
         energy += (left * left + right * right) * ((until - t) / 1e9)
     found = {"path_length_m": path, "goal_reached": 1.0 if reached else 0.0, "energy": energy, "poses": len(poses)}
+    if poses:
+        _, x, y = poses[-1]
+        final = math.hypot(x - goal["x"], y - goal["y"])
+        found["final_distance_m"] = final
+        found["goal_distance_score"] = final + 0.1 * path
+    found["commands"] = len(commands)
     if reached:
         found["time_to_goal_s"] = reached[0] / 1e9
     print(json.dumps(found))
