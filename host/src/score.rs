@@ -23,7 +23,8 @@ use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 use crate::assemble::registry;
-use crate::contract::scorer_bindings::{Episode, Event, Goal as WitGoal, Position, Sample};
+use crate::contract::Value;
+use crate::contract::scorer_bindings::{Episode, Event, Goal as WitGoal, Position, Ranges, Sample};
 use crate::store::task::{Metric, Score, Task};
 
 /// A bundle's task, the one its score was computed for.
@@ -174,6 +175,7 @@ pub fn score_recording(
 ) -> Result<Score, ScoreError> {
     let pose_topic = topic_of(&task.pose);
     let commands_topic = topic_of(&task.commands);
+    let ranges_topic = topic_of(&task.ranges);
     let kinds = StatusKinds::registered();
     let scorer = match (task.metric, scorer) {
         (Metric::Scorer, Some(bytes)) => Some(check_scorer_bytes(task, bytes)?),
@@ -240,6 +242,10 @@ pub fn score_recording(
                 tally.close_command(t);
                 tally.wheels = Some((wheels(command, task.wheel_base_m), t));
                 tally.sample(t, || Event::Command(command.to_string()));
+            } else if topic == ranges_topic && tally.samples.is_some() {
+                let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
+                let ranges = ranges_of(&json).ok_or_else(|| bad("not a scan or a vector of ranges"))?;
+                tally.sample(t, || Event::Ranges(ranges));
             } else if topic.starts_with("/subsume/status/") {
                 let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
                 let kind = json["kind"].as_str();
@@ -316,6 +322,32 @@ pub fn score_recording(
         recording_sha256,
         scorer_sha256: None,
     })
+}
+
+/// A recorded range reading as a scorer sees it: a scan (recorded as a
+/// `foxglove.LaserScan`) with its geometry, a vector of ranges without.
+fn ranges_of(json: &Json) -> Option<Ranges> {
+    let value = match json.get("value") {
+        Some(value) => crate::record::schema::value_from_json(value)?,
+        None => crate::record::schema::scan_from_laser_scan(json)?,
+    };
+    match value {
+        Value::Scan(scan) => Some(Ranges {
+            angle_min: scan.angle_min,
+            angle_increment: scan.angle_increment,
+            range_min: scan.range_min,
+            range_max: scan.range_max,
+            ranges: scan.ranges,
+        }),
+        Value::Vector(ranges) => Some(Ranges {
+            angle_min: 0.0,
+            angle_increment: 0.0,
+            range_min: 0.0,
+            range_max: ranges.iter().copied().fold(0.0, f64::max),
+            ranges,
+        }),
+        _ => None,
+    }
 }
 
 /// `score` as `score.json` holds it.
@@ -404,6 +436,7 @@ mod tests {
             scorer: None,
             pose: "motors.pose".into(),
             commands: "envelope.cmd".into(),
+            ranges: "motors.ranges".into(),
             wheel_base_m: 0.4,
             board: Default::default(),
             pseudonyms: true,

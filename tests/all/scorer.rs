@@ -76,6 +76,8 @@ fn a_scoring_component_scores_a_recorded_run_as_python_does_and_the_same_bits_ev
     let sub = |name: &str| score["sub_scores"][name].as_f64().unwrap_or_else(|| panic!("{name}: {score:#}"));
     assert_eq!(sub("reached"), 1.0, "{score:#}");
     assert!(sub("final_distance_m") < 1.0 && sub("path_length_m") > 4.5, "{score:#}");
+    // The ranges reached it: the wall behind the start is 1 m away.
+    assert!(sub("closest_m") > 0.0 && sub("closest_m") <= 1.0, "{score:#}");
     let value = score["value"].as_f64().unwrap();
     assert_eq!(value, sub("final_distance_m") + 0.1 * sub("path_length_m"), "{score:#}");
     // Python over the same recording.
@@ -92,6 +94,7 @@ fn a_scoring_component_scores_a_recorded_run_as_python_does_and_the_same_bits_ev
         ("path_length_m", "path_length_m"),
         ("reached", "goal_reached"),
         ("commands", "commands"),
+        ("closest_m", "closest_m"),
     ] {
         let (ours, theirs) = (sub(ours), found[theirs].as_f64().unwrap());
         assert!((ours - theirs).abs() <= 1e-9 * ours.abs().max(1.0), "{ours} vs {theirs}: {found}");

@@ -24,6 +24,8 @@ computes from the same streams:
   final_distance_m     from the last pose to the goal's centre
   commands             the commands recorded
   goal_distance_score  final_distance_m + 0.1 * path_length_m
+  closest_m            the shortest range reading of the task's `ranges` port
+                       (a foxglove.LaserScan) within [range_min, range_max)
 """
 
 import json
@@ -56,6 +58,8 @@ def main() -> None:
         task = json.load(f)
     pose_topic = topic(task.get("pose", "motors.pose"))
     cmd_topic = topic(task.get("commands", "envelope.cmd"))
+    ranges_topic = topic(task.get("ranges", "motors.ranges"))
+    closest = None
     base = task.get("wheel_base_m", 0.3)
     goal = task["goal"]
     poses = []
@@ -70,6 +74,11 @@ def main() -> None:
             if channel.topic == pose_topic:
                 value = json.loads(message.data)["value"]
                 poses.append((t, value[0], value[1]))
+            elif channel.topic == ranges_topic:
+                scan = json.loads(message.data)
+                for r in scan["ranges"]:
+                    if scan["range_min"] <= r < scan["range_max"]:
+                        closest = r if closest is None else min(closest, r)
             elif channel.topic == cmd_topic:
                 commands.append((t, json.loads(message.data)["value"]["command"]))
     path = 0.0
@@ -88,6 +97,8 @@ def main() -> None:
         found["final_distance_m"] = final
         found["goal_distance_score"] = final + 0.1 * path
     found["commands"] = len(commands)
+    if closest is not None:
+        found["closest_m"] = closest
     if reached:
         found["time_to_goal_s"] = reached[0] / 1e9
     print(json.dumps(found))

@@ -183,6 +183,7 @@ mod tests {
             scorer: None,
             pose: "motors.pose".into(),
             commands: "envelope.cmd".into(),
+            ranges: "motors.ranges".into(),
             wheel_base_m: 0.3,
             board,
             pseudonyms,

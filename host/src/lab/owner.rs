@@ -280,7 +280,7 @@ fn check_task(task: &Task) -> Result<(), LabError> {
             return bad(format!("scorer is only for the metric scorer, and the metric is {}", metric.name()));
         }
     }
-    for (field, port) in [("pose", &task.pose), ("commands", &task.commands)] {
+    for (field, port) in [("pose", &task.pose), ("commands", &task.commands), ("ranges", &task.ranges)] {
         let shaped = port.split_once('.').is_some_and(|(c, p)| !c.is_empty() && !p.is_empty() && !p.contains('.'));
         if !shaped || port.len() > 128 || port.chars().any(|c| c.is_control() || c == '/') {
             return bad(format!("{field} must name an output port as COMPONENT.PORT, got '{}'", clip(port)));

@@ -32,6 +32,10 @@ pub struct Task {
     /// The output port whose commands reach the motors (energy).
     #[serde(default = "default_commands_port")]
     pub commands: String,
+    /// The output port whose range readings a scoring component reads
+    /// (a scan or a vector of ranges).
+    #[serde(default = "default_ranges_port")]
+    pub ranges: String,
     /// The distance between the wheels (m), for the commanded wheel speeds.
     #[serde(default = "default_wheel_base_m")]
     pub wheel_base_m: f64,
@@ -145,6 +149,10 @@ fn default_pose_port() -> String {
 
 fn default_commands_port() -> String {
     "envelope.cmd".into()
+}
+
+fn default_ranges_port() -> String {
+    "motors.ranges".into()
 }
 
 fn default_wheel_base_m() -> f64 {

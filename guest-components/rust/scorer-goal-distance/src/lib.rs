@@ -7,6 +7,8 @@
 //! - `commands`: the commands recorded;
 //! - `interventions`: the envelope's interventions, every cause (its last
 //!   count);
+//! - `closest_m`: the shortest valid range reading (`[range-min,
+//!   range-max)`), when there was one;
 //! - the score: `final_distance_m + 0.1 * path_length_m`, so ending at the
 //!   goal matters most and a shorter path breaks ties.
 //!
@@ -28,6 +30,7 @@ impl Scorer for GoalDistance {
         let mut reached = false;
         let mut commands = 0u64;
         let mut interventions = 0.0;
+        let mut closest: Option<f64> = None;
         for sample in &episode.samples {
             match &sample.event {
                 Event::Pose(pose) => {
@@ -40,6 +43,12 @@ impl Scorer for GoalDistance {
                 Event::Command(_) => commands += 1,
                 Event::Interventions(causes) => interventions = causes.iter().map(|(_, n)| n).sum(),
                 Event::Collisions(_) => {}
+                Event::Ranges(scan) => {
+                    let valid = scan.ranges.iter().filter(|r| **r >= scan.range_min && **r < scan.range_max);
+                    for &r in valid {
+                        closest = Some(closest.map_or(r, |c: f64| c.min(r)));
+                    }
+                }
             }
         }
         let Some((x, y)) = last else {
@@ -47,16 +56,17 @@ impl Scorer for GoalDistance {
         };
         let final_distance_m = (x - goal.x).hypot(y - goal.y);
         let sub = |name: &str, value: f64| SubScore { name: name.into(), value };
-        Ok(Verdict {
-            score: final_distance_m + PATH_WEIGHT * path_length_m,
-            sub_scores: vec![
-                sub("final_distance_m", final_distance_m),
-                sub("path_length_m", path_length_m),
-                sub("reached", if reached { 1.0 } else { 0.0 }),
-                sub("commands", commands as f64),
-                sub("interventions", interventions),
-            ],
-        })
+        let mut sub_scores = vec![
+            sub("final_distance_m", final_distance_m),
+            sub("path_length_m", path_length_m),
+            sub("reached", if reached { 1.0 } else { 0.0 }),
+            sub("commands", commands as f64),
+            sub("interventions", interventions),
+        ];
+        if let Some(closest) = closest {
+            sub_scores.push(sub("closest_m", closest));
+        }
+        Ok(Verdict { score: final_distance_m + PATH_WEIGHT * path_length_m, sub_scores })
     }
 }
 
