@@ -46,6 +46,15 @@ pub mod translator_bindings {
     });
 }
 
+/// Generated from the `scorer` world (a task's scoring component): its
+/// types are the world's own and it imports nothing of the host's.
+pub mod scorer_bindings {
+    wasmtime::component::bindgen!({
+        world: "scorer",
+        path: "../wit",
+    });
+}
+
 pub use bindings::subsume::robot::types::{
     Description, LinkPlan, LogLevel, Param, ParamKind, ParamSpec, PortSpec, Scan, Value as GuestValue, ValueKind,
 };

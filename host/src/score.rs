@@ -5,8 +5,15 @@
 //! bit: on the robot at the end of a run, and on anyone's machine from the
 //! bundle (`subsume score BUNDLE_DIR`).
 //!
-//! [`score_recording`] is pure over the recording's bytes;
-//! [`score_bundle`] reads a bundle's `task.json` and recordings.
+//! The metric is built in, or the task's scoring component (the `scorer`
+//! world, run in `crate::sandbox`'s scorer engine): the recording's poses,
+//! commands and status messages are handed to it in file order, and its
+//! verdict is the score. A bundle carries the component's bytes
+//! (`scorer.wasm`), checked against the sha256 its task pins.
+//!
+//! [`score_recording`] is pure over the recording's (and the scorer's)
+//! bytes; [`score_bundle`] reads a bundle's `task.json`, `scorer.wasm` and
+//! recordings.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -16,6 +23,8 @@ use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 use crate::assemble::registry;
+use crate::contract::Value;
+use crate::contract::scorer_bindings::{Episode, Event, Goal as WitGoal, Position, Ranges, Sample};
 use crate::store::task::{Metric, Score, Task};
 
 /// A bundle's task, the one its score was computed for.
@@ -28,6 +37,8 @@ pub const RUN_RECORDING: &str = "run.mcap";
 /// side, to compare with the robot's.
 pub const PREFLIGHT_RECORDING: &str = "preflight.mcap";
 pub const PREFLIGHT_SCORE_FILE: &str = "preflight-score.json";
+/// A bundle's scoring component, when its task's metric is one.
+pub const SCORER_FILE: &str = "scorer.wasm";
 /// Largest recording scored (all its files): as `subsume replay` reads.
 pub const MAX_SCORED_BYTES: u64 = 4 << 30;
 
@@ -50,6 +61,32 @@ pub enum ScoreError {
     NoPoses { path: PathBuf, topic: String },
     #[error("{path}: cannot write: {why}")]
     Write { path: PathBuf, why: String },
+    /// The task's scoring component gave no score (or could not be had).
+    #[error("task {task}: its scorer {component}: {why}")]
+    Scorer { task: String, component: String, why: String },
+}
+
+impl ScoreError {
+    fn scorer(task: &Task, why: impl Into<String>) -> ScoreError {
+        let component = task.scorer.as_ref().map_or_else(|| "(none named)".to_string(), |s| s.component.clone());
+        ScoreError::Scorer { task: task.name.clone(), component, why: why.into() }
+    }
+}
+
+/// Checks that `bytes` are the scorer `task` pins (its sha256): the
+/// bytes, or why not.
+pub fn check_scorer_bytes<'b>(task: &Task, bytes: &'b [u8]) -> Result<&'b [u8], ScoreError> {
+    let Some(scorer) = &task.scorer else {
+        return Err(ScoreError::scorer(task, "the task's metric is scorer but it names no scorer"));
+    };
+    let sha256 = hex::encode(Sha256::digest(bytes));
+    if sha256 != scorer.sha256 {
+        return Err(ScoreError::scorer(
+            task,
+            format!("its bytes' sha256 is {sha256}, but the task pins {}", scorer.sha256),
+        ));
+    }
+    Ok(bytes)
 }
 
 /// The topic a task's `COMPONENT.PORT` is recorded on.
@@ -90,6 +127,16 @@ struct Tally {
     energy: f64,
     collisions: Option<f64>,
     interventions: Option<BTreeMap<String, f64>>,
+    /// What a scoring component is handed, when the task has one.
+    samples: Option<Vec<Sample>>,
+}
+
+impl Tally {
+    fn sample(&mut self, t_ns: u64, event: impl FnOnce() -> Event) {
+        if let Some(samples) = &mut self.samples {
+            samples.push(Sample { t_ns, event: event() });
+        }
+    }
 }
 
 /// The wheel speeds a command asks for: `VEL v w` on a base of `base` m;
@@ -117,12 +164,25 @@ impl Tally {
 }
 
 /// Scores the run recorded in `files` (its recording and the rotated files
-/// after it, in order; `path` names it in errors) against `task`.
-pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Score, ScoreError> {
+/// after it, in order; `path` names it in errors) against `task`; with
+/// [`Metric::Scorer`], by the scoring component `scorer` (its bytes,
+/// checked against the sha256 the task pins).
+pub fn score_recording(
+    task: &Task,
+    scorer: Option<&[u8]>,
+    files: &[Vec<u8>],
+    path: &Path,
+) -> Result<Score, ScoreError> {
     let pose_topic = topic_of(&task.pose);
     let commands_topic = topic_of(&task.commands);
+    let ranges_topic = topic_of(&task.ranges);
     let kinds = StatusKinds::registered();
-    let mut tally = Tally::default();
+    let scorer = match (task.metric, scorer) {
+        (Metric::Scorer, Some(bytes)) => Some(check_scorer_bytes(task, bytes)?),
+        (Metric::Scorer, None) => return Err(ScoreError::scorer(task, "its bytes are not here")),
+        _ => None,
+    };
+    let mut tally = Tally { samples: scorer.map(|_| Vec::new()), ..Tally::default() };
     let mut index = 0u64;
     let mut hash = Sha256::new();
     for bytes in files {
@@ -170,6 +230,8 @@ pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Sc
                     tally.path_length_m += (x - px).hypot(y - py);
                 }
                 tally.last_pose = Some((x, y));
+                let heading = value.get(2).and_then(Json::as_f64).unwrap_or(0.0);
+                tally.sample(t, || Event::Pose(Position { x, y, heading }));
                 if tally.reached_at_ns.is_none() && (x - task.goal.x).hypot(y - task.goal.y) <= task.goal.radius {
                     tally.reached_at_ns = Some(t);
                 }
@@ -179,16 +241,28 @@ pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Sc
                 tally.commands += 1;
                 tally.close_command(t);
                 tally.wheels = Some((wheels(command, task.wheel_base_m), t));
+                tally.sample(t, || Event::Command(command.to_string()));
+            } else if topic == ranges_topic && tally.samples.is_some() {
+                let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
+                let ranges = ranges_of(&json).ok_or_else(|| bad("not a scan or a vector of ranges"))?;
+                tally.sample(t, || Event::Ranges(ranges));
             } else if topic.starts_with("/subsume/status/") {
                 let json: Json = serde_json::from_slice(&message.data).map_err(|e| bad(&e.to_string()))?;
                 let kind = json["kind"].as_str();
                 if kind.is_some() && kind == kinds.sim.as_deref() {
                     tally.collisions = json["status"]["collisions"].as_f64();
+                    if let Some(collisions) = tally.collisions {
+                        tally.sample(t, || Event::Collisions(collisions));
+                    }
                 } else if kind.is_some() && kind == kinds.envelope.as_deref() {
                     let causes = json["status"]["causes"]
                         .as_object()
                         .map(|causes| causes.iter().filter_map(|(k, v)| v.as_f64().map(|n| (k.clone(), n))).collect());
                     tally.interventions = causes;
+                    if let Some(causes) = &tally.interventions {
+                        let causes: Vec<(String, f64)> = causes.iter().map(|(k, v)| (k.clone(), *v)).collect();
+                        tally.sample(t, || Event::Interventions(causes));
+                    }
                 }
             }
         }
@@ -197,6 +271,29 @@ pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Sc
         return Err(ScoreError::NoPoses { path: path.into(), topic: pose_topic });
     }
     let end = tally.last_ns;
+    let recorded_s = end.saturating_sub(tally.first_ns.unwrap_or(0)) as f64 / 1e9;
+    let recording_sha256 = hex::encode(hash.finalize());
+    if let (Some(bytes), Some(samples)) = (scorer, tally.samples.take()) {
+        let episode = Episode {
+            task: task.name.clone(),
+            goal: WitGoal { x: task.goal.x, y: task.goal.y, radius: task.goal.radius },
+            wheel_base_m: task.wheel_base_m,
+            samples,
+        };
+        let verdict =
+            crate::sandbox::run_scorer(bytes, &episode).map_err(|e| ScoreError::scorer(task, e.to_string()))?;
+        return Ok(Score {
+            task: task.name.clone(),
+            metric: Metric::Scorer,
+            value: Some(verdict.score),
+            sub_scores: verdict.sub_scores.into_iter().map(|s| (s.name, s.value)).collect(),
+            poses: tally.poses,
+            commands: tally.commands,
+            recorded_s,
+            recording_sha256,
+            scorer_sha256: Some(hex::encode(Sha256::digest(bytes))),
+        });
+    }
     tally.close_command(end);
     let mut sub_scores = BTreeMap::new();
     sub_scores.insert(Metric::GoalReached.name().to_string(), if tally.reached_at_ns.is_some() { 1.0 } else { 0.0 });
@@ -221,9 +318,36 @@ pub fn score_recording(task: &Task, files: &[Vec<u8>], path: &Path) -> Result<Sc
         sub_scores,
         poses: tally.poses,
         commands: tally.commands,
-        recorded_s: end.saturating_sub(tally.first_ns.unwrap_or(0)) as f64 / 1e9,
-        recording_sha256: hex::encode(hash.finalize()),
+        recorded_s,
+        recording_sha256,
+        scorer_sha256: None,
     })
+}
+
+/// A recorded range reading as a scorer sees it: a scan (recorded as a
+/// `foxglove.LaserScan`) with its geometry, a vector of ranges without.
+fn ranges_of(json: &Json) -> Option<Ranges> {
+    let value = match json.get("value") {
+        Some(value) => crate::record::schema::value_from_json(value)?,
+        None => crate::record::schema::scan_from_laser_scan(json)?,
+    };
+    match value {
+        Value::Scan(scan) => Some(Ranges {
+            angle_min: scan.angle_min,
+            angle_increment: scan.angle_increment,
+            range_min: scan.range_min,
+            range_max: scan.range_max,
+            ranges: scan.ranges,
+        }),
+        Value::Vector(ranges) => Some(Ranges {
+            angle_min: 0.0,
+            angle_increment: 0.0,
+            range_min: 0.0,
+            range_max: ranges.iter().copied().fold(0.0, f64::max),
+            ranges,
+        }),
+        _ => None,
+    }
 }
 
 /// `score` as `score.json` holds it.
@@ -239,8 +363,9 @@ pub fn recording_files(recording: &Path) -> Vec<PathBuf> {
 }
 
 /// Scores the run recorded in `recording` (and its rotated files) against
-/// `task`, reading at most [`MAX_SCORED_BYTES`].
-pub fn score_files(task: &Task, recording: &Path) -> Result<Score, ScoreError> {
+/// `task` (with its `scorer`'s bytes when it has one), reading at most
+/// [`MAX_SCORED_BYTES`].
+pub fn score_files(task: &Task, scorer: Option<&[u8]>, recording: &Path) -> Result<Score, ScoreError> {
     let mut files = Vec::new();
     let mut total = 0u64;
     let paths = recording_files(recording);
@@ -261,7 +386,7 @@ pub fn score_files(task: &Task, recording: &Path) -> Result<Score, ScoreError> {
         }
         files.push(std::fs::read(&path).map_err(|source| ScoreError::Read { path: path.clone(), source })?);
     }
-    score_recording(task, &files, recording)
+    score_recording(task, scorer, &files, recording)
 }
 
 /// Reads `dir/task.json`.
@@ -277,10 +402,22 @@ pub fn score_bundle(dir: &Path) -> Result<(Score, Vec<u8>), ScoreError> {
     score_bundle_recording(dir, RUN_RECORDING)
 }
 
-/// Scores `recording` of the bundle in `dir` against its `task.json`.
+/// Reads `dir/scorer.wasm` when `task`'s metric is a scoring component
+/// (at most [`crate::sandbox::MAX_COMPONENT_BYTES`]).
+pub fn read_scorer(dir: &Path, task: &Task) -> Result<Option<Vec<u8>>, ScoreError> {
+    if task.metric != Metric::Scorer {
+        return Ok(None);
+    }
+    let path = dir.join(SCORER_FILE);
+    crate::sandbox::read_component_file(&path).map(Some).map_err(|e| ScoreError::scorer(task, e.to_string()))
+}
+
+/// Scores `recording` of the bundle in `dir` against its `task.json` (and
+/// its `scorer.wasm`, when the task's metric is one).
 pub fn score_bundle_recording(dir: &Path, recording: &str) -> Result<(Score, Vec<u8>), ScoreError> {
     let task = read_task(dir)?;
-    let score = score_files(&task, &dir.join(recording))?;
+    let scorer = read_scorer(dir, &task)?;
+    let score = score_files(&task, scorer.as_deref(), &dir.join(recording))?;
     let bytes = encode(&score);
     Ok((score, bytes))
 }
@@ -296,8 +433,10 @@ mod tests {
             description: String::new(),
             goal: Goal { x: 3.0, y: 0.0, radius: 0.5 },
             metric,
+            scorer: None,
             pose: "motors.pose".into(),
             commands: "envelope.cmd".into(),
+            ranges: "motors.ranges".into(),
             wheel_base_m: 0.4,
             board: Default::default(),
             pseudonyms: true,
@@ -359,7 +498,7 @@ mod tests {
             ("/subsume/status/robot-sim", 3_500_000_000, serde_json::json!({"kind": sim, "status": {"collisions": 1}})),
             pose(4000, 2.75, 0.0),
         ]);
-        let score = score_recording(&task(Metric::TimeToGoal), &[bytes], Path::new("run.mcap")).unwrap();
+        let score = score_recording(&task(Metric::TimeToGoal), None, &[bytes], Path::new("run.mcap")).unwrap();
         let expected: BTreeMap<String, f64> = [
             ("goal_reached", 1.0),
             ("time_to_goal_s", 3.0),
@@ -394,7 +533,8 @@ mod tests {
             (Metric::Energy, Some(0.0)),
         ];
         for (metric, expected) in cases {
-            let score = score_recording(&task(metric), std::slice::from_ref(&never), Path::new("run.mcap")).unwrap();
+            let score =
+                score_recording(&task(metric), None, std::slice::from_ref(&never), Path::new("run.mcap")).unwrap();
             assert_eq!(score.value, expected, "{metric:?}");
         }
     }
@@ -409,7 +549,7 @@ mod tests {
             ("not mcap", b"hello".to_vec(), "run.mcap: not an MCAP file"),
         ];
         for (case, bytes, expected) in cases {
-            let error = score_recording(&task(Metric::PathLength), &[bytes], Path::new("run.mcap")).unwrap_err();
+            let error = score_recording(&task(Metric::PathLength), None, &[bytes], Path::new("run.mcap")).unwrap_err();
             assert_eq!(error.to_string(), expected, "{case}");
         }
     }
@@ -418,9 +558,10 @@ mod tests {
     fn the_same_bytes_score_the_same_bits() {
         let bytes =
             recording(&[pose(0, 0.1, 0.2), command(5, "VEL 0.31 -0.7"), pose(13, 0.4, 0.9), pose(29, 1.7, 0.3)]);
-        let first =
-            encode(&score_recording(&task(Metric::Energy), std::slice::from_ref(&bytes), Path::new("a")).unwrap());
-        let again = encode(&score_recording(&task(Metric::Energy), &[bytes], Path::new("a")).unwrap());
+        let first = encode(
+            &score_recording(&task(Metric::Energy), None, std::slice::from_ref(&bytes), Path::new("a")).unwrap(),
+        );
+        let again = encode(&score_recording(&task(Metric::Energy), None, &[bytes], Path::new("a")).unwrap());
         assert_eq!(first, again);
     }
 }

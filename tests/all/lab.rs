@@ -2523,6 +2523,131 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
     assert!(!lost.status.success() && said.contains("task.json") && said.contains("No such file"), "{said}");
 }
 
+/// Issue 41, a task scored by a component: the owner uploads a scoring
+/// component (the `scorer` world) like any other and pins its sha256 in
+/// the task; a task pinning other bytes, or a component of another world,
+/// is refused by name. A run's score is the component's (its metric
+/// `scorer`, its sub-scores), the bundle and the lab kit carry its bytes
+/// (`scorer.wasm`), and `subsume score` recomputes the same bits from the
+/// bundle alone. A scorer that traps gives the run no score, and its
+/// record says why.
+#[test]
+fn a_task_scored_by_a_component_scores_every_run_and_the_bundle_carries_the_scorer() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let uploaded = |name: &str, guest: &str| {
+        let bytes = std::fs::read(crate::support::guest(guest)).unwrap();
+        let path = format!("/api/v1/platforms/control/components/{name}");
+        let (status, json) = http(&lab.address, "PUT", &path, Some(&boss), &bytes);
+        assert_eq!(status, 201, "{json}");
+        json
+    };
+    let scorer = uploaded("goal-distance", "scorer-goal-distance");
+    assert_eq!(scorer["world"], "scorer", "{scorer:#}");
+    let sha256 = scorer["sha256"].as_str().unwrap().to_string();
+    let hostile = uploaded("hostile", "test-scorer-hostile");
+    let avoider = uploaded("avoid", "avoider");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    let task = |name: &str, component: &str, pinned: &str| {
+        serde_json::json!({
+            "name": name, "goal": {"x": 6.0, "y": 1.0, "radius": 0.4}, "metric": "scorer",
+            "scorer": {"component": component, "sha256": pinned}
+        })
+    };
+    let other = "0".repeat(64);
+    let refused = [
+        (
+            task("reach-6", "boss/goal-distance", &other),
+            format!("is stored with sha256 {sha256}, but the task pins {other}"),
+        ),
+        (
+            task("reach-6", "boss/avoid", avoider["sha256"].as_str().unwrap()),
+            "'boss/avoid' is not a scoring component (it fits the component world".to_string(),
+        ),
+        (task("reach-6", "boss/nothing", &sha256), "task.scorer: no component 'boss/nothing' in the store".to_string()),
+        (
+            serde_json::json!({"name": "reach-6", "goal": {"x": 6.0, "y": 1.0, "radius": 0.4}, "metric": "scorer"}),
+            "task.scorer must name the scoring component".to_string(),
+        ),
+    ];
+    for (bad, expected) in refused {
+        settings["task"] = bad;
+        let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+        assert_eq!(status, 400, "{json}");
+        assert!(json.to_string().contains(&expected), "{expected}: {json}");
+    }
+    settings["task"] = task("reach-6", "boss/goal-distance", &sha256);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    // The kit carries the scorer's bytes.
+    let local = dir.path().join("local");
+    std::fs::create_dir_all(&local).unwrap();
+    let kit = fetch_kit(&lab, &ana, &local);
+    assert_eq!(
+        std::fs::read(kit.join("scorer.wasm")).unwrap(),
+        std::fs::read(crate::support::guest("scorer-goal-distance")).unwrap()
+    );
+    // A run, scored by the component.
+    let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
+    let body = serde_json::json!({ "set": set, "duration_s": 25 }).to_string();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(240));
+    assert_eq!(done["state"], "done", "{done:#}");
+    let score = done["score"].clone();
+    assert_eq!(
+        (&score["metric"], &score["scorer_sha256"]),
+        (&Json::from("scorer"), &Json::from(sha256.clone())),
+        "{done:#}"
+    );
+    let sub = |name: &str| score["sub_scores"][name].as_f64().unwrap_or_else(|| panic!("{name}: {score:#}"));
+    assert_eq!(sub("reached"), 1.0, "{score:#}");
+    assert_eq!(score["value"].as_f64(), Some(sub("final_distance_m") + 0.1 * sub("path_length_m")), "{score:#}");
+    assert_eq!(done["preflight"]["score"]["metric"], "scorer", "{done:#}");
+    // The bundle carries the scorer; anyone recomputes the score from it.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, id, &out);
+    let kept: Json = serde_json::from_slice(&std::fs::read(bundle.join("score.json")).unwrap()).unwrap();
+    assert_eq!(kept, score);
+    let sums = std::fs::read_to_string(bundle.join("SHA256SUMS")).unwrap();
+    assert!(sums.contains(&format!("{sha256}  scorer.wasm")), "{sums}");
+    let again = crate::support::subsume().arg("score").arg(&bundle).output().unwrap();
+    let said = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success(), "{said}{}", String::from_utf8_lossy(&again.stderr));
+    assert!(
+        said.contains("identical: ")
+            && said.contains("score.json matches")
+            && said.contains("preflight-score.json matches"),
+        "{said}"
+    );
+    let (_, json) = lab.call(&ana, "GET", "/api/v1/tasks/reach-6/leaderboard", "");
+    assert_eq!(
+        (&json["leaderboard"]["metric"], &json["leaderboard"]["better"]),
+        (&Json::from("scorer"), &Json::from("lower")),
+        "{json}"
+    );
+    assert_eq!(json["leaderboard"]["entries"][0]["value"], score["value"], "{json}");
+    // A scorer that traps: no score, and the record says why.
+    settings["task"] = task("scorer-traps", "boss/hostile", hostile["sha256"].as_str().unwrap());
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+    assert_eq!(status, 201, "{json}");
+    let id = json["experiment"]["id"].as_u64().unwrap();
+    let ended = lab.wait_for(&ana, id, "done", Duration::from_secs(240));
+    assert!(ended["score"].is_null() && ended["preflight"]["score"].is_null(), "{ended:#}");
+    let reasons = ended["reasons"].to_string();
+    assert!(
+        reasons.contains("its run could not be scored: task scorer-traps: its scorer boss/hostile: score() trapped"),
+        "{ended:#}"
+    );
+}
+
 /// Issue 40: an admin's self-test racing the experiments' starts. While
 /// experiments follow one another (each with the self-test after it), an
 /// admin asks for the self-test again and again, from two threads at once.

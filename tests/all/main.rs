@@ -40,6 +40,7 @@ mod replay;
 mod ros2;
 mod runtime;
 mod schema;
+mod scorer;
 mod serial;
 mod service;
 mod simtime;

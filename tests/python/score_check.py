@@ -17,6 +17,15 @@ time line (log time less the channel's `epoch_unix_ns`):
                   speeds (v -/+ w * wheel_base_m / 2), each command held
                   until the next message on that port, the last until the
                   last message of the recording
+
+and what the scoring component guest-components/rust/scorer-goal-distance
+computes from the same streams:
+
+  final_distance_m     from the last pose to the goal's centre
+  commands             the commands recorded
+  goal_distance_score  final_distance_m + 0.1 * path_length_m
+  closest_m            the shortest range reading of the task's `ranges` port
+                       (a foxglove.LaserScan) within [range_min, range_max)
 """
 
 import json
@@ -49,6 +58,8 @@ def main() -> None:
         task = json.load(f)
     pose_topic = topic(task.get("pose", "motors.pose"))
     cmd_topic = topic(task.get("commands", "envelope.cmd"))
+    ranges_topic = topic(task.get("ranges", "motors.ranges"))
+    closest = None
     base = task.get("wheel_base_m", 0.3)
     goal = task["goal"]
     poses = []
@@ -63,6 +74,11 @@ def main() -> None:
             if channel.topic == pose_topic:
                 value = json.loads(message.data)["value"]
                 poses.append((t, value[0], value[1]))
+            elif channel.topic == ranges_topic:
+                scan = json.loads(message.data)
+                for r in scan["ranges"]:
+                    if scan["range_min"] <= r < scan["range_max"]:
+                        closest = r if closest is None else min(closest, r)
             elif channel.topic == cmd_topic:
                 commands.append((t, json.loads(message.data)["value"]["command"]))
     path = 0.0
@@ -75,6 +91,14 @@ def main() -> None:
         left, right = wheels(command, base)
         energy += (left * left + right * right) * ((until - t) / 1e9)
     found = {"path_length_m": path, "goal_reached": 1.0 if reached else 0.0, "energy": energy, "poses": len(poses)}
+    if poses:
+        _, x, y = poses[-1]
+        final = math.hypot(x - goal["x"], y - goal["y"])
+        found["final_distance_m"] = final
+        found["goal_distance_score"] = final + 0.1 * path
+    found["commands"] = len(commands)
+    if closest is not None:
+        found["closest_m"] = closest
     if reached:
         found["time_to_goal_s"] = reached[0] / 1e9
     print(json.dumps(found))

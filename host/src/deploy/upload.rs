@@ -93,12 +93,16 @@ impl Deployer {
             Ok(artifact) => (World::Component, Some(DescriptionDoc::new(&artifact.description, &artifact.sha256))),
             Err(as_component) => match self.sandbox.load_translator(bytes) {
                 Ok(_) => (World::Translator, None),
-                Err(as_translator) => {
-                    return Err(DeployError::WrongWorld(format!(
-                        "'{name}' fits neither world subsume:robot/component ({as_component}) \
-                         nor subsume:robot/translator ({as_translator})"
-                    )));
-                }
+                Err(as_translator) => match crate::sandbox::check_scorer(bytes) {
+                    // A task's scoring component: its metric names it.
+                    Ok(()) => (World::Scorer, None),
+                    Err(_) => {
+                        return Err(DeployError::WrongWorld(format!(
+                            "'{name}' fits neither world subsume:robot/component ({as_component}) \
+                             nor subsume:robot/translator ({as_translator})"
+                        )));
+                    }
+                },
             },
         };
         Ok(ComponentRecord {

@@ -14,6 +14,8 @@
 //! video.txt                why a camera has no video (no ffmpeg on the robot, ...), if one has none
 //! selftest.json            the robot's self-test after the run, when the owner has one (docs/lab.md)
 //! preflight.mcap, preflight-report.json, preflight-verdict.json, preflight.log
+//! task.json, score.json    the owner's task and the run's score (preflight-score.json: the preflight's)
+//! scorer.wasm              the task's scoring component, when its metric is one (`subsume score` runs it)
 //! SHA256SUMS               every other file's sha256 (`sha256sum -c SHA256SUMS`)
 //! ```
 //!
@@ -136,6 +138,7 @@ pub fn is_result_file(name: &str) -> bool {
         || name == crate::score::TASK_FILE
         || name == crate::score::SCORE_FILE
         || name == crate::score::PREFLIGHT_SCORE_FILE
+        || name == crate::score::SCORER_FILE
         || crate::record::video::is_video_name(name)
         || name.strip_prefix("run.").and_then(|r| r.strip_suffix(".mcap")).is_some_and(|n| n.parse::<u32>().is_ok())
         || name.strip_prefix("files/").is_some_and(|f| !f.contains('/') && !f.starts_with('.'))
@@ -281,7 +284,9 @@ pub const PREFLIGHT_RECORDING: &str = crate::score::PREFLIGHT_RECORDING;
 pub const PREFLIGHT_SCORE: &str = crate::score::PREFLIGHT_SCORE_FILE;
 
 /// Scores the recording `recording` of experiment `id`'s folder against
-/// `task` into `score_file`, with `task.json` beside it.
+/// `task` into `score_file`, with `task.json` beside it (and, when the
+/// task's metric is a scoring component, its bytes from the store as
+/// `scorer.wasm`: the bundle alone recomputes the score).
 pub fn write_score_of(
     store: &Store,
     id: u64,
@@ -291,14 +296,27 @@ pub fn write_score_of(
 ) -> Result<crate::store::task::Score, crate::score::ScoreError> {
     use crate::score::ScoreError;
     let dir = store.experiment_dir(id);
-    let score = crate::score::score_files(task, &dir.join(recording))?;
+    let scorer = match task.scorer.as_ref().filter(|_| task.metric == crate::store::task::Metric::Scorer) {
+        Some(scorer) => Some(store.blob(&scorer.sha256).map_err(|e| ScoreError::Scorer {
+            task: task.name.clone(),
+            component: scorer.component.clone(),
+            why: format!("its bytes cannot be read from the store: {e}"),
+        })?),
+        None => None,
+    };
     let task_path = dir.join(crate::score::TASK_FILE);
     let task_json = serde_json::to_vec_pretty(task)
         .map_err(|e| ScoreError::Write { path: task_path.clone(), why: e.to_string() })?;
     let write = |path: PathBuf, bytes: &[u8]| {
         crate::fsutil::write_atomically(&path, bytes).map_err(|e| ScoreError::Write { path, why: e.to_string() })
     };
+    // The task and its scorer first: a run the scorer faults on still
+    // carries what anyone needs to see why.
     write(task_path, &task_json)?;
+    if let Some(bytes) = &scorer {
+        write(dir.join(crate::score::SCORER_FILE), bytes)?;
+    }
+    let score = crate::score::score_files(task, scorer.as_deref(), &dir.join(recording))?;
     write(dir.join(score_file), &crate::score::encode(&score))?;
     Ok(score)
 }
@@ -595,7 +613,7 @@ mod tests {
         {
             assert!(is_result_file(name), "{name}");
         }
-        for name in ["video-camera.webm", VIDEO_NOTE] {
+        for name in ["video-camera.webm", VIDEO_NOTE, "task.json", "score.json", "scorer.wasm"] {
             assert!(is_result_file(name), "{name}");
         }
         for name in [

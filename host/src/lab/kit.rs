@@ -78,8 +78,17 @@ impl Lab {
         if let Some(task) = &settings.task {
             let task_json = serde_json::to_vec_pretty(task).map_err(|e| LabError::Host(e.to_string()))?;
             entries.push((crate::score::TASK_FILE.to_string(), bundle::Source::Bytes(task_json)));
+            // Its scoring component, when the metric is one: the bytes the
+            // task pins.
+            if let Some(scorer) = task.scorer.as_ref().filter(|_| task.metric == crate::store::task::Metric::Scorer) {
+                let bytes = self.store().blob(&scorer.sha256).map_err(|e| {
+                    LabError::Host(format!("the task's scorer {} cannot be read: {e}", scorer.component))
+                })?;
+                entries.push((crate::score::SCORER_FILE.to_string(), bundle::Source::Bytes(bytes)));
+            }
             readme.push_str(&format!(
-                "\nThe lab scores every run against its task '{}' (task.json). Score yours as it will:\n\n    \
+                "\nThe lab scores every run against its task '{}' (task.json, and scorer.wasm when its metric is\n\
+                 a scoring component). Score yours as it will:\n\n    \
                  subsume run robot.xml --http off --speed max --duration 60 --record run.mcap\n    \
                  subsume score .\n",
                 task.name

@@ -55,12 +55,12 @@ pub struct Entry {
     pub recording_sha256: String,
 }
 
-/// `a` ranks before `b` by `metric` (defined values first; ties: the
-/// earlier experiment).
-fn before(metric: Metric, a: (Option<f64>, u64), b: (Option<f64>, u64)) -> std::cmp::Ordering {
+/// `a` ranks before `b` by a metric where `higher` values are better, or
+/// lower ones (defined values first; ties: the earlier experiment).
+fn before(higher: bool, a: (Option<f64>, u64), b: (Option<f64>, u64)) -> std::cmp::Ordering {
     use std::cmp::Ordering;
     let by_value = match (a.0, b.0) {
-        (Some(x), Some(y)) if metric.higher_is_better() => y.total_cmp(&x),
+        (Some(x), Some(y)) if higher => y.total_cmp(&x),
         (Some(x), Some(y)) => x.total_cmp(&y),
         (Some(_), None) => Ordering::Less,
         (None, Some(_)) => Ordering::Greater,
@@ -73,9 +73,16 @@ fn before(metric: Metric, a: (Option<f64>, u64), b: (Option<f64>, u64)) -> std::
 /// that ended `done` with a score of this task, each submitter's best (or
 /// latest), ranked.
 pub fn rank<'r>(task: &Task, records: impl Iterator<Item = &'r ExperimentRecord>, reader: &Principal) -> Board {
+    // A task scored by a component ranks only the scores of its bytes.
+    let scorer_sha256 = task.scorer.as_ref().map(|s| s.sha256.clone());
     let scored: Vec<(&ExperimentRecord, &Score)> = records
         .filter(|r| r.state == ExperimentState::Done)
-        .filter_map(|r| r.score.as_ref().filter(|s| s.task == task.name && s.metric == task.metric).map(|s| (r, s)))
+        .filter_map(|r| {
+            r.score
+                .as_ref()
+                .filter(|s| s.task == task.name && s.metric == task.metric && s.scorer_sha256 == scorer_sha256)
+                .map(|s| (r, s))
+        })
         .collect();
     // Pseudonyms by each user's first scored run.
     let mut firsts: Vec<(u64, &str)> = Vec::new();
@@ -92,7 +99,9 @@ pub fn rank<'r>(task: &Task, records: impl Iterator<Item = &'r ExperimentRecord>
         let better = match chosen.get(record.submitter.as_str()) {
             None => true,
             Some((held, held_score)) => match task.board {
-                BoardChoice::Best => before(task.metric, (score.value, record.id), (held_score.value, held.id)).is_lt(),
+                BoardChoice::Best => {
+                    before(task.higher_is_better(), (score.value, record.id), (held_score.value, held.id)).is_lt()
+                }
                 BoardChoice::Latest => (ended(record), record.id) > (ended(held), held.id),
             },
         };
@@ -101,7 +110,7 @@ pub fn rank<'r>(task: &Task, records: impl Iterator<Item = &'r ExperimentRecord>
         }
     }
     let mut runs: Vec<(&ExperimentRecord, &Score)> = chosen.into_values().collect();
-    runs.sort_by(|(a, sa), (b, sb)| before(task.metric, (sa.value, a.id), (sb.value, b.id)));
+    runs.sort_by(|(a, sa), (b, sb)| before(task.higher_is_better(), (sa.value, a.id), (sb.value, b.id)));
     let sees_names = reader.role == Role::Admin || !task.pseudonyms;
     let mut ranked = 0;
     let entries = runs
@@ -137,7 +146,7 @@ pub fn rank<'r>(task: &Task, records: impl Iterator<Item = &'r ExperimentRecord>
         task: task.name.clone(),
         description: task.description.clone(),
         metric: task.metric,
-        better: if task.metric.higher_is_better() { "higher" } else { "lower" },
+        better: if task.higher_is_better() { "higher" } else { "lower" },
         board: task.board,
         entries,
     }
@@ -171,8 +180,10 @@ mod tests {
             description: "get there".into(),
             goal: Goal { x: 1.0, y: 1.0, radius: 0.3 },
             metric,
+            scorer: None,
             pose: "motors.pose".into(),
             commands: "envelope.cmd".into(),
+            ranges: "motors.ranges".into(),
             wheel_base_m: 0.3,
             board,
             pseudonyms,
@@ -209,6 +220,7 @@ mod tests {
             commands: 0,
             recorded_s: 1.0,
             recording_sha256: format!("sha-{id}"),
+            scorer_sha256: None,
         };
         record.score = Some(score(value));
         record.preflight = simulated.map(|s| PreflightResult {

@@ -4,19 +4,22 @@
 
 use super::{Lab, LabError, MAX_DURATION_CAP_S, MIN_DURATION_S};
 use crate::contract::clip;
+use crate::store::World;
 use crate::store::experiments::{
     DriveReset, LabSettings, LabState, MAX_RESET_SETTLE_S, MAX_RESET_TIMEOUT_S, ResetPolicy,
 };
-use crate::store::task::{MAX_TASK_DESCRIPTION, MAX_TASK_NAME, Task};
+use crate::store::task::{MAX_TASK_DESCRIPTION, MAX_TASK_NAME, Metric, Task};
 use crate::store::users::{Principal, Role};
 
 impl Lab {
     /// Changes the owner's settings (admins).
     pub fn set_settings(&self, user: &Principal, settings: LabSettings) -> Result<LabSettings, LabError> {
         let reset_set = self.check_reset_set(user, &settings);
+        let scorer = settings.task.as_ref().map_or(Ok(()), |task| self.check_scorer(task));
         self.admin_change(user, "lab-settings", "lab", |lab| {
             check_settings(&settings)?;
             reset_set?;
+            scorer?;
             lab.settings = settings.clone();
             Ok(format!(
                 "max-duration {} s, {} queued and {} robot-minutes a day per user",
@@ -46,6 +49,35 @@ impl Lab {
             .check_experiment_set(user, drive.set, baseline)
             .map(|_| ())
             .map_err(|e| LabError::BadRequest(format!("drive_reset.set: {e}")))
+    }
+
+    /// A task scored by a component names a stored upload of the `scorer`
+    /// world whose bytes are the sha256 it pins.
+    fn check_scorer(&self, task: &Task) -> Result<(), LabError> {
+        let Some(scorer) = &task.scorer else { return Ok(()) };
+        let bad = |why: String| Err(LabError::BadRequest(format!("task.scorer: {why}")));
+        let Some((owner, name)) = scorer.component.split_once('/') else {
+            return bad(format!("component must name an upload as OWNER/NAME, got '{}'", clip(&scorer.component)));
+        };
+        let Some(record) = self.store().component(owner, name)? else {
+            return bad(format!("no component '{}' in the store", clip(&scorer.component)));
+        };
+        if record.world != World::Scorer {
+            return bad(format!(
+                "'{}' is not a scoring component (it fits the {} world, not subsume:robot/scorer)",
+                record.key(),
+                record.world.name()
+            ));
+        }
+        if record.sha256 != scorer.sha256 {
+            return bad(format!(
+                "'{}' is stored with sha256 {}, but the task pins {}: pin the bytes you mean",
+                record.key(),
+                record.sha256,
+                crate::contract::clip_to(&scorer.sha256, 64)
+            ));
+        }
+        Ok(())
     }
 
     /// Marks set `set` as the baseline (admins); it must validate.
@@ -241,7 +273,14 @@ fn check_task(task: &Task) -> Result<(), LabError> {
     if !(task.wheel_base_m.is_finite() && task.wheel_base_m > 0.0 && task.wheel_base_m <= 10.0) {
         return bad(format!("wheel_base_m must be above 0 and at most 10, got {}", task.wheel_base_m));
     }
-    for (field, port) in [("pose", &task.pose), ("commands", &task.commands)] {
+    match (task.metric, &task.scorer) {
+        (Metric::Scorer, None) => return bad("scorer must name the scoring component of the metric scorer".into()),
+        (Metric::Scorer, Some(_)) | (_, None) => {}
+        (metric, Some(_)) => {
+            return bad(format!("scorer is only for the metric scorer, and the metric is {}", metric.name()));
+        }
+    }
+    for (field, port) in [("pose", &task.pose), ("commands", &task.commands), ("ranges", &task.ranges)] {
         let shaped = port.split_once('.').is_some_and(|(c, p)| !c.is_empty() && !p.is_empty() && !p.contains('.'));
         if !shaped || port.len() > 128 || port.chars().any(|c| c.is_control() || c == '/') {
             return bad(format!("{field} must name an output port as COMPONENT.PORT, got '{}'", clip(port)));

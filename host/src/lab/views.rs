@@ -94,7 +94,7 @@ impl Lab {
                 name: task.name.clone(),
                 description: task.description.clone(),
                 metric: task.metric,
-                better: if task.metric.higher_is_better() { "higher" } else { "lower" },
+                better: if task.higher_is_better() { "higher" } else { "lower" },
             }),
             self_tests: (user.role == Role::Admin).then(|| book.lab.self_tests.clone()),
             now_unix_ms: now,

@@ -427,6 +427,7 @@ mod tests {
             commands: 5,
             recorded_s: 25.0,
             recording_sha256: String::new(),
+            scorer_sha256: None,
         };
         let event = Event {
             id: 10,

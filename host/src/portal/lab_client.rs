@@ -1315,6 +1315,7 @@ mod tests {
             commands: 5,
             recorded_s: 25.0,
             recording_sha256: String::new(),
+            scorer_sha256: None,
         };
         shown.record.score = Some(score.clone());
         shown.record.preflight = Some(crate::store::experiments::PreflightResult {

@@ -243,7 +243,7 @@ pub fn check_component_header(bytes: &[u8]) -> Result<(), SandboxError> {
     super::preamble::check_component_preamble(bytes).map_err(|why| SandboxError::NotAComponent(why.to_string()))
 }
 
-fn engine_config(pooling: bool, epochs: bool) -> Config {
+pub(super) fn engine_config(pooling: bool, epochs: bool) -> Config {
     let mut config = Config::new();
     // Measured: with concurrency support on, an empty call costs ~500 ns
     // instead of ~150 ns; the host calls guests synchronously.
@@ -288,13 +288,13 @@ fn background_compile_workers() {
 }
 
 /// Advances the engine's epoch every [`EPOCH_TICK`] until dropped.
-struct EpochTicker {
+pub(super) struct EpochTicker {
     stop: Arc<AtomicBool>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl EpochTicker {
-    fn start(engine: Engine) -> EpochTicker {
+    pub(super) fn start(engine: Engine) -> EpochTicker {
         let stop = Arc::new(AtomicBool::new(false));
         let flag = stop.clone();
         let thread = std::thread::Builder::new()

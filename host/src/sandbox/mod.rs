@@ -1,12 +1,13 @@
-//! The WebAssembly sandbox: the one wasmtime [`Engine`] of the process, the
+//! The WebAssembly sandbox: the wasmtime [`Engine`] of the robot's guests, the
 //! linker that offers guests the `subsume:robot/host` interface and a minimal
 //! WASI (no preopened directories, no sockets, no environment, no arguments;
 //! stdin closed; stdout and stderr go to the log; the cycle's clocks, seeded
 //! generators, and a poll that never waits), a [`Store`] per component with
-//! memory limits, a CPU-time budget and a wall-clock cap on every call, and
-//! an on-disk cache of compiled components and of compiled functions
+//! memory limits, a CPU-time budget and a wall-clock cap on every call, an
+//! on-disk cache of compiled components and of compiled functions
 //! (cranelift's incremental cache: a rebuilt component compiles only the
-//! functions that changed).
+//! functions that changed), and a second engine for a task's scoring
+//! components (`scorer.rs`), with the same WASI and limits, clocks at 0.
 //!
 //! Invariants:
 //! - bytes that came from outside are only ever compiled (`Component::new`),
@@ -28,6 +29,7 @@ mod guest;
 mod guest_output;
 mod limits;
 pub mod preamble;
+mod scorer;
 mod translator;
 mod wasi;
 
@@ -46,6 +48,10 @@ pub use limits::{
     DESCRIBE_BUDGET, DESCRIBE_MEMORY_BYTES, EPOCH_TICK, HOSTCALL_FUEL_SLACK, INIT_BUDGET, MAX_COMPONENT_HANDLES,
     MAX_GUEST_MESSAGE_BYTES, MAX_INSTANCES_PER_STORE, MAX_RESOURCE_ENTRIES, MAX_TABLES_PER_STORE, MAX_WASM_STACK_BYTES,
     POOL_MAX_MEMORY_BYTES, POOL_TOTAL_CORE_INSTANCES,
+};
+pub use scorer::{
+    MAX_COMPILED_SCORERS, MAX_SUB_SCORE_NAME, MAX_SUB_SCORES, SCORER_BUDGET, SCORER_MEMORY_BYTES, ScorerError,
+    check_scorer, run_scorer,
 };
 pub use translator::{MAX_FEEDBACK_PER_DECODE, MAX_TRANSLATED_FRAME_BYTES, TranslatorCallError, WasmTranslator};
 pub use wasi::BlockingCall;

@@ -73,6 +73,19 @@ impl Visibility {
 pub enum World {
     Component,
     Translator,
+    /// A task's scoring component (`wit/robot.wit`'s `scorer` world).
+    Scorer,
+}
+
+impl World {
+    /// Its name in `wit/robot.wit`.
+    pub fn name(self) -> &'static str {
+        match self {
+            World::Component => "component",
+            World::Translator => "translator",
+            World::Scorer => "scorer",
+        }
+    }
 }
 
 /// Format 1 stored `{"name": .., "world": "translator"}` as a translator's

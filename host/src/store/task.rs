@@ -21,6 +21,10 @@ pub struct Task {
     pub description: String,
     pub goal: Goal,
     pub metric: Metric,
+    /// The scoring component whose score is the metric (with
+    /// [`Metric::Scorer`], and only then).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scorer: Option<ScorerRef>,
     /// The output port whose poses `[x, y, heading]` are the robot's
     /// (`COMPONENT.PORT`).
     #[serde(default = "default_pose_port")]
@@ -28,6 +32,10 @@ pub struct Task {
     /// The output port whose commands reach the motors (energy).
     #[serde(default = "default_commands_port")]
     pub commands: String,
+    /// The output port whose range readings a scoring component reads
+    /// (a scan or a vector of ranges).
+    #[serde(default = "default_ranges_port")]
+    pub ranges: String,
     /// The distance between the wheels (m), for the commanded wheel speeds.
     #[serde(default = "default_wheel_base_m")]
     pub wheel_base_m: f64,
@@ -64,7 +72,24 @@ pub struct Goal {
     pub radius: f64,
 }
 
-/// What a run is ranked by (built in; each is also a sub-score).
+/// A task's scoring component (the `scorer` world of `wit/robot.wit`): an
+/// upload of the `scorer` world named `OWNER/NAME`, pinned by its sha256,
+/// so a task always scores with the bytes its owner chose (a new upload of
+/// the same name is refused until the task names its sha256).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScorerRef {
+    /// The upload, `OWNER/NAME`.
+    pub component: String,
+    /// The hex sha256 of its bytes.
+    pub sha256: String,
+    /// Whether a higher score ranks first (else a lower one does).
+    #[serde(default)]
+    pub higher_is_better: bool,
+}
+
+/// What a run is ranked by (built in; each is also a sub-score; or the
+/// task's scoring component).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Metric {
@@ -82,10 +107,14 @@ pub enum Metric {
     /// The integral of the squared commanded wheel speeds, m^2/s (lower
     /// is better).
     Energy,
+    /// The score of the task's scoring component (its `scorer`); the
+    /// sub-scores are the component's.
+    Scorer,
 }
 
 impl Metric {
-    /// Whether a higher value ranks first (else a lower one does).
+    /// Whether a higher value ranks first (else a lower one does), for a
+    /// built-in metric ([`Task::higher_is_better`] for any).
     pub fn higher_is_better(self) -> bool {
         self == Metric::GoalReached
     }
@@ -99,6 +128,17 @@ impl Metric {
             Metric::Collisions => "collisions",
             Metric::Interventions => "interventions",
             Metric::Energy => "energy",
+            Metric::Scorer => "score",
+        }
+    }
+}
+
+impl Task {
+    /// Whether a higher value of its metric ranks first.
+    pub fn higher_is_better(&self) -> bool {
+        match (&self.metric, &self.scorer) {
+            (Metric::Scorer, Some(scorer)) => scorer.higher_is_better,
+            (metric, _) => metric.higher_is_better(),
         }
     }
 }
@@ -109,6 +149,10 @@ fn default_pose_port() -> String {
 
 fn default_commands_port() -> String {
     "envelope.cmd".into()
+}
+
+fn default_ranges_port() -> String {
+    "motors.ranges".into()
 }
 
 fn default_wheel_base_m() -> f64 {
@@ -135,4 +179,8 @@ pub struct Score {
     /// order, as one stream): `run.mcap`'s line of the bundle's
     /// `SHA256SUMS` when it is one file.
     pub recording_sha256: String,
+    /// The sha256 of the scoring component that computed it (the bundle's
+    /// `scorer.wasm`), with [`Metric::Scorer`].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scorer_sha256: Option<String>,
 }

@@ -52,7 +52,21 @@ pub mod translator_bindings {
     });
 }
 
+#[doc(hidden)]
+#[allow(clippy::too_many_arguments)]
+pub mod scorer_bindings {
+    wit_bindgen::generate!({
+        world: "scorer",
+        path: "../../../wit",
+        pub_export_macro: true,
+        export_macro_name: "__export_scorer",
+        default_bindings_module: "subsume_guest::scorer_bindings",
+    });
+}
+
 pub mod drive;
+
+pub use scorer_bindings::{Episode, Event, Goal as TaskGoal, Position, Sample, SubScore, Verdict};
 
 pub use translator_bindings::subsume::robot::types::{Decoded, Feedback, LinkPlan, Pose, Scan as FeedbackScan};
 
@@ -331,5 +345,35 @@ macro_rules! translator {
         ) -> ::core::result::Result<impl $crate::Translator + use<>, ::std::string::String> {
             <$translator as $crate::Translator>::init(params)
         }
+    };
+}
+
+/// What a task's scoring component implements (the `scorer` world): the
+/// score of one run from its recorded samples. It sees nothing else (no
+/// host functions; its clocks stand still), so the same run scores the
+/// same bits everywhere.
+pub trait Scorer {
+    /// The run's score and named sub-scores (each finite; names
+    /// `[a-z0-9_.-]`, 1 to 64); `Err` when it cannot be scored.
+    fn score(episode: &Episode) -> Result<Verdict, String>;
+}
+
+/// Exports `$scorer` (a type implementing [`Scorer`]) as the component's
+/// implementation of the `subsume:robot/scorer` world.
+#[macro_export]
+macro_rules! scorer {
+    ($scorer:ty) => {
+        #[doc(hidden)]
+        struct __SubsumeScorerExport;
+
+        impl $crate::scorer_bindings::Guest for __SubsumeScorerExport {
+            fn score(
+                episode: $crate::Episode,
+            ) -> ::core::result::Result<$crate::Verdict, ::std::string::String> {
+                <$scorer as $crate::Scorer>::score(&episode)
+            }
+        }
+
+        $crate::scorer_bindings::__export_scorer!(__SubsumeScorerExport with_types_in $crate::scorer_bindings);
     };
 }
