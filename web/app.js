@@ -188,7 +188,8 @@ async function refreshCameras() {
 
 async function startLive() {
   try { world = await api('GET', '/world'); } catch (err) { world = null; $('map-note').textContent = err.message; }
-  refreshCameras();
+  // The cameras come with the first status (its set is new to the page):
+  // asked here too, each <img> would be made twice and its stream cut.
   await loadPlotHistory();
   if (events) events.close();
   events = new EventSource('/api/v1/events');

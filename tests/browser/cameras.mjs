@@ -21,14 +21,17 @@ for (const entry of users) {
         const img = document.querySelector('#cameras img');
         return img && img.complete && img.naturalWidth > 0;
       });
-      const picture = () => page.evaluate(() => {
+      // A picture the <img> shows, taken in one go once it shows one (a
+      // page that replaced the <img> meanwhile would give 0 x 0).
+      const picture = async () => (await page.waitForFunction(() => {
         const img = document.querySelector('#cameras img');
+        if (!img || !img.complete || img.naturalWidth === 0) return false;
         const canvas = document.createElement('canvas');
         canvas.width = img.naturalWidth;
         canvas.height = img.naturalHeight;
         canvas.getContext('2d').drawImage(img, 0, 0);
         return { width: img.naturalWidth, height: img.naturalHeight, data: canvas.toDataURL() };
-      });
+      })).jsonValue();
       const first = await picture();
       let later = first;
       const until = Date.now() + 10000;
