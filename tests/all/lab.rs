@@ -157,6 +157,18 @@ impl Lab {
         json["experiment"].clone()
     }
 
+    /// Submits set `set` for `duration_s` as `token`'s user and waits (up
+    /// to 240 s) until it is done: its id and record.
+    fn run_to_done(&self, token: &str, set: u64, duration_s: f64) -> (u64, Json) {
+        let body = serde_json::json!({ "set": set, "duration_s": duration_s }).to_string();
+        let (status, json) = self.call(token, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        let id = json["experiment"]["id"].as_u64().unwrap();
+        let done = self.wait_for(token, id, "done", Duration::from_secs(240));
+        assert_eq!(done["state"], "done", "{done:#}");
+        (id, done)
+    }
+
     /// Waits until experiment `id` is in `state` or has passed it, up to
     /// `timeout`; returns it.
     fn wait_for(&self, token: &str, id: u64, state: &str, timeout: Duration) -> Json {
@@ -2420,12 +2432,7 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
     assert!(said.contains("run: task reach-6: time_to_goal_s = ") && said.contains("goal_reached = 1"), "{said}");
     assert!(said.contains("score.json is not in the bundle: nothing to compare"), "{said}");
     let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
-    let body = serde_json::json!({ "set": set, "duration_s": 25 }).to_string();
-    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-    assert_eq!(status, 201, "{json}");
-    let id = json["experiment"]["id"].as_u64().unwrap();
-    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(240));
-    assert_eq!(done["state"], "done", "{done:#}");
+    let (id, done) = lab.run_to_done(&ana, set, 25.0);
     let score = done["score"].clone();
     assert_eq!((&score["task"], &score["metric"]), (&Json::from("reach-6"), &Json::from("time_to_goal")), "{done:#}");
     assert_eq!(score["sub_scores"]["goal_reached"], 1.0, "{score:#}");
@@ -2592,12 +2599,7 @@ fn a_task_scored_by_a_component_scores_every_run_and_the_bundle_carries_the_scor
     );
     // A run, scored by the component.
     let set = lab.stage(&ana, "ana.xml", &robot(6.0, ""));
-    let body = serde_json::json!({ "set": set, "duration_s": 25 }).to_string();
-    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-    assert_eq!(status, 201, "{json}");
-    let id = json["experiment"]["id"].as_u64().unwrap();
-    let done = lab.wait_for(&ana, id, "done", Duration::from_secs(240));
-    assert_eq!(done["state"], "done", "{done:#}");
+    let (id, done) = lab.run_to_done(&ana, set, 25.0);
     let score = done["score"].clone();
     assert_eq!(
         (&score["metric"], &score["scorer_sha256"]),
@@ -2636,10 +2638,7 @@ fn a_task_scored_by_a_component_scores_every_run_and_the_bundle_carries_the_scor
     settings["task"] = task("scorer-traps", "boss/hostile", hostile["sha256"].as_str().unwrap());
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
     assert_eq!(status, 200, "{json}");
-    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-    assert_eq!(status, 201, "{json}");
-    let id = json["experiment"]["id"].as_u64().unwrap();
-    let ended = lab.wait_for(&ana, id, "done", Duration::from_secs(240));
+    let (_, ended) = lab.run_to_done(&ana, set, 25.0);
     assert!(ended["score"].is_null() && ended["preflight"]["score"].is_null(), "{ended:#}");
     let reasons = ended["reasons"].to_string();
     assert!(

@@ -209,9 +209,6 @@ pub fn kit_submission(
                     *value = my_value.map(|v| Spanned { value: v, offset: 0 });
                 }
             }
-            let params = |c: &RawComponent| {
-                c.params.iter().map(|p| (p.name.value.clone(), p.value.value.clone())).collect::<BTreeMap<_, _>>()
-            };
             let (kit_params, my_params) = (params(kit), params(mine));
             for (param, value) in &my_params {
                 if kit_params.get(param) != Some(value) {
@@ -259,11 +256,13 @@ fn attributes<'t>(kit: &RawComponent, mine: &RawComponent, target: &'t mut RawCo
         max_restarts => "max-restarts")
 }
 
+/// A component's parameters, by name.
+fn params(component: &RawComponent) -> BTreeMap<String, String> {
+    component.params.iter().map(|p| (p.name.value.clone(), p.value.value.clone())).collect()
+}
+
 /// Whether two components say the same (offsets aside).
 fn same_component(a: &RawComponent, b: &RawComponent) -> bool {
-    let params = |c: &RawComponent| {
-        c.params.iter().map(|p| (p.name.value.clone(), p.value.value.clone())).collect::<BTreeMap<_, _>>()
-    };
     let mut scratch = a.clone();
     a.source.value == b.source.value
         && params(a) == params(b)
