@@ -335,12 +335,21 @@ fn assert_picture(jpeg: &[u8], width: u16, height: u16) {
     assert_eq!(&jpeg[sof + 5..sof + 9], &[h0, h1, w0, w1]);
 }
 
+/// The lab's robot with an overhead camera, turning on the spot for as
+/// long as it runs (above the planner, which would otherwise reach its goal
+/// and stand still: then every picture is the same, and a browser cannot
+/// tell a stream that plays from one that froze).
 const LIVE_CAMERA: &str = r#"<component name="overhead" source="builtin:camera">
       <param name="source" value="sim:robot-sim"/>
       <param name="width" value="160"/>
       <param name="height" value="120"/>
       <param name="rate" value="10"/>
-    </component>"#;
+    </component>
+    <component name="turn" source="builtin:publish" rate="10" priority="2">
+      <param name="kind" value="command"/>
+      <param name="value" value="VEL 0 0.8"/>
+    </component>
+    <connect from="turn.out" to="arbiter.commands"/>"#;
 
 /// The portal's live camera by role: the owner (admin) and an operator
 /// watch it; a researcher only during her own experiment (not before, not
