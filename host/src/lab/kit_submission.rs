@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::config::SourceMap;
-use crate::config::raw::{self, RawComponent, RawParam, RawRobot, Spanned};
+use crate::config::raw::{self, RawComponent, RawRobot, Spanned};
 
 /// The kit's manifest, beside its robot file.
 pub const KIT_MANIFEST: &str = "kit.json";
@@ -214,7 +214,7 @@ pub fn kit_submission(
                 if kit_params.get(param) != Some(value) {
                     let was = kit_params.get(param).map_or("(none)", String::as_str);
                     changes.push(format!("{name}: {param} {was} -> {value}"));
-                    set_param(target, param, value);
+                    super::materialize::set_param(target, param, value);
                 }
             }
             for param in kit_params.keys().filter(|p| !my_params.contains_key(*p)) {
@@ -267,17 +267,6 @@ fn same_component(a: &RawComponent, b: &RawComponent) -> bool {
     a.source.value == b.source.value
         && params(a) == params(b)
         && attributes(a, b, &mut scratch).iter().all(|(_, x, y, _)| x == y)
-}
-
-fn set_param(component: &mut RawComponent, name: &str, value: &str) {
-    match component.params.iter_mut().find(|p| p.name.value == name) {
-        Some(param) => param.value.value = value.to_string(),
-        None => component.params.push(RawParam {
-            offset: component.offset,
-            name: Spanned { value: name.to_string(), offset: 0 },
-            value: Spanned { value: value.to_string(), offset: 0 },
-        }),
-    }
 }
 
 #[cfg(test)]

@@ -243,7 +243,8 @@ fn spanned(value: &str) -> Spanned<String> {
     Spanned { value: value.to_string(), offset: 0 }
 }
 
-fn set_param(component: &mut RawComponent, name: &str, value: &str) {
+/// Sets parameter `name` of `component` to `value`, adding it if absent.
+pub(super) fn set_param(component: &mut RawComponent, name: &str, value: &str) {
     match component.params.iter_mut().find(|p| p.name.value == name) {
         Some(param) => param.value.value = value.to_string(),
         None => {
