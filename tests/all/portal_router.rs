@@ -247,6 +247,11 @@ fn endpoints() -> Vec<(&'static str, &'static str, &'static [u8], Allowed)> {
         ("POST", "/api/v1/robots/stop", b"", Allowed::AnyUser),
         ("GET", "/api/v1/robots/none/live", b"", Allowed::AnyUser),
         ("POST", "/api/v1/robots/none/stop", b"", Allowed::AnyUser),
+        // The cameras: the owner and operators; a researcher only during
+        // her own experiment (none runs here: tests/all/ipcam.rs has one).
+        // No camera runs: 404 for those who may watch.
+        ("GET", "/api/v1/cameras", b"", Allowed::Drive),
+        ("GET", "/api/v1/cameras/none/live", b"", Allowed::Drive),
         ("POST", "/api/v1/logout", b"", Allowed::AnyUser),
     ]
 }
