@@ -299,6 +299,12 @@ impl Watch {
 
     /// The next frame's JPEG bytes; `None` once the stream ends.
     fn frame(&mut self) -> Option<Vec<u8>> {
+        self.numbered_frame().map(|(_, jpeg)| jpeg)
+    }
+
+    /// The next frame's number (`X-Seq`) and JPEG bytes; `None` once the
+    /// stream ends.
+    fn numbered_frame(&mut self) -> Option<(u64, Vec<u8>)> {
         let head = self.until(b"\r\n\r\n")?;
         let head = String::from_utf8_lossy(&head).into_owned();
         assert!(head.trim_start().starts_with("--subsume-frame\r\n"), "{head}");
@@ -318,9 +324,16 @@ impl Watch {
             }
             self.buf.extend_from_slice(&chunk[..got]);
         }
+        let seq: u64 = head
+            .lines()
+            .find_map(|l| l.strip_prefix("X-Seq: "))
+            .unwrap_or_else(|| panic!("no frame number: {head}"))
+            .trim()
+            .parse()
+            .unwrap();
         let rest = self.buf.split_off(length);
         let jpeg = std::mem::replace(&mut self.buf, rest);
-        Some(jpeg)
+        Some((seq, jpeg))
     }
 }
 
@@ -355,7 +368,8 @@ const LIVE_CAMERA: &str = r#"<component name="overhead" source="builtin:camera">
 /// watch it; a researcher only during her own experiment (not before, not
 /// another researcher's, and her stream ends with it); a viewer and a
 /// developer never; nobody without a session; a camera that does not run
-/// is 404. The Live tab in Chromium (tests/browser/cameras.mjs) plays it
+/// is 404. Eight watch at once beside one that reads nothing, each getting
+/// its pictures in order. The Live tab in Chromium (tests/browser/cameras.mjs) plays it
 /// for the admin and the operator and shows none to a viewer or a
 /// researcher without an experiment.
 #[test]
@@ -391,6 +405,31 @@ fn the_live_camera_is_shown_to_the_owner_operators_and_a_researcher_only_during_
             assert_picture(&watch.frame().expect("a frame"), 160, 120);
         }
     }
+    // Many watchers at once beside one that reads nothing: each that reads
+    // gets whole pictures in order, and none waits for the stalled one.
+    let stalled = Watch::open(&address, Some(&olga), live).1.unwrap();
+    let watchers: Vec<_> = (0..8)
+        .map(|i| {
+            let (address, token) = (address.clone(), if i % 2 == 0 { boss.clone() } else { olga.clone() });
+            std::thread::spawn(move || {
+                let (status, watch) = Watch::open(&address, Some(&token), live);
+                assert_eq!(status, 200, "watcher {i}: {watch:?}", watch = watch.as_ref().err());
+                let mut watch = watch.unwrap();
+                (0..10)
+                    .map(|_| {
+                        let (seq, jpeg) = watch.numbered_frame().expect("a frame");
+                        assert_picture(&jpeg, 160, 120);
+                        seq
+                    })
+                    .collect::<Vec<u64>>()
+            })
+        })
+        .collect();
+    for watcher in watchers {
+        let seqs = watcher.join().unwrap();
+        assert!(seqs.windows(2).all(|pair| pair[0] < pair[1]), "frames out of order: {seqs:?}");
+    }
+    drop(stalled);
     let (status, json) = support::http(&address, "GET", "/api/v1/cameras", Some(&olga), b"");
     assert_eq!((status, json["cameras"].clone()), (200, serde_json::json!(["overhead"])), "{json}");
     for (who, token, expected) in
