@@ -55,6 +55,8 @@ fn demo_settings() -> Settings {
         geofence: vec![[0.3, 0.3], [9.7, 0.3], [9.7, 7.7], [0.3, 7.7]],
         watch_ranges: true,
         watch_pose: true,
+        watch_camera: false,
+        camera_stale_ns: 1_000_000_000,
     }
 }
 

@@ -509,3 +509,83 @@ fn the_live_camera_is_shown_to_the_owner_operators_and_a_researcher_only_during_
     let (status, body) = Watch::open(&address, Some(&ana), live);
     assert_eq!(status, 403, "ana after her experiment: {:?}", body.as_ref().err());
 }
+
+/// A robot cruising at 0.2 m/s whose envelope watches `camera` (its
+/// `frame` wired to `envelope.camera`), for `seconds`: the report and
+/// the log.
+fn cruise_watching(dir: &std::path::Path, camera: &str, seconds: &str) -> (Json, String) {
+    std::fs::write(dir.join("open.world"), "bounds 0 0 20 20\nstart 2 10 0\ngoal 18 10 0.3\n").unwrap();
+    let body = format!(
+        r#"<robot name="watched">
+  <platform name="control">
+    <component name="sim" source="builtin:sim"><param name="world" value="open.world"/></component>
+    <component name="motors" source="builtin:serial" rate="100"><param name="device" value="sim:sim"/></component>
+    <component name="camera" source="builtin:camera">
+      <param name="source" value="{camera}"/>
+      <param name="rate" value="10"/>
+    </component>
+    <component name="cruise" source="builtin:publish" rate="10" priority="1">
+      <param name="kind" value="command"/><param name="value" value="VEL 0.2 0"/>
+    </component>
+    <component name="arbiter" source="builtin:arbiter" rate="20"/>
+    <component name="envelope" source="builtin:envelope" rate="20"><param name="stale-camera" value="1.0"/></component>
+    <connect from="cruise.out" to="arbiter.commands"/>
+    <connect from="arbiter.cmd" to="envelope.cmd"/>
+    <connect from="motors.ranges" to="envelope.ranges"/>
+    <connect from="camera.frame" to="envelope.camera"/>
+    <connect from="envelope.cmd" to="motors.cmd"/>
+  </platform>
+</robot>"#
+    );
+    let robot = support::robot_file(dir, &body);
+    let report = dir.join("report.json");
+    let output = subsume().args(["run", "--duration", seconds, "--report"]).arg(&report).arg(&robot).output().unwrap();
+    let log = text(&output.stderr);
+    assert!(output.status.success(), "{log}");
+    (read_report(&report), log)
+}
+
+/// Issue 42: a camera that stops sending is a stale sensor, and the
+/// envelope's staleness rules apply to it when it is wired there (a
+/// component steering by it would steer blind). The same cruising robot
+/// with a camera that keeps sending (the simulator's) drives on; with one
+/// that stalls after three pictures (tests/python/bad_camera.py) it stops
+/// once the last picture is older than `stale-camera`, and stays stopped,
+/// the envelope naming the camera.
+#[test]
+fn a_camera_that_stops_sending_stops_the_robot_through_the_envelope_when_wired_there() {
+    let dir = tempfile::tempdir().unwrap();
+    let (report, log) = cruise_watching(dir.path(), "sim:sim", "5");
+    let (sim, envelope) = (&report["sim"], &report["envelope"]);
+    let driven = sim["distance_travelled_m"].as_f64().unwrap();
+    // 0.2 m/s for 5 s, less the start before the first picture.
+    assert!(driven > 0.6, "the robot did not drive with its camera sending: {driven} m\n{envelope}\n{log}");
+    let last = envelope["last"]["cause"].as_str().unwrap_or("");
+    assert!(!last.starts_with("camera stale"), "{envelope}");
+
+    let mut server = Command::new(support::python())
+        .arg(support::repo_root().join("tests/python/bad_camera.py"))
+        .arg((MAX_FRAME_BYTES + 1024).to_string())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit())
+        .spawn()
+        .unwrap();
+    let lines = BufReader::new(server.stdout.take().unwrap()).lines();
+    let _server = Killed(server);
+    let port = lines
+        .take(3)
+        .map(Result::unwrap)
+        .find_map(|line| line.strip_prefix("stall ").map(str::to_string))
+        .expect("the stalling camera's port");
+    let (report, log) = cruise_watching(dir.path(), &format!("http://127.0.0.1:{port}/"), "5");
+    let (sim, envelope, camera) = (&report["sim"], &report["envelope"], camera_section(&report, "camera"));
+    assert_eq!(camera["frames_sent"], 3, "{camera}\n{log}");
+    let driven = sim["distance_travelled_m"].as_f64().unwrap();
+    // Three pictures a tenth of a second apart, then 1 s of grace: about
+    // 1.3 s of driving once the first came; never the 5 s.
+    assert!(driven < 0.45, "the robot drove on blind: {driven} m\n{envelope}");
+    assert!(envelope["causes"]["stale-camera"].as_u64().unwrap_or(0) >= 1, "{envelope}");
+    let last = envelope["last"]["cause"].as_str().unwrap_or("");
+    assert!(last.starts_with("camera stale (none for "), "{envelope}");
+    assert_eq!(envelope["last"]["action"], "stopped", "{envelope}");
+}

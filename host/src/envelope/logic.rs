@@ -9,7 +9,9 @@
 //!
 //! Checks, in order of severity:
 //! - stale sensors: the ranges (or the pose) are older than `stale`, or
-//!   never came: STOP;
+//!   never came: STOP; likewise a wired camera's pictures older than
+//!   `camera_stale` (a camera that stops sending, e.g. behind a vision
+//!   component that steers by it);
 //! - the stop zone: along the commanded arc, the footprint (a disc of
 //!   `radius`) would touch a range point within `stop_distance`: the
 //!   linear speed stops (turning in place, which a disc cannot collide
@@ -111,6 +113,11 @@ pub struct Settings {
     pub watch_ranges: bool,
     /// Whether the pose is wired in (required by a geofence).
     pub watch_pose: bool,
+    /// Whether a camera's pictures are wired in: then they must keep
+    /// coming, at most `camera_stale_ns` apart.
+    pub watch_camera: bool,
+    /// A wired camera's pictures older than this stop the robot, ns.
+    pub camera_stale_ns: u64,
 }
 
 /// What the envelope did to a command.
@@ -131,6 +138,10 @@ pub enum Cause {
     },
     /// No pose for `age_s` (None: never).
     StalePose {
+        age_s: Option<f64>,
+    },
+    /// No picture from the wired camera for `age_s` (None: never).
+    StaleCamera {
         age_s: Option<f64>,
     },
     /// A GOTO reached the envelope: goals are for planners.
@@ -178,6 +189,7 @@ impl fmt::Display for Cause {
         match self {
             Cause::StaleRanges { age_s } => write!(f, "ranges stale ({})", age(age_s)),
             Cause::StalePose { age_s } => write!(f, "pose stale ({})", age(age_s)),
+            Cause::StaleCamera { age_s } => write!(f, "camera stale ({})", age(age_s)),
             Cause::Goto => write!(f, "GOTO is a goal for a planner, not a motion"),
             Cause::StopZone { ahead, zone } => write!(f, "obstacle {ahead:.2} m ahead, stop zone {zone:.2} m"),
             Cause::Geofence { edge, outside: false } => write!(f, "geofence: edge {edge:.2} m away"),
@@ -207,7 +219,9 @@ impl Cause {
     pub fn reading(&self) -> serde_json::Value {
         use serde_json::json;
         match self {
-            Cause::StaleRanges { age_s } | Cause::StalePose { age_s } => json!({ "age_s": age_s }),
+            Cause::StaleRanges { age_s } | Cause::StalePose { age_s } | Cause::StaleCamera { age_s } => {
+                json!({ "age_s": age_s })
+            }
             Cause::Goto => json!({}),
             Cause::StopZone { ahead, zone } => json!({ "ahead_m": ahead, "zone_m": zone }),
             Cause::Geofence { edge, outside } => json!({ "edge_m": edge, "outside": outside }),
@@ -226,6 +240,7 @@ impl Cause {
         match self {
             Cause::StaleRanges { .. } => "stale-ranges",
             Cause::StalePose { .. } => "stale-pose",
+            Cause::StaleCamera { .. } => "stale-camera",
             Cause::Goto => "goto",
             Cause::StopZone { .. } => "stop-zone",
             Cause::Geofence { .. } => "geofence",
@@ -262,6 +277,8 @@ pub struct Envelope {
     settings: Settings,
     scan: Option<Scan>,
     pose: Option<([f64; 3], u64)>,
+    /// When the wired camera's last picture came.
+    camera_at: Option<u64>,
     /// Range points seen recently, in odometry coordinates, one per cell:
     /// (point, seen at).
     memory: BTreeMap<(i64, i64), ([f64; 2], u64)>,
@@ -280,6 +297,7 @@ impl Envelope {
             settings,
             scan: None,
             pose: None,
+            camera_at: None,
             memory: BTreeMap::new(),
             last_out: (0.0, 0.0),
             last_out_at: None,
@@ -376,6 +394,11 @@ impl Envelope {
     }
 
     /// The odometry pose `[x, y, heading]`; anything else is ignored.
+    /// Notes a picture from the wired camera at `now_ns`.
+    pub fn picture(&mut self, now_ns: u64) {
+        self.camera_at = Some(now_ns);
+    }
+
     pub fn pose(&mut self, pose: &[f64], now_ns: u64) -> bool {
         match pose {
             [x, y, h, ..] if x.is_finite() && y.is_finite() && h.is_finite() => {
@@ -450,6 +473,15 @@ impl Envelope {
                 None => return stop(Cause::StalePose { age_s: None }),
                 Some((_, at)) if age(*at) > s.stale_ns => {
                     return stop(Cause::StalePose { age_s: Some(age(*at) as f64 / 1e9) });
+                }
+                Some(_) => {}
+            }
+        }
+        if s.watch_camera {
+            match self.camera_at {
+                None => return stop(Cause::StaleCamera { age_s: None }),
+                Some(at) if age(at) > s.camera_stale_ns => {
+                    return stop(Cause::StaleCamera { age_s: Some(age(at) as f64 / 1e9) });
                 }
                 Some(_) => {}
             }
@@ -677,6 +709,8 @@ mod tests {
             geofence: Vec::new(),
             watch_ranges: true,
             watch_pose: false,
+            watch_camera: false,
+            camera_stale_ns: 1000 * MS,
         }
     }
 
@@ -802,6 +836,53 @@ mod tests {
         let verdict = envelope.decide(vel(1.0, 1.0), 100 * MS);
         assert_eq!(verdict.command, vel(0.5, 0.5));
         assert_eq!(verdict.cause, Some(Cause::SpeedLimit { limit: 0.5 }));
+    }
+
+    /// A wired camera (e.g. behind a vision component that steers by it)
+    /// is a sensor like the others: no picture yet, or none for longer
+    /// than `camera_stale`, stops the robot; turning in place too, as for
+    /// stale ranges. Unwired, it is not watched.
+    #[test]
+    fn a_wired_camera_that_stops_sending_stops_the_robot() {
+        let kind = |v: &Verdict| v.cause.as_ref().map(Cause::kind);
+        let mut s = settings();
+        s.watch_camera = true;
+        // (accelerations unbounded here: only the camera decides)
+        (s.max_accel, s.max_turn_accel) = (100.0, 100.0);
+        let mut envelope = Envelope::new(s.clone());
+        envelope.ranges(&scan_ahead(4.0), 0);
+        let v = envelope.decide(vel(0.1, 0.0), 0);
+        assert_eq!((v.command, kind(&v)), (ControlCommand::Stop, Some("stale-camera")));
+        assert_eq!(v.cause.map(|c| c.to_string()).as_deref(), Some("camera stale (never received)"));
+        // (time goes on as the scans keep coming: only the camera is late)
+        // (now ms, a picture then, the command's speeds, the cause expected)
+        type Row = (u64, Option<u64>, (f64, f64), Option<&'static str>);
+        let rows: &[Row] = &[
+            (10, Some(10), (0.1, 0.0), None),
+            (400, None, (0.1, 0.0), None),
+            (1010, None, (0.1, 0.0), None),
+            (1011, None, (0.1, 0.0), Some("stale-camera")),
+            (1100, None, (0.0, 0.5), Some("stale-camera")),
+            (1200, Some(1200), (0.1, 0.0), None),
+        ];
+        for &(ms, picture, (v, w), cause) in rows {
+            envelope.ranges(&scan_ahead(4.0), ms * MS);
+            if let Some(at) = picture {
+                envelope.picture(at * MS);
+            }
+            let verdict = envelope.decide(vel(v, w), ms * MS);
+            assert_eq!(kind(&verdict), cause, "at {ms} ms");
+            assert_eq!(verdict.command == ControlCommand::Stop, cause.is_some(), "at {ms} ms: {}", verdict.command);
+        }
+        let mut late = Envelope::new(s.clone());
+        late.ranges(&scan_ahead(4.0), 2500 * MS);
+        late.picture(0);
+        let v = late.decide(vel(0.1, 0.0), 2500 * MS);
+        assert_eq!(v.cause.map(|c| c.to_string()).as_deref(), Some("camera stale (none for 2.50 s)"));
+        s.watch_camera = false;
+        let mut unwired = Envelope::new(s);
+        unwired.ranges(&scan_ahead(4.0), 0);
+        assert_eq!(unwired.decide(vel(0.1, 0.0), 0).action, Action::Passed);
     }
 
     #[test]

@@ -63,6 +63,7 @@ pub const DEFAULT_MAX_PRIORITY: i32 = 3;
 pub const INPUT_CMD: u32 = 0;
 pub const INPUT_RANGES: u32 = 1;
 pub const INPUT_POSE: u32 = 2;
+pub const INPUT_CAMERA: u32 = 3;
 pub const OUTPUT_CMD: u32 = 0;
 pub const OUTPUT_INTERVENTIONS: u32 = 1;
 /// The output components may connect to (a developer's file may wire it:
@@ -152,6 +153,13 @@ const PARAMS: &[ParamDecl] = &[
         doc: "STOP when the wired ranges or pose are older than this",
     },
     ParamDecl {
+        name: "stale-camera",
+        ty: positive_up_to(MAX_ENVELOPE_TIME_S),
+        default: "1.0",
+        unit: "s",
+        doc: "STOP when the wired camera's last picture is older than this (a camera slower than 1 fps needs more)",
+    },
+    ParamDecl {
         name: "max-priority",
         ty: ParamType::Integer { min: -1000, max: 1000 },
         default: DEFAULT_MAX_PRIORITY_TEXT,
@@ -193,8 +201,16 @@ pub fn parse_geofence(text: &str) -> Result<Vec<[f64; 2]>, String> {
     Ok(corners)
 }
 
+/// Which of the envelope's sensor inputs are wired: those are watched.
+#[derive(Clone, Copy, Debug, Default)]
+pub struct Wired {
+    pub ranges: bool,
+    pub pose: bool,
+    pub camera: bool,
+}
+
 /// The settings of checked `params`, with which sensors are wired.
-pub fn settings(params: &Params, watch_ranges: bool, watch_pose: bool) -> Result<Settings, BuiltinError> {
+pub fn settings(params: &Params, wired: Wired) -> Result<Settings, BuiltinError> {
     let geofence =
         parse_geofence(params.text("geofence")?).map_err(|why| BuiltinError::Param { name: "geofence".into(), why })?;
     Ok(Settings {
@@ -210,8 +226,10 @@ pub fn settings(params: &Params, watch_ranges: bool, watch_pose: bool) -> Result
         fov: params.number("fov")?,
         stale_ns: params.seconds("stale")?.as_nanos() as u64,
         geofence,
-        watch_ranges,
-        watch_pose,
+        watch_ranges: wired.ranges,
+        watch_pose: wired.pose,
+        watch_camera: wired.camera,
+        camera_stale_ns: params.seconds("stale-camera")?.as_nanos() as u64,
     })
 }
 
@@ -300,6 +318,11 @@ impl Builtin for EnvelopeBuiltin {
                 builtin::port("cmd", ValueKind::Command, "the arbiter's command"),
                 builtin::port("ranges", ValueKind::Vector, "range readings in metres, right to left over fov"),
                 builtin::port("pose", ValueKind::Vector, "odometry [x m, y m, heading rad]"),
+                builtin::port(
+                    "camera",
+                    ValueKind::Bytes,
+                    "a camera's pictures (e.g. builtin:camera's frame), wired when a component steers by them: STOP when they stop",
+                ),
             ],
             outputs: vec![
                 builtin::port("cmd", ValueKind::Command, "the command as the envelope lets it through"),
@@ -314,7 +337,10 @@ impl Builtin for EnvelopeBuiltin {
 
     fn build(&self, params: &Params, ctx: &mut BuildContext<'_>) -> Result<Box<dyn Component>, BuiltinError> {
         let wired = |port: u32| ctx.robot.connections.iter().any(|c| c.to.component == ctx.index && c.to.port == port);
-        let settings = settings(params, wired(INPUT_RANGES), wired(INPUT_POSE))?;
+        let settings = settings(
+            params,
+            Wired { ranges: wired(INPUT_RANGES), pose: wired(INPUT_POSE), camera: wired(INPUT_CAMERA) },
+        )?;
         let name = ctx.component()?.name.clone();
         if !settings.watch_ranges {
             tracing::warn!(component = %name, "no ranges wired: the collision monitor is off");
@@ -520,6 +546,10 @@ impl Component for EnvelopeComponent {
                 self.review(now_ns, out);
                 Ok(())
             }
+            (INPUT_CAMERA, Value::Bytes(_)) => {
+                self.envelope.picture(now_ns);
+                Ok(())
+            }
             (INPUT_POSE, Value::Vector(pose)) => {
                 if self.envelope.pose(pose, now_ns) {
                     self.status.pose = pose.get(..3).and_then(|p| <[f64; 3]>::try_from(p).ok());
@@ -555,7 +585,7 @@ mod tests {
 
     fn component(pairs: &[(&str, &str)]) -> EnvelopeComponent {
         let params = Params::from_pairs(PARAMS, pairs).unwrap_or_default();
-        let settings = settings(&params, true, false).map_err(|e| e.to_string());
+        let settings = settings(&params, Wired { ranges: true, ..Wired::default() }).map_err(|e| e.to_string());
         EnvelopeComponent::new("envelope", settings.unwrap_or_else(|e| panic!("{e}")))
     }
 
