@@ -287,6 +287,7 @@ pub fn score_recording(
             metric: Metric::Scorer,
             value: Some(verdict.score),
             sub_scores: verdict.sub_scores.into_iter().map(|s| (s.name, s.value)).collect(),
+            built_in: built_in_sub_scores(&mut tally, end),
             poses: tally.poses,
             commands: tally.commands,
             recorded_s,
@@ -294,6 +295,25 @@ pub fn score_recording(
             scorer_sha256: Some(hex::encode(Sha256::digest(bytes))),
         });
     }
+    let sub_scores = built_in_sub_scores(&mut tally, end);
+    Ok(Score {
+        task: task.name.clone(),
+        metric: task.metric,
+        value: sub_scores.get(task.metric.name()).copied(),
+        sub_scores,
+        built_in: BTreeMap::new(),
+        poses: tally.poses,
+        commands: tally.commands,
+        recorded_s,
+        recording_sha256,
+        scorer_sha256: None,
+    })
+}
+
+/// The built-in metrics of the run `tally` holds, ended at `end` (ns), by
+/// name: each built-in metric where the recording defines it, and the
+/// interventions by cause.
+fn built_in_sub_scores(tally: &mut Tally, end: u64) -> BTreeMap<String, f64> {
     tally.close_command(end);
     let mut sub_scores = BTreeMap::new();
     sub_scores.insert(Metric::GoalReached.name().to_string(), if tally.reached_at_ns.is_some() { 1.0 } else { 0.0 });
@@ -311,17 +331,7 @@ pub fn score_recording(
             sub_scores.insert(format!("interventions.{cause}"), *count);
         }
     }
-    Ok(Score {
-        task: task.name.clone(),
-        metric: task.metric,
-        value: sub_scores.get(task.metric.name()).copied(),
-        sub_scores,
-        poses: tally.poses,
-        commands: tally.commands,
-        recorded_s,
-        recording_sha256,
-        scorer_sha256: None,
-    })
+    sub_scores
 }
 
 /// A recorded range reading as a scorer sees it: a scan (recorded as a

@@ -99,6 +99,12 @@ fn a_scoring_component_scores_a_recorded_run_as_python_does_and_the_same_bits_ev
         let (ours, theirs) = (sub(ours), found[theirs].as_f64().unwrap());
         assert!((ours - theirs).abs() <= 1e-9 * ours.abs().max(1.0), "{ours} vs {theirs}: {found}");
     }
+    // The built-in metrics beside the component's, as Python finds them.
+    let built_in = |name: &str| score["built_in"][name].as_f64().unwrap_or_else(|| panic!("{name}: {score:#}"));
+    for name in ["path_length_m", "goal_reached", "energy"] {
+        let (ours, theirs) = (built_in(name), found[name].as_f64().unwrap());
+        assert!((ours - theirs).abs() <= 1e-9 * ours.abs().max(1.0), "{name}: {ours} vs {theirs}: {found}");
+    }
     let theirs = found["goal_distance_score"].as_f64().unwrap();
     assert!((value - theirs).abs() <= 1e-9 * value.abs().max(1.0), "{value} vs {theirs}");
     // The same bits again, and `score.json` of those bits is identical.

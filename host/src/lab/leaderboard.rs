@@ -220,6 +220,7 @@ mod tests {
             commands: 0,
             recorded_s: 1.0,
             recording_sha256: format!("sha-{id}"),
+            built_in: Default::default(),
             scorer_sha256: None,
         };
         record.score = Some(score(value));

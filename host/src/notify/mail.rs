@@ -427,6 +427,7 @@ mod tests {
             commands: 5,
             recorded_s: 25.0,
             recording_sha256: String::new(),
+            built_in: Default::default(),
             scorer_sha256: None,
         };
         let event = Event {

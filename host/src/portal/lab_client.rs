@@ -1315,6 +1315,7 @@ mod tests {
             commands: 5,
             recorded_s: 25.0,
             recording_sha256: String::new(),
+            built_in: Default::default(),
             scorer_sha256: None,
         };
         shown.record.score = Some(score.clone());

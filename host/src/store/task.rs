@@ -168,8 +168,15 @@ pub struct Score {
     /// The metric's value (`None`: undefined for this run, e.g. the time
     /// to a goal never reached, or collisions without a simulator).
     pub value: Option<f64>,
-    /// Every sub-score that the recording defines, by name.
+    /// Every sub-score that the recording defines, by name (with
+    /// [`Metric::Scorer`], the scoring component's).
     pub sub_scores: BTreeMap<String, f64>,
+    /// With [`Metric::Scorer`], the built-in metrics beside the
+    /// component's (the same names as a built-in metric's sub-scores), so
+    /// runs scored by a component still compare on them; empty otherwise
+    /// (they are `sub_scores` then).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub built_in: BTreeMap<String, f64>,
     /// The poses and commands it was computed from, and the recording's
     /// length (s), for a reader to check it against.
     pub poses: u64,
