@@ -168,3 +168,49 @@ fn a_hostile_scorer_gives_a_clear_error_and_never_a_score() {
     let said = text(&scored.stderr);
     assert!(!scored.status.success() && said.contains("scorer.wasm"), "{said}");
 }
+
+/// Scorings at once in one process share the scorers' engine and its
+/// compiled cache (a host scores every run that ends, and `score` on a
+/// lab server may overlap): eight threads, each scoring the same bundle
+/// five times, all get the bytes one scoring alone gets, and a bundle whose
+/// scorer traps, scored among them, fails each time without touching the
+/// others' results.
+#[test]
+fn scorings_at_once_share_the_compiled_scorer_and_each_gets_the_same_bits() {
+    let dir = tempfile::tempdir().unwrap();
+    let (good, hostile) = (dir.path().join("good"), dir.path().join("hostile"));
+    std::fs::create_dir_all(&good).unwrap();
+    recorded_run(&good, "scorer-goal-distance");
+    write_task(&good, "reach-6", &sha256_of(&good.join("scorer.wasm")));
+    std::fs::create_dir_all(&hostile).unwrap();
+    for file in ["run.mcap", "robot.xml"] {
+        std::fs::copy(good.join(file), hostile.join(file)).unwrap();
+    }
+    std::fs::copy(crate::support::guest("test-scorer-hostile"), hostile.join("scorer.wasm")).unwrap();
+    // (the hostile scorer traps on a task named "...traps...")
+    write_task(&hostile, "scorer-traps", &sha256_of(&hostile.join("scorer.wasm")));
+    let (_, alone) = subsume::score::score_bundle(&good).unwrap();
+    let threads: Vec<_> = (0..8)
+        .map(|i| {
+            let (good, hostile) = (good.clone(), hostile.clone());
+            std::thread::spawn(move || {
+                let mut scored = Vec::new();
+                for round in 0..5 {
+                    if (i + round) % 4 == 0 {
+                        let failed = subsume::score::score_bundle(&hostile).err().map(|e| e.to_string());
+                        let failed = failed.unwrap_or_else(|| panic!("thread {i}: the trapping scorer gave a score"));
+                        assert!(failed.contains("score() trapped"), "thread {i}: {failed}");
+                    }
+                    scored.push(subsume::score::score_bundle(&good).map(|(_, bytes)| bytes));
+                }
+                scored
+            })
+        })
+        .collect();
+    for (i, thread) in threads.into_iter().enumerate() {
+        for (round, scored) in thread.join().unwrap().into_iter().enumerate() {
+            let bytes = scored.unwrap_or_else(|e| panic!("thread {i} round {round}: {e}"));
+            assert_eq!(bytes, alone, "thread {i} round {round}");
+        }
+    }
+}
