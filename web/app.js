@@ -1340,6 +1340,15 @@ function experimentCard(x) {
   if (x.score) {
     const simulated = x.preflight && x.preflight.score ? ` (the preflight's: ${number(x.preflight.score.value)})` : '';
     card.append(el('div', { class: 'score' }, `Score: task ${x.score.task}: ${x.score.metric} = ${number(x.score.value)}${simulated}`));
+    // A scoring component's: which bytes scored it, its own sub-scores and
+    // the built-in metrics beside them; a built-in metric's: its sub-scores.
+    if (x.score.scorer_sha256) {
+      card.append(el('div', { class: 'scorer', title: x.score.scorer_sha256 },
+        `scored by the task's scoring component, sha256 ${x.score.scorer_sha256.slice(0, 12)}`));
+    }
+    const listed = (scores) => Object.entries(scores || {}).map(([name, v]) => `${name} ${number(v)}`).join(', ');
+    if (Object.keys(x.score.sub_scores || {}).length) card.append(el('div', { class: 'sub-scores' }, `Sub-scores: ${listed(x.score.sub_scores)}`));
+    if (Object.keys(x.score.built_in || {}).length) card.append(el('div', { class: 'built-in' }, `Built-in metrics: ${listed(x.score.built_in)}`));
   }
   if (x.reset) {
     const at = (p) => (p ? `(${p.x.toFixed(2)}, ${p.y.toFixed(2)}, ${p.heading.toFixed(2)} rad)` : 'no pose');

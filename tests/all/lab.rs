@@ -131,6 +131,20 @@ pub(crate) fn setup(dir: &Path) {
 }
 
 impl Lab {
+    /// tests/browser/leaderboard.mjs: `owner`'s experiment `id`, scored,
+    /// on her card and first on the task's board; `other` sees a pseudonym.
+    fn board_in_chromium(&self, owner: &str, other: &str, id: u64) {
+        let artifacts = crate::support::repo_root().join("target/browser-artifacts");
+        let url = format!("http://{}/", self.address);
+        let shown = crate::support::browser(
+            "leaderboard.mjs",
+            &artifacts,
+            &[],
+            &[&url, &owner, &other, &PASSWORD, &id.to_string()],
+        );
+        assert!(shown.contains(&format!("ok: experiment {id} ranked 1")), "{shown}");
+    }
+
     pub(crate) fn token(&self, user: &str) -> String {
         crate::support::login(&self.address, user, PASSWORD)
     }
@@ -2507,16 +2521,8 @@ fn a_runs_score_against_the_owners_task_is_in_its_bundle_and_anyone_recomputes_i
     assert_eq!((status, json["error"].as_str()), (404, Some("no task 'other' in this lab")), "{json}");
     let (status, _) = http(&lab.address, "GET", "/api/v1/tasks/reach-6/leaderboard", None, b"");
     assert_eq!(status, 401);
-    // The same in the portal's Lab tab, in Chromium (tests/browser/leaderboard.mjs).
-    let artifacts = crate::support::repo_root().join("target/browser-artifacts");
-    let url = format!("http://{}/", lab.address);
-    let shown = crate::support::browser(
-        "leaderboard.mjs",
-        &artifacts,
-        &[],
-        &[&url, &"ana", &"ben", &PASSWORD, &id.to_string()],
-    );
-    assert!(shown.contains(&format!("ok: experiment {id} ranked 1")), "{shown}");
+    // The same in the portal's Lab tab, in Chromium.
+    lab.board_in_chromium("ana", "ben", id);
     // A bundle whose score was changed is caught.
     let changed = std::fs::read_to_string(bundle.join("score.json")).unwrap().replacen(&to_goal.to_string(), "1.5", 1);
     std::fs::write(bundle.join("score.json"), changed).unwrap();
@@ -2638,6 +2644,8 @@ fn a_task_scored_by_a_component_scores_every_run_and_the_bundle_carries_the_scor
         "{json}"
     );
     assert_eq!(json["leaderboard"]["entries"][0]["value"], score["value"], "{json}");
+    // The run's card and the board in the portal's Lab tab, in Chromium.
+    lab.board_in_chromium("ana", "ben", id);
     // A scorer that traps: no score, and the record says why.
     settings["task"] = task("scorer-traps", "boss/hostile", hostile["sha256"].as_str().unwrap());
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());

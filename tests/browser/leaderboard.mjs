@@ -3,7 +3,9 @@
 // card (with the preflight's beside it) and the task's leaderboard with
 // her own name, rank 1, the value the API gives and the recording's
 // sha256; another researcher sees the same board with her as a
-// pseudonym, no experiment id. Screenshots go to $ARTIFACTS.
+// pseudonym, no experiment id. A run scored by a scoring component shows
+// the component's sha256, its sub-scores and the built-in metrics beside
+// them. Screenshots go to $ARTIFACTS.
 // Usage: node leaderboard.mjs URL OWNER OTHER PASSWORD EXPERIMENT
 import path from 'node:path';
 import { check, logIn, openPage, step } from './harness.mjs';
@@ -27,6 +29,21 @@ try {
   const scoreText = await mine.textContent(`${card} .score`);
   check(scoreText.includes(`Score: task ${record.score.task}: ${record.score.metric}`), `the card says: ${scoreText}`);
   check(scoreText.includes("the preflight's"), `no preflight score on the card: ${scoreText}`);
+  // Each sub-score as the API gives it; a scoring component's sha256 and
+  // the built-in metrics beside its sub-scores.
+  const shown = (v) => String(Math.round(v * 1000) / 1000);
+  const subText = await mine.textContent(`${card} .sub-scores`);
+  for (const [name, v] of Object.entries(record.score.sub_scores)) {
+    check(subText.includes(`${name} ${shown(v)}`), `the card lacks sub-score ${name} ${shown(v)}: ${subText}`);
+  }
+  if (record.score.scorer_sha256) {
+    const scorer = await mine.getAttribute(`${card} .scorer`, 'title');
+    check(scorer === record.score.scorer_sha256, `the card names scorer ${scorer}, the record ${record.score.scorer_sha256}`);
+    const builtText = await mine.textContent(`${card} .built-in`);
+    for (const name of ['path_length_m', 'goal_reached', 'energy']) {
+      check(builtText.includes(`${name} ${shown(record.score.built_in[name])}`), `the card lacks ${name}: ${builtText}`);
+    }
+  }
 
   step('the leaderboard: her run first, under her name');
   const { lab } = await getJson(mine, '/lab');
