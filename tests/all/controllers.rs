@@ -453,6 +453,54 @@ fn odrive_axis_errors_are_read_and_a_set_bit_is_the_controllers_fault_by_name() 
     assert_eq!(feedback.last(), Some(&Feedback::Fault(None)), "axis1's clear answer: {feedback:?}");
 }
 
+/// Issue 40, end to end: an ODrive played on a pseudo-terminal (answering
+/// as the ASCII protocol document says: `pos vel` to `f`, a value to `r`)
+/// whose axis 0 has "motor failed" set: the built binary's link reports the
+/// fault by name in its status, and the `fault` port carries it.
+#[test]
+fn an_odrive_whose_axis_has_an_error_set_is_in_fault_on_the_links_status() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let (mut odrive, _slave, device) = support::MotorRecorder::new();
+    let going = std::sync::Arc::new(AtomicBool::new(true));
+    let playing = going.clone();
+    let player = std::thread::spawn(move || {
+        let mut answered = 0;
+        let mut asked = Vec::new();
+        while playing.load(Ordering::Relaxed) {
+            odrive.read();
+            let new: Vec<String> = odrive.lines[answered..].iter().map(|(_, line)| line.clone()).collect();
+            answered = odrive.lines.len();
+            for line in new {
+                asked.push(line.clone());
+                let answer = match line.as_str() {
+                    "f 0" | "f 1" => "0 0\n",
+                    "r vbus_voltage" => "24.1\n",
+                    "r axis0.error" => "64\n",
+                    "r axis1.error" => "0\n",
+                    _ => continue,
+                };
+                odrive.write(answer.as_bytes());
+            }
+        }
+        asked
+    });
+    let dir = tempfile::tempdir().unwrap();
+    let robot = driving_robot(&device, "translator-odrive", "turns-per-metre=1 poll-ms=20", "0.3", "VEL 0 0");
+    let (output, report) = run_robot(dir.path(), &robot, "2");
+    going.store(false, Ordering::Relaxed);
+    let asked = player.join().unwrap();
+    let stderr = text(&output.stderr);
+    let reads = asked.iter().filter(|l| *l == "r axis0.error").count();
+    assert!(reads >= 1, "the axes' errors were never read: {asked:?}");
+    assert_eq!(asked.iter().filter(|l| *l == "r axis1.error").count(), reads, "{asked:?}");
+    let serial = &report["serial"];
+    assert_eq!(serial["fault"], "axis0: motor failed", "{serial}");
+    assert!(serial["fault_readings"].as_u64().unwrap() >= 1, "{serial}");
+    assert_eq!(serial["battery_v"].as_f64(), Some(24.1), "{serial}");
+    let told = logged(&stderr, "fault-log");
+    assert!(told.iter().any(|t| t == "text \"axis0: motor failed\""), "{stderr}");
+}
+
 /// Found by the `translator_odrive` fuzz target (fuzz/regressions/translator_odrive):
 /// positions 2e308 turns apart made the travel infinite and every later
 /// pose NaN. Such a step is now malformed and the pose stays a number.
