@@ -101,6 +101,7 @@ fn driving_robot(device: &str, translator: &str, options: &str, wheel_base: &str
     <component name="ranges-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="bumper-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <component name="battery-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
+    <component name="fault-log" source="builtin:log" rate="0"><param name="interval" value="0"/></component>
     <connect from="driver.out" to="arbiter.commands"/>
     <connect from="arbiter.cmd" to="envelope.cmd"/>
     <connect from="envelope.cmd" to="motors.cmd"/>
@@ -108,6 +109,7 @@ fn driving_robot(device: &str, translator: &str, options: &str, wheel_base: &str
     <connect from="motors.ranges" to="ranges-log.in"/>
     <connect from="motors.bumper" to="bumper-log.in"/>
     <connect from="motors.battery" to="battery-log.in"/>
+    <connect from="motors.fault" to="fault-log.in"/>
   </platform>
 </robot>"#,
         support::guest(translator).display()
@@ -243,17 +245,22 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_its_encoders_become_odom
     let refs = &summary["references"];
     let received = hex(&summary["received"]);
     let (drive, halt, read) = (hex(&refs["drive"]), hex(&refs["halt"]), hex(&refs["read"]));
-    let battery = hex(&refs["battery"]);
+    let (battery, status) = (hex(&refs["battery"]), hex(&refs["status"]));
 
     // Every byte is one of basicmicro's SpeedM1M2(128, 250, 550),
-    // SpeedM1M2(128, 0, 0), GetEncoders(128) or ReadMainBatteryVoltage(128);
-    // the last is the STOP.
+    // SpeedM1M2(128, 0, 0), GetEncoders(128), ReadMainBatteryVoltage(128)
+    // or ReadError(128); the last is the STOP.
     let mut rest = received.as_slice();
-    let (mut drives, mut reads, mut battery_reads) = (0, 0, 0);
+    let (mut drives, mut reads, mut battery_reads, mut status_reads) = (0, 0, 0, 0);
     while !rest.is_empty() {
         if rest.starts_with(&battery) {
             battery_reads += 1;
             rest = &rest[battery.len()..];
+            continue;
+        }
+        if rest.starts_with(&status) {
+            status_reads += 1;
+            rest = &rest[status.len()..];
             continue;
         }
         if rest.starts_with(&drive) {
@@ -275,6 +282,9 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_its_encoders_become_odom
     // One poll in ten reads the battery, the first among them.
     assert_eq!(summary["battery_reads"].as_u64(), Some(battery_reads), "every battery read was answered");
     assert!(battery_reads >= 1 && battery_reads <= reads / 8 + 1, "{battery_reads} battery reads, {reads} reads");
+    // And one in ten its status (the sixth among them).
+    assert_eq!(summary["status_reads"].as_u64(), Some(status_reads), "every status read was answered");
+    assert!(status_reads >= 1 && status_reads <= reads / 8 + 1, "{status_reads} status reads, {reads} reads");
     assert!(summary["writes"].as_u64().unwrap() >= drives);
 
     // Every ACK, encoder and battery answer decoded cleanly; the battery
@@ -283,6 +293,10 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_its_encoders_become_odom
     assert_eq!(serial["malformed_feedback"], 0, "{serial}");
     assert_eq!(serial["battery_v"].as_f64(), Some(12.4), "{serial}");
     assert!(serial["polls_sent"].as_u64().unwrap() >= 10, "{serial}");
+    // Its status reads no error or warning: no fault, on the status and
+    // the `fault` port.
+    assert_eq!((&serial["fault"], serial["fault_readings"].as_u64()), (&Json::Null, Some(status_reads)), "{serial}");
+    assert!(logged(&stderr, "fault-log").iter().all(|f| f == "text \"\""), "{stderr}");
     // The host's last pose is the dead reckoning of a prefix of the answers.
     let last = vector(logged(&stderr, "pose-log").last().expect("no pose was logged"));
     let readings = summary["readings"].as_array().unwrap();
@@ -290,6 +304,37 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_its_encoders_become_odom
     let close = |p: &[f64; 3]| (0..3).all(|i| (p[i] - last[i]).abs() < 2e-3);
     assert!(expected.iter().any(close), "host pose {last:?} is none of {expected:?}");
     assert!(last[0].hypot(last[1]) > 0.15, "the robot hardly moved: {last:?}");
+}
+
+/// Issue 40: a RoboClaw whose status (command 90, read as basicmicro's
+/// ReadError reads it) has an error and a warning set is in fault: the
+/// link's status names both bits as the RoboClaw manual does, the `fault`
+/// port carries the same text, and the log says so once.
+#[test]
+fn a_roboclaw_whose_status_has_an_error_and_a_warning_set_reports_the_fault_by_name() {
+    // M2 current error (0x2000) and M1 over current warning (0x10000).
+    let args = ["128", "250", "550", "0", "0x00012000"].map(String::from);
+    let peer = Peer::start("roboclaw_peer.py", &args);
+    let dir = tempfile::tempdir().unwrap();
+    let robot =
+        driving_robot(&peer.device, "translator-roboclaw", "counts-per-metre=2000 poll-ms=50", "0.3", "VEL 0.2 0.5");
+    let (output, report) = run_robot(dir.path(), &robot, "2");
+    let summary = peer.finish();
+    let stderr = text(&output.stderr);
+    assert_eq!((summary["bad_crc"].as_u64(), summary["unparsed"].as_u64()), (Some(0), Some(0)), "{summary}");
+    let status_reads = summary["status_reads"].as_u64().unwrap();
+    assert!(status_reads >= 1, "{summary}");
+    let serial = &report["serial"];
+    assert_eq!(serial["malformed_feedback"], 0, "{serial}");
+    let fault = "m2 current error, m1 over current warning";
+    assert_eq!(serial["fault"], fault, "{serial}");
+    assert_eq!(serial["fault_readings"].as_u64(), Some(status_reads), "{serial}");
+    let told = logged(&stderr, "fault-log");
+    // (The log sink shortens long texts.)
+    assert!(told.last().is_some_and(|t| t.starts_with("text \"m2 current error, m1 over current")), "{stderr}");
+    assert_eq!(told.len() as u64, status_reads, "{told:?}");
+    let warned = stderr.lines().filter(|l| l.contains("the motor controller reports a fault: ")).count();
+    assert_eq!(warned, 1, "said once, not at every reading: {stderr}");
 }
 
 fn translator(sandbox: &Sandbox, name: &str, params: &[(&str, &str)]) -> WasmTranslator {
@@ -353,6 +398,107 @@ fn odrive_lines_follow_the_ascii_protocol_document() {
     );
     assert_eq!(text(&plan.closing), "w axis0.requested_state 1\nw axis1.requested_state 1\n");
     assert_eq!(plan.poll_period_ns, 100_000_000);
+}
+
+/// Issue 40: every tenth poll, from the sixth, reads both axes' errors
+/// (`r axis0.error`, `r axis1.error`: "r property => response: value" in
+/// the ASCII protocol document); a bit set is the controller's fault, named
+/// as the firmware's AxisError names it, and both clear is no fault.
+#[test]
+fn odrive_axis_errors_are_read_and_a_set_bit_is_the_controllers_fault_by_name() {
+    let sandbox = sandbox();
+    let params = [("wheel-base", "0.3"), ("max-wheel-speed", "2"), ("turns-per-metre", "1")];
+    let mut odrive = translator(&sandbox, "translator-odrive", &params);
+    // One poll, answered as an ODrive standing still with these axis
+    // errors answers it: the feedback and whether the poll read the errors.
+    let step = |odrive: &mut WasmTranslator, errors: [&str; 2]| {
+        let asked = poll(odrive);
+        let answers: String = asked
+            .lines()
+            .filter_map(|line| match line {
+                "f 0" | "f 1" => Some("0 0\n".to_string()),
+                "r vbus_voltage" => Some("24\n".to_string()),
+                "r axis0.error" => Some(format!("{}\n", errors[0])),
+                "r axis1.error" => Some(format!("{}\n", errors[1])),
+                _ => None,
+            })
+            .collect();
+        (decode(odrive, answers.as_bytes()), asked.contains("r axis0.error\nr axis1.error\n"))
+    };
+    for _ in 0..5 {
+        let (feedback, read) = step(&mut odrive, ["0", "0"]);
+        assert!(!read && !feedback.iter().any(|f| matches!(f, Feedback::Fault(_))), "{feedback:?}");
+    }
+    // The sixth poll reads them: motor failed (0x40) and encoder failed
+    // (0x100) on axis 0, a bit the firmware's list lacks on axis 1.
+    let (feedback, read) = step(&mut odrive, ["320", "1073741824"]);
+    assert!(read);
+    let fault = "axis0: motor failed, encoder failed; axis1: error bits 0x40000000";
+    assert_eq!(feedback.last(), Some(&Feedback::Fault(Some(fault.into()))), "{feedback:?}");
+    // Ten polls on, read again: both clear is no fault.
+    for _ in 0..9 {
+        assert!(!step(&mut odrive, ["0", "0"]).1);
+    }
+    let (feedback, read) = step(&mut odrive, ["0", "0"]);
+    assert!(read);
+    assert_eq!(feedback.last(), Some(&Feedback::Fault(None)), "{feedback:?}");
+    assert_eq!(Translator::malformed(&odrive), 0);
+    // An error that is no bit mask is garbage, not a fault.
+    for _ in 0..9 {
+        step(&mut odrive, ["0", "0"]);
+    }
+    let (feedback, read) = step(&mut odrive, ["-1", "0"]);
+    assert!(read);
+    assert_eq!(Translator::malformed(&odrive), 1);
+    assert_eq!(feedback.last(), Some(&Feedback::Fault(None)), "axis1's clear answer: {feedback:?}");
+}
+
+/// Issue 40, end to end: an ODrive played on a pseudo-terminal (answering
+/// as the ASCII protocol document says: `pos vel` to `f`, a value to `r`)
+/// whose axis 0 has "motor failed" set: the built binary's link reports the
+/// fault by name in its status, and the `fault` port carries it.
+#[test]
+fn an_odrive_whose_axis_has_an_error_set_is_in_fault_on_the_links_status() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let (mut odrive, _slave, device) = support::MotorRecorder::new();
+    let going = std::sync::Arc::new(AtomicBool::new(true));
+    let playing = going.clone();
+    let player = std::thread::spawn(move || {
+        let mut answered = 0;
+        let mut asked = Vec::new();
+        while playing.load(Ordering::Relaxed) {
+            odrive.read();
+            let new: Vec<String> = odrive.lines[answered..].iter().map(|(_, line)| line.clone()).collect();
+            answered = odrive.lines.len();
+            for line in new {
+                asked.push(line.clone());
+                let answer = match line.as_str() {
+                    "f 0" | "f 1" => "0 0\n",
+                    "r vbus_voltage" => "24.1\n",
+                    "r axis0.error" => "64\n",
+                    "r axis1.error" => "0\n",
+                    _ => continue,
+                };
+                odrive.write(answer.as_bytes());
+            }
+        }
+        asked
+    });
+    let dir = tempfile::tempdir().unwrap();
+    let robot = driving_robot(&device, "translator-odrive", "turns-per-metre=1 poll-ms=20", "0.3", "VEL 0 0");
+    let (output, report) = run_robot(dir.path(), &robot, "2");
+    going.store(false, Ordering::Relaxed);
+    let asked = player.join().unwrap();
+    let stderr = text(&output.stderr);
+    let reads = asked.iter().filter(|l| *l == "r axis0.error").count();
+    assert!(reads >= 1, "the axes' errors were never read: {asked:?}");
+    assert_eq!(asked.iter().filter(|l| *l == "r axis1.error").count(), reads, "{asked:?}");
+    let serial = &report["serial"];
+    assert_eq!(serial["fault"], "axis0: motor failed", "{serial}");
+    assert!(serial["fault_readings"].as_u64().unwrap() >= 1, "{serial}");
+    assert_eq!(serial["battery_v"].as_f64(), Some(24.1), "{serial}");
+    let told = logged(&stderr, "fault-log");
+    assert!(told.iter().any(|t| t == "text \"axis0: motor failed\""), "{stderr}");
 }
 
 /// Found by the `translator_odrive` fuzz target (fuzz/regressions/translator_odrive):

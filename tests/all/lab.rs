@@ -2105,6 +2105,113 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     controller.join().unwrap();
 }
 
+/// Issue 40: a real robot whose motor controller (a pseudo-terminal
+/// playing it on the ascii profile, which reports its fault status with
+/// `F`) goes into fault during a run: the self-test after it fails its
+/// "controller" check, naming the fault, and takes the robot out of
+/// service until an admin brings it back (a fault does not clear by
+/// itself, as a low battery does); the next experiment waits. The owner's
+/// settings need nothing for it: the check is on by default.
+#[test]
+fn a_motor_controller_reporting_a_fault_fails_the_self_test_and_puts_the_robot_in_maintenance() {
+    use std::sync::{Arc, Mutex, atomic::AtomicBool, atomic::Ordering};
+    let dir = tempfile::tempdir().unwrap();
+    let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
+    let real = |goal_x: f64| real_robot(goal_x, &device);
+    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
+    let store = dir.path().join("store");
+    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
+    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
+    // The controller: feedback every 50 ms, with the fault the test sets.
+    let fault = Arc::new(Mutex::new(String::new()));
+    let going = Arc::new(AtomicBool::new(true));
+    let controller = {
+        let (fault, going) = (fault.clone(), going.clone());
+        std::thread::spawn(move || {
+            let mut sent = Instant::now();
+            while going.load(Ordering::Relaxed) {
+                motors.read();
+                if sent.elapsed() >= Duration::from_millis(50) {
+                    let fault = fault.lock().unwrap().clone();
+                    motors.write(
+                        format!("O 1000 1000 0\nR 3000 3000 3000 3000 3000 3000 3000 3000 3000\nP 12400\nF {fault}\n")
+                            .as_bytes(),
+                    );
+                    sent = Instant::now();
+                }
+            }
+        })
+    };
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
+    assert_eq!(status, 201, "{json}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["preflight_world"] = Json::String("arena.world".into());
+    settings["reset"] = Json::String("manual".into());
+    settings["self_test"] = serde_json::json!({"window_ms": 1000, "min_battery_v": 11.0, "resume_battery_v": 12.2});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert_eq!(overview["lab"]["settings"]["self_test"]["controller_faults"], true, "on by default: {overview:#}");
+    let set = lab.stage(&ana, "ana.xml", &real(7.0));
+    let submit = || {
+        let body = serde_json::json!({ "set": set, "duration_s": 2 }).to_string();
+        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
+        assert_eq!(status, 201, "{json}");
+        json["experiment"]["id"].as_u64().unwrap()
+    };
+    let reset = |id: u64| {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while lab.experiment(&ana, id)["awaiting_reset"] != true {
+            assert!(Instant::now() < deadline, "never waited for the reset");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
+        assert_eq!(status, 200, "{json}");
+    };
+    // A healthy controller: the check passes, saying the link reads no fault.
+    let first = submit();
+    reset(first);
+    assert_eq!(lab.wait_for(&ana, first, "done", Duration::from_secs(120))["state"], "done");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let tests = overview["lab"]["self_tests"].as_array().unwrap().clone();
+    assert_eq!((tests.len(), &tests[0]["passed"]), (1, &Json::Bool(true)), "{tests:#?}");
+    let controller_check = |test: &Json| {
+        test["checks"].as_array().unwrap().iter().find(|c| c["check"] == "controller").cloned().unwrap_or_default()
+    };
+    assert_eq!(controller_check(&tests[0])["detail"], "link 'motors': no fault", "{tests:#?}");
+    // The controller goes into fault during the next run: it still ends
+    // `done`; the self-test after it fails, and the robot is out of service.
+    let second = submit();
+    reset(second);
+    *fault.lock().unwrap() = "m1 over current warning".into();
+    assert_eq!(lab.wait_for(&ana, second, "done", Duration::from_secs(120))["state"], "done");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let tests = overview["lab"]["self_tests"].as_array().unwrap();
+    assert_eq!((tests.len(), &tests[1]["passed"]), (2, &Json::Bool(false)), "{tests:#?}");
+    let failed = controller_check(&tests[1]);
+    assert_eq!(failed["passed"], false, "{failed:#}");
+    assert_eq!(failed["detail"], "link 'motors': the motor controller reports m1 over current warning", "{failed:#}");
+    let maintenance = overview["lab"]["maintenance"].clone();
+    assert_eq!(maintenance["by"], "self-test", "{overview:#}");
+    let reason = maintenance["reason"].as_str().unwrap();
+    assert!(reason.contains(&format!("the self-test after experiment {second} failed")), "{reason}");
+    assert!(reason.contains("controller: link 'motors': the motor controller reports m1 over current"), "{reason}");
+    assert_eq!(maintenance["ends_at_battery_v"], Json::Null, "a fault needs an admin: {maintenance:#}");
+    // Out of service: the next experiment waits, even once the fault has
+    // cleared (an admin runs the self-test again to bring the robot back).
+    let third = submit();
+    *fault.lock().unwrap() = String::new();
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(lab.experiment(&ana, third)["state"], "queued");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    assert!(overview["lab"]["held"].as_str().unwrap_or_default().contains("maintenance"), "{overview:#}");
+    going.store(false, Ordering::Relaxed);
+    controller.join().unwrap();
+}
+
 /// Many at once: six researchers change their own mail subscriptions
 /// (subscribe with a new address, or unsubscribe) while two admins take the
 /// robot out of service and back, forty times each. Nothing is lost: each

@@ -59,7 +59,7 @@ fn the_wasm_translator_decodes_feedback_like_the_builtin_profile() {
     let sandbox = sandbox();
     let mut wasm = wasm_translator(&sandbox);
     let mut builtin = ProfileTranslator::new(Profile::Ascii, GEOMETRY);
-    let bytes = b"O 1500 -2000 813\nbad line\nR 500 4000\nB 1\nP 12250\n";
+    let bytes = b"O 1500 -2000 813\nbad line\nR 500 4000\nB 1\nP 12250\nF m1  over current\n";
     for translator in [&mut wasm as &mut dyn Translator, &mut builtin] {
         let mut out = Vec::new();
         // Split mid-line: partial lines wait for the rest.
@@ -72,9 +72,15 @@ fn the_wasm_translator_decodes_feedback_like_the_builtin_profile() {
                 Feedback::Ranges(vec![0.5, 4.0]),
                 Feedback::Bumper(true),
                 Feedback::Battery(12.25),
+                Feedback::Fault(Some("m1 over current".into())),
             ]
         );
         assert_eq!(translator.malformed(), 1);
+        // The controller's fault clears: `F` alone (the WASM translator
+        // tells it through `host.report` during `decode`).
+        let mut out = Vec::new();
+        translator.decode(b"F\n", &mut out).unwrap();
+        assert_eq!(out, vec![Feedback::Fault(None)]);
     }
 }
 

@@ -1,19 +1,22 @@
 """Plays a Basicmicro RoboClaw (packet serial) on a pseudo-terminal, checked
 against the basicmicro package.
 
-    roboclaw_peer.py ADDRESS M1_QPPS M2_QPPS [LAG_S]
+    roboclaw_peer.py ADDRESS M1_QPPS M2_QPPS [LAG_S] [STATUS]
 
 The host is expected to drive M1/M2 at these encoder speeds (counts/s).
 basicmicro (PyPI, 2.0.10; nobody here wrote it) is the reference: the bytes
 its SpeedM1M2 (command 37 with its CRC16), GetEncoders (78) and
-ReadMainBatteryVoltage (24) write are what the host must send, and every
-encoder or battery answer sent here is first read back through its
-GetEncoders or ReadMainBatteryVoltage, CRC check included.
+ReadMainBatteryVoltage (24) and ReadError (90, "read status") write are what
+the host must send, and every encoder, battery or status answer sent here is
+first read back through its GetEncoders, ReadMainBatteryVoltage or ReadError,
+CRC check included.
 
 The controller side: a write (37) with a good CRC is answered 0xFF (ACK)
 and sets the speeds; a bad CRC gets no answer, as on the RoboClaw. A read
 (78) is answered `enc1 enc2 crc`; a read of the main battery (24),
-`volts crc` (12.4 V). The counters follow the speeds. With
+`volts crc` (12.4 V); a read of the status (90), `status crc` with the
+STATUS bits (default 0: no error or warning). The counters follow the
+speeds. With
 LAG_S, every answer leaves that many seconds after its request (a slow
 controller or adapter).
 
@@ -33,6 +36,7 @@ import peer_common
 MIXED_SPEED = 37
 READ_ENCODERS = 78
 READ_MAIN_BATTERY = 24
+READ_STATUS = 90
 # The main battery this controller reports, tenths of a volt (12.4 V).
 BATTERY_TENTHS = 124
 TICK = 0.005
@@ -100,6 +104,16 @@ def battery_request(claw, address):
     return bytes(claw._port.written)
 
 
+def status_request(claw, address, status):
+    """What ReadError writes, given a good answer of `status`."""
+    claw._port.written.clear()
+    data = struct.pack(">I", status)
+    claw._port.answer = bytearray(data + struct.pack(">H", crc16(claw, bytes([address, READ_STATUS]) + data)))
+    ok, read = claw.ReadError(address)
+    assert ok and read == status, (ok, read)
+    return bytes(claw._port.written)
+
+
 def crc16(claw, data):
     claw.crc_clear()
     for byte in data:
@@ -108,8 +122,10 @@ def crc16(claw, data):
 
 
 class Controller:
-    def __init__(self, address, claw, lag=0.0):
+    def __init__(self, address, claw, lag=0.0, status=0):
         self.address = address
+        self.status = status
+        self.status_reads = 0
         self.claw = claw
         # A slow controller (or a slow USB adapter): every answer goes out
         # `lag` seconds after its request, in order.
@@ -132,7 +148,7 @@ class Controller:
         self.pending += data
         while len(self.pending) >= 2:
             address, command = self.pending[0], self.pending[1]
-            if address != self.address or command not in (MIXED_SPEED, READ_ENCODERS, READ_MAIN_BATTERY):
+            if address != self.address or command not in (MIXED_SPEED, READ_ENCODERS, READ_MAIN_BATTERY, READ_STATUS):
                 self.unparsed += 1
                 del self.pending[0]
                 continue
@@ -143,6 +159,10 @@ class Controller:
             if command == READ_MAIN_BATTERY:
                 del self.pending[:2]
                 self.answer_battery()
+                continue
+            if command == READ_STATUS:
+                del self.pending[:2]
+                self.answer_status()
                 continue
             if len(self.pending) < 12:
                 return
@@ -180,6 +200,16 @@ class Controller:
         self.battery_reads += 1
         self.send(answer)
 
+    def answer_status(self):
+        data = struct.pack(">I", self.status)
+        answer = data + struct.pack(">H", crc16(self.claw, bytes([self.address, READ_STATUS]) + data))
+        # basicmicro must read the answer back as this status.
+        self.claw._port.answer = bytearray(answer)
+        ok, status = self.claw.ReadError(self.address)
+        assert ok and status == self.status, (ok, status, self.status)
+        self.status_reads += 1
+        self.send(answer)
+
     def send(self, data):
         if self.lag <= 0:
             self.pty.write(data)
@@ -202,15 +232,17 @@ class Controller:
 def main():
     address, m1, m2 = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3])
     lag = float(sys.argv[4]) if len(sys.argv) > 4 else 0.0
+    status = int(sys.argv[5], 0) if len(sys.argv) > 5 else 0
     claw = reference()
     references = {
         "drive": take(claw, lambda: claw.SpeedM1M2(address, m1, m2)).hex(),
         "halt": take(claw, lambda: claw.SpeedM1M2(address, 0, 0)).hex(),
         "read": read_request(claw, address).hex(),
         "battery": battery_request(claw, address).hex(),
+        "status": status_request(claw, address, status).hex(),
     }
     pty = peer_common.Pty()
-    controller = Controller(address, claw, lag)
+    controller = Controller(address, claw, lag, status)
     controller.pty = pty
     peer_common.serve(pty, controller.on_bytes, controller.on_timer, TICK)
     peer_common.finish(
@@ -221,6 +253,7 @@ def main():
             "bad_crc": controller.bad_crc,
             "reads": controller.reads,
             "battery_reads": controller.battery_reads,
+            "status_reads": controller.status_reads,
             "unparsed": controller.unparsed,
             "readings": controller.readings,
         }

@@ -1,8 +1,9 @@
 //! The self-test after every run (docs/lab.md, "Self-test"): once an
 //! experiment has ended and the baseline is back, the robot is watched for
 //! the owner's window, and checked: every serial link connected and giving
-//! feedback, no component of the baseline faulted, the battery above the
-//! owner's threshold where a link reports one. The result goes into the
+//! feedback, no component of the baseline faulted, no motor controller
+//! reporting a fault where its protocol has a fault status, the battery
+//! above the owner's threshold where a link reports one. The result goes into the
 //! experiment's bundle (`selftest.json`) and the lab's history (the newest
 //! [`MAX_SELF_TESTS`]); a failed one takes the robot out of service.
 //!
@@ -62,6 +63,19 @@ pub fn judge(before: &Report, after: &Report, window_s: f64, settings: &SelfTest
     }
     let fresh = if links.is_empty() { "no serial link in the baseline".to_string() } else { heard.join("; ") };
     checks.push(check("feedback", silent, fresh));
+    if settings.controller_faults {
+        let reporting: Vec<&(&str, &SerialStatus)> = links.iter().filter(|(_, s)| s.fault_readings > 0).collect();
+        let faults: Vec<String> = reporting
+            .iter()
+            .filter_map(|(n, s)| s.fault.as_ref().map(|f| format!("link '{n}': the motor controller reports {f}")))
+            .collect();
+        let fine = if reporting.is_empty() {
+            "no link reports its controller's faults".to_string()
+        } else {
+            reporting.iter().map(|(n, _)| format!("link '{n}': no fault")).collect::<Vec<_>>().join("; ")
+        };
+        checks.push(check("controller", faults, fine));
+    }
     if let Some(least) = settings.min_battery_v {
         let readings: Vec<(&str, f64)> = links.iter().filter_map(|(n, s)| s.battery_v.map(|v| (*n, v))).collect();
         let low: Vec<String> = readings
@@ -318,9 +332,20 @@ mod tests {
         }
     }
 
+    /// `link` whose controller reported its fault status `readings` times,
+    /// the last with `fault`.
+    fn faulty(link: SerialStatus, readings: u64, fault: Option<&str>) -> SerialStatus {
+        SerialStatus { fault_readings: readings, fault: fault.map(String::from), ..link }
+    }
+
     #[test]
     fn each_check_passes_or_fails_with_what_it_saw() {
-        let settings = SelfTestSettings { window_ms: 1000, min_battery_v: Some(11.0), resume_battery_v: None };
+        let settings = SelfTestSettings {
+            window_ms: 1000,
+            min_battery_v: Some(11.0),
+            resume_battery_v: None,
+            controller_faults: true,
+        };
         let healthy = || vec![component("motors", None), component("avoid", None)];
         // (case, before, after, expected (check, passed, words in its detail))
         type Expected = Vec<(&'static str, bool, &'static str)>;
@@ -332,7 +357,36 @@ mod tests {
                 vec![
                     ("components", true, "2 components running"),
                     ("feedback", true, "link 'motors': 20 feedback messages in 1.0 s"),
+                    ("controller", true, "no link reports its controller's faults"),
                     ("battery", true, "battery 12.30 V"),
+                ],
+            ),
+            (
+                "a controller that reads no fault",
+                report(healthy(), vec![("motors", link(true, 10, None))]),
+                report(healthy(), vec![("motors", faulty(link(true, 30, None), 4, None))]),
+                vec![
+                    ("components", true, ""),
+                    ("feedback", true, ""),
+                    ("controller", true, "link 'motors': no fault"),
+                    ("battery", true, "no link reports a battery"),
+                ],
+            ),
+            (
+                "a controller in fault, beside one that is not",
+                report(healthy(), vec![("left", link(true, 10, None)), ("right", link(true, 10, None))]),
+                report(
+                    healthy(),
+                    vec![
+                        ("left", faulty(link(true, 30, None), 2, Some("m1 over current warning"))),
+                        ("right", faulty(link(true, 30, None), 2, None)),
+                    ],
+                ),
+                vec![
+                    ("components", true, ""),
+                    ("feedback", true, ""),
+                    ("controller", false, "link 'left': the motor controller reports m1 over current warning"),
+                    ("battery", true, ""),
                 ],
             ),
             (
@@ -342,6 +396,7 @@ mod tests {
                 vec![
                     ("components", true, ""),
                     ("feedback", false, "link 'motors' (/dev/ttyUSB0) gave no feedback in 1.0 s"),
+                    ("controller", true, ""),
                     ("battery", false, "battery 10.20 V is under 11.00 V"),
                 ],
             ),
@@ -355,6 +410,7 @@ mod tests {
                 vec![
                     ("components", false, "component 'avoid' faulted: trapped"),
                     ("feedback", false, "link 'motors' is not connected to /dev/ttyUSB0"),
+                    ("controller", true, ""),
                     ("battery", true, "no link reports a battery"),
                 ],
             ),
@@ -362,7 +418,12 @@ mod tests {
                 "no serial link",
                 report(healthy(), vec![]),
                 report(healthy(), vec![]),
-                vec![("components", true, ""), ("feedback", true, "no serial link"), ("battery", true, "no link")],
+                vec![
+                    ("components", true, ""),
+                    ("feedback", true, "no serial link"),
+                    ("controller", true, "no link reports"),
+                    ("battery", true, "no link"),
+                ],
             ),
         ];
         for (case, before, after, expected) in cases {
@@ -373,10 +434,14 @@ mod tests {
                 assert!(check.detail.contains(words), "{case}: {check:#?}");
             }
         }
-        // Without a battery threshold, no battery check.
-        let quiet = SelfTestSettings { window_ms: 1000, min_battery_v: None, resume_battery_v: None };
+        // Without a battery threshold, no battery check; with the controller
+        // check turned off, a controller's fault fails nothing.
+        let quiet =
+            SelfTestSettings { window_ms: 1000, min_battery_v: None, resume_battery_v: None, controller_faults: false };
         let same = report(healthy(), vec![("motors", link(true, 3, Some(1.0)))]);
-        let checks = judge(&same, &report(healthy(), vec![("motors", link(true, 4, Some(1.0)))]), 1.0, &quiet);
+        let faulted = faulty(link(true, 4, Some(1.0)), 1, Some("e-stop"));
+        let checks = judge(&same, &report(healthy(), vec![("motors", faulted)]), 1.0, &quiet);
         assert_eq!(checks.iter().map(|c| c.check.as_str()).collect::<Vec<_>>(), ["components", "feedback"]);
+        assert!(checks.iter().all(|c| c.passed), "{checks:#?}");
     }
 }

@@ -305,6 +305,11 @@ impl Builtin for SerialBuiltin {
                 ranges,
                 builtin::port("bumper", ValueKind::Flag, "true while the bumper is pressed"),
                 builtin::port("battery", ValueKind::Scalar, "battery voltage"),
+                builtin::port(
+                    "fault",
+                    ValueKind::Text,
+                    "the motor controller's fault as it reads it (empty: none), where its protocol has one",
+                ),
             ],
         }
     }

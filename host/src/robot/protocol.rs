@@ -5,13 +5,15 @@
 //!
 //! - `ascii`: readable lines. Host -> controller `M <left mm/s> <right mm/s>`
 //!   and `S`; controller -> host `O <x mm> <y mm> <heading mrad>`,
-//!   `R <mm> <mm> ...`, `B <0|1>`, `P <mV>`. Lines end in `\n` (a `\r` before
+//!   `R <mm> <mm> ...`, `B <0|1>`, `P <mV>`, `F [text]` (the controller's
+//!   fault, none when the text is empty). Lines end in `\n` (a `\r` before
 //!   it is ignored).
 //! - `binary`: frames `A5 LEN TYPE PAYLOAD CHK`, LEN = 1 + payload length,
 //!   CHK chosen so that TYPE + PAYLOAD + CHK = 0 (mod 256); little-endian
 //!   integers. Types: 01 wheels (i16 left, i16 right, mm/s), 02 stop,
 //!   81 odometry (i32 x mm, i32 y mm, i16 heading mrad), 82 ranges (u16 mm
-//!   each), 83 bumper (u8), 84 battery (u16 mV).
+//!   each), 83 bumper (u8), 84 battery (u16 mV), 85 fault (UTF-8 text, at
+//!   most [`MAX_FAULT_BYTES`]; empty: no fault).
 //!
 //! Decoders are streaming: bytes arrive in any chunks; malformed input is
 //! skipped and counted, never fatal.
@@ -25,6 +27,10 @@ pub const MAX_RANGES: usize = 64;
 /// it a value survives the trip through f64 exactly, so re-encoding a decoded
 /// message gives the same bytes.
 pub const MAX_ASCII_MAGNITUDE: i64 = 1_000_000_000;
+/// Longest fault text a controller's message carries, bytes: a binary
+/// frame's LEN is one byte, and a longer text is more than a person reads in
+/// a status line (a longer one is cut at a character boundary when encoded).
+pub const MAX_FAULT_BYTES: usize = 200;
 /// Start byte of a binary frame.
 pub const FRAME_START: u8 = 0xA5;
 
@@ -53,6 +59,10 @@ pub enum Feedback {
     Bumper(bool),
     /// Battery voltage in volts.
     Battery(f64),
+    /// The controller's fault status as it last read it: the fault's text
+    /// (naming what is wrong, e.g. "m1 over current warning"), or `None`
+    /// when it reports none.
+    Fault(Option<String>),
 }
 
 /// A built-in wire profile.
@@ -112,6 +122,8 @@ impl Profile {
                     }
                     Feedback::Bumper(hit) => format!("B {}\n", u8::from(*hit)),
                     Feedback::Battery(volts) => format!("P {}\n", mm(*volts)),
+                    Feedback::Fault(None) => "F\n".to_string(),
+                    Feedback::Fault(Some(text)) => format!("F {}\n", fault_text(text)),
                 };
                 out.extend_from_slice(line.as_bytes());
             }
@@ -135,9 +147,26 @@ impl Profile {
                 Feedback::Battery(volts) => {
                     frame(0x84, &(mm(*volts).clamp(0, u16::MAX as i64) as u16).to_le_bytes(), out)
                 }
+                Feedback::Fault(text) => frame(0x85, fault_text(text.as_deref().unwrap_or_default()).as_bytes(), out),
             },
         }
     }
+}
+
+/// A fault's text as a message carries it: words separated by one space
+/// (no line break can end an ascii line early), at most
+/// [`MAX_FAULT_BYTES`].
+fn fault_text(text: &str) -> String {
+    let mut words = text.split_ascii_whitespace().collect::<Vec<_>>().join(" ");
+    if words.len() > MAX_FAULT_BYTES {
+        let mut end = MAX_FAULT_BYTES;
+        while !words.is_char_boundary(end) {
+            end -= 1;
+        }
+        words.truncate(end);
+        words.truncate(words.trim_end().len());
+    }
+    words
 }
 
 /// Metres (or volts, radians) to whole thousandths.
@@ -279,6 +308,10 @@ fn parse_ascii_line(line: &[u8]) -> Option<Option<Message>> {
     let text = std::str::from_utf8(line).ok()?.trim_end_matches('\r');
     let mut words = text.split_ascii_whitespace();
     let Some(kind) = words.next() else { return Some(None) };
+    if kind == "F" {
+        let text = fault_text(&words.collect::<Vec<_>>().join(" "));
+        return Some(Some(Message::Feedback(Feedback::Fault((!text.is_empty()).then_some(text)))));
+    }
     let numbers: Option<Vec<i64>> =
         words.map(|w| w.parse::<i64>().ok().filter(|v| v.abs() <= MAX_ASCII_MAGNITUDE)).collect();
     let n = numbers?;
@@ -312,6 +345,13 @@ fn parse_binary_body(body: &[u8]) -> Option<Message> {
         )),
         (0x83, 1) if payload[0] <= 1 => Message::Feedback(Feedback::Bumper(payload[0] == 1)),
         (0x84, 2) => Message::Feedback(Feedback::Battery(u16::from_le_bytes([payload[0], payload[1]]) as f64 / 1000.0)),
+        (0x85, n) if n <= MAX_FAULT_BYTES => {
+            let text = std::str::from_utf8(payload).ok()?;
+            if fault_text(text) != text {
+                return None;
+            }
+            Message::Feedback(Feedback::Fault((!text.is_empty()).then(|| text.to_string())))
+        }
         _ => return None,
     })
 }
@@ -341,6 +381,8 @@ mod tests {
         assert_eq!(encode_feedback(a, Feedback::Ranges(vec![0.5, 4.0])), b"R 500 4000\n");
         assert_eq!(encode_feedback(a, Feedback::Bumper(true)), b"B 1\n");
         assert_eq!(encode_feedback(a, Feedback::Battery(12.25)), b"P 12250\n");
+        assert_eq!(encode_feedback(a, Feedback::Fault(Some("m1  over\ncurrent".into()))), b"F m1 over current\n");
+        assert_eq!(encode_feedback(a, Feedback::Fault(None)), b"F\n");
     }
 
     #[test]
@@ -354,6 +396,9 @@ mod tests {
         );
         assert_eq!(encode_feedback(b, Feedback::Bumper(true)), [0xA5, 0x02, 0x83, 0x01, 0x7C]);
         assert_eq!(encode_feedback(b, Feedback::Ranges(vec![0.5])), [0xA5, 0x03, 0x82, 0xF4, 0x01, 0x89]);
+        // 85 'e' 'x': 0x85+0x65+0x78 = 0x162 -> CHK 0x9E; no fault: 85 alone, CHK 0x7B.
+        assert_eq!(encode_feedback(b, Feedback::Fault(Some("ex".into()))), [0xA5, 0x03, 0x85, 0x65, 0x78, 0x9E]);
+        assert_eq!(encode_feedback(b, Feedback::Fault(None)), [0xA5, 0x01, 0x85, 0x7B]);
     }
 
     #[test]
@@ -365,6 +410,9 @@ mod tests {
             Message::Feedback(Feedback::Ranges(vec![0.25, 1.0, 3.999])),
             Message::Feedback(Feedback::Bumper(false)),
             Message::Feedback(Feedback::Battery(11.9)),
+            Message::Feedback(Feedback::Fault(Some("m2 current error; e-stop".into()))),
+            Message::Feedback(Feedback::Fault(None)),
+            Message::Feedback(Feedback::Fault(Some("x".repeat(MAX_FAULT_BYTES)))),
         ];
         for profile in [Profile::Ascii, Profile::Binary] {
             let mut bytes = Vec::new();

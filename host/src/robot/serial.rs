@@ -6,7 +6,9 @@
 //! watchdog sends STOP when the command is not refreshed within `watchdog`;
 //! the current command is re-sent every `refresh` so the controller's own
 //! watchdog stays fed; feedback bytes are decoded by the translator and
-//! emitted on `pose`, `ranges`, `bumper` and `battery`.
+//! emitted on `pose`, `ranges`, `bumper`, `battery` and `fault` (the
+//! controller's fault status, where its protocol reports one: its text, or
+//! empty when it reports none; the link's status keeps the last).
 //!
 //! On the link's I/O thread: the device (`serialport`) is opened, written and
 //! read; when it disappears the link treats the motors as stopped, discards
@@ -292,6 +294,14 @@ pub struct SerialStatus {
     /// The battery's voltage as the controller last reported it, where
     /// its protocol reports one (the lab's self-test reads it).
     pub battery_v: Option<f64>,
+    /// The controller's fault as it last reported it (its text, naming
+    /// what is wrong), `None` while it reports none; the lab's self-test
+    /// reads it.
+    pub fault: Option<String>,
+    /// Fault statuses the controller reported (with a fault or without):
+    /// 0 while it reported none (its protocol has no fault status, or the
+    /// translator does not read it).
+    pub fault_readings: u64,
     /// The pose `[x m, y m, heading rad]` the controller's odometry last
     /// reported (the lab's reset by driving reads it).
     pub pose: Option<[f64; 3]>,
@@ -323,6 +333,11 @@ impl NamedSection for SerialStatus {
                     "subsume_serial_connected",
                     "1 while the serial device is open",
                     Sample::Gauge(if self.connected { 1.0 } else { 0.0 }),
+                ),
+                (
+                    "subsume_serial_controller_fault",
+                    "1 while the motor controller reports a fault",
+                    Sample::Gauge(if self.fault.is_some() { 1.0 } else { 0.0 }),
                 ),
                 (
                     "subsume_serial_watchdog_stops",
@@ -392,7 +407,7 @@ impl ScanGeometry {
 }
 
 /// Output ports of `builtin:serial`, in order.
-pub const OUTPUTS: [&str; 4] = ["pose", "ranges", "bumper", "battery"];
+pub const OUTPUTS: [&str; 5] = ["pose", "ranges", "bumper", "battery", "fault"];
 
 impl SerialLink {
     /// Encodes the translator's STOP and starts the link's I/O thread (which
@@ -569,6 +584,20 @@ impl SerialLink {
                 Feedback::Battery(volts) => {
                     self.stats.battery_v = Some(volts);
                     (3, Value::Scalar(volts))
+                }
+                Feedback::Fault(fault) => {
+                    if fault != self.stats.fault {
+                        match &fault {
+                            Some(text) => {
+                                tracing::warn!(component = %self.name, "the motor controller reports a fault: {text}")
+                            }
+                            None => tracing::info!(component = %self.name, "the motor controller reports no fault"),
+                        }
+                    }
+                    self.stats.fault_readings += 1;
+                    let text = fault.clone().unwrap_or_default();
+                    self.stats.fault = fault;
+                    (4, Value::Text(text))
                 }
             };
             out.push(item);

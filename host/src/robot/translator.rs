@@ -146,7 +146,8 @@ impl Translator for WasmTranslator {
     }
 
     fn decode(&mut self, bytes: &[u8], out: &mut Vec<Feedback>) -> Result<(), TranslateError> {
-        let feedback = WasmTranslator::decode(self, bytes).map_err(|e| TranslateError::Fault(e.to_string()))?;
+        let (feedback, fault) =
+            WasmTranslator::decode(self, bytes).map_err(|e| TranslateError::Fault(e.to_string()))?;
         out.extend(feedback.into_iter().map(|f| match f {
             WitFeedback::Odometry(p) => Feedback::Odometry { x: p.x, y: p.y, heading: p.heading },
             WitFeedback::Ranges(r) => Feedback::Ranges(r),
@@ -156,6 +157,12 @@ impl Translator for WasmTranslator {
             // is the link's own (see docs/protocols.md).
             WitFeedback::Scan(s) => Feedback::Ranges(s.ranges),
         }));
+        // The controller's fault status, reported during the call (see
+        // `sandbox::translator`): its text, empty for none.
+        if let Some(text) = fault {
+            let text = text.trim();
+            out.push(Feedback::Fault((!text.is_empty()).then(|| text.to_string())));
+        }
         Ok(())
     }
 

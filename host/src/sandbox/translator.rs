@@ -2,6 +2,11 @@
 //! encode, decode and poll under the link's time budget; once it breaks it
 //! is never called again. A 0.1.0 translator has an empty link plan (no
 //! opening or closing bytes, no poll).
+//!
+//! The controller's fault status reaches the host without a new type in
+//! the contract: a 0.2.0 translator's `decode` that completes a fault status
+//! calls `host.report` with its text (the fault's, or empty for none), and
+//! [`WasmTranslator::decode`] returns it beside the feedback.
 
 use std::time::Duration;
 
@@ -143,10 +148,13 @@ impl WasmTranslator {
         }
     }
 
-    /// The feedback that `bytes` complete.
-    pub fn decode(&mut self, bytes: &[u8]) -> Result<Vec<WitFeedback>, TranslatorCallError> {
+    /// The feedback that `bytes` complete, and the fault status they
+    /// complete (what the translator reported during the call: the fault's
+    /// text, empty for none), if any.
+    pub fn decode(&mut self, bytes: &[u8]) -> Result<(Vec<WitFeedback>, Option<String>), TranslatorCallError> {
         self.check()?;
         arm(&mut self.store, self.budget);
+        self.store.data_mut().reported = None;
         let decoded = match &self.instance {
             Instance::V2(instance) => instance.call_decode(&mut self.store, bytes),
             Instance::V1(instance) => instance.call_decode(&mut self.store, bytes).map(decoded_from_v1),
@@ -162,7 +170,7 @@ impl WasmTranslator {
             )));
         }
         self.malformed += u64::from(decoded.malformed);
-        Ok(decoded.feedback)
+        Ok((decoded.feedback, self.store.data_mut().reported.take()))
     }
 
     /// The bytes a poll at `now_ns` asks to send (none for 0.1.0).

@@ -729,6 +729,16 @@ pub struct SelfTestSettings {
     /// charged, not just over the line). `None`: an admin ends it.
     #[serde(default)]
     pub resume_battery_v: Option<f64>,
+    /// The check "controller": no serial link's motor controller reports a
+    /// fault (where its protocol has a fault status). On unless the owner
+    /// turns it off.
+    #[serde(default = "checked")]
+    pub controller_faults: bool,
+}
+
+/// A check the owner has not turned off is on.
+fn checked() -> bool {
+    true
 }
 
 /// Shortest and longest self-test window: shorter, a link polled at 5 Hz

@@ -272,6 +272,22 @@ pub trait Translator: Sized + 'static {
         let _ = now_ns;
         Vec::new()
     }
+    /// The controller's fault status the last `decode` completed, taken:
+    /// `Some(text)` naming what is wrong (e.g. "m1 over current warning"),
+    /// `Some("")` when the controller reports no fault, `None` when those
+    /// bytes completed no status (the host keeps the last). The export glue
+    /// hands it to the host through `host.report` during `decode` (how a
+    /// translator tells the host its controller's fault). The default: none.
+    fn fault(&mut self) -> Option<String> {
+        None
+    }
+}
+
+/// Tells the host the controller's fault status from inside a translator's
+/// `decode` (the [`translator!`] glue calls it with [`Translator::fault`]).
+#[doc(hidden)]
+pub fn report_fault(text: &str) {
+    translator_bindings::subsume::robot::host::report(text);
 }
 
 /// Exports `$translator` (a type implementing [`Translator`]) as the
@@ -327,7 +343,13 @@ macro_rules! translator {
             }
             fn decode(bytes: ::std::vec::Vec<u8>) -> $crate::Decoded {
                 __SUBSUME_TRANSLATOR.with(|cell| match cell.borrow_mut().as_mut() {
-                    ::core::option::Option::Some(state) => $crate::Translator::decode(state, &bytes),
+                    ::core::option::Option::Some(state) => {
+                        let decoded = $crate::Translator::decode(state, &bytes);
+                        if let ::core::option::Option::Some(text) = $crate::Translator::fault(state) {
+                            $crate::report_fault(&text);
+                        }
+                        decoded
+                    }
                     ::core::option::Option::None => $crate::Decoded { feedback: ::std::vec::Vec::new(), malformed: 0 },
                 })
             }

@@ -1,18 +1,24 @@
 //! A hardware translator as a WASM component (the `translator` world): the
 //! readable ASCII motor protocol of docs/protocols.md, written in the guest.
 //! Host -> controller: `M <left mm/s> <right mm/s>` and `S`; controller ->
-//! host: `O x y heading`, `R mm...`, `B 0|1`, `P mV`.
+//! host: `O x y heading`, `R mm...`, `B 0|1`, `P mV`, `F [text]` (the
+//! controller's fault status, handed to the host with `Translator::fault`:
+//! the last one a `decode` completes).
 
 use subsume_guest::{Decoded, Feedback, Params, Pose, Translator};
 
 /// Longest line kept; longer ones are garbage.
 const MAX_LINE: usize = 512;
+/// Longest fault text kept, bytes (as the built-in profile's).
+const MAX_FAULT: usize = 200;
 
 struct AsciiTranslator {
     wheel_base: f64,
     max_wheel_speed: f64,
     line: Vec<u8>,
     skipping: bool,
+    /// The fault status the last `F` line said, for the host to take.
+    fault: Option<String>,
 }
 
 fn milli(value: f64) -> i64 {
@@ -27,6 +33,7 @@ impl Translator for AsciiTranslator {
             max_wheel_speed: number("max-wheel-speed", 0.5)?,
             line: Vec::new(),
             skipping: false,
+            fault: None,
         };
         if translator.wheel_base <= 0.0 || translator.max_wheel_speed <= 0.0 {
             return Err("wheel-base and max-wheel-speed must be positive".into());
@@ -63,6 +70,10 @@ impl Translator for AsciiTranslator {
                     self.skipping = false;
                 } else {
                     let line = std::mem::take(&mut self.line);
+                    if let Some(fault) = fault_line(&line) {
+                        self.fault = Some(fault);
+                        continue;
+                    }
                     match parse(&line) {
                         Some(Some(feedback)) => decoded.feedback.push(feedback),
                         Some(None) => {}
@@ -81,6 +92,30 @@ impl Translator for AsciiTranslator {
         }
         decoded
     }
+
+    fn fault(&mut self) -> Option<String> {
+        self.fault.take()
+    }
+}
+
+/// The text of an `F` line (its words one space apart, at most
+/// `MAX_FAULT` bytes; empty: no fault), or `None` for any other line.
+fn fault_line(line: &[u8]) -> Option<String> {
+    let text = std::str::from_utf8(line).ok()?;
+    let mut words = text.split_ascii_whitespace();
+    if words.next() != Some("F") {
+        return None;
+    }
+    let mut fault = words.collect::<Vec<_>>().join(" ");
+    if fault.len() > MAX_FAULT {
+        let mut end = MAX_FAULT;
+        while !fault.is_char_boundary(end) {
+            end -= 1;
+        }
+        fault.truncate(end);
+        fault.truncate(fault.trim_end().len());
+    }
+    Some(fault)
 }
 
 /// `Some(Some(feedback))`, `Some(None)` for a blank line, `None` for garbage.

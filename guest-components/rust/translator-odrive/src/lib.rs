@@ -8,7 +8,10 @@
 //!   watchdogs even when no command changes; `f 0` and `f 1` ask for
 //!   feedback (`pos vel` in turns and turns/s), which becomes odometry by
 //!   dead reckoning from `origin-x/y/heading`; every tenth poll, starting
-//!   with the first, `r vbus_voltage` asks for the battery voltage.
+//!   with the first, `r vbus_voltage` asks for the battery voltage; every
+//!   tenth, from the sixth, `r axis0.error` and `r axis1.error` ask for the
+//!   axes' errors (bit masks; any bit set is the controller's fault, named
+//!   as the firmware's `AxisError` names it, e.g. "axis0: motor failed").
 //! - Opening (with `arm=yes`, the default): velocity control and closed
 //!   loop on both axes (`w axisN.controller.config.control_mode 2`,
 //!   `w axisN.requested_state 8`); closing: both axes idle
@@ -35,6 +38,24 @@ const MAX_EXPECTED: usize = 64;
 const POLL_MS_RANGE: (u32, u32) = (5, 10_000);
 /// The battery is read on every this many polls.
 const VOLTAGE_EVERY: u64 = 10;
+/// The axes' errors are read on every this many polls, at this one.
+const ERRORS_EVERY: u64 = 10;
+const ERRORS_AT: u64 = 5;
+/// The bits of an axis's `error` (firmware 0.5.6's `AxisError`), by name.
+const AXIS_ERRORS: [(u32, &str); 12] = [
+    (0x0000_0001, "invalid state"),
+    (0x0000_0040, "motor failed"),
+    (0x0000_0080, "sensorless estimator failed"),
+    (0x0000_0100, "encoder failed"),
+    (0x0000_0200, "controller failed"),
+    (0x0000_0800, "watchdog timer expired"),
+    (0x0000_1000, "min endstop pressed"),
+    (0x0000_2000, "max endstop pressed"),
+    (0x0000_4000, "estop requested"),
+    (0x0002_0000, "homing without endstop"),
+    (0x0004_0000, "over temp"),
+    (0x0008_0000, "unknown position"),
+];
 /// ODrive's axis states and control modes (firmware 0.5).
 const AXIS_STATE_IDLE: u8 = 1;
 const AXIS_STATE_CLOSED_LOOP_CONTROL: u8 = 8;
@@ -47,6 +68,20 @@ enum Expected {
     Feedback(usize),
     /// The bus voltage.
     Voltage,
+    /// An axis's error bits.
+    AxisError(usize),
+}
+
+/// What an axis's error bits name: each bit set (one the firmware's list
+/// lacks, by its mask); empty for none.
+fn axis_error_text(axis: usize, bits: u32) -> String {
+    let mut named: Vec<String> =
+        AXIS_ERRORS.iter().filter(|(bit, _)| bits & bit != 0).map(|(_, name)| name.to_string()).collect();
+    let unknown = bits & !AXIS_ERRORS.iter().fold(0, |all, (bit, _)| all | bit);
+    if unknown != 0 {
+        named.push(format!("error bits 0x{unknown:08x}"));
+    }
+    if named.is_empty() { String::new() } else { format!("axis{axis}: {}", named.join(", ")) }
 }
 
 struct ODrive {
@@ -67,6 +102,10 @@ struct ODrive {
     fresh: [Option<f64>; 2],
     /// The positions (turns) at the last odometry step.
     last: Option<[f64; 2]>,
+    /// Each axis's error bits as last read.
+    errors: [Option<u32>; 2],
+    /// The fault the last error answers named, for the host to take.
+    fault: Option<String>,
 }
 
 /// The GCode checksum: XOR of every byte.
@@ -116,12 +155,29 @@ impl ODrive {
         let numbers: Option<Vec<f64>> =
             text.split_ascii_whitespace().map(|w| w.parse::<f64>().ok().filter(|v| v.is_finite())).collect();
         let Some(numbers) = numbers else { return false };
-        let shape = |e: &Expected| matches!((e, numbers.len()), (Expected::Feedback(_), 2) | (Expected::Voltage, 1));
+        let shape = |e: &Expected| {
+            matches!((e, numbers.len()), (Expected::Feedback(_), 2) | (Expected::Voltage | Expected::AxisError(_), 1))
+        };
         // Answers come in the order asked; any skipped were lost.
         let Some(at) = self.expected.iter().position(shape) else { return false };
         self.expected.drain(..at);
         match self.expected.pop_front() {
             Some(Expected::Voltage) => out.push(Feedback::Battery(numbers[0])),
+            Some(Expected::AxisError(axis)) => {
+                let value = numbers[0];
+                if !(value >= 0.0 && value <= f64::from(u32::MAX) && value.fract() == 0.0) {
+                    return false;
+                }
+                self.errors[axis] = Some(value as u32);
+                let named: Vec<String> = self
+                    .errors
+                    .iter()
+                    .enumerate()
+                    .filter_map(|(axis, bits)| bits.map(|bits| axis_error_text(axis, bits)))
+                    .filter(|text| !text.is_empty())
+                    .collect();
+                self.fault = Some(named.join("; "));
+            }
             Some(Expected::Feedback(axis)) => {
                 self.fresh[axis] = Some(numbers[0]);
                 if let [Some(a0), Some(a1)] = self.fresh {
@@ -207,6 +263,8 @@ impl Translator for ODrive {
             skipping: false,
             fresh: [None, None],
             last: None,
+            errors: [None, None],
+            fault: None,
         })
     }
 
@@ -267,11 +325,21 @@ impl Translator for ODrive {
             self.push_line("r vbus_voltage", &mut out);
             self.expected.push_back(Expected::Voltage);
         }
+        if self.polls % ERRORS_EVERY == ERRORS_AT {
+            for axis in 0..2 {
+                self.push_line(&format!("r axis{axis}.error"), &mut out);
+                self.expected.push_back(Expected::AxisError(axis));
+            }
+        }
         self.polls += 1;
         while self.expected.len() > MAX_EXPECTED {
             self.expected.pop_front();
         }
         out
+    }
+
+    fn fault(&mut self) -> Option<String> {
+        self.fault.take()
     }
 }
 

@@ -11,6 +11,15 @@
 //!   dead reckoning from `origin-x/y/heading`. Every tenth poll, from the
 //!   first, reads the main battery instead: 24, "read main battery
 //!   voltage": `address 24`; the answer is `volts(u16, tenths) crc16`.
+//!   Every tenth poll, from the sixth, reads the controller's status
+//!   instead: 90, "read status": `address 90`; the answer is `status(u32)
+//!   crc16`, a bit mask of errors (low 16 bits: e-stop, temperature, logic
+//!   and main voltage, driver faults, speed, position and current errors)
+//!   and warnings (high 16 bits: over current, voltage, temperature, speed
+//!   and position error limits; S4 and S5 signals), as the RoboClaw user
+//!   manual's table for command 90 has them. Every error and warning set is
+//!   the controller's fault, named (e.g. "m1 over current warning"); the S4
+//!   and S5 signals (home and limit switches the owner wires) are not.
 //! - The CRC is CRC16-CCITT (XModem: polynomial 0x1021, initial 0), sent
 //!   high byte first.
 //!
@@ -25,13 +34,63 @@ use subsume_guest::{Decoded, Feedback, LinkPlan, Params, Translator};
 const MIXED_SPEED: u8 = 37;
 const READ_ENCODERS: u8 = 78;
 const READ_MAIN_BATTERY: u8 = 24;
+const READ_STATUS: u8 = 90;
 const ACK: u8 = 0xFF;
 /// Encoder answer: two u32 and the CRC.
 const ENCODER_REPLY_BYTES: usize = 10;
 /// Main battery answer: a u16 (tenths of a volt) and the CRC.
 const BATTERY_REPLY_BYTES: usize = 4;
+/// Status answer: a u32 bit mask and the CRC.
+const STATUS_REPLY_BYTES: usize = 6;
 /// One poll in this many reads the main battery (the first among them).
 const BATTERY_EVERY: u32 = 10;
+/// One poll in this many reads the status (the sixth among them: half way
+/// between two battery reads).
+const STATUS_EVERY: u32 = 10;
+const STATUS_AT: u32 = 5;
+/// The status bits that are faults, as the RoboClaw user manual names them
+/// (command 90): errors in the low 16 bits, warnings in the high.
+const STATUS_BITS: [(u32, &str); 24] = [
+    (0x0000_0001, "e-stop"),
+    (0x0000_0002, "temperature error"),
+    (0x0000_0004, "temperature 2 error"),
+    (0x0000_0008, "main voltage high error"),
+    (0x0000_0010, "logic voltage high error"),
+    (0x0000_0020, "logic voltage low error"),
+    (0x0000_0040, "m1 driver fault error"),
+    (0x0000_0080, "m2 driver fault error"),
+    (0x0000_0100, "m1 speed error"),
+    (0x0000_0200, "m2 speed error"),
+    (0x0000_0400, "m1 position error"),
+    (0x0000_0800, "m2 position error"),
+    (0x0000_1000, "m1 current error"),
+    (0x0000_2000, "m2 current error"),
+    (0x0000_4000, "main voltage low error"),
+    (0x0000_8000, "main voltage high error (hysteresis)"),
+    (0x0001_0000, "m1 over current warning"),
+    (0x0002_0000, "m2 over current warning"),
+    (0x0004_0000, "main voltage high warning"),
+    (0x0008_0000, "main voltage low warning"),
+    (0x0010_0000, "temperature warning"),
+    (0x0020_0000, "temperature 2 warning"),
+    (0x0100_0000, "speed error limit warning"),
+    (0x0200_0000, "position error limit warning"),
+];
+/// S4 and S5 signal triggered: inputs (home or limit switches), not faults.
+const SIGNAL_BITS: u32 = 0x0040_0000 | 0x0080_0000;
+
+/// The fault a status mask names: every fault bit set, by name (a bit the
+/// manual does not name, by its mask); empty when none is set.
+fn fault_text(status: u32) -> String {
+    let mut named: Vec<String> =
+        STATUS_BITS.iter().filter(|(bit, _)| status & bit != 0).map(|(_, name)| name.to_string()).collect();
+    let known = STATUS_BITS.iter().fold(SIGNAL_BITS, |all, (bit, _)| all | bit);
+    let unknown = status & !known;
+    if unknown != 0 {
+        named.push(format!("status bits 0x{unknown:08x}"));
+    }
+    named.join(", ")
+}
 /// Most encoder reads outstanding: no new read is sent while this many
 /// await their answers (a slow controller, or a busy host, is not flooded
 /// with reads whose answers would then arrive past what is expected and be
@@ -77,6 +136,8 @@ struct RoboClaw {
     /// The time of the last poll, for the answers `decode` takes.
     now_ns: u64,
     counts: Option<(u32, u32)>,
+    /// The fault the last status answer named, for the host to take.
+    fault: Option<String>,
 }
 
 impl RoboClaw {
@@ -157,6 +218,7 @@ impl Translator for RoboClaw {
             waiting_since_ns: 0,
             now_ns: 0,
             counts: None,
+            fault: None,
         })
     }
 
@@ -179,7 +241,12 @@ impl Translator for RoboClaw {
         let mut garbage = false;
         while let Some(&first) = self.buffer.first() {
             let expected = self.pending.front().map(|&command| {
-                (command, if command == READ_MAIN_BATTERY { BATTERY_REPLY_BYTES } else { ENCODER_REPLY_BYTES })
+                let size = match command {
+                    READ_MAIN_BATTERY => BATTERY_REPLY_BYTES,
+                    READ_STATUS => STATUS_REPLY_BYTES,
+                    _ => ENCODER_REPLY_BYTES,
+                };
+                (command, size)
             });
             if let Some((command, size)) = expected
                 && self.reply_at_start(command, size)
@@ -187,11 +254,15 @@ impl Translator for RoboClaw {
                 let reply: Vec<u8> = self.buffer.drain(..size).collect();
                 self.pending.pop_front();
                 self.waiting_since_ns = self.now_ns;
-                if command == READ_MAIN_BATTERY {
-                    let tenths = u16::from_be_bytes([reply[0], reply[1]]);
-                    decoded.feedback.push(Feedback::Battery(f64::from(tenths) / 10.0));
-                } else {
-                    self.encoders(&reply, &mut decoded.feedback);
+                match command {
+                    READ_MAIN_BATTERY => {
+                        let tenths = u16::from_be_bytes([reply[0], reply[1]]);
+                        decoded.feedback.push(Feedback::Battery(f64::from(tenths) / 10.0));
+                    }
+                    READ_STATUS => {
+                        self.fault = Some(fault_text(u32::from_be_bytes([reply[0], reply[1], reply[2], reply[3]])));
+                    }
+                    _ => self.encoders(&reply, &mut decoded.feedback),
                 }
                 garbage = false;
                 continue;
@@ -231,11 +302,21 @@ impl Translator for RoboClaw {
         if self.pending.is_empty() {
             self.waiting_since_ns = now_ns;
         }
-        let command = if self.polls.is_multiple_of(BATTERY_EVERY) { READ_MAIN_BATTERY } else { READ_ENCODERS };
+        let command = if self.polls.is_multiple_of(BATTERY_EVERY) {
+            READ_MAIN_BATTERY
+        } else if self.polls % STATUS_EVERY == STATUS_AT {
+            READ_STATUS
+        } else {
+            READ_ENCODERS
+        };
         self.polls = self.polls.wrapping_add(1);
         self.pending.push_back(command);
         // A read is the address and the command alone: the CRC comes back.
         vec![self.address, command]
+    }
+
+    fn fault(&mut self) -> Option<String> {
+        self.fault.take()
     }
 }
 
