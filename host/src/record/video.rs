@@ -580,9 +580,9 @@ mod tests {
             p.stamp += 700 * MS; // restarted 0.7 s after the first
             p
         }));
-        let plan = plan_of(&pictures, EPOCH + 850 * MS);
+        let plan = plan_of(&pictures, EPOCH + 1_250 * MS);
         assert_eq!(plan.slots, vec![Some(0), Some(1), Some(2), Some(3), Some(7), Some(8)]);
-        assert_eq!(plan.frames, 9);
+        assert_eq!((plan.rate, plan.frames), (TEN, 13));
     }
 
     /// An old recording (no `rate_hz`): the rate is guessed from the
