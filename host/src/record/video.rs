@@ -83,6 +83,18 @@ struct Camera {
     info: Option<Info>,
 }
 
+/// Why a camera's pictures make no video.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum PlanError {
+    #[error("no pictures")]
+    NoPictures,
+    /// Without the camera's set rate, one capture time gives no rate.
+    #[error("{0} picture: a video needs two")]
+    TooFew(usize),
+    #[error("more than {MAX_VIDEO_FRAMES} frames")]
+    TooLong,
+}
+
 /// Where each picture goes in a video, and how long it is.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Plan {
@@ -251,14 +263,14 @@ pub fn stated_rate(hz: f64) -> Option<FrameRate> {
 /// the video goes on to the last frame time at or before `end`. Without
 /// (an old recording): at the rate [`frame_rate`] guesses, each picture at
 /// its capture time's frame, up to the last picture.
-pub fn plan(pictures: &[Picture], end: u64) -> Result<Plan, String> {
-    let first = pictures.first().ok_or("no pictures")?;
+pub fn plan(pictures: &[Picture], end: u64) -> Result<Plan, PlanError> {
+    let first = pictures.first().ok_or(PlanError::NoPictures)?;
     match pictures.iter().find_map(|p| p.rate_hz).and_then(stated_rate) {
         Some(rate) => Ok(stated_plan(pictures, first, rate, end)),
         None => {
             let stamps: Vec<u64> = pictures.iter().map(|p| p.stamp).collect();
-            let rate = frame_rate(&stamps).ok_or_else(|| format!("{} picture: a video needs two", stamps.len()))?;
-            let first = *stamps.iter().min().ok_or("no pictures")?;
+            let rate = frame_rate(&stamps).ok_or(PlanError::TooFew(stamps.len()))?;
+            let first = *stamps.iter().min().ok_or(PlanError::NoPictures)?;
             let period = rate.period_ns();
             let mut slots = Vec::with_capacity(stamps.len());
             let mut next = 0u64;
@@ -273,7 +285,7 @@ pub fn plan(pictures: &[Picture], end: u64) -> Result<Plan, String> {
     }
     .and_then(|plan| {
         if plan.frames > MAX_VIDEO_FRAMES {
-            return Err(format!("more than {MAX_VIDEO_FRAMES} frames"));
+            return Err(PlanError::TooLong);
         }
         Ok(plan)
     })
@@ -313,7 +325,8 @@ fn stated_plan(pictures: &[Picture], first: &Picture, rate: FrameRate, end: u64)
 pub fn make_videos(files: &[PathBuf], dir: &Path, ffmpeg: &Path) -> VideoOutcome {
     let mut outcome = VideoOutcome::default();
     for (name, (pictures, end)) in read_cameras(files) {
-        match plan(&pictures, end).and_then(|plan| make_video(files, &name, &plan, dir, ffmpeg)) {
+        let made = plan(&pictures, end).map_err(|e| e.to_string());
+        match made.and_then(|plan| make_video(files, &name, &plan, dir, ffmpeg)) {
             Ok(path) => outcome.made.push((name, path)),
             Err(why) => outcome.missing.push((name, why)),
         }
@@ -564,6 +577,9 @@ mod tests {
         // One picture and the run's end: a video all the same.
         let one = plan_of(&at_10hz(&[(0, 30)]), EPOCH + 1_000 * MS);
         assert_eq!((one.frames, one.slots), (11, vec![Some(0)]));
+        // A camera's last message a year on: no endless video.
+        let year = EPOCH + 365 * 86_400 * 1_000 * MS;
+        assert_eq!(super::plan(&at_10hz(&[(0, 30)]), year), Err(PlanError::TooLong));
     }
 
     fn plan_of(pictures: &[Picture], end: u64) -> Plan {
@@ -597,8 +613,8 @@ mod tests {
         assert_eq!(guessed.rate, FrameRate { num: 5, den: 1 });
         assert_eq!(guessed.slots, vec![Some(0), Some(1), Some(3), Some(4), Some(5), Some(6)]);
         assert_eq!(guessed.frames, 7);
-        assert_eq!(plan(&pictures[..1], EPOCH).unwrap_err(), "1 picture: a video needs two");
-        assert_eq!(plan(&[], EPOCH).unwrap_err(), "no pictures");
+        assert_eq!(plan(&pictures[..1], EPOCH).unwrap_err().to_string(), "1 picture: a video needs two");
+        assert_eq!(plan(&[], EPOCH).unwrap_err(), PlanError::NoPictures);
     }
 
     #[test]
