@@ -92,7 +92,7 @@ mod tests {
     use super::*;
 
     fn frame(seq: u64) -> Frame {
-        Frame { jpeg: vec![0xff, 0xd8, 0xff, 0xd9], width: 1, height: 1, capture_ns: seq, seq }
+        Frame { jpeg: vec![0xff, 0xd8, 0xff, 0xd9], width: 1, height: 1, capture_ns: seq, frame_ns: seq, seq }
     }
 
     #[test]

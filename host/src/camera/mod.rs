@@ -15,7 +15,10 @@
 //!
 //! Each frame is two values in the same cycle: `frame` (bytes: the JPEG
 //! file) and `frame-info` (text: JSON with its format, size, capture time
-//! on the loop's clock, and sequence number).
+//! on the loop's clock, the camera's set rate, and its frame time and
+//! sequence number). `seq` counts frame *times*, not pictures: a frame
+//! time skipped, dropped or without a picture still advances it, so a
+//! recording's video ([`crate::record::video`]) knows every gap exactly.
 
 pub mod live;
 pub mod mjpeg;
@@ -214,7 +217,7 @@ impl Builtin for CameraBuiltin {
                 port(
                     "frame-info",
                     ValueKind::Text,
-                    "JSON about the frame just sent on 'frame': format, width, height, capture_ns (the loop's clock), seq",
+                    "JSON about the frame just sent on 'frame': format, width, height, capture_ns (the loop's clock), rate_hz, frame_ns, seq (its frame time's number)",
                 ),
             ],
         }
@@ -282,6 +285,11 @@ pub struct Frame {
     pub height: u16,
     /// When the picture was taken, on the control loop's clock.
     pub capture_ns: u64,
+    /// The frame time it was taken for, on the control loop's clock (at
+    /// or a little before `capture_ns`).
+    pub frame_ns: u64,
+    /// The number of its frame time, counted from the camera's first at
+    /// 0: frame times without a picture (skipped, dropped, failed) count.
     pub seq: u64,
 }
 
@@ -328,6 +336,10 @@ struct Counters {
     encode_failures: AtomicU64,
     /// Frame times skipped because the previous frame took longer.
     late: AtomicU64,
+    /// The simulator's next frame time (the loop's clock): the frame
+    /// times from it up to now that the thread is too busy for are late
+    /// too, even before it says so.
+    next_ns: AtomicU64,
     /// Nanoseconds of wall time spent rendering and encoding (or receiving
     /// and checking).
     busy_ns: AtomicU64,
@@ -381,27 +393,34 @@ impl CameraThread {
             }
             let period = settings.period_ns.max(1);
             let mut next_ns = clock.now_ns();
-            let mut seq = 0;
+            // The number of the frame time `next_ns`.
+            let mut next_seq = 0;
+            c.next_ns.store(next_ns, Ordering::Relaxed);
             while !s.load(Ordering::Relaxed) {
                 let now = clock.now_ns();
                 if now < next_ns {
                     std::thread::sleep(CLOCK_POLL);
                     continue;
                 }
+                // The latest frame time due is taken; the ones before it
+                // are late, and counted in `seq` all the same.
                 let skipped = (now - next_ns) / period;
                 c.late.fetch_add(skipped, Ordering::Relaxed);
-                next_ns += (skipped + 1) * period;
+                let seq = next_seq + skipped;
+                let frame_ns = next_ns + skipped * period;
+                next_seq = seq + 1;
+                next_ns = frame_ns + period;
+                c.next_ns.store(next_ns, Ordering::Relaxed);
                 let started = std::time::Instant::now();
                 let Some(rgb) = snapshot() else { continue };
                 match encode(&rgb, settings) {
                     Ok(jpeg) => {
-                        let frame =
-                            Frame { jpeg, width: settings.width, height: settings.height, capture_ns: now, seq };
+                        let (width, height) = (settings.width, settings.height);
+                        let frame = Frame { jpeg, width, height, capture_ns: now, frame_ns, seq };
                         if let Some(live) = &live {
                             live.offer(&frame);
                         }
                         q.push(frame);
-                        seq += 1;
                         c.made.fetch_add(1, Ordering::Relaxed);
                         waker.wake();
                     }
@@ -447,7 +466,11 @@ impl CameraThread {
             let mut said: HashSet<&'static str> = HashSet::new();
             let mut backoff = mjpeg::RECONNECT_MIN;
             let mut opened = 0u64;
-            let mut seq = 0u64;
+            let period = period_ns.max(1);
+            // The first frame's capture time (the frame times' origin) and
+            // the number of the last frame time kept.
+            let mut origin: Option<u64> = None;
+            let mut last_seq: Option<u64> = None;
             let mut last_kept: Option<u64> = None;
             let min_gap = period_ns.saturating_mul(3) / 4;
             while !s.load(Ordering::Relaxed) {
@@ -472,17 +495,24 @@ impl CameraThread {
                                 Part::Frame { jpeg, width, height } => {
                                     backoff = mjpeg::RECONNECT_MIN;
                                     let now = clock.now_ns();
-                                    if last_kept.is_some_and(|last| now.saturating_sub(last) < min_gap) {
+                                    // Its frame time: the nearest on the
+                                    // rate's grid from the first frame.
+                                    let first = *origin.get_or_insert(now);
+                                    let seq = (now.saturating_sub(first) + period / 2) / period;
+                                    if last_kept.is_some_and(|last| now.saturating_sub(last) < min_gap)
+                                        || last_seq.is_some_and(|last| seq <= last)
+                                    {
                                         c.skipped.fetch_add(1, Ordering::Relaxed);
                                         continue;
                                     }
                                     last_kept = Some(now);
-                                    let frame = Frame { jpeg, width, height, capture_ns: now, seq };
+                                    last_seq = Some(seq);
+                                    let frame_ns = first + seq * period;
+                                    let frame = Frame { jpeg, width, height, capture_ns: now, frame_ns, seq };
                                     if let Some(live) = &live {
                                         live.offer(&frame);
                                     }
                                     q.push(frame);
-                                    seq += 1;
                                     c.made.fetch_add(1, Ordering::Relaxed);
                                     waker.wake();
                                 }
@@ -587,6 +617,16 @@ impl CameraComponent {
         self.now_ns.saturating_sub(since)
     }
 
+    /// The simulator's frame times past at the latest call that its busy
+    /// thread will skip: all but the latest due (an IP camera: none).
+    fn overdue(&self) -> u64 {
+        let next = self.camera.counters.next_ns.load(Ordering::Relaxed);
+        if self.url.is_some() || next == 0 || self.now_ns < next {
+            return 0;
+        }
+        (self.now_ns - next) / self.camera.settings.period_ns.max(1)
+    }
+
     /// The last picture is older than [`STALE_AFTER_PERIODS`] periods (and
     /// [`STALE_AFTER_MIN`]).
     fn stale(&self) -> bool {
@@ -595,13 +635,15 @@ impl CameraComponent {
     }
 }
 
-/// The JSON `frame-info` carries.
-fn frame_info(frame: &Frame) -> String {
+/// The JSON `frame-info` carries; `period_ns` is the camera's set period.
+fn frame_info(frame: &Frame, period_ns: u64) -> String {
     serde_json::json!({
         "format": "jpeg",
         "width": frame.width,
         "height": frame.height,
         "capture_ns": frame.capture_ns,
+        "rate_hz": 1e9 / period_ns.max(1) as f64,
+        "frame_ns": frame.frame_ns,
         "seq": frame.seq,
     })
     .to_string()
@@ -614,7 +656,7 @@ impl Component for CameraComponent {
         for frame in self.camera.queue.take() {
             self.size = (frame.width, frame.height);
             self.last_capture_ns = Some(frame.capture_ns);
-            out.push((OUTPUT_INFO, Value::Text(frame_info(&frame))));
+            out.push((OUTPUT_INFO, Value::Text(frame_info(&frame, self.camera.settings.period_ns))));
             out.push((OUTPUT_FRAME, Value::Bytes(frame.jpeg)));
             self.sent += 1;
         }
@@ -636,7 +678,7 @@ impl Component for CameraComponent {
             frames_made: c.made.load(Ordering::Relaxed),
             frames_sent: self.sent,
             frames_dropped: self.camera.queue.dropped(),
-            frames_late: c.late.load(Ordering::Relaxed),
+            frames_late: c.late.load(Ordering::Relaxed) + self.overdue(),
             encode_failures: c.encode_failures.load(Ordering::Relaxed),
             busy_s: c.busy_ns.load(Ordering::Relaxed) as f64 / 1e9,
             last_frame_age_s: self.age_ns() as f64 / 1e9,
@@ -662,7 +704,9 @@ pub struct CameraSection {
     pub frames_sent: u64,
     /// Frames pushed out of the full queue before the loop took them.
     pub frames_dropped: u64,
-    /// Frame times skipped because the one before took longer than a period.
+    /// Frame times skipped because the one before took longer than a
+    /// period, up to the latest cycle (the ones the busy thread has not
+    /// come back to yet included).
     pub frames_late: u64,
     pub encode_failures: u64,
     /// Wall time the camera's thread spent rendering and encoding (an IP
@@ -740,7 +784,7 @@ mod tests {
     use super::*;
 
     fn frame(seq: u64) -> Frame {
-        Frame { jpeg: vec![0xff, 0xd8], width: 16, height: 16, capture_ns: seq, seq }
+        Frame { jpeg: vec![0xff, 0xd8], width: 16, height: 16, capture_ns: seq, frame_ns: seq, seq }
     }
 
     const SETTINGS: CameraSettings = CameraSettings { width: 16, height: 16, period_ns: 1_000_000, quality: 80 };
@@ -780,6 +824,47 @@ mod tests {
         assert_eq!(&jpeg[sof + 5..sof + 9], &[0, 16, 0, 16]);
     }
 
+    /// Every other snapshot has nothing to see, and the loop takes the
+    /// frames while they come: `seq` counts the frame times without a
+    /// picture too, each frame's `frame_ns` is its frame time on the
+    /// period's grid, and `frame-info` names the set rate.
+    #[test]
+    fn seq_counts_frame_times_with_or_without_a_picture() {
+        let mut calls = 0u32;
+        let snapshot: Snapshot = Box::new(move || {
+            calls += 1;
+            (calls % 2 == 1).then(|| vec![0; 16 * 16 * 3])
+        });
+        let camera = CameraThread::start("test", SETTINGS, snapshot, Clock::new(), Waker::default(), None).unwrap();
+        let mut component = CameraComponent::new(camera, "test");
+        let mut infos: Vec<serde_json::Value> = Vec::new();
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        while infos.len() < 6 && std::time::Instant::now() < deadline {
+            let mut out = Outbox::new();
+            component.poll(0, &mut out);
+            for (port, value) in out {
+                if let (OUTPUT_INFO, Value::Text(text)) = (port, value) {
+                    infos.push(serde_json::from_str(&text).unwrap());
+                }
+            }
+            std::thread::sleep(Duration::from_micros(200));
+        }
+        assert!(infos.len() >= 6, "{infos:?}");
+        let period = SETTINGS.period_ns;
+        for pair in infos.windows(2) {
+            let (a, b) = (&pair[0], &pair[1]);
+            let gap = b["seq"].as_u64().unwrap() - a["seq"].as_u64().unwrap();
+            assert!(gap >= 2, "a frame time without a picture is counted: {a} {b}");
+            let frame_gap = b["frame_ns"].as_u64().unwrap() - a["frame_ns"].as_u64().unwrap();
+            assert_eq!(frame_gap, gap * period, "{a} {b}");
+        }
+        for info in &infos {
+            assert_eq!(info["rate_hz"], 1000.0, "{info}");
+            let (capture, frame) = (info["capture_ns"].as_u64().unwrap(), info["frame_ns"].as_u64().unwrap());
+            assert!(capture >= frame && capture - frame < period, "captured within its frame time: {info}");
+        }
+    }
+
     /// A camera whose pictures wait for the test: while it is stalled the
     /// loop's calls return with nothing; once the loop stops taking frames,
     /// the queue keeps the newest and counts the rest.
@@ -817,7 +902,9 @@ mod tests {
             (OUTPUT_INFO, Value::Text(text)) => serde_json::from_str(text).unwrap(),
             other => panic!("{other:?}"),
         };
-        assert_eq!(info["seq"], 10 - MAX_QUEUED_FRAMES as u64);
+        // The sixth picture made: at least its frame time's number (the
+        // frame times of the stall count too).
+        assert!(info["seq"].as_u64().unwrap() >= 10 - MAX_QUEUED_FRAMES as u64, "{info}");
         assert_eq!((info["width"].as_u64(), info["format"].as_str()), (Some(16), Some("jpeg")));
         assert!(matches!(&out[1], (OUTPUT_FRAME, Value::Bytes(b)) if b.starts_with(&[0xff, 0xd8])));
         drop(release);
