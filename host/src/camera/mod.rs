@@ -878,6 +878,9 @@ mod tests {
         let clock = Clock::new();
         let camera = CameraThread::start("test", SETTINGS, snapshot, clock, Waker::default(), None).unwrap();
         let mut component = CameraComponent::new(camera, "test");
+        // Dropped before the component (which joins the camera's thread,
+        // waiting at `gate`): a failed assert fails, never hangs.
+        let release = release;
         let mut out = Outbox::new();
         // Stalled: every call returns at once with nothing.
         for now in 0..1000 {
