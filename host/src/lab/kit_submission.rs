@@ -284,22 +284,18 @@ mod tests {
 </robot>"#;
 
     /// The kit as the lab writes it: the serial link simulated, the WASM
-    /// component under components/.
-    const KIT: &str = r#"<robot name="lab">
-  <platform name="control">
-    <component name="motors" source="builtin:serial" rate="50"><param name="device" value="sim:preflight-sim-motors"/></component>
-    <component name="driver" source="components/driver.wasm" rate="10"><param name="speed" value="0.3"/></component>
-    <component name="envelope" source="builtin:envelope"><param name="max-speed" value="0.5"/></component>
-    <connect from="driver.cmd" to="envelope.cmd"/>
-    <connect from="envelope.cmd" to="motors.cmd"/>
-  </platform>
-</robot>"#;
+    /// component under components/ (the baseline otherwise, line for line).
+    fn kit() -> String {
+        BASELINE
+            .replace(r#"value="/dev/ttyUSB0""#, r#"value="sim:preflight-sim-motors""#)
+            .replace(r#"source="driver.wasm""#, r#"source="components/driver.wasm""#)
+    }
 
     fn manifest() -> KitManifest {
         KitManifest {
             baseline: 3,
             baseline_sha256: "b".repeat(64),
-            robot: KIT.into(),
+            robot: kit(),
             components: [(
                 "driver".to_string(),
                 KitComponent { file: "components/driver.wasm".into(), sha256: "a".repeat(64) },
@@ -330,7 +326,7 @@ mod tests {
 
     #[test]
     fn the_kit_unchanged_is_the_baseline_with_nothing_uploaded() {
-        let sent = submit(KIT).unwrap();
+        let sent = submit(&kit()).unwrap();
         assert!(sent.uploads.is_empty() && sent.changes.is_empty(), "{sent:?}");
         let robot = parsed(&sent.text);
         assert_eq!(component(&robot, "motors").params[0].value.value, "/dev/ttyUSB0");
@@ -339,7 +335,7 @@ mod tests {
 
     #[test]
     fn her_component_bytes_a_parameter_and_a_rate_carry_over_to_the_baseline() {
-        let local = KIT
+        let local = kit()
             .replace(r#"source="components/driver.wasm" rate="10""#, r#"source="../mine.wasm" rate="20""#)
             .replace(r#"value="0.3""#, r#"value="0.25"/><param name="gain" value="2""#);
         let sent = submit(&local).unwrap();
@@ -364,7 +360,7 @@ mod tests {
 
     #[test]
     fn a_source_naming_no_file_here_names_a_stored_component() {
-        let local = KIT.replace("components/driver.wasm", "ana/driver.wasm");
+        let local = kit().replace("components/driver.wasm", "ana/driver.wasm");
         let sent = submit(&local).unwrap();
         assert!(sent.uploads.is_empty());
         assert_eq!(component(&parsed(&sent.text), "driver").source.value, "ana/driver.wasm");
@@ -375,12 +371,12 @@ mod tests {
         let cases = [
             (
                 "a built-in changed",
-                KIT.replace(r#"name="max-speed" value="0.5""#, r#"name="max-speed" value="5""#),
+                kit().replace(r#"name="max-speed" value="0.5""#, r#"name="max-speed" value="5""#),
                 "kit/robot.xml:5:5: 'envelope' (builtin:envelope) is the lab's own, here in its preflight form: an experiment cannot change it from the kit",
             ),
             (
                 "a component added",
-                KIT.replace(
+                kit().replace(
                     "    <connect from=\"driver.cmd\"",
                     "    <component name=\"extra\" source=\"x.wasm\"/>\n    <connect from=\"driver.cmd\"",
                 ),
@@ -388,7 +384,7 @@ mod tests {
             ),
             (
                 "a connection changed",
-                KIT.replace(
+                kit().replace(
                     r#"<connect from="driver.cmd" to="envelope.cmd"/>"#,
                     r#"<connect from="driver.cmd" to="motors.cmd"/>"#,
                 ),
@@ -399,7 +395,7 @@ mod tests {
             let got = submit(&local);
             assert_eq!(got.map_err(|e| e.to_string()), Err(expected.to_string()), "{case}");
         }
-        let missing = kit_submission(&manifest(), Path::new("kit/robot.xml"), KIT, 3, BASELINE, &|_| None);
+        let missing = kit_submission(&manifest(), Path::new("kit/robot.xml"), &kit(), 3, BASELINE, &|_| None);
         assert_eq!(
             missing.map_err(|e| e.to_string()),
             Err("kit/robot.xml:4:38: 'driver': its file components/driver.wasm is missing".to_string())
@@ -408,7 +404,7 @@ mod tests {
 
     #[test]
     fn a_kit_of_an_older_baseline_is_refused_naming_both_sets() {
-        let got = kit_submission(&manifest(), Path::new("kit/robot.xml"), KIT, 4, BASELINE, &files);
+        let got = kit_submission(&manifest(), Path::new("kit/robot.xml"), &kit(), 4, BASELINE, &files);
         assert_eq!(got, Err(KitError::Stale { file: "kit/robot.xml".into(), kit: 3, baseline: 4 }));
     }
 }

@@ -6,9 +6,10 @@
 //! robot runs the owner's baseline.
 //!
 //! This file is the core: [`Lab`], its in-memory book of records,
-//! [`LabError`], `transition` (every state change, stored and audited
-//! before anyone is told, kept to `ExperimentState::may_enter`) and
-//! `audited` (a use case's one audit line, refused or not). Each use case
+//! [`LabError`] and `transition` (every state change, stored and audited
+//! before anyone is told, kept to `ExperimentState::may_enter`); `audit`
+//! has `audited` (a use case's one audit line, refused or not), and
+//! `visibility` who sees which experiments. Each use case
 //! is an `impl Lab` in a file of its own, in `deploy`'s shape: `submit`,
 //! `cancel`, `views` (list, get, overview, results), `owner` (settings,
 //! baseline, pause, the manual reset), `reservations`, `kit`, `metrics`,
@@ -36,6 +37,7 @@
 //!   running are marked `aborted: host stopped` with what they recorded,
 //!   those in their checks are checked again.
 
+mod audit;
 pub mod bundle;
 mod cancel;
 mod kit;
@@ -60,12 +62,14 @@ mod submit;
 pub mod transfer;
 pub mod verdict;
 mod views;
+mod visibility;
 pub mod wire;
 
 pub use self::metrics::{LabMetrics, PREFLIGHT_BUCKETS_S};
 pub use self::robots::RobotStop;
 pub use self::submit::{MAX_SUBMISSIONS_PER_WINDOW, SUBMISSION_WINDOW_MS, Submission};
 pub use self::views::{ExperimentView, LabView};
+pub use self::visibility::{live_status_for, sees_experiments_of};
 pub use crate::notify::mail::Subscription as MailSubscription;
 
 use std::collections::{BTreeMap, BTreeSet};
@@ -77,11 +81,11 @@ use std::time::Duration;
 use thiserror::Error;
 
 use self::preflight::PreflightCommand;
+use self::visibility::visible;
 use crate::deploy::{DeployError, Deployer, Diagnostics};
 use crate::notify::{self, ExperimentFacts, Notifier};
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentRecord, ExperimentState, IllegalTransition, LabState};
-use crate::store::users::{Principal, Role};
 use crate::store::{Outcome, Store, StoreError};
 
 /// Shortest experiment, seconds: a run must last long enough to record.
@@ -227,30 +231,6 @@ pub struct Lab {
     notifier: Option<Arc<Notifier>>,
 }
 
-fn visible(user: &Principal, record: &ExperimentRecord) -> bool {
-    sees_experiments_of(user, &record.submitter)
-}
-
-/// Whether `user` may see the experiments `submitter` submitted (their
-/// records, labels, robot files' names, results): their own, and anyone's
-/// for an admin. The rest see that one runs, not what it is.
-pub fn sees_experiments_of(user: &Principal, submitter: &str) -> bool {
-    user.role == Role::Admin || submitter == user.name
-}
-
-/// A live status (as JSON) as `user` may see it: everyone watches the
-/// robot, but the running experiment's label and its robot file's name are
-/// its submitter's and the admins' ([`sees_experiments_of`]). The robot's
-/// portal and a lab server's `/robots/{name}/live` both show it so.
-pub fn live_status_for(user: &Principal, status: &mut serde_json::Value) {
-    let hidden = status["experiment"]["submitter"].as_str().is_some_and(|s| !sees_experiments_of(user, s));
-    if hidden {
-        let id = status["experiment"]["id"].clone();
-        status["experiment"]["label"] = serde_json::Value::String(String::new());
-        status["config"] = serde_json::Value::String(format!("experiment {id}'s robot file"));
-    }
-}
-
 fn not_found(id: u64) -> LabError {
     LabError::NotFound(format!("no experiment {id}"))
 }
@@ -365,46 +345,6 @@ impl Lab {
         }
         self.notify();
         Ok(record)
-    }
-
-    /// Writes one audit line; a store that cannot be locked is logged as an
-    /// error with the line it lost, never skipped in silence.
-    fn audit(&self, user: &str, action: &str, target: &str, outcome: Outcome<'_>) {
-        match self.store().lock() {
-            Ok(writer) => writer.record(user, action, target, outcome),
-            Err(e) => {
-                tracing::error!("cannot lock the store to record {action} by {user} on {target} ({outcome:?}): {e}")
-            }
-        }
-    }
-
-    /// The audit line of a refused or failed request.
-    fn audit_error(&self, user: &str, action: &str, target: &str, e: &LabError) {
-        let detail = e.to_string();
-        let outcome = if e.is_failure() { Outcome::Failed(&detail) } else { Outcome::Refused(&detail) };
-        self.audit(user, action, target, outcome);
-    }
-
-    /// Runs `use_case` for `user` and writes its one audit line whatever
-    /// happened: `done(value)` when it succeeded, the refusal or the
-    /// failure otherwise. The lab's [`crate::deploy`] `commit`: a lab use
-    /// case takes the lab's lock before the store's, so the line is written
-    /// after it, and a store that cannot be locked then is logged as an
-    /// error, never skipped in silence.
-    fn audited<T>(
-        &self,
-        user: &str,
-        action: &str,
-        target: &str,
-        use_case: impl FnOnce() -> Result<T, LabError>,
-        done: impl FnOnce(&T) -> String,
-    ) -> Result<T, LabError> {
-        let result = use_case();
-        match &result {
-            Ok(value) => self.audit(user, action, target, Outcome::Ok(&done(value))),
-            Err(e) => self.audit_error(user, action, target, e),
-        }
-        result
     }
 
     /// Stops the lab's threads as the host stops; an experiment that ran
