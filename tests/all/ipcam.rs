@@ -579,13 +579,19 @@ fn a_camera_that_stops_sending_stops_the_robot_through_the_envelope_when_wired_t
         .expect("the stalling camera's port");
     let (report, log) = cruise_watching(dir.path(), &format!("http://127.0.0.1:{port}/"), "5");
     let (sim, envelope, camera) = (&report["sim"], &report["envelope"], camera_section(&report, "camera"));
-    assert_eq!(camera["frames_sent"], 3, "{camera}\n{log}");
+    // Its three pictures (on a busy machine two may come so close together
+    // that the second is skipped, as sooner than its rate allows).
+    let sent = camera["frames_sent"].as_u64().unwrap_or(0);
+    assert!((1..=3).contains(&sent), "{camera}\n{log}");
     let driven = sim["distance_travelled_m"].as_f64().unwrap();
     // Three pictures a tenth of a second apart, then 1 s of grace: about
     // 1.3 s of driving once the first came; never the 5 s.
     assert!(driven < 0.45, "the robot drove on blind: {driven} m\n{envelope}");
     assert!(envelope["causes"]["stale-camera"].as_u64().unwrap_or(0) >= 1, "{envelope}");
-    let last = envelope["last"]["cause"].as_str().unwrap_or("");
-    assert!(last.starts_with("camera stale (none for "), "{envelope}");
+    // The camera stopped it (on a busy machine the simulator's ranges may
+    // go stale later too, and stop it as well).
+    let first = &envelope["first"]["stale-camera"];
+    assert!(first["cause"].as_str().unwrap_or("").starts_with("camera stale ("), "{envelope}");
+    assert_eq!(first["action"], "stopped", "{envelope}");
     assert_eq!(envelope["last"]["action"], "stopped", "{envelope}");
 }

@@ -2203,6 +2203,9 @@ fn a_motor_controller_reporting_a_fault_fails_the_self_test_and_puts_the_robot_i
     // Out of service: the next experiment waits, even once the fault has
     // cleared (an admin runs the self-test again to bring the robot back).
     let third = submit();
+    // (queued once its preflight passed: on a busy machine that takes more
+    // than the 2 s below)
+    assert_eq!(lab.wait_for(&ana, third, "queued", Duration::from_secs(120))["state"], "queued");
     *fault.lock().unwrap() = String::new();
     std::thread::sleep(Duration::from_secs(2));
     assert_eq!(lab.experiment(&ana, third)["state"], "queued");

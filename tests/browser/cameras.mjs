@@ -32,7 +32,12 @@ for (const entry of users) {
         canvas.getContext('2d').drawImage(img, 0, 0);
         return { width: img.naturalWidth, height: img.naturalHeight, data: canvas.toDataURL() };
       })).jsonValue();
+      const heading = async () => page.evaluate(async () => {
+        const s = await (await fetch('/api/v1/status')).json();
+        return s.sim ? s.sim.heading : null;
+      });
       const first = await picture();
+      const headingFirst = await heading();
       let later = first;
       let looks = 0;
       // A newer picture within 30 s (a busy machine starves the camera's
@@ -52,11 +57,13 @@ for (const entry of users) {
           return Object.fromEntries(Object.entries(s).filter(([k]) => k.startsWith('camera')));
         })
         : null;
+      // Whether the scene changed meanwhile (the robot turns).
+      const turned = camera ? [headingFirst, await heading()] : null;
       await shot(`cameras-${user}`);
       const count = await page.evaluate(() => document.querySelectorAll('#cameras img').length);
       const hidden = await page.evaluate(() => document.getElementById('cameras').hidden);
       check(!hidden, `${user}: the cameras are hidden`);
-      results[user] = { cameras: count, width: first.width, height: first.height, changed: later.data !== first.data, looks, camera };
+      results[user] = { cameras: count, width: first.width, height: first.height, changed: later.data !== first.data, looks, camera, turned };
     } else {
       step(`${user} sees no camera`);
       await page.waitForTimeout(1500);
