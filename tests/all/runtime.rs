@@ -279,6 +279,48 @@ fn a_faulted_component_receives_nothing_more() {
     assert_eq!(graph.stats(counter).unwrap().ticks, 3);
 }
 
+/// A native component whose tick faults.
+struct FaultsOnTick;
+
+impl Component for FaultsOnTick {
+    fn tick(&mut self, _now_ns: u64, _out: &mut Outbox) -> Result<(), CallError> {
+        Err(CallError::Fault("tick: faulted by the test".into()))
+    }
+}
+
+/// A native component that takes `0` to hear of a peer's fault.
+struct SlowToHear(Duration);
+
+impl Component for SlowToHear {
+    fn peer_faulted(&mut self, _component: usize, _now_ns: u64, _out: &mut Outbox) {
+        std::thread::sleep(self.0);
+    }
+}
+
+#[test]
+fn a_faulting_component_is_not_charged_the_time_its_peers_take_to_hear_of_it() {
+    // A CI run charged a faulting guest 132 ms for a call capped at 50 ms:
+    // its call time included every peer's `peer_faulted`.
+    let hearing = Duration::from_millis(300);
+    let mut graph = Graph::new();
+    let faulty = graph.add("faulty", Box::new(FaultsOnTick), 0, 10.0, 0);
+    let peers: Vec<usize> =
+        (0..2).map(|n| graph.add(&format!("peer{n}"), Box::new(SlowToHear(hearing)), 0, 0.0, 0)).collect();
+    graph.step(0);
+    assert!(matches!(graph.state(faulty), Some(ComponentState::Faulted { .. })), "{:?}", graph.state(faulty));
+    let stats = graph.stats(faulty).unwrap();
+    assert_eq!(stats.calls, 1);
+    // The peers took 600 ms between them; the call itself returns at once.
+    assert!(
+        Duration::from_nanos(stats.call_ns) < hearing,
+        "charged {:?} for a call that returned at once",
+        Duration::from_nanos(stats.call_ns)
+    );
+    for peer in peers {
+        assert_eq!(graph.stats(peer).unwrap().calls, 0);
+    }
+}
+
 #[test]
 fn the_description_comes_from_the_guest() {
     let sandbox = sandbox();

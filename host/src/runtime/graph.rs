@@ -427,7 +427,8 @@ impl Graph {
 
     /// Calls `tick` (no input) or `on-input` on node `index`, then routes
     /// what it emitted or records its failure. The component is charged the
-    /// time of its call and of routing what it emitted.
+    /// time of its call and of routing what it emitted; when it faulted, not
+    /// the time its peers take to hear of it.
     fn call(&mut self, index: usize, now_ns: u64, input: Option<(u32, Value, usize)>) {
         let started = self.mark.take().unwrap_or_else(clock::now_ns);
         let activity = if input.is_some() { Activity::OnInput } else { Activity::Tick };
@@ -454,6 +455,7 @@ impl Graph {
             result = Err(CallError::Fault(self.stall_reason(activity, Some(held))));
         }
         let node = &mut self.nodes[index];
+        let mut fault_began = None;
         match result {
             Ok(()) => {}
             Err(CallError::Reported(message)) => {
@@ -472,13 +474,16 @@ impl Graph {
             }
             Err(CallError::Fault(reason)) => {
                 outbox.clear();
+                // Charged up to here: what follows is the peers' work (each
+                // told of the fault) and the recorder's, not this call's.
+                fault_began = Some(clock::now_ns());
                 self.fault(index, reason, now_ns);
             }
         }
         self.route(index, &mut outbox);
         self.scratch = outbox;
         let ended = clock::now_ns();
-        let held_ns = ended.saturating_sub(started);
+        let held_ns = fault_began.unwrap_or(ended).saturating_sub(started);
         let held = Duration::from_nanos(held_ns);
         let stats = &mut self.nodes[index].stats;
         stats.call_ns += held_ns;
