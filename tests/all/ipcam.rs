@@ -445,7 +445,8 @@ fn the_live_camera_is_shown_to_the_owner_operators_and_a_researcher_only_during_
 
     // The portal's Live tab in Chromium: the camera plays for those who may
     // watch, and is not there for the others.
-    let artifacts = dir.path().join("browser");
+    // Its screenshots stay after the run, beside the other browser tests'.
+    let artifacts = support::repo_root().join("target/browser-artifacts/cameras");
     let url = format!("http://{address}/");
     let users: [&dyn AsRef<std::ffi::OsStr>; 6] =
         [&url, &password, &"boss:watch", &"olga:watch", &"vera:none", &"ana:none"];

@@ -88,6 +88,81 @@ fn real_robot(goal_x: f64, device: &str) -> String {
         .replace("sim:robot-sim", device)
 }
 
+/// A motor controller played on the robot's pseudo-terminal by a thread:
+/// every 50 ms it sends odometry, range readings and the lines `feedback`
+/// makes of the value the test set last, until stopped.
+struct PlayedController<T> {
+    value: std::sync::Arc<std::sync::Mutex<T>>,
+    going: std::sync::Arc<std::sync::atomic::AtomicBool>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl<T: Send + 'static> PlayedController<T> {
+    fn start(mut motors: crate::support::MotorRecorder, first: T, feedback: fn(&T) -> String) -> Self {
+        use std::sync::atomic::Ordering;
+        let value = std::sync::Arc::new(std::sync::Mutex::new(first));
+        let going = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let thread = {
+            let (value, going) = (value.clone(), going.clone());
+            std::thread::spawn(move || {
+                let mut sent = Instant::now();
+                while going.load(Ordering::Relaxed) {
+                    motors.read();
+                    if sent.elapsed() >= Duration::from_millis(50) {
+                        let more = feedback(&value.lock().unwrap());
+                        let lines = format!("O 1000 1000 0\nR 3000 3000 3000 3000 3000 3000 3000 3000 3000\n{more}");
+                        motors.write(lines.as_bytes());
+                        sent = Instant::now();
+                    }
+                }
+            })
+        };
+        PlayedController { value, going, thread: Some(thread) }
+    }
+
+    /// What the controller says from its next feedback on.
+    fn set(&self, value: T) {
+        *self.value.lock().unwrap() = value;
+    }
+
+    /// Stops the controller, failing if its thread did.
+    fn stop(mut self) {
+        self.going.store(false, std::sync::atomic::Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            thread.join().unwrap();
+        }
+    }
+}
+
+impl<T> Drop for PlayedController<T> {
+    fn drop(&mut self) {
+        self.going.store(false, std::sync::atomic::Ordering::Relaxed);
+        if let Some(thread) = self.thread.take() {
+            let _ = thread.join();
+        }
+    }
+}
+
+/// A lab on robot file `xml` (a played controller's) in `dir`, with boss
+/// (admin) and ana (researcher), the arena as its preflight world and manual
+/// resets: the lab, ana's and boss's tokens, and the owner's settings as
+/// they are, to change and put.
+fn lab_on_a_played_robot(dir: &Path, xml: &str) -> (Lab, String, String, Json) {
+    std::fs::write(dir.join("robot.xml"), xml).unwrap();
+    let store = dir.join("store");
+    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
+    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
+    let lab = start(dir);
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
+    assert_eq!(status, 201, "{json}");
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["preflight_world"] = Json::String("arena.world".into());
+    settings["reset"] = Json::String("manual".into());
+    (lab, ana, boss, settings)
+}
+
 pub(crate) fn robot(goal_x: f64, extra: &str) -> String {
     let mut xml = BASELINE.replace("GOAL_X", &goal_x.to_string()).replace("EXTRA", extra);
     for name in ["avoider", "planner", "range-filter"] {
@@ -171,13 +246,30 @@ impl Lab {
         json["experiment"].clone()
     }
 
-    /// Submits set `set` for `duration_s` as `token`'s user and waits (up
-    /// to 240 s) until it is done: its id and record.
-    fn run_to_done(&self, token: &str, set: u64, duration_s: f64) -> (u64, Json) {
+    /// Submits set `set` for `duration_s` as `token`'s user: its id.
+    fn submit(&self, token: &str, set: u64, duration_s: f64) -> u64 {
         let body = serde_json::json!({ "set": set, "duration_s": duration_s }).to_string();
         let (status, json) = self.call(token, "POST", "/api/v1/experiments", &body);
         assert_eq!(status, 201, "{json}");
-        let id = json["experiment"]["id"].as_u64().unwrap();
+        json["experiment"]["id"].as_u64().unwrap()
+    }
+
+    /// Waits (up to 120 s) until experiment `id` waits for the manual reset,
+    /// then says the robot is back as admin `admin`.
+    fn reset_when_awaited(&self, token: &str, admin: &str, id: u64) {
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while self.experiment(token, id)["awaiting_reset"] != true {
+            assert!(Instant::now() < deadline, "experiment {id} never waited for the reset\n{}", self.host.log());
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        let (status, json) = self.call(admin, "POST", "/api/v1/lab/reset", "");
+        assert_eq!(status, 200, "{json}");
+    }
+
+    /// Submits set `set` for `duration_s` as `token`'s user and waits (up
+    /// to 240 s) until it is done: its id and record.
+    fn run_to_done(&self, token: &str, set: u64, duration_s: f64) -> (u64, Json) {
+        let id = self.submit(token, set, duration_s);
         let done = self.wait_for(token, id, "done", Duration::from_secs(240));
         assert_eq!(done["state"], "done", "{done:#}");
         (id, done)
@@ -859,26 +951,15 @@ fn a_real_robot_is_preflighted_against_a_simulated_controller() {
     let dir = tempfile::tempdir().unwrap();
     let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
     let real = |goal_x: f64| real_robot(goal_x, &device);
-    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
-    let store = dir.path().join("store");
-    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
-    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
     let reading = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(true));
     let keep_reading = reading.clone();
     let recorder = std::thread::spawn(move || {
         motors.read_while(|| keep_reading.load(std::sync::atomic::Ordering::Relaxed));
         motors
     });
-    let lab = start(dir.path());
-    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
     // The owner's preflight world, and a manual reset (nothing simulated
     // on the robot to reset).
-    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
-    assert_eq!(status, 201, "{json}");
-    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
-    let mut settings = overview["lab"]["settings"].clone();
-    settings["preflight_world"] = Json::String("arena.world".into());
-    settings["reset"] = Json::String("manual".into());
+    let (lab, ana, boss, settings) = lab_on_a_played_robot(dir.path(), &real(8.0));
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
     assert_eq!(status, 200, "{json}");
     let set = lab.stage(&ana, "ana.xml", &real(7.0));
@@ -1401,11 +1482,7 @@ fn webhooks_tell_of_an_experiment_in_order_signed_and_retried() {
     let lab = start(dir.path());
     let ana = lab.token("ana");
     let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
-    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
-    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-    assert_eq!(status, 201, "{json}");
-    let id = json["experiment"]["id"].as_u64().unwrap();
-    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let (id, _) = lab.run_to_done(&ana, set, 2.0);
     let posts = received(&out, 5, &lab.host);
     assert!(posts.iter().all(|p| p["valid"] == true), "every signature verifies with Python's hmac: {posts:#?}");
     assert_eq!(
@@ -1439,11 +1516,7 @@ fn a_host_killed_with_undelivered_events_sends_them_after_restart() {
     let mut lab = start(dir.path());
     let ana = lab.token("ana");
     let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
-    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
-    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-    assert_eq!(status, 201, "{json}");
-    let id = json["experiment"]["id"].as_u64().unwrap();
-    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let (id, _) = lab.run_to_done(&ana, set, 2.0);
     let outbox = dir.path().join("store/outbox");
     let waiting = || {
         std::fs::read_dir(&outbox)
@@ -1512,11 +1585,7 @@ fn an_https_webhook_is_verified_against_its_authority_and_an_untrusted_one_holds
     let lab = start(dir.path());
     let ana = lab.token("ana");
     let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
-    let body = serde_json::json!({ "set": set, "duration_s": 2.0 }).to_string();
-    let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-    assert_eq!(status, 201, "{json}");
-    let id = json["experiment"]["id"].as_u64().unwrap();
-    lab.wait_for(&ana, id, "done", Duration::from_secs(120));
+    let (id, _) = lab.run_to_done(&ana, set, 2.0);
     let posts = received(&trusted_out, 3, &lab.host);
     assert!(posts.iter().all(|p| p["valid"] == true), "{posts:#?}");
     assert_eq!(
@@ -1620,11 +1689,7 @@ fn mail_tells_a_researcher_of_her_own_experiments_and_the_owner_of_everyones() {
     let mut ids = Vec::new();
     for token in [&ana, &ben] {
         let set = lab.stage(token, "mine.xml", &robot(7.0, ""));
-        let body = serde_json::json!({ "set": set, "duration_s": 1.0 }).to_string();
-        let (status, json) = lab.call(token, "POST", "/api/v1/experiments", &body);
-        assert_eq!(status, 201, "{json}");
-        let id = json["experiment"]["id"].as_u64().unwrap();
-        lab.wait_for(token, id, "done", Duration::from_secs(120));
+        let (id, _) = lab.run_to_done(token, set, 1.0);
         ids.push(id);
     }
     let got = mails(&out, 3, &lab.host);
@@ -1926,42 +1991,12 @@ fn the_duty_cycle_rests_the_robot_between_experiments_and_says_so() {
 /// back by itself and the waiting experiment runs.
 #[test]
 fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_service_until_it_is_charged() {
-    use std::sync::{Arc, Mutex, atomic::AtomicBool, atomic::Ordering};
     let dir = tempfile::tempdir().unwrap();
-    let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
+    let (motors, _slave, device) = crate::support::MotorRecorder::new();
     let real = |goal_x: f64| real_robot(goal_x, &device);
-    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
-    let store = dir.path().join("store");
-    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
-    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
-    // The controller: feedback every 50 ms, with the battery the test sets.
-    let battery_mv = Arc::new(Mutex::new(12_400u32));
-    let going = Arc::new(AtomicBool::new(true));
-    let controller = {
-        let (battery_mv, going) = (battery_mv.clone(), going.clone());
-        std::thread::spawn(move || {
-            let mut sent = Instant::now();
-            while going.load(Ordering::Relaxed) {
-                motors.read();
-                if sent.elapsed() >= Duration::from_millis(50) {
-                    let volts = *battery_mv.lock().unwrap();
-                    motors.write(
-                        format!("O 1000 1000 0\nR 3000 3000 3000 3000 3000 3000 3000 3000 3000\nP {volts}\n")
-                            .as_bytes(),
-                    );
-                    sent = Instant::now();
-                }
-            }
-        })
-    };
-    let lab = start(dir.path());
-    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
-    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
-    assert_eq!(status, 201, "{json}");
-    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
-    let mut settings = overview["lab"]["settings"].clone();
-    settings["preflight_world"] = Json::String("arena.world".into());
-    settings["reset"] = Json::String("manual".into());
+    // The controller's battery, in mV, as the test sets it.
+    let controller = PlayedController::start(motors, 12_400u32, |volts| format!("P {volts}\n"));
+    let (lab, ana, boss, mut settings) = lab_on_a_played_robot(dir.path(), &real(8.0));
     // A window shorter than the owner may set is refused by name.
     settings["self_test"] = serde_json::json!({"window_ms": 50, "min_battery_v": 11.0});
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
@@ -1976,18 +2011,9 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     assert_eq!(status, 200, "{json}");
     let set = lab.stage(&ana, "ana.xml", &real(7.0));
     let run = |expected_reset: bool| {
-        let body = serde_json::json!({ "set": set, "duration_s": 2 }).to_string();
-        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-        assert_eq!(status, 201, "{json}");
-        let id = json["experiment"]["id"].as_u64().unwrap();
+        let id = lab.submit(&ana, set, 2.0);
         if expected_reset {
-            let deadline = Instant::now() + Duration::from_secs(120);
-            while lab.experiment(&ana, id)["awaiting_reset"] != true {
-                assert!(Instant::now() < deadline, "never waited for the reset");
-                std::thread::sleep(Duration::from_millis(50));
-            }
-            let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
-            assert_eq!(status, 200, "{json}");
+            lab.reset_when_awaited(&ana, &boss, id);
         }
         id
     };
@@ -2010,7 +2036,7 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     let kept: Json = serde_json::from_slice(&std::fs::read(bundle.join("selftest.json")).unwrap()).unwrap();
     assert_eq!(kept, tests[0]);
     // The battery runs down: the next run completes; its self-test fails.
-    *battery_mv.lock().unwrap() = 10_400;
+    controller.set(10_400);
     let second = run(true);
     assert_eq!(lab.wait_for(&ana, second, "done", Duration::from_secs(120))["state"], "done");
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
@@ -2042,12 +2068,12 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
         "{metrics}"
     );
     // Charged, but not yet above the second threshold: still out.
-    *battery_mv.lock().unwrap() = 11_600;
+    controller.set(11_600);
     std::thread::sleep(Duration::from_secs(2));
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
     assert_eq!(overview["lab"]["maintenance"]["by"], "self-test", "{overview:#}");
     // Charged above it: back in service by itself, and the queue goes on.
-    *battery_mv.lock().unwrap() = 12_600;
+    controller.set(12_600);
     let deadline = Instant::now() + Duration::from_secs(30);
     while lab.experiment(&ana, third)["awaiting_reset"] != true {
         let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
@@ -2076,7 +2102,7 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
             .output()
             .unwrap()
     };
-    *battery_mv.lock().unwrap() = 10_400;
+    controller.set(10_400);
     std::thread::sleep(Duration::from_millis(300));
     let failed = selftest("boss");
     let said = String::from_utf8_lossy(&failed.stdout);
@@ -2085,7 +2111,7 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     assert!(said.contains("ok   feedback: link 'motors'"), "{said}");
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
     assert_eq!(overview["lab"]["maintenance"]["by"], "self-test", "{overview:#}");
-    *battery_mv.lock().unwrap() = 11_500;
+    controller.set(11_500);
     std::thread::sleep(Duration::from_millis(300));
     let passed = selftest("boss");
     let said = String::from_utf8_lossy(&passed.stdout);
@@ -2101,8 +2127,7 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
     let refused = selftest("ana");
     assert!(!refused.status.success());
     assert!(String::from_utf8_lossy(&refused.stderr).contains("may not run the self-test"), "{refused:?}");
-    going.store(false, Ordering::Relaxed);
-    controller.join().unwrap();
+    controller.stop();
 }
 
 /// Issue 40: a real robot whose motor controller (a pseudo-terminal
@@ -2114,63 +2139,20 @@ fn a_self_test_after_each_run_takes_a_robot_whose_battery_ran_down_out_of_servic
 /// settings need nothing for it: the check is on by default.
 #[test]
 fn a_motor_controller_reporting_a_fault_fails_the_self_test_and_puts_the_robot_in_maintenance() {
-    use std::sync::{Arc, Mutex, atomic::AtomicBool, atomic::Ordering};
     let dir = tempfile::tempdir().unwrap();
-    let (mut motors, _slave, device) = crate::support::MotorRecorder::new();
+    let (motors, _slave, device) = crate::support::MotorRecorder::new();
     let real = |goal_x: f64| real_robot(goal_x, &device);
-    std::fs::write(dir.path().join("robot.xml"), real(8.0)).unwrap();
-    let store = dir.path().join("store");
-    crate::support::add_user(&store, "boss", "admin", &[], PASSWORD);
-    crate::support::add_user(&store, "ana", "researcher", &["control"], PASSWORD);
-    // The controller: feedback every 50 ms, with the fault the test sets.
-    let fault = Arc::new(Mutex::new(String::new()));
-    let going = Arc::new(AtomicBool::new(true));
-    let controller = {
-        let (fault, going) = (fault.clone(), going.clone());
-        std::thread::spawn(move || {
-            let mut sent = Instant::now();
-            while going.load(Ordering::Relaxed) {
-                motors.read();
-                if sent.elapsed() >= Duration::from_millis(50) {
-                    let fault = fault.lock().unwrap().clone();
-                    motors.write(
-                        format!("O 1000 1000 0\nR 3000 3000 3000 3000 3000 3000 3000 3000 3000\nP 12400\nF {fault}\n")
-                            .as_bytes(),
-                    );
-                    sent = Instant::now();
-                }
-            }
-        })
-    };
-    let lab = start(dir.path());
-    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
-    let (status, json) = lab.call(&boss, "PUT", "/api/v1/worlds/arena.world", WORLD);
-    assert_eq!(status, 201, "{json}");
-    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
-    let mut settings = overview["lab"]["settings"].clone();
-    settings["preflight_world"] = Json::String("arena.world".into());
-    settings["reset"] = Json::String("manual".into());
+    // The controller's fault, as the test sets it (none: an empty F line).
+    let controller = PlayedController::start(motors, String::new(), |fault| format!("P 12400\nF {fault}\n"));
+    let (lab, ana, boss, mut settings) = lab_on_a_played_robot(dir.path(), &real(8.0));
     settings["self_test"] = serde_json::json!({"window_ms": 1000, "min_battery_v": 11.0, "resume_battery_v": 12.2});
     let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
     assert_eq!(status, 200, "{json}");
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
     assert_eq!(overview["lab"]["settings"]["self_test"]["controller_faults"], true, "on by default: {overview:#}");
     let set = lab.stage(&ana, "ana.xml", &real(7.0));
-    let submit = || {
-        let body = serde_json::json!({ "set": set, "duration_s": 2 }).to_string();
-        let (status, json) = lab.call(&ana, "POST", "/api/v1/experiments", &body);
-        assert_eq!(status, 201, "{json}");
-        json["experiment"]["id"].as_u64().unwrap()
-    };
-    let reset = |id: u64| {
-        let deadline = Instant::now() + Duration::from_secs(120);
-        while lab.experiment(&ana, id)["awaiting_reset"] != true {
-            assert!(Instant::now() < deadline, "never waited for the reset");
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/reset", "");
-        assert_eq!(status, 200, "{json}");
-    };
+    let submit = || lab.submit(&ana, set, 2.0);
+    let reset = |id: u64| lab.reset_when_awaited(&ana, &boss, id);
     // A healthy controller: the check passes, saying the link reads no fault.
     let first = submit();
     reset(first);
@@ -2186,7 +2168,7 @@ fn a_motor_controller_reporting_a_fault_fails_the_self_test_and_puts_the_robot_i
     // `done`; the self-test after it fails, and the robot is out of service.
     let second = submit();
     reset(second);
-    *fault.lock().unwrap() = "m1 over current warning".into();
+    controller.set("m1 over current warning".into());
     assert_eq!(lab.wait_for(&ana, second, "done", Duration::from_secs(120))["state"], "done");
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
     let tests = overview["lab"]["self_tests"].as_array().unwrap();
@@ -2206,13 +2188,12 @@ fn a_motor_controller_reporting_a_fault_fails_the_self_test_and_puts_the_robot_i
     // (queued once its preflight passed: on a busy machine that takes more
     // than the 2 s below)
     assert_eq!(lab.wait_for(&ana, third, "queued", Duration::from_secs(120))["state"], "queued");
-    *fault.lock().unwrap() = String::new();
+    controller.set(String::new());
     std::thread::sleep(Duration::from_secs(2));
     assert_eq!(lab.experiment(&ana, third)["state"], "queued");
     let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
     assert!(overview["lab"]["held"].as_str().unwrap_or_default().contains("maintenance"), "{overview:#}");
-    going.store(false, Ordering::Relaxed);
-    controller.join().unwrap();
+    controller.stop();
 }
 
 /// Many at once: six researchers change their own mail subscriptions
