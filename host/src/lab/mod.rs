@@ -52,6 +52,8 @@ pub mod preflight;
 pub mod queue;
 mod reservations;
 pub mod reset;
+mod robot_dispatch;
+mod robot_files;
 pub mod robot_link;
 mod robots;
 pub mod router_config;

@@ -28,9 +28,12 @@
 //! which must not wait behind one nor behind junk on other keys; files),
 //! and one that keeps the token, the status, the refusals' audit and the
 //! lost-lab watch.
+//!
+//! Beside it: `robot_dispatch.rs` takes a dispatch (checks, sources,
+//! queueing, the wait for its start); `robot_files.rs` makes what the robot
+//! sends (its baseline's package, files by chunk, an experiment's results).
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
@@ -38,24 +41,21 @@ use std::time::{Duration, Instant};
 use thiserror::Error;
 use zenoh::Wait;
 
-use super::materialize::{self, NamedContent};
-use super::transfer::{self, Asker, Gate, TransferError};
+use super::materialize::NamedContent;
+use super::transfer::{self, Gate, TransferError};
 use super::wire::{
-    self, Ack, Answered, Baseline, BaselineRequest, BlobRef, Dispatch, DispatchOutcome, DispatchReply, Estop,
-    FileRequest, FileSource, Heartbeat, Keys, LabKey, Live, LiveRequest, Op, Profile, RefusalTally, Request,
-    ResultsRequest, RobotState, SetManifest, Status, Stop, TokenBody, WIRE_VERSION,
+    self, Ack, Answered, Baseline, BaselineRequest, Dispatch, DispatchReply, Estop, FileRequest, Heartbeat, Keys,
+    LabKey, Live, LiveRequest, Op, Profile, RefusalTally, Request, ResultsRequest, RobotState, Status, Stop, TokenBody,
+    WIRE_VERSION,
 };
-use super::{Lab, LabError, bundle};
+use super::{Lab, LabError};
 use crate::bridge::session::{self, SessionSettings, Shared};
-use crate::deploy::SetImport;
 use crate::fsutil::HiddenPaths;
 use crate::runtime::Locks;
 use crate::runtime::locks::unix_now_ms;
-use crate::store::experiments::{
-    AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, NewExperiment, Origin,
-};
+use crate::store::Outcome;
+use crate::store::experiments::{ExperimentRecord, ExperimentState};
 use crate::store::users::{Principal, Role};
-use crate::store::{Outcome, SetRecord};
 
 /// How long a robot runs the lab's experiment without hearing its lab
 /// before it aborts it on its own, by default.
@@ -119,48 +119,48 @@ pub struct RobotLinkOptions {
 
 /// The robot's baseline as its lab server gets it.
 #[derive(Clone, Debug)]
-struct Package {
-    set: u64,
-    message: Baseline,
-    profile: Profile,
+pub(super) struct Package {
+    pub(super) set: u64,
+    pub(super) message: Baseline,
+    pub(super) profile: Profile,
     /// Where each named file's bytes are here.
-    files: BTreeMap<String, NamedContent>,
+    pub(super) files: BTreeMap<String, NamedContent>,
 }
 
 /// The robot's side of its lab.
 pub struct RobotLink {
-    lab: Arc<Lab>,
-    options: RobotLinkOptions,
-    keys: Keys,
-    shared: Arc<Shared>,
-    boot_ms: u64,
+    pub(super) lab: Arc<Lab>,
+    pub(super) options: RobotLinkOptions,
+    pub(super) keys: Keys,
+    pub(super) shared: Arc<Shared>,
+    pub(super) boot_ms: u64,
     /// When the lab was last heard (a heartbeat or a dispatch).
-    heard: Mutex<Option<Instant>>,
+    pub(super) heard: Mutex<Option<Instant>>,
     /// The newest heartbeat's time: an older one (replayed) is not heard.
-    last_beat_ms: AtomicU64,
+    pub(super) last_beat_ms: AtomicU64,
     /// Lab messages refused, by class, and their audit.
-    refusals: Arc<Mutex<RefusalTally>>,
+    pub(super) refusals: Arc<Mutex<RefusalTally>>,
     /// Replies this robot skipped when it asked its lab server (blobs).
-    skipped: AtomicU64,
-    package: Mutex<Option<Package>>,
+    pub(super) skipped: AtomicU64,
+    pub(super) package: Mutex<Option<Package>>,
     /// Lab experiments withdrawn before they came (oldest first), with the
     /// withdrawal's issue time: a dispatch of it issued before that is
     /// refused; a new dispatch of it, issued after, is taken.
-    withdrawn: Mutex<std::collections::VecDeque<(u64, u64)>>,
-    stopping: Arc<AtomicBool>,
-    threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
-    _heartbeats: Mutex<Option<zenoh::pubsub::Subscriber<()>>>,
+    pub(super) withdrawn: Mutex<std::collections::VecDeque<(u64, u64)>>,
+    pub(super) stopping: Arc<AtomicBool>,
+    pub(super) threads: Mutex<Vec<std::thread::JoinHandle<()>>>,
+    pub(super) _heartbeats: Mutex<Option<zenoh::pubsub::Subscriber<()>>>,
     /// The robot's folders its live status must not spell out to the lab
     /// (its portal hides the same).
-    hidden: HiddenPaths,
+    pub(super) hidden: HiddenPaths,
 }
 
-fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+pub(super) fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
     mutex.lock().unwrap_or_else(std::sync::PoisonError::into_inner)
 }
 
 /// The lab's name on this robot's records.
-fn lab_user(options: &RobotLinkOptions, submitter: &str) -> String {
+pub(super) fn lab_user(options: &RobotLinkOptions, submitter: &str) -> String {
     format!("{submitter}@{}", options.key.lab())
 }
 
@@ -308,48 +308,12 @@ impl RobotLink {
         *lock(&self._heartbeats) = None;
     }
 
-    fn heard_lab(&self) {
+    pub(super) fn heard_lab(&self) {
         *lock(&self.heard) = Some(Instant::now());
     }
 
-    fn refresh_package(&self) -> Result<(), LinkError> {
-        let baseline = {
-            let book = self.lab.lock()?;
-            self.lab.baseline(&book.lab)
-        };
-        if lock(&self.package).as_ref().is_some_and(|p| p.set == baseline) {
-            return Ok(());
-        }
-        let package = package(&self.lab, baseline)?;
-        tracing::info!("robot '{}': profile {} (baseline set {baseline})", self.options.robot, package.profile.id);
-        *lock(&self.package) = Some(package);
-        Ok(())
-    }
-
-    /// A chunk of a file the lab asks for.
-    fn file(&self, request: &FileRequest, re: Answered) -> Vec<u8> {
-        let key = &self.options.key;
-        if let FileSource::Named { path } = &request.source
-            && let Some(NamedContent::StandIn(bytes)) =
-                lock(&self.package).as_ref().and_then(|p| p.files.get(path)).cloned()
-        {
-            return transfer::chunk_of_bytes(key, re, &bytes, request);
-        }
-        let path = self.file_path(&request.source);
-        transfer::chunk_of(key, re, path.as_deref(), request)
-    }
-
-    /// The robot's baseline, as its lab server gets it.
-    fn baseline(&self, re: Answered) -> Vec<u8> {
-        let _ = self.refresh_package();
-        match lock(&self.package).as_ref() {
-            Some(package) => self.options.key.seal(&Baseline { re, ..package.message.clone() }, &[]),
-            None => self.options.key.seal(&Ack { v: WIRE_VERSION, re, ok: false, message: "no baseline".into() }, &[]),
-        }
-    }
-
     /// The robot's state as its token says it.
-    fn state(&self) -> (RobotState, Option<(u64, u64)>) {
+    pub(super) fn state(&self) -> (RobotState, Option<(u64, u64)>) {
         let Ok(book) = self.lab.lock() else { return (RobotState::Maintenance, None) };
         if let Some(running) = &book.running
             && let Some(origin) = book.experiments.get(&running.id).and_then(|r| r.origin.as_ref())
@@ -478,211 +442,6 @@ impl RobotLink {
         self.lab.notify();
     }
 
-    /// Takes the lab's experiment, checks it again, runs it through this
-    /// host's lab, and says how it went (or why not).
-    fn dispatch(&self, dispatch: &Dispatch) -> DispatchOutcome {
-        let target = format!("lab experiment {}", dispatch.lab_id);
-        // Admitted (signed, for this robot, fresh, new): the lab is heard.
-        self.heard_lab();
-        let outcome = self.take(dispatch).and_then(|id| self.wait_start(id, dispatch.start_by_unix_ms));
-        let outcome = match outcome {
-            Ok(outcome) => outcome,
-            Err(reasons) => DispatchOutcome::Refused { reasons },
-        };
-        let (text, result) = match &outcome {
-            DispatchOutcome::Started { local_id, .. } => (format!("runs as experiment {local_id}"), true),
-            DispatchOutcome::Refused { reasons } => (reasons.join("; "), false),
-        };
-        let outcome_line = if result { Outcome::Ok(&text) } else { Outcome::Refused(&text) };
-        self.lab.deployer.audit(&lab_user(&self.options, &dispatch.submitter), "lab-dispatch", &target, outcome_line);
-        outcome
-    }
-
-    /// Checks and queues `dispatch` here: the local experiment's id.
-    fn take(&self, dispatch: &Dispatch) -> Result<u64, Vec<String>> {
-        let lab_name = self.options.key.lab().to_string();
-        if let Some(id) = self.lab.lock().ok().and_then(|b| local_id(&b.experiments, &lab_name, dispatch.lab_id)) {
-            return Ok(id);
-        }
-        if withdrawn_before(&lock(&self.withdrawn), dispatch.lab_id, dispatch.to.issued_unix_ms) {
-            return Err(vec!["its lab withdrew this dispatch of it before it came here".into()]);
-        }
-        late(dispatch.start_by_unix_ms, unix_now_ms()).map_err(|why| vec![why])?;
-        self.busy(dispatch.duration_s).map_err(|why| vec![why])?;
-        let baseline_dir = lock(&self.package)
-            .as_ref()
-            .and_then(|p| self.lab.store().set(p.set).ok())
-            .map(|s| s.base_dir)
-            .ok_or_else(|| vec!["the robot has no baseline".to_string()])?;
-        self.fetch_sources(&dispatch.set).map_err(|e| vec![format!("the set's files did not come: {e}")])?;
-        let sources: BTreeMap<String, String> =
-            dispatch.set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();
-        let by = lab_user(&self.options, &dispatch.submitter);
-        let import = SetImport {
-            by: &by,
-            config_name: &dispatch.set.config_name,
-            config_text: &dispatch.set.config_text,
-            platform: dispatch.set.platform.as_deref(),
-            sources: &sources,
-            base_dir: &baseline_dir,
-        };
-        let set = self.lab.deployer.import_set(&import).map_err(|e| check_reasons(e.into()))?;
-        let user =
-            Principal { name: dispatch.submitter.clone(), role: dispatch.role, platforms: dispatch.platforms.clone() };
-        let (baseline, settings) = {
-            let book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
-            (self.lab.baseline(&book.lab), book.lab.settings.clone())
-        };
-        let checked =
-            self.lab.deployer.check_experiment_set(&user, set.id, baseline).map_err(|e| check_reasons(e.into()))?;
-        self.queue(dispatch, &set, baseline, settings, checked.components)
-    }
-
-    /// Why this robot cannot take an experiment of `duration_s` now.
-    fn busy(&self, duration_s: f64) -> Result<(), String> {
-        let (state, _) = self.state();
-        match state {
-            RobotState::Idle => {}
-            RobotState::Running { experiment } => {
-                return Err(format!("busy: it runs the lab's experiment {experiment}"));
-            }
-            RobotState::Stopped { by } => return Err(format!("its emergency stop is engaged (by {by})")),
-            RobotState::Maintenance => {
-                return Err("it is in maintenance: its owner paused its queue or took it out of service".into());
-            }
-        }
-        let book = self.lab.lock().map_err(|e| e.to_string())?;
-        let other = book
-            .running
-            .as_ref()
-            .map(|r| r.id)
-            .or(book.starting)
-            .or_else(|| book.experiments.values().find(|r| r.state.is_waiting()).map(|r| r.id));
-        if let Some(other) = other.and_then(|id| book.experiments.get(&id)) {
-            return Err(format!("busy: its experiment {} is {}", other.id, other.state.name()));
-        }
-        let max = book.lab.settings.max_duration_s;
-        if duration_s > max {
-            return Err(format!("its duration of {duration_s} s is over this robot's max-duration of {max} s"));
-        }
-        Ok(())
-    }
-
-    /// Fetches the blobs of `set` this robot does not hold yet from the
-    /// lab server, each checked by its sha256.
-    fn fetch_sources(&self, set: &SetManifest) -> Result<(), TransferError> {
-        let store = self.lab.store();
-        for blob in set.sources.values() {
-            if store.blob_path(&blob.sha256).is_file() {
-                continue;
-            }
-            let source = FileSource::Blob { sha256: blob.sha256.clone() };
-            let asker = Asker { shared: &self.shared, key: &self.options.key, skipped: &self.skipped };
-            let at = (self.keys.blobs(), wire::SERVER_TARGET);
-            let bytes = transfer::fetch_blob(asker, (&at.0, at.1), &source, blob)?;
-            let writer = store.lock().map_err(|e| TransferError::Missing(e.to_string()))?;
-            writer.put_blob(&bytes).map_err(|e| TransferError::Missing(e.to_string()))?;
-        }
-        Ok(())
-    }
-
-    /// Queues the checked experiment in this host's lab, as the lab's.
-    fn queue(
-        &self,
-        dispatch: &Dispatch,
-        set: &SetRecord,
-        baseline: u64,
-        settings: crate::store::experiments::LabSettings,
-        components: Vec<(String, String, Option<String>)>,
-    ) -> Result<u64, Vec<String>> {
-        // Checked again after the checks: nothing else came in meanwhile
-        // (this thread is the only one that queues here).
-        self.busy(dispatch.duration_s).map_err(|why| vec![why])?;
-        let mut book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
-        let now = unix_now_ms();
-        let new = NewExperiment {
-            submitter: dispatch.submitter.clone(),
-            set: set.id,
-            label: dispatch.label.clone(),
-            duration_s: dispatch.duration_s,
-            submitted_ms: now,
-            settings: AppliedSettings::of(&settings, baseline),
-            components: components
-                .into_iter()
-                .map(|(name, source, sha256)| ComponentHash { name, source, sha256 })
-                .collect(),
-        };
-        let cause = format!(
-            "dispatched by lab '{}' as its experiment {} (its preflight ran there); checked again here",
-            self.options.key.lab(),
-            dispatch.lab_id
-        );
-        let mut record = ExperimentRecord::new(new, ExperimentState::Queued, &cause);
-        record.origin = Some(Origin {
-            lab: self.options.key.lab().to_string(),
-            id: dispatch.lab_id,
-            role: dispatch.role,
-            platforms: dispatch.platforms.clone(),
-            start_by_unix_ms: dispatch.start_by_unix_ms,
-        });
-        let stored = self.lab.store().lock().and_then(|writer| writer.add_experiment(&mut book.lab, record));
-        let record = stored.map_err(|e| vec![format!("failed: {e}")])?;
-        let id = record.id;
-        book.experiments.insert(id, record);
-        drop(book);
-        tracing::info!("lab experiment {} by {} queued here as experiment {id}", dispatch.lab_id, dispatch.submitter);
-        self.lab.notify();
-        Ok(id)
-    }
-
-    /// Waits (at most [`START_WAIT`], and never past the lab's start-by
-    /// time) for local experiment `id` to run. One that has not started
-    /// by then is cancelled here: the lab gets a refusal, or nothing, and
-    /// it must never start later behind the lab's back.
-    fn wait_start(&self, id: u64, start_by_unix_ms: Option<u64>) -> Result<DispatchOutcome, Vec<String>> {
-        let wait = match start_by_unix_ms {
-            Some(start_by) => START_WAIT.min(Duration::from_millis(start_by.saturating_sub(unix_now_ms()))),
-            None => START_WAIT,
-        };
-        let book = self.lab.lock().map_err(|e| vec![e.to_string()])?;
-        let (mut book, _) = self
-            .lab
-            .changed
-            .wait_timeout_while(book, wait, |b| {
-                b.running.as_ref().is_none_or(|r| r.id != id)
-                    && b.experiments.get(&id).is_some_and(|r| !r.state.is_final())
-            })
-            .map_err(|_| vec!["the lab's state is unusable".to_string()])?;
-        if let Some(running) = book.running.as_ref().filter(|r| r.id == id) {
-            return Ok(DispatchOutcome::Started {
-                local_id: id,
-                started_unix_ms: running.started_unix_ms,
-                ends_unix_ms: running.ends_unix_ms,
-            });
-        }
-        match book.experiments.get(&id) {
-            Some(record) if record.state.is_final() => {
-                let mut reasons = record.reasons.clone();
-                if reasons.is_empty() {
-                    reasons.push(format!("it ended here as {}", record.state.name()));
-                }
-                Err(reasons)
-            }
-            Some(record) if record.state == ExperimentState::Queued && book.starting != Some(id) => {
-                let why = format!("it did not start here within {:.1} s", wait.as_secs_f64());
-                let cause = format!("cancelled: {why}, and its lab stops waiting for it");
-                if let Err(e) =
-                    self.lab.transition(&mut book, id, ExperimentState::Cancelled, &cause, vec![cause.clone()])
-                {
-                    return Err(vec![why, e.to_string()]);
-                }
-                Err(vec![why])
-            }
-            // Starting this instant: the lab learns it from the token.
-            _ => Err(vec![format!("it did not start here within {:.1} s", wait.as_secs_f64())]),
-        }
-    }
-
     fn stop(&self, stop: &Stop, re: Answered) -> Ack {
         let ack = |ok, message: String| Ack { v: WIRE_VERSION, re: re.clone(), ok, message };
         self.heard_lab();
@@ -744,97 +503,6 @@ impl RobotLink {
         }
     }
 
-    fn results(&self, lab_id: u64, re: Answered) -> wire::Results {
-        let empty = wire::Results {
-            v: WIRE_VERSION,
-            re: re.clone(),
-            lab_id,
-            found: false,
-            state: None,
-            history: Vec::new(),
-            reasons: Vec::new(),
-            run: None,
-            files: Vec::new(),
-        };
-        let Ok(book) = self.lab.lock() else { return empty };
-        let Some(record) = local_id(&book.experiments, self.options.key.lab(), lab_id)
-            .and_then(|id| book.experiments.get(&id))
-            .cloned()
-        else {
-            return empty;
-        };
-        drop(book);
-        let dir = self.lab.store().experiment_dir(record.id);
-        if record.state.is_final() {
-            // Its text leaves this machine: this robot's folders named,
-            // never spelled out (the lab server hides only its own).
-            for name in [bundle::REPORT, bundle::LOG] {
-                if record.results.iter().any(|f| f.name == name)
-                    && let Err(e) = bundle::hide_in_place(&dir.join(name), &self.hidden)
-                {
-                    tracing::warn!(
-                        "experiment {}: its {name} could not have this robot's folders hidden: {e}",
-                        record.id
-                    );
-                }
-            }
-        }
-        let files = if record.state.is_final() {
-            record
-                .results
-                .iter()
-                .filter(|f| sent_to_lab(&f.name))
-                .filter_map(|f| {
-                    let digest = transfer::digest_file(&dir.join(&f.name)).ok()?;
-                    Some(wire::FileRef { name: f.name.clone(), bytes: digest.bytes, sha256: digest.sha256 })
-                })
-                .take(wire::MAX_RESULT_FILES)
-                .collect()
-        } else {
-            Vec::new()
-        };
-        let skip = record.history.len().saturating_sub(wire::MAX_REASONS);
-        wire::Results {
-            v: WIRE_VERSION,
-            re,
-            lab_id,
-            found: true,
-            state: Some(record.state),
-            history: record.history.into_iter().skip(skip).collect(),
-            reasons: record.reasons.into_iter().take(wire::MAX_REASONS).collect(),
-            run: record.run,
-            files,
-        }
-    }
-
-    /// Where the file a request names is, if it may be given.
-    fn file_path(&self, source: &FileSource) -> Option<PathBuf> {
-        match source {
-            FileSource::Result { lab_id, name } => {
-                let book = self.lab.lock().ok()?;
-                let id = local_id(&book.experiments, self.options.key.lab(), *lab_id)?;
-                let record = book.experiments.get(&id)?;
-                record.results.iter().any(|f| f.name == *name).then(|| self.lab.store().experiment_dir(id).join(name))
-            }
-            FileSource::Blob { sha256 } => {
-                let package = lock(&self.package);
-                package
-                    .as_ref()?
-                    .message
-                    .set
-                    .sources
-                    .values()
-                    .any(|b| b.sha256 == *sha256)
-                    .then(|| self.lab.store().blob_path(sha256))
-            }
-            FileSource::Named { path } => match lock(&self.package).as_ref()?.files.get(path)? {
-                NamedContent::File(file) => Some(file.clone()),
-                NamedContent::Blob(sha) => Some(self.lab.store().blob_path(sha)),
-                NamedContent::StandIn(_) => None,
-            },
-        }
-    }
-
     /// The live status of this robot (its portal's `/api/v1/status`): the
     /// next one the control loop publishes, or the last within a second.
     fn live_status(&self) -> serde_json::Value {
@@ -855,29 +523,8 @@ impl RobotLink {
 }
 
 /// The local id of lab `lab`'s experiment `lab_id`, if it came here.
-fn local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str, lab_id: u64) -> Option<u64> {
+pub(super) fn local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str, lab_id: u64) -> Option<u64> {
     experiments.values().rev().find(|r| r.origin.as_ref().is_some_and(|o| o.lab == lab && o.id == lab_id)).map(|r| r.id)
-}
-
-/// Whether a result file of a lab's experiment goes back to the lab: what
-/// the run left here (recordings, report, log, videos, the self-test after
-/// it). The robot file and its files are the lab server's own.
-fn sent_to_lab(name: &str) -> bool {
-    name.ends_with(".mcap")
-        || [bundle::REPORT, bundle::LOG, bundle::VIDEO_NOTE, super::selftest::SELF_TEST_FILE].contains(&name)
-        || crate::record::video::is_video_name(name)
-}
-
-/// Why a dispatch that must start by `start_by_unix_ms` is not taken at
-/// `now_ms` (it came after its lab stopped waiting).
-fn late(start_by_unix_ms: Option<u64>, now_ms: u64) -> Result<(), String> {
-    match start_by_unix_ms {
-        Some(start_by) if now_ms >= start_by => Err(format!(
-            "it came {:.1} s after its lab stopped waiting for the answer",
-            (now_ms - start_by) as f64 / 1000.0
-        )),
-        _ => Ok(()),
-    }
 }
 
 /// Remembers lab experiment `lab_id` as withdrawn by a withdrawal issued
@@ -895,100 +542,17 @@ fn remember_withdrawn(withdrawn: &mut std::collections::VecDeque<(u64, u64)>, la
 
 /// Whether a dispatch of lab experiment `lab_id` issued at `issued_ms` was
 /// withdrawn (by a withdrawal issued after it, on the same lab clock).
-fn withdrawn_before(withdrawn: &std::collections::VecDeque<(u64, u64)>, lab_id: u64, issued_ms: u64) -> bool {
+pub(super) fn withdrawn_before(
+    withdrawn: &std::collections::VecDeque<(u64, u64)>,
+    lab_id: u64,
+    issued_ms: u64,
+) -> bool {
     withdrawn.iter().any(|(id, at)| *id == lab_id && issued_ms <= *at)
-}
-
-/// A check's refusal as the reasons a dispatch answer carries.
-fn check_reasons(e: LabError) -> Vec<String> {
-    match e {
-        LabError::Invalid(diagnostics) => diagnostics.0.iter().map(|d| format!("check: {d}")).collect(),
-        other => vec![format!("check: {other}")],
-    }
-}
-
-/// The robot's baseline (set `set`) as its lab server gets it, with its
-/// profile.
-fn package(lab: &Lab, set: u64) -> Result<Package, LinkError> {
-    let store = lab.store();
-    let record = store.set(set).map_err(|e| LinkError::Baseline(e.to_string()))?;
-    let text = store.blob(&record.config_sha256).map_err(|e| LinkError::Baseline(e.to_string()))?;
-    let config_text = String::from_utf8(text).map_err(|e| LinkError::Baseline(e.to_string()))?;
-    let mut sources = BTreeMap::new();
-    for (key, sha) in &record.sources {
-        let bytes = std::fs::metadata(store.blob_path(sha)).map(|m| m.len()).unwrap_or(0);
-        sources.insert(key.clone(), BlobRef { sha256: sha.clone(), bytes });
-    }
-    let named = materialize::named_files(store, &record).map_err(|e| LinkError::Baseline(e.to_string()))?;
-    let mut files = BTreeMap::new();
-    let mut contents = BTreeMap::new();
-    let (mut worlds, mut translators) = (Vec::new(), Vec::new());
-    for file in named {
-        if wire::named_path_ok(&file.path).is_err() {
-            continue;
-        }
-        if crate::assemble::registry::find(&file.kind).and_then(|b| b.world_param()) == Some(file.param) {
-            worlds.extend(std::path::Path::new(&file.path).file_name().map(|n| n.to_string_lossy().into_owned()));
-        }
-        let blob = match &file.content {
-            NamedContent::Blob(_) => continue,
-            NamedContent::File(path) => {
-                transfer::digest_file(path).map_err(|e| LinkError::Baseline(format!("{}: {e}", path.display())))?
-            }
-            NamedContent::StandIn(bytes) => {
-                BlobRef { sha256: crate::store::sha256_hex(bytes), bytes: bytes.len() as u64 }
-            }
-        };
-        files.insert(file.path.clone(), blob);
-        contents.insert(file.path, file.content);
-    }
-    // Uploaded worlds and translators the robot holds count too.
-    if let Ok(stored) = store.worlds() {
-        worlds.extend(stored.into_keys());
-    }
-    // A serial link's translator: a built-in profile's name, or a WASM
-    // translator's file name.
-    if let Ok((_, config)) = lab.deployer.active() {
-        for param in config.components.iter().flat_map(|c| c.params.iter()).filter(|p| p.name == "translator") {
-            let value = param.value.trim();
-            let name = std::path::Path::new(value).file_name().map(|n| n.to_string_lossy().into_owned());
-            translators.extend(name.filter(|n| !n.is_empty()));
-        }
-    }
-    let set_manifest = SetManifest {
-        config_name: record.config_name.clone(),
-        config_text,
-        platform: record.platform.clone(),
-        sources,
-    };
-    let canonical = serde_json::json!({
-        "config": record.config_sha256,
-        "sources": set_manifest.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect::<BTreeMap<_, _>>(),
-        "files": files.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect::<BTreeMap<_, _>>(),
-    });
-    let hash = crate::store::sha256_hex(canonical.to_string().as_bytes());
-    let profile = Profile::new(hash.clone(), worlds, translators);
-    // Its binding is the request's, set as each is answered.
-    let re = Answered { robot: String::new(), nonce: String::new() };
-    let message = Baseline { v: WIRE_VERSION, re, hash, set: set_manifest, files };
-    Ok(Package { set, message, profile, files: contents })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn a_dispatch_is_late_from_its_start_by_time_on() {
-        // (start-by, now, late)
-        let cases =
-            [(None, 5_000, false), (Some(5_000), 4_999, false), (Some(5_000), 5_000, true), (Some(5_000), 9_000, true)];
-        for (start_by, now, expected) in cases {
-            let said = late(start_by, now);
-            assert_eq!(said.is_err(), expected, "{start_by:?} at {now}: {said:?}");
-        }
-        assert_eq!(late(Some(5_000), 6_500).unwrap_err(), "it came 1.5 s after its lab stopped waiting for the answer");
-    }
 
     #[test]
     fn a_withdrawal_refuses_the_dispatches_issued_before_it_and_takes_later_ones() {
