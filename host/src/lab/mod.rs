@@ -75,7 +75,7 @@ pub use self::visibility::{live_status_for, sees_experiments_of};
 pub use crate::notify::mail::Subscription as MailSubscription;
 
 use std::collections::{BTreeMap, BTreeSet};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::Duration;
@@ -84,11 +84,11 @@ use thiserror::Error;
 
 use self::preflight::PreflightCommand;
 use self::visibility::visible;
-use crate::deploy::{DeployError, Deployer, Diagnostics};
+use crate::deploy::{DeployError, Deployer, Diagnostics, SetImport};
 use crate::notify::{self, ExperimentFacts, Notifier};
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentRecord, ExperimentState, IllegalTransition, LabState};
-use crate::store::{Outcome, Store, StoreError};
+use crate::store::{Outcome, SetRecord, Store, StoreError};
 
 /// Shortest experiment, seconds: a run must last long enough to record.
 pub const MIN_DURATION_S: f64 = 1.0;
@@ -243,6 +243,22 @@ fn seconds_until(at_ms: u64, now_ms: u64) -> u64 {
 }
 
 impl Lab {
+    /// Stores a set a lab sent (a dispatch's, or a robot's baseline) as one
+    /// of this host's sets, recorded as made `by`; the files its built-ins
+    /// name are in `base_dir`.
+    fn import_manifest(&self, set: &wire::SetManifest, by: &str, base_dir: &Path) -> Result<SetRecord, DeployError> {
+        let sources: BTreeMap<String, String> =
+            set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();
+        self.deployer.import_set(&SetImport {
+            by,
+            config_name: &set.config_name,
+            config_text: &set.config_text,
+            platform: set.platform.as_deref(),
+            sources: &sources,
+            base_dir,
+        })
+    }
+
     /// The lab of `deployer`'s host: reads the experiments back (those the
     /// host stopped during are aborted, those in their checks are checked
     /// again) and starts its threads.

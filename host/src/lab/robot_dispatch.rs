@@ -5,14 +5,12 @@
 //! queued in this host's own lab as one of its own, and the answer waits
 //! (up to [`super::robot_link::START_WAIT`]) for it to start.
 
-use std::collections::BTreeMap;
 use std::time::Duration;
 
 use super::LabError;
 use super::robot_link::{RobotLink, START_WAIT, lab_user, local_id, lock, withdrawn_before};
 use super::transfer::{self, Asker, TransferError};
 use super::wire::{self, Dispatch, DispatchOutcome, FileSource, RobotState, SetManifest};
-use crate::deploy::SetImport;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{
     AppliedSettings, ComponentHash, ExperimentRecord, ExperimentState, NewExperiment, Origin,
@@ -58,18 +56,8 @@ impl RobotLink {
             .map(|s| s.base_dir)
             .ok_or_else(|| vec!["the robot has no baseline".to_string()])?;
         self.fetch_sources(&dispatch.set).map_err(|e| vec![format!("the set's files did not come: {e}")])?;
-        let sources: BTreeMap<String, String> =
-            dispatch.set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();
         let by = lab_user(&self.options, &dispatch.submitter);
-        let import = SetImport {
-            by: &by,
-            config_name: &dispatch.set.config_name,
-            config_text: &dispatch.set.config_text,
-            platform: dispatch.set.platform.as_deref(),
-            sources: &sources,
-            base_dir: &baseline_dir,
-        };
-        let set = self.lab.deployer.import_set(&import).map_err(|e| check_reasons(e.into()))?;
+        let set = self.lab.import_manifest(&dispatch.set, &by, &baseline_dir).map_err(|e| check_reasons(e.into()))?;
         let user =
             Principal { name: dispatch.submitter.clone(), role: dispatch.role, platforms: dispatch.platforms.clone() };
         let (baseline, settings) = {

@@ -52,7 +52,7 @@ use super::wire::{
 };
 use super::{Book, Lab, LabError, bundle};
 use crate::bridge::session::{self, SessionSettings, Shared};
-use crate::deploy::{SetImport, utc_time};
+use crate::deploy::utc_time;
 use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{ExperimentState, Target};
 use crate::store::users::Principal;
@@ -1286,18 +1286,8 @@ fn import_baseline(lab: &Lab, fleet: &Fleet, robot: &str) -> Result<u64, String>
         let source = FileSource::Named { path: path.clone() };
         transfer::fetch_file(fleet.asker(), (&file_key, robot), &source, blob, &dest).map_err(|e| e.to_string())?;
     }
-    let sources: BTreeMap<String, String> =
-        baseline.set.sources.iter().map(|(k, b)| (k.clone(), b.sha256.clone())).collect();
     let by = format!("robot:{robot}");
-    let import = SetImport {
-        by: &by,
-        config_name: &baseline.set.config_name,
-        config_text: &baseline.set.config_text,
-        platform: baseline.set.platform.as_deref(),
-        sources: &sources,
-        base_dir: &dir,
-    };
-    let set = lab.deployer.import_set(&import).map_err(|e| e.to_string())?;
+    let set = lab.import_manifest(&baseline.set, &by, &dir).map_err(|e| e.to_string())?;
     let mut book = lab.lock().map_err(|e| e.to_string())?;
     let mut state = book.lab.clone();
     state.baselines.insert(baseline.hash.clone(), set.id);
