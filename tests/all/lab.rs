@@ -289,8 +289,9 @@ impl Lab {
             }
             assert!(
                 Instant::now() < deadline,
-                "experiment {id} never reached {state}: {experiment:#}\n{}",
-                self.host.log()
+                "experiment {id} never reached {state}: {experiment:#}\n{}\n{}",
+                self.host.log(),
+                self.host.children()
             );
             std::thread::sleep(Duration::from_millis(50));
         }

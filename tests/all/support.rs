@@ -466,6 +466,57 @@ impl HostProcess {
     pub fn log(&self) -> String {
         self.log.0.lock().unwrap_or_else(|e| e.into_inner()).join("\n")
     }
+
+    /// The host's child processes as the kernel sees them (state, CPU
+    /// ticks, where each sleeps, its command line), and the last lines of
+    /// the log beside a child's `--report` (a preflight's `preflight.log`):
+    /// what a test that waited in vain for a child should print.
+    pub fn children(&self) -> String {
+        children_of(self.child.id())
+    }
+}
+
+/// [`HostProcess::children`] for any process.
+pub fn children_of(parent: u32) -> String {
+    let mut out = String::new();
+    let Ok(entries) = std::fs::read_dir("/proc") else { return "no /proc".into() };
+    for entry in entries.flatten() {
+        let Some(pid) = entry.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else { continue };
+        let Ok(stat) = std::fs::read_to_string(format!("/proc/{pid}/stat")) else { continue };
+        // After the command's closing parenthesis: state, ppid, ... utime
+        // (the 14th field) and stime (15th).
+        let Some((_, rest)) = stat.rsplit_once(") ") else { continue };
+        let fields: Vec<&str> = rest.split_whitespace().collect();
+        if fields.get(1).and_then(|p| p.parse::<u32>().ok()) != Some(parent) {
+            continue;
+        }
+        let ticks = |i: usize| fields.get(i).and_then(|t| t.parse::<u64>().ok()).unwrap_or(0);
+        let wchan = std::fs::read_to_string(format!("/proc/{pid}/wchan")).unwrap_or_default();
+        let cmdline = std::fs::read(format!("/proc/{pid}/cmdline")).unwrap_or_default();
+        let args: Vec<String> = cmdline
+            .split(|b| *b == 0)
+            .filter(|a| !a.is_empty())
+            .map(|a| String::from_utf8_lossy(a).into_owned())
+            .collect();
+        out += &format!(
+            "child {pid}: state {}, cpu ticks {} user {} system, waiting in '{wchan}', threads {}: {}\n",
+            fields[0],
+            ticks(11),
+            ticks(12),
+            fields.get(17).unwrap_or(&"?"),
+            args.join(" ")
+        );
+        let report = args.iter().position(|a| a == "--report").and_then(|i| args.get(i + 1));
+        if let Some(log) = report.and_then(|r| Path::new(r).parent()).map(|d| d.join("preflight.log")) {
+            let text = std::fs::read_to_string(&log).unwrap_or_else(|e| format!("({e})"));
+            let tail: Vec<&str> = text.lines().rev().take(20).collect();
+            out += &format!("  {} (last lines):\n", log.display());
+            for line in tail.iter().rev() {
+                out += &format!("  | {line}\n");
+            }
+        }
+    }
+    if out.is_empty() { format!("process {parent} has no children") } else { out }
 }
 
 impl Drop for HostProcess {
@@ -838,7 +889,13 @@ impl Terminal {
             if let Some(status) = self.child.try_wait().unwrap() {
                 return status;
             }
-            assert!(Instant::now() < deadline, "the client did not quit");
+            while let Ok(chunk) = self.screen.try_recv() {
+                self.seen.push_str(&chunk);
+            }
+            if Instant::now() >= deadline {
+                let tail: String = self.seen.chars().rev().take(600).collect::<Vec<_>>().into_iter().rev().collect();
+                panic!("the client did not quit; its screen ended with {tail:?}\n{}", children_of(self.child.id()));
+            }
             std::thread::sleep(Duration::from_millis(20));
         }
     }
