@@ -29,6 +29,7 @@ mod hostile;
 mod ipcam;
 mod lab;
 mod labnet;
+mod labserver_router;
 mod languages;
 mod memory;
 mod outputs;

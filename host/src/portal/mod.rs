@@ -241,7 +241,6 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/lab/pause", post(lab::pause))
         .route("/lab/resume", post(lab::resume))
         .route("/lab/kit", get(lab::kit))
-        .route("/lab/selftest", post(lab::run_self_test))
         .route("/tasks/{name}/leaderboard", get(lab::leaderboard))
         .route(
             "/lab/maintenance",
@@ -259,8 +258,8 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
 }
 
 /// The lab server's portal (`subsume lab serve`, docs/lab.md "Several
-/// robots"): the shared routes, its own page; no route that drives or
-/// activates, since it runs no robot.
+/// robots"): the shared routes, its own page; no route that drives,
+/// activates or tests a robot, since it runs none.
 pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
     let api = shared_api()
         .fallback(|| async {
@@ -298,6 +297,10 @@ pub fn app(state: Arc<PortalState>) -> axum::Router {
         .route("/recordings/stop", post(stop_recording))
         .route("/recordings/{name}", get(download_recording).delete(delete_recording))
         .route("/lab/reset", post(lab::confirm_reset))
+        // A robot's check of itself: a lab server has no robot to test
+        // (its self-test would fail for want of a live status and take the
+        // whole lab out of service); each robot tests itself.
+        .route("/lab/selftest", post(lab::run_self_test))
         .route("/lab/reservations", post(lab::book).layer(DefaultBodyLimit::max(MAX_JSON_BYTES)))
         .route("/lab/reservations/{id}", axum::routing::delete(lab::unbook))
         .route("/teleop/ticket", post(teleop_ticket))
