@@ -63,6 +63,7 @@ impl RobotLink {
             reasons: Vec::new(),
             run: None,
             files: Vec::new(),
+            local_id: None,
         };
         let Ok(book) = self.lab.lock() else { return empty };
         let Some(record) = local_id(&book.experiments, self.options.key.lab(), lab_id)
@@ -112,6 +113,7 @@ impl RobotLink {
             reasons: record.reasons.into_iter().take(wire::MAX_REASONS).collect(),
             run: record.run,
             files,
+            local_id: Some(record.id),
         }
     }
 

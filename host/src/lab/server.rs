@@ -54,7 +54,7 @@ use super::{Book, Lab, LabError, bundle};
 use crate::bridge::session::{self, SessionSettings, Shared};
 use crate::deploy::utc_time;
 use crate::runtime::locks::unix_now_ms;
-use crate::store::experiments::{ExperimentState, Target};
+use crate::store::experiments::{ExperimentRecord, ExperimentState, Target};
 use crate::store::users::Principal;
 use crate::store::{Outcome, Store};
 
@@ -769,9 +769,11 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
                 }
             }
             ExperimentState::Queued if !book.dispatching.contains(&id) => {
-                // Dispatched when the server stopped: the robot's token
-                // says whether it took it.
-                if running_here {
+                // Its dispatch unanswered (timed out, or in flight when
+                // the server stopped): the robot's token says whether it
+                // took it, once it is online (its status too: adopted
+                // before, the run would be lost at once).
+                if running_here && robot.online() {
                     busy.insert(name.clone());
                     robot.accepted.insert(id, Instant::now());
                     if let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) {
@@ -851,7 +853,12 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
                 name: name.clone(),
                 profile: token.profile.id.clone(),
                 max_duration_s: token.max_duration_s,
-                free: token.state == RobotState::Idle && !busy.contains(name) && robot.dispatching.is_none(),
+                // Online (its status too), not only its token: a robot
+                // that started it before its status came would be lost.
+                free: token.state == RobotState::Idle
+                    && robot.online()
+                    && !busy.contains(name)
+                    && robot.dispatching.is_none(),
             })
         })
         .collect();
@@ -909,7 +916,7 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
     let margin = fleet.dispatch_timeout / ANSWER_MARGIN_DIVISOR;
     let start_by = issued_ms + (fleet.dispatch_timeout - margin).as_millis() as u64;
     let prepared = (|| {
-        let record = lab.lock().map_err(|e| e.to_string())?.experiments.get(&id).cloned().ok_or("no record")?;
+        let record = mark_sent(lab, id, start_by)?;
         let user = lab
             .store()
             .users()
@@ -962,6 +969,7 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
             drop(robots);
             if let Some(placement) = book.experiments.get_mut(&id).and_then(|r| r.placement.as_mut()) {
                 placement.local_id = Some(local_id);
+                placement.unanswered_start_by_ms = None;
             }
             let cause = format!("runs on robot {robot} (its experiment {local_id}) until {}", utc_time(ends_unix_ms));
             if let Err(e) = lab.transition(&mut book, id, ExperimentState::Running, &cause, vec![]) {
@@ -973,6 +981,21 @@ fn dispatch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
             refused(lab, &mut book, id, robot, reasons);
         }
     }
+}
+
+/// Marks experiment `id`'s dispatch, about to be sent, unanswered until
+/// `start_by` in its stored record: a lab server killed before the answer
+/// comes holds it on that robot when it starts again (`plan` withdraws it
+/// there), as after a timeout, rather than placing it again while the
+/// robot may still start the dispatch it has. Not sent unless stored.
+/// The record as dispatched.
+fn mark_sent(lab: &Lab, id: u64, start_by: u64) -> Result<ExperimentRecord, String> {
+    let mut book = lab.lock().map_err(|e| e.to_string())?;
+    let mut record = book.experiments.get(&id).cloned().ok_or("no record")?;
+    record.placement.get_or_insert_with(Default::default).unanswered_start_by_ms = Some(start_by);
+    lab.store().lock().and_then(|writer| writer.put_experiment(&record)).map_err(|e| e.to_string())?;
+    book.experiments.insert(id, record.clone());
+    Ok(record)
 }
 
 /// Robot `robot` did not answer the dispatch of experiment `id` (no
@@ -1076,6 +1099,7 @@ fn refused(lab: &Lab, book: &mut Book, id: u64, robot: &str, reasons: Vec<String
         let placement = record.placement.get_or_insert_with(Default::default);
         placement.refusals += 1;
         placement.robot = None;
+        placement.unanswered_start_by_ms = None;
         placement.refusals
     };
     tracing::warn!("experiment {id}: robot {robot} refused it: {said}");
@@ -1147,6 +1171,11 @@ fn fetch(lab: &Lab, fleet: &Fleet, id: u64, robot: &str) {
     }
     if let Some(placement) = record.placement.as_mut() {
         placement.fetch_pending = false;
+        // The robot names its record: a run the lab adopted (its token
+        // said so, or it refused a withdrawal) came with no answer.
+        if results.local_id.is_some() {
+            placement.local_id = results.local_id;
+        }
     }
     let state = record.state;
     // A robot's ending the experiment's life does not lead to here (its

@@ -1256,6 +1256,10 @@ pub struct Results {
     pub reasons: Vec<String>,
     pub run: Option<RunResult>,
     pub files: Vec<FileRef>,
+    /// Its id on the robot, when found: what the lab names in its
+    /// placement, also for a run it adopted without the dispatch's answer.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub local_id: Option<u64>,
 }
 
 impl Message for Results {

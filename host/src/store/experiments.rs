@@ -392,11 +392,13 @@ pub struct Placement {
     pub refusals: u32,
     /// What the robot recorded is still to be fetched (it was lost).
     pub fetch_pending: bool,
-    /// Its dispatch to `robot` went unanswered; the robot starts it only
-    /// before this time (ms since the Unix epoch, the lab server's clock).
-    /// It stays placed there until the robot says it will not run it (a
-    /// withdrawal), or runs it, or the time plus the largest clock skew
-    /// has passed.
+    /// Its dispatch to `robot` is unanswered (sent, or its answer lost);
+    /// the robot starts it only before this time (ms since the Unix epoch,
+    /// the lab server's clock). Stored before the dispatch is sent, so a
+    /// lab server restarted meanwhile knows it too. Once its answer is
+    /// lost, it stays placed there until the robot says it will not run
+    /// it (a withdrawal), or runs it, or the time plus the largest clock
+    /// skew has passed.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub unanswered_start_by_ms: Option<u64>,
 }
