@@ -8,7 +8,7 @@
 use std::time::Duration;
 
 use super::LabError;
-use super::robot_link::{RobotLink, START_WAIT, lab_user, local_id, lock, withdrawn_before};
+use super::robot_link::{RobotLink, START_WAIT, lab_user, live_local_id, lock, withdrawn_before};
 use super::transfer::{self, Asker, TransferError};
 use super::wire::{self, Dispatch, DispatchOutcome, FileSource, RobotState, SetManifest};
 use crate::runtime::locks::unix_now_ms;
@@ -42,7 +42,7 @@ impl RobotLink {
     /// Checks and queues `dispatch` here: the local experiment's id.
     pub(super) fn take(&self, dispatch: &Dispatch) -> Result<u64, Vec<String>> {
         let lab_name = self.options.key.lab().to_string();
-        if let Some(id) = self.lab.lock().ok().and_then(|b| local_id(&b.experiments, &lab_name, dispatch.lab_id)) {
+        if let Some(id) = self.lab.lock().ok().and_then(|b| live_local_id(&b.experiments, &lab_name, dispatch.lab_id)) {
             return Ok(id);
         }
         if withdrawn_before(&lock(&self.withdrawn), dispatch.lab_id, dispatch.to.issued_unix_ms) {

@@ -447,7 +447,8 @@ impl RobotLink {
         self.heard_lab();
         let by = lab_user(&self.options, &stop.by);
         let Ok(mut book) = self.lab.lock() else { return ack(false, "the lab's state is unusable".into()) };
-        let Some(id) = local_id(&book.experiments, self.options.key.lab(), stop.lab_id) else {
+        let found = if stop.withdraw { live_local_id } else { local_id };
+        let Some(id) = found(&book.experiments, self.options.key.lab(), stop.lab_id) else {
             if !stop.withdraw {
                 return ack(false, format!("no lab experiment {} here", stop.lab_id));
             }
@@ -527,6 +528,16 @@ pub(super) fn local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str,
     experiments.values().rev().find(|r| r.origin.as_ref().is_some_and(|o| o.lab == lab && o.id == lab_id)).map(|r| r.id)
 }
 
+/// The local experiment of lab experiment `lab_id` that a dispatch or a
+/// withdrawal of it concerns: the newest, unless it ended without ever
+/// running (withdrawn, or not started by its start-by time). Such a copy
+/// is as if it never came: a later dispatch is taken as new (not refused
+/// with the old copy's reasons), and a withdrawal is granted (not answered
+/// "not withdrawn", which would make the lab adopt a run that never was).
+pub(super) fn live_local_id(experiments: &BTreeMap<u64, ExperimentRecord>, lab: &str, lab_id: u64) -> Option<u64> {
+    local_id(experiments, lab, lab_id).filter(|id| experiments.get(id).is_some_and(|r| !r.ended_unrun()))
+}
+
 /// Remembers lab experiment `lab_id` as withdrawn by a withdrawal issued
 /// at `issued_ms`, forgetting the oldest past [`MAX_WITHDRAWN`].
 fn remember_withdrawn(withdrawn: &mut std::collections::VecDeque<(u64, u64)>, lab_id: u64, issued_ms: u64) {
@@ -553,6 +564,63 @@ pub(super) fn withdrawn_before(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::experiments::{AppliedSettings, ExperimentState::*, LabSettings, NewExperiment, Origin};
+    use crate::store::users::Role;
+
+    /// Local experiment `id` of lab `lab`'s experiment `lab_id`, through
+    /// `states` (after `checking`).
+    fn copy(id: u64, lab: &str, lab_id: u64, states: &[ExperimentState]) -> ExperimentRecord {
+        let new = NewExperiment {
+            submitter: "ana".into(),
+            set: 1,
+            label: String::new(),
+            duration_s: 1.0,
+            submitted_ms: 1,
+            settings: AppliedSettings::of(&LabSettings::default(), 1),
+            components: Vec::new(),
+        };
+        let mut record = ExperimentRecord::new(new, Checking, "dispatched");
+        record.id = id;
+        record.origin = Some(Origin {
+            lab: lab.into(),
+            id: lab_id,
+            role: Role::Researcher,
+            platforms: vec![],
+            start_by_unix_ms: None,
+        });
+        for (at, state) in states.iter().enumerate() {
+            record.enter(*state, at as u64 + 2, "on").unwrap();
+        }
+        record
+    }
+
+    #[test]
+    fn a_copy_that_ended_without_running_is_not_what_a_new_dispatch_or_a_withdrawal_concerns() {
+        // (the local copies of lab experiment 7 of lab "lab", oldest first;
+        // what local_id and live_local_id find)
+        let withdrawn = [Preflight, Queued, Cancelled];
+        let cases: Vec<(Vec<ExperimentRecord>, Option<u64>, Option<u64>)> = vec![
+            (vec![], None, None),
+            (vec![copy(1, "lab", 7, &[Preflight, Queued])], Some(1), Some(1)),
+            (vec![copy(1, "lab", 7, &[Preflight, Queued, Running])], Some(1), Some(1)),
+            (vec![copy(1, "lab", 7, &[Preflight, Queued, Running, Finishing, Done])], Some(1), Some(1)),
+            (vec![copy(1, "lab", 7, &[Preflight, Queued, Running, Finishing, Aborted])], Some(1), Some(1)),
+            // Withdrawn, or not started by its start-by time: as if it never came.
+            (vec![copy(1, "lab", 7, &withdrawn)], Some(1), None),
+            (vec![copy(1, "lab", 7, &[Refused])], Some(1), None),
+            // Taken again later: the new copy is the one.
+            (vec![copy(1, "lab", 7, &withdrawn), copy(2, "lab", 7, &[Preflight, Queued])], Some(2), Some(2)),
+            (vec![copy(1, "lab", 7, &withdrawn), copy(2, "lab", 7, &withdrawn)], Some(2), None),
+            // Another lab's experiment 7, or this lab's experiment 8.
+            (vec![copy(1, "other", 7, &[Preflight, Queued]), copy(2, "lab", 8, &[Preflight])], None, None),
+        ];
+        for (copies, newest, live) in cases {
+            let states: Vec<_> = copies.iter().map(|r| (r.id, r.state)).collect();
+            let experiments: BTreeMap<u64, ExperimentRecord> = copies.into_iter().map(|r| (r.id, r)).collect();
+            assert_eq!(local_id(&experiments, "lab", 7), newest, "{states:?}");
+            assert_eq!(live_local_id(&experiments, "lab", 7), live, "{states:?}");
+        }
+    }
 
     #[test]
     fn a_withdrawal_refuses_the_dispatches_issued_before_it_and_takes_later_ones() {

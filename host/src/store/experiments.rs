@@ -433,6 +433,12 @@ pub struct NewExperiment {
 }
 
 impl ExperimentRecord {
+    /// Ended without ever running (cancelled or refused in its checks or
+    /// its queue): nothing of it happened on the robot.
+    pub fn ended_unrun(&self) -> bool {
+        self.state.is_final() && self.entered(ExperimentState::Running).is_none()
+    }
+
     /// The record of `new`, in its first `state` since it was submitted,
     /// for `cause` (the store gives it its id).
     pub fn new(new: NewExperiment, state: ExperimentState, cause: &str) -> ExperimentRecord {
