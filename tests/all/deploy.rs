@@ -18,6 +18,7 @@ use std::path::Path;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 
+use crate::lab_docs;
 use crate::support::{self, HostProcess, http, subsume};
 
 const PASSWORD: &str = "deploy-test-password";
@@ -1362,71 +1363,42 @@ fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_robot() {
     let dir = tempfile::tempdir().unwrap();
     add_admin(&dir.path().join("store"));
     let host = gentle_lab(dir.path());
-    let doc = std::fs::read_to_string(support::repo_root().join("docs/lab.md")).unwrap();
-    let mut commands = Vec::new();
-    let mut in_sh = false;
-    let mut pending = String::new();
-    for line in doc.lines() {
-        if line.starts_with("```") {
-            in_sh = line == "```sh";
-            continue;
-        }
-        if !in_sh {
-            continue;
-        }
-        let line = line.split(" #").next().unwrap_or_default().trim_end();
-        if let Some(head) = line.strip_suffix('\\') {
-            pending.push_str(head);
-            continue;
-        }
-        let whole = format!("{pending}{line}");
-        pending.clear();
-        if whole.trim().starts_with("subsume lab ") && !whole.trim().starts_with("subsume lab serve") {
-            commands.push(whole.trim().to_string());
-        }
-    }
-    assert!(commands.len() >= 12, "the document's lab commands: {commands:#?}");
-    let driver = support::guest("test-commander").display().to_string();
+    let commands: Vec<_> = lab_docs::lab_commands().into_iter().filter(|c| !c.serves()).collect();
+    assert!(
+        commands.len() >= 12,
+        "the document's lab commands: {:#?}",
+        commands.iter().map(|c| &c.text).collect::<Vec<_>>()
+    );
+    let driver = format!("driver={}", support::guest("test-commander").display());
     let work = dir.path().join("work");
     std::fs::create_dir_all(&work).unwrap();
+    let filling = lab_docs::Filling { host: &host.address, work: &work, component: &driver, duration_s: "2", id: 1 };
     let mut ran = Vec::new();
     for (n, command) in commands.iter().enumerate() {
-        let filled = command
-            .replace("https://robot.example.org", &host.address)
-            .replace(" HOST", &format!(" {}", host.address))
-            .replace(" ID ", " 1 ")
-            .replace(" DIR", &format!(" {}", work.join(format!("dir-{n}")).display()))
-            .replace("-o kit", &format!("-o {}", work.join("kit").display()))
-            .replace("--results results/turns", &format!("--results {}", work.join("turns").display()))
-            .replace("planner=target/wasm32-wasip2/release/planner.wasm", &format!("driver={driver}"))
-            .replace("--duration 60", "--duration 2");
-        // `COMMAND > FILE`: its output into FILE, as the shell would.
-        let (filled, into) = match filled.split_once(" > ") {
-            Some((command, file)) => (command.to_string(), Some(work.join(file.trim()))),
-            None => (filled.clone(), None),
-        };
-        let words = shell_words(&filled);
-        let admin = ["maintenance", "settings"].contains(&words[2].as_str());
+        let filled = lab_docs::fill(command, n, &filling);
+        let admin = ["maintenance", "settings"].contains(&filled.subcommand());
         let (user, password) = if admin { ("admin", PASSWORD) } else { ("ada", RESEARCHER_PASSWORD) };
         let output = subsume()
-            .args(&words[1..])
+            .args(&filled.words[1..])
             .current_dir(&work)
             .env("SUBSUME_USER", user)
             .env("SUBSUME_PASSWORD", password)
             .output()
             .unwrap();
         let (stdout, stderr) = out(&output);
-        if let Some(file) = into {
+        if let Some(file) = &filled.into {
             std::fs::write(file, &output.stdout).unwrap();
         }
-        let refused_as_ended = words[2] == "cancel" && stderr.contains("experiment 1");
+        let refused_as_ended = filled.subcommand() == "cancel" && stderr.contains("experiment 1");
         assert!(
             output.status.success() || refused_as_ended,
-            "docs/lab.md's `{command}` (as `{filled}`): exit {:?}\n{stdout}\n{stderr}",
+            "docs/lab.md's `{}` (as `{}`): exit {:?}\n{stdout}\n{stderr}",
+            command.text,
+            filled.line,
             output.status.code()
         );
-        assert!(!stderr.contains("no such API route"), "`{command}`: {stderr}");
-        ran.push(words[2].clone());
+        assert!(!stderr.contains("no such API route"), "`{}`: {stderr}", command.text);
+        ran.push(filled.subcommand().to_string());
     }
     for needed in [
         "submit",
@@ -1442,27 +1414,4 @@ fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_robot() {
     ] {
         assert!(ran.iter().any(|c| c == needed), "docs/lab.md shows no `lab {needed}`: {ran:?}");
     }
-}
-
-/// `line` split as a shell splits it: spaces, and double quotes around a
-/// word with spaces (all the document uses).
-fn shell_words(line: &str) -> Vec<String> {
-    let mut words = Vec::new();
-    let mut word = String::new();
-    let mut quoted = false;
-    for c in line.chars() {
-        match c {
-            '"' => quoted = !quoted,
-            ' ' if !quoted => {
-                if !word.is_empty() {
-                    words.push(std::mem::take(&mut word));
-                }
-            }
-            c => word.push(c),
-        }
-    }
-    if !word.is_empty() {
-        words.push(word);
-    }
-    words
 }

@@ -57,11 +57,16 @@
 //! - The lab server's page in Chromium (`tests/browser/labserver.mjs`):
 //!   every robot with its name, profile, state, experiment and time left;
 //!   its STOP buttons stop the robots.
+//! - Every `subsume lab` command docs/lab.md shows, as written, against a
+//!   lab server on https only (a test authority, `SUBSUME_CA`) with one
+//!   robot: each succeeds (a submission followed to `done`, its results
+//!   with their recording unpacked) or is refused for the documented
+//!   reason; the lab server's maintenance holds its queue.
 
 use std::io::{Read, Write};
 use std::net::{Shutdown, TcpListener, TcpStream};
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -87,6 +92,8 @@ struct Relay {
     upstream: u16,
     open: Arc<AtomicBool>,
     streams: Arc<Mutex<Vec<TcpStream>>>,
+    /// Bytes it passed from the lab server to the robot.
+    to_robot: Arc<AtomicU64>,
 }
 
 impl Relay {
@@ -96,6 +103,7 @@ impl Relay {
             upstream,
             open: Arc::new(AtomicBool::new(false)),
             streams: Arc::new(Mutex::new(Vec::new())),
+            to_robot: Arc::new(AtomicU64::new(0)),
         };
         relay.restore();
         relay
@@ -105,7 +113,8 @@ impl Relay {
         let listener = TcpListener::bind(("127.0.0.1", self.port)).unwrap();
         listener.set_nonblocking(true).unwrap();
         self.open.store(true, Ordering::SeqCst);
-        let (open, streams, upstream) = (self.open.clone(), self.streams.clone(), self.upstream);
+        let (open, streams, upstream, to_robot) =
+            (self.open.clone(), self.streams.clone(), self.upstream, self.to_robot.clone());
         std::thread::spawn(move || {
             while open.load(Ordering::SeqCst) {
                 let Ok((client, _)) = listener.accept() else {
@@ -119,8 +128,8 @@ impl Relay {
                 let mut held = streams.lock().unwrap();
                 held.push(client.try_clone().unwrap());
                 held.push(server.try_clone().unwrap());
-                pipe(client.try_clone().unwrap(), server.try_clone().unwrap());
-                pipe(server, client);
+                pipe(client.try_clone().unwrap(), server.try_clone().unwrap(), None);
+                pipe(server, client, Some(to_robot.clone()));
             }
         });
     }
@@ -136,12 +145,17 @@ impl Relay {
     }
 }
 
-fn pipe(mut from: TcpStream, mut to: TcpStream) {
+/// Copies `from` to `to` until either ends, adding what it passed to
+/// `counted`.
+fn pipe(mut from: TcpStream, mut to: TcpStream, counted: Option<Arc<AtomicU64>>) {
     std::thread::spawn(move || {
         let mut buffer = [0u8; 16 << 10];
         while let Ok(n) = from.read(&mut buffer) {
             if n == 0 || to.write_all(&buffer[..n]).is_err() {
                 break;
+            }
+            if let Some(counted) = &counted {
+                counted.fetch_add(n as u64, Ordering::SeqCst);
             }
         }
         let _ = to.shutdown(Shutdown::Both);
@@ -156,7 +170,8 @@ fn spawn_server(store: &Path, zenoh_port: u16) -> (HostProcess, String) {
 
 /// `subsume lab serve` on `store`, its portal on `ip`, its Zenoh listener
 /// on `listen`, in namespace 0 of `namespaces` when given, with `extra`
-/// arguments.
+/// arguments. Its portal's address: `HOST:PORT`, or `https://HOST:PORT`
+/// when `extra` gives it a certificate (`--tls-cert`).
 fn spawn_server_at(
     store: &Path,
     ip: &str,
@@ -184,7 +199,9 @@ fn spawn_server_at(
         None => command,
     };
     let server = HostProcess::spawn(command);
-    let address = server.address_after(&format!("lab server '{LAB}' on http://"), Duration::from_secs(120));
+    let scheme = if extra.iter().any(|a| a == "--tls-cert") { "https" } else { "http" };
+    let address = server.address_after(&format!("lab server '{LAB}' on {scheme}://"), Duration::from_secs(120));
+    let address = if scheme == "https" { format!("https://{address}") } else { address };
     (server, address)
 }
 
@@ -301,6 +318,14 @@ impl Link {
             Link::Veth { hub, device } => ip(&["-n", hub, "link", "set", device, "up"]),
         }
     }
+
+    /// Bytes the lab server sent the robot through its relay.
+    fn bytes_to_robot(&self) -> u64 {
+        match self {
+            Link::Relay(relay) => relay.to_robot.load(Ordering::SeqCst),
+            Link::Veth { .. } => panic!("a veth link counts no bytes"),
+        }
+    }
 }
 
 struct Robot {
@@ -319,6 +344,9 @@ struct LabNet {
     robots: Vec<Robot>,
     /// What `lab serve` was given beside the usual.
     server_args: Vec<String>,
+    /// The authority the lab server's certificate is of, when its portal
+    /// is on https.
+    ca: Option<PathBuf>,
     /// Last: removed after every host has stopped.
     namespaces: Option<Namespaces>,
 }
@@ -334,6 +362,19 @@ impl LabNet {
     /// that Zenoh endpoint, with that Zenoh config file.
     fn start_with(dir: &Path, robots: usize, also: Option<(&str, &Path)>) -> LabNet {
         LabNet::start_on(dir, robots, also, None, &[], None)
+    }
+
+    /// As [`LabNet::start`], the lab server's portal on https only, with a
+    /// certificate of a test authority made in `DIR/pki`
+    /// (`support::make_test_pki`); [`LabNet::call`] and the command line
+    /// trust that authority (`LabNet::ca`).
+    fn start_over_https(dir: &Path, robots: usize) -> LabNet {
+        let pki = dir.join("pki");
+        std::fs::create_dir_all(&pki).unwrap();
+        support::make_test_pki(&pki);
+        let (chain, key) = (pki.join("chain.pem"), pki.join("server.key"));
+        let args = ["--tls-cert", chain.to_str().unwrap(), "--tls-key", key.to_str().unwrap()];
+        LabNet::start_on(dir, robots, None, None, &args, None)
     }
 
     /// As [`LabNet::start`], each host in its own network namespace (0 the
@@ -375,6 +416,12 @@ impl LabNet {
             None => zenoh.clone(),
         };
         let (server, address) = spawn_server_at(&store, &server_ip, &listen, namespaces.as_ref(), &server_args);
+        // A certificate of `support::make_test_pki`'s folder: trusted by
+        // its authority.
+        let ca = server_args.iter().position(|a| a == "--tls-cert").map(|at| {
+            let chain = Path::new(&server_args[at + 1]);
+            chain.with_file_name("ca.pem")
+        });
         let secret = store.join("lab.secret");
         let robots = (1..=robots)
             .map(|n| {
@@ -428,7 +475,7 @@ impl LabNet {
                 Robot { name, host, address, link }
             })
             .collect();
-        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots, server_args, namespaces };
+        let lab = LabNet { dir: dir.to_path_buf(), server, address, zenoh, robots, server_args, ca, namespaces };
         let boss = lab.token("boss");
         lab.wait_robots(&boss, Duration::from_secs(120), |robots| {
             robots.len() == lab.robots.len()
@@ -438,7 +485,10 @@ impl LabNet {
     }
 
     fn token(&self, user: &str) -> String {
-        support::login(&self.address, user, PASSWORD)
+        let body = serde_json::json!({ "name": user, "password": PASSWORD }).to_string();
+        let (status, json) = self.call_as(None, "POST", "/api/v1/login", &body);
+        assert_eq!(status, 200, "{json}");
+        json["token"].as_str().unwrap().to_string()
     }
 
     /// Kills the lab server with SIGKILL.
@@ -457,7 +507,16 @@ impl LabNet {
     }
 
     fn call(&self, token: &str, method: &str, path: &str, body: &str) -> (u16, Json) {
-        http(&self.address, method, path, Some(token), body.as_bytes())
+        self.call_as(Some(token), method, path, body)
+    }
+
+    /// One request to the lab server's portal, over https when it is on
+    /// https.
+    fn call_as(&self, token: Option<&str>, method: &str, path: &str, body: &str) -> (u16, Json) {
+        match &self.ca {
+            Some(ca) => support::https(&self.address, ca, method, path, token, body.as_bytes()),
+            None => http(&self.address, method, path, token, body.as_bytes()),
+        }
     }
 
     fn robots(&self, token: &str) -> Vec<Json> {
@@ -1032,6 +1091,24 @@ fn local_records(robot: &Robot, lab_id: u64) -> Vec<Json> {
 /// says it will not run it.
 #[test]
 fn a_dispatch_whose_answer_never_comes_is_withdrawn_and_runs_once_where_both_sides_agree() {
+    unanswered_dispatch(true);
+}
+
+/// The same with the other robot kept out of service, as in a lab of one
+/// robot: the experiment can only go back to the robot that did not
+/// answer. Once it answers again, the stale dispatch is refused or
+/// withdrawn there, and a new one runs it, once, `done`: the lost answer
+/// is counted as no refusal. (A copy that a robot took and that ended
+/// without running is as if it never came: `robot_link`'s unit test
+/// `a_copy_that_ended_without_running_...`.)
+#[test]
+fn a_dispatch_whose_answer_never_comes_runs_on_the_same_robot_when_it_is_the_only_one() {
+    unanswered_dispatch(false);
+}
+
+/// The body of the two tests above: `free_r2` frees the other robot once
+/// the dispatch to r1 went unanswered.
+fn unanswered_dispatch(free_r2: bool) {
     let dir = tempfile::tempdir().unwrap();
     let lab = LabNet::start_on(dir.path(), 2, None, None, &["--dispatch-timeout", "3"], None);
     let (r1, r2) = (lab.robot("r1"), lab.robot("r2"));
@@ -1066,9 +1143,11 @@ fn a_dispatch_whose_answer_never_comes_is_withdrawn_and_runs_once_where_both_sid
         assert!(Instant::now() < deadline, "no word of the unanswered dispatch: {experiment:#}\n{}", lab.logs());
         std::thread::sleep(Duration::from_millis(100));
     };
-    // r2 is free now; r1 stays stopped past its start-by time.
-    let (status, json) = http(&r2.address, "DELETE", "/api/v1/lab/maintenance", Some(&owner2), b"");
-    assert_eq!(status, 200, "{json}");
+    // r2 is free now (or kept out); r1 stays stopped past its start-by time.
+    if free_r2 {
+        let (status, json) = http(&r2.address, "DELETE", "/api/v1/lab/maintenance", Some(&owner2), b"");
+        assert_eq!(status, 200, "{json}");
+    }
     std::thread::sleep(Duration::from_secs(3));
     support::signal(r1.host.child.id(), "CONT");
     let ended = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
@@ -1097,6 +1176,162 @@ fn a_dispatch_whose_answer_never_comes_is_withdrawn_and_runs_once_where_both_sid
     // r1 refused the late copy, or had it withdrawn before it came.
     let r1_said = robot_audit(r1).iter().map(|line| line.to_string()).collect::<Vec<_>>().join("\n");
     assert!(r1_said.contains("lab-withdraw") || r1_said.contains("after its lab stopped waiting"), "{r1_said}");
+}
+
+/// When the lab server is killed, its dispatch to r1 unanswered.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Kill {
+    /// The dispatch is on its way (waiting in r1's socket), its answer not
+    /// due yet: the server kept nothing of it but where it sent it.
+    BeforeTheTimeout,
+    /// Just after the server stopped waiting for the answer (it kept the
+    /// dispatch's start-by time, to withdraw it).
+    AfterTheTimeout,
+}
+
+/// A lab server killed (SIGKILL) and started again while its dispatch is
+/// unanswered (r1's process stopped, r2 in maintenance), sent but not yet
+/// timed out: r1, continued after the restart, finds the dead server's
+/// dispatch in its socket before its start-by time. The restarted server
+/// holds the experiment on r1 until r1 says whether it runs it, so the
+/// experiment runs once, `done`, on the robot the lab names as the local
+/// experiment the lab names; no other copy ran anywhere, none stays queued
+/// on a robot, and a lost answer is no refusal.
+#[test]
+fn a_lab_server_killed_while_its_dispatch_is_unanswered_runs_it_once_where_both_sides_agree() {
+    dispatch_unanswered_across_a_server_restart(Kill::BeforeTheTimeout);
+}
+
+/// As above, the lab server killed just after its dispatch timed out: the
+/// restarted server withdraws it from r1 (or waits out its start-by
+/// time), r1 refuses the late dispatch it finds, and the experiment runs
+/// once, `done`, where both sides say.
+#[test]
+fn a_lab_server_killed_right_after_its_dispatch_timed_out_runs_it_once_where_both_sides_agree() {
+    dispatch_unanswered_across_a_server_restart(Kill::AfterTheTimeout);
+}
+
+fn dispatch_unanswered_across_a_server_restart(kill: Kill) {
+    let dir = tempfile::tempdir().unwrap();
+    // Before the timeout: a start-by time (16 s after the dispatch) r1 is
+    // continued well within. After it: the timeout as short as the
+    // neighbour's, r1 stopped past it.
+    let timeout = match kill {
+        Kill::BeforeTheTimeout => "20",
+        Kill::AfterTheTimeout => "3",
+    };
+    // The restarted server relearns its robots within a second: r1's
+    // silence then says nothing of whether it has the dispatch.
+    let args = ["--dispatch-timeout", timeout, "--relearn", "1"];
+    let mut lab = LabNet::start_on(dir.path(), 2, None, None, &args, None);
+    let r1_pid = lab.robot("r1").host.child.id();
+    let r2_address = lab.robot("r2").address.clone();
+    // r2 out of service: the dispatch can only go to r1.
+    let owner2 = support::login(&r2_address, "owner", PASSWORD);
+    let reason = br#"{"reason": "held out for the first dispatch"}"#;
+    let (status, json) = http(&r2_address, "POST", "/api/v1/lab/maintenance", Some(&owner2), reason);
+    assert_eq!(status, 200, "{json}");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
+        robots.iter().any(|r| r["name"] == "r2" && r["state"] == "maintenance")
+    });
+    // Queued (its preflight passed) while the lab's queue is paused.
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
+    assert_eq!(status, 200, "{json}");
+    let ana = lab.token("ana");
+    let xml = robot(7.0, "");
+    let set = lab.stage(&ana, "ana.xml", &xml);
+    let id = lab.submit(&ana, set, 3.0, None);
+    let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(180));
+    assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+    // r1 cannot answer: its process is stopped, its link held open.
+    support::signal(r1_pid, "STOP");
+    let sent_before = lab.robot("r1").link.bytes_to_robot();
+    let from = lab.server.log().lines().count();
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/resume", "");
+    assert_eq!(status, 200, "{json}");
+    match kill {
+        Kill::BeforeTheTimeout => {
+            let dispatched = format!("experiment {id}: dispatched to robot r1");
+            lab.server.lines_until(from, &dispatched, Duration::from_secs(60));
+            // The dispatch, the set's robot file in it, passed r1's relay:
+            // it waits in r1's socket.
+            let deadline = Instant::now() + Duration::from_secs(30);
+            while lab.robot("r1").link.bytes_to_robot() - sent_before < xml.len() as u64 {
+                assert!(Instant::now() < deadline, "the dispatch never reached r1's link\n{}", lab.logs());
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            let pending = lab.experiment(&ana, id);
+            assert_eq!(pending["state"], "queued", "{pending:#}");
+            assert!(!pending["history"].to_string().contains("did not answer"), "{pending:#}");
+        }
+        Kill::AfterTheTimeout => {
+            let deadline = Instant::now() + Duration::from_secs(30);
+            loop {
+                let experiment = lab.experiment(&ana, id);
+                if experiment["history"].to_string().contains("did not answer its dispatch") {
+                    break;
+                }
+                assert!(
+                    Instant::now() < deadline,
+                    "no word of the unanswered dispatch: {experiment:#}\n{}",
+                    lab.logs()
+                );
+                std::thread::sleep(Duration::from_millis(100));
+            }
+        }
+    }
+    lab.kill_server();
+    lab.restart_server();
+    // r2 is free; r1 stays stopped past the restarted server's relearning,
+    // then comes back with the dead server's dispatch in its socket.
+    let (status, json) = http(&r2_address, "DELETE", "/api/v1/lab/maintenance", Some(&owner2), b"");
+    assert_eq!(status, 200, "{json}");
+    let boss = lab.token("boss");
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.iter().any(|r| r["name"] == "r2" && r["state"] == "idle" && r["online"] == true)
+    });
+    // The stretch r1 stays silent (twice the server's relearning) is the
+    // scenario: a server that forgot its dispatch places the experiment
+    // on r2 in it, while r1 may still start the dispatch it has.
+    std::thread::sleep(Duration::from_secs(2));
+    support::signal(r1_pid, "CONT");
+    let ana = lab.token("ana");
+    let ended = lab.wait_for(&ana, id, "done", Duration::from_secs(180));
+    assert_eq!(ended["state"], "done", "{ended:#}\n{}", lab.logs());
+    let causes = ended["history"].to_string();
+    assert!(!causes.contains("refused"), "a lost answer is not a refusal: {ended:#}\n{}", lab.logs());
+    assert_eq!(ended["placement"]["refusals"], 0, "{ended:#}");
+    // Both robots idle again: a copy left queued on either would run now.
+    lab.wait_robots(&boss, Duration::from_secs(60), |robots| {
+        robots.len() == 2 && robots.iter().all(|r| r["state"] == "idle")
+    });
+    // Both sides agree: the robot the lab names ran it once, as the
+    // local experiment the lab names; every other copy was cancelled
+    // before it started, on either robot.
+    let ran_on = ended["placement"]["robot"].as_str().unwrap().to_string();
+    let local_id = ended["placement"]["local_id"].clone();
+    let mut runs = Vec::new();
+    for robot in &lab.robots {
+        for record in local_records(robot, id) {
+            let started = record["history"].as_array().unwrap().iter().any(|c| c["state"] == "running");
+            if started {
+                runs.push((robot.name.clone(), record["id"].clone(), record["state"].clone()));
+            } else {
+                assert_eq!(record["state"], "cancelled", "{}: {record:#}\n{}", robot.name, lab.logs());
+            }
+        }
+    }
+    assert_eq!(runs, vec![(ran_on, local_id, Json::from("done"))], "{ended:#}\n{}", lab.logs());
+    // r1 did get the dead server's dispatch: it answered one dispatch of
+    // the experiment more than the restarted server sent it.
+    let target = format!("lab experiment {id}");
+    let answered = robot_audit(lab.robot("r1"))
+        .iter()
+        .filter(|e| e["action"] == "lab-dispatch" && e["target"] == target.as_str())
+        .count();
+    let sent = lab.server.log().matches(&format!("experiment {id}: dispatched to robot r1")).count();
+    assert_eq!(answered, sent + 1, "{}", lab.logs());
 }
 
 /// Robot `robot`'s live status, as its own portal gives it to its owner.
@@ -2010,4 +2245,137 @@ fn walk(dir: &Path) -> Vec<PathBuf> {
         }
     }
     files
+}
+
+/// Every `subsume lab` command docs/lab.md shows, as written there, run
+/// against a lab server whose portal is on https only (a certificate of
+/// the test's authority, trusted by `SUBSUME_CA`, as the document tells a
+/// researcher), with one robot joined over Zenoh on loopback, in the
+/// document's order (placeholders filled as against a robot:
+/// `lab_docs::fill`; `lab serve` itself is how this lab server started,
+/// by [`LabNet`]). `lab submit` follows its experiment to `done` and
+/// unpacks its results with the run's recording; the kit's robot file
+/// submits as it is. Each command succeeds or is refused by the portal
+/// for the reason the document gives (`cancel` of an ended experiment, a
+/// reservation on a lab server); none fails on its arguments or on a
+/// route the lab server lacks. Between `maintenance --reason` and
+/// `--end`, the lab server holds its queue: an experiment that passed
+/// its preflight is dispatched to no robot until the maintenance ends.
+#[test]
+fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_lab_server_over_https() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start_over_https(dir.path(), 1);
+    assert!(lab.address.starts_with("https://"), "{}", lab.address);
+    let ca = lab.ca.clone().unwrap();
+    let all = crate::lab_docs::lab_commands();
+    let several: Vec<&str> = all.iter().filter(|c| c.section == "Several robots").map(|c| c.text.as_str()).collect();
+    assert!(
+        several.iter().any(|c| c.starts_with("subsume lab serve"))
+            && several.iter().any(|c| c.starts_with("subsume lab router-config")),
+        "the lab commands of \"Several robots\": {several:#?}"
+    );
+    let commands: Vec<_> = all.iter().filter(|c| !c.serves()).collect();
+    let planner = format!("planner={}", support::guest("planner").display());
+    let work = dir.path().join("work");
+    std::fs::create_dir_all(&work).unwrap();
+    // Experiment 1 is the one held by the maintenance; the document's
+    // `submit` is experiment 2, its `ID`.
+    let (held, submitted) = (1, 2);
+    let filling = crate::lab_docs::Filling {
+        host: &lab.address,
+        work: &work,
+        component: &planner,
+        duration_s: "2",
+        id: submitted,
+    };
+    let mut ran = Vec::new();
+    for (n, command) in commands.iter().enumerate() {
+        let filled = crate::lab_docs::fill(command, n, &filling);
+        let admin = ["maintenance", "settings"].contains(&filled.subcommand());
+        let output = support::subsume()
+            .args(&filled.words[1..])
+            .current_dir(&work)
+            .env("SUBSUME_USER", if admin { "boss" } else { "ana" })
+            .env("SUBSUME_PASSWORD", PASSWORD)
+            .env("SUBSUME_CA", &ca)
+            .output()
+            .unwrap();
+        let (stdout, stderr) = (support::text(&output.stdout), support::text(&output.stderr));
+        if let Some(file) = &filled.into {
+            std::fs::write(file, &output.stdout).unwrap();
+        }
+        let said = format!(
+            "docs/lab.md's `{}` (as `{}`): exit {:?}\n{stdout}\n{stderr}\n{}",
+            command.text,
+            filled.line,
+            output.status.code(),
+            lab.logs()
+        );
+        assert!(!stderr.contains("no such API route"), "{said}");
+        match filled.subcommand() {
+            // docs/lab.md, "Several robots": a lab server takes none.
+            "reserve" | "unreserve" => {
+                assert!(!output.status.success() && stderr.contains("a lab server takes no reservations"), "{said}")
+            }
+            // It ended before: the portal's 409.
+            "cancel" => assert!(
+                !output.status.success() && stderr.contains(&format!("experiment {submitted} has ended already")),
+                "{said}"
+            ),
+            _ => assert!(output.status.success(), "{said}"),
+        }
+        match (filled.subcommand(), filled.words.iter().any(|w| w == "--reason")) {
+            ("maintenance", true) => {
+                let ana = lab.token("ana");
+                let set = lab.stage(&ana, "held.xml", &robot(8.0, ""));
+                assert_eq!(lab.submit(&ana, set, 1.0, None), held);
+                let queued = lab.wait_for(&ana, held, "queued", Duration::from_secs(180));
+                assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+                // A free robot, and an experiment for it: without the
+                // maintenance it is dispatched within a heartbeat.
+                let until = Instant::now() + Duration::from_secs(3);
+                while Instant::now() < until {
+                    let record = lab.experiment(&ana, held);
+                    assert!(
+                        record["state"] == "queued" && record["placement"]["robot"].is_null(),
+                        "dispatched while the lab server is in maintenance: {record:#}\n{}",
+                        lab.logs()
+                    );
+                    std::thread::sleep(Duration::from_millis(100));
+                }
+            }
+            ("submit", _) if filled.words.iter().any(|w| w == "--component") => {
+                assert!(stdout.contains(&format!("experiment {submitted} submitted")), "{said}");
+                assert!(stdout.contains(&format!("experiment {submitted}: done")), "{said}");
+                assert!(stdout.contains(&format!("results of experiment {submitted}: ")), "{said}");
+                let recording = work.join("turns").join("run.mcap");
+                assert!(read_mcap(&recording, false)["complete"].as_bool().unwrap(), "{said}");
+            }
+            ("submit", _) => assert!(stdout.contains(": done"), "{said}"),
+            ("results", _) => {
+                let unpacked = filled.words.iter().skip_while(|w| *w != "-o").nth(1).unwrap();
+                assert!(Path::new(unpacked).join("run.mcap").is_file(), "{said}");
+            }
+            _ => {}
+        }
+        ran.push(filled.subcommand().to_string());
+    }
+    let ana = lab.token("ana");
+    assert_eq!(lab.experiment(&ana, held)["state"], "done", "{}", lab.logs());
+    for needed in [
+        "submit",
+        "list",
+        "show",
+        "cancel",
+        "results",
+        "reserve",
+        "reservations",
+        "unreserve",
+        "settings",
+        "kit",
+        "maintenance",
+        "router-config",
+    ] {
+        assert!(ran.iter().any(|c| c == needed), "docs/lab.md shows no `lab {needed}`: {ran:?}");
+    }
 }

@@ -316,6 +316,9 @@ fn served() -> Vec<Route> {
     ]
 }
 
+/// Why a lab server refuses a reservation (docs/lab.md, "Several robots").
+const NO_RESERVATIONS: &str = "a lab server takes no reservations (not built yet";
+
 /// The routes of a robot's own portal that a lab server, running no
 /// robot, does not serve.
 fn robot_only() -> Vec<Route> {
@@ -343,8 +346,9 @@ fn robot_only() -> Vec<Route> {
         // owner's settings may name one; each robot tests itself).
         gone("POST", "/api/v1/lab/selftest"),
         gone("POST", "/api/v1/lab/reset"),
-        gone("POST", "/api/v1/lab/reservations"),
-        gone("DELETE", "/api/v1/lab/reservations/1"),
+        // Reservations: the lab server says why (`subsume lab reserve`).
+        gone("POST", "/api/v1/lab/reservations").showing(NO_RESERVATIONS),
+        gone("DELETE", "/api/v1/lab/reservations/1").showing(NO_RESERVATIONS),
         gone("POST", "/api/v1/teleop/ticket"),
         gone("GET", "/api/v1/teleop"),
     ]
@@ -697,8 +701,11 @@ impl LabServer {
             } else if uri.starts_with("/api/") && json(&bytes)["error"].as_str().is_none_or(str::is_empty) {
                 wrong.push(format!("{cell}: {status} without a JSON error saying why: {text}"));
             } else if !served_here {
-                if !text.contains("no such API route on a lab server") {
-                    wrong.push(format!("{cell}: 404 but not as a route the lab server lacks: {text}"));
+                // A robot's route the command line has a command for is
+                // answered with why; any other, as a route it lacks.
+                let lacks = if route.shows.is_empty() { "no such API route on a lab server" } else { route.shows };
+                if !text.contains(lacks) {
+                    wrong.push(format!("{cell}: 404 but not as a route the lab server lacks ({lacks}): {text}"));
                 }
             } else if !uri.starts_with("/api/v1/openapi") && text.contains("no such API route") {
                 wrong.push(format!("{cell}: the lab server does not route it: {text}"));

@@ -28,6 +28,7 @@ mod estop;
 mod hostile;
 mod ipcam;
 mod lab;
+mod lab_docs;
 mod labnet;
 mod labserver_router;
 mod languages;

@@ -567,6 +567,24 @@ pub fn http(address: &str, method: &str, path: &str, token: Option<&str>, body: 
     (status, serde_json::from_slice(&body).unwrap_or(Json::Null))
 }
 
+/// One request to the portal at `address` (`https://HOST:PORT`), trusting
+/// only the authority in `ca` (PEM), with the command line's own client:
+/// (status, JSON body, or null when the body is not JSON).
+pub fn https(address: &str, ca: &Path, method: &str, path: &str, token: Option<&str>, body: &[u8]) -> (u16, Json) {
+    use subsume::portal::client::{Connection, Login};
+    let login = Login {
+        host: address.to_string(),
+        user: String::new(),
+        password: String::new(),
+        ca: Some(ca.to_path_buf()),
+        allow_plain_http: false,
+    };
+    let connection = Connection::open(&login, Duration::from_secs(60)).unwrap();
+    let answer = connection.send(method, path, token, "application/json", body).unwrap();
+    let (status, json, _) = answer.read(64 << 20).unwrap();
+    (status, json)
+}
+
 /// [`http`] on a connection the caller opened.
 pub fn http_on(
     stream: TcpStream,

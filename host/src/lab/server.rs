@@ -831,7 +831,9 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
             busy.insert(name.clone());
         }
     }
-    if book.lab.paused {
+    // Paused, or the whole lab taken out of service by an admin (`subsume
+    // lab maintenance`): nothing new goes to any robot.
+    if book.lab.paused || book.lab.maintenance.is_some() {
         return actions;
     }
     // The queue, first in, first out: each experiment to the first free

@@ -262,9 +262,7 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
 /// activates or tests a robot, since it runs none.
 pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
     let api = shared_api()
-        .fallback(|| async {
-            ApiError::new(StatusCode::NOT_FOUND, "no such API route on a lab server (see /api/v1/openapi.json)")
-        })
+        .fallback(|uri: axum::http::Uri| async move { not_on_a_lab_server(uri.path()) })
         .layer(axum::middleware::from_fn_with_state(state.clone(), api_answers));
     axum::Router::new()
         .nest("/api/v1", api)
@@ -273,6 +271,21 @@ pub fn lab_server_app(state: Arc<PortalState>) -> axum::Router {
         .route("/metrics", get(routes::metrics))
         .route("/style.css", get(|| async { ([(header::CONTENT_TYPE, "text/css; charset=utf-8")], STYLE_CSS) }))
         .with_state(state)
+}
+
+/// The answer of a lab server to an API route it does not serve: for a
+/// robot's route that `subsume lab` has a command for, why a lab server
+/// does not do it (docs/lab.md, "Several robots"); else that there is no
+/// such route. `path` is the route's, under `/api/v1`.
+fn not_on_a_lab_server(path: &str) -> ApiError {
+    let path = path.strip_prefix("/api/v1").unwrap_or(path);
+    let why = if path.starts_with("/lab/reservations") {
+        "a lab server takes no reservations (not built yet: docs/lab.md, \"Several robots\"): \
+         its queue gives each experiment to the first free robot that fits"
+    } else {
+        "no such API route on a lab server (see /api/v1/openapi.json)"
+    };
+    ApiError::new(StatusCode::NOT_FOUND, why)
 }
 
 /// The portal: API routes, the teleoperation WebSocket and the web files.
