@@ -2146,6 +2146,66 @@ fn a_junk_query_flood_during_a_stop_leaves_it_engaging_at_once_and_the_robots_au
     assert!(added.len() <= 12, "the flood's audit is not bounded: {added:#?}");
 }
 
+/// A process's resident and peak resident memory (KiB), from the kernel.
+fn memory_kib(pid: u32) -> (u64, u64) {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    let field = |name: &str| {
+        let line = status.lines().find(|l| l.starts_with(name)).unwrap_or_else(|| panic!("no {name} for {pid}"));
+        line.split_whitespace().nth(1).and_then(|n| n.parse::<u64>().ok()).unwrap()
+    };
+    (field("VmRSS:"), field("VmHWM:"))
+}
+
+/// A peer without the secret sends messages of 32 MiB, far over the lab's
+/// bound (`wire::MAX_ZENOH_MESSAGE_BYTES`, which the lab's Zenoh sessions
+/// apply to what they reassemble), to a running robot's keys. Zenoh drops
+/// them before the lab's code holds them: neither the lab server's nor the
+/// robot's peak memory grows by one such message, the experiment runs on,
+/// and the lab's STOP engages at once afterwards (issue 37, "bounded
+/// messages at the Zenoh layer too").
+#[test]
+fn oversized_messages_from_a_peer_are_dropped_by_zenoh_and_the_lab_runs_on_and_stops() {
+    const MESSAGE_BYTES: u64 = 32 << 20;
+    assert!(MESSAGE_BYTES > 8 * subsume::lab::wire::MAX_ZENOH_MESSAGE_BYTES as u64);
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let ana = lab.token("ana");
+    let set = lab.stage(&ana, "ana.xml", &robot(7.0, ""));
+    let id = lab.submit(&ana, set, 110.0, Some("r1"));
+    assert_eq!(lab.wait_for(&ana, id, "running", Duration::from_secs(180))["state"], "running");
+    let r1 = lab.robot("r1");
+    let (server_pid, robot_pid) = (lab.server.child.id(), r1.host.child.id());
+    let (server_before, robot_before) = (memory_kib(server_pid), memory_kib(robot_pid));
+    let attack = Attack::start(&["oversized", &lab.zenoh, LAB, "r1", "6", &MESSAGE_BYTES.to_string()]);
+    assert_eq!(attack.line(Duration::from_secs(60)), "ready");
+    let said: Json = serde_json::from_str(&attack.line(Duration::from_secs(120))).unwrap();
+    assert_eq!(said["bytes"].as_u64().unwrap(), MESSAGE_BYTES + 41, "{said}");
+    assert!(said["sent"].as_u64().unwrap() + said["failed"].as_u64().unwrap() == 6, "{said}");
+    // Neither process ever held one of them: its peak stayed where it was,
+    // or under half a message above what it held before (RSS moves by a
+    // few MiB on its own).
+    let margin_kib = MESSAGE_BYTES / 1024 / 2;
+    for (name, pid, (rss, peak_before)) in
+        [("the lab server", server_pid, server_before), ("robot r1", robot_pid, robot_before)]
+    {
+        let (now, peak) = memory_kib(pid);
+        assert!(
+            peak <= peak_before.max(rss + margin_kib),
+            "{name} held an oversized message: {rss} KiB before (peak {peak_before} KiB), peak {peak} KiB since, \
+             now {now} KiB ({said})"
+        );
+    }
+    let experiment = lab.experiment(&ana, id);
+    assert_eq!(experiment["state"], "running", "{experiment:#}\n{}", lab.logs());
+    let pressed = Instant::now();
+    let (status, json) = lab.call(&ana, "POST", "/api/v1/robots/r1/stop", "");
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["stopped"][0]["engaged"], true, "{json}");
+    assert!(pressed.elapsed() < Duration::from_secs(2), "{:?}", pressed.elapsed());
+    wait_stopped_by(r1, &format!("ana@{LAB}"));
+    assert_eq!(lab.wait_for(&ana, id, "aborted", Duration::from_secs(120))["state"], "aborted");
+}
+
 #[test]
 fn a_robots_token_declared_again_keeps_it_neither_listed_nor_its_experiment_alive() {
     let dir = tempfile::tempdir().unwrap();

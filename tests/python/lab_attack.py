@@ -28,6 +28,13 @@ subcommand:
         envelope with a random MAC. Prints "ready" when it starts and how
         many it sent when it is done.
 
+    lab_attack.py oversized ENDPOINT LAB ROBOT COUNT BYTES
+        Sends COUNT messages of BYTES each (far over the lab's bound, which
+        Zenoh itself applies to what it reassembles) to ROBOT's rpc keys,
+        as queries and as puts, a fifth of a second apart. Prints "ready",
+        then how many it sent and how many sends failed (Zenoh may close
+        the link of a peer that sends more than its bound).
+
     lab_attack.py token ENDPOINT LAB ROBOT
         Reads ROBOT's liveliness tokens and declares each again from this
         session, so they stay when the robot's go. Prints "ready" with the
@@ -183,6 +190,28 @@ def flood(endpoint, lab, robot, seconds, rate):
     session.close()
 
 
+def oversized(endpoint, lab, robot, count, size):
+    session = client(endpoint)
+    keys = [f"subsume/lab/{lab}/rpc/{robot}/{op}" for op in OPS]
+    # An envelope whose header claims the whole size: a reader that trusted
+    # it would hold every byte.
+    payload = MAGIC + os.urandom(32) + bytes([7]) + struct.pack("<I", size) + bytes(size)
+    sent, failed = 0, 0
+    print("ready", flush=True)
+    for i in range(count):
+        key = keys[i % len(keys)]
+        try:
+            session.get(key, lambda reply: None, payload=payload, timeout=5.0)
+            session.put(key, payload)
+            sent += 1
+        except Exception:  # noqa: BLE001 - a closed link is an outcome, counted
+            failed += 1
+        time.sleep(0.2)
+    print(json.dumps({"sent": sent, "failed": failed, "bytes": len(payload)}), flush=True)
+    time.sleep(0.5)
+    session.close()
+
+
 def token(endpoint, lab, robot):
     session = client(endpoint)
     keys = [str(reply.ok.key_expr) for reply in session.liveliness().get(f"subsume/lab/{lab}/robot/{robot}/**", timeout=5.0) if reply.ok is not None]
@@ -203,6 +232,8 @@ def main():
         capture(*args)
     elif command == "flood":
         flood(args[0], args[1], args[2], float(args[3]), float(args[4]))
+    elif command == "oversized":
+        oversized(args[0], args[1], args[2], int(args[3]), int(args[4]))
     elif command == "token":
         token(*args)
     else:
