@@ -1291,6 +1291,7 @@ function experimentNow(x) {
 // its end): the same words as `subsume lab show` (RunOutcome::said).
 function outcomeText(o) {
   const parts = [];
+  if (o.ended_by) parts.push(`ended: ${o.ended_by}`);
   if (o.goal_reached === true) parts.push('goal reached');
   if (o.goal_reached === false) parts.push('goal not reached');
   parts.push(o.collisions === 0 ? 'no collision' : o.collisions === 1 ? '1 collision' : `${o.collisions} collisions`);

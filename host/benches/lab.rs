@@ -117,7 +117,7 @@ fn preflights_beside_the_robot(seconds: f64) {
         let out = dir.path().join(format!("p{n}"));
         std::fs::create_dir_all(&out).unwrap();
         let files = PreflightFiles::in_dir(&out);
-        match preflight::run(&command, &robot, Duration::from_secs(60), &Criteria::default(), &files, &|| false) {
+        match preflight::run(&command, &robot, Duration::from_secs(60), &Criteria::default(), None, &files, &|| false) {
             Ok(Outcome::Judged { verdict, wall_s }) => {
                 speeds.push(verdict.observed.simulated_s / wall_s);
             }

@@ -70,6 +70,7 @@ fn main() {
         control: Default::default(),
         verdict: None,
         criteria: None,
+        task: None,
     };
     let host_shutdown = shutdown.clone();
     let host =

@@ -16,6 +16,7 @@ use crate::builtin::Services;
 use crate::config::{self, Diagnostics, ParamOverride, RobotConfig};
 use crate::deploy::{self, BootOptions, DeployError, Deployer};
 use crate::fsutil::HiddenPaths;
+use crate::lab::episode::{EndWatch, EpisodeWatch};
 use crate::lab::preflight::{HolderWatch, PreflightCommand, PreflightLimits};
 use crate::lab::robot_link::{LinkError, RobotLink, RobotLinkOptions};
 use crate::lab::server::{Fleet, FleetOptions, ServerError};
@@ -32,6 +33,7 @@ use crate::runtime::scheduling::ControlThreadSettings;
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
 use crate::runtime::{Graph, Heartbeat, Locks, RunningRobot, StallWatchdog, Standings, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
+use crate::store::task::{EpisodeEnd, Task};
 use crate::store::users::Directory;
 use crate::store::{Store, StoreError};
 use crate::teleop::TeleopServers;
@@ -73,6 +75,10 @@ pub struct RunOptions {
     /// The criteria the verdict applies (`--criteria FILE`, JSON); the
     /// lab's defaults when `None`.
     pub criteria: Option<PathBuf>,
+    /// The lab's task (`--task FILE`, JSON, as the lab kit's task.json):
+    /// the run ends when one of its end conditions holds (docs/lab.md,
+    /// "Tasks and scores"), as the lab's runs do.
+    pub task: Option<PathBuf>,
 }
 
 impl RunOptions {
@@ -252,6 +258,12 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         return Err(RunError::StallLimit(options.stall_limit));
     }
     if let Some(portal) = &options.portal {
+        if let Some(path) = &options.task {
+            return Err(RunError::Verdict {
+                path: path.clone(),
+                reason: "--task ends a run without the portal (--http off); with it, the lab ends each experiment by its task".into(),
+            });
+        }
         return run_with_portal(options, portal, shutdown);
     }
     let sandbox = options.sandbox()?;
@@ -278,7 +290,8 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
         assemble::build(&config, &mut loader, clock.clone(), &shutdown.waker(), &services, &assemble::Carry::default())
             .map(|built| built.graph)
             .map_err(RunError::Start)?;
-    let watch = Judge(judge.then(|| HolderWatch::new(&config, standings)));
+    let ends = read_task(options)?.as_ref().and_then(EpisodeWatch::new).map(|w| EndWatch::new(w, shutdown.clone()));
+    let watch = Judge { holders: judge.then(|| HolderWatch::new(&config, standings)), ends };
     let Some(record) = &options.record else {
         let (graph, watch, stopped_by, ran_ns) = run_control_thread(graph, clock, shutdown, options, watch)?;
         let report = final_report(&config, &graph, stopped_by, ran_ns);
@@ -302,15 +315,30 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
 }
 
 /// Who held control when, watched in runs that are judged (`--verdict`,
-/// or any run on simulated time).
-struct Judge(Option<HolderWatch>);
+/// or any run on simulated time); the task's end conditions, with
+/// `--task`.
+struct Judge {
+    holders: Option<HolderWatch>,
+    ends: Option<EndWatch>,
+}
 
 impl CycleHook for Judge {
     fn between_cycles(&mut self, graph: &mut Graph, now_ns: u64) {
-        if let Some(watch) = &mut self.0 {
+        if let Some(watch) = &mut self.holders {
             watch.between_cycles(graph, now_ns);
         }
+        if let Some(ends) = &mut self.ends {
+            ends.between_cycles(graph, now_ns);
+        }
     }
+}
+
+/// The task of `--task`, if given.
+fn read_task(options: &RunOptions) -> Result<Option<Task>, RunError> {
+    let Some(path) = &options.task else { return Ok(None) };
+    let bad = |reason: String| RunError::Verdict { path: path.clone(), reason };
+    let text = std::fs::read(path).map_err(|e| bad(format!("cannot read the task: {e}")))?;
+    serde_json::from_slice(&text).map(Some).map_err(|e| bad(format!("not the lab's task: {e}")))
 }
 
 /// The criteria of `--criteria`, else the lab's defaults.
@@ -331,10 +359,15 @@ fn judge_run(
     report: &Report,
     watch: &Judge,
 ) -> Result<(), RunError> {
-    let Some(watch) = &watch.0 else { return Ok(()) };
+    let Some(holders) = &watch.holders else { return Ok(()) };
     let path = options.verdict.clone().unwrap_or_default();
-    let verdict = crate::lab::preflight::verdict(criteria, config, graph, report, watch.timeline().clone())
+    let mut verdict = crate::lab::preflight::verdict(criteria, config, graph, report, holders.timeline().clone())
         .map_err(|e| RunError::Verdict { path: path.clone(), reason: e.to_string() })?;
+    // With the task's end conditions: why the episode ended (a run stopped
+    // otherwise, by a signal, ended for none of them).
+    verdict.observed.ended_by = watch.ends.as_ref().and_then(|ends| {
+        ends.ended().or((report.stopped_by == crate::report::StoppedBy::Duration).then_some(EpisodeEnd::TimeOut))
+    });
     if verdict.passed {
         tracing::info!("preflight verdict: passed ({:.1} s simulated)", verdict.observed.simulated_s);
     } else {

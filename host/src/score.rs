@@ -232,7 +232,7 @@ pub fn score_recording(
                 tally.last_pose = Some((x, y));
                 let heading = value.get(2).and_then(Json::as_f64).unwrap_or(0.0);
                 tally.sample(t, || Event::Pose(Position { x, y, heading }));
-                if tally.reached_at_ns.is_none() && (x - task.goal.x).hypot(y - task.goal.y) <= task.goal.radius {
+                if tally.reached_at_ns.is_none() && task.goal.contains(x, y) {
                     tally.reached_at_ns = Some(t);
                 }
             } else if topic == commands_topic {
@@ -450,6 +450,7 @@ mod tests {
             wheel_base_m: 0.4,
             board: Default::default(),
             pseudonyms: true,
+            end_on: Vec::new(),
         }
     }
 

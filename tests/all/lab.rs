@@ -1319,7 +1319,7 @@ fn a_preflight_that_logs_without_end_is_cut_at_its_limits() {
         };
         let files = PreflightFiles::in_dir(dir.path());
         let criteria = subsume::lab::verdict::Criteria::default();
-        let outcome = preflight::run(&command, &robot, Duration::from_secs(3), &criteria, &files, &|| false);
+        let outcome = preflight::run(&command, &robot, Duration::from_secs(3), &criteria, None, &files, &|| false);
         let log = std::fs::read_to_string(&files.log).unwrap();
         assert!(matches!(outcome, Ok(Outcome::Judged { .. })), "{bound}: {outcome:?}\n{log}");
         let recording = std::fs::read(&files.recording).unwrap();
@@ -2827,4 +2827,109 @@ fn an_admins_self_test_racing_the_experiments_starts_never_fails_nor_holds_one_u
     for id in &ids {
         assert_eq!(lab.experiment(&ana, *id)["state"], "done");
     }
+}
+
+/// Issue 41, a task's end conditions: with the owner's task ending runs at
+/// its goal (`end_on: ["goal"]`; an unknown condition is refused naming the
+/// field), a run whose planner drives through the goal ends there, `done`,
+/// long before its duration (the baseline's robot stood near the goal as it
+/// started: only poses of the run count), and its outcome says why the
+/// episode ended (`goal`) on the record, in the bundle's `experiment.json`
+/// and in `lab show`; its preflight ended at the goal too. The recording
+/// ends where the run ended, and `subsume score` recomputes the bundle's
+/// score bit for bit. A run whose planner stays at the start ends at its
+/// duration, `time-out`.
+#[test]
+fn a_task_ending_runs_at_its_goal_ends_a_run_there_done_and_its_outcome_says_why() {
+    let began = Instant::now();
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    settings["task"] = serde_json::json!({
+        "name": "reach-2", "goal": {"x": 2.0, "y": 2.5, "radius": 0.3}, "metric": "time_to_goal",
+        "end_on": ["collision", "arrival"]
+    });
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 400, "{json}");
+    assert!(
+        json["error"]
+            .as_str()
+            .unwrap()
+            .contains("task.end_on: unknown end condition 'arrival' (expected goal or collision)"),
+        "{json}"
+    );
+    settings["task"]["end_on"] = serde_json::json!(["goal"]);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    assert_eq!(json["settings"]["task"]["end_on"], serde_json::json!(["goal"]), "{json}");
+    // A planner whose own goal is the start (1, 1), so it stays there; and
+    // one driving from the start to the task's goal, off the baseline's
+    // line (y = 1), so no pose of the robot before a run is in it. The one
+    // that stays runs first: the other ends in the goal, where the baseline
+    // takes the robot over until the sim's reset.
+    let through = robot(2.0, "").replace(r#"name="goal-y" value="1.0""#, r#"name="goal-y" value="2.5""#);
+    let through = lab.stage(&ana, "through.xml", &through);
+    let stays = lab.stage(&ana, "stays.xml", &robot(1.0, ""));
+    let (duration_s, short_s) = (20.0, 2.0);
+    let timed_out = lab.submit(&ana, stays, short_s);
+    let reached = lab.submit(&ana, through, duration_s);
+
+    // The run that never gets there ends at its duration.
+    let done = lab.wait_for(&ana, timed_out, "done", Duration::from_secs(120));
+    assert_eq!(done["state"], "done", "{done:#}");
+    assert_eq!(done["run"]["outcome"]["ended_by"], "time-out", "{done:#}");
+    assert_eq!(done["preflight"]["ended_by"], "time-out", "{done:#}");
+    assert_eq!(done["score"]["sub_scores"]["goal_reached"], 0.0, "{done:#}");
+    let ran = done["run"]["ran_s"].as_f64().unwrap();
+    assert!(ran >= short_s - 0.05, "it ran its whole {short_s} s: {ran} s");
+
+    let done = lab.wait_for(&ana, reached, "done", Duration::from_secs(120));
+    assert_eq!(done["state"], "done", "{done:#}");
+    let outcome = &done["run"]["outcome"];
+    assert_eq!(outcome["ended_by"], "goal", "{done:#}");
+    let cause =
+        done["history"].as_array().unwrap().iter().find(|c| c["state"] == "finishing").unwrap()["cause"].clone();
+    assert_eq!(cause, "the robot reached the task's goal (its end condition goal)", "{done:#}");
+    let ran = done["run"]["ran_s"].as_f64().unwrap();
+    let score = &done["score"];
+    let to_goal = score["sub_scores"]["time_to_goal_s"].as_f64().unwrap();
+    assert_eq!(score["sub_scores"]["goal_reached"], 1.0, "{score:#}");
+    // It ended at the goal its own poses reached (the recording shows it
+    // there), long before its duration; its recording ends shortly after
+    // the goal.
+    assert!(ran > 1.0 && ran < duration_s / 2.0, "{ran} s of {duration_s}: {done:#}");
+    let recorded = score["recorded_s"].as_f64().unwrap();
+    assert!(recorded < to_goal + 1.5, "reached at {to_goal} s of a recording of {recorded} s: {done:#}");
+    // The preflight ended at the goal in the simulator too.
+    let preflight = &done["preflight"];
+    assert_eq!(preflight["ended_by"], "goal", "{done:#}");
+    assert!(preflight["simulated_s"].as_f64().unwrap() < duration_s / 2.0, "{preflight:#}");
+    assert_eq!(preflight["score"]["sub_scores"]["goal_reached"], 1.0, "{preflight:#}");
+    // The bundle carries the outcome, and its score recomputes bit for bit.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, reached, &out);
+    let record: Json = serde_json::from_slice(&std::fs::read(bundle.join("experiment.json")).unwrap()).unwrap();
+    assert_eq!(record["run"]["outcome"]["ended_by"], "goal", "{record:#}");
+    let kept: Json = serde_json::from_slice(&std::fs::read(bundle.join("score.json")).unwrap()).unwrap();
+    assert_eq!(&kept, score);
+    let again = crate::support::subsume().arg("score").arg(&bundle).output().unwrap();
+    let said = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success() && said.contains("identical"), "{said}{}", String::from_utf8_lossy(&again.stderr));
+    // `lab show` says it on the outcome's line.
+    let shown = crate::support::subsume()
+        .args(["lab", "show", &reached.to_string(), &lab.address])
+        .env("SUBSUME_USER", "ana")
+        .env("SUBSUME_PASSWORD", PASSWORD)
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&shown.stdout);
+    assert!(shown.status.success(), "{text}{}", String::from_utf8_lossy(&shown.stderr));
+    let line = text.lines().find_map(|l| l.trim().strip_prefix("outcome")).unwrap_or_default().trim().to_string();
+    assert!(line.starts_with("ended: goal, "), "{text}");
+    assert!(text.contains("s simulated in ") && text.contains(", ended: goal\n"), "{text}");
+    eprintln!("end conditions: {:.1} s", began.elapsed().as_secs_f64());
 }

@@ -97,6 +97,12 @@ pub struct HostFlags {
     /// the lab's defaults when not given.
     #[arg(long, value_name = "FILE.json")]
     criteria: Option<PathBuf>,
+    /// The lab's task (JSON, as the lab kit's task.json): the run ends
+    /// when one of its end conditions holds (the robot at its goal, its
+    /// first collision), as the lab's runs and preflights do. With --http
+    /// off.
+    #[arg(long, value_name = "FILE.json")]
+    task: Option<PathBuf>,
     /// How the lab's preflights run beside the robot: `idle` (only the CPU
     /// the robot leaves), `background` (nice 10, as a compile; for a robot
     /// whose own work keeps the machine busy) or `normal`. docs/lab.md.
@@ -120,6 +126,7 @@ impl Default for HostFlags {
             foxglove: Listen::Off,
             verdict: None,
             criteria: None,
+            task: None,
             preflight_priority: Priority::Idle,
         }
     }
@@ -207,6 +214,7 @@ pub fn run_options(
         control: ControlThreadSettings { fifo_priority: host.control_fifo, cpu: host.control_cpu },
         verdict: host.verdict,
         criteria: host.criteria,
+        task: host.task,
     })
 }
 

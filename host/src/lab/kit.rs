@@ -88,8 +88,9 @@ impl Lab {
             }
             readme.push_str(&format!(
                 "\nThe lab scores every run against its task '{}' (task.json, and scorer.wasm when its metric is\n\
-                 a scoring component). Score yours as it will:\n\n    \
-                 subsume run robot.xml --http off --speed max --duration 60 --record run.mcap\n    \
+                 a scoring component). Score yours as it will (--task ends the run as the task's end\n\
+                 conditions end the lab's, if it has any):\n\n    \
+                 subsume run robot.xml --http off --speed max --duration 60 --task task.json --record run.mcap\n    \
                  subsume score .\n",
                 task.name
             ));

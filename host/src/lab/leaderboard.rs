@@ -187,6 +187,7 @@ mod tests {
             wheel_base_m: 0.3,
             board,
             pseudonyms,
+            end_on: Vec::new(),
         }
     }
 
@@ -231,6 +232,7 @@ mod tests {
             wall_s: 1.0,
             replay: None,
             score: Some(score(Some(s))),
+            ended_by: None,
         });
         record.run = Some(RunResult { ended_ms: 1000 + id, ..RunResult::default() });
         record

@@ -15,7 +15,8 @@
 //! baseline, pause, the manual reset), `reservations`, `kit`, `metrics`,
 //! `robots` (a lab server's robots and STOP). Pure decisions: `queue`
 //! (what starts next, ETAs, limits, reservations, a lab server's
-//! placement), `verdict` (the preflight's verdict), and the preflight
+//! placement), `verdict` (the preflight's verdict), `episode` (a task's
+//! end conditions), and the preflight
 //! outcome's state in `runner`, and a lab's Zenoh router config
 //! (`router_config`). Two threads drive the lab: the checker,
 //! and on a robot the runner ([`runner`]) or on a lab server the
@@ -40,6 +41,7 @@
 mod audit;
 pub mod bundle;
 mod cancel;
+pub mod episode;
 mod kit;
 pub mod kit_submission;
 pub mod leaderboard;

@@ -280,6 +280,11 @@ fn check_task(task: &Task) -> Result<(), LabError> {
             return bad(format!("scorer is only for the metric scorer, and the metric is {}", metric.name()));
         }
     }
+    for (n, condition) in task.end_on.iter().enumerate() {
+        if task.end_on[..n].contains(condition) {
+            return bad(format!("end_on names {} twice", condition.name()));
+        }
+    }
     for (field, port) in [("pose", &task.pose), ("commands", &task.commands), ("ranges", &task.ranges)] {
         let shaped = port.split_once('.').is_some_and(|(c, p)| !c.is_empty() && !p.is_empty() && !p.contains('.'));
         if !shaped || port.len() > 128 || port.chars().any(|c| c.is_control() || c == '/') {

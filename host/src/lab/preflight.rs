@@ -31,6 +31,7 @@ use crate::runtime::graph::ComponentState;
 use crate::runtime::{Standing, Standings};
 use crate::sim::SimSection;
 use crate::store::experiments::{FaultSeen, MAX_OUTCOME_FAULTS, RunOutcome};
+use crate::store::task::Task;
 
 /// Most CPU time a preflight may use, beyond its simulated duration: a
 /// preflight whose components use their whole budgets on every call runs
@@ -251,7 +252,7 @@ pub fn outcome(report: &Report) -> RunOutcome {
         .filter(|(_, seen)| seen.count > 0)
         .map(|(cause, seen)| (cause.clone(), seen.count))
         .collect();
-    RunOutcome { faults, collisions: seen.collisions, interventions, goal_reached: seen.goal_reached }
+    RunOutcome { faults, collisions: seen.collisions, interventions, goal_reached: seen.goal_reached, ended_by: None }
 }
 
 /// The verdict of the run of `config` (see [`observe`]).
@@ -272,6 +273,8 @@ pub struct PreflightFiles {
     pub report: PathBuf,
     pub verdict: PathBuf,
     pub criteria: PathBuf,
+    /// The task whose end conditions end it, as on the robot (`--task`).
+    pub task: PathBuf,
     /// The child's standard output and error.
     pub log: PathBuf,
 }
@@ -284,6 +287,7 @@ impl PreflightFiles {
             report: dir.join("preflight-report.json"),
             verdict: dir.join("preflight-verdict.json"),
             criteria: dir.join("preflight-criteria.json"),
+            task: dir.join("preflight-task.json"),
             log: dir.join("preflight.log"),
         }
     }
@@ -340,12 +344,14 @@ const LAST_WORDS: usize = 12;
 
 /// Runs the preflight of the robot file `robot` for `duration` in a
 /// process of its own at `command.priority`, writing `files`; `cancelled`
-/// is polled to stop it early.
+/// is polled to stop it early. With `task`'s end conditions it ends as the
+/// robot's run would (`--task`).
 pub fn run(
     command: &PreflightCommand,
     robot: &Path,
     duration: Duration,
     criteria: &Criteria,
+    task: Option<&Task>,
     files: &PreflightFiles,
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Outcome, PreflightError> {
@@ -356,6 +362,12 @@ pub fn run(
     let criteria_json = serde_json::to_vec_pretty(criteria)
         .map_err(|e| PreflightError::File { path: files.criteria.clone(), reason: e.to_string() })?;
     crate::fsutil::write_atomically(&files.criteria, &criteria_json).map_err(file_error(&files.criteria))?;
+    let task = task.filter(|t| !t.end_on.is_empty());
+    if let Some(task) = task {
+        let task_json = serde_json::to_vec_pretty(task)
+            .map_err(|e| PreflightError::File { path: files.task.clone(), reason: e.to_string() })?;
+        crate::fsutil::write_atomically(&files.task, &task_json).map_err(file_error(&files.task))?;
+    }
     let log = std::fs::File::create(&files.log).map_err(file_error(&files.log))?;
     // Standard output and error into one pipe the host reads into the log,
     // up to its bound.
@@ -390,6 +402,9 @@ pub fn run(
         Some(dir) => child.arg("--cache-dir").arg(dir),
         None => child.arg("--no-cache"),
     };
+    if task.is_some() {
+        child.arg("--task").arg(&files.task);
+    }
     lowered(&mut child, command.priority, command.limits.memory_bytes);
     let started = Instant::now();
     let limit = duration + PREFLIGHT_CPU_GRACE;

@@ -14,6 +14,7 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 use std::time::Duration;
 
+use super::episode::{EpisodeWatch, Seen};
 use super::materialize::{self, MaterializeError, PreflightWorld};
 use super::preflight::{self, Outcome, PreflightError, PreflightFiles};
 use super::queue::{self, QueueView};
@@ -25,6 +26,7 @@ use crate::runtime::locks::unix_now_ms;
 use crate::store::experiments::{
     Criteria, DriveReset, ExperimentRecord, ExperimentState, PreflightResult, ResetPolicy,
 };
+use crate::store::task::EpisodeEnd;
 use crate::store::users::Principal;
 use crate::store::{Outcome as AuditOutcome, Store};
 
@@ -46,9 +48,21 @@ pub(super) struct OnRobot {
     pub ends_ns: u64,
     pub started_unix_ms: u64,
     pub ends_unix_ms: u64,
-    /// With the owner's `end_run_on_breach`: the criteria it ran under, and
-    /// the live status the runner judges against them while it runs.
-    pub watch: Option<(Criteria, tokio::sync::watch::Receiver<Arc<Option<LiveStatus>>>)>,
+    /// The live status the runner judges while it runs, when the owner's
+    /// criteria (`end_run_on_breach`) or its task's end conditions may end
+    /// it early.
+    pub watch: Option<Watch>,
+}
+
+/// What may end the experiment on the robot early, judged on its live
+/// status.
+#[derive(Clone, Debug)]
+pub(super) struct Watch {
+    /// With the owner's `end_run_on_breach`: the criteria it ran under.
+    criteria: Option<Criteria>,
+    /// Its task's end conditions.
+    episode: Option<EpisodeWatch>,
+    live: tokio::sync::watch::Receiver<Arc<Option<LiveStatus>>>,
 }
 
 /// How an experiment on the robot ends.
@@ -59,6 +73,8 @@ struct Ending {
     cause: String,
     /// The queue pauses after it (an admin's activation takes the robot).
     pause: bool,
+    /// Why the episode ended, when it ran to its end (`done`).
+    episode: Option<EpisodeEnd>,
 }
 
 enum Next {
@@ -213,8 +229,11 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
         }
     });
     let cancelled = || lab.is_stopping() || lab.book.lock().map(|b| b.cancels.contains_key(&id)).unwrap_or(true);
+    // The task it was submitted under: its end conditions end the preflight
+    // as they will end the run.
+    let task = record.settings.task.as_ref();
     let outcome =
-        preflight::run(&lab.options.preflight, &written.robot, duration, &settings.criteria, &files, &cancelled);
+        preflight::run(&lab.options.preflight, &written.robot, duration, &settings.criteria, task, &files, &cancelled);
     // The robot file in its preflight form stays with the results; what it
     // named is in the store already.
     if let Err(e) = std::fs::rename(&written.robot, dir.join(bundle::ROBOT)) {
@@ -256,6 +275,7 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
             wall_s: *wall_s,
             replay,
             score: preflight_score,
+            ended_by: verdict.observed.ended_by,
         });
     }
     let cancel_asked = book.cancels.contains_key(&id);
@@ -374,16 +394,37 @@ fn grant(lab: &Lab, book: &mut Book) {
     }
 }
 
-/// How the running experiment breaks the owner's criteria so far, by its
-/// latest live status (published every `LIVE_PERIOD` while watched).
-fn breach_so_far(running: &OnRobot) -> Option<String> {
-    let (criteria, live) = running.watch.as_ref()?;
-    let status = live.borrow().clone();
+/// What ends the running experiment early so far, by its latest live
+/// status (published every `LIVE_PERIOD` while watched).
+#[derive(Debug, PartialEq)]
+enum EarlyEnd {
+    /// It breaks the owner's criteria (`end_run_on_breach`): why.
+    Breach(String),
+    /// One of its task's end conditions holds.
+    Episode(EpisodeEnd),
+}
+
+/// How the running experiment ends early by its latest live status, if it
+/// does: the owner's criteria first (a breach aborts it), then its task's
+/// end conditions (the episode is done). Each status is looked at once.
+fn early_end(running: &mut OnRobot) -> Option<EarlyEnd> {
+    let watch = running.watch.as_mut()?;
+    if !watch.live.has_changed().unwrap_or(false) {
+        return None;
+    }
+    let status = watch.live.borrow_and_update().clone();
     let status = status.as_ref().as_ref()?;
     if status.experiment.as_ref().map(|e| e.id) != Some(running.id) {
         return None;
     }
-    super::verdict::breach(criteria, &super::preflight::outcome(&status.report))
+    if let Some(criteria) = &watch.criteria
+        && let Some(why) = super::verdict::breach(criteria, &super::preflight::outcome(&status.report))
+    {
+        return Some(EarlyEnd::Breach(why));
+    }
+    let episode = watch.episode.as_mut()?;
+    let seen = Seen::in_report(&status.report, episode.pose_port());
+    episode.look(seen).map(EarlyEnd::Episode)
 }
 
 /// Notes each queued experiment's first ETA, and refuses those that have
@@ -450,7 +491,9 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
     grant(lab, book);
     let locks = lab.deployer.services.get::<Locks>();
     let engaged = locks.as_ref().and_then(|l| l.engaged().into_iter().next());
-    if let Some(running) = book.running.clone() {
+    if let Some(running) = book.running.as_mut() {
+        let early = early_end(running);
+        let running = running.clone();
         let id = running.id;
         if let Some((_, by, what)) = book.preempt.clone().filter(|(p, _, _)| *p == id) {
             return Next::End(Ending {
@@ -458,6 +501,7 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 state: ExperimentState::Cancelled,
                 cause: format!("cancelled: admin {by} is about to {what}"),
                 pause: true,
+                episode: None,
             });
         }
         if let Some(by) = book.cancels.get(&id) {
@@ -466,10 +510,12 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 state: ExperimentState::Cancelled,
                 cause: format!("cancelled by {by}"),
                 pause: false,
+                episode: None,
             });
         }
         if let Some(cause) = book.aborts.get(&id) {
-            return Next::End(Ending { id, state: ExperimentState::Aborted, cause: cause.clone(), pause: false });
+            let cause = cause.clone();
+            return Next::End(Ending { id, state: ExperimentState::Aborted, cause, pause: false, episode: None });
         }
         if let Some(lock) = engaged {
             return Next::End(Ending {
@@ -477,15 +523,34 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 state: ExperimentState::Aborted,
                 cause: format!("aborted: emergency stop by {} ({})", lock.by, lock.how),
                 pause: false,
+                episode: None,
             });
         }
-        if let Some(why) = breach_so_far(&running) {
-            return Next::End(Ending {
-                id,
-                state: ExperimentState::Aborted,
-                cause: format!("aborted: ended early by the owner's criteria: {why}"),
-                pause: false,
-            });
+        match early {
+            Some(EarlyEnd::Breach(why)) => {
+                return Next::End(Ending {
+                    id,
+                    state: ExperimentState::Aborted,
+                    cause: format!("aborted: ended early by the owner's criteria: {why}"),
+                    pause: false,
+                    episode: None,
+                });
+            }
+            Some(EarlyEnd::Episode(end)) => {
+                let cause = match end {
+                    EpisodeEnd::Goal => "the robot reached the task's goal (its end condition goal)",
+                    EpisodeEnd::Collision => "its first collision (the task's end condition collision)",
+                    EpisodeEnd::TimeOut => "its time is up",
+                };
+                return Next::End(Ending {
+                    id,
+                    state: ExperimentState::Done,
+                    cause: cause.into(),
+                    pause: false,
+                    episode: Some(end),
+                });
+            }
+            None => {}
         }
         if lab.deployer.graph_now_ns() >= running.ends_ns {
             return Next::End(Ending {
@@ -493,6 +558,7 @@ fn decide(lab: &Lab, book: &mut Book) -> Next {
                 state: ExperimentState::Done,
                 cause: "its time is up".into(),
                 pause: false,
+                episode: Some(EpisodeEnd::TimeOut),
             });
         }
         refuse_stuck(lab, book);
@@ -700,8 +766,13 @@ fn start_on_robot(
         )),
         other => failed(other.to_string()),
     })?;
-    let criteria = record.settings.criteria;
-    let watch = criteria.end_run_on_breach.then(|| (criteria, lab.deployer.live().subscribe()));
+    let criteria = Some(record.settings.criteria).filter(|c| c.end_run_on_breach);
+    let episode = record.settings.task.as_ref().and_then(EpisodeWatch::new);
+    let watch = (criteria.is_some() || episode.is_some()).then(|| Watch {
+        criteria,
+        episode,
+        live: lab.deployer.live().subscribe(),
+    });
     Ok(OnRobot {
         id: record.id,
         baseline,
@@ -768,6 +839,12 @@ fn end(lab: &Lab, ending: &Ending) {
     let ended = ended.unwrap_or_default();
     if let Some(record) = book.experiments.get_mut(&id) {
         bundle::write_run_results(lab.store(), record, &ended, running.started_unix_ms, LATE_CYCLE_MS);
+        // Why the episode ended, for a run that ran to its end.
+        if state == ExperimentState::Done
+            && let Some(outcome) = record.run.as_mut().and_then(|run| run.outcome.as_mut())
+        {
+            outcome.ended_by = ending.episode;
+        }
         if let Some(Ok(score)) = score {
             record.score = Some(score);
         }

@@ -87,6 +87,11 @@ pub struct Observations {
     pub holders: HolderTimeline,
     /// Whether the goal of the world was reached (information).
     pub goal_reached: Option<bool>,
+    /// Why the run ended, when it ran with the task's end conditions
+    /// (`subsume run --task`): at the goal, at its first collision, or at
+    /// its duration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_by: Option<crate::store::task::EpisodeEnd>,
 }
 
 /// A contact and the simulated robot it happened to.
@@ -329,6 +334,7 @@ mod tests {
             collisions,
             interventions: kinds.iter().map(|(c, n)| (c.to_string(), *n)).collect(),
             goal_reached: None,
+            ended_by: None,
         };
         let cases = [
             (strict, outcome(vec![], 0, &[("acceleration", 9)]), None),

@@ -982,7 +982,8 @@ pub fn show_text(experiment: &Experiment, now_ms: u64) -> String {
     }
     if let Some(p) = &r.preflight {
         let verdict = if p.passed { "passed" } else { "refused" };
-        field("preflight", format!("{verdict}: {} s simulated in {:.1} s", p.simulated_s, p.wall_s));
+        let ended = p.ended_by.map(|end| format!(", ended: {}", end.name())).unwrap_or_default();
+        field("preflight", format!("{verdict}: {} s simulated in {:.1} s{ended}", p.simulated_s, p.wall_s));
     }
     if let Some(run) = &r.run {
         field(
@@ -1326,8 +1327,10 @@ mod tests {
             wall_s: 1.0,
             replay: None,
             score: Some(crate::store::task::Score { value: None, ..score }),
+            ended_by: Some(crate::store::task::EpisodeEnd::TimeOut),
         });
         let text = show_text(&shown, 3000);
+        assert!(text.contains("  preflight  passed: 25 s simulated in 1.0 s, ended: time-out\n"), "{text}");
         assert!(text.contains("experiment 7: done"), "{text}");
         assert!(
             text.contains("  reset      driven back in 12.3 s from (7.40, 1.00, 0.10 rad) to (1.02, 0.98, 0.03 rad)\n"),

@@ -191,6 +191,10 @@ pub struct PreflightResult {
     /// run's score.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub score: Option<crate::store::task::Score>,
+    /// Why its simulated run ended, with the task's end conditions
+    /// applied as on the robot (`goal`, `collision`, `time-out`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_by: Option<crate::store::task::EpisodeEnd>,
 }
 
 /// What the run on the robot left.
@@ -226,6 +230,11 @@ pub struct RunOutcome {
     pub interventions: BTreeMap<String, u64>,
     /// Whether the world's goal was reached (simulated robots only).
     pub goal_reached: Option<bool>,
+    /// Why the run (the episode) ended, when it ran to its end (`done`):
+    /// at the task's goal, at its first collision (the task's end
+    /// conditions), or at its duration (`time-out`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ended_by: Option<crate::store::task::EpisodeEnd>,
 }
 
 /// Faults kept in an outcome: a component restarted on every fault must
@@ -245,6 +254,9 @@ impl RunOutcome {
     /// it: `goal reached, no collision, no fault, no intervention`.
     pub fn said(&self) -> String {
         let mut parts = Vec::new();
+        if let Some(end) = self.ended_by {
+            parts.push(format!("ended: {}", end.name()));
+        }
         match self.goal_reached {
             Some(true) => parts.push("goal reached".to_string()),
             Some(false) => parts.push("goal not reached".to_string()),
@@ -906,6 +918,7 @@ pub type Experiments = BTreeMap<u64, ExperimentRecord>;
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::store::task::EpisodeEnd;
 
     #[test]
     fn the_life_of_an_experiment_is_a_table_checked_pair_by_pair() {
@@ -993,6 +1006,7 @@ mod tests {
                     collisions: 2,
                     faults: vec![fault("planner", Some(3.26))],
                     interventions: kinds(&[("stop-zone", 4), ("geofence", 1)]),
+                    ended_by: None,
                 },
                 "goal not reached, 2 collisions, component 'planner' faulted at 3.3 s: trapped, \
                  interventions: geofence 1, stop-zone 4",
@@ -1005,6 +1019,18 @@ mod tests {
                 },
                 "1 collision, 2 faults (first: 'a': trapped), no intervention",
             ),
+            (
+                RunOutcome { ended_by: Some(EpisodeEnd::Goal), goal_reached: Some(true), ..RunOutcome::default() },
+                "ended: goal, goal reached, no collision, no fault, no intervention",
+            ),
+            (
+                RunOutcome { ended_by: Some(EpisodeEnd::TimeOut), ..RunOutcome::default() },
+                "ended: time-out, no collision, no fault, no intervention",
+            ),
+            (
+                RunOutcome { ended_by: Some(EpisodeEnd::Collision), collisions: 1, ..RunOutcome::default() },
+                "ended: collision, 1 collision, no fault, no intervention",
+            ),
         ];
         for (outcome, said) in cases {
             assert_eq!(outcome.said(), said);
@@ -1014,5 +1040,9 @@ mod tests {
         // A record written before outcomes existed still reads.
         let old = r#"{"started_ms": 1, "ended_ms": 2, "ran_s": 1.0, "late_cycles": 0, "worst_lateness_ms": 0.1}"#;
         assert_eq!(serde_json::from_str::<RunResult>(old).ok().map(|r| r.outcome), Some(None));
+        // Why the episode ended is spelt as the record keeps it.
+        let ended = RunOutcome { ended_by: Some(EpisodeEnd::TimeOut), ..RunOutcome::default() };
+        let json = serde_json::to_value(&ended).unwrap_or_default();
+        assert_eq!(json["ended_by"], "time-out", "{json}");
     }
 }

@@ -46,6 +46,79 @@ pub struct Task {
     /// (`participant-N`) rather than by name (admins always see names).
     #[serde(default = "default_pseudonyms")]
     pub pseudonyms: bool,
+    /// What ends a run before its duration (its time out, always): the
+    /// robot at the goal, its first collision. None (the default): only
+    /// its duration.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub end_on: Vec<EndCondition>,
+}
+
+/// A task's end condition: what ends a run (an episode) before its
+/// duration.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EndCondition {
+    /// A pose of the task's `pose` port within the goal's radius.
+    Goal,
+    /// The first collision the simulator counts.
+    Collision,
+}
+
+impl EndCondition {
+    pub const ALL: [EndCondition; 2] = [EndCondition::Goal, EndCondition::Collision];
+
+    /// Its name in the settings.
+    pub fn name(self) -> &'static str {
+        match self {
+            EndCondition::Goal => "goal",
+            EndCondition::Collision => "collision",
+        }
+    }
+}
+
+/// An unknown name is refused naming the field it is in (a plain enum
+/// would name only the variant).
+impl<'de> Deserialize<'de> for EndCondition {
+    fn deserialize<D: serde::Deserializer<'de>>(deserializer: D) -> Result<EndCondition, D::Error> {
+        let name = String::deserialize(deserializer)?;
+        EndCondition::ALL.into_iter().find(|c| c.name() == name).ok_or_else(|| {
+            serde::de::Error::custom(format!(
+                "task.end_on: unknown end condition '{}' (expected goal or collision)",
+                crate::contract::clip(&name)
+            ))
+        })
+    }
+}
+
+/// Why a run (an episode) ended, as its outcome says (`run.outcome.ended_by`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum EpisodeEnd {
+    /// The robot reached the task's goal (its end condition `goal`).
+    Goal,
+    /// Its first collision (the end condition `collision`).
+    Collision,
+    /// Its duration passed.
+    TimeOut,
+}
+
+impl EpisodeEnd {
+    /// Its name in the record.
+    pub fn name(self) -> &'static str {
+        match self {
+            EpisodeEnd::Goal => "goal",
+            EpisodeEnd::Collision => "collision",
+            EpisodeEnd::TimeOut => "time-out",
+        }
+    }
+
+    /// The end condition that ends a run this way.
+    pub fn of(condition: EndCondition) -> EpisodeEnd {
+        match condition {
+            EndCondition::Goal => EpisodeEnd::Goal,
+            EndCondition::Collision => EpisodeEnd::Collision,
+        }
+    }
 }
 
 /// Which of a user's scored runs the leaderboard ranks.
@@ -70,6 +143,14 @@ pub struct Goal {
     pub x: f64,
     pub y: f64,
     pub radius: f64,
+}
+
+impl Goal {
+    /// Whether (`x`, `y`) is within its radius (the score's `goal_reached`
+    /// and the end condition `goal` alike).
+    pub fn contains(&self, x: f64, y: f64) -> bool {
+        (x - self.x).hypot(y - self.y) <= self.radius
+    }
 }
 
 /// A task's scoring component (the `scorer` world of `wit/robot.wit`): an
