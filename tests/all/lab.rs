@@ -1711,7 +1711,10 @@ fn mail_tells_a_researcher_of_her_own_experiments_and_the_owner_of_everyones() {
     assert_eq!(got.len(), 3, "{got:#?}");
     let body = got.iter().find(|m| m["to"][0] == "ana@example.org").unwrap()["body"].as_str().unwrap().to_string();
     assert!(body.contains(&format!("Experiment {} by ana is now done", ids[0])), "{body}");
-    assert!(body.contains("Outcome: goal ") && body.contains("collision"), "the outcome beside the status: {body}");
+    assert!(
+        body.contains("Outcome: ended: time-out, goal ") && body.contains("collision"),
+        "the outcome beside the status, why the run ended first: {body}"
+    );
     assert!(lab.host.log().contains("not delivered (try 1)"), "the 451 was retried: {}", lab.host.log());
     assert!(!lab.host.log().contains(MAIL_PASSWORD), "the password is never logged");
     // Ending it: no more mail for her.
@@ -2932,4 +2935,60 @@ fn a_task_ending_runs_at_its_goal_ends_a_run_there_done_and_its_outcome_says_why
     assert!(line.starts_with("ended: goal, "), "{text}");
     assert!(text.contains("s simulated in ") && text.contains(", ended: goal\n"), "{text}");
     eprintln!("end conditions: {:.1} s", began.elapsed().as_secs_f64());
+}
+
+/// A run's recording holds only the run: the baseline leaves the simulated
+/// robot inside the task's goal; the sim's reset puts the experiment's
+/// robot back at the start, where a planner whose goal is the start keeps
+/// it for 2 s. Its score reaches no goal (no pose from before the run, as
+/// the serial link heard it before the reset, is in the recording), and
+/// its recording's time line starts at the run's start, as the
+/// preflight's does: it is about as long as the run, not as the host's
+/// time so far. `subsume score` recomputes it bit for bit.
+#[test]
+fn a_runs_recording_starts_at_its_start_without_a_pose_of_the_baseline() {
+    let began = Instant::now();
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    // The baseline drives into the task's goal at (2, 1) and stays there.
+    // Its serial link (the experiment's too, so it is carried over) ticks
+    // at 2 Hz: when the run starts, the odometry the link heard since its
+    // last tick, from before the sim's reset, is waiting for its next.
+    let slow_link =
+        |xml: String| xml.replace(r#"source="builtin:serial" rate="100""#, r#"source="builtin:serial" rate="2""#);
+    std::fs::write(dir.path().join("robot.xml"), slow_link(robot(2.0, ""))).unwrap();
+    let lab = start(dir.path());
+    let (ana, boss) = (lab.token("ana"), lab.token("boss"));
+    let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = overview["lab"]["settings"].clone();
+    assert_eq!(settings["reset"], "sim", "{settings:#}");
+    settings["task"] = serde_json::json!({
+        "name": "reach-2", "goal": {"x": 2.0, "y": 1.0, "radius": 0.4}, "metric": "time_to_goal"
+    });
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while sim_pose(&lab, &boss).0 < 1.7 {
+        assert!(Instant::now() < deadline, "the baseline never reached the goal: {:?}", sim_pose(&lab, &boss));
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let stays = lab.stage(&ana, "stays.xml", &slow_link(robot(1.0, "")));
+    let duration_s = 2.0;
+    let (id, done) = lab.run_to_done(&ana, stays, duration_s);
+    let score = &done["score"];
+    assert_eq!(score["sub_scores"]["goal_reached"], 0.0, "{done:#}");
+    assert!(score["sub_scores"].get("time_to_goal_s").is_none(), "{score:#}");
+    assert!(score["sub_scores"]["path_length_m"].as_f64().unwrap() < 0.05, "{score:#}");
+    let ran = done["run"]["ran_s"].as_f64().unwrap();
+    let recorded = score["recorded_s"].as_f64().unwrap();
+    assert!(recorded <= ran + 0.25 && recorded >= ran - 0.5, "{recorded} s recorded of a {ran} s run: {done:#}");
+    let preflight = done["preflight"]["score"]["recorded_s"].as_f64().unwrap();
+    assert!((recorded - preflight).abs() < 0.5, "robot {recorded} s, preflight {preflight} s: {done:#}");
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, id, &out);
+    let again = crate::support::subsume().arg("score").arg(&bundle).output().unwrap();
+    let said = String::from_utf8_lossy(&again.stdout);
+    assert!(again.status.success() && said.contains("identical"), "{said}{}", String::from_utf8_lossy(&again.stderr));
+    eprintln!("a run's own recording: {:.1} s", began.elapsed().as_secs_f64());
 }
