@@ -173,8 +173,23 @@ pub fn instance_key(c: &ComponentConfig) -> String {
 /// (old index, new index) of the built-ins `new` takes over from `old`:
 /// the unchanged ones that own something outside the host.
 pub fn carry_plan(old: &RobotConfig, new: &RobotConfig) -> Vec<(usize, usize)> {
-    let carried_kind =
-        |c: &ComponentConfig| matches!(&c.source, ComponentSource::Builtin(k) if registry::builtin(*k).carried());
+    plan_carrying(old, new, false)
+}
+
+/// [`carry_plan`] with every simulated robot of `new` built afresh (at its
+/// world's start, time 0, on a new PTY), and so the serial links on its
+/// PTY too: nothing the robot said before reaches the new graph (a lab
+/// run's first pose is its start, not where the robot was before it).
+pub fn carry_plan_fresh_simulators(old: &RobotConfig, new: &RobotConfig) -> Vec<(usize, usize)> {
+    plan_carrying(old, new, true)
+}
+
+fn plan_carrying(old: &RobotConfig, new: &RobotConfig, fresh_simulators: bool) -> Vec<(usize, usize)> {
+    let sim = registry::kind_of(&crate::sim::builtin::SimBuiltin);
+    let carried_kind = |c: &ComponentConfig| {
+        matches!(&c.source, ComponentSource::Builtin(k)
+            if registry::builtin(*k).carried() && !(fresh_simulators && Some(*k) == sim))
+    };
     let mut pairs: Vec<(usize, usize)> = new
         .components
         .iter()

@@ -231,6 +231,19 @@ impl Deployer {
         set: SetRecord,
         active: &Deployment,
     ) -> Result<Ready, DeployError> {
+        self.build_beside_carrying(user, set, active, false)
+    }
+
+    /// [`Deployer::build_beside`]; with `fresh_simulators`, its simulated
+    /// robots (and the serial links on them) are built afresh rather than
+    /// carried over: a lab run from the world's start.
+    pub(super) fn build_beside_carrying(
+        &self,
+        user: &Principal,
+        set: SetRecord,
+        active: &Deployment,
+        fresh_simulators: bool,
+    ) -> Result<Ready, DeployError> {
         let id = set.id;
         let mut loader = Loader::new(&self.sandbox);
         let config = stage::validate_set(&self.store, &set, &mut loader, &self.overrides)?;
@@ -250,7 +263,11 @@ impl Deployer {
                 "set {id} {change}: the envelope's settings are the robot owner's, and only an admin may change them"
             )));
         }
-        let pairs = assemble::carry_plan(&active.config, &config);
+        let pairs = if fresh_simulators {
+            assemble::carry_plan_fresh_simulators(&active.config, &config)
+        } else {
+            assemble::carry_plan(&active.config, &config)
+        };
         let mut carry = Carry::default();
         for &(old, new) in &pairs {
             if let Some(cell) = active.priorities.get(old) {

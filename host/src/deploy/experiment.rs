@@ -258,8 +258,10 @@ impl Deployer {
     /// Starts experiment `tag` on the robot: set `tag.set`, checked again
     /// against what runs (the baseline) and built beside it as `user`, is
     /// swapped in from a fresh start with its recording into `recording`
-    /// attached in the same cycle boundary; with `reset_sim` the active
-    /// set's simulated robots go back to their start just before the swap.
+    /// attached in the same cycle boundary, its time line starting there;
+    /// with `reset_sim` its simulated robots, and the serial links on
+    /// them, are built afresh (at their world's start, time 0) rather than
+    /// carried over from the active set.
     /// A portal recording that runs is stopped first (the graph has one
     /// recording tap).
     pub fn start_experiment(
@@ -279,7 +281,10 @@ impl Deployer {
                 return Err(DeployError::Conflict(format!("experiment {} runs already", other.id)));
             }
             let set = self.store.set(tag.set)?;
-            let ready: Ready = self.build_beside(user, set, &active)?;
+            // With the sim's reset, its simulated robots start afresh (and
+            // the serial links on them): nothing of the baseline's run,
+            // not a pose the link heard before the reset, is in the run.
+            let ready: Ready = self.build_beside_carrying(user, set, &active, reset_sim)?;
             if let Some(change) = stage::envelope_change(&active.config, &ready.config) {
                 return Err(DeployError::Forbidden(format!(
                     "set {} {change}: an experiment runs with the robot's own envelope settings",
@@ -311,9 +316,6 @@ impl Deployer {
                 let mut layout = Layout::of(&ready.config);
                 layout.about = about;
                 recordings.start_after_swap_to(&tag.submitter, layout, self.slot.swaps(), recording)?;
-                if reset_sim {
-                    self.reset_simulated_robots(&active.config);
-                }
                 let shown = ExperimentTag {
                     id: tag_id,
                     submitter: tag.submitter.clone(),
@@ -344,17 +346,6 @@ impl Deployer {
             },
             |()| format!("experiment {} by {} from a fresh start, recording", tag.id, tag.submitter),
         )
-    }
-
-    /// Puts every simulated robot of `config` (the active set) back at its
-    /// world's start, at rest, time 0.
-    fn reset_simulated_robots(&self, config: &RobotConfig) {
-        let Some(registry) = self.services.get::<crate::sim::SimRegistry>() else { return };
-        for component in simulated_robots(config) {
-            if let Some(control) = registry.get(&component.name) {
-                control.reset();
-            }
-        }
     }
 
     /// Whether the active set has a simulated robot (the `sim` reset

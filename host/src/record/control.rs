@@ -6,7 +6,9 @@
 //! again. A recording "from a fresh start" is attached in the very
 //! `between_cycles` in which an activation swaps a new graph in, so the
 //! new graph's first call is recorded and every component starts inside
-//! the recording.
+//! the recording; its time line starts there too (its `epoch_unix_ns` is
+//! the wall-clock time of the swap), and nothing from before it, not even
+//! a log line, is in it.
 //!
 //! Invariants: a file name a user gives is only ever looked up in the
 //! folder (checked against [`is_recording_name`]), never used as a path; the
@@ -295,7 +297,10 @@ impl Recordings {
             hidden,
             for_owner: only_theirs.then(|| by.to_string()),
         };
-        let recorder = Recorder::start(&options, layout, self.timeline.clone())?;
+        let recorder = match after_swap {
+            None => Recorder::start(&options, layout, self.timeline.clone())?,
+            Some(_) => Recorder::start_from_swap(&options, layout, self.timeline.clone())?,
+        };
         let sink = recorder.sink.clone();
         self.ask(match after_swap {
             None => Request::Attach(sink),
@@ -489,6 +494,8 @@ impl<H: CycleHook> CycleHook for ControlledHook<H> {
         {
             if swaps > swaps_before {
                 graph.take_tap();
+                // Its time line starts here, at the new graph's start.
+                sink.send(Event::Start(now_ns));
                 self.active = Some(Attached { sink, next_ns: 0, last: Vec::new() });
             } else {
                 // The request was taken after its swap (it cannot be, as

@@ -316,6 +316,9 @@ enum Event {
     },
     /// Another graph runs from now on (an activation).
     Layout(Arc<Layout>),
+    /// A recording from a fresh start begins: the graph time of its swap,
+    /// its time line's zero.
+    Start(u64),
     /// Finish the file and stop.
     Stop,
 }
@@ -368,10 +371,33 @@ impl Recorder {
     /// Creates the first file and starts the writer thread. Messages' log
     /// times are on `timeline`: `epoch_unix_ns + t` for graph time `t`.
     pub fn start(options: &RecordOptions, layout: Layout, timeline: Timeline) -> Result<Recorder, RecordError> {
+        Recorder::start_when(options, layout, timeline, false)
+    }
+
+    /// [`Recorder::start`] for a recording from a fresh start: it records
+    /// nothing until its swap (`Event::Start`, sent by the hook that
+    /// attaches it), and its time line starts there: its `epoch_unix_ns`
+    /// is the wall-clock time of the swap, as a run's recording from the
+    /// robot's start has it.
+    pub(crate) fn start_from_swap(
+        options: &RecordOptions,
+        layout: Layout,
+        timeline: Timeline,
+    ) -> Result<Recorder, RecordError> {
+        Recorder::start_when(options, layout, timeline, true)
+    }
+
+    fn start_when(
+        options: &RecordOptions,
+        layout: Layout,
+        timeline: Timeline,
+        from_swap: bool,
+    ) -> Result<Recorder, RecordError> {
         options.check()?;
         let (sender, receiver) = std::sync::mpsc::sync_channel(QUEUE_DEPTH);
         let dropped = Arc::new(AtomicU64::new(0));
-        let mut writer = writer::Writer::create(options.clone(), Arc::new(layout), timeline.epoch_unix_ns())?;
+        let mut writer =
+            writer::Writer::create(options.clone(), Arc::new(layout), timeline.epoch_unix_ns(), from_swap)?;
         let counted = dropped.clone();
         let handle = std::thread::Builder::new()
             .name("subsume-record".into())

@@ -72,7 +72,21 @@ pub(super) struct Writer {
     /// The Foxglove live view, if it runs.
     live: Option<Live>,
     layout: Arc<Layout>,
+    /// The wall-clock time of graph time 0: a message's log time is this
+    /// plus its graph time.
+    graph_epoch_unix_ns: u64,
+    /// The recording's time line's zero (`epoch_unix_ns` in its metadata):
+    /// graph time 0, or for a recording from a fresh start the graph time
+    /// of its swap (`start_ns`).
     epoch_unix_ns: u64,
+    /// The graph time the recording starts at: 0, or a fresh start's swap.
+    start_ns: u64,
+    /// A recording from a fresh start whose swap has not come yet: nothing
+    /// is written (not even the file's `subsume.recording` metadata) until
+    /// it does (`Event::Start`).
+    awaiting_start: bool,
+    /// It records from a fresh start (its metadata says when it started).
+    from_swap: bool,
     file: Option<OpenFile>,
     /// Index of the open file (0: the path itself).
     index: u32,
@@ -95,13 +109,18 @@ impl Writer {
         options: RecordOptions,
         layout: Arc<Layout>,
         epoch_unix_ns: u64,
+        from_swap: bool,
     ) -> Result<Writer, RecordError> {
         let live = options.live.map(Live::start).transpose()?;
         let mut writer = Writer {
             options,
             live,
             layout,
+            graph_epoch_unix_ns: epoch_unix_ns,
             epoch_unix_ns,
+            start_ns: 0,
+            awaiting_start: from_swap,
+            from_swap,
             file: None,
             index: 0,
             streamed: false,
@@ -147,7 +166,15 @@ impl Writer {
             .library(format!("subsume {}", env!("CARGO_PKG_VERSION")))
             .create(counted)
             .map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
-        let mut open = OpenFile { mcap, channels: HashMap::new(), schemas: HashMap::new(), sequence: 0, size };
+        let open = OpenFile { mcap, channels: HashMap::new(), schemas: HashMap::new(), sequence: 0, size };
+        self.summary.files.push(path);
+        self.file = Some(open);
+        if self.awaiting_start { Ok(()) } else { self.write_header() }
+    }
+
+    /// The open file's `subsume.recording` metadata and the scene.
+    fn write_header(&mut self) -> Result<(), RecordError> {
+        let path = self.path();
         let mut about = self.layout.about.clone();
         about.extend([
             ("robot".to_string(), self.layout.robot.clone()),
@@ -155,14 +182,29 @@ impl Writer {
             ("file_index".to_string(), self.index.to_string()),
             ("format".to_string(), "1".to_string()),
         ]);
+        if self.from_swap {
+            about.insert("start_ns".to_string(), self.start_ns.to_string());
+        }
         for value in about.values_mut() {
             self.options.hidden.hide(value);
         }
         let metadata = mcap::records::Metadata { name: "subsume.recording".into(), metadata: about };
-        open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path: path.clone(), source })?;
-        self.summary.files.push(path);
-        self.file = Some(open);
+        if let Some(open) = &mut self.file {
+            open.mcap.write_metadata(&metadata).map_err(|source| RecordError::Mcap { path, source })?;
+        }
         self.write_scene()
+    }
+
+    /// A fresh start's recording begins at graph time `start_ns` (its
+    /// swap): its time line's zero; nothing before it is written.
+    fn start(&mut self, start_ns: u64) -> Result<(), RecordError> {
+        if !self.awaiting_start {
+            return Ok(());
+        }
+        self.awaiting_start = false;
+        self.start_ns = start_ns;
+        self.epoch_unix_ns = self.graph_epoch_unix_ns.saturating_add(start_ns);
+        self.write_header()
     }
 
     /// The simulators' worlds, if there are any (docs/recording.md).
@@ -191,6 +233,8 @@ impl Writer {
     }
 
     pub(super) fn finish(&mut self, dropped: u64) -> Result<RecordSummary, RecordError> {
+        // A fresh start whose swap never came: the file says what it is.
+        self.start(0)?;
         self.close(dropped)?;
         self.summary.dropped = dropped;
         Ok(self.summary.clone())
@@ -249,7 +293,25 @@ impl Writer {
             return Ok(());
         }
         self.rotate_if_full(dropped)?;
-        let epoch = self.epoch_unix_ns;
+        // A fresh start's recording holds only what happened from its swap.
+        match &event {
+            Event::Start(start_ns) => return self.start(*start_ns),
+            Event::Log { unix_ns, .. } if self.awaiting_start || *unix_ns < self.epoch_unix_ns => return Ok(()),
+            Event::Call { t, .. }
+            | Event::Emitted { t, .. }
+            | Event::Fault { t, .. }
+            | Event::Restart { t, .. }
+            | Event::Status { t, .. } => {
+                // The swap's own start was dropped (a full queue): the
+                // first event of the new graph starts it.
+                self.start(*t)?;
+                if *t < self.start_ns {
+                    return Ok(());
+                }
+            }
+            _ => {}
+        }
+        let epoch = self.graph_epoch_unix_ns;
         let layout = self.layout.clone();
         let name = |index: usize| layout.components.get(index).map_or("?", |c| c.name.as_str());
         match event {
@@ -323,9 +385,9 @@ impl Writer {
             Event::Layout(layout) => {
                 let moved = layout.worlds != self.layout.worlds;
                 self.layout = layout;
-                if moved { self.write_scene() } else { Ok(()) }
+                if moved && !self.awaiting_start { self.write_scene() } else { Ok(()) }
             }
-            Event::Stop => Ok(()),
+            Event::Start(_) | Event::Stop => Ok(()),
         }
     }
 

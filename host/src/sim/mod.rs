@@ -367,7 +367,10 @@ pub struct SimRegistry {
 impl SimRegistry {
     fn add(&self, name: &str, robot: &SimulatedRobot) {
         if let Ok(mut robots) = self.robots.lock() {
-            robots.retain(|(n, r)| r.strong_count() > 0 && n != name);
+            // A robot built beside a running one of the same name (an
+            // activation) takes its name; the running one has it back if
+            // the new one goes (an activation that did not happen).
+            robots.retain(|(_, r)| r.strong_count() > 0);
             robots.push((name.to_string(), Arc::downgrade(&robot.shared)));
         }
     }
@@ -375,7 +378,12 @@ impl SimRegistry {
     /// The control of the running robot named `name`, if it runs.
     pub fn get(&self, name: &str) -> Option<SimControl> {
         let robots = self.robots.lock().ok()?;
-        robots.iter().rev().find(|(n, _)| n == name).and_then(|(_, r)| r.upgrade()).map(|shared| SimControl { shared })
+        robots
+            .iter()
+            .rev()
+            .filter(|(n, _)| n == name)
+            .find_map(|(_, r)| r.upgrade())
+            .map(|shared| SimControl { shared })
     }
 }
 
