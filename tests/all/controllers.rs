@@ -295,7 +295,8 @@ fn a_roboclaw_gets_basicmicros_bytes_its_acks_are_taken_its_encoders_become_odom
     assert!(serial["polls_sent"].as_u64().unwrap() >= 10, "{serial}");
     // Its status reads no error or warning: no fault, on the status and
     // the `fault` port.
-    assert_eq!((&serial["fault"], serial["fault_readings"].as_u64()), (&Json::Null, Some(status_reads)), "{serial}");
+    assert_eq!(serial["fault"], Json::Null, "{serial}");
+    assert!(decoded_but_the_last(serial["fault_readings"].as_u64().unwrap(), status_reads), "{serial}");
     assert!(logged(&stderr, "fault-log").iter().all(|f| f == "text \"\""), "{stderr}");
     // The host's last pose is the dead reckoning of a prefix of the answers.
     let last = vector(logged(&stderr, "pose-log").last().expect("no pose was logged"));
@@ -328,13 +329,22 @@ fn a_roboclaw_whose_status_has_an_error_and_a_warning_set_reports_the_fault_by_n
     assert_eq!(serial["malformed_feedback"], 0, "{serial}");
     let fault = "m2 current error, m1 over current warning";
     assert_eq!(serial["fault"], fault, "{serial}");
-    assert_eq!(serial["fault_readings"].as_u64(), Some(status_reads), "{serial}");
+    let readings = serial["fault_readings"].as_u64().unwrap();
+    assert!(decoded_but_the_last(readings, status_reads), "{status_reads} status reads: {serial}");
     let told = logged(&stderr, "fault-log");
     // (The log sink shortens long texts.)
     assert!(told.last().is_some_and(|t| t.starts_with("text \"m2 current error, m1 over current")), "{stderr}");
-    assert_eq!(told.len() as u64, status_reads, "{told:?}");
+    assert!(decoded_but_the_last(told.len() as u64, readings), "{readings} readings: {told:?}");
     let warned = stderr.lines().filter(|l| l.contains("the motor controller reports a fault: ")).count();
     assert_eq!(warned, 1, "said once, not at every reading: {stderr}");
+}
+
+/// Whether the host got every one of `sent` (status replies the
+/// controller sent, or readings the link decoded) but the last, which may
+/// still have been on its way when the run ended (a fresh-clone run
+/// decoded 3 of the 4 status replies the controller sent).
+fn decoded_but_the_last(decoded: u64, sent: u64) -> bool {
+    decoded == sent || decoded + 1 == sent
 }
 
 fn translator(sandbox: &Sandbox, name: &str, params: &[(&str, &str)]) -> WasmTranslator {
