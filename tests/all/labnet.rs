@@ -1106,13 +1106,20 @@ fn a_dispatch_whose_answer_never_comes_runs_on_the_same_robot_when_it_is_the_onl
     unanswered_dispatch(false);
 }
 
-/// The body of the two tests above: `free_r2` frees the other robot once
-/// the dispatch to r1 went unanswered.
-fn unanswered_dispatch(free_r2: bool) {
-    let dir = tempfile::tempdir().unwrap();
-    let lab = LabNet::start_on(dir.path(), 2, None, None, &["--dispatch-timeout", "3"], None);
-    let (r1, r2) = (lab.robot("r1"), lab.robot("r2"));
-    // r2 out of service: the first dispatch can only go to r1.
+/// Tokens and the experiment of [`queued_for_r1_alone`].
+struct QueuedForR1 {
+    /// r2's owner's, on r2's own portal.
+    owner2: String,
+    boss: String,
+    ana: String,
+    id: u64,
+}
+
+/// r2 taken out of service by its owner (so a dispatch can only go to r1),
+/// the lab's queue paused, and Ana's experiment of 3 s queued (its
+/// preflight passed), her set's robot file `robot(7.0, "")`.
+fn queued_for_r1_alone(lab: &LabNet) -> QueuedForR1 {
+    let r2 = lab.robot("r2");
     let owner2 = support::login(&r2.address, "owner", PASSWORD);
     let reason = br#"{"reason": "held out for the first dispatch"}"#;
     let (status, json) = http(&r2.address, "POST", "/api/v1/lab/maintenance", Some(&owner2), reason);
@@ -1121,7 +1128,6 @@ fn unanswered_dispatch(free_r2: bool) {
     lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
         robots.iter().any(|r| r["name"] == "r2" && r["state"] == "maintenance")
     });
-    // Queued (its preflight passed) while the lab's queue is paused.
     let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
     assert_eq!(status, 200, "{json}");
     let ana = lab.token("ana");
@@ -1129,6 +1135,16 @@ fn unanswered_dispatch(free_r2: bool) {
     let id = lab.submit(&ana, set, 3.0, None);
     let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(180));
     assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+    QueuedForR1 { owner2, boss, ana, id }
+}
+
+/// The body of the two tests above: `free_r2` frees the other robot once
+/// the dispatch to r1 went unanswered.
+fn unanswered_dispatch(free_r2: bool) {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start_on(dir.path(), 2, None, None, &["--dispatch-timeout", "3"], None);
+    let (r1, r2) = (lab.robot("r1"), lab.robot("r2"));
+    let QueuedForR1 { owner2, boss, ana, id } = queued_for_r1_alone(&lab);
     // r1 cannot answer: its process is stopped, its link held open.
     support::signal(r1.host.child.id(), "STOP");
     let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/resume", "");
@@ -1226,24 +1242,7 @@ fn dispatch_unanswered_across_a_server_restart(kill: Kill) {
     let mut lab = LabNet::start_on(dir.path(), 2, None, None, &args, None);
     let r1_pid = lab.robot("r1").host.child.id();
     let r2_address = lab.robot("r2").address.clone();
-    // r2 out of service: the dispatch can only go to r1.
-    let owner2 = support::login(&r2_address, "owner", PASSWORD);
-    let reason = br#"{"reason": "held out for the first dispatch"}"#;
-    let (status, json) = http(&r2_address, "POST", "/api/v1/lab/maintenance", Some(&owner2), reason);
-    assert_eq!(status, 200, "{json}");
-    let boss = lab.token("boss");
-    lab.wait_robots(&boss, Duration::from_secs(30), |robots| {
-        robots.iter().any(|r| r["name"] == "r2" && r["state"] == "maintenance")
-    });
-    // Queued (its preflight passed) while the lab's queue is paused.
-    let (status, json) = lab.call(&boss, "POST", "/api/v1/lab/pause", "");
-    assert_eq!(status, 200, "{json}");
-    let ana = lab.token("ana");
-    let xml = robot(7.0, "");
-    let set = lab.stage(&ana, "ana.xml", &xml);
-    let id = lab.submit(&ana, set, 3.0, None);
-    let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(180));
-    assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+    let QueuedForR1 { owner2, boss, ana, id } = queued_for_r1_alone(&lab);
     // r1 cannot answer: its process is stopped, its link held open.
     support::signal(r1_pid, "STOP");
     let sent_before = lab.robot("r1").link.bytes_to_robot();
@@ -1257,6 +1256,7 @@ fn dispatch_unanswered_across_a_server_restart(kill: Kill) {
             // The dispatch, the set's robot file in it, passed r1's relay:
             // it waits in r1's socket.
             let deadline = Instant::now() + Duration::from_secs(30);
+            let xml = robot(7.0, "");
             while lab.robot("r1").link.bytes_to_robot() - sent_before < xml.len() as u64 {
                 assert!(Instant::now() < deadline, "the dispatch never reached r1's link\n{}", lab.logs());
                 std::thread::sleep(Duration::from_millis(20));
