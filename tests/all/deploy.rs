@@ -1390,14 +1390,35 @@ fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_robot() {
             std::fs::write(file, &output.stdout).unwrap();
         }
         let refused_as_ended = filled.subcommand() == "cancel" && stderr.contains("experiment 1");
+        // docs/lab.md, "Several robots": a target is a lab server's.
+        let targeted = filled.words.iter().any(|w| w == "--target");
+        let refused_as_one_robot = targeted
+            && stderr.contains("--target robot=r1: ")
+            && stderr.contains("is one robot's portal, not a lab server's; nothing was sent");
+        assert_eq!(
+            targeted,
+            refused_as_one_robot,
+            "docs/lab.md's `{}` (as `{}`) against one robot: exit {:?}\n{stdout}\n{stderr}",
+            command.text,
+            filled.line,
+            output.status.code()
+        );
         assert!(
-            output.status.success() || refused_as_ended,
+            output.status.success() || refused_as_ended || refused_as_one_robot,
             "docs/lab.md's `{}` (as `{}`): exit {:?}\n{stdout}\n{stderr}",
             command.text,
             filled.line,
             output.status.code()
         );
         assert!(!stderr.contains("no such API route"), "`{}`: {stderr}", command.text);
+        if filled.subcommand() == "maintenance" {
+            let said = if filled.words.iter().any(|w| w == "--end") {
+                "the robot is back in service"
+            } else {
+                "the robot is in maintenance: "
+            };
+            assert!(stdout.starts_with(said), "`{}`: {stdout}", command.text);
+        }
         ran.push(filled.subcommand().to_string());
     }
     for needed in [

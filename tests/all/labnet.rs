@@ -538,6 +538,21 @@ impl LabNet {
         }
     }
 
+    /// Waits until the lab's view (`GET /api/v1/lab`'s `lab`) satisfies
+    /// `done`; returns it.
+    fn wait_overview(&self, token: &str, timeout: Duration, done: impl Fn(&Json) -> bool) -> Json {
+        let deadline = Instant::now() + timeout;
+        loop {
+            let (status, json) = self.call(token, "GET", "/api/v1/lab", "");
+            assert_eq!(status, 200, "{json}");
+            if done(&json["lab"]) {
+                return json["lab"].clone();
+            }
+            assert!(Instant::now() < deadline, "the lab's view never got there: {json:#}\n{}", self.logs());
+            std::thread::sleep(Duration::from_millis(100));
+        }
+    }
+
     fn logs(&self) -> String {
         let mut text = format!("--- lab server:\n{}\n", self.server.log());
         for robot in &self.robots {
@@ -988,6 +1003,54 @@ fn a_robot_that_refuses_gets_the_experiment_back_in_the_queue_once_then_it_is_re
     assert!(causes.last().unwrap().contains("refused it a second time"), "{causes:#?}");
     assert!(refused["reasons"].to_string().contains("max-duration of 10 s"), "{refused:#}");
     assert_eq!(refused["placement"]["refusals"], 2, "{refused:#}");
+}
+
+/// A lab server's queue expects each experiment when a robot of its
+/// target frees (a running one at its experiment's end, as its signed
+/// status says, plus the turnaround), and refuses one no robot started in
+/// time, saying why (docs/lab.md, "Nothing silently stuck"): with r1
+/// stopped, nobody can say when an experiment for r1 starts.
+#[test]
+fn a_lab_servers_etas_follow_its_robots_and_one_no_robot_starts_in_time_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let lab = LabNet::start(dir.path(), 1);
+    let (boss, ana) = (lab.token("boss"), lab.token("ana"));
+    let (_, json) = lab.call(&boss, "GET", "/api/v1/lab", "");
+    let mut settings = json["lab"]["settings"].clone();
+    settings["stuck_after_min_s"] = serde_json::json!(1);
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &robot(8.0, ""));
+    let first = lab.submit(&ana, set, 30.0, Some("r1"));
+    let running = lab.wait_for(&ana, first, "running", Duration::from_secs(180));
+    assert_eq!(running["state"], "running", "{running:#}\n{}", lab.logs());
+    let robots = lab.wait_robots(&boss, Duration::from_secs(30), |r| r[0]["ends_unix_ms"].is_u64());
+    let ends = robots[0]["ends_unix_ms"].as_u64().unwrap();
+    let second = lab.submit(&ana, set, 2.0, Some("r1"));
+    let queued = lab.wait_for(&ana, second, "queued", Duration::from_secs(180));
+    assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+    let eta = queued["eta_unix_ms"].as_u64().unwrap_or_else(|| panic!("no ETA: {queued:#}"));
+    // r1's end as it said it, plus the turnaround (1 s), give or take
+    // how its status moved the end since.
+    assert!(
+        eta + 500 >= ends && eta <= ends + 1000 + 1500,
+        "ETA {eta} for r1's end {ends} and a turnaround of 1 s: {queued:#}\n{robots:#?}"
+    );
+    assert_eq!(queued["place"], 1, "{queued:#}");
+    // r1 stopped: neither queued experiment has an ETA, and the one queued
+    // after the stop, never estimated, is refused after 1 s.
+    let (status, json) = lab.call(&boss, "POST", "/api/v1/robots/r1/stop", "");
+    assert_eq!(status, 200, "{json}");
+    let aborted = lab.wait_for(&ana, first, "aborted", Duration::from_secs(60));
+    assert_eq!(aborted["state"], "aborted", "{aborted:#}");
+    lab.wait_robots(&boss, Duration::from_secs(30), |r| r[0]["state"] == "stopped");
+    let third = lab.submit(&ana, set, 2.0, Some("r1"));
+    let refused = lab.wait_for(&ana, third, "refused", Duration::from_secs(180));
+    assert_eq!(refused["state"], "refused", "{refused:#}\n{}", lab.logs());
+    let cause = refused["history"].as_array().unwrap().last().unwrap()["cause"].as_str().unwrap().to_string();
+    assert!(cause.contains("it did not start in time (it never had an estimate; at least 1 s)"), "{cause}");
+    let waiting = lab.experiment(&ana, second);
+    assert!(waiting["eta_unix_ms"].is_null(), "{waiting:#}");
 }
 
 /// A robot its owner takes out of service is listed `maintenance` by the
@@ -2386,11 +2449,20 @@ fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_lab_server_over
         }
         match (filled.subcommand(), filled.words.iter().any(|w| w == "--reason")) {
             ("maintenance", true) => {
+                assert!(stdout.starts_with("the lab is in maintenance: "), "{said}");
                 let ana = lab.token("ana");
                 let set = lab.stage(&ana, "held.xml", &robot(8.0, ""));
                 assert_eq!(lab.submit(&ana, set, 1.0, None), held);
                 let queued = lab.wait_for(&ana, held, "queued", Duration::from_secs(180));
                 assert_eq!(queued["state"], "queued", "{queued:#}\n{}", lab.logs());
+                // Every queued submitter sees why the queue waits.
+                let why = lab.wait_overview(&ana, Duration::from_secs(30), |view| view["held"].is_string());
+                let why = why["held"].as_str().unwrap_or_default();
+                assert!(
+                    why.starts_with("the lab is in maintenance since ")
+                        && why.ends_with("no experiment goes to a robot until an admin ends it"),
+                    "{why}"
+                );
                 // A free robot, and an experiment for it: without the
                 // maintenance it is dispatched within a heartbeat.
                 let until = Instant::now() + Duration::from_secs(3);
@@ -2403,6 +2475,26 @@ fn every_lab_command_docs_lab_md_shows_runs_as_written_against_a_lab_server_over
                     );
                     std::thread::sleep(Duration::from_millis(100));
                 }
+            }
+            ("maintenance", false) => assert!(stdout.starts_with("the lab is back in service"), "{said}"),
+            ("submit", _) if filled.words.iter().any(|w| w == "--target") => {
+                // docs/lab.md, "Several robots": built on r1's baseline,
+                // sent to r1, and run there.
+                let set = lab.robots(&lab.token("boss"))[0]["baseline_set"].as_u64().unwrap();
+                assert!(
+                    stderr.contains(&format!("building on robot r1's baseline robot.xml (set {set}, sha256 ")),
+                    "{said}"
+                );
+                let id: u64 = stdout
+                    .split("experiment ")
+                    .nth(1)
+                    .and_then(|rest| rest.split(' ').next())
+                    .and_then(|id| id.parse().ok())
+                    .unwrap_or_else(|| panic!("no experiment id: {said}"));
+                let record = lab.experiment(&lab.token("ana"), id);
+                assert_eq!(record["placement"]["target"], serde_json::json!({ "robot": "r1" }), "{said}\n{record:#}");
+                assert_eq!(record["placement"]["robot"], "r1", "{said}\n{record:#}");
+                assert!(stdout.contains(&format!("experiment {id}: done")), "{said}");
             }
             ("submit", _) if filled.words.iter().any(|w| w == "--component") => {
                 assert!(stdout.contains(&format!("experiment {submitted} submitted")), "{said}");

@@ -8,9 +8,9 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 
 use subsume::lab::router_config::{self, RouterConfigOptions};
-use subsume::portal::deploy_client::component_arg;
-use subsume::portal::lab_client::{self, Login, Say, SubmitRequest, list_text, now_ms, show_text};
-use subsume::store::experiments::ExperimentState;
+use subsume::portal::deploy_client::{component_arg, target_arg};
+use subsume::portal::lab_client::{self, Login, MaintenanceOf, Say, SubmitRequest, list_text, now_ms, show_text};
+use subsume::store::experiments::{ExperimentState, Target};
 
 use super::flags::LoginFlags;
 
@@ -293,6 +293,11 @@ struct SubmitArgs {
     /// The platform the uploads belong to.
     #[arg(long, default_value = "control")]
     platform: String,
+    /// On a lab server: which robots may run it, `robot=NAME` or
+    /// `profile=ID` (`subsume lab robots` lists both); the experiment
+    /// builds on that robot's or profile's baseline. Any robot by default.
+    #[arg(long, value_name = "robot=NAME|profile=ID", value_parser = target_arg)]
+    target: Option<Target>,
     #[command(flatten)]
     login: LoginFlags,
 }
@@ -350,6 +355,7 @@ impl LabCommand {
                     duration_s: args.duration,
                     label: args.label,
                     results: args.results,
+                    target: args.target.unwrap_or_default(),
                 };
                 let mut progress = |line: &str| eprintln!("lab: {line}");
                 let mut states = |line: &str| println!("{line}");
@@ -412,17 +418,16 @@ impl LabCommand {
                 }
             }
             LabAction::Maintenance { reason, end: _, login } => {
-                match &reason {
-                    Some(reason) => {
-                        lab_client::maintenance(&to_login(login), Some(reason))?;
-                        println!(
-                            "the robot is in maintenance: {reason}; no experiment starts until `subsume lab maintenance --end`"
-                        );
-                    }
-                    None => {
-                        lab_client::maintenance(&to_login(login), None)?;
-                        println!("the robot is back in service; the queue goes on");
-                    }
+                let of = lab_client::maintenance(&to_login(login), reason.as_deref())?;
+                match (&reason, of) {
+                    (Some(reason), MaintenanceOf::Robot) => println!(
+                        "the robot is in maintenance: {reason}; no experiment starts until `subsume lab maintenance --end`"
+                    ),
+                    (Some(reason), MaintenanceOf::Lab) => println!(
+                        "the lab is in maintenance: {reason}; no experiment goes to any robot until `subsume lab maintenance --end` (a running one goes on)"
+                    ),
+                    (None, MaintenanceOf::Robot) => println!("the robot is back in service; the queue goes on"),
+                    (None, MaintenanceOf::Lab) => println!("the lab is back in service; its queue goes to the robots"),
                 }
                 Ok(ExitCode::SUCCESS)
             }

@@ -26,10 +26,11 @@ impl Lab {
             since_ms: unix_now_ms(),
             ends_at_battery_v: None,
         };
-        let lab = self.admin_change(user, "maintenance-start", "the robot", |lab| {
+        let what = self.what_maintenance_holds();
+        let lab = self.admin_change(user, "maintenance-start", what, |lab| {
             if let Some(already) = &lab.maintenance {
                 return Err(LabError::Conflict(format!(
-                    "the robot is in maintenance already (by {}: {})",
+                    "{what} is in maintenance already (by {}: {})",
                     already.by, already.reason
                 )));
             }
@@ -43,11 +44,12 @@ impl Lab {
     /// Brings the robot back into service (admins).
     pub fn end_maintenance(&self, user: &Principal) -> Result<(), LabError> {
         let mut ended = None;
-        self.admin_change(user, "maintenance-end", "the robot", |lab| {
+        let what = self.what_maintenance_holds();
+        self.admin_change(user, "maintenance-end", what, |lab| {
             ended = lab.maintenance.take();
             match &ended {
                 Some(m) => Ok(format!("back in service (was: {})", m.reason)),
-                None => Err(LabError::Conflict("the robot is not in maintenance".into())),
+                None => Err(LabError::Conflict(format!("{what} is not in maintenance"))),
             }
         })?;
         if let Some(m) = ended {
@@ -57,6 +59,12 @@ impl Lab {
             );
         }
         Ok(())
+    }
+
+    /// What an admin's maintenance takes out of service: this robot, or
+    /// on a lab server the whole lab (its queue holds for every robot).
+    fn what_maintenance_holds(&self) -> &'static str {
+        if self.fleet().is_some() { "the lab" } else { "the robot" }
     }
 
     pub(super) fn tell_robot(&self, kind: EventKind, reason: &str) {

@@ -293,6 +293,57 @@ pub fn place(queued: &[Unplaced], online: &[Seat]) -> Vec<(u64, String)> {
     placed
 }
 
+/// A lab server's robot as its ETAs see it: its seat, and when it is
+/// next free to start one (ms since the Unix epoch): now when idle, its
+/// experiment's end when it runs one. A robot out of service (lost,
+/// stopped, in maintenance) is not one.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Freeing {
+    pub seat: Seat,
+    pub free_at_ms: u64,
+}
+
+/// The expected start of every queued experiment of a lab server (ms), in
+/// queue order (rule 6 over time): each goes to the robot of its target
+/// that frees first (the first by name when two free alike), whose
+/// `max-duration` allows it (any of its target when none does), and that
+/// robot is then busy for its duration and a turnaround. `None` while the
+/// queue is paused or held, for one no robot of its target is in service
+/// for, and past [`MAX_ETA_STEPS`].
+pub fn fleet_etas(
+    queued: &[Unplaced],
+    robots: &[Freeing],
+    now_ms: u64,
+    turnaround_ms: u64,
+    paused: bool,
+) -> Vec<(u64, Option<u64>)> {
+    let mut free_at: Vec<u64> = robots.iter().map(|r| r.free_at_ms.max(now_ms)).collect();
+    queued
+        .iter()
+        .enumerate()
+        .map(|(n, experiment)| {
+            if paused || n >= MAX_ETA_STEPS {
+                return (experiment.id, None);
+            }
+            let anyone_allows = robots.iter().any(|r| r.seat.fits(&experiment.target, experiment.duration_s));
+            let first = robots
+                .iter()
+                .zip(&free_at)
+                .enumerate()
+                .filter(|(_, (r, _))| {
+                    r.seat.targeted_by(&experiment.target)
+                        && (r.seat.fits(&experiment.target, experiment.duration_s) || !anyone_allows)
+                })
+                .min_by_key(|(_, (r, at))| (**at, r.seat.name.clone()))
+                .map(|(i, (_, at))| (i, *at));
+            let Some((i, at)) = first else { return (experiment.id, None) };
+            let duration_ms = (experiment.duration_s.max(0.0) * 1000.0) as u64;
+            free_at[i] = at.saturating_add(duration_ms).saturating_add(turnaround_ms);
+            (experiment.id, Some(at))
+        })
+        .collect()
+}
+
 /// When a queued experiment that has not started is refused (ms since
 /// the Unix epoch): `queued_at_ms` plus twice the wait its first ETA said
 /// (`first_wait_ms`; none while the queue was held), and at least
@@ -450,6 +501,64 @@ mod tests {
 
     fn unplaced(id: u64, target: super::Target, duration_s: f64) -> super::Unplaced {
         super::Unplaced { id, target, duration_s }
+    }
+
+    /// A lab server's ETAs: each queued experiment starts when the first
+    /// robot of its target that allows it frees, and keeps it busy for its
+    /// duration and the turnaround.
+    #[test]
+    fn a_lab_servers_etas_follow_each_robots_end_and_the_targets() {
+        use super::Target::{Any, Profile, Robot};
+        let at = |name: &str, profile: &str, max_s: f64, free_s: u64| super::Freeing {
+            seat: seat(name, profile, max_s, free_s == 0),
+            free_at_ms: free_s * S,
+        };
+        // r1 (profile pa, up to 60 s) runs until 100 s; r2 (pa, 600 s) is
+        // idle; r3 (pb, 600 s) runs until 40 s. Turnaround 10 s, now 0.
+        let fleet = [at("r1", "pa", 60.0, 100), at("r2", "pa", 600.0, 0), at("r3", "pb", 600.0, 40)];
+        type Case<'a> = (&'a str, Vec<super::Unplaced>, &'a [super::Freeing], bool, Vec<Option<u64>>);
+        let cases: Vec<Case<'_>> = vec![
+            ("one, to the idle robot", vec![unplaced(1, Any, 30.0)], &fleet, false, vec![Some(0)]),
+            (
+                "three: r2 now, r3 at its end, then r2 again",
+                vec![unplaced(1, Any, 30.0), unplaced(2, Any, 30.0), unplaced(3, Any, 30.0)],
+                &fleet,
+                false,
+                vec![Some(0), Some(40 * S), Some(40 * S)],
+            ),
+            (
+                "a 300 s one skips r1 (60 s at most), waits for r2",
+                vec![unplaced(1, Profile("pa".into()), 300.0), unplaced(2, Profile("pa".into()), 300.0)],
+                &fleet,
+                false,
+                vec![Some(0), Some(310 * S)],
+            ),
+            (
+                "one for r1 waits for r1's end",
+                vec![unplaced(1, Robot("r1".into()), 30.0), unplaced(2, Robot("r1".into()), 30.0)],
+                &fleet,
+                false,
+                vec![Some(100 * S), Some(140 * S)],
+            ),
+            (
+                "none of its target allows it: the first of its target that frees (it refuses it)",
+                vec![unplaced(1, Robot("r1".into()), 900.0)],
+                &fleet,
+                false,
+                vec![Some(100 * S)],
+            ),
+            ("no such robot in service", vec![unplaced(1, Robot("r9".into()), 30.0)], &fleet, false, vec![None]),
+            ("no robot at all", vec![unplaced(1, Any, 30.0)], &[], false, vec![None]),
+            ("paused or held", vec![unplaced(1, Any, 30.0), unplaced(2, Any, 5.0)], &fleet, true, vec![None, None]),
+        ];
+        for (case, queued, robots, paused, expected) in cases {
+            let etas = super::fleet_etas(&queued, robots, 0, 10 * S, paused);
+            let ids: Vec<u64> = queued.iter().map(|q| q.id).collect();
+            assert_eq!(etas, ids.into_iter().zip(expected).collect::<Vec<_>>(), "{case}");
+        }
+        // A robot whose end is past: free now, not in the past.
+        let late = [at("r1", "pa", 60.0, 5)];
+        assert_eq!(super::fleet_etas(&[unplaced(1, Any, 30.0)], &late, 50 * S, 0, false), vec![(1, Some(50 * S))]);
     }
 
     #[test]

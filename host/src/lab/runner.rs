@@ -429,13 +429,16 @@ fn early_end(running: &mut OnRobot) -> Option<EarlyEnd> {
 
 /// Notes each queued experiment's first ETA, and refuses those that have
 /// waited past `queue::stuck_at`, saying why (nothing silently stuck).
-fn refuse_stuck(lab: &Lab, book: &mut Book) {
+/// On a lab server, one being dispatched to a robot (its placement names
+/// it) is that robot's to start or refuse, not stuck.
+pub(super) fn refuse_stuck(lab: &Lab, book: &mut Book) {
     let now = unix_now_ms();
     let min_ms = book.lab.settings.stuck_after_min_s.saturating_mul(1000);
     let queued: Vec<(u64, u64, Option<u64>)> = book
         .experiments
         .values()
         .filter(|r| r.state == ExperimentState::Queued)
+        .filter(|r| r.placement.as_ref().is_none_or(|p| p.robot.is_none()))
         .map(|r| {
             let at =
                 r.history.iter().rev().find(|c| c.state == ExperimentState::Queued).map_or(r.submitted_ms, |c| c.at_ms);

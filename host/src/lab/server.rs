@@ -533,6 +533,34 @@ impl Fleet {
             .collect()
     }
 
+    /// Every robot in service as the ETAs see it at `now_ms`: online and
+    /// idle (free now) or running an experiment (free at its end, as its
+    /// signed status says). Robots lost, stopped or in maintenance are
+    /// not counted: nobody can say when they come back.
+    pub fn freeing(&self, now_ms: u64) -> Vec<queue::Freeing> {
+        let robots = lock(&self.robots);
+        robots
+            .iter()
+            .filter_map(|(name, robot)| {
+                let token = robot.current.as_ref().filter(|_| robot.online())?;
+                let free_at_ms = match &token.state {
+                    RobotState::Idle => now_ms,
+                    RobotState::Running { .. } => {
+                        robot.status.as_ref().and_then(|(s, _)| s.ends_unix_ms).unwrap_or(now_ms).max(now_ms)
+                    }
+                    RobotState::Stopped { .. } | RobotState::Maintenance => return None,
+                };
+                let seat = Seat {
+                    name: name.clone(),
+                    profile: token.profile.id.clone(),
+                    max_duration_s: token.max_duration_s,
+                    free: free_at_ms <= now_ms,
+                };
+                Some(queue::Freeing { seat, free_at_ms })
+            })
+            .collect()
+    }
+
     /// The baseline set experiments for `target` are checked against:
     /// the baseline of the robot or profile it names, else `reference`.
     pub fn baseline_for(
@@ -672,6 +700,10 @@ fn dispatch_loop(lab: &Arc<Lab>, fleet: &Arc<Fleet>) {
         let actions = match lab.lock() {
             Ok(mut book) => {
                 let actions = plan(lab, fleet, &mut book);
+                // After the plan (it holds the robots' lock the ETAs take):
+                // an experiment no robot started in time is refused, saying
+                // why (docs/lab.md, "Nothing silently stuck").
+                super::runner::refuse_stuck(lab, &mut book);
                 if actions.is_empty() {
                     let _ = lab.changed.wait_timeout(book, POLL);
                     continue;
@@ -695,6 +727,22 @@ fn dispatch_loop(lab: &Arc<Lab>, fleet: &Arc<Fleet>) {
         }
     }
     fleet.shut_down();
+}
+
+/// Why a lab server's queue waits, when an admin took the whole lab out
+/// of service and an experiment is queued: the line every queued
+/// submitter sees (`held` in `GET /api/v1/lab`).
+fn held_by_maintenance(book: &Book) -> Option<String> {
+    let maintenance = book.lab.maintenance.as_ref()?;
+    let queued = book.experiments.values().any(|r| r.state == ExperimentState::Queued);
+    queued.then(|| {
+        format!(
+            "the lab is in maintenance since {} ({}: {}): no experiment goes to a robot until an admin ends it",
+            crate::walltime::shown(maintenance.since_ms),
+            maintenance.by,
+            maintenance.reason
+        )
+    })
 }
 
 /// Looks at every experiment on or for a robot and every robot, and
@@ -832,7 +880,13 @@ fn plan(lab: &Lab, fleet: &Fleet, book: &mut Book) -> Vec<Action> {
         }
     }
     // Paused, or the whole lab taken out of service by an admin (`subsume
-    // lab maintenance`): nothing new goes to any robot.
+    // lab maintenance`): nothing new goes to any robot, and the queue's
+    // view says why.
+    let held = held_by_maintenance(book);
+    if held != book.held {
+        book.held = held;
+        lab.notify();
+    }
     if book.lab.paused || book.lab.maintenance.is_some() {
         return actions;
     }

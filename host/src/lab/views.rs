@@ -16,15 +16,35 @@ use crate::store::users::{Principal, Role};
 impl Lab {
     /// The queue's ETAs now.
     pub(super) fn etas(&self, book: &Book, now: u64) -> Vec<(u64, Option<u64>)> {
+        // Held (an emergency stop, a reset to confirm, maintenance):
+        // nobody can say when it goes on, so no ETA is shown.
+        let held = book.lab.paused || book.held.is_some();
+        if let Some(fleet) = self.fleet() {
+            // A lab server: each robot's end, and each experiment's
+            // target; one being dispatched starts now.
+            let mut etas = Vec::new();
+            let mut unplaced = Vec::new();
+            for record in book.experiments.values().filter(|r| r.state == ExperimentState::Queued) {
+                match record.placement.as_ref() {
+                    Some(p) if p.robot.is_some() => etas.push((record.id, (!held).then_some(now))),
+                    placement => unplaced.push(queue::Unplaced {
+                        id: record.id,
+                        target: placement.map(|p| p.target.clone()).unwrap_or_default(),
+                        duration_s: record.duration_s,
+                    }),
+                }
+            }
+            let turnaround = TURNAROUND.as_millis() as u64;
+            etas.extend(queue::fleet_etas(&unplaced, &fleet.freeing(now), now, turnaround, held));
+            return etas;
+        }
         let waiting = Self::waiting(book);
         let view = QueueView {
             now_ms: now,
             running_until_ms: book.running.as_ref().map(|r| r.ends_unix_ms),
             waiting: &waiting,
             reservations: &book.lab.reservations,
-            // Held (an emergency stop, a reset to confirm): nobody can say
-            // when it goes on, so no ETA is shown.
-            paused: book.lab.paused || book.held.is_some(),
+            paused: held,
             turnaround_ms: TURNAROUND.as_millis() as u64,
         };
         queue::etas(&view)

@@ -26,6 +26,7 @@ use thiserror::Error;
 use super::client::{ClientError, Connection, Login, MAX_ANSWER_BYTES};
 use crate::contract::{clip, is_valid_name};
 use crate::sandbox::preamble::check_component_preamble;
+use crate::store::experiments::Target;
 
 /// Longest wait for one upload or activation: the portal answers an upload
 /// only after compiling it (a Python component takes 14-19 s on a loaded
@@ -78,6 +79,83 @@ pub enum DeployClientError {
     Invalid(String, String),
     #[error("{what}: the portal answered {status}: {message}")]
     Refused { what: String, status: u16, message: String },
+    #[error("--target '{0}' is neither robot=NAME nor profile=ID")]
+    BadTarget(String),
+    #[error("--target {target}: {why}; nothing was sent")]
+    NoTarget { target: String, why: String },
+}
+
+/// A baseline an experiment builds on.
+#[derive(Clone, Debug)]
+pub(super) struct Baseline {
+    /// Its set's id.
+    pub set: u64,
+    /// Its robot file's name and text.
+    pub name: String,
+    pub text: String,
+    /// Whose it is, for a person: "the lab's baseline", "robot r2's
+    /// baseline".
+    pub whose: String,
+}
+
+/// `robot=NAME` or `profile=ID`, as the command line and messages say it.
+pub fn target_text(target: &Target) -> String {
+    match target {
+        Target::Any => "any robot".to_string(),
+        Target::Robot(name) => format!("robot={name}"),
+        Target::Profile(id) => format!("profile={id}"),
+    }
+}
+
+/// Parses `--target robot=NAME` or `--target profile=ID`.
+pub fn target_arg(text: &str) -> Result<Target, DeployClientError> {
+    match text.split_once('=') {
+        Some(("robot", name)) if !name.is_empty() => Ok(Target::Robot(name.to_string())),
+        Some(("profile", id)) if !id.is_empty() => Ok(Target::Profile(id.to_string())),
+        _ => Err(DeployClientError::BadTarget(clip(text))),
+    }
+}
+
+/// The set and owner's words of `target`'s baseline among a lab server's
+/// `robots` (`GET /api/v1/robots`): the robot of that name, or the first
+/// robot of that profile whose baseline the lab server has stored.
+fn target_baseline(target: &Target, robots: &[Value]) -> Result<(u64, String), DeployClientError> {
+    let no_target = |why: String| DeployClientError::NoTarget { target: target_text(target), why };
+    let names = || {
+        let names: Vec<String> = robots
+            .iter()
+            .map(|r| {
+                format!(
+                    "{} (profile {})",
+                    r["name"].as_str().unwrap_or("?"),
+                    r["profile"]["id"].as_str().unwrap_or("?")
+                )
+            })
+            .collect();
+        if names.is_empty() { "none has joined".to_string() } else { format!("it has: {}", names.join(", ")) }
+    };
+    let fits = |robot: &&Value| match target {
+        Target::Any => true,
+        Target::Robot(name) => robot["name"].as_str() == Some(name),
+        Target::Profile(id) => robot["profile"]["id"].as_str() == Some(id),
+    };
+    let fitting: Vec<&Value> = robots.iter().filter(fits).collect();
+    if fitting.is_empty() {
+        return Err(no_target(format!("the lab has no such robot: {}", names())));
+    }
+    let stored = fitting.iter().find_map(|robot| {
+        let set = robot["baseline_set"].as_u64()?;
+        Some((set, robot["name"].as_str().unwrap_or("?").to_string()))
+    });
+    match (stored, target) {
+        (Some((set, _)), Target::Robot(name)) => Ok((set, format!("robot {name}'s baseline"))),
+        (Some((set, robot)), Target::Profile(id)) => Ok((set, format!("the baseline of profile {id} (robot {robot})"))),
+        (Some((set, _)), Target::Any) => Ok((set, "the lab's baseline".to_string())),
+        (None, _) => {
+            let why = fitting.iter().find_map(|r| r["baseline_error"].as_str()).unwrap_or("it is not fetched yet");
+            Err(no_target(format!("the lab server has not stored its baseline: {why}")))
+        }
+    }
 }
 
 /// Parses `NAME=FILE` from the command line.
@@ -277,12 +355,35 @@ impl Portal {
         self.robot_of(set, "the active set")
     }
 
-    /// The lab's baseline: its set's id, its robot file's name and its
-    /// text (what an experiment builds on, whatever runs now).
-    pub(super) fn baseline_robot(&self) -> Result<(u64, String, String), DeployClientError> {
-        let lab = self.call("GET", "/api/v1/lab", "application/json", b"", "reading the lab")?;
-        let set = lab["lab"]["baseline"].as_u64().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
-        self.robot_of(set, "the lab's baseline")
+    /// The baseline an experiment for `target` builds on, whatever runs
+    /// now: the lab's (`Target::Any`), or on a lab server the baseline of
+    /// the robot named, or of the first robot of the profile named, as the
+    /// lab server stored it (`GET /api/v1/robots`'s `baseline_set`).
+    pub(super) fn baseline_robot(&self, target: &Target) -> Result<Baseline, DeployClientError> {
+        let (set, whose) = match target {
+            Target::Any => {
+                let lab = self.call("GET", "/api/v1/lab", "application/json", b"", "reading the lab")?;
+                let set =
+                    lab["lab"]["baseline"].as_u64().ok_or_else(|| ClientError::Garbled(self.address().to_string()))?;
+                (set, "the lab's baseline".to_string())
+            }
+            Target::Robot(_) | Target::Profile(_) => {
+                let what = "reading the lab's robots";
+                let robots = match self.call("GET", "/api/v1/robots", "application/json", b"", what) {
+                    Err(DeployClientError::Refused { status: 404, .. }) => {
+                        return Err(DeployClientError::NoTarget {
+                            target: target_text(target),
+                            why: format!("{} is one robot's portal, not a lab server's", self.address()),
+                        });
+                    }
+                    answer => answer?,
+                };
+                let robots = robots["robots"].as_array().cloned().unwrap_or_default();
+                target_baseline(target, &robots)?
+            }
+        };
+        let (set, name, text) = self.robot_of(set, &whose)?;
+        Ok(Baseline { set, name, text, whose })
     }
 
     /// Set `set`'s robot file's name and text (`what` names it).
@@ -506,6 +607,68 @@ fn attribute_value(tag: &str, key: &str) -> Option<(usize, usize)> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_target_is_parsed_from_robot_or_profile_and_nothing_else() {
+        let cases: [(&str, Option<Target>); 6] = [
+            ("robot=r1", Some(Target::Robot("r1".into()))),
+            ("profile=0a1b2c3d4e5f", Some(Target::Profile("0a1b2c3d4e5f".into()))),
+            ("robot=", None),
+            ("r1", None),
+            ("any=r1", None),
+            ("profile", None),
+        ];
+        for (text, expected) in cases {
+            match (target_arg(text), expected) {
+                (Ok(target), Some(expected)) => assert_eq!(target, expected, "{text}"),
+                (Err(e), None) => assert!(e.to_string().contains("neither robot=NAME nor profile=ID"), "{text}: {e}"),
+                (got, expected) => panic!("{text}: {got:?}, expected {expected:?}"),
+            }
+        }
+    }
+
+    /// A target's baseline among a lab server's robots: the named robot's,
+    /// or the first of the profile whose baseline is stored; else why not.
+    #[test]
+    fn a_targets_baseline_is_its_robots_as_the_lab_server_stored_it() {
+        let robots = vec![
+            json!({ "name": "r1", "profile": { "id": "aaa" }, "baseline_set": 4 }),
+            json!({ "name": "r2", "profile": { "id": "bbb" }, "baseline_set": null, "baseline_error": "r2 did not answer" }),
+            json!({ "name": "r3", "profile": { "id": "bbb" }, "baseline_set": 9 }),
+            json!({ "name": "r4", "profile": { "id": "ccc" }, "baseline_set": null }),
+        ];
+        let robot = |n: &str| Target::Robot(n.into());
+        let profile = |p: &str| Target::Profile(p.into());
+        let cases: [(Target, Result<(u64, &str), &str>); 6] = [
+            (robot("r1"), Ok((4, "robot r1's baseline"))),
+            (robot("r3"), Ok((9, "robot r3's baseline"))),
+            (profile("bbb"), Ok((9, "the baseline of profile bbb (robot r3)"))),
+            (robot("r2"), Err("--target robot=r2: the lab server has not stored its baseline: r2 did not answer")),
+            (
+                profile("ccc"),
+                Err("--target profile=ccc: the lab server has not stored its baseline: it is not fetched yet"),
+            ),
+            (
+                robot("r9"),
+                Err(
+                    "--target robot=r9: the lab has no such robot: it has: r1 (profile aaa), r2 (profile bbb), r3 (profile bbb), r4 (profile ccc); nothing was sent",
+                ),
+            ),
+        ];
+        for (target, expected) in cases {
+            match (target_baseline(&target, &robots), expected) {
+                (Ok((set, whose)), Ok((expected_set, expected_whose))) => {
+                    assert_eq!((set, whose.as_str()), (expected_set, expected_whose), "{target:?}")
+                }
+                (Err(e), Err(expected)) => assert!(e.to_string().starts_with(expected), "{target:?}: {e}"),
+                (got, expected) => panic!("{target:?}: {got:?}, expected {expected:?}"),
+            }
+        }
+        assert_eq!(
+            target_baseline(&robot("r1"), &[]).unwrap_err().to_string(),
+            "--target robot=r1: the lab has no such robot: none has joined; nothing was sent"
+        );
+    }
 
     #[test]
     fn a_component_source_is_repointed_and_nothing_else_changes() {

@@ -31,14 +31,14 @@ use thiserror::Error;
 pub use super::client::Login;
 use super::client::{Answer, ClientError, Connection};
 use super::deploy_client::{
-    DEPLOY_TIMEOUT, DeployClientError, Edit, Portal, file_name, locate, point_source_at, read_components, refused,
-    upload_source,
+    Baseline, DEPLOY_TIMEOUT, DeployClientError, Edit, Portal, file_name, locate, point_source_at, read_components,
+    refused, upload_source,
 };
 use crate::contract::clip;
 use crate::deploy::{Diagnostics, SourceMap, read_and_parse, utc_time};
 use crate::lab::kit_submission::{KIT_MANIFEST, KitError, KitManifest, kit_submission};
 use crate::lab::{MAX_DURATION_CAP_S, MIN_DURATION_S};
-use crate::store::experiments::{ExperimentRecord, ExperimentState, MAX_LABEL_LEN, Reservation};
+use crate::store::experiments::{ExperimentRecord, ExperimentState, MAX_LABEL_LEN, Reservation, Target};
 
 /// How often a followed experiment is asked for.
 pub const POLL_INTERVAL: Duration = Duration::from_millis(500);
@@ -72,6 +72,9 @@ pub struct SubmitRequest {
     pub label: String,
     /// Unpack the results here when it ends.
     pub results: Option<PathBuf>,
+    /// Which robots may run it (a lab server's; `Any` on a robot): the
+    /// experiment builds on that robot's or profile's baseline.
+    pub target: Target,
 }
 
 /// An experiment as the portal shows it to its submitter.
@@ -351,7 +354,7 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
         let robot = match (local, kit, request.robot.as_deref()) {
             (Some(local), Some(manifest), Some(path)) => {
                 // The lab kit's robot file: the baseline with her changes.
-                let (set, name, text) = session.portal.baseline_robot()?;
+                let Baseline { set, name, text, whose } = session.portal.baseline_robot(&request.target)?;
                 let dir = path.parent().unwrap_or(Path::new("."));
                 let sha_of = |source: &str| {
                     std::fs::read(dir.join(source)).ok().map(|bytes| hex::encode(Sha256::digest(&bytes)))
@@ -367,7 +370,7 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
                 let mut all = read_components(&kit_uploads)?;
                 all.append(&mut components);
                 components = all;
-                let shown = format!("{} (on the lab's baseline set {set})", local.shown);
+                let shown = format!("{} (on {whose}, set {set})", local.shown);
                 let file = format!("the baseline's robot file {name}");
                 let robot = RobotFile::pointed(shown, name.clone(), sent.text, &components, &file)?;
                 let hash = hex::encode(Sha256::digest(text.as_bytes()));
@@ -377,7 +380,7 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
                     sent.changes.join("; ")
                 };
                 (say.progress)(&format!(
-                    "building on the lab's baseline {name} (set {set}, sha256 {hash}) with the changes of {}: {changes}",
+                    "building on {whose} {name} (set {set}, sha256 {hash}) with the changes of {}: {changes}",
                     local.shown
                 ));
                 robot
@@ -386,15 +389,15 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
             (None, _, _) => {
                 // The lab's baseline, never whatever runs now (another
                 // researcher's experiment, say).
-                let (set, name, text) = session.portal.baseline_robot()?;
-                let shown = format!("{name} (the lab's baseline)");
+                let Baseline { set, name, text, whose } = session.portal.baseline_robot(&request.target)?;
+                let shown = format!("{name} ({whose})");
                 let file = format!("the baseline's robot file {name}");
                 let robot = RobotFile::pointed(shown, name.clone(), text.clone(), &components, &file)?;
                 let pointed: Vec<String> =
                     components.iter().map(|(c, _)| format!("{c} -> {}", upload_source(c))).collect();
                 let with = if pointed.is_empty() { String::new() } else { format!(" with {}", pointed.join(", ")) };
                 let hash = hex::encode(Sha256::digest(text.as_bytes()));
-                (say.progress)(&format!("building on the lab's baseline {name} (set {set}, sha256 {hash}){with}"));
+                (say.progress)(&format!("building on {whose} {name} (set {set}, sha256 {hash}){with}"));
                 robot
             }
         };
@@ -408,7 +411,10 @@ pub fn submit(request: &SubmitRequest, say: &mut Say<'_>) -> Result<Submitted, L
         let set =
             session.portal.stage(&request.platform, &robot.name, robot.text.as_bytes(), &robot.shown, &position)?;
         (say.progress)(&format!("staged {} as set {set}; submitting...", robot.shown));
-        let body = json!({ "set": set, "duration_s": request.duration_s, "label": request.label.trim() });
+        let mut body = json!({ "set": set, "duration_s": request.duration_s, "label": request.label.trim() });
+        if request.target != Target::Any {
+            body["target"] = json!(request.target);
+        }
         let what = format!("submitting set {set}");
         let answer = match session.request("POST", "/api/v1/experiments", &body, &what, DEPLOY_LIMIT) {
             Ok(answer) => answer,
@@ -606,16 +612,27 @@ pub fn reserve(login: &Login, start_ms: u64, end_ms: u64, user: Option<&str>) ->
     })
 }
 
-/// Takes the robot out of service (admins) with `reason`, or with `None`
-/// brings it back.
-pub fn maintenance(login: &Login, reason: Option<&str>) -> Result<Value, LabClientError> {
+/// What a maintenance took out of service, or brought back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MaintenanceOf {
+    /// One robot: its queue holds.
+    Robot,
+    /// A lab server's whole lab: no experiment goes to any robot.
+    Lab,
+}
+
+/// Takes the robot (on a lab server: the whole lab) out of service
+/// (admins) with `reason`, or with `None` brings it back; which it was.
+pub fn maintenance(login: &Login, reason: Option<&str>) -> Result<MaintenanceOf, LabClientError> {
     in_session(login, |session| {
         let (method, body, what) = match reason {
-            Some(reason) => ("POST", json!({ "reason": reason }), "taking the robot out of service"),
-            None => ("DELETE", Value::Null, "bringing the robot back into service"),
+            Some(reason) => ("POST", json!({ "reason": reason }), "taking the lab out of service"),
+            None => ("DELETE", Value::Null, "bringing the lab back into service"),
         };
-        let answer = session.request(method, "/api/v1/lab/maintenance", &body, what, DEPLOY_LIMIT)?;
-        Ok(answer["maintenance"].clone())
+        session.request(method, "/api/v1/lab/maintenance", &body, what, DEPLOY_LIMIT)?;
+        // A lab server's view lists its robots; one robot's does not.
+        let lab = session.request("GET", "/api/v1/lab", &Value::Null, "reading the lab", DEPLOY_LIMIT)?;
+        Ok(if lab["lab"]["robots"].is_array() { MaintenanceOf::Lab } else { MaintenanceOf::Robot })
     })
 }
 
@@ -1275,6 +1292,7 @@ mod tests {
             duration_s,
             label: label.into(),
             results: None,
+            target: Target::Any,
         };
         let mut quiet = |_: &str| {};
         let mut quiet2 = |_: &str| {};
