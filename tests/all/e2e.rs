@@ -62,6 +62,13 @@ fn the_demo_robot_reaches_its_goal_without_collisions() {
     assert_eq!(serial["frames_written"], report["sim"]["commands_received"], "{serial}");
     assert_eq!((serial["malformed_feedback"].as_u64(), serial["reconnects"].as_u64()), (Some(0), Some(0)));
     assert!(serial["feedback_messages"].as_u64().unwrap() > 1000, "{serial}");
+    // The distance the commands asked for and the one the odometry showed
+    // (the self-test's motion check compares them) agree with the
+    // simulated robot's path.
+    let (commanded, odometry) = (serial["commanded_m"].as_f64().unwrap(), serial["odometry_m"].as_f64().unwrap());
+    let travelled = sim["distance_travelled_m"].as_f64().unwrap();
+    assert!((odometry - travelled).abs() < 0.05 * travelled, "odometry {odometry} m, travelled {travelled} m");
+    assert!((commanded - odometry).abs() < 0.1 * odometry, "commanded {commanded} m, odometry {odometry} m");
 }
 
 /// A robot whose only motion source drives straight at a wall, with or

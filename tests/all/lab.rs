@@ -2200,6 +2200,60 @@ fn a_motor_controller_reporting_a_fault_fails_the_self_test_and_puts_the_robot_i
     controller.stop();
 }
 
+/// The self-test's motion check (docs/lab.md, "Self-test"): a controller
+/// whose odometry never moves while the baseline's planner drives (a motor
+/// that does not answer) fails it after the run, naming the distances, and
+/// the robot goes out of service; an odometry ratio out of range is
+/// refused by name. The serial link counts what its commands asked for
+/// and what the odometry showed (`commanded_m`, `odometry_m` in its
+/// status).
+#[test]
+fn a_motor_that_does_not_answer_fails_the_self_tests_motion_check() {
+    let dir = tempfile::tempdir().unwrap();
+    let (motors, _slave, device) = crate::support::MotorRecorder::new();
+    let real = |goal_x: f64| real_robot(goal_x, &device);
+    // Odometry stuck at (1, 1), whatever the motors are told.
+    let controller = PlayedController::start(motors, (), |_| String::new());
+    let (lab, ana, boss, mut settings) = lab_on_a_played_robot(dir.path(), &real(8.0));
+    settings["self_test"] = serde_json::json!({"window_ms": 1000, "odometry_ratio": 1.5});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 400, "{json}");
+    assert!(
+        json["error"].as_str().unwrap().contains("self_test.odometry_ratio must be above 0 and at most 1, got 1.5"),
+        "{json}"
+    );
+    settings["self_test"] = serde_json::json!({"window_ms": 1000, "odometry_ratio": 0.5});
+    let (status, json) = lab.call(&boss, "PUT", "/api/v1/lab/settings", &settings.to_string());
+    assert_eq!(status, 200, "{json}");
+    let set = lab.stage(&ana, "ana.xml", &real(7.0));
+    let id = lab.submit(&ana, set, 2.0);
+    lab.reset_when_awaited(&ana, &boss, id);
+    assert_eq!(lab.wait_for(&ana, id, "done", Duration::from_secs(120))["state"], "done");
+    let deadline = Instant::now() + Duration::from_secs(30);
+    let overview = loop {
+        let (_, overview) = lab.call(&boss, "GET", "/api/v1/lab", "");
+        if overview["lab"]["self_tests"].as_array().is_some_and(|t| !t.is_empty()) {
+            break overview;
+        }
+        assert!(Instant::now() < deadline, "no self-test after the run: {overview:#}");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    let test = &overview["lab"]["self_tests"][0];
+    let motion =
+        test["checks"].as_array().unwrap().iter().find(|c| c["check"] == "motion").cloned().unwrap_or_default();
+    assert_eq!((&test["passed"], &motion["passed"]), (&Json::Bool(false), &Json::Bool(false)), "{test:#}");
+    let detail = motion["detail"].as_str().unwrap_or_default();
+    assert!(
+        detail.starts_with("link 'motors': ")
+            && detail.contains(" m commanded, the odometry shows 0.00 m in 1.0 s, outside 0.50 to 2.00 of it"),
+        "{test:#}"
+    );
+    let maintenance = &overview["lab"]["maintenance"];
+    assert_eq!(maintenance["by"], "self-test", "{overview:#}");
+    assert!(maintenance["reason"].as_str().unwrap().contains("motion: link 'motors': "), "{overview:#}");
+    controller.stop();
+}
+
 /// Many at once: six researchers change their own mail subscriptions
 /// (subscribe with a new address, or unsubscribe) while two admins take the
 /// robot out of service and back, forty times each. Nothing is lost: each

@@ -195,6 +195,11 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
         {
             return bad(format!("self_test.min_battery_v must be from 0 to 1000 volts, got {volts}"));
         }
+        if let Some(ratio) = test.odometry_ratio
+            && !(ratio.is_finite() && ratio > 0.0 && ratio <= 1.0)
+        {
+            return bad(format!("self_test.odometry_ratio must be above 0 and at most 1, got {ratio}"));
+        }
         match (test.min_battery_v, test.resume_battery_v) {
             (_, None) => {}
             (Some(least), Some(resume)) if resume.is_finite() && resume > least && resume <= 1000.0 => {}

@@ -17,7 +17,9 @@ use crate::notify::EventKind;
 use crate::report::{ComponentRunState, Report};
 use crate::robot::serial::SerialStatus;
 use crate::store::Outcome;
-use crate::store::experiments::{MAX_SELF_TESTS, Maintenance, SelfTest, SelfTestCheck, SelfTestSettings};
+use crate::store::experiments::{
+    MAX_SELF_TESTS, MIN_JUDGED_MOTION_M, Maintenance, SelfTest, SelfTestCheck, SelfTestSettings,
+};
 use crate::walltime::unix_now_ms;
 
 /// The name a self-test that takes the robot out of service goes by.
@@ -90,7 +92,39 @@ pub fn judge(before: &Report, after: &Report, window_s: f64, settings: &SelfTest
         };
         checks.push(check("battery", low, fine));
     }
+    if let Some(ratio) = settings.odometry_ratio {
+        let (failures, fine) = judge_motion(before, &links, window_s, ratio);
+        checks.push(check("motion", failures, fine));
+    }
     checks
+}
+
+/// The motion check: each link's odometry over the window against the
+/// distance its commands asked for (failures, and the passed detail).
+fn judge_motion(before: &Report, links: &[(&str, &SerialStatus)], window_s: f64, ratio: f64) -> (Vec<String>, String) {
+    let mut failures = Vec::new();
+    let mut fine = Vec::new();
+    for (name, link) in links {
+        let Some((_, earlier)) = before.sections.of::<SerialStatus>().find(|(n, _)| n == name) else { continue };
+        if link.pose.is_none() {
+            fine.push(format!("link '{name}' reports no odometry"));
+            continue;
+        }
+        let commanded = link.commanded_m - earlier.commanded_m;
+        let travelled = link.odometry_m - earlier.odometry_m;
+        let said = format!(
+            "link '{name}': {commanded:.2} m commanded, the odometry shows {travelled:.2} m in {window_s:.1} s"
+        );
+        if commanded < MIN_JUDGED_MOTION_M {
+            fine.push(format!("{said}: too little motion to judge (at least {MIN_JUDGED_MOTION_M} m)"));
+        } else if travelled < ratio * commanded || travelled > commanded / ratio {
+            failures.push(format!("{said}, outside {ratio:.2} to {:.2} of it", 1.0 / ratio));
+        } else {
+            fine.push(said);
+        }
+    }
+    let fine = if fine.is_empty() { "no serial link in the baseline".to_string() } else { fine.join("; ") };
+    (failures, fine)
 }
 
 impl Lab {
@@ -345,6 +379,7 @@ mod tests {
             min_battery_v: Some(11.0),
             resume_battery_v: None,
             controller_faults: true,
+            odometry_ratio: None,
         };
         let healthy = || vec![component("motors", None), component("avoid", None)];
         // (case, before, after, expected (check, passed, words in its detail))
@@ -436,12 +471,77 @@ mod tests {
         }
         // Without a battery threshold, no battery check; with the controller
         // check turned off, a controller's fault fails nothing.
-        let quiet =
-            SelfTestSettings { window_ms: 1000, min_battery_v: None, resume_battery_v: None, controller_faults: false };
+        let quiet = SelfTestSettings { controller_faults: false, min_battery_v: None, ..settings };
         let same = report(healthy(), vec![("motors", link(true, 3, Some(1.0)))]);
         let faulted = faulty(link(true, 4, Some(1.0)), 1, Some("e-stop"));
         let checks = judge(&same, &report(healthy(), vec![("motors", faulted)]), 1.0, &quiet);
         assert_eq!(checks.iter().map(|c| c.check.as_str()).collect::<Vec<_>>(), ["components", "feedback"]);
         assert!(checks.iter().all(|c| c.passed), "{checks:#?}");
+    }
+
+    /// `link` at distance `commanded_m` commanded and `odometry_m` seen,
+    /// with a pose (none: it reports no odometry).
+    fn moving(commanded_m: f64, odometry_m: f64, pose: bool) -> SerialStatus {
+        SerialStatus { commanded_m, odometry_m, pose: pose.then_some([1.0, 1.0, 0.0]), ..link(true, 30, None) }
+    }
+
+    /// The motion check: the odometry over the window against what the
+    /// commands asked for, within the owner's ratio either way.
+    #[test]
+    fn the_motion_check_compares_each_links_odometry_with_its_commands() {
+        let settings = SelfTestSettings {
+            window_ms: 1000,
+            min_battery_v: None,
+            resume_battery_v: None,
+            controller_faults: false,
+            odometry_ratio: Some(0.5),
+        };
+        let healthy = || vec![component("motors", None)];
+        let cases: [(&str, SerialStatus, SerialStatus, bool, &str); 6] = [
+            (
+                "it went where it was sent",
+                moving(1.0, 1.0, true),
+                moving(1.4, 1.38, true),
+                true,
+                "link 'motors': 0.40 m commanded, the odometry shows 0.38 m in 1.0 s",
+            ),
+            (
+                "a motor that does not answer",
+                moving(1.0, 1.0, true),
+                moving(1.4, 1.0, true),
+                false,
+                "0.40 m commanded, the odometry shows 0.00 m in 1.0 s, outside 0.50 to 2.00 of it",
+            ),
+            ("half the way still passes", moving(0.0, 0.0, true), moving(0.4, 0.2, true), true, "shows 0.20 m"),
+            ("a runaway", moving(0.0, 0.0, true), moving(0.1, 0.3, true), false, "outside 0.50 to 2.00"),
+            (
+                "standing still is not judged",
+                moving(2.0, 2.0, true),
+                moving(2.01, 2.0, true),
+                true,
+                "too little motion to judge (at least 0.05 m)",
+            ),
+            (
+                "no odometry",
+                moving(0.0, 0.0, false),
+                moving(1.0, 0.0, false),
+                true,
+                "link 'motors' reports no odometry",
+            ),
+        ];
+        for (case, before, after, passed, words) in cases {
+            let checks = judge(
+                &report(healthy(), vec![("motors", before)]),
+                &report(healthy(), vec![("motors", after)]),
+                1.0,
+                &settings,
+            );
+            let motion = checks.iter().find(|c| c.check == "motion").unwrap_or_else(|| panic!("{case}: {checks:#?}"));
+            assert_eq!(motion.passed, passed, "{case}: {motion:#?}");
+            assert!(motion.detail.contains(words), "{case}: {motion:#?}");
+        }
+        let off = SelfTestSettings { odometry_ratio: None, ..settings };
+        let checks = judge(&report(healthy(), vec![]), &report(healthy(), vec![]), 1.0, &off);
+        assert!(checks.iter().all(|c| c.check != "motion"), "{checks:#?}");
     }
 }

@@ -305,6 +305,14 @@ pub struct SerialStatus {
     /// The pose `[x m, y m, heading rad]` the controller's odometry last
     /// reported (the lab's reset by driving reads it).
     pub pose: Option<[f64; 3]>,
+    /// Distance the commands sent asked for (m): each VEL's speed over the
+    /// time it was in force, until the next command, a STOP or a stop from
+    /// outside the loop (the lab's self-test compares it with the
+    /// odometry's).
+    pub commanded_m: f64,
+    /// Distance the controller's odometry reported (m): the path through
+    /// its poses.
+    pub odometry_m: f64,
 }
 
 impl NamedSection for SerialStatus {
@@ -372,6 +380,8 @@ pub struct SerialLink {
     pending: Option<ControlCommand>,
     /// The last command handed to the I/O thread, and when.
     last_sent: Option<(ControlCommand, u64)>,
+    /// When `stats.commanded_m` was last brought up to date.
+    commanded_at: Option<u64>,
     watchdog_tripped: bool,
     feedback: Vec<Feedback>,
     frame: Vec<u8>,
@@ -461,6 +471,7 @@ impl SerialLink {
             latest_at: None,
             pending: None,
             last_sent: None,
+            commanded_at: None,
             watchdog_tripped: false,
             feedback: Vec::new(),
             frame: Vec::new(),
@@ -502,10 +513,24 @@ impl SerialLink {
     fn follow_outside_stops(&mut self, now_ns: u64) {
         let generation = self.stop.generation.load(Ordering::Acquire);
         if generation != self.generation {
+            self.count_commanded(now_ns);
             self.generation = generation;
             self.pending = None;
             self.last_sent = Some((ControlCommand::Stop, now_ns));
         }
+    }
+
+    /// Adds to `commanded_m` the distance the command in force asked for
+    /// since the last count.
+    fn count_commanded(&mut self, now_ns: u64) {
+        let speed = match self.last_sent {
+            Some((ControlCommand::Vel { linear, .. }, _)) if linear.is_finite() => linear.abs(),
+            _ => 0.0,
+        };
+        if let Some(at) = self.commanded_at {
+            self.stats.commanded_m += speed * now_ns.saturating_sub(at) as f64 / 1e9;
+        }
+        self.commanded_at = Some(now_ns);
     }
 
     /// Queues `command` for the rate limit.
@@ -531,6 +556,7 @@ impl SerialLink {
             }
             Err(fault @ TranslateError::Fault(_)) => return Err(CallError::Fault(fault.to_string())),
         }
+        self.count_commanded(now_ns);
         self.last_sent = Some((command, now_ns));
         self.stats.frames_sent += 1;
         match self.tx.try_send(Frame { generation: self.generation, bytes: self.frame.clone() }) {
@@ -573,6 +599,11 @@ impl SerialLink {
             self.stats.feedback_messages += 1;
             let item = match feedback {
                 Feedback::Odometry { x, y, heading } => {
+                    if let Some([was_x, was_y, _]) = self.stats.pose
+                        && (x - was_x).hypot(y - was_y).is_finite()
+                    {
+                        self.stats.odometry_m += (x - was_x).hypot(y - was_y);
+                    }
                     self.stats.pose = Some([x, y, heading]);
                     (0, Value::Vector(vec![x, y, heading]))
                 }
@@ -666,6 +697,7 @@ impl Component for SerialLink {
 
     fn tick(&mut self, now_ns: u64, out: &mut Outbox) -> Result<(), CallError> {
         self.follow_outside_stops(now_ns);
+        self.count_commanded(now_ns);
         self.emit_feedback(out)?;
         let stale = self.latest_at.is_none_or(|at| now_ns.saturating_sub(at) > self.settings.watchdog_ns);
         if stale && !self.watchdog_tripped && self.last_sent.is_some() {

@@ -754,7 +754,19 @@ pub struct SelfTestSettings {
     /// turns it off.
     #[serde(default = "checked")]
     pub controller_faults: bool,
+    /// The check "motion": over the window, each serial link's odometry
+    /// shows at least this share of the distance its commands asked for,
+    /// and at most its inverse (a motor that does not answer, a wheel off
+    /// the floor, a runaway). Judged when the baseline commands at least
+    /// [`MIN_JUDGED_MOTION_M`]; off (`None`) by default.
+    #[serde(default)]
+    pub odometry_ratio: Option<f64>,
 }
+
+/// The least distance a self-test's window must command before the
+/// motion check judges it (m): less, and the odometry's own noise and the
+/// commands' latency would decide it.
+pub const MIN_JUDGED_MOTION_M: f64 = 0.05;
 
 /// A check the owner has not turned off is on.
 fn checked() -> bool {
