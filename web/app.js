@@ -1418,6 +1418,11 @@ const LAB_SETTINGS_FIELDS = [
   ['reference_recording', 'Reference recording to replay against (empty: none)', 'optional'],
   ['retention_bytes', 'Results kept, at most (MiB)', 'mebibytes'],
   ['kit', 'Researchers may download the lab kit', 'boolean'],
+  ['preflight_timing.runs', 'Preflight runs (run 1 unperturbed, each later one with seeded timing)', 'number'],
+  ['preflight_timing.tick_phase', "Preflight: seed each component's tick phase", 'boolean'],
+  ['preflight_timing.sensor_latency_ms', 'Preflight: most sensor latency (ms)', 'number'],
+  ['preflight_timing.range_noise_m', 'Preflight: most range noise (m)', 'number'],
+  ['preflight_timing.serial_delay_ms', 'Preflight: most serial delay (ms)', 'number'],
 ];
 let settingsDirty = false;
 const settingId = (path) => 'lab-setting-' + path.replace(/[._]/g, '-');

@@ -71,6 +71,7 @@ fn main() {
         verdict: None,
         criteria: None,
         task: None,
+        perturb: None,
     };
     let host_shutdown = shutdown.clone();
     let host =

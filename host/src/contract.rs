@@ -350,7 +350,7 @@ pub fn check_description(d: &Description) -> Result<(), Vec<String>> {
 
 /// A description as `subsume describe --json`, the portal and the store
 /// show it: the component's declaration and the sha256 of its bytes.
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct DescriptionDoc {
     pub name: String,
     pub version: String,
@@ -363,7 +363,7 @@ pub struct DescriptionDoc {
 }
 
 /// One port of a [`DescriptionDoc`].
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct PortDoc {
     pub index: usize,
     pub name: String,
@@ -372,7 +372,7 @@ pub struct PortDoc {
 }
 
 /// One parameter of a [`DescriptionDoc`].
-#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize, schemars::JsonSchema)]
 pub struct ParamDoc {
     pub name: String,
     pub kind: String,

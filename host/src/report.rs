@@ -20,7 +20,7 @@ pub const REPORT_FORMAT: u32 = 2;
 
 /// Why the report was written: what stopped the run, or `running` in the
 /// live status.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum StoppedBy {
     /// `--duration` passed.
@@ -34,7 +34,7 @@ pub enum StoppedBy {
 }
 
 /// A component's state.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum ComponentRunState {
     Running,
@@ -42,7 +42,7 @@ pub enum ComponentRunState {
 }
 
 /// A connection's delivery policy.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum PolicyName {
     Latest,
@@ -86,7 +86,19 @@ impl Serialize for Sections {
     }
 }
 
-#[derive(Clone, Debug, Serialize)]
+/// In the JSON each section is a field of the report, an object of its
+/// built-in's own (docs/report.md); which there are is the robot file's.
+impl schemars::JsonSchema for Sections {
+    fn schema_name() -> std::borrow::Cow<'static, str> {
+        "Sections".into()
+    }
+
+    fn json_schema(_: &mut schemars::SchemaGenerator) -> schemars::Schema {
+        schemars::json_schema!({ "type": "object", "additionalProperties": { "type": "object" } })
+    }
+}
+
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Report {
     pub format: u32,
     pub robot: String,
@@ -108,7 +120,7 @@ pub struct Report {
 }
 
 /// `loop_lateness` in the JSON (docs/report.md).
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct LoopLateness {
     /// Scheduled cycles whose lateness the loop measured.
     pub cycles: u64,
@@ -138,7 +150,7 @@ impl LoopLateness {
     }
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct ComponentReport {
     pub name: String,
     pub platform: String,
@@ -166,7 +178,7 @@ pub struct ComponentReport {
     pub call_times: Histogram,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct ConnectionReport {
     pub from: String,
     pub to: String,
@@ -178,7 +190,7 @@ pub struct ConnectionReport {
     pub overwritten: u64,
 }
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct MessageTotals {
     /// Values put into mailboxes (one per receiving connection).
     pub routed: u64,
@@ -192,7 +204,7 @@ pub struct MessageTotals {
 pub const LIVE_STATUS_FORMAT: u32 = 1;
 
 /// What the portal shows while a set runs: the report so far and the set.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct LiveStatus {
     pub live_format: u32,
     /// The active set's id.
@@ -205,7 +217,7 @@ pub struct LiveStatus {
 
 /// Whose code drives: the experiment a set runs as, its submitter and
 /// each WASM component's sha256.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct ExperimentTag {
     pub id: u64,
     pub submitter: String,

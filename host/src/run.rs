@@ -33,6 +33,7 @@ use crate::runtime::scheduling::ControlThreadSettings;
 use crate::runtime::stall::{MAX_STALL_LIMIT, MIN_STALL_LIMIT};
 use crate::runtime::{Graph, Heartbeat, Locks, RunningRobot, StallWatchdog, Standings, StopOutcome};
 use crate::sandbox::{Sandbox, SandboxError};
+use crate::sim::perturb::Perturbation;
 use crate::store::task::{EpisodeEnd, Task};
 use crate::store::users::Directory;
 use crate::store::{Store, StoreError};
@@ -79,6 +80,9 @@ pub struct RunOptions {
     /// the run ends when one of its end conditions holds (docs/lab.md,
     /// "Tasks and scores"), as the lab's runs do.
     pub task: Option<PathBuf>,
+    /// Seeded timing perturbations (`--perturb SEED`, `--perturb-bounds`;
+    /// `sim::perturb`): on simulated time without the portal only.
+    pub perturb: Option<Perturbation>,
 }
 
 impl RunOptions {
@@ -231,6 +235,8 @@ pub enum RunError {
     LabLink(#[from] LinkError),
     #[error("the lab server: {0}")]
     LabServer(#[from] ServerError),
+    #[error("--perturb seeds a simulated run: it needs --speed and --http off")]
+    Perturb,
     #[error(
         "the stall limit must be between {} and {} ms, got {} ms",
         MIN_STALL_LIMIT.as_millis(),
@@ -256,6 +262,9 @@ impl From<DeployError> for RunError {
 pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError> {
     if !(MIN_STALL_LIMIT..=MAX_STALL_LIMIT).contains(&options.stall_limit) {
         return Err(RunError::StallLimit(options.stall_limit));
+    }
+    if options.perturb.is_some() && (options.portal.is_some() || options.pace.is_none()) {
+        return Err(RunError::Perturb);
     }
     if let Some(portal) = &options.portal {
         if let Some(path) = &options.task {
@@ -286,10 +295,17 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     if judge {
         services = services.with(Arc::new(standings.clone()));
     }
+    if let Some(perturb) = options.perturb {
+        tracing::info!("seeded timing: seed {} within {:?}", perturb.seed, perturb.bounds);
+        services = services.with(Arc::new(perturb));
+    }
     let mut graph =
         assemble::build(&config, &mut loader, clock.clone(), &shutdown.waker(), &services, &assemble::Carry::default())
             .map(|built| built.graph)
             .map_err(RunError::Start)?;
+    if let Some(perturb) = &options.perturb {
+        shift_tick_phases(&mut graph, perturb);
+    }
     let ends = read_task(options)?.as_ref().and_then(EpisodeWatch::new).map(|w| EndWatch::new(w, shutdown.clone()));
     let watch = Judge { holders: judge.then(|| HolderWatch::new(&config, standings)), ends };
     let Some(record) = &options.record else {
@@ -312,6 +328,16 @@ pub fn run(options: &RunOptions, shutdown: Shutdown) -> Result<Report, RunError>
     drop(graph);
     log_recording(&summary);
     Ok(report)
+}
+
+/// Each component's first tick a seeded fraction of its period late
+/// (`sim::perturb`): the phase of its ticks against the simulator.
+fn shift_tick_phases(graph: &mut Graph, perturb: &Perturbation) {
+    for index in 0..graph.len() {
+        let (Some(name), Some(period)) = (graph.name(index), graph.period_ns(index)) else { continue };
+        let delay = perturb.first_tick_delay_ns(name, period);
+        graph.delay_next_tick(index, delay);
+    }
 }
 
 /// Who held control when, watched in runs that are judged (`--verdict`,

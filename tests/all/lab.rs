@@ -164,11 +164,48 @@ fn lab_on_a_played_robot(dir: &Path, xml: &str) -> (Lab, String, String, Json) {
 }
 
 pub(crate) fn robot(goal_x: f64, extra: &str) -> String {
-    let mut xml = BASELINE.replace("GOAL_X", &goal_x.to_string()).replace("EXTRA", extra);
+    robot_of(BASELINE, goal_x, extra)
+}
+
+fn robot_of(baseline: &str, goal_x: f64, extra: &str) -> String {
+    let mut xml = baseline.replace("GOAL_X", &goal_x.to_string()).replace("EXTRA", extra);
     for name in ["avoider", "planner", "range-filter"] {
         xml = xml.replace(&format!("GUEST({name})"), &crate::support::guest(name).display().to_string());
     }
     xml
+}
+
+/// A source that drives straight ahead at 0.4 m/s, above the planner.
+const STRAIGHT: &str = r#"<component name="drive" source="builtin:publish" rate="10" priority="2">
+      <param name="kind" value="command"/>
+      <param name="value" value="VEL 0.4 0"/>
+    </component>
+    <connect from="drive.out" to="arbiter.commands"/>"#;
+
+/// The baseline without its avoider, driven straight at the wall ahead
+/// (docs/lab.md, "Timing"): the envelope slows it down and, with the
+/// lock-step's perfect timing, stops it just short of its stop zone; with a
+/// robot's sensor latency and serial delay it enters the stop zone (as a
+/// 30 s run of it in real time did). Its network platform is the baseline's.
+pub(crate) fn straight_at_the_wall() -> String {
+    let without_avoider = BASELINE
+        .replace(
+            r#"    <component name="avoid" source="GUEST(avoider)" rate="20" budget="5ms" memory="16MiB" timeout="400ms"/>
+"#,
+            "",
+        )
+        .replace("    <connect from=\"filter.filtered\" to=\"avoid.ranges\"/>\n", "")
+        .replace("    <connect from=\"avoid.cmd\" to=\"arbiter.commands\"/>\n", "");
+    assert!(!without_avoider.contains("avoid"), "{without_avoider}");
+    robot_of(&without_avoider, 8.0, STRAIGHT)
+}
+
+/// `xml` without its network platform (its teleoperation needs the
+/// portal's users or an operators file): to run alone with `--http off`.
+pub(crate) fn without_network(xml: &str) -> String {
+    let start = xml.find("  <platform name=\"network\">").unwrap();
+    let end = start + xml[start..].find("</platform>\n").unwrap() + "</platform>\n".len();
+    format!("{}{}", &xml[..start], &xml[end..])
 }
 
 pub(crate) struct Lab {
@@ -3045,4 +3082,82 @@ fn a_runs_recording_starts_at_its_start_without_a_pose_of_the_baseline() {
     let said = String::from_utf8_lossy(&again.stdout);
     assert!(again.status.success() && said.contains("identical"), "{said}{}", String::from_utf8_lossy(&again.stderr));
     eprintln!("a run's own recording: {:.1} s", began.elapsed().as_secs_f64());
+}
+
+/// The preflight runs three times, each run after the first with the
+/// timing a robot has, seeded (docs/lab.md, "Timing"). A set that drives
+/// straight at a wall passes the first (the lock-step's perfect timing:
+/// the envelope stops it just short of its stop zone) and not the others:
+/// it is refused, naming each run and its seed, and its results keep the
+/// first refusing run and list every one. That run, rerun from its seed
+/// with the bundle's robot file and bounds, gives the lab's verdict byte
+/// for byte. The baseline, robust to timing, still passes.
+#[test]
+fn a_set_that_passes_only_on_perfect_timing_is_refused_naming_its_seeds_and_a_robust_one_passes() {
+    let dir = tempfile::tempdir().unwrap();
+    setup(dir.path());
+    let lab = start(dir.path());
+    let ana = lab.token("ana");
+    let marginal = lab.stage(&ana, "straight.xml", &straight_at_the_wall());
+    let id = lab.submit(&ana, marginal, 30.0);
+    let refused = lab.wait_for(&ana, id, "refused", Duration::from_secs(180));
+    assert_eq!(states(&refused), ["checking", "preflight", "refused"], "{refused:#}");
+    let (second, third) = (subsume::lab::preflight_runs::seed_of(id, 2), subsume::lab::preflight_runs::seed_of(id, 3));
+    let reasons: Vec<&str> = refused["reasons"].as_array().unwrap().iter().map(|r| r.as_str().unwrap()).collect();
+    let changed = format!(
+        "preflight: the verdict changed between runs: run 1 (unperturbed) passed; run 2 (seed {second}) refused: the envelope's stop zone stopped the robot "
+    );
+    assert!(reasons[0].starts_with(&changed), "{reasons:#?}");
+    assert!(reasons[0].contains(&format!("; run 3 (seed {third}) ")), "{reasons:#?}");
+    assert!(
+        reasons[1].starts_with("preflight: the envelope's stop zone stopped the robot ")
+            && reasons[1].ends_with(&format!(" (run 2 (seed {second}))")),
+        "{reasons:#?}"
+    );
+
+    // The results: run 2's files, and every run listed.
+    let out = dir.path().join("results");
+    std::fs::create_dir_all(&out).unwrap();
+    let bundle = lab.results(&ana, id, &out);
+    let read = |name: &str| -> Json { serde_json::from_slice(&std::fs::read(bundle.join(name)).unwrap()).unwrap() };
+    let runs = read("preflight-runs.json");
+    assert_eq!(runs["kept"], 2, "{runs:#}");
+    let listed: Vec<(u64, Json, bool)> = runs["runs"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| (r["run"].as_u64().unwrap(), r["seed"].clone(), r["passed"].as_bool().unwrap()))
+        .collect();
+    assert_eq!(listed[..2], [(1, Json::Null, true), (2, Json::from(second), false)], "{runs:#}");
+    assert_eq!(listed[2].0, 3);
+    assert_eq!(listed[2].1, Json::from(third));
+    let lab_verdict = read("preflight-verdict.json");
+    assert_eq!(lab_verdict["passed"], false);
+    assert_eq!(lab_verdict["reasons"], runs["runs"][1]["reasons"], "{lab_verdict:#}");
+
+    // Run 2 again, from its seed, with the bundle's robot file and the
+    // bounds the lab used: the lab's verdict, byte for byte.
+    let bounds = out.join("bounds.json");
+    std::fs::write(&bounds, runs["bounds"].to_string()).unwrap();
+    let local = out.join("local-verdict.json");
+    let rerun = crate::support::subsume()
+        .arg("run")
+        .arg(bundle.join("robot.xml"))
+        .args(["--http", "off", "--speed", "max", "--duration", "30", "--perturb", &second.to_string()])
+        .arg("--perturb-bounds")
+        .arg(&bounds)
+        .arg("--verdict")
+        .arg(&local)
+        .output()
+        .unwrap();
+    assert!(rerun.status.success(), "{}", String::from_utf8_lossy(&rerun.stderr));
+    let local: Json = serde_json::from_slice(&std::fs::read(&local).unwrap()).unwrap();
+    assert_eq!(local, lab_verdict, "run 2 rerun from its seed is not the lab's");
+
+    // The baseline passes all three.
+    let robust = lab.stage(&ana, "robust.xml", &robot(8.0, ""));
+    let id = lab.submit(&ana, robust, 10.0);
+    let queued = lab.wait_for(&ana, id, "queued", Duration::from_secs(180));
+    assert!(states(&queued).contains(&"queued".to_string()), "{queued:#}");
+    assert_eq!(queued["preflight"]["passed"], true, "{queued:#}");
 }

@@ -17,6 +17,7 @@ use subsume::run::{FaultInjection, PortalOptions, RunError, RunOptions};
 use subsume::runtime::control_loop::Shutdown;
 use subsume::runtime::scheduling::ControlThreadSettings;
 use subsume::runtime::stall::DEFAULT_STALL_LIMIT;
+use subsume::sim::perturb::{PerturbBounds, Perturbation};
 use subsume::tls::{HostTls, TlsIdentity};
 
 use super::Context;
@@ -103,6 +104,19 @@ pub struct HostFlags {
     /// off.
     #[arg(long, value_name = "FILE.json")]
     task: Option<PathBuf>,
+    /// Seed the timing a robot has into this simulated run (with --speed
+    /// and --http off): each component's tick phase, the sensors' latency
+    /// and noise, the serial link's delay, drawn from SEED within
+    /// --perturb-bounds. The same seed and bounds give the same run bit
+    /// for bit; the lab's preflight runs are rerun this way (docs/lab.md,
+    /// "Timing").
+    #[arg(long, value_name = "SEED")]
+    perturb: Option<u64>,
+    /// The bounds of --perturb (JSON, as the lab kit's perturb-bounds.json:
+    /// tick_phase, sensor_latency_ms, range_noise_m, serial_delay_ms); the
+    /// lab's defaults when not given.
+    #[arg(long, value_name = "FILE.json", requires = "perturb")]
+    perturb_bounds: Option<PathBuf>,
     /// How the lab's preflights run beside the robot: `idle` (only the CPU
     /// the robot leaves), `background` (nice 10, as a compile; for a robot
     /// whose own work keeps the machine busy) or `normal`. docs/lab.md.
@@ -127,6 +141,8 @@ impl Default for HostFlags {
             verdict: None,
             criteria: None,
             task: None,
+            perturb: None,
+            perturb_bounds: None,
             preflight_priority: Priority::Idle,
         }
     }
@@ -200,6 +216,10 @@ pub fn run_options(
         Ok(text) if !text.is_empty() => Some(text.parse::<FaultInjection>()?),
         _ => None,
     };
+    let perturb = match host.perturb {
+        None => None,
+        Some(seed) => Some(Perturbation { seed, bounds: perturb_bounds(host.perturb_bounds.as_deref())? }),
+    };
     Ok(RunOptions {
         config_path,
         duration: robot.duration,
@@ -215,7 +235,18 @@ pub fn run_options(
         verdict: host.verdict,
         criteria: host.criteria,
         task: host.task,
+        perturb,
     })
+}
+
+/// The bounds in `path` (checked), else the lab's defaults.
+fn perturb_bounds(path: Option<&std::path::Path>) -> anyhow::Result<PerturbBounds> {
+    let Some(path) = path else { return Ok(PerturbBounds::DEFAULT) };
+    let text = std::fs::read(path).with_context(|| format!("cannot read the bounds {}", path.display()))?;
+    let bounds: PerturbBounds =
+        serde_json::from_slice(&text).with_context(|| format!("{}: not the bounds of --perturb", path.display()))?;
+    bounds.check().with_context(|| format!("{}: the bounds of --perturb", path.display()))?;
+    Ok(bounds)
 }
 
 /// Runs the robot until stopped, with the panic policy and the signal

@@ -194,7 +194,7 @@ pub fn load(path: &Path, resolver: &mut dyn Resolver) -> Result<RobotConfig, Dia
 
 /// A parameter set from outside the robot file (`--param comp.name=value`),
 /// replacing or adding a `<param>` before validation.
-#[derive(Clone, Debug, PartialEq, Eq)]
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize, schemars::JsonSchema)]
 pub struct ParamOverride {
     pub component: String,
     pub param: String,

@@ -26,7 +26,7 @@ use crate::store::{Outcome, Store};
 pub const AUDIT_QUEUE: usize = 1024;
 
 /// What an engage did.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Engaged {
     pub lock: String,
     /// False when the lock was engaged already (the first engagement stands).
@@ -35,14 +35,14 @@ pub struct Engaged {
 }
 
 /// One release: the lock and how long it was engaged.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Released {
     pub lock: String,
     pub held_ms: u64,
 }
 
 /// The locks as the portal shows them.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct LocksView {
     pub engaged: Vec<Engagement>,
     pub events: Vec<LockEvent>,

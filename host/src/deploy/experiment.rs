@@ -40,7 +40,7 @@ pub const LAB_USER: &str = "lab";
 pub const LAB_LOCK: &str = "estop";
 
 /// The experiment that runs now, as everyone else's requests see it.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, schemars::JsonSchema)]
 pub struct RunningExperiment {
     pub id: u64,
     pub submitter: String,

@@ -32,7 +32,7 @@ pub const HISTORY_SAMPLES: usize = 300;
 pub const MAX_SAMPLE_SERIES: usize = 64;
 
 /// One sample, as `GET /api/v1/history` answers it.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct HistorySample {
     /// Graph time, seconds since the host started.
     pub t_s: f64,

@@ -63,13 +63,17 @@ pub use self::worlds::WORLD_SUFFIX;
 use crate::assemble::{self, Carry, Loader, StartError};
 use crate::builtin::Services;
 pub use crate::config::limits::MAX_CONFIG_BYTES as MAX_CONFIG_UPLOAD_BYTES;
-use crate::config::{ComponentSource, ParamOverride, RobotConfig};
-pub use crate::config::{Diagnostic, Diagnostics, Platform, SourceMap, read_and_parse};
+use crate::config::{ComponentSource, RobotConfig};
+pub use crate::config::{Diagnostic, Diagnostics, ParamOverride, Platform, SourceMap, read_and_parse};
 use crate::runtime::control_loop::{Clock, Waker};
 use crate::runtime::wiring::PriorityCell;
 use crate::runtime::{Graph, RunningRobot};
 use crate::sandbox::{Sandbox, read_component_file};
 pub use crate::sim::world::MAX_WORLD_BYTES as MAX_WORLD_UPLOAD_BYTES;
+// What the use cases answer, for the portal (its document names them).
+pub use crate::record::control::{RecordingInfo, Stopped};
+pub use crate::record::replay::ReplayReport;
+pub use crate::sim::physics::SimStatus;
 use crate::store::users::Principal;
 use crate::store::{Outcome, STORE_FORMAT, SetRecord, Store, StoreError, StoreWriter, sha256_hex, unix_now};
 

@@ -40,7 +40,7 @@ impl From<RecordingError> for DeployError {
 }
 
 /// The recordings folder as the portal shows it.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, schemars::JsonSchema)]
 pub struct RecordingsView {
     /// The running recording, if any.
     pub recording: Option<RecordingInfo>,

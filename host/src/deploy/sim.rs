@@ -13,7 +13,7 @@ use crate::sim::{SimError, SimRegistry};
 use crate::store::users::Principal;
 
 /// The simulated robot of the active set, for the portal's map.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, schemars::JsonSchema)]
 pub struct SimView {
     pub component: String,
     pub world: World,

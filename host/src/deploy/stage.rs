@@ -31,7 +31,7 @@ pub const MAX_FILE_NAME_LEN: usize = 64;
 pub const MAX_CONCURRENT_VALIDATIONS: usize = 1;
 
 /// What a robot file that validated would stage.
-#[derive(Clone, Debug, serde::Serialize)]
+#[derive(Clone, Debug, serde::Serialize, schemars::JsonSchema)]
 pub struct Validated {
     pub components: usize,
     pub connections: usize,

@@ -122,7 +122,7 @@ pub struct Contents {
 /// Whether `name` is a file the results keep: the known names, and the
 /// rotations of the run's recording (`run.1.mcap`, ...).
 pub fn is_result_file(name: &str) -> bool {
-    const KEPT: [&str; 8] = [
+    const KEPT: [&str; 9] = [
         REPORT,
         LOG,
         ROBOT,
@@ -131,6 +131,7 @@ pub fn is_result_file(name: &str) -> bool {
         "preflight-report.json",
         "preflight-verdict.json",
         "preflight.log",
+        super::preflight_runs::RUNS_FILE,
     ];
     KEPT.contains(&name)
         || name == VIDEO_NOTE

@@ -7,6 +7,9 @@ use super::kit_submission::{KIT_MANIFEST, KitComponent, KitManifest};
 use super::{Lab, LabError, bundle, materialize};
 use crate::store::users::{Principal, Role};
 
+/// The kit's bounds of the preflight's seeded runs (`--perturb-bounds`).
+pub const KIT_BOUNDS: &str = "perturb-bounds.json";
+
 impl Lab {
     /// The lab kit (docs/lab.md): the baseline in its preflight form (the
     /// robot file, its components, its world), the criteria and a README,
@@ -69,8 +72,21 @@ impl Lab {
             settings.max_duration_s
         );
         let mut readme = readme;
+        // The bounds of the preflight's seeded runs: a researcher reruns
+        // any of them from the seed its refusal names.
+        let timing = settings.preflight_timing;
+        let bounds = serde_json::to_vec_pretty(&timing.bounds()).map_err(|e| LabError::Host(e.to_string()))?;
+        readme.push_str(&format!(
+            "\nThe lab's preflight runs {} times: run 1 as above, each later one with the timing a robot\n\
+             has, seeded (perturb-bounds.json: tick phase, sensor latency and noise, serial delay). A\n\
+             set whose verdict changes between runs is refused, naming each run's seed. Rerun one:\n\n    \
+             subsume run robot.xml --http off --speed max --duration 60 --criteria criteria.json \\\n        \
+             --perturb SEED --perturb-bounds perturb-bounds.json\n",
+            timing.runs
+        ));
         let mut entries = vec![
             ("criteria.json".to_string(), bundle::Source::Bytes(criteria)),
+            (KIT_BOUNDS.to_string(), bundle::Source::Bytes(bounds)),
             (KIT_MANIFEST.to_string(), bundle::Source::Bytes(manifest(baseline, &set.config_sha256, &written)?)),
         ];
         // The owner's task: a researcher scores her local run as the lab

@@ -20,38 +20,42 @@ use crate::store::task::{BoardChoice, Metric, Score, Task};
 use crate::store::users::{Principal, Role};
 
 /// A leaderboard as its reader sees it.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct Board {
     pub task: String,
     pub description: String,
     pub metric: Metric,
     /// `lower` or `higher`: which ranks first.
+    #[schemars(extend("enum" = ["lower", "higher"]))]
     pub better: &'static str,
     pub board: BoardChoice,
     pub entries: Vec<Entry>,
 }
 
 /// One user's ranked run.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct Entry {
     /// 1 for the first; `None` for a run whose metric is undefined (a goal
     /// never reached): listed after the ranked ones.
     pub rank: Option<usize>,
-    /// The user's name, or her pseudonym.
+    /// The user's name, or her pseudonym (`participant-N`) when the owner
+    /// shows pseudonyms; the reader's own, and for admins every one, by name.
     pub user: String,
     /// Whether it is the reader's own.
     pub yours: bool,
-    /// The experiment (its id), for its submitter and admins.
+    /// The experiment (its id): the reader's own, or any for admins.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub experiment: Option<u64>,
     pub value: Option<f64>,
     pub sub_scores: BTreeMap<String, f64>,
-    /// The preflight's value of the same metric (the simulator's side),
-    /// and the robot's less it.
+    /// The preflight's value of the same metric (the simulator's side).
     pub preflight_value: Option<f64>,
+    /// `value` less `preflight_value`.
     pub gap: Option<f64>,
     /// When the run ended (ms since the Unix epoch).
     pub ended_ms: u64,
+    /// The sha256 of the recording the score came from (`run.mcap` in its
+    /// bundle).
     pub recording_sha256: String,
 }
 

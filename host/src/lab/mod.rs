@@ -1,6 +1,7 @@
 //! The remote lab (docs/lab.md): a researcher's experiment as a thing the
 //! host knows. An experiment is a staged set, a duration and a label; it is
-//! checked, run first in the simulator ([`preflight`]), queued fairly
+//! checked, run first in the simulator ([`preflight`], a few times with
+//! seeded timing: [`preflight_runs`]), queued fairly
 //! ([`queue`]), run on the robot from a fresh start while recording, stopped
 //! on time, and its results kept ([`bundle`]); between experiments the
 //! robot runs the owner's baseline.
@@ -51,6 +52,7 @@ pub mod materialize;
 mod metrics;
 mod owner;
 pub mod preflight;
+pub mod preflight_runs;
 pub mod queue;
 mod reservations;
 pub mod reset;

@@ -6,7 +6,7 @@ use super::{Lab, LabError, MAX_DURATION_CAP_S, MIN_DURATION_S};
 use crate::contract::clip;
 use crate::store::World;
 use crate::store::experiments::{
-    DriveReset, LabSettings, LabState, MAX_RESET_SETTLE_S, MAX_RESET_TIMEOUT_S, ResetPolicy,
+    DriveReset, LabSettings, LabState, MAX_PREFLIGHT_RUNS, MAX_RESET_SETTLE_S, MAX_RESET_TIMEOUT_S, ResetPolicy,
 };
 use crate::store::task::{MAX_TASK_DESCRIPTION, MAX_TASK_NAME, Metric, Task};
 use crate::store::users::{Principal, Role};
@@ -221,6 +221,13 @@ fn check_settings(settings: &LabSettings) -> Result<(), LabError> {
     if let Some(task) = &settings.task {
         check_task(task)?;
     }
+    let timing = &settings.preflight_timing;
+    if !(1..=MAX_PREFLIGHT_RUNS).contains(&timing.runs) {
+        return bad(format!("preflight_timing.runs must be from 1 to {MAX_PREFLIGHT_RUNS}, got {}", timing.runs));
+    }
+    if let Err(e) = timing.bounds().check() {
+        return bad(format!("preflight_timing.{e}"));
+    }
     if !(1..=7 * 24 * 3600).contains(&settings.stuck_after_min_s) {
         return bad(format!("stuck_after_min_s must be from 1 to 604800 (a week), got {}", settings.stuck_after_min_s));
     }
@@ -297,4 +304,39 @@ fn check_task(task: &Task) -> Result<(), LabError> {
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::store::experiments::PreflightTiming;
+
+    /// (the preflight's timing, the start of the refusal, if any): each
+    /// field out of its range is named.
+    #[test]
+    fn the_preflights_timing_is_checked_naming_the_field() {
+        let with = |f: fn(&mut PreflightTiming)| {
+            let mut timing = PreflightTiming::default();
+            f(&mut timing);
+            timing
+        };
+        let cases = [
+            (PreflightTiming::default(), None),
+            (with(|t| t.runs = 1), None),
+            (with(|t| t.runs = MAX_PREFLIGHT_RUNS), None),
+            (with(|t| t.runs = 0), Some("preflight_timing.runs must be from 1 to 10, got 0")),
+            (with(|t| t.runs = 11), Some("preflight_timing.runs must be from 1 to 10, got 11")),
+            (with(|t| t.sensor_latency_ms = -1.0), Some("preflight_timing.sensor_latency_ms must be from 0 to 1000")),
+            (with(|t| t.range_noise_m = f64::NAN), Some("preflight_timing.range_noise_m must be from 0 to 1")),
+            (with(|t| t.serial_delay_ms = 1001.0), Some("preflight_timing.serial_delay_ms must be from 0 to 1000")),
+        ];
+        for (timing, refused) in cases {
+            let settings = LabSettings { preflight_timing: timing, ..LabSettings::default() };
+            match (check_settings(&settings), refused) {
+                (Ok(()), None) => {}
+                (Err(LabError::BadRequest(why)), Some(start)) => assert!(why.starts_with(start), "{why}"),
+                (other, _) => panic!("{timing:?}: {other:?}"),
+            }
+        }
+    }
 }

@@ -30,6 +30,7 @@ use crate::runtime::control_loop::CycleHook;
 use crate::runtime::graph::ComponentState;
 use crate::runtime::{Standing, Standings};
 use crate::sim::SimSection;
+use crate::sim::perturb::Perturbation;
 use crate::store::experiments::{FaultSeen, MAX_OUTCOME_FAULTS, RunOutcome};
 use crate::store::task::Task;
 
@@ -277,6 +278,8 @@ pub struct PreflightFiles {
     pub task: PathBuf,
     /// The child's standard output and error.
     pub log: PathBuf,
+    /// The bounds of a seeded run's timing (`--perturb-bounds`).
+    pub bounds: PathBuf,
 }
 
 impl PreflightFiles {
@@ -289,6 +292,7 @@ impl PreflightFiles {
             criteria: dir.join("preflight-criteria.json"),
             task: dir.join("preflight-task.json"),
             log: dir.join("preflight.log"),
+            bounds: dir.join("preflight-bounds.json"),
         }
     }
 }
@@ -355,6 +359,22 @@ pub fn run(
     files: &PreflightFiles,
     cancelled: &dyn Fn() -> bool,
 ) -> Result<Outcome, PreflightError> {
+    run_seeded(command, robot, duration, criteria, task, None, files, cancelled)
+}
+
+/// [`run`], with its timing seeded by `perturb` (`--perturb`,
+/// `sim::perturb`) when given.
+#[allow(clippy::too_many_arguments)]
+pub fn run_seeded(
+    command: &PreflightCommand,
+    robot: &Path,
+    duration: Duration,
+    criteria: &Criteria,
+    task: Option<&Task>,
+    perturb: Option<&Perturbation>,
+    files: &PreflightFiles,
+    cancelled: &dyn Fn() -> bool,
+) -> Result<Outcome, PreflightError> {
     let file_error = |path: &Path| {
         let path = path.to_path_buf();
         move |e: std::io::Error| PreflightError::File { path: path.clone(), reason: e.to_string() }
@@ -367,6 +387,11 @@ pub fn run(
         let task_json = serde_json::to_vec_pretty(task)
             .map_err(|e| PreflightError::File { path: files.task.clone(), reason: e.to_string() })?;
         crate::fsutil::write_atomically(&files.task, &task_json).map_err(file_error(&files.task))?;
+    }
+    if let Some(perturb) = perturb {
+        let bounds_json = serde_json::to_vec_pretty(&perturb.bounds)
+            .map_err(|e| PreflightError::File { path: files.bounds.clone(), reason: e.to_string() })?;
+        crate::fsutil::write_atomically(&files.bounds, &bounds_json).map_err(file_error(&files.bounds))?;
     }
     let log = std::fs::File::create(&files.log).map_err(file_error(&files.log))?;
     // Standard output and error into one pipe the host reads into the log,
@@ -404,6 +429,9 @@ pub fn run(
     };
     if task.is_some() {
         child.arg("--task").arg(&files.task);
+    }
+    if let Some(perturb) = perturb {
+        child.arg("--perturb").arg(perturb.seed.to_string()).arg("--perturb-bounds").arg(&files.bounds);
     }
     lowered(&mut child, command.priority, command.limits.memory_bytes);
     let started = Instant::now();

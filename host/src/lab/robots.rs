@@ -66,7 +66,7 @@ impl Lab {
 }
 
 /// A robot's answer to the lab's STOP.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct RobotStop {
     pub robot: String,
     pub engaged: bool,

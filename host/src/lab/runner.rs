@@ -16,7 +16,8 @@ use std::time::Duration;
 
 use super::episode::{EpisodeWatch, Seen};
 use super::materialize::{self, MaterializeError, PreflightWorld};
-use super::preflight::{self, Outcome, PreflightError, PreflightFiles};
+use super::preflight::{Outcome, PreflightError};
+use super::preflight_runs::{self, Runs};
 use super::queue::{self, QueueView};
 use super::{Book, Lab, LabError, TURNAROUND, bundle, run_recording};
 use crate::deploy::{DeployError, RunningExperiment};
@@ -217,7 +218,6 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
         }
         Err(e) => return Err(LabError::Host(e.to_string())),
     };
-    let files = PreflightFiles::in_dir(&dir);
     let duration = Duration::from_secs_f64(record.duration_s);
     // The replay against the owner's reference recording is information,
     // never a refusal.
@@ -232,8 +232,17 @@ fn check(lab: &Lab, id: u64) -> Result<(), LabError> {
     // The task it was submitted under: its end conditions end the preflight
     // as they will end the run.
     let task = record.settings.task.as_ref();
-    let outcome =
-        preflight::run(&lab.options.preflight, &written.robot, duration, &settings.criteria, task, &files, &cancelled);
+    // Its runs, each but the first with the timing a robot has, seeded
+    // (docs/lab.md, "Timing").
+    let runs = Runs {
+        robot: &written.robot,
+        duration,
+        criteria: &settings.criteria,
+        task,
+        timing: settings.preflight_timing,
+        experiment: id,
+    };
+    let outcome = preflight_runs::run_all(&lab.options.preflight, &runs, &dir, &cancelled).map(|(outcome, _)| outcome);
     // The robot file in its preflight form stays with the results; what it
     // named is in the store already.
     if let Err(e) = std::fs::rename(&written.robot, dir.join(bundle::ROBOT)) {

@@ -163,7 +163,7 @@ impl Robot {
 }
 
 /// A robot as the portal lists it.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct RobotView {
     pub name: String,
     /// `idle`, `running`, `stopped`, `maintenance`, or `lost`.

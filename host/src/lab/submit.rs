@@ -250,7 +250,7 @@ impl Lab {
 }
 
 /// The body of a submission.
-#[derive(Clone, Debug, serde::Deserialize)]
+#[derive(Clone, Debug, serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Submission {
     pub set: u64,
@@ -258,7 +258,8 @@ pub struct Submission {
     #[serde(default)]
     pub label: String,
     /// On a lab server: which robots may run it (`{"robot": NAME}`,
-    /// `{"profile": ID}`); the first free robot when missing.
+    /// `{"profile": ID}`); the first free robot when missing. One robot's
+    /// portal refuses it (400).
     #[serde(default)]
     pub target: Option<Target>,
 }

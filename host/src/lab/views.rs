@@ -168,7 +168,7 @@ impl Lab {
 }
 
 /// An experiment as its submitter (or an admin) sees it.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct ExperimentView {
     #[serde(flatten)]
     pub record: ExperimentRecord,
@@ -183,17 +183,18 @@ pub struct ExperimentView {
 }
 
 /// The owner's task as everyone sees it.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct TaskSummary {
     pub name: String,
     pub description: String,
     pub metric: crate::store::task::Metric,
     /// `lower` or `higher`: which value ranks first.
+    #[schemars(extend("enum" = ["lower", "higher"]))]
     pub better: &'static str,
 }
 
 /// The lab as a user sees it.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct LabView {
     /// The experiment on the robot now, for every tab's banner.
     pub running: Option<RunningExperiment>,

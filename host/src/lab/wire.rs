@@ -848,7 +848,7 @@ impl RobotState {
 /// What a robot can run: the worlds and translators it has, and its
 /// baseline's hash; `id` is the short hash of the rest, which experiments
 /// name ("any robot of profile P").
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Profile {
     pub id: String,
     pub baseline: String,

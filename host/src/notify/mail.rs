@@ -98,7 +98,7 @@ pub struct MailConfig {
 
 /// A researcher's subscription: where her mail goes and for which events
 /// of her own experiments.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Subscription {
     pub address: String,

@@ -43,7 +43,7 @@ pub const MIN_SECRET_BYTES: usize = 16;
 pub const MAX_WEBHOOKS_FILE_BYTES: u64 = 256 * 1024;
 
 /// What happened (the `event` field of the JSON).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 pub enum EventKind {
     /// Its preflight passed: queued.
     #[serde(rename = "experiment.accepted")]

@@ -149,19 +149,28 @@ impl<S: Send + Sync> FromRequestParts<S> for ClientAddress {
     }
 }
 
+/// The logged-in user, as login and `GET /session` show them.
+#[derive(serde::Serialize, schemars::JsonSchema)]
+pub(super) struct SessionUser {
+    /// Whether they may drive the robot (teleoperation, the simulator's
+    /// controls, releasing a lock).
+    may_drive: bool,
+    name: String,
+    /// The platforms they may change (`control`, `network`).
+    platforms: Vec<&'static str>,
+    role: crate::store::users::Role,
+}
+
 fn user_json(user: &User) -> Json_ {
     let platforms: Vec<&str> =
         [Platform::Control, Platform::Network].iter().filter(|p| user.may_change(**p)).map(|p| p.name()).collect();
-    json!({
-        "name": user.name,
-        "role": user.role.name(),
-        "platforms": platforms,
-        "may_drive": user.may_drive(),
-    })
+    let view = SessionUser { may_drive: user.may_drive(), name: user.name.clone(), platforms, role: user.role };
+    serde_json::to_value(view).unwrap_or_default()
 }
 
-#[derive(Deserialize)]
-struct LoginRequest {
+/// The body of `POST /login`.
+#[derive(Deserialize, schemars::JsonSchema)]
+pub(super) struct LoginRequest {
     name: String,
     password: String,
 }

@@ -5,10 +5,33 @@
 use axum::Json;
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use serde_json::{Value as Json_, json};
 
 use crate::deploy::{DeployError, Diagnostics};
 use crate::store::StoreError;
+
+/// Every refusal and failure: why, and for a robot file the problems,
+/// each at its place.
+#[derive(serde::Serialize, schemars::JsonSchema)]
+pub(super) struct ErrorBody {
+    /// Empty but for a robot file's problems.
+    diagnostics: Vec<DiagnosticView>,
+    /// Why, lowercase, naming the thing and the place.
+    error: String,
+}
+
+/// One problem of a robot file.
+#[derive(serde::Serialize, schemars::JsonSchema)]
+struct DiagnosticView {
+    /// 1-based, in characters.
+    column: usize,
+    /// The file's name as uploaded.
+    file: String,
+    /// 1-based.
+    line: usize,
+    message: String,
+    /// `file:line:column: message`.
+    text: String,
+}
 
 /// A refused or failed request.
 #[derive(Debug)]
@@ -39,22 +62,20 @@ impl ApiError {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        let diagnostics: Vec<Json_> = self
+        let diagnostics = self
             .diagnostics
             .iter()
             .flat_map(|d| d.0.iter())
-            .map(|d| {
-                json!({
-                    "file": d.path.display().to_string(),
-                    "line": d.line,
-                    "column": d.column,
-                    "message": d.message,
-                    "text": d.to_string(),
-                })
+            .map(|d| DiagnosticView {
+                column: d.column,
+                file: d.path.display().to_string(),
+                line: d.line,
+                message: d.message.clone(),
+                text: d.to_string(),
             })
             .collect();
-        let mut response =
-            (self.status, Json(json!({ "error": self.message, "diagnostics": diagnostics }))).into_response();
+        let body = ErrorBody { diagnostics, error: self.message };
+        let mut response = (self.status, Json(body)).into_response();
         if let Some(seconds) = self.retry_after
             && let Ok(value) = HeaderValue::from_str(&seconds.to_string())
         {

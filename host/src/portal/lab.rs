@@ -212,9 +212,11 @@ pub(super) async fn put_settings(
     Ok(Json(json!({ "settings": settings })))
 }
 
-#[derive(serde::Deserialize)]
+/// The body of `POST /lab/maintenance`.
+#[derive(serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
-struct MaintenanceRequest {
+pub(super) struct MaintenanceRequest {
+    /// Why the robot is out of service (shown to every user).
     reason: String,
 }
 
@@ -294,9 +296,12 @@ pub(super) async fn delete_mail(
     Ok(Json(json!({ "mail": subscription })))
 }
 
-#[derive(serde::Deserialize)]
+/// The body of `PUT /lab/baseline`.
+#[derive(serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
-struct BaselineRequest {
+pub(super) struct BaselineRequest {
+    /// The stored set every experiment's set is checked against and the
+    /// robot returns to after each.
     set: u64,
 }
 
@@ -338,12 +343,15 @@ pub(super) async fn confirm_reset(
     Ok(Json(json!({ "confirmed_for": id })))
 }
 
-#[derive(serde::Deserialize)]
+/// The body of `POST /lab/reservations`.
+#[derive(serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
-struct BookingRequest {
-    /// Also spelled as the answer spells it (`start_ms`).
+pub(super) struct BookingRequest {
+    /// When it starts (ms since the Unix epoch); also spelled as the
+    /// answer spells it (`start_ms`).
     #[serde(alias = "start_ms")]
     start_unix_ms: u64,
+    /// When it ends (ms since the Unix epoch; `end_ms` too).
     #[serde(alias = "end_ms")]
     end_unix_ms: u64,
     /// Whom for (admins may book for anyone); the caller when missing.

@@ -19,7 +19,7 @@ pub const LOG_BROADCAST_DEPTH: usize = 256;
 /// Longest line kept: a guest's log line is capped by the sandbox already.
 pub const MAX_LOG_LINE_BYTES: usize = 2048;
 
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct LogLine {
     /// Seconds since the Unix epoch.
     pub time: f64,

@@ -1,5 +1,7 @@
-//! The web portal and its HTTP API under `/api/v1` (documented by
-//! `openapi.json`, served at `/api/v1/openapi.json`): login, component and
+//! The web portal and its HTTP API under `/api/v1` (documented by the
+//! OpenAPI document `openapi/` makes from the route table and the types,
+//! served at `/api/v1/openapi.json`; `openapi.json` is its golden copy):
+//! login, component and
 //! robot-file uploads, sets, activation and rollback, the emergency stop
 //! (engage, release, the locks), the live status (SSE),
 //! the simulator's controls (reset, pose, pause, resume, step),
@@ -34,6 +36,7 @@ pub mod error;
 mod lab;
 pub mod lab_client;
 pub mod logs;
+mod openapi;
 mod routes;
 
 use std::sync::Arc;
@@ -52,7 +55,6 @@ use crate::store::users::Directory;
 /// Largest JSON request (login, release): nothing else sends JSON.
 pub const MAX_JSON_BYTES: usize = 16 << 10;
 
-const OPENAPI: &str = include_str!("openapi.json");
 const INDEX_HTML: &str = include_str!("../../../web/index.html");
 const APP_JS: &str = include_str!("../../../web/app.js");
 const STYLE_CSS: &str = include_str!("../../../web/style.css");
@@ -254,7 +256,7 @@ fn shared_api() -> axum::Router<Arc<PortalState>> {
         .route("/robots/stop", post(lab::stop_all))
         .route("/robots/{name}/live", get(lab::robot_live))
         .route("/robots/{name}/stop", post(lab::stop_robot))
-        .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], OPENAPI) }))
+        .route("/openapi.json", get(|| async { ([(header::CONTENT_TYPE, "application/json")], openapi::served()) }))
 }
 
 /// The lab server's portal (`subsume lab serve`, docs/lab.md "Several

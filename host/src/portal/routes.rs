@@ -34,14 +34,20 @@ async fn blocking<T: Send + 'static>(
 }
 
 /// A stored component as the API shows it: its record, and the `source`
-/// a robot file names it by from any user's file (`OWNER/NAME.wasm`).
+/// a robot file names it by from any user's file.
+#[derive(serde::Serialize, schemars::JsonSchema)]
+pub(super) struct ComponentView {
+    #[serde(flatten)]
+    record: ComponentRecord,
+    /// How a robot file names it from anywhere: `OWNER/NAME.wasm` (its
+    /// owner may also write `NAME.wasm`).
+    source: String,
+}
+
+/// A stored component as the API shows it (`ComponentView`), as JSON.
 fn component_json(record: ComponentRecord) -> Json_ {
     let source = record.source();
-    let mut value = serde_json::to_value(record).unwrap_or_default();
-    if let Some(fields) = value.as_object_mut() {
-        fields.insert("source".into(), source.into());
-    }
-    value
+    serde_json::to_value(ComponentView { record, source }).unwrap_or_default()
 }
 
 /// Every stored component of every user, by owner then name.
@@ -93,9 +99,9 @@ pub(super) async fn get_component(
 }
 
 /// The body of `PUT /components/{owner}/{name}/visibility`.
-#[derive(serde::Deserialize)]
+#[derive(serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
-struct VisibilityBody {
+pub(super) struct VisibilityBody {
     visibility: crate::store::access::Visibility,
 }
 
@@ -178,15 +184,30 @@ pub(super) async fn validate_config(
     Ok(Json(validated))
 }
 
-fn set_status(id: u64, state: &StoreState) -> &'static str {
+/// Where a set stands among the active set and its rollback history.
+#[derive(Clone, Copy, serde::Serialize, schemars::JsonSchema)]
+#[serde(rename_all = "snake_case")]
+pub(super) enum SetStatus {
+    /// It runs.
+    Active,
+    /// It ran just before the active one: a rollback brings it back.
+    Previous,
+    /// It ran before that, and is in the rollback history.
+    #[serde(rename = "was active")]
+    WasActive,
+    /// It never ran.
+    Staged,
+}
+
+fn set_status(id: u64, state: &StoreState) -> SetStatus {
     if state.active == Some(id) {
-        "active"
+        SetStatus::Active
     } else if state.history.last() == Some(&id) {
-        "previous"
+        SetStatus::Previous
     } else if state.history.contains(&id) {
-        "was active"
+        SetStatus::WasActive
     } else {
-        "staged"
+        SetStatus::Staged
     }
 }
 
@@ -209,7 +230,7 @@ pub(super) async fn list_sets(
                 if let Some(fields) = value.as_object_mut() {
                     // The wiring is for one set's page (GET /sets/{id}).
                     fields.remove("graph");
-                    fields.insert("status".into(), status.into());
+                    fields.insert("status".into(), serde_json::to_value(status).unwrap_or_default());
                 }
                 value
             })
@@ -240,11 +261,8 @@ pub(super) async fn get_set(
             // Someone else's set answers as a missing one.
             return Err(ApiError::from(crate::store::StoreError::NoSet(id)));
         }
-        let overrides: Vec<Json_> = overrides
-            .iter()
-            .filter(|o| set.graph.components.iter().any(|c| c.name == o.component))
-            .map(|o| json!({ "component": o.component, "param": o.param, "value": o.value }))
-            .collect();
+        let overrides: Vec<&crate::deploy::ParamOverride> =
+            overrides.iter().filter(|o| set.graph.components.iter().any(|c| c.name == o.component)).collect();
         let config = if access.may_read_set(&user, &set) {
             Json_::String(String::from_utf8_lossy(&store.blob(&set.config_sha256)?).into_owned())
         } else {
@@ -287,9 +305,9 @@ pub(super) async fn activate(
 }
 
 /// The body of `POST /sets/{id}/replay`.
-#[derive(serde::Deserialize)]
+#[derive(serde::Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
-struct ReplayRequest {
+pub(super) struct ReplayRequest {
     /// A file of the recordings folder.
     recording: String,
     /// The components to replay; every WASM component when missing or empty.
@@ -697,9 +715,9 @@ pub(super) async fn list_recordings(
 
 /// The body of `POST /recordings/start` (optional: an empty body is a
 /// plain start).
-#[derive(serde::Deserialize, Default)]
+#[derive(serde::Deserialize, Default, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
-struct StartRecording {
+pub(super) struct StartRecording {
     /// Re-activate the active set and record from its first call.
     #[serde(default)]
     fresh_start: bool,

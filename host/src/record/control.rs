@@ -65,7 +65,7 @@ pub enum RecordingError {
 }
 
 /// The running recording as the portal shows it.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct RecordingInfo {
     pub name: String,
     pub by: String,
@@ -75,7 +75,7 @@ pub struct RecordingInfo {
 }
 
 /// One file of the recordings folder.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct RecordingFile {
     pub name: String,
     pub bytes: u64,
@@ -85,7 +85,7 @@ pub struct RecordingFile {
 }
 
 /// What a stopped recording wrote.
-#[derive(Clone, Debug, Serialize)]
+#[derive(Clone, Debug, Serialize, schemars::JsonSchema)]
 pub struct Stopped {
     pub name: String,
     pub by: String,

@@ -90,7 +90,7 @@ pub enum ReplayError {
 
 /// Where a replayed component's outputs on one port first differ from the
 /// recording: the first recorded call whose outputs on that port differ.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, schemars::JsonSchema)]
 pub struct Divergence {
     pub component: String,
     pub port: String,
@@ -138,7 +138,7 @@ impl std::fmt::Display for Divergence {
 }
 
 /// What a replay found.
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, schemars::JsonSchema)]
 pub struct ReplayReport {
     pub components: Vec<String>,
     /// Recorded calls fed again.

@@ -280,6 +280,20 @@ impl Graph {
         self.nodes.len() - 1
     }
 
+    /// The period of component `index`'s ticks (ns); `None` when it only
+    /// reacts.
+    pub fn period_ns(&self, index: usize) -> Option<u64> {
+        self.nodes.get(index).and_then(|n| n.period_ns)
+    }
+
+    /// Puts component `index`'s next tick (and the grid after it) `by_ns`
+    /// later: a seeded run's tick phase (`sim::perturb`).
+    pub fn delay_next_tick(&mut self, index: usize, by_ns: u64) {
+        if let Some(node) = self.nodes.get_mut(index) {
+            node.next_tick_ns = node.next_tick_ns.saturating_add(by_ns);
+        }
+    }
+
     /// Lets component `index` be restarted by `restarter` after a fault,
     /// under `policy`.
     pub fn set_restart(&mut self, index: usize, policy: RestartPolicy, restarter: Restarter) {

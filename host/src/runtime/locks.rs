@@ -40,7 +40,7 @@ pub const MAX_LOCK_HISTORY: usize = 256;
 pub const MAX_LOCK_TEXT: usize = 64;
 
 /// An engaged lock: who engaged it, how, and when (ms since the Unix epoch).
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 pub struct Engagement {
     pub lock: String,
     pub by: String,
@@ -49,7 +49,7 @@ pub struct Engagement {
 }
 
 /// One engage or release.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, schemars::JsonSchema)]
 pub struct LockEvent {
     pub lock: String,
     /// "engage" or "release".

@@ -136,6 +136,7 @@ fn settings(params: &Params, world: World) -> Result<SimSettings, BuiltinError> 
         protocol,
         feedback_hz: params.number("feedback-rate")?,
         controller_watchdog: params.seconds("controller-watchdog")?,
+        timing: None,
     })
 }
 
@@ -197,7 +198,10 @@ impl Builtin for SimBuiltin {
         let world =
             load_world(params, ctx.base_dir).map_err(|why| BuiltinError::Param { name: "world".into(), why })?;
         let name = ctx.component()?.name.clone();
-        let robot = SimulatedRobot::start(&name, settings(params, world)?, ctx.clock.lockstep())
+        let mut settings = settings(params, world)?;
+        // A seeded run's delays and noise (`subsume run --perturb`).
+        settings.timing = ctx.services.get::<super::perturb::Perturbation>().map(|p| p.sim_timing(&name));
+        let robot = SimulatedRobot::start(&name, settings, ctx.clock.lockstep())
             .map_err(|e| BuiltinError::Refused(format!("the simulated robot did not start: {e}")))?;
         if let Some(registry) = ctx.services.get::<super::SimRegistry>() {
             robot.register(&name, &registry);

@@ -22,6 +22,7 @@
 
 pub mod builtin;
 pub mod create2;
+pub mod perturb;
 pub mod physics;
 pub mod world;
 
@@ -77,6 +78,9 @@ pub struct SimSettings {
     /// The simulated controller stops the wheels when no command came for
     /// this long (real controllers have such a watchdog too).
     pub controller_watchdog: Duration,
+    /// Seeded sensor latency, range noise and serial delay (`subsume run
+    /// --perturb`); none: the lock-step's own timing.
+    pub timing: Option<perturb::SimTiming>,
 }
 
 /// The wire protocol of a simulated controller.
@@ -126,10 +130,13 @@ struct Core {
     feedback_now: bool,
     commands_received: u64,
     malformed: u64,
+    /// Seeded delays and noise ([`SimSettings::timing`]).
+    timing: Option<perturb::SimTiming>,
 }
 
 impl Core {
-    fn new(sim: Simulation, settings: SimSettings) -> Core {
+    fn new(sim: Simulation, mut settings: SimSettings) -> Core {
+        let timing = settings.timing.take();
         let wire = match settings.protocol {
             SimProtocol::Profile(profile) => {
                 Wire::Profile { profile, decoder: Decoder::new(profile), messages: Vec::new() }
@@ -149,6 +156,7 @@ impl Core {
             feedback_now: false,
             commands_received: 0,
             malformed: 0,
+            timing,
         }
     }
 
@@ -179,9 +187,15 @@ impl Core {
                 WheelCommand::Stop => (0.0, 0.0),
             };
             self.commands_received += 1;
-            if !self.paused {
-                self.sim.set_wheels(left, right);
-                self.last_command_s = self.sim.time_s();
+            if self.paused {
+                continue;
+            }
+            match &mut self.timing {
+                Some(timing) if timing.holds_commands() => timing.hold_command(self.sim.time_s(), left, right),
+                _ => {
+                    self.sim.set_wheels(left, right);
+                    self.last_command_s = self.sim.time_s();
+                }
             }
         }
     }
@@ -195,7 +209,28 @@ impl Core {
         self.advance(dt);
     }
 
+    /// Advances the world by `dt` seconds, acting on each held command
+    /// ([`SimSettings::timing`]) at its time within them.
     fn advance(&mut self, dt: f64) {
+        let Some(timing) = &mut self.timing else { return self.run(dt) };
+        let end = self.sim.time_s() + dt;
+        let mut next = timing.next_command_by(end);
+        while let Some((at, left, right)) = next {
+            let before = at - self.sim.time_s();
+            if before > 0.0 {
+                self.run(before);
+            }
+            self.sim.set_wheels(left, right);
+            self.last_command_s = self.sim.time_s();
+            next = self.timing.as_mut().and_then(|t| t.next_command_by(end));
+        }
+        let rest = end - self.sim.time_s();
+        if rest > 0.0 {
+            self.run(rest);
+        }
+    }
+
+    fn run(&mut self, dt: f64) {
         if self.sim.time_s() - self.last_command_s > self.settings.controller_watchdog.as_secs_f64() {
             self.sim.set_wheels(0.0, 0.0);
         }
@@ -209,27 +244,43 @@ impl Core {
     fn feedback(&mut self, out: &mut Vec<u8>) {
         let now = self.sim.time_s();
         let due = self.last_feedback_s.is_none_or(|last| now - last >= self.feedback_period_s - 1e-9);
-        if !(due || self.feedback_now) {
-            return;
+        if due || self.feedback_now {
+            self.feedback_now = false;
+            self.last_feedback_s = Some(now);
+            if self.timing.as_ref().is_some_and(perturb::SimTiming::holds_feedback) {
+                let mut measured = Vec::new();
+                self.measure(&mut measured);
+                if let Some(timing) = &mut self.timing {
+                    timing.hold_feedback(now, measured);
+                }
+            } else {
+                self.measure(out);
+            }
         }
-        self.feedback_now = false;
-        self.last_feedback_s = Some(now);
+        if let Some(timing) = &mut self.timing {
+            timing.release_feedback(now, out);
+        }
+    }
+
+    /// The feedback of this moment (ranges with their seeded noise, if
+    /// any), appended to `out`.
+    fn measure(&mut self, out: &mut Vec<u8>) {
         let sim = &self.sim;
+        let max_range = self.settings.body.max_range;
+        let mut ranges = sim.ranges();
+        if let Some(timing) = &mut self.timing {
+            timing.add_noise(&mut ranges, max_range);
+        }
         match &self.wire {
             Wire::Profile { profile, .. } => {
                 let (x, y, heading) = sim.pose();
                 profile.encode_feedback(&Feedback::Odometry { x, y, heading }, out);
-                profile.encode_feedback(&Feedback::Ranges(sim.ranges()), out);
+                profile.encode_feedback(&Feedback::Ranges(ranges), out);
                 profile.encode_feedback(&Feedback::Bumper(sim.bumper()), out);
                 profile.encode_feedback(&Feedback::Battery(BATTERY_VOLTS), out);
             }
             Wire::Create2(oi) => {
-                let readings = Readings {
-                    bumper: sim.bumper(),
-                    volts: BATTERY_VOLTS,
-                    ranges: sim.ranges(),
-                    max_range: self.settings.body.max_range,
-                };
+                let readings = Readings { bumper: sim.bumper(), volts: BATTERY_VOLTS, ranges, max_range };
                 out.extend(oi.frame(&readings).unwrap_or_default());
             }
         }
@@ -243,6 +294,9 @@ impl Core {
         self.feedback_now = true;
         if let Wire::Create2(oi) = &mut self.wire {
             *oi = OpenInterface::new(self.settings.body.geometry.wheel_base);
+        }
+        if let Some(timing) = &mut self.timing {
+            timing.clear();
         }
     }
 }
@@ -618,6 +672,7 @@ mod tests {
             protocol: SimProtocol::Profile(Profile::Ascii),
             feedback_hz: 10.0,
             controller_watchdog: Duration::from_secs(1),
+            timing: None,
         }
     }
 
@@ -642,14 +697,25 @@ mod tests {
 
         /// The poses in the feedback received so far (and forgets them).
         fn poses(&self) -> Vec<(f64, f64, f64)> {
+            self.feedback()
+                .into_iter()
+                .filter_map(|f| match f {
+                    Feedback::Odometry { x, y, heading } => Some((x, y, heading)),
+                    _ => None,
+                })
+                .collect()
+        }
+
+        /// The feedback received so far (and forgets it).
+        fn feedback(&self) -> Vec<Feedback> {
             let mut decoder = Decoder::new(Profile::Ascii);
             let mut messages = Vec::new();
             decoder.feed(&std::mem::take(&mut *self.received.lock().unwrap()), &mut messages);
             messages
                 .into_iter()
                 .filter_map(|m| match m {
-                    Message::Feedback(Feedback::Odometry { x, y, heading }) => Some((x, y, heading)),
-                    _ => None,
+                    Message::Feedback(feedback) => Some(feedback),
+                    Message::Command(_) => None,
                 })
                 .collect()
         }
@@ -685,10 +751,11 @@ mod tests {
 
     use crate::runtime::lockstep::LockstepLink;
 
-    #[test]
-    fn a_robot_in_lockstep_follows_controlled_time_and_is_reset_posed_paused_and_stepped() {
+    /// A robot in lock-step and the link that talks to it, the robot with
+    /// `timing`.
+    fn robot_and_link(timing: Option<perturb::SimTiming>) -> (Arc<Lockstep>, SimulatedRobot, Arc<TestLink>) {
         let lockstep = Arc::new(Lockstep::default());
-        let robot = SimulatedRobot::start("t", settings(), Some(&lockstep)).unwrap();
+        let robot = SimulatedRobot::start("t", SimSettings { timing, ..settings() }, Some(&lockstep)).unwrap();
         let port = serialport::new(robot.pty_path().to_string_lossy(), 115_200)
             .timeout(Duration::from_millis(20))
             .open_native()
@@ -703,6 +770,74 @@ mod tests {
         });
         let joined: Arc<dyn LockstepLink> = link.clone();
         lockstep.join_link(&joined);
+        (lockstep, robot, link)
+    }
+
+    /// A seeded robot (`sim::perturb`): a command acts up to the serial
+    /// delay late, a reading arrives up to the sensor latency late and in
+    /// order, and ranges carry noise within their bound; without timing,
+    /// none of it.
+    #[test]
+    fn seeded_timing_delays_commands_and_readings_and_adds_noise() {
+        let bounds = perturb::PerturbBounds {
+            tick_phase: false,
+            sensor_latency_ms: 80.0,
+            range_noise_m: 0.05,
+            serial_delay_ms: 200.0,
+        };
+        let timing = perturb::Perturbation { seed: 11, bounds }.sim_timing("t");
+        for timed in [false, true] {
+            let (lockstep, robot, link) = robot_and_link(timed.then(|| timing.clone()));
+            let at = |s: f64| lockstep.before_cycle((s * 1e9) as u64);
+            at(0.0);
+            // The reading of time 0 waits for its latency.
+            assert_eq!(link.poses().len(), usize::from(!timed), "timed: {timed}");
+            link.send(MotorCommand::Wheels { left: 0.2, right: 0.2 });
+            at(1.0);
+            let x = robot.control().status().x;
+            if timed {
+                // It started up to 200 ms late: up to 4 cm short.
+                assert!((1.16 - 1e-9..1.2 - 1e-6).contains(&x), "{x}");
+            } else {
+                assert!((x - 1.2).abs() < 1e-9, "{x}");
+            }
+            // The reading of time 0 came; the one of time 1 (taken now)
+            // comes within 80 ms.
+            let poses = link.poses();
+            assert_eq!(poses.len(), 1, "{poses:?}");
+            assert!((poses[0].0 - if timed { 1.0 } else { 1.2 }).abs() < 1e-3, "{poses:?}");
+            at(1.09);
+            let feedback = link.feedback();
+            let poses: Vec<f64> = feedback
+                .iter()
+                .filter_map(|f| if let Feedback::Odometry { x, .. } = f { Some(*x) } else { None })
+                .collect();
+            assert!(poses.len() == usize::from(timed) && (!timed || (poses[0] - x).abs() < 1e-3), "{poses:?}");
+            // Ranges (the robot stands still now: its controller's
+            // watchdog stopped it): off by up to 5 cm with timing, as
+            // measured (to the wire's millimetre) without.
+            at(1.5);
+            at(1.6);
+            let truth = robot.control().status().ranges;
+            let read = link
+                .feedback()
+                .into_iter()
+                .filter_map(|f| if let Feedback::Ranges(r) = f { Some(r) } else { None })
+                .next()
+                .unwrap();
+            let off: Vec<f64> = read.iter().zip(&truth).map(|(r, t)| (r - t).abs()).collect();
+            assert_eq!(read.len(), truth.len());
+            if timed {
+                assert!(off.iter().all(|o| *o <= 0.051) && off.iter().any(|o| *o > 0.002), "{off:?}");
+            } else {
+                assert!(off.iter().all(|o| *o <= 0.001), "{off:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_robot_in_lockstep_follows_controlled_time_and_is_reset_posed_paused_and_stepped() {
+        let (lockstep, robot, link) = robot_and_link(None);
         let control = robot.control();
         let at = |s: f64| lockstep.before_cycle((s * 1e9) as u64);
 

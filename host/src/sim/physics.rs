@@ -17,7 +17,7 @@ pub const MAX_STEP_S: f64 = 0.005;
 pub const MAX_CONTACTS_KEPT: usize = 16;
 
 /// Where and when the robot ran into something.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct Contact {
     /// Simulated seconds since start.
     pub time_s: f64,
@@ -41,7 +41,7 @@ pub struct Body {
 }
 
 /// What the report and the live view show of the simulation.
-#[derive(Clone, Debug, PartialEq, Serialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, schemars::JsonSchema)]
 pub struct SimStatus {
     pub x: f64,
     pub y: f64,

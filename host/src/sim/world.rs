@@ -23,21 +23,21 @@ pub const MAX_WORLD_BYTES: u64 = 1 << 20;
 /// Most obstacles in a world: each costs every range ray a test per step.
 pub const MAX_OBSTACLES: usize = 10_000;
 
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, schemars::JsonSchema)]
 pub struct Point {
     pub x: f64,
     pub y: f64,
 }
 
 /// Something the robot cannot pass through.
-#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Obstacle {
     Segment(Point, Point),
     Circle(Point, f64),
 }
 
-#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, schemars::JsonSchema)]
 pub struct World {
     pub bounds: (Point, Point),
     pub start: (Point, f64),

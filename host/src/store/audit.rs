@@ -22,7 +22,7 @@ pub fn clip_detail(detail: &str) -> String {
 }
 
 /// One line of the audit log.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct AuditEntry {
     /// Seconds since the Unix epoch.
     pub time: u64,

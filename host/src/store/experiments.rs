@@ -44,7 +44,7 @@ pub const MAX_LABEL_LEN: usize = 120;
 pub const MAX_REASONS: usize = 32;
 
 /// Where an experiment is in its life.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum ExperimentState {
     /// Submitted; its set is being validated again.
@@ -155,7 +155,7 @@ impl std::fmt::Display for ExperimentState {
 }
 
 /// One state change: when (ms since the Unix epoch) and why.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct StateChange {
     pub state: ExperimentState,
     pub at_ms: u64,
@@ -163,7 +163,7 @@ pub struct StateChange {
 }
 
 /// A component of the experiment's set, as it ran.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ComponentHash {
     pub name: String,
     /// `builtin:KIND`, or the source as the robot file writes it.
@@ -173,7 +173,7 @@ pub struct ComponentHash {
 }
 
 /// What the preflight found.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct PreflightResult {
     pub passed: bool,
     /// Every reason it did not pass, in the order they happened.
@@ -198,7 +198,7 @@ pub struct PreflightResult {
 }
 
 /// What the run on the robot left.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RunResult {
     pub started_ms: u64,
     pub ended_ms: u64,
@@ -218,7 +218,7 @@ pub struct RunResult {
 /// How an algorithm did in its run on the robot, from the run's report:
 /// its components' faults, the collisions its simulated robots counted,
 /// the envelope's interventions by kind, and the world's goal.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct RunOutcome {
     /// Each component that faulted, with when (seconds from the run's
     /// start) and why; at most [`MAX_OUTCOME_FAULTS`].
@@ -242,7 +242,7 @@ pub struct RunOutcome {
 pub const MAX_OUTCOME_FAULTS: usize = 16;
 
 /// A component's fault in a run.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct FaultSeen {
     pub component: String,
     pub at_s: Option<f64>,
@@ -289,7 +289,7 @@ fn at(at_s: Option<f64>) -> String {
 }
 
 /// A file of an experiment's results.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ResultFile {
     /// Its name inside the experiment's folder (and the bundle).
     pub name: String,
@@ -297,7 +297,7 @@ pub struct ResultFile {
 }
 
 /// The settings an experiment ran under, copied when it was submitted.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct AppliedSettings {
     pub max_duration_s: f64,
     pub limits: Limits,
@@ -314,7 +314,7 @@ pub struct AppliedSettings {
 }
 
 /// One experiment.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ExperimentRecord {
     pub format: u32,
     pub id: u64,
@@ -367,7 +367,7 @@ pub struct ExperimentRecord {
 
 /// Where a robot's experiment came from: lab `lab`'s experiment `id`,
 /// submitted by a user with these rights in the lab.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Origin {
     pub lab: String,
     pub id: u64,
@@ -380,7 +380,7 @@ pub struct Origin {
 }
 
 /// Which robots may run an experiment of a lab server.
-#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Target {
     /// The first free robot.
@@ -393,7 +393,7 @@ pub enum Target {
 }
 
 /// Where a lab server's experiment is, among its robots.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Placement {
     pub target: Target,
     /// The robot it was given to (while it is dispatched, runs, or after).
@@ -531,7 +531,7 @@ impl ExperimentRecord {
 
 /// A booked window: only `user`'s experiments run in it, and `user` may
 /// drive.
-#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Reservation {
     pub id: u64,
     pub user: String,
@@ -550,7 +550,7 @@ impl Reservation {
 }
 
 /// The owner's limits on what one user may ask of the robot.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Limits {
     /// Experiments a user may have waiting (checked, in preflight or
@@ -579,7 +579,7 @@ impl Default for Limits {
 
 /// What the preflight must see to pass (the owner's; by default nothing
 /// of the kind may happen).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Criteria {
     /// Collisions with obstacles allowed.
@@ -599,7 +599,7 @@ pub struct Criteria {
 }
 
 /// How the robot gets back to its start before each experiment.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum ResetPolicy {
     /// The simulated world is reset.
@@ -613,7 +613,7 @@ pub enum ResetPolicy {
 }
 
 /// The owner's settings of the lab.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct LabSettings {
     /// Longest experiment, seconds.
@@ -655,6 +655,65 @@ pub struct LabSettings {
     /// scores"). Off (`null`) by default.
     #[serde(default)]
     pub task: Option<crate::store::task::Task>,
+    /// How many times the preflight runs, and the timing a robot has that
+    /// each run is seeded with (docs/lab.md, "Timing"). Settings from
+    /// before it get the defaults.
+    #[serde(default)]
+    pub preflight_timing: PreflightTiming,
+}
+
+/// Runs of a preflight by default: a few, so that a set whose verdict
+/// hangs on timing is likely seen both ways, and a 60 s experiment's
+/// preflight still takes seconds.
+pub const DEFAULT_PREFLIGHT_RUNS: u32 = 3;
+
+/// Most runs of a preflight. Threat: each run is a whole preflight on the
+/// lab's CPU; more would hold every experiment's checks that many times as
+/// long.
+pub const MAX_PREFLIGHT_RUNS: u32 = 10;
+
+/// The preflight's runs and the bounds of each one's seeded timing
+/// (`sim::perturb::PerturbBounds`, whose limits they keep).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PreflightTiming {
+    /// Runs, each with its own seed (1 to [`MAX_PREFLIGHT_RUNS`]).
+    pub runs: u32,
+    /// Offset each component's first tick by a seeded fraction of its period.
+    pub tick_phase: bool,
+    /// Most a sensor reading waits before it reaches the host (ms).
+    pub sensor_latency_ms: f64,
+    /// Most a range reading is off, either way (m).
+    pub range_noise_m: f64,
+    /// Most a command waits on the serial link before the motors act on it (ms).
+    pub serial_delay_ms: f64,
+}
+
+impl PreflightTiming {
+    /// The bounds of each run's perturbation.
+    pub fn bounds(&self) -> crate::sim::perturb::PerturbBounds {
+        crate::sim::perturb::PerturbBounds {
+            tick_phase: self.tick_phase,
+            sensor_latency_ms: self.sensor_latency_ms,
+            range_noise_m: self.range_noise_m,
+            serial_delay_ms: self.serial_delay_ms,
+        }
+    }
+}
+
+impl Default for PreflightTiming {
+    /// [`DEFAULT_PREFLIGHT_RUNS`] runs within the default bounds
+    /// (`PerturbBounds::DEFAULT`, with their reasons).
+    fn default() -> PreflightTiming {
+        let bounds = crate::sim::perturb::PerturbBounds::DEFAULT;
+        PreflightTiming {
+            runs: DEFAULT_PREFLIGHT_RUNS,
+            tick_phase: bounds.tick_phase,
+            sensor_latency_ms: bounds.sensor_latency_ms,
+            range_noise_m: bounds.range_noise_m,
+            serial_delay_ms: bounds.serial_delay_ms,
+        }
+    }
 }
 
 impl LabSettings {
@@ -675,7 +734,7 @@ impl LabSettings {
 /// until the robot's pose is within `tolerance` of `pose`, and still is
 /// after `settle_s` at rest, or `timeout_s` has passed (a failure: the
 /// robot goes out of service).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DriveReset {
     /// The reset set (a staged set; it keeps the robot's envelope).
@@ -695,16 +754,17 @@ pub struct DriveReset {
 
 /// A pose in the robot's odometry frame: metres, and radians
 /// counter-clockwise from +x.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Pose {
     pub x: f64,
     pub y: f64,
+    /// Radians.
     pub heading: f64,
 }
 
 /// How far from the start pose still counts as at it.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct PoseTolerance {
     pub position_m: f64,
@@ -719,7 +779,7 @@ pub const MAX_RESET_SETTLE_S: f64 = 60.0;
 
 /// How a reset by driving went (on the record of the experiment it was
 /// for).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ResetOutcome {
     /// When it began (ms since the Unix epoch).
     pub at_ms: u64,
@@ -735,7 +795,7 @@ pub struct ResetOutcome {
 }
 
 /// The owner's self-test: what is checked after every run.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct SelfTestSettings {
     /// How long the robot is watched (ms, 200 to 10000): every serial
@@ -778,7 +838,7 @@ fn checked() -> bool {
 pub const SELF_TEST_WINDOW_MS: std::ops::RangeInclusive<u64> = 200..=10_000;
 
 /// One self-test, as run after an experiment (or asked by an admin).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SelfTest {
     pub at_ms: u64,
     /// The experiment it followed, if any.
@@ -788,7 +848,7 @@ pub struct SelfTest {
 }
 
 /// One check of a self-test, and what it found.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SelfTestCheck {
     /// `feedback`, `components` or `battery`.
     pub check: String,
@@ -801,7 +861,7 @@ pub struct SelfTestCheck {
 pub const MAX_SELF_TESTS: usize = 50;
 
 /// Run at most `run_s` seconds of experiments, then rest `rest_s`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct DutyCycle {
     pub run_s: u64,
@@ -832,6 +892,7 @@ impl Default for LabSettings {
             self_test: None,
             drive_reset: None,
             task: None,
+            preflight_timing: PreflightTiming::default(),
         }
     }
 }
@@ -852,7 +913,7 @@ fn check_format(bytes: &[u8]) -> Result<(), String> {
 }
 
 /// `lab.json`: the lab's own state.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct LabState {
     pub format: u32,
     pub next_experiment: u64,
@@ -877,7 +938,7 @@ pub struct LabState {
 }
 
 /// Why and since when the robot is out of service, and who said so.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Maintenance {
     pub reason: String,
     pub by: String,
@@ -988,6 +1049,23 @@ mod tests {
             let json = serde_json::to_string(&state).unwrap_or_default();
             assert_eq!(json, format!("\"{}\"", state.name()));
         }
+    }
+
+    /// Settings written before the preflight's timing existed load with
+    /// its defaults; written back, they carry it.
+    #[test]
+    fn settings_from_before_the_preflights_timing_load_with_its_defaults() {
+        let mut old = serde_json::to_value(LabSettings::default()).unwrap();
+        old.as_object_mut().unwrap().remove("preflight_timing");
+        let settings: LabSettings = serde_json::from_value(old).unwrap();
+        assert_eq!(settings.preflight_timing, PreflightTiming::default());
+        assert_eq!(settings.preflight_timing.runs, DEFAULT_PREFLIGHT_RUNS);
+        assert_eq!(settings.preflight_timing.bounds(), crate::sim::perturb::PerturbBounds::DEFAULT);
+        let written = serde_json::to_value(&settings).unwrap();
+        assert_eq!(written["preflight_timing"]["runs"], 3, "{written:#}");
+        let unknown = serde_json::json!({ "runs": 3, "tick_phase": true, "sensor_latency_ms": 1.0, "range_noise_m": 0.0,
+            "serial_delay_ms": 0.0, "jitter": 1 });
+        assert!(serde_json::from_value::<PreflightTiming>(unknown).is_err(), "an unknown bound is refused");
     }
 
     #[test]

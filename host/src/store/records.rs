@@ -25,7 +25,7 @@ fn first_format() -> u32 {
 }
 
 /// A component as uploaded.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct ComponentRecord {
     pub name: String,
     pub sha256: String,
@@ -39,14 +39,15 @@ pub struct ComponentRecord {
     /// What `describe` returned; translators have none.
     #[serde(default, deserialize_with = "description_or_none")]
     pub description: Option<DescriptionDoc>,
-    /// Who besides its owner and the admins may see and run it
-    /// (`store::access`); private unless its owner shares it.
+    /// Who besides its owner and the admins may see and run it (`private`:
+    /// nobody; `lab`: every user, read-only); private unless its owner
+    /// shares it (`store::access`).
     #[serde(default)]
     pub visibility: Visibility,
 }
 
 /// Who may run and see an upload besides its owner and the admins.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Visibility {
     /// Its owner and the admins only (and, for an upload of the robot's
@@ -68,7 +69,7 @@ impl Visibility {
 }
 
 /// The WIT world a component fits.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum World {
     Component,
@@ -152,7 +153,7 @@ impl ComponentIndex {
 }
 
 /// A simulator world file as uploaded (its bytes are a blob).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct WorldRecord {
     pub name: String,
     pub sha256: String,
@@ -181,7 +182,7 @@ impl WorldIndex {
 
 /// A robot file with the components it runs, ready to activate. Never
 /// changed once written.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct SetRecord {
     #[serde(default = "first_format")]
     pub format: u32,
@@ -227,14 +228,14 @@ impl SetRecord {
 }
 
 /// A set's components and connections, as the wiring view draws them.
-#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct WiringGraph {
     pub robot: String,
     pub components: Vec<WiringComponent>,
     pub connections: Vec<WiringConnection>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct WiringComponent {
     pub name: String,
     pub platform: String,
@@ -246,7 +247,7 @@ pub struct WiringComponent {
     pub outputs: Vec<String>,
 }
 
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct WiringConnection {
     /// `component.port`
     pub from: String,

@@ -12,7 +12,7 @@ pub const MAX_TASK_NAME: usize = 64;
 pub const MAX_TASK_DESCRIPTION: usize = 2000;
 
 /// A task: a goal region, and the metric a run is ranked by.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Task {
     /// `[a-z0-9-]`, 1 to 64.
@@ -55,7 +55,7 @@ pub struct Task {
 
 /// A task's end condition: what ends a run (an episode) before its
 /// duration.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum EndCondition {
     /// A pose of the task's `pose` port within the goal's radius.
@@ -91,7 +91,7 @@ impl<'de> Deserialize<'de> for EndCondition {
 }
 
 /// Why a run (an episode) ended, as its outcome says (`run.outcome.ended_by`).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "kebab-case")]
 pub enum EpisodeEnd {
     /// The robot reached the task's goal (its end condition `goal`).
@@ -122,7 +122,7 @@ impl EpisodeEnd {
 }
 
 /// Which of a user's scored runs the leaderboard ranks.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum BoardChoice {
     /// Their best by the metric.
@@ -137,7 +137,7 @@ fn default_pseudonyms() -> bool {
 }
 
 /// A disc the robot must reach.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Goal {
     pub x: f64,
@@ -157,7 +157,7 @@ impl Goal {
 /// upload of the `scorer` world named `OWNER/NAME`, pinned by its sha256,
 /// so a task always scores with the bytes its owner chose (a new upload of
 /// the same name is refused until the task names its sha256).
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ScorerRef {
     /// The upload, `OWNER/NAME`.
@@ -171,7 +171,7 @@ pub struct ScorerRef {
 
 /// What a run is ranked by (built in; each is also a sub-score; or the
 /// task's scoring component).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "snake_case")]
 pub enum Metric {
     /// Seconds from the run's start to the first pose inside the goal
@@ -242,7 +242,7 @@ fn default_wheel_base_m() -> f64 {
 
 /// A run's score (`score.json` in its bundle): the task's metric and
 /// every sub-score, from its recording.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize, schemars::JsonSchema)]
 pub struct Score {
     pub task: String,
     pub metric: Metric,

@@ -43,7 +43,7 @@ pub const ARGON2_PASSES: u32 = 2;
 /// Length of generated passwords (alphanumeric): ~119 bits.
 pub const GENERATED_PASSWORD_LEN: usize = 20;
 
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Serialize, Deserialize, schemars::JsonSchema)]
 #[serde(rename_all = "lowercase")]
 pub enum Role {
     Viewer,
