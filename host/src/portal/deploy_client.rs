@@ -639,7 +639,9 @@ mod tests {
         ];
         let robot = |n: &str| Target::Robot(n.into());
         let profile = |p: &str| Target::Profile(p.into());
-        let cases: [(Target, Result<(u64, &str), &str>); 6] = [
+        /// The set and whose words expected, or the error's first words.
+        type Expected = Result<(u64, &'static str), &'static str>;
+        let cases: [(Target, Expected); 6] = [
             (robot("r1"), Ok((4, "robot r1's baseline"))),
             (robot("r3"), Ok((9, "robot r3's baseline"))),
             (profile("bbb"), Ok((9, "the baseline of profile bbb (robot r3)"))),
