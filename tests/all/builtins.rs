@@ -55,7 +55,7 @@ fn probes(decl: &ParamDecl) -> Vec<(String, bool)> {
             vec![("127.0.0.1:0".into(), true), (String::new(), optional), ("localhost".into(), false)]
         }
         ParamType::Required => vec![(String::new(), false)],
-        ParamType::File { optional } => vec![(String::new(), optional)],
+        ParamType::File { optional } | ParamType::SecretFile { optional, .. } => vec![(String::new(), optional)],
         ParamType::WordOrFile(words) => {
             let mut probes: Vec<(String, bool)> = words.iter().map(|w| (w.to_string(), true)).collect();
             probes.push((String::new(), false));

@@ -88,7 +88,9 @@ mod tests {
                 if decl.is_required() {
                     let required = matches!(
                         decl.ty,
-                        crate::builtin::ParamType::Required | crate::builtin::ParamType::File { optional: false }
+                        crate::builtin::ParamType::Required
+                            | crate::builtin::ParamType::File { optional: false }
+                            | crate::builtin::ParamType::SecretFile { optional: false, .. }
                     );
                     assert!(required && decl.default.is_empty(), "builtin:{} {}", builtin.kind(), decl.name);
                 }

@@ -95,7 +95,10 @@ pub const SESSION_PARAMS: [ParamDecl; 3] = [
     },
     ParamDecl {
         name: "zenoh-config",
-        ty: ParamType::File { optional: true },
+        ty: ParamType::SecretFile {
+            optional: true,
+            stand_in: "// stands in for the robot's Zenoh config: the lab server never opens it\n{}\n",
+        },
         default: "",
         unit: "",
         doc: "a Zenoh JSON5 config file (TLS, user/password); connect and listen replace its endpoints",

@@ -68,6 +68,11 @@ pub enum ParamType {
     /// A file, relative to the robot file's folder; empty when `optional`.
     /// The built-in's own check reads it.
     File { optional: bool },
+    /// As `File`, for a file that holds the robot's secrets (operators'
+    /// tokens, a Zenoh config's credentials): it never leaves the robot. A
+    /// lab server's copy of the set, and the preflight, get `stand_in` in
+    /// its place: it validates, and nobody can use it.
+    SecretFile { optional: bool, stand_in: &'static str },
     /// One of these words, or a file relative to the robot file's folder.
     WordOrFile(&'static [&'static str]),
 }
@@ -95,12 +100,22 @@ impl ParamDecl {
         }
     }
 
+    /// What stands in for the file this parameter names where the robot's
+    /// secrets must not go (`ParamType::SecretFile`); `None`: the file
+    /// itself may travel.
+    pub fn stand_in(&self) -> Option<&'static str> {
+        match self.ty {
+            ParamType::SecretFile { stand_in, .. } => Some(stand_in),
+            _ => None,
+        }
+    }
+
     /// The file `value` names, if this parameter names files and `value`
     /// is not one of its words.
     pub fn file<'v>(&self, value: &'v str) -> Option<&'v str> {
         let value = value.trim();
         match self.ty {
-            ParamType::File { .. } if !value.is_empty() => Some(value),
+            ParamType::File { .. } | ParamType::SecretFile { .. } if !value.is_empty() => Some(value),
             ParamType::WordOrFile(words) if !words.contains(&value) => Some(value),
             _ => None,
         }
@@ -151,7 +166,7 @@ impl ParamDecl {
             ParamType::Address { optional } => {
                 format!("an address like 127.0.0.1:7070{}", if optional { ", or empty for none" } else { "" })
             }
-            ParamType::File { optional } => {
+            ParamType::File { optional } | ParamType::SecretFile { optional, .. } => {
                 format!("a file relative to the robot file{}", if optional { ", or empty for none" } else { "" })
             }
             ParamType::WordOrFile(words) => format!("{} or a file relative to the robot file", words.join(", ")),
@@ -172,7 +187,7 @@ impl ParamDecl {
             ParamType::Address { optional } => {
                 (optional && trimmed.is_empty()) || trimmed.parse::<SocketAddr>().is_ok()
             }
-            ParamType::File { optional } => optional || !trimmed.is_empty(),
+            ParamType::File { optional } | ParamType::SecretFile { optional, .. } => optional || !trimmed.is_empty(),
             ParamType::WordOrFile(_) => !trimmed.is_empty(),
         };
         if ok {

@@ -307,27 +307,6 @@ pub enum NamedContent {
     StandIn(Vec<u8>),
 }
 
-/// The stand-in sent in place of the file that parameter `param` of a
-/// component of built-in `builtin` names, when that file holds the robot's
-/// secrets (its operators, its Zenoh config): it validates, and nobody can
-/// use it. The built-ins are named through the registry.
-fn stand_in(builtin: &dyn crate::builtin::Builtin, param: &str) -> Option<&'static str> {
-    let kind = registry::kind_of(builtin)?;
-    let secrets: [(&dyn crate::builtin::Builtin, &str, &'static str); 2] = [
-        (
-            &crate::teleop::builtin::TeleopBuiltin,
-            "operators",
-            "# stands in for the robot's operators file: nobody drives from the lab server\n",
-        ),
-        (
-            &crate::bridge::ports::ZenohSession,
-            "zenoh-config",
-            "// stands in for the robot's Zenoh config: the lab server never opens it\n{}\n",
-        ),
-    ];
-    secrets.into_iter().find(|(b, p, _)| registry::kind_of(*b) == Some(kind) && *p == param).map(|(_, _, text)| text)
-}
-
 /// Every file the built-ins of `set` name (a relative path each; an
 /// absolute one or one with `..` cannot travel and is left out), with
 /// where its bytes come from.
@@ -356,7 +335,7 @@ pub fn named_files(store: &Store, set: &SetRecord) -> Result<Vec<NamedFile>, Mat
             if relative.is_absolute() || relative.components().any(|c| !matches!(c, std::path::Component::Normal(_))) {
                 continue;
             }
-            let content = match stand_in(builtin, decl.name) {
+            let content = match decl.stand_in() {
                 Some(text) => NamedContent::StandIn(text.as_bytes().to_vec()),
                 None => match set.sources.get(path) {
                     Some(sha) => NamedContent::Blob(sha.clone()),
@@ -399,6 +378,49 @@ impl Folder<'_> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The files a set's built-ins name: the world travels as it is; the
+    /// operators file and the Zenoh config (parameters declared as secret
+    /// files) travel only as their built-in's stand-in, whatever they hold.
+    #[test]
+    fn files_that_hold_secrets_travel_only_as_their_stand_ins() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = Store::open(&dir.path().join("store")).unwrap();
+        let robot = r#"<robot name="r">
+  <platform name="control">
+    <component name="sim" source="builtin:sim"><param name="world" value="arena.world"/></component>
+  </platform>
+  <platform name="network">
+    <component name="teleop" source="builtin:teleop"><param name="operators" value="ops.txt"/></component>
+    <component name="bus" source="builtin:zenoh"><param name="zenoh-config" value="zenoh.json5"/></component>
+  </platform>
+</robot>
+"#;
+        let set = SetRecord {
+            format: 1,
+            id: 7,
+            created_by: "owner".into(),
+            created_at: 0,
+            platform: None,
+            config_name: "robot.xml".into(),
+            config_sha256: store.lock().unwrap().put_blob(robot.as_bytes()).unwrap(),
+            base_dir: dir.path().to_path_buf(),
+            sources: BTreeMap::new(),
+            changes: Vec::new(),
+            graph: Default::default(),
+        };
+        let files = named_files(&store, &set).unwrap();
+        let content = |param: &str| files.iter().find(|f| f.param == param).map(|f| f.content.clone());
+        assert_eq!(content("world"), Some(NamedContent::File(dir.path().join("arena.world"))), "{files:#?}");
+        for (param, words) in [("operators", "nobody drives from the lab server"), ("zenoh-config", "never opens it")] {
+            match content(param) {
+                Some(NamedContent::StandIn(bytes)) => {
+                    assert!(String::from_utf8(bytes).unwrap().contains(words), "{param}: {files:#?}")
+                }
+                other => panic!("{param} travels as {other:?}, not as its stand-in"),
+            }
+        }
+    }
 
     #[test]
     fn the_reset_pose_replaces_the_worlds_start_and_the_world_still_reads() {

@@ -64,7 +64,10 @@ const PARAMS: &[ParamDecl] = &[
     },
     ParamDecl {
         name: "operators",
-        ty: ParamType::File { optional: true },
+        ty: ParamType::SecretFile {
+            optional: true,
+            stand_in: "# stands in for the robot's operators file: nobody drives from the lab server\n",
+        },
         default: "",
         unit: "",
         doc: "file of NAME TOKEN lines, relative to the robot file; optional with the portal (its operators log in)",
